@@ -1,0 +1,158 @@
+"""Rigid transforms and rotation forms.
+
+Conventions (shared/INTERFACES.md §1): ``T_a_b`` is a 4x4 homogeneous matrix that maps
+coordinates in frame ``b`` into frame ``a``; compose left to right
+(``T_base_cam = T_base_tool @ T_tool_cam``). Translations are metres, angles radians.
+
+The Universal Robots TCP-pose form is ``[x, y, z, rx, ry, rz]``: metres and a rotation vector
+(axis times angle, radians). HALCON's pose type 0 is ``[x, y, z, a, b, c, 0]`` with Euler angles
+in degrees applied as ``R = Rx(a) @ Ry(b) @ Rz(c)`` (rotations about the fixed axes, in the order
+c then b then a).
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+Mat4 = NDArray[np.float64]
+Mat3 = NDArray[np.float64]
+Vec = NDArray[np.float64]
+
+_ORTHONORMAL_TOL: Final = 1e-6
+
+
+class PoseError(ValueError):
+    """A pose is not a valid rigid transform (wrong shape, not orthonormal, not finite)."""
+
+
+def as_transform(T: ArrayLike, name: str = "T") -> Mat4:
+    """Validate and return a 4x4 rigid transform as a float64 array.
+
+    Raises PoseError naming ``name`` when the matrix is not 4x4, not finite, its last row is not
+    ``[0, 0, 0, 1]`` or its rotation block is not orthonormal with determinant +1.
+    """
+    M = np.asarray(T, dtype=np.float64)
+    if M.shape != (4, 4):
+        raise PoseError(f"{name} must be a 4x4 matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise PoseError(f"{name} contains NaN or infinity")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise PoseError(f"{name} last row must be [0, 0, 0, 1], got {M[3].tolist()}")
+    R = M[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=_ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+        raise PoseError(f"{name} rotation block is not a proper rotation (orthonormal, det +1)")
+    return M
+
+
+def make_transform(R: ArrayLike, t: ArrayLike) -> Mat4:
+    """Build ``T`` from a 3x3 rotation and a translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T_a_b: ArrayLike) -> Mat4:
+    """Return ``T_b_a`` for a rigid ``T_a_b`` (exact, no general matrix inverse)."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> NDArray[np.float64]:
+    """Map (N, 3) points given in frame ``b`` into frame ``a``."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    P = np.asarray(points_b, dtype=np.float64).reshape(-1, 3)
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def rotvec_to_matrix(rotvec: ArrayLike) -> Mat3:
+    """Rotation vector (axis * angle, radians) to a 3x3 matrix."""
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64).reshape(3)).as_matrix()
+
+
+def matrix_to_rotvec(R: ArrayLike) -> Vec:
+    """3x3 rotation matrix to a rotation vector (radians); angle in [0, pi]."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+
+
+def ur_pose_to_transform(pose: ArrayLike) -> Mat4:
+    """UR TCP pose ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians) to ``T``."""
+    p = np.asarray(pose, dtype=np.float64).reshape(-1)
+    if p.shape != (6,):
+        raise PoseError(f"a UR pose has 6 numbers [x, y, z, rx, ry, rz], got {p.size}")
+    if not np.all(np.isfinite(p)):
+        raise PoseError("a UR pose contains NaN or infinity")
+    return make_transform(rotvec_to_matrix(p[3:]), p[:3])
+
+
+def transform_to_ur_pose(T: ArrayLike) -> Vec:
+    """``T`` to the UR TCP pose form ``[x, y, z, rx, ry, rz]`` (metres, radians)."""
+    M = np.asarray(T, dtype=np.float64)
+    return np.concatenate([M[:3, 3], matrix_to_rotvec(M[:3, :3])])
+
+
+def quaternion_to_matrix(q_xyzw: ArrayLike) -> Mat3:
+    """Unit quaternion with the scalar last ``[qx, qy, qz, qw]`` to a 3x3 matrix."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=np.float64).reshape(4)).as_matrix()
+
+
+def matrix_to_quaternion(R: ArrayLike) -> Vec:
+    """3x3 rotation matrix to a unit quaternion ``[qx, qy, qz, qw]`` (scalar last, qw >= 0)."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return np.asarray(q if q[3] >= 0 else -q, dtype=np.float64)
+
+
+def halcon_pose_to_transform(pose: ArrayLike) -> Mat4:
+    """HALCON pose type 0 ``[x, y, z, a_deg, b_deg, c_deg]`` (metres, degrees) to ``T``."""
+    p = np.asarray(pose, dtype=np.float64).reshape(-1)[:6]
+    R = Rotation.from_euler("XYZ", p[3:6], degrees=True).as_matrix()
+    return make_transform(R, p[:3])
+
+
+def transform_to_halcon_pose(T: ArrayLike) -> Vec:
+    """``T`` to HALCON pose type 0 ``[x, y, z, a_deg, b_deg, c_deg]`` (metres, degrees)."""
+    M = np.asarray(T, dtype=np.float64)
+    abc = Rotation.from_matrix(M[:3, :3]).as_euler("XYZ", degrees=True)
+    return np.concatenate([M[:3, 3], abc])
+
+
+def rotation_angle(R: ArrayLike) -> float:
+    """Angle (radians, in [0, pi]) of a 3x3 rotation matrix."""
+    M = np.asarray(R, dtype=np.float64)
+    c = (np.trace(M) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def transform_error(T_est: ArrayLike, T_true: ArrayLike) -> tuple[float, float]:
+    """Rotation (radians) and translation (metres) difference between two transforms."""
+    A = np.asarray(T_est, dtype=np.float64)
+    B = np.asarray(T_true, dtype=np.float64)
+    rot = rotation_angle(A[:3, :3].T @ B[:3, :3])
+    trans = float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
+    return rot, trans
+
+
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> Mat4:
+    """``T_world_cam`` of a camera at ``eye`` looking at ``target`` (OpenCV camera frame).
+
+    The camera's z axis points from ``eye`` to ``target``; the world direction ``up`` appears
+    towards the top of the image (camera y, image down, is as close as possible to ``-up``).
+    """
+    e = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - e
+    z /= np.linalg.norm(z)
+    u = np.asarray(up, dtype=np.float64)
+    x = np.cross(z, u)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_transform(np.column_stack([x, y, z]), e)

@@ -1,0 +1,67 @@
+"""The ``cellctl`` command: JSON results on stdout, logs on stderr, one-line errors.
+
+Each command group lives in its own module here with a ``register(subparsers)`` function that
+adds its parser and sets ``func`` (taking the parsed namespace, returning a JSON-able result or
+``None``). ``COMMAND_MODULES`` lists them; add a module's name to plug a new group in.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+from typing import Final
+
+from cellctl.cli.output import CommandError, emit
+
+COMMAND_MODULES: Final[tuple[str, ...]] = (
+    "serve",
+    "config_cmd",
+    "devices",
+    "sim",
+    "record",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cellctl",
+        description="Robot work-cell controller: acquisition, calibration and pick guidance.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"cellctl.cli.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the console script; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        result = args.func(args)
+        if result is not None:
+            emit(result, getattr(args, "out_json", None))
+        return 0
+    except CommandError as exc:
+        print(f"cellctl: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (ValueError, OSError, RuntimeError, TimeoutError) as exc:
+        # Typed errors of our packages subclass these; their messages are meant for the user.
+        print(f"cellctl: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cellctl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
