@@ -17,11 +17,7 @@ from typing import Final
 from cellctl.cli.output import CommandError, emit
 
 COMMAND_MODULES: Final[tuple[str, ...]] = (
-    "serve",
-    "config_cmd",
-    "devices",
-    "sim",
-    "record",
+    "calib",
 )
 
 
