@@ -1,0 +1,114 @@
+"""Coverage and advice: can the calibration data support the camera model?
+
+Each problem is a code and one message saying what to do. The rules (thresholds are stated so an
+operator can argue with them):
+
+- ``too_few_views``: fewer than ``MIN_GOOD_VIEWS`` views used.
+- ``not_enough_tilt``: no view tilts the target more than ``MIN_TILT_DEG`` about an axis (the
+  camera's x axis = the image's horizontal, or its y axis = the vertical). Without tilt the
+  focal length and the target distance cannot be told apart (shared/FIELD_NOTES.md).
+- ``corners_not_covered``: an image corner region (the outer ``CORNER_FRACTION`` of width and
+  height) holds no observed point; distortion there is extrapolated. The message names them.
+- ``focal_poorly_determined``: 1-sigma of fx or fy above ``MAX_FOCAL_REL_SIGMA`` of its value.
+- ``principal_point_poorly_determined``: 1-sigma of cx or cy above ``MAX_PP_REL_SIGMA`` of the
+  image width/height.
+- ``projection_uncertain``: the expected projection error over the covered region
+  (``uncertainty.projection_rms_px``) above ``MAX_PROJECTION_RMS_PX``: the data do not pin the
+  model's parameters down (too many parameters for the data, or too little data).
+- ``outlier_views``: views whose RMS is far above the rest (advice only; does not fail).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+MIN_GOOD_VIEWS: Final = 8
+MIN_TILT_DEG: Final = 15.0
+CORNER_FRACTION: Final = 0.2
+MAX_FOCAL_REL_SIGMA: Final = 0.01
+MAX_PP_REL_SIGMA: Final = 0.01
+MAX_PROJECTION_RMS_PX: Final = 0.5
+
+
+def tilts_deg(normals: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(V, 2) tilt of each target about the camera's x and y axes (degrees) from its plane normal
+    (the target z axis in the camera frame)."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    n = n * np.sign(n[:, 2:3] + 1e-300)
+    return np.degrees(np.column_stack([np.arctan2(-n[:, 1], n[:, 2]), np.arctan2(n[:, 0], n[:, 2])]))
+
+
+def uncovered_corners(coverage: NDArray[np.int64], fraction: float = CORNER_FRACTION) -> list[str]:
+    """Names of image corners whose region holds no observed point."""
+    ny, nx = coverage.shape
+    cx = max(1, int(round(nx * fraction)))
+    cy = max(1, int(round(ny * fraction)))
+    regions = {"top-left": coverage[:cy, :cx], "top-right": coverage[:cy, -cx:],
+               "bottom-left": coverage[-cy:, :cx], "bottom-right": coverage[-cy:, -cx:]}
+    return [k for k, r in regions.items() if r.sum() == 0]
+
+
+def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], normals: NDArray[np.float64],
+           sigmas: dict[str, float], values: dict[str, float], uncertainty: dict[str, Any],
+           n_outlier_views: int = 0) -> dict[str, Any]:
+    """The ``verdict`` block of ``cam.json``: ``{"ok": bool, "problems": [{"code", "message"}]}``."""
+    problems: list[dict[str, str]] = []
+    advice: list[dict[str, str]] = []
+    if n_views < MIN_GOOD_VIEWS:
+        problems.append({"code": "too_few_views",
+                         "message": f"only {n_views} views used; take at least {MIN_GOOD_VIEWS} (10-20 is "
+                                    "better), with the target tilted and moved over the whole image"})
+    t = tilts_deg(normals)
+    max_x = float(np.max(np.abs(t[:, 0]))) if len(t) else 0.0
+    max_y = float(np.max(np.abs(t[:, 1]))) if len(t) else 0.0
+    axes = []
+    if max_x < MIN_TILT_DEG:
+        axes.append(f"the horizontal axis (image x; largest tilt {max_x:.0f} deg): tip the target's top "
+                    "edge towards and away from the camera")
+    if max_y < MIN_TILT_DEG:
+        axes.append(f"the vertical axis (image y; largest tilt {max_y:.0f} deg): turn the target's left "
+                    "edge towards and away from the camera")
+    if axes:
+        problems.append({"code": "not_enough_tilt",
+                         "message": "not enough tilt about " + " and about ".join(axes)
+                                    + f"; add views tilted {MIN_TILT_DEG:.0f}-45 deg"})
+    missing = uncovered_corners(coverage)
+    if missing:
+        problems.append({"code": "corners_not_covered",
+                         "message": f"no target points in the image corner(s) {', '.join(missing)} (outer "
+                                    f"{CORNER_FRACTION:.0%} of the image); add views with the target there, "
+                                    "or distortion there is a guess"})
+    for f in ("fx", "fy"):
+        if f in sigmas and values.get(f):
+            rel = sigmas[f] / abs(values[f])
+            if not np.isfinite(rel) or rel > MAX_FOCAL_REL_SIGMA:
+                problems.append({"code": "focal_poorly_determined",
+                                 "message": f"{f} = {values[f]:.1f} px is uncertain by {sigmas[f]:.1f} px "
+                                            f"({rel:.1%}, limit {MAX_FOCAL_REL_SIGMA:.0%}); add views with "
+                                            "more tilt and at different distances"})
+                break
+    for c, n in (("cx", size[0]), ("cy", size[1])):
+        if c in sigmas:
+            rel = sigmas[c] / n
+            if not np.isfinite(rel) or rel > MAX_PP_REL_SIGMA:
+                problems.append({"code": "principal_point_poorly_determined",
+                                 "message": f"{c} is uncertain by {sigmas[c]:.1f} px ({rel:.1%} of the "
+                                            "image); add tilted views covering the whole image"})
+                break
+    proj = uncertainty.get("projection_rms_px")
+    if proj is None or not np.isfinite(proj) or proj > MAX_PROJECTION_RMS_PX:
+        shown = "unknown" if proj is None else f"{proj:.2f} px"
+        problems.append({"code": "projection_uncertain",
+                         "message": f"expected projection error over the covered region is {shown} "
+                                    f"(limit {MAX_PROJECTION_RMS_PX} px): a parameter is poorly "
+                                    "determined; add views, cover the corners, or choose a model with fewer "
+                                    "coefficients"})
+    if n_outlier_views:
+        advice.append({"code": "outlier_views",
+                       "message": f"{n_outlier_views} view(s) fit far worse than the rest (see "
+                                  "views[].outlier); check them or recalibrate with outlier dropping"})
+    return {"ok": not problems, "problems": problems, "advice": advice,
+            "max_tilt_deg": {"about_x": round(max_x, 1), "about_y": round(max_y, 1)}}
