@@ -585,7 +585,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     views, results, size = _collect(detections, target, image_size)
     if len(views) < MIN_VIEWS:
         raise CalibrationError(f"only {len(views)} usable view(s) of the target; a calibration needs "
-                               f"at least {MIN_VIEWS} (10-20 recommended, tilted 20-45 degrees about both axes)")
+                               f"at least {MIN_VIEWS} (10-20 recommended, tilted 20-45 deg about both axes)")
     n_par = 4 + N_DIST[model]
     n_obs = 2 * sum(len(v.X) for v in views)
     if n_obs <= n_par + 6 * len(views):
@@ -740,7 +740,7 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     found = [d for d in detections if d.found]
     if len(found) < MIN_VIEWS * k:
         raise CalibrationError(f"{len(found)} views with the target are too few for {k}-fold "
-                               f"cross-validation (each fold needs {MIN_VIEWS}); use a smaller k or more views")
+                               f"cross-validation (each fold needs {MIN_VIEWS}); use a smaller k")
     full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers)
     pts = covered_points(full)
     fold_res = [calibrate(found[f::k], target, model, image_size=image_size, drop_outliers=drop_outliers)
