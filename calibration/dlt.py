@@ -59,8 +59,8 @@ class DLTResult:
         out = self.camera.to_dict()
         out.update({
             "rms_px": self.rms_px,
-            "views": [{"image": "dlt", "rms_px": self.rms_px, "used": True, "n_points": len(self.residuals_px),
-                       "T_cam_target": self.T_cam_target.tolist()}],
+            "views": [{"image": "dlt", "rms_px": self.rms_px, "used": True,
+                       "n_points": len(self.residuals_px), "T_cam_target": self.T_cam_target.tolist()}],
             "T_cam_target": self.T_cam_target.tolist(),
             "uncertainty": self.uncertainty,
             "parameters": {"names": self.free_params,
@@ -170,4 +170,4 @@ def calibrate_dlt(points_m: ArrayLike, uv_px: ArrayLike, image_size: tuple[int, 
     res = r.reshape(-1, 2)
     return DLTResult(camera=camera, T_cam_target=make_transform(Rm, tv),
                      rms_px=float(np.sqrt(np.mean(np.sum(res * res, axis=1)))), residuals_px=res,
-                     free_params=free_names, covariance=cov_free, uncertainty=unc)
+                     free_params=free_names, covariance=np.asarray(cov_free, dtype=np.float64), uncertainty=unc)

@@ -119,7 +119,7 @@ def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) ->
         J[:, k] = (_residuals(camera, X, uv, R, base + e) - _residuals(camera, X, uv, R, base - e)) / (2 * h)
     dof = max(len(r) - 6, 1)
     sigma2 = float(np.sum(r * r)) / dof
-    cov = sigma2 * np.linalg.pinv(J.T @ J)
+    cov = np.asarray(sigma2 * np.linalg.pinv(J.T @ J), dtype=np.float64)
     res = r.reshape(-1, 2)
     rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
     return PoseResult(make_transform(R, x[3:]), rms, cov, res, name)
