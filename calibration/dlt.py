@@ -170,4 +170,5 @@ def calibrate_dlt(points_m: ArrayLike, uv_px: ArrayLike, image_size: tuple[int, 
     res = r.reshape(-1, 2)
     return DLTResult(camera=camera, T_cam_target=make_transform(Rm, tv),
                      rms_px=float(np.sqrt(np.mean(np.sum(res * res, axis=1)))), residuals_px=res,
-                     free_params=free_names, covariance=np.asarray(cov_free, dtype=np.float64), uncertainty=unc)
+                     free_params=free_names, covariance=np.asarray(cov_free, dtype=np.float64),
+                     uncertainty=unc)
