@@ -112,7 +112,8 @@ def _T_to_pose(T: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
 
 
-def inverse_kinematics(T_target: NDArray[np.float64], q_near: NDArray[np.float64]) -> NDArray[np.float64] | None:
+def inverse_kinematics(T_target: NDArray[np.float64],
+                       q_near: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Joint angles near ``q_near`` that reach ``T_target``, or None when it is out of reach."""
     R_target = Rotation.from_matrix(T_target[:3, :3])
 
@@ -147,10 +148,12 @@ _VARIABLE_TYPES: dict[str, str] = {
         "target_TCP_pose", "target_TCP_speed", "joint_temperatures", "actual_joint_voltage",
         "ft_raw_wrench", "payload_inertia", "tcp_offset", "actual_current_as_torque", "external_force_torque",
         "actual_current_window", "target_current_window")},
-    **{n: "VECTOR3D" for n in ("actual_tool_accelerometer", "payload_cog", "elbow_position", "elbow_velocity")},
+    **{n: "VECTOR3D" for n in (
+        "actual_tool_accelerometer", "payload_cog", "elbow_position", "elbow_velocity")},
     **{n: "UINT64" for n in ("actual_digital_input_bits", "actual_digital_output_bits")},
     **{n: "UINT32" for n in (
-        "runtime_state", "robot_status_bits", "safety_status_bits", "analog_io_types", "tool_analog_input_types",
+        "runtime_state", "robot_status_bits", "safety_status_bits", "analog_io_types",
+        "tool_analog_input_types",
         "euromap67_input_bits", "euromap67_output_bits", "output_bit_registers0_to_31",
         "output_bit_registers32_to_63", "input_bit_registers0_to_31", "input_bit_registers32_to_63",
         "speed_slider_mask", "script_control_line", "actual_robot_energy_consumed")},
@@ -386,7 +389,8 @@ class _RobotSim:
             return False
         duration = float(np.max(np.abs(q_end - self.q))) / (speed_rad_s * self.speed_slider)
         T_end = forward_kinematics(q_end)
-        self.motion = _Motion("joint", now, duration, self.q.copy(), q_end.copy(), self.T.copy(), T_end, waiting)
+        self.motion = _Motion("joint", now, duration, self.q.copy(), q_end.copy(), self.T.copy(), T_end,
+                              waiting)
         self.last_move = {"kind": "moveJ", "q": q_end.tolist(), "speed": speed_rad_s}
         return True
 
@@ -704,8 +708,8 @@ class UrEmulator:
                 return "Brake releasing", False
             if c == "unlock protective stop":
                 if s.safety_mode != SAFETY_PROTECTIVE_STOP:
-                    return "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of " \
-                           "protective stop before unlocking", False
+                    return ("Cannot unlock protective stop until 5s after occurrence. Always inspect cause "
+                            "of protective stop before unlocking"), False
                 s.safety_mode = SAFETY_NORMAL
                 return "Protective stop releasing", False
             if c == "stop":
@@ -782,7 +786,8 @@ def run(host: str = "127.0.0.1", rtde_port: int = RTDE_PORT, dashboard_port: int
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Universal Robots RTDE/dashboard emulator for ur_rtde clients")
+    parser = argparse.ArgumentParser(
+        description="Universal Robots RTDE/dashboard emulator for ur_rtde clients")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--frequency-hz", type=float, default=500.0)
     args = parser.parse_args(argv)
