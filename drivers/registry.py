@@ -23,6 +23,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
     "robot": {
         "sim": ("drivers.sim.robot", "SimRobot"),
         "replay": ("drivers.replay", "ReplayRobot"),
+        "ur_rtde": ("drivers.robot.ur_rtde", "URRTDERobot"),
     },
     "io": {},
 }
