@@ -1,0 +1,58 @@
+"""``cellctl calib export`` / ``cellctl calib import``: camera files for OpenCV, ROS and HALCON."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from cellctl.cli.output import CommandError
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "export", help="write cam.json as OpenCV YAML, ROS camera_info YAML or HALCON camera parameters")
+    p.add_argument("--camera", required=True, help="camera JSON (cam.json)")
+    p.add_argument("--format", required=True, choices=["opencv", "ros", "halcon"])
+    p.add_argument("--out", dest="out_file", required=True, help="file to write")
+    p.add_argument("--pixel-pitch-um", type=float, help="sensor cell width in micrometres (HALCON)")
+    p.add_argument("--name", default="camera", help="camera_name (ROS)")
+    p.set_defaults(func=run_export)
+    q: argparse.ArgumentParser = sub.add_parser(
+        "import", help="read an OpenCV FileStorage YAML/XML or ROS camera_info YAML into cam.json")
+    q.add_argument("file", help="OpenCV YAML/XML or ROS camera_info YAML")
+    q.add_argument("--format", default="opencv", choices=["opencv", "ros", "halcon"])
+    q.add_argument("--out", dest="out_json", help="write cam.json here too")
+    q.set_defaults(func=run_import)
+
+
+def run_export(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration import export
+    from calibration.camera_io import read_camera
+
+    camera, _ = read_camera(args.camera)
+    if args.format == "opencv":
+        export.write_opencv_yaml(camera, args.out_file)
+    elif args.format == "ros":
+        export.write_ros_yaml(camera, args.out_file, args.name)
+    else:
+        if not args.pixel_pitch_um:
+            raise CommandError("HALCON export needs --pixel-pitch-um (the sensor cell width, e.g. 3.45)")
+        Path(args.out_file).write_text(export.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))
+    return {"written": str(args.out_file), "format": args.format, "model": camera.model}
+
+
+def run_import(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration import export
+
+    if args.format == "opencv":
+        camera = export.read_opencv_yaml(args.file)
+    elif args.format == "ros":
+        camera = export.read_ros_yaml(args.file)
+    else:
+        try:
+            text = Path(args.file).read_text()
+        except OSError as exc:
+            raise CommandError(f"{args.file}: cannot read ({exc.strerror})") from exc
+        camera = export.read_halcon_cam_par(text)
+    return {**camera.to_dict(), "imported_from": str(args.file)}

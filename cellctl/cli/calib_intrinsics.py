@@ -1,0 +1,138 @@
+"""``cellctl calib intrinsics``: camera calibration from images (or detections) of a planar target.
+
+Prints the camera result (shared/INTERFACES.md §4 ``cam.json``) on stdout, writes it with
+``--out``, and prints each verdict problem on stderr. Exits 0 when the calibration itself
+succeeded, even if the verdict says the data cannot support the model (``verdict.ok`` false);
+non-zero with one clear line when it could not calibrate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from cellctl.cli.output import CommandError
+
+log = logging.getLogger("cellctl.calib.intrinsics")
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "intrinsics", help="camera intrinsics from images of a planar target",
+        description="Calibrate a camera (opencv5, opencv8 or division model) from images of a planar target. "
+                    "IMAGE may be files or folders (their *.png/*.jpg/*.bmp/*.tif, in sorted name order).")
+    p.add_argument("--target", required=True, help="target description YAML")
+    p.add_argument("--model", default="opencv5", choices=["opencv5", "opencv8", "division"])
+    p.add_argument("images", nargs="*", metavar="IMAGE", help="image files or folders")
+    p.add_argument("--detections", help="use detections JSON (output of cellctl detect) instead of images")
+    p.add_argument("--out", dest="out_json", help="write the camera JSON (cam.json) here too")
+    p.add_argument("--report", help="write an HTML report (residuals, coverage, distortion, uncertainty)")
+    p.add_argument("--cross-validate", type=int, metavar="K", default=0,
+                   help="k-fold cross-validation: projection difference between fold solutions")
+    p.add_argument("--drop-outliers", action="store_true",
+                   help="drop outlier views and points (rule in calibration/intrinsics.py) and re-solve")
+    p.add_argument("--export-opencv", metavar="F.yaml", help="also write OpenCV FileStorage YAML")
+    p.add_argument("--export-ros", metavar="F.yaml", help="also write a ROS camera_info YAML")
+    p.add_argument("--export-halcon", metavar="F.cal", help="also write HALCON camera parameters (division)")
+    p.add_argument("--pixel-pitch-um", type=float, help="sensor cell width in micrometres (HALCON export)")
+    p.set_defaults(func=run)
+
+
+def _image_files(args: list[str]) -> list[Path]:
+    files: list[Path] = []
+    for a in args:
+        p = Path(a)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise CommandError(f"{p}: folder holds no *.png/*.jpg/*.bmp/*.tif images")
+            files += found
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise CommandError(f"{p}: no such image file or folder")
+    return files
+
+
+def _detections(args: argparse.Namespace, target: Any) -> list[Any]:
+    from calibration.observations import Detection
+
+    if args.detections:
+        try:
+            data = json.loads(Path(args.detections).read_text())
+            return [Detection.from_json(d) for d in data]
+        except OSError as exc:
+            raise CommandError(f"{args.detections}: cannot read detections ({exc.strerror})") from exc
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise CommandError(f"{args.detections}: not a cellctl detect JSON list ({exc})") from exc
+    if not args.images:
+        raise CommandError("give IMAGE files or folders (or --detections FILE)")
+    try:
+        from calibration.detect import detect_file
+    except ImportError as exc:  # pragma: no cover - detection ships with the package
+        raise CommandError(f"target detection is not available ({exc})") from exc
+    out = []
+    files = _image_files(args.images)
+    for k, f in enumerate(files):
+        d = detect_file(f, target)
+        log.info("[%d/%d] %s: %s", k + 1, len(files), f.name,
+                 f"{len(d.ids)} points" if d.found else f"not found ({d.reason})")
+        out.append(d)
+    return out
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration import intrinsics
+    from calibration.targets import load_target
+
+    if args.cross_validate and args.cross_validate < 2:
+        raise CommandError("--cross-validate K needs K >= 2")
+    if args.export_halcon and args.model != "division":
+        raise CommandError("--export-halcon needs --model division (HALCON's area_scan_division)")
+    if args.export_halcon and not args.pixel_pitch_um:
+        raise CommandError("--export-halcon needs --pixel-pitch-um (the sensor cell width, e.g. 3.45)")
+    if (args.export_opencv or args.export_ros) and args.model == "division":
+        raise CommandError("OpenCV/ROS files cannot express the division model; use --export-halcon")
+    target = load_target(args.target)
+    dets = _detections(args, target)
+    try:
+        res = intrinsics.calibrate(dets, target, args.model, drop_outliers=args.drop_outliers)
+    except intrinsics.CalibrationError as exc:
+        raise CommandError(f"calibration failed: {exc}") from exc
+    out = res.to_json()
+    out["target"] = target.describe()
+    if args.cross_validate:
+        try:
+            out["cross_validation"] = intrinsics.cross_validate(dets, target, args.model, args.cross_validate,
+                                                                drop_outliers=args.drop_outliers)
+        except intrinsics.CalibrationError as exc:
+            raise CommandError(f"cross-validation failed: {exc}") from exc
+    _exports(args, res.camera)
+    if args.report:
+        from calibration.report import write_report
+
+        write_report(res, args.report, cross_validation=out.get("cross_validation"))
+        log.info("report written to %s", args.report)
+    for prob in res.verdict["problems"]:
+        print(f"cellctl: verdict: {prob['code']}: {prob['message']}", file=sys.stderr)
+    if not res.verdict["ok"]:
+        print("cellctl: verdict: the data cannot support this calibration (see verdict.problems)",
+              file=sys.stderr)
+    return out
+
+
+def _exports(args: argparse.Namespace, camera: Any) -> None:
+    from calibration import export
+
+    if args.export_opencv:
+        export.write_opencv_yaml(camera, args.export_opencv)
+    if args.export_ros:
+        export.write_ros_yaml(camera, args.export_ros)
+    if args.export_halcon:
+        Path(args.export_halcon).write_text(export.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))
