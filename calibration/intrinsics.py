@@ -346,13 +346,12 @@ def _collect(detections: Sequence[Detection], target: Target,
                                "circle_grid); for a 3D target use calib dlt")
     tp = target.points()
     where = {int(i): k for k, i in enumerate(tp.ids)}
-    sizes = {d.image_size for d in detections if d.found and d.image_size != (0, 0)}
+    sizes = [d.image_size for d in detections if d.found and d.image_size != (0, 0)]
     if image_size is None:
         if not sizes:
             raise CalibrationError("image size unknown: no detection carries it; pass image_size")
-        if len(sizes) > 1:
-            raise CalibrationError(f"images differ in size {sorted(sizes)}; calibrate one camera at a time")
-        image_size = sizes.pop()
+        # The most common size wins; views of another size are reported as not used.
+        image_size = max(set(sizes), key=sizes.count)
     views: list[_ViewData] = []
     results: list[ViewResult] = []
     for k, d in enumerate(detections):
