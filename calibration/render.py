@@ -107,6 +107,7 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
                        supersample: int = 8) -> NDArray[np.float64]:
     """(H, W) mean reflectance over each pixel's area (box filter), in [0, 1]."""
     field = ray_field(camera)
+    value: NDArray[np.float64]
     value, which = _shade(field, objects, background)
     # A pixel needs supersampling when any 8-neighbour saw something else.
     v8 = np.round(value * 1e6).astype(np.int64) * 64 + which
@@ -122,8 +123,8 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
     d_du = np.gradient(field, axis=1)
     d_dv = np.gradient(field, axis=0)
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ou, ov = np.meshgrid(offsets, offsets)
-    ou, ov = ou.ravel(), ov.ravel()
+    grid_u, grid_v = np.meshgrid(offsets, offsets)
+    ou, ov = grid_u.ravel(), grid_v.ravel()
     base = field[rows, cols]
     sub = (base[:, None, :] + ou[None, :, None] * d_du[rows, cols][:, None, :]
            + ov[None, :, None] * d_dv[rows, cols][:, None, :])

@@ -17,7 +17,14 @@ from typing import Final
 from cellctl.cli.output import CommandError, emit
 
 COMMAND_MODULES: Final[tuple[str, ...]] = (
+    "serve",
+    "config_cmd",
+    "devices",
+    "sim",
+    "record",
     "calib",
+    "pose",
+    "measure",
 )
 
 

@@ -1,0 +1,1 @@
+"""The REST service: app factory, shared dependencies, one router per resource."""

@@ -1,0 +1,48 @@
+"""The FastAPI application factory. Devices are opened in the lifespan, never at import."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
+
+from cellctl import __version__
+from cellctl.api.errors import install_error_handlers
+from cellctl.api.routes import cameras, health, robots
+from cellctl.auth import TokenTable
+from cellctl.cell import Cell
+from cellctl.config import CellConfig, Role
+
+log = logging.getLogger(__name__)
+
+
+def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] | None = None) -> FastAPI:
+    """Build the service for a cell. ``session_tokens`` are (name, role, sha256) valid for this run."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        cell = Cell(config)
+        app.state.cell = cell
+        await run_in_threadpool(cell.open_all)
+        log.info("cell %s ready: cameras %s, robots %s", config.cell_id, sorted(cell.cameras), sorted(cell.robots))
+        try:
+            yield
+        finally:
+            await run_in_threadpool(cell.close)
+
+    app = FastAPI(
+        title="cellctl",
+        version=__version__,
+        description="Robot work-cell controller: cameras, robots, calibration, pick guidance. "
+                    "Every route except /health, /docs and /openapi.json needs 'Authorization: Bearer <token>'.",
+        lifespan=lifespan,
+    )
+    app.state.config = config
+    app.state.tokens = TokenTable.from_config(config, session_tokens)
+    install_error_handlers(app)
+    for module in (health, cameras, robots):
+        app.include_router(module.router)
+    return app

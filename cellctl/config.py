@@ -1,0 +1,189 @@
+"""``cell.yaml``: the cell's devices, motion limits, HTTP binding and tokens (pydantic models).
+
+Every device names its adapter with ``kind:`` and gives that adapter's own ``settings:``, which
+are validated by the adapter's ``Settings`` model. Unknown keys, wrong types and out-of-range
+values are refused at start-up with the file, the key path and what is expected.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from drivers.base import MotionLimits
+from drivers.registry import Category, UnknownAdapter, adapter_class
+
+CONFIG_FORMAT_VERSION = 1
+Role = Literal["viewer", "operator", "engineer"]
+ROLE_RANK: dict[str, int] = {"viewer": 0, "operator": 1, "engineer": 2}
+
+
+class ConfigError(ValueError):
+    """cell.yaml is malformed; the message names the file, the key path and what is expected."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class HttpConfig(_Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(8080, ge=1, le=65535)
+
+    def is_loopback(self) -> bool:
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+
+class TokenConfig(_Strict):
+    name: str = Field(min_length=1)
+    role: Role
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    """SHA-256 of the token (hex); the token itself is never stored."""
+
+
+class AuthConfig(_Strict):
+    tokens: list[TokenConfig] = []
+
+
+class StoreConfig(_Strict):
+    path: str | None = None
+    """SQLite file; default: ``$XDG_DATA_HOME/cellctl/<cell_id>.db`` (``~/.local/share``)."""
+
+
+class Envelope(_Strict):
+    """Workspace box of the tool position in the robot base frame, millimetres."""
+
+    x_mm: tuple[float, float]
+    y_mm: tuple[float, float]
+    z_mm: tuple[float, float]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Envelope:
+        for name in ("x_mm", "y_mm", "z_mm"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"{name} must be [low, high] with low < high, got [{lo}, {hi}]")
+        return self
+
+
+class DeviceConfig(_Strict):
+    kind: str
+    settings: dict[str, Any] = {}
+
+
+class CameraConfig(DeviceConfig):
+    pass
+
+
+class RobotConfig(DeviceConfig):
+    envelope: Envelope
+    max_linear_speed_m_s: float = Field(0.25, gt=0, le=5.0)
+    max_joint_speed_rad_s: float = Field(1.0, gt=0, le=6.3)
+
+    def limits(self) -> MotionLimits:
+        e = self.envelope
+        return MotionLimits(e.x_mm, e.y_mm, e.z_mm, self.max_linear_speed_m_s, self.max_joint_speed_rad_s)
+
+
+class IOConfig(DeviceConfig):
+    pass
+
+
+class CellConfig(_Strict):
+    format_version: int = CONFIG_FORMAT_VERSION
+    cell_id: str = Field("cell", pattern=r"^[A-Za-z0-9_.-]+$")
+    http: HttpConfig = HttpConfig()
+    auth: AuthConfig = AuthConfig()
+    store: StoreConfig = StoreConfig()
+    cameras: dict[str, CameraConfig] = {}
+    robots: dict[str, RobotConfig] = {}
+    io: dict[str, IOConfig] = {}
+
+    @field_validator("format_version")
+    @classmethod
+    def _version(cls, v: int) -> int:
+        if v > CONFIG_FORMAT_VERSION:
+            raise ValueError(f"format_version {v} is newer than this cellctl supports ({CONFIG_FORMAT_VERSION}); "
+                             "upgrade cellctl")
+        return v
+
+    def validated_settings(self, category: Category, device_id: str) -> BaseModel:
+        """The device's settings parsed by its adapter's ``Settings`` model."""
+        table: dict[str, dict[str, DeviceConfig]] = {
+            "camera": dict(self.cameras), "robot": dict(self.robots), "io": dict(self.io)}
+        dev = table[category][device_id]
+        settings_model: type[BaseModel] = adapter_class(category, dev.kind).Settings  # type: ignore[attr-defined]
+        return settings_model.model_validate(dev.settings)
+
+
+_SECTIONS: dict[str, Category] = {"cameras": "camera", "robots": "robot", "io": "io"}
+
+
+def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
+    """Validate a cell configuration mapping, including each adapter's settings."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the top level must be a mapping of sections "
+                          "(cameras, robots, io, http, auth, store)")
+    try:
+        cfg = CellConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{source}: {_format_errors(exc)}") from None
+    for section, category in _SECTIONS.items():
+        for device_id in getattr(cfg, section):
+            path = f"{section}.{device_id}"
+            try:
+                cfg.validated_settings(category, device_id)
+            except UnknownAdapter as exc:
+                raise ConfigError(f"{source}: {path}.kind: {exc}") from None
+            except ImportError as exc:
+                raise ConfigError(f"{source}: {path}.kind: the adapter cannot be loaded ({exc})") from None
+            except ValidationError as exc:
+                raise ConfigError(f"{source}: {_format_errors(exc, prefix=path + '.settings')}") from None
+    return cfg
+
+
+def load_config(path: str | Path | None) -> CellConfig:
+    """Read ``cell.yaml``; ``None`` gives the built-in virtual cell."""
+    if path is None:
+        return parse_config(yaml.safe_load(default_config_text()), "built-in virtual cell")
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the config file ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    return parse_config(data, str(p))
+
+
+def default_config_text() -> str:
+    """The built-in virtual cell's ``cell.yaml`` (what ``cellctl config default`` prints)."""
+    return resources.files("cellctl").joinpath("data/virtual-cell.yaml").read_text()
+
+
+def _format_errors(exc: ValidationError, prefix: str = "") -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        if prefix:
+            loc = f"{prefix}.{loc}" if loc else prefix
+        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        if err["type"] not in ("extra_forbidden", "missing") and "input" in err:
+            msg += f" (got {err['input']!r})"
+        parts.append(f"{loc or '(top level)'}: {msg}")
+    return "; ".join(parts)

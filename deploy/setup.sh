@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Sets up cellctl on a fresh Debian 12 machine: Debian packages (deploy/install-system-deps.sh),
+# a virtual environment in .venv/ and the package with its test tools. Idempotent; safe to re-run.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+bash deploy/install-system-deps.sh
+
+PY=${PYTHON:-python3}
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+  echo "setup: cellctl needs Python >= 3.11; $PY is $("$PY" --version 2>&1)" >&2
+  exit 1
+fi
+if [ ! -x .venv/bin/python ]; then
+  if ! "$PY" -m venv .venv 2>/dev/null; then
+    rm -rf .venv
+    if [ "$(id -u)" -eq 0 ]; then
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -q python3-venv >&2
+    else
+      echo "setup: run 'sudo apt-get install -y python3-venv' and re-run" >&2
+      exit 1
+    fi
+    "$PY" -m venv .venv
+  fi
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e '.[test,aravis]'
+echo "setup: ready (.venv/bin/cellctl)" >&2

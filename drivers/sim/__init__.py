@@ -1,0 +1,1 @@
+"""The virtual cell: a simulated camera and robot sharing one rendered world (a product, not a mock)."""

@@ -1,0 +1,184 @@
+"""The virtual cell's scene file: camera, mount, robot, targets and parts (versioned YAML).
+
+Poses in the file are written in the Universal Robots form ``[x, y, z, rx, ry, rz]`` (metres and
+a rotation vector in radians), under keys that name the transform (``T_tool_cam``,
+``T_base_target``...). Part outlines are millimetres in the part's own frame; a part lies on the
+table at ``x_mm, y_mm`` (base frame) rotated by ``angle_deg`` about the base z axis.
+
+The parser is strict: unknown keys and a newer ``format_version`` are refused with the key path.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from calibration.camera_model import CameraModel
+from calibration.geometry import ur_pose_to_transform
+from calibration.targets import PlanarTarget, target_from_dict
+
+SCENE_FORMAT_VERSION = 1
+BUILTIN_SCENE = Path(__file__).with_name("scenes") / "virtual-cell.yaml"
+
+
+class SceneError(ValueError):
+    """A scene file is malformed or of a newer format."""
+
+
+URPose = Annotated[list[float], Field(min_length=6, max_length=6)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ImagingSpec(_Strict):
+    black_level: float = Field(25.0, ge=0, le=255)
+    white_level: float = Field(225.0, ge=0, le=255)
+    background: float = Field(0.45, ge=0, le=1)
+    blur_sigma_px: float = Field(0.0, ge=0, le=10)
+    noise_sigma: float = Field(0.0, ge=0, le=50)
+    """Gaussian noise, grey levels (1-sigma)."""
+    light_gradient: float = Field(0.0, ge=-1, le=1)
+    supersample: int = Field(6, ge=1, le=16)
+
+
+class CameraSpec(_Strict):
+    model: Literal["opencv5", "opencv8", "division"]
+    width: int = Field(gt=0, le=8192)
+    height: int = Field(gt=0, le=8192)
+    K: list[list[float]]
+    dist: list[float]
+    mount: Literal["tool", "base"]
+    T_tool_cam: URPose | None = None
+    T_base_cam: URPose | None = None
+    imaging: ImagingSpec = ImagingSpec()
+
+    @model_validator(mode="after")
+    def _mount_pose(self) -> CameraSpec:
+        if self.mount == "tool" and self.T_tool_cam is None:
+            raise ValueError("mount: tool needs T_tool_cam")
+        if self.mount == "base" and self.T_base_cam is None:
+            raise ValueError("mount: base needs T_base_cam")
+        return self
+
+    def camera_model(self) -> CameraModel:
+        return CameraModel(self.model, self.width, self.height, np.asarray(self.K), np.asarray(self.dist))
+
+
+class RobotSpec(_Strict):
+    home: URPose
+    """Initial ``T_base_tool`` (UR form)."""
+    repeatability_mm: float = Field(0.02, ge=0, le=10)
+    """1-sigma position error of the reported pose against the true one, per axis."""
+    repeatability_deg: float = Field(0.005, ge=0, le=5)
+    """1-sigma rotation error of the reported pose (about a random axis)."""
+    motion_time_scale: float = Field(0.0, ge=0, le=10)
+    """Simulated moves take distance/speed times this (0: instantaneous)."""
+
+
+class TargetSpec(_Strict):
+    name: str
+    target: dict[str, Any]
+    attached_to: Literal["base", "tool"] = "base"
+    pose: URPose
+    """``T_base_target`` (attached to base) or ``T_tool_target`` (attached to tool)."""
+
+    @field_validator("target")
+    @classmethod
+    def _target(cls, v: dict[str, Any]) -> dict[str, Any]:
+        t = target_from_dict(v, "target")
+        if not hasattr(t, "reflectance"):
+            raise ValueError("the virtual cell renders planar targets only")
+        return v
+
+    def parsed(self) -> PlanarTarget:
+        t = target_from_dict(self.target, self.name)
+        assert not isinstance(t, dict)
+        return t  # type: ignore[return-value]
+
+
+class PartSpec(_Strict):
+    name: str
+    outline_mm: list[list[float]] = Field(min_length=3)
+    holes_mm: list[list[list[float]]] = []
+    reflectance: float = Field(0.9, ge=0, le=1)
+    x_mm: float
+    y_mm: float
+    angle_deg: float = 0.0
+
+    @field_validator("outline_mm")
+    @classmethod
+    def _pairs(cls, v: list[list[float]]) -> list[list[float]]:
+        if any(len(p) != 2 for p in v):
+            raise ValueError("outline_mm must be a list of [x, y] pairs")
+        return v
+
+
+class TableSpec(_Strict):
+    z_m: float = 0.0
+    reflectance: float = Field(0.35, ge=0, le=1)
+    size_m: tuple[float, float] = (2.0, 2.0)
+
+
+class SceneSpec(_Strict):
+    format_version: int
+    name: str = "virtual cell"
+    seed: int = 0
+    camera: CameraSpec
+    robot: RobotSpec
+    table: TableSpec = TableSpec()
+    targets: list[TargetSpec] = []
+    parts: list[PartSpec] = []
+
+    def T_tool_cam(self) -> np.ndarray | None:
+        c = self.camera
+        return ur_pose_to_transform(c.T_tool_cam) if c.T_tool_cam is not None else None
+
+    def T_base_cam_fixed(self) -> np.ndarray | None:
+        c = self.camera
+        return ur_pose_to_transform(c.T_base_cam) if c.T_base_cam is not None else None
+
+
+def scene_from_dict(data: Any, source: str = "scene") -> SceneSpec:
+    """Validate a scene mapping; errors name the source, the key path and what is expected."""
+    if not isinstance(data, dict):
+        raise SceneError(f"{source}: a scene file must be a mapping")
+    version = data.get("format_version")
+    if not isinstance(version, int):
+        raise SceneError(f"{source}: format_version must be an integer (this cellctl reads {SCENE_FORMAT_VERSION})")
+    if version > SCENE_FORMAT_VERSION:
+        raise SceneError(f"{source}: scene format_version {version} is newer than this cellctl supports "
+                         f"({SCENE_FORMAT_VERSION}); upgrade cellctl")
+    try:
+        return SceneSpec.model_validate(data)
+    except ValidationError as exc:
+        raise SceneError(f"{source}: {format_validation_error(exc)}") from None
+
+
+def load_scene(path: str | Path | None = None) -> SceneSpec:
+    """Read a scene file (default: the built-in virtual cell)."""
+    p = Path(path) if path is not None else BUILTIN_SCENE
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise SceneError(f"{p}: cannot read scene file ({exc.strerror})") from exc
+    except yaml.YAMLError as exc:
+        raise SceneError(f"{p}: not valid YAML ({exc})") from exc
+    return scene_from_dict(data, str(p))
+
+
+def format_validation_error(exc: ValidationError) -> str:
+    """pydantic errors as ``key.path: message`` lines joined by '; '."""
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        parts.append(f"{loc}: {msg}")
+    return "; ".join(parts)

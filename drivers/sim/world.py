@@ -1,0 +1,199 @@
+"""The virtual cell's shared world: where the robot really is, and what the camera sees.
+
+One ``SimWorld`` per scene is shared by the simulated camera and robot of a cell (looked up by
+scene path and seed), so that an eye-in-hand camera renders from the robot's true pose. The
+robot *reports* its pose with repeatability noise drawn once per move; the camera renders from
+the true pose — as on a real cell, where the encoders' pose and the physical pose differ.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration import geometry as g
+from calibration.render import Imaging, PlanarObject, render
+from drivers.sim.scene import SceneSpec, load_scene
+
+
+class SimWorld:
+    """Ground truth and state of one virtual cell."""
+
+    def __init__(self, scene: SceneSpec, source: str = "built-in") -> None:
+        self.scene = scene
+        self.source = source
+        self.camera_model = scene.camera.camera_model()
+        self._lock = threading.RLock()
+        self._rng = np.random.default_rng(scene.seed)
+        self._T_base_tool_true = g.ur_pose_to_transform(scene.robot.home)
+        self._T_report_error = np.eye(4)
+        self.frame_counter = 0
+        self._targets = [(t, t.parsed()) for t in scene.targets]
+
+    # -- robot ------------------------------------------------------------------------------------
+    @property
+    def T_base_tool_true(self) -> NDArray[np.float64]:
+        with self._lock:
+            return self._T_base_tool_true.copy()
+
+    def T_base_tool_reported(self) -> NDArray[np.float64]:
+        """The pose the robot controller reports: the true one with its repeatability error."""
+        with self._lock:
+            return self._T_base_tool_true @ self._T_report_error
+
+    def place_tool(self, T_base_tool_commanded: NDArray[np.float64]) -> None:
+        """Complete a move: the tool is at the commanded pose, reported with fresh noise."""
+        spec = self.scene.robot
+        with self._lock:
+            self._T_base_tool_true = np.asarray(T_base_tool_commanded, dtype=np.float64).copy()
+            dt = self._rng.normal(0.0, spec.repeatability_mm * 1e-3, 3)
+            axis = self._rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            angle = self._rng.normal(0.0, np.radians(spec.repeatability_deg))
+            self._T_report_error = g.make_transform(g.rotvec_to_matrix(axis * angle), dt)
+
+    # -- camera -----------------------------------------------------------------------------------
+    def T_base_cam(self) -> NDArray[np.float64]:
+        fixed = self.scene.T_base_cam_fixed()
+        if fixed is not None:
+            return fixed
+        T_tool_cam = self.scene.T_tool_cam()
+        assert T_tool_cam is not None
+        return self.T_base_tool_true @ T_tool_cam
+
+    def T_base_target(self, name: str) -> NDArray[np.float64]:
+        for spec, _ in self._targets:
+            if spec.name == name:
+                T = g.ur_pose_to_transform(spec.pose)
+                return self.T_base_tool_true @ T if spec.attached_to == "tool" else T
+        raise KeyError(f"no target named {name!r} in the scene")
+
+    def planar_objects(self) -> list[PlanarObject]:
+        """Everything visible, as planes in the camera frame: targets first, then the table."""
+        T_cam_base = g.invert(self.T_base_cam())
+        objs = [PlanarObject(T_cam_base @ self.T_base_target(spec.name), target.reflectance)
+                for spec, target in self._targets]
+        table = self.scene.table
+        T_base_table = g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
+        objs.append(PlanarObject(T_cam_base @ T_base_table, self._table_reflectance))
+        return objs
+
+    def render(self) -> NDArray[np.uint8]:
+        """A grey image of what the camera sees now (noise drawn from the world's generator)."""
+        im = self.scene.camera.imaging
+        imaging = Imaging(im.black_level, im.white_level, im.background, im.blur_sigma_px,
+                          im.noise_sigma, im.light_gradient)
+        with self._lock:
+            objects = self.planar_objects()
+            self.frame_counter += 1
+            rng = np.random.default_rng(self._rng.integers(2**63))
+        return render(self.camera_model, objects, imaging, rng, supersample=im.supersample)
+
+    def _table_reflectance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+        table = self.scene.table
+        out = np.full(x.shape, table.reflectance)
+        sx, sy = table.size_m
+        out[(np.abs(x) > sx / 2) | (np.abs(y) > sy / 2)] = np.nan
+        for part in self.scene.parts:
+            inside = part_mask(part.outline_mm, part.holes_mm, part.x_mm, part.y_mm, part.angle_deg, x, y)
+            out[inside] = part.reflectance
+        return out
+
+    # -- truth ------------------------------------------------------------------------------------
+    def truth(self) -> dict[str, Any]:
+        """Ground truth as plain JSON-able values (metres, radians; mm where named)."""
+        cam = self.scene.camera
+        out: dict[str, Any] = {
+            "scene": self.scene.name,
+            "source": self.source,
+            "camera": self.camera_model.to_dict(),
+            "mount": cam.mount,
+            "T_base_tool": self.T_base_tool_true.tolist(),
+            "T_base_tool_reported": self.T_base_tool_reported().tolist(),
+            "T_base_cam": self.T_base_cam().tolist(),
+            "targets": {
+                spec.name: {
+                    "target": spec.target,
+                    "attached_to": spec.attached_to,
+                    "T_base_target": self.T_base_target(spec.name).tolist(),
+                    **({"T_tool_target": g.ur_pose_to_transform(spec.pose).tolist()}
+                       if spec.attached_to == "tool" else {}),
+                }
+                for spec, _ in self._targets
+            },
+            "parts": [
+                {"name": p.name, "x_mm": p.x_mm, "y_mm": p.y_mm, "angle_deg": p.angle_deg,
+                 "z_mm": self.scene.table.z_m * 1000.0}
+                for p in self.scene.parts
+            ],
+            "robot_repeatability": {"mm": self.scene.robot.repeatability_mm,
+                                    "deg": self.scene.robot.repeatability_deg},
+            "timestamp_s": time.time(),
+        }
+        T_tool_cam = self.scene.T_tool_cam()
+        if T_tool_cam is not None:
+            out["T_tool_cam"] = T_tool_cam.tolist()
+        return out
+
+
+def part_mask(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], x_mm0: float, y_mm0: float,
+              angle_deg: float, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Points (table frame, metres) inside a part's outline and outside its holes."""
+    a = np.radians(angle_deg)
+    c, s = np.cos(a), np.sin(a)
+    dx, dy = x * 1000.0 - x_mm0, y * 1000.0 - y_mm0
+    px, py = c * dx + s * dy, -s * dx + c * dy  # into the part frame (mm)
+    poly = np.asarray(outline_mm, dtype=np.float64)
+    radius = float(np.max(np.linalg.norm(poly, axis=1)))
+    near = px * px + py * py <= radius * radius
+    inside = np.zeros(x.shape, dtype=bool)
+    if not np.any(near):
+        return inside
+    qx, qy = px[near], py[near]
+    m = _even_odd(poly, qx, qy)
+    for hole in holes_mm:
+        m &= ~_even_odd(np.asarray(hole, dtype=np.float64), qx, qy)
+    inside[near] = m
+    return inside
+
+
+def _even_odd(poly: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
+    inside = np.zeros(x.shape, dtype=bool)
+    n = len(poly)
+    for i in range(n):
+        x1, y1 = poly[i]
+        x2, y2 = poly[(i + 1) % n]
+        crosses = (y1 > y) != (y2 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xi = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
+        inside ^= crosses & (x < xi)
+    return inside
+
+
+_WORLDS: dict[tuple[str, int], SimWorld] = {}
+_WORLDS_LOCK = threading.Lock()
+
+
+def world_for(scene_path: str | Path | None, seed: int | None = None) -> SimWorld:
+    """The shared world of a scene file (built-in when ``None``), created on first use."""
+    key = (str(Path(scene_path).resolve()) if scene_path else "built-in", -1 if seed is None else seed)
+    with _WORLDS_LOCK:
+        world = _WORLDS.get(key)
+        if world is None:
+            scene = load_scene(scene_path)
+            if seed is not None:
+                scene = scene.model_copy(update={"seed": seed})
+            world = SimWorld(scene, key[0])
+            _WORLDS[key] = world
+        return world
+
+
+def forget_worlds() -> None:
+    """Drop all shared worlds (a fresh start, e.g. when a service restarts in-process)."""
+    with _WORLDS_LOCK:
+        _WORLDS.clear()
