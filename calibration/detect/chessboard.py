@@ -1,0 +1,164 @@
+"""Chessboard inner corners: OpenCV's ``findChessboardCornersSB`` plus our id convention and checks.
+
+Ids are ``row * cols + col`` in the target frame (shared/INTERFACES.md §4). OpenCV returns the
+corners row by row but may start at any end of the board; we re-order them:
+
+1. the grid must be right-handed as seen by the camera (target x to y turns clockwise on
+   screen, as for any target seen from its printed side); for square boards this also fixes
+   OpenCV's possible transposition;
+2. if ``cols + rows`` is odd, the board is not symmetric under a half turn: the printed square
+   diagonally outside corner 0 is black (``calibration.targets.Chessboard``), the one outside the
+   last corner white, and we read which end is which from the image;
+3. if ``cols + rows`` is even, the board looks the same after a half turn and no image can tell
+   the two orders apart: we pick the one whose x axis points rightwards on screen (angle in
+   (-90°, 90°]), a fixed convention rather than a fact about the board.
+
+A board with an inner corner closer to the image border than ``MIN_BORDER_SQUARES`` of a square
+(a cropped board) is reported not found: that corner's neighbourhood is cut off, so it cannot be
+localized reliably (OpenCV's sector detector still "finds" such boards, e.g. Udacity's
+calibration4.jpg).
+
+Sub-pixel accuracy: ``CALIB_CB_ACCURACY`` (OpenCV's own localized radon refinement). A saddle-point
+refinement of our own is applied only where ``bench/detection.py`` shows it helps (see
+``refine_saddle``; off by default because it did not beat OpenCV's result in the benchmark).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.observations import Detection
+from calibration.targets import Chessboard
+
+FloatArray = NDArray[np.float64]
+
+MIN_BORDER_SQUARES = 0.2
+"""A corner closer to the image border than this fraction of its square has lost the part of the
+adjoining squares that sub-pixel refinement looks at: the board is reported cropped."""
+
+
+def find_corners_opencv(grey: NDArray[np.uint8], cols: int, rows: int) -> FloatArray | None:
+    """OpenCV's sector-based detector; a fast pass first, then the exhaustive one. (rows, cols, 2) or None."""
+    base = cv2.CALIB_CB_ACCURACY
+    for flags in (base, base | cv2.CALIB_CB_EXHAUSTIVE):
+        ok, corners = cv2.findChessboardCornersSB(grey, (cols, rows), flags=flags)
+        if ok and corners is not None:
+            return np.asarray(corners, dtype=np.float64).reshape(rows, cols, 2)
+    return None
+
+
+def _handedness(G: FloatArray) -> float:
+    ex = G[0, -1] - G[0, 0]
+    ey = G[-1, 0] - G[0, 0]
+    return float(ex[0] * ey[1] - ex[1] * ey[0])
+
+
+def _sample(grey: NDArray[np.uint8], uv: FloatArray, radius: float) -> float:
+    """Mean grey value in a small square around ``uv`` (NaN outside the image)."""
+    h, w = grey.shape
+    r = max(1, int(round(radius)))
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    if u - r < 0 or v - r < 0 or u + r >= w or v + r >= h:
+        return float("nan")
+    return float(grey[v - r : v + r + 1, u - r : u + r + 1].mean())
+
+
+def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int) -> FloatArray:
+    """Re-order a (rows, cols, 2) corner grid into the target frame's order (see module docstring)."""
+    cands = [G, G[::-1, ::-1], G[::-1, :], G[:, ::-1]]
+    if cols == rows:
+        T = G.transpose(1, 0, 2)
+        cands += [T, T[::-1, ::-1], T[::-1, :], T[:, ::-1]]
+    right = [c for c in cands if c.shape[:2] == (rows, cols) and _handedness(c) > 0]
+    # right holds a grid and its half-turn (two each for square boards, equal up to a quarter turn).
+    if (cols + rows) % 2 == 1:
+        best, best_score = right[0], -np.inf
+        for c in right:
+            out0 = c[0, 0] + 0.5 * (c[0, 0] - c[1, 1])
+            step = float(np.linalg.norm(c[1, 1] - c[0, 0]))
+            dark = _sample(grey, out0, 0.12 * step)
+            score = -dark if np.isfinite(dark) else -1e9
+            if score > best_score:
+                best, best_score = c, score
+        return best
+    if cols == rows:
+        # Four quarter turns look alike on an even square board: x axis closest to screen-right.
+        return min(right, key=lambda c: abs(np.arctan2(*(c[0, -1] - c[0, 0])[::-1])))
+    ex = [c[0, -1] - c[0, 0] for c in right]
+    for c, e in zip(right, ex, strict=True):
+        ang = np.arctan2(e[1], e[0])
+        if -np.pi / 2 < ang <= np.pi / 2:
+            return c
+    return right[0]
+
+
+def border_margin_squares(G: FloatArray, width: int, height: int) -> float:
+    """Smallest distance of an inner corner to the image border, in units of its local square size."""
+    s = np.zeros(G.shape[:2])
+    dx = np.linalg.norm(np.diff(G, axis=1), axis=2)
+    dy = np.linalg.norm(np.diff(G, axis=0), axis=2)
+    s[:, :-1] = np.maximum(s[:, :-1], dx)
+    s[:, 1:] = np.maximum(s[:, 1:], dx)
+    s[:-1] = np.maximum(s[:-1], dy)
+    s[1:] = np.maximum(s[1:], dy)
+    P = G.reshape(-1, 2)
+    dist = np.minimum.reduce([P[:, 0] + 0.5, P[:, 1] + 0.5, width - 0.5 - P[:, 0], height - 0.5 - P[:, 1]])
+    return float((dist / np.maximum(s.ravel(), 1e-9)).min())
+
+
+def refine_saddle(grey: NDArray[np.uint8], uv: FloatArray, half_window: int = 3, iterations: int = 3
+                  ) -> FloatArray:
+    """Our own saddle-point refinement: fit ``f = a u² + b uv + c v² + d u + e v + g`` to the lightly
+    smoothed image in a small window and move to its stationary point (iterated).
+
+    Kept for measurement (bench/detection.py); the detector uses it only when it measurably helps.
+    """
+    img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
+    h, w = img.shape
+    out = np.asarray(uv, dtype=np.float64).copy()
+    r = np.arange(-half_window, half_window + 1, dtype=np.float64)
+    du_g, dv_g = np.meshgrid(r, r)
+    du, dv = du_g.ravel(), dv_g.ravel()
+    wts = np.exp(-(du**2 + dv**2) / (2 * (half_window * 0.7) ** 2))
+    A = np.column_stack([du**2, du * dv, dv**2, du, dv, np.ones_like(du)]) * wts[:, None]
+    pinv = np.linalg.pinv(A)
+    for _ in range(iterations):
+        mu = (out[:, 0][:, None] + du[None, :]).astype(np.float32)
+        mv = (out[:, 1][:, None] + dv[None, :]).astype(np.float32)
+        vals = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        coef = (vals * wts[None, :]) @ pinv.T
+        a, b, c, d, e = coef[:, 0], coef[:, 1], coef[:, 2], coef[:, 3], coef[:, 4]
+        det = 4 * a * c - b * b
+        ok = det < 0  # a saddle
+        step_u = np.where(ok, (b * e - 2 * c * d) / np.where(ok, det, 1.0), 0.0)
+        step_v = np.where(ok, (b * d - 2 * a * e) / np.where(ok, det, 1.0), 0.0)
+        step = np.column_stack([step_u, step_v])
+        step[np.linalg.norm(step, axis=1) > 1.0] = 0.0
+        out += step
+    out[:, 0] = np.clip(out[:, 0], 0, w - 1)
+    out[:, 1] = np.clip(out[:, 1], 0, h - 1)
+    return out
+
+
+def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: str = "",
+                      saddle_refinement: bool = False) -> Detection:
+    """Inner corners of ``target`` in ``grey`` with target-frame ids, or a reason why not."""
+    cols, rows = target.cols, target.rows
+    h, w = grey.shape
+    G = find_corners_opencv(grey, cols, rows)
+    if G is None:
+        return Detection(image_name, False, reason=f"no {cols}x{rows} chessboard found (board not fully "
+                         "visible, too blurred, or a different size)")
+    margin = border_margin_squares(G, w, h)
+    if margin < MIN_BORDER_SQUARES:
+        return Detection(image_name, False, reason=f"chessboard cropped by the image border (a corner lies "
+                         f"{margin:.2f} squares from the edge, need {MIN_BORDER_SQUARES}); move the board into "
+                         "the image")
+    G = canonical_order(grey, G, cols, rows)
+    uv = G.reshape(-1, 2)
+    if saddle_refinement:
+        uv = refine_saddle(grey, uv)
+    ids = target.points().ids
+    return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64))
