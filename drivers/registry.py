@@ -19,6 +19,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
     "camera": {
         "sim": ("drivers.sim.camera", "SimCamera"),
         "replay": ("drivers.replay", "ReplayCamera"),
+        "opencv": ("drivers.camera.opencv", "OpenCVCamera"),
     },
     "robot": {
         "sim": ("drivers.sim.robot", "SimRobot"),

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -70,3 +74,61 @@ class PeerProcess:
                 self.proc.kill()
                 self.proc.wait(timeout=5)
         self.proc = None
+
+
+class MjpegServer:
+    """An HTTP multipart MJPEG stream on 127.0.0.1 (what IP cameras serve); frame i has grey level i."""
+
+    def __init__(self, port: int = 0, period_s: float = 0.02) -> None:
+        self.port = port
+        self.period_s = period_s
+        self.server: Any = None
+        self.alive = threading.Event()
+        self.frames_sent = 0
+
+    def start(self) -> MjpegServer:
+        import cv2
+        import numpy as np
+
+        owner = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                i = 0
+                with contextlib.suppress(OSError):
+                    while owner.alive.is_set():
+                        ok, jpg = cv2.imencode(".jpg", np.full((48, 64, 3), (i * 10) % 256, np.uint8))
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
+                                         % len(jpg) + jpg.tobytes() + b"\r\n")
+                        owner.frames_sent += 1
+                        i += 1
+                        time.sleep(owner.period_s)
+
+            def log_message(self, *args: Any) -> None:
+                pass
+
+        ThreadingHTTPServer.allow_reuse_address = True
+        self.server = ThreadingHTTPServer(("127.0.0.1", self.port), Handler)
+        self.server.daemon_threads = True
+        self.port = self.server.server_address[1]
+        self.alive.set()
+        self._thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self._thread.start()
+        return self
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/stream.mjpg"
+
+    def stop(self) -> None:
+        """Stop serving and drop the open streams (the peer dies mid-stream)."""
+        self.alive.clear()
+        if self.server is not None:
+            self.server.shutdown()
+            self.server.server_close()
+            self._thread.join(timeout=5)
+            self.server = None
+            time.sleep(self.period_s * 3)
