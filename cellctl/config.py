@@ -57,6 +57,7 @@ class AuthConfig(_Strict):
 
 
 class StoreConfig(_Strict):
+    url: str | None = None  # e.g. postgresql+psycopg://user@127.0.0.1:5432/cellctl; default: SQLite at path
     path: str | None = None
     """SQLite file; default: ``$XDG_DATA_HOME/cellctl/<cell_id>.db`` (``~/.local/share``)."""
 

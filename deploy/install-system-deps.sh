@@ -12,6 +12,8 @@ PACKAGES=(
   socat
   # network namespaces for loopback-only camera tests (unshare, ip)
   util-linux iproute2
+  # store tests: a throwaway PostgreSQL cluster on loopback (plant-scale store backend)
+  postgresql
 )
 
 missing=()
