@@ -65,7 +65,8 @@ def _sample(grey: NDArray[np.uint8], uv: FloatArray, radius: float) -> float:
     return float(grey[v - r : v + r + 1, u - r : u + r + 1].mean())
 
 
-def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int) -> FloatArray:
+def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int, colour_cue: bool = True
+                    ) -> FloatArray:
     """Re-order a (rows, cols, 2) corner grid into the target frame's order (see module docstring)."""
     cands = [G, G[::-1, ::-1], G[::-1, :], G[:, ::-1]]
     if cols == rows:
@@ -73,7 +74,7 @@ def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int
         cands += [T, T[::-1, ::-1], T[::-1, :], T[:, ::-1]]
     right = [c for c in cands if c.shape[:2] == (rows, cols) and _handedness(c) > 0]
     # right holds a grid and its half-turn (two each for square boards, equal up to a quarter turn).
-    if (cols + rows) % 2 == 1:
+    if colour_cue and (cols + rows) % 2 == 1:
         best, best_score = right[0], -np.inf
         for c in right:
             out0 = c[0, 0] + 0.5 * (c[0, 0] - c[1, 1])

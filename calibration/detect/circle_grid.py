@@ -1,0 +1,70 @@
+"""OpenCV circle grids (symmetric and asymmetric) through ``cv2.findCirclesGrid``.
+
+Ids are ``row * cols + col`` of ``calibration.targets.CircleGrid``. A symmetric grid looks the
+same after a half turn (and a square one after a quarter turn): we pick the order that is
+right-handed on screen with the x axis pointing rightwards (angle in (-90°, 90°]), a fixed
+convention. An asymmetric grid with an odd number of rows is unambiguous; we keep OpenCV's order
+after checking its handedness.
+
+``Detection.uv_ellipse`` holds OpenCV's blob centres; ``uv`` the same corrected for perspective
+bias with the local-homography conic mapping of ``calibration.detect.circle_plate``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.detect.chessboard import canonical_order
+from calibration.detect.circle_plate import perspective_bias
+from calibration.observations import Detection
+from calibration.targets import CircleGrid
+
+
+def blob_detector(image_area_px: int, n_circles: int) -> cv2.SimpleBlobDetector:
+    """A blob detector for dark circles from a few pixels up to a grid filling the image."""
+    p = cv2.SimpleBlobDetector_Params()
+    p.filterByColor = True
+    p.blobColor = 0
+    p.minArea = 10
+    p.maxArea = max(100.0, image_area_px / max(n_circles, 1))
+    p.filterByInertia = True
+    p.minInertiaRatio = 0.2
+    p.filterByConvexity = True
+    p.minConvexity = 0.85
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def find_circles_opencv(grey: NDArray[np.uint8], target: CircleGrid) -> NDArray[np.float64] | None:
+    """(rows*cols, 2) centres in OpenCV's order, or None."""
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if target.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
+    h, w = grey.shape
+    ok, centres = cv2.findCirclesGrid(grey, (target.cols, target.rows), flags=flags,
+                                      blobDetector=blob_detector(h * w, target.cols * target.rows))
+    if not ok or centres is None:
+        return None
+    return np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+
+
+def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: str = "") -> Detection:
+    """Circle centres of ``target`` in ``grey`` with target ids, or a reason why not."""
+    kind = "asymmetric" if target.asymmetric else "symmetric"
+    uv = find_circles_opencv(grey, target)
+    if uv is None:
+        return Detection(image_name, False, reason=f"no {kind} {target.cols}x{target.rows} circle grid found "
+                         "(grid not fully visible, blurred, or a different size)")
+    cols, rows = target.cols, target.rows
+    G = uv.reshape(rows, cols, 2)
+    if target.asymmetric:
+        ex = G[0, -1] - G[0, 0]
+        ey = G[-1, 0] - G[0, 0]
+        if ex[0] * ey[1] - ex[1] * ey[0] < 0:
+            G = G[::-1, ::-1]
+    else:
+        G = canonical_order(grey, G, cols, rows, colour_cue=False)
+    raw = np.ascontiguousarray(G.reshape(-1, 2))
+    pts = target.points()
+    grid = pts.xyz_m[:, :2] / target.pitch_m
+    corrected = raw - perspective_bias(grid, raw, target.diameter_mm / 2 / target.pitch_mm)
+    return Detection(image_name, True, ids=pts.ids.copy(), uv=corrected, uv_ellipse=raw)
