@@ -47,7 +47,13 @@ U8 = NDArray[np.uint8]
 
 N_BINS = 8
 _BIN_W = math.pi / N_BINS
-MAX_TOP_FEATURES = 60  # 4 * 60 < 255: uint8 accumulators cannot overflow
+TOP_STEP_FACTOR = 1.4
+"""Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
+MIN_TOP_RADIUS_PX = 6.0
+"""Automatic pyramid depth: the top level must show the model at least this large."""
+MAX_TOP_CANDIDATES = 64
+HYPOTHESES_PER_POSITION = 3
+MAX_TOP_FEATURES = 32  # 4 * 60 < 255: uint8 accumulators cannot overflow
 MAX_TRACK_FEATURES = 120
 MAX_FINE_POINTS = 500
 GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
@@ -88,11 +94,15 @@ class LevelModel:
 
     @property
     def radius(self) -> float:
-        return float(np.max(np.hypot(self.points[:, 0], self.points[:, 1])))
+        r = self.__dict__.get("_radius")
+        if r is None:
+            r = float(np.max(np.hypot(self.points[:, 0], self.points[:, 1])))
+            self.__dict__["_radius"] = r
+        return r
 
     @property
     def angle_step(self) -> float:
-        """Angle step (rad) of the discrete search: the outermost point moves <= 1 px."""
+        """Angle step (rad) of the discrete tracking: the outermost point moves <= 1 px."""
         return 1.0 / max(self.radius, 2.0)
 
     def to_dict(self) -> dict[str, Any]:
@@ -203,19 +213,34 @@ def gradients(img: NDArray[Any], sigma: float) -> tuple[F32, F32]:
 def bilinear(img: F32, x: F64, y: F64) -> F64:
     """Bilinear samples of ``img`` at (x, y) (pixel centres at integers; clamped at the border)."""
     h, w = img.shape
-    x = np.clip(x, 0.0, w - 1.001)
-    y = np.clip(y, 0.0, h - 1.001)
+    x = np.minimum(np.maximum(x, 0.0), w - 1.001)
+    y = np.minimum(np.maximum(y, 0.0), h - 1.001)
     x0 = x.astype(np.int64)
     y0 = y.astype(np.int64)
     fx = x - x0
     fy = y - y0
     i = y0 * w + x0
     flat = img.ravel()
-    a = flat[i]
-    b = flat[i + 1]
-    c = flat[i + w]
-    d = flat[i + w + 1]
-    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+    top = flat[i] + (flat[i + 1] - flat[i]) * fx
+    bot = flat[i + w] + (flat[i + w + 1] - flat[i + w]) * fx
+    return np.asarray(top + (bot - top) * fy, dtype=np.float64)
+
+
+def bilinear2(img2: F32, x: F64, y: F64) -> F64:
+    """Bilinear samples of a two-channel image (H, W, 2) -> (N, 2)."""
+    h, w = img2.shape[:2]
+    x = np.minimum(np.maximum(x, 0.0), w - 1.001)
+    y = np.minimum(np.maximum(y, 0.0), h - 1.001)
+    x0 = x.astype(np.int64)
+    y0 = y.astype(np.int64)
+    fx = (x - x0)[:, None]
+    fy = (y - y0)[:, None]
+    i = y0 * w + x0
+    flat = img2.reshape(-1, 2)
+    a, b_, c, d = flat[i], flat[i + 1], flat[i + w], flat[i + w + 1]
+    top = a + (b_ - a) * fx
+    bot = c + (d - c) * fx
+    return np.asarray(top + (bot - top) * fy, dtype=np.float64)
 
 
 def _gauss_peak(gm: F64, g0: F64, gp: F64) -> F64:
@@ -240,16 +265,22 @@ def centroid_offsets(img: F32, q: F64, n: F64, half_width: int = CENTROID_HALF_W
     a pixel on sharp, pixel-integrated edges — and bilinear interpolation along an axis-aligned
     normal does not change it. ``contrast`` is the signed step ``I(K) - I(-K)``.
     """
+    off, S, _ = _centroid(img, q, n, half_width)
+    return off, S
+
+
+def _centroid(img: F32, q: F64, n: F64, half_width: int = CENTROID_HALF_WIDTH
+              ) -> tuple[F64, F64, F64]:
     ts = np.arange(-half_width, half_width + 1, dtype=np.float64)
-    sx = q[:, 0][:, None] + ts[None, :] * n[:, 0][:, None]
-    sy = q[:, 1][:, None] + ts[None, :] * n[:, 1][:, None]
+    sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
+    sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
     prof = bilinear(img, sx.ravel(), sy.ravel()).reshape(sx.shape)
     D = np.diff(prof, axis=1)
     S = D.sum(axis=1)
     mid = ts[:-1] + 0.5
     with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where(np.abs(S) > 1e-9, (D * mid[None, :]).sum(axis=1) / S, 0.0)
-    return off, S
+        off = np.where(np.abs(S) > 1e-9, (D @ mid) / S, 0.0)
+    return off, S, D
 
 
 def rot(theta: float) -> F64:
@@ -303,12 +334,8 @@ def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, flo
 
 def _profile_ok(img: F32, q: F64, n: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
     """Centroid offsets, contrasts and whether each profile is one clean monotonic step."""
-    off, S = centroid_offsets(img, q, n)
-    ts = np.arange(-CENTROID_HALF_WIDTH, CENTROID_HALF_WIDTH + 1, dtype=np.float64)
-    sx = q[:, 0][:, None] + ts[None, :] * n[:, 0][:, None]
-    sy = q[:, 1][:, None] + ts[None, :] * n[:, 1][:, None]
-    D = np.diff(bilinear(img, sx.ravel(), sy.ravel()).reshape(sx.shape), axis=1) * np.sign(S)[:, None]
-    wrong = np.clip(-D, 0, None).sum(axis=1)
+    off, S, D = _centroid(img, q, n)
+    wrong = np.clip(-D * np.sign(S)[:, None], 0, None).sum(axis=1)
     clean = wrong <= 0.1 * np.abs(S)
     return off, S, clean
 
@@ -354,9 +381,12 @@ def _spread_subset(pts: F64, strength: F64, target: int, min_spacing: float) -> 
 
 
 def auto_levels(roi_w: float, roi_h: float) -> int:
-    """Pyramid levels so the top level shows the ROI's smaller side at 8..16 px (at most 5)."""
+    """Pyramid levels so the top level shows the ROI's smaller side at >= 8 px (at most 5).
+
+    ``teach`` then drops top levels where the model is too thin (see ``MIN_TOP_RADIUS_PX``).
+    """
     n = 1
-    while n < 5 and min(roi_w, roi_h) / 2 ** n >= 10.0:
+    while n < 5 and min(roi_w, roi_h) / 2 ** n >= 8.0:
         n += 1
     return n
 
@@ -397,7 +427,7 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
             feats = _spread_subset(pts, mag, MAX_TRACK_FEATURES, 1.5)
         levels.append(LevelModel(lv, pts, nrm, feats))
     # the top level is searched exhaustively: fewer, well spread features; drop levels that are too thin
-    while len(levels) > 1 and len(levels[-1].points) < 12:
+    while len(levels) > 1 and (len(levels[-1].points) < 16 or levels[-1].radius < MIN_TOP_RADIUS_PX):
         levels.pop()
     top = levels[-1]
     top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5) \
@@ -408,22 +438,32 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
 # ----------------------------------------------------------------------------- responses
 
 
+def _response_table() -> U8:
+    """(N_BINS, 4*N_BINS+1) responses of each feature bin to each quarter-bin orientation."""
+    t = np.zeros((N_BINS, 4 * N_BINS + 1), np.uint8)  # last column: no edge
+    for b in range(N_BINS):
+        for qb in range(4 * N_BINS):
+            d = abs(qb + 0.5 - (4.0 * b + 2.0))
+            d = min(d, 4.0 * N_BINS - d)  # circular distance in quarter-bins (1 = 5.625 deg)
+            t[b, qb] = int(np.clip(4 - math.floor(d * 0.5), 0, 4))  # 4 within ~11 deg, 0 beyond 45
+    return t
+
+
+_RESPONSE_TABLE = _response_table()
+
+
 def response_maps(img: U8, thr: float, sigma: float = 0.0) -> U8:
     """(N_BINS, H, W) uint8 responses 0..4 to each orientation bin, spread by a 3x3 max filter."""
     gx, gy = gradients(img, sigma)
     mag = cv2.magnitude(gx, gy)
-    ang = cv2.phase(gx, gy)  # 0..2pi
-    q = np.mod(ang, math.pi) * (4.0 * N_BINS / math.pi)  # orientation in quarter-bins (0..4*N_BINS)
-    invalid = mag < thr
-    out = np.empty((N_BINS,) + img.shape, np.uint8)
-    kernel = np.ones((3, 3), np.uint8)
-    for b in range(N_BINS):
-        d = np.abs(q - (4.0 * b + 2.0))
-        d = np.minimum(d, 4.0 * N_BINS - d)  # circular distance in quarter-bins (1 = 5.625 deg)
-        r = np.clip(4.0 - np.floor(d * 0.5), 0, 4).astype(np.uint8)  # 4 within 11.25 deg, ...
-        r[invalid] = 0
-        out[b] = cv2.dilate(r, kernel)
-    return out
+    ang = cv2.phase(gx, gy, angleInDegrees=True)  # 0..360
+    q = (ang * (4.0 * N_BINS / 180.0)).astype(np.int32) % (4 * N_BINS)
+    q[mag < thr] = 4 * N_BINS
+    h, w = img.shape
+    stack = np.zeros((N_BINS, h + 1, w), np.uint8)  # a zero row between bins keeps the max filter apart
+    stack[:, :h] = _RESPONSE_TABLE[:, q]
+    flat = cv2.dilate(stack.reshape(N_BINS * (h + 1), w), np.ones((3, 3), np.uint8))
+    return np.ascontiguousarray(flat.reshape(N_BINS, h + 1, w)[:, :h])
 
 
 def _rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], NDArray[np.int64],
@@ -439,17 +479,36 @@ def _rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], N
     return dx, dy, b
 
 
-def _score_poses(resp: U8, lm: LevelModel, xs: NDArray[np.int64], ys: NDArray[np.int64],
-                 thetas: F64) -> F64:
-    """Scores of poses (all combinations of positions (P,) and angles (A,)) -> (A, P) in 0..1."""
-    dx, dy, b = _rotated_features(lm, thetas)
+def _track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64
+           ) -> tuple[F64, F64, F64, F64]:
+    """Best pose of each candidate over +-1 px and +-1 angle step: (x, y, theta, score) arrays.
+
+    With the responses spread over 3x3, this covers a candidate that is up to 2 px off.
+    """
+    da = lm.angle_step
+    m = lm.points[lm.features]
+    n = lm.normals[lm.features]
+    nf = len(m)
+    thetas = th[:, None] + np.array([-da, 0.0, da])[None, :]  # (C, 3)
+    c, s = np.cos(thetas)[..., None], np.sin(thetas)[..., None]
+    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)  # (C, 3, F)
+    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
+    phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
+    b = (np.floor(np.mod(phi, math.pi) / _BIN_W).astype(np.int64)) % N_BINS
     _, h, w = resp.shape
-    X = xs[None, :, None] + dx[:, None, :]
-    Y = ys[None, :, None] + dy[:, None, :]
-    ok = (X >= 0) & (w > X) & (Y >= 0) & (h > Y)
-    idx = (b[:, None, :] * h + np.clip(Y, 0, h - 1)) * w + np.clip(X, 0, w - 1)
-    vals = resp.ravel()[idx] * ok
-    return np.asarray(vals.sum(axis=2) / (4.0 * dx.shape[1]), dtype=np.float64)
+    offs = np.arange(-1, 2)
+    ox = (offs[None, :] * np.ones((3, 1), np.int64)).ravel()  # (9,)
+    oy = (offs[:, None] * np.ones((1, 3), np.int64)).ravel()
+    X = cx[:, None, None, None] + ox[None, None, :, None] + dx[:, :, None, :]  # (C, 3, 25, F)
+    Y = cy[:, None, None, None] + oy[None, None, :, None] + dy[:, :, None, :]
+    ok = (X >= 0) & (X < w) & (Y >= 0) & (Y < h)
+    idx = (b[:, :, None, :] * h + np.clip(Y, 0, h - 1)) * w + np.clip(X, 0, w - 1)
+    sc = (resp.ravel()[idx] * ok).sum(axis=3, dtype=np.int32).reshape(len(cx), -1)  # (C, 75)
+    k = np.argmax(sc, axis=1)
+    ai, pi = k // 9, k % 9
+    rows = np.arange(len(cx))
+    return ((cx + ox[pi]).astype(np.float64), (cy + oy[pi]).astype(np.float64), thetas[rows, ai],
+            sc[rows, k] / (4.0 * nf))
 
 
 # ----------------------------------------------------------------------------- refinement
@@ -464,87 +523,83 @@ class _Pose:
 
 
 def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: float,
-                search_px: float, iterations: int, fine: F32 | None = None,
-                min_contrast: float = 0.0) -> tuple[_Pose, float, float]:
+                search_px: float, iterations: int, fine: U8 | None = None,
+                min_contrast: float = 0.0, subset: NDArray[np.int64] | None = None,
+                reject_below: float = 0.0) -> tuple[_Pose, float, float]:
     """Gauss-Newton fit of the model edge points to the image edges; returns (pose, score, rms)."""
-    m = lm.points
-    nrm_m = lm.normals
-    R = rot(pose.theta)
-    q = m @ R.T + np.array([pose.x, pose.y])
-    reach = lm.radius + search_px + 4 + 3 * sigma
+    m = lm.points if subset is None else lm.points[subset]
+    nrm_m = lm.normals if subset is None else lm.normals[subset]
+    npts = len(m)
+    rows = np.arange(npts)
+    dm0 = np.stack([m[:, 1], -m[:, 0]], axis=1)  # d(R m)/d theta = R (m_y, -m_x)
+    reach = lm.radius + search_px + 5 + 3 * sigma
     h, w = img_level.shape
     x0, y0 = max(int(pose.x - reach), 0), max(int(pose.y - reach), 0)
     x1, y1 = min(int(pose.x + reach) + 1, w - 1), min(int(pose.y + reach) + 1, h - 1)
     if x1 - x0 < 8 or y1 - y0 < 8:
         return pose, 0.0, float("nan")
     gx, gy = gradients(img_level[y0:y1 + 1, x0:x1 + 1], sigma)
+    G = cv2.merge([gx, gy])
     x, y, th = pose.x - x0, pose.y - y0, pose.theta
     rng = search_px
-    d = np.zeros(len(m))
-    found = np.zeros(len(m), bool)
-    cosd = np.zeros(len(m))
+    d = np.zeros(npts)
+    found = np.zeros(npts, bool)
+    cosd = np.zeros(npts)
     for it in range(iterations):
         R = rot(th)
         q = m @ R.T + np.array([x, y])
         n = nrm_m @ R.T
         ts = np.arange(-math.ceil(rng), math.ceil(rng) + 1, dtype=np.float64)
-        sx = q[:, 0][:, None] + ts[None, :] * n[:, 0][:, None]
-        sy = q[:, 1][:, None] + ts[None, :] * n[:, 1][:, None]
-        bx = bilinear(gx, sx.ravel(), sy.ravel()).reshape(sx.shape)
-        by = bilinear(gy, sx.ravel(), sy.ravel()).reshape(sx.shape)
-        gn = np.abs(bx * n[:, 0][:, None] + by * n[:, 1][:, None])
-        gm = np.hypot(bx, by)
-        good = (gn >= thr) & (gn >= 0.9 * gm)
-        g = np.where(good, gn, 0.0)
         k = len(ts)
+        sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
+        sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
+        gxy = bilinear2(G, sx.ravel(), sy.ravel()).reshape(npts, k, 2)
+        gn = np.abs(gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2])
+        gm2 = gxy[..., 0] ** 2 + gxy[..., 1] ** 2
+        good = (gn >= thr) & (gn * gn >= 0.81 * gm2)
+        g = np.where(good, gn, 0.0)
         locmax = np.zeros_like(good)
         locmax[:, 1:-1] = good[:, 1:-1] & (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
         cost = np.where(locmax, np.abs(ts)[None, :], np.inf)
         j = np.argmin(cost, axis=1)
-        found = np.isfinite(cost[np.arange(len(m)), j])
-        jj = np.clip(j, 1, k - 2)
-        rows = np.arange(len(m))
+        found = locmax[rows, j]
+        jj = np.minimum(np.maximum(j, 1), k - 2)
         off = _gauss_peak(g[rows, jj - 1], g[rows, jj], g[rows, jj + 1])
         d = np.where(found, ts[jj] + off, 0.0)
-        cosd = np.where(found, gn[rows, jj] / np.maximum(gm[rows, jj], 1e-9), 0.0)
+        cosd = np.where(found, gn[rows, jj] / np.sqrt(np.maximum(gm2[rows, jj], 1e-12)), 0.0)
         # Tukey weights on the normal distances
         c = max(rng * 0.75, 1.0)
         wgt = np.where(found & (np.abs(d) < c), (1 - (d / c) ** 2) ** 2, 0.0)
-        if wgt.sum() < 6:
+        if wgt.sum() < 6 or (it == 0 and np.count_nonzero(found) < reject_below * npts):
             return _Pose(x + x0, y + y0, th, 0.0), 0.0, float("nan")
-        dm = np.stack([m[:, 1], -m[:, 0]], axis=1) @ R.T  # d(R m)/d theta
-        J = np.stack([n[:, 0], n[:, 1], np.sum(n * dm, axis=1)], axis=1)
-        A = J.T @ (J * wgt[:, None])
-        bvec = J.T @ (wgt * d)
-        try:
-            delta = np.linalg.solve(A + np.eye(3) * 1e-9, bvec)
-        except np.linalg.LinAlgError:
-            break
+        J = np.stack([n[:, 0], n[:, 1], np.sum(n * (dm0 @ R.T), axis=1)], axis=1)
+        delta = np.linalg.solve(J.T @ (J * wgt[:, None]) + np.eye(3) * 1e-9, J.T @ (wgt * d))
         x += float(delta[0])
         y += float(delta[1])
         th += float(delta[2])
         rng = max(rng * 0.6, 1.5)
-        if abs(delta[0]) + abs(delta[1]) < 1e-4 and abs(delta[2]) * lm.radius < 1e-4 and it >= 2:
+        if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 0.01:
             break
     if fine is not None:
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
-        img_f = fine[y0:y1 + 1, x0:x1 + 1]
-        for _ in range(3):
+        img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
+        sel = found & (np.abs(d) < 1.0)
+        ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
+        for _ in range(2):
             R = rot(th)
-            q = m @ R.T + np.array([x, y])
-            n = nrm_m @ R.T
+            q = ms @ R.T + np.array([x, y])
+            n = ns @ R.T
             off, S, clean = _profile_ok(img_f, q, n)
-            ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & found & (np.abs(d) < 1.0)
-            wgt = np.where(ok, (1 - (off / 1.0) ** 2) ** 2, 0.0)
+            ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast)
+            wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
             if wgt.sum() < 6:
                 break
-            dm = np.stack([m[:, 1], -m[:, 0]], axis=1) @ R.T
-            J = np.stack([n[:, 0], n[:, 1], np.sum(n * dm, axis=1)], axis=1)
+            J = np.stack([n[:, 0], n[:, 1], np.sum(n * (dms @ R.T), axis=1)], axis=1)
             delta = np.linalg.solve(J.T @ (J * wgt[:, None]) + np.eye(3) * 1e-9, J.T @ (wgt * off))
             x += float(delta[0])
             y += float(delta[1])
             th += float(delta[2])
-            if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 1e-4:
+            if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 1e-3:
                 break
     # score: fraction of model edges seen where they should be (orientation-weighted)
     s_i = np.where(found, cosd * np.clip(1.0 - np.abs(d) / 1.5, 0.0, 1.0), 0.0)
@@ -580,6 +635,21 @@ def _nms(poses: list[_Pose], min_dist: float) -> list[_Pose]:
         if all((p.x - o.x) ** 2 + (p.y - o.y) ** 2 >= min_dist * min_dist for o in out):
             out.append(p)
     return out
+
+
+def _nms_pose(poses: list[_Pose], dist: float, dtheta: float) -> list[_Pose]:
+    """Drop poses within ``dist`` and ``dtheta`` of a better one (poses sorted best first)."""
+    if not poses:
+        return poses
+    P = np.array([[p.x, p.y, p.theta] for p in poses])
+    keep = np.ones(len(poses), bool)
+    for i in range(len(poses)):
+        if not keep[i]:
+            continue
+        dd = (P[i + 1:, 0] - P[i, 0]) ** 2 + (P[i + 1:, 1] - P[i, 1]) ** 2
+        da = np.abs(np.angle(np.exp(1j * (P[i + 1:, 2] - P[i, 2]))))
+        keep[i + 1:] &= ~((dd <= dist * dist) & (da <= dtheta))
+    return [p for p, k in zip(poses, keep, strict=True) if k]
 
 
 def _angles(start: float, extent: float, step: float) -> F64:
@@ -619,38 +689,47 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     timed_out = False
     cands: list[_Pose] = []
     if rx1 >= rx0 and ry1 >= ry0:
-        thetas = _angles(a0, ext, top.angle_step)
+        thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step)
         dx, dy, b = _rotated_features(top, thetas)
         P = int(max(np.abs(dx).max(), np.abs(dy).max())) + 1
         pad = np.zeros((N_BINS, hL + 2 * P, wL + 2 * P), np.uint8)
         pad[:, P:P + hL, P:P + wL] = resp
         nh, nw = ry1 - ry0 + 1, rx1 - rx0 + 1
-        acc = np.empty((nh, nw), np.uint8)
-        best = np.zeros((nh, nw), np.uint8)
-        best_a = np.zeros((nh, nw), np.int32)
         nf = dx.shape[1]
+        na = len(thetas)
+        # one score map per angle, with a zero row below each so one max filter serves all
+        allacc = np.zeros((na, nh + 1, nw), np.uint8)
         oy, ox = P + ry0, P + rx0
         dxl, dyl, bl = (dx + ox).tolist(), (dy + oy).tolist(), b.tolist()
-        for ai in range(len(thetas)):
-            acc.fill(0)
+        done = na
+        for ai in range(na):
+            acc = allacc[ai, :nh]
             xa, ya, ba = dxl[ai], dyl[ai], bl[ai]
             for k in range(nf):
                 y, x = ya[k], xa[k]
                 np.add(acc, pad[ba[k], y:y + nh, x:x + nw], out=acc)
-            better = acc > best
-            np.copyto(best, acc, where=better)
-            best_a[better] = ai
             if (ai & 7) == 7 and clock.expired():
                 timed_out = True
+                done = ai + 1
                 break
         thr_top = int(math.floor(4 * nf * sp.min_score * 0.7))
-        xs, ys = _local_maxima(best, thr_top)
-        sc = best[ys, xs].astype(np.float64) / (4.0 * nf)
-        cands = [_Pose(float(x + rx0), float(y + ry0), float(thetas[best_a[y, x]]), float(c))
-                 for x, y, c in zip(xs, ys, sc, strict=True)]
-        cands = _nms(cands, min_dist / s)
-        limit = 3 * sp.max_count + 8 if sp.max_count > 0 else 64
-        cands = cands[:limit]
+        # local maxima over position and angle (circular when the range is the full turn)
+        dil = cv2.dilate(allacc[:done].reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8))
+        dil = dil.reshape(done, nh + 1, nw)
+        full = ext >= 2 * math.pi - 1e-9 and done == na
+        if done > 1:
+            up = np.roll(dil, 1, axis=0)
+            dn = np.roll(dil, -1, axis=0)
+            if not full:
+                up[0] = 0
+                dn[-1] = 0
+            dil = np.maximum(dil, np.maximum(up, dn))
+        sub = allacc[:done]
+        ai_, ys, xs = np.nonzero((sub == dil) & (sub >= thr_top))
+        sc = sub[ai_, ys, xs]
+        order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
+        cands = [_Pose(float(xs[i] + rx0), float(ys[i] + ry0), float(thetas[ai_[i]]), sc[i] / (4.0 * nf))
+                 for i in order]
     stats["t_top_s"] = clock.elapsed()
     stats["n_top_candidates"] = float(len(cands))
 
@@ -661,51 +740,72 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             break
         lm = model.levels[lv]
         resp = response_maps(pyr[lv], thr_grad)
+        cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
+        cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)
+        th = np.array([c.theta for c in cands])
         nxt: list[_Pose] = []
-        da = lm.angle_step
-        offs = np.arange(-2, 3)
-        for c in cands:
-            cx, cy = int(round(c.x * 2)), int(round(c.y * 2))
-            gx_, gy_ = np.meshgrid(cx + offs, cy + offs)
-            thetas = c.theta + np.array([-da, 0.0, da])
-            sc = _score_poses(resp, lm, gx_.ravel(), gy_.ravel(), thetas)
-            ai, pi = np.unravel_index(int(np.argmax(sc)), sc.shape)
-            score = float(sc[ai, pi])
-            if score >= sp.min_score * 0.7:
-                nxt.append(_Pose(float(gx_.ravel()[pi]), float(gy_.ravel()[pi]), float(thetas[ai]), score))
+        for start in range(0, len(cands), 32):
+            sl = slice(start, start + 32)
+            xs_, ys_, ts_, sc_ = _track(resp, lm, cx[sl], cy[sl], th[sl])
+            nxt += [_Pose(float(a), float(b_), float(t_), float(c_))
+                    for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True) if c_ >= sp.min_score * 0.8]
             if clock.expired():
                 timed_out = True
                 break
-        cands = _nms(nxt, min_dist / 2.0 ** lv)
+        nxt.sort(key=lambda p: -p.score)
+        cands = _nms_pose(nxt, 2.0, 2.5 * lm.angle_step)
     stats["t_track_s"] = clock.elapsed()
 
-    # 3. least-squares refinement on the remaining levels down to 0
+    # at most a few angle hypotheses per position go on to the (costlier) least-squares stage
+    per_pos: list[list[_Pose]] = []
+    r_pos = (min_dist / 2.0 ** lowest_discrete) ** 2
+    for c in sorted(cands, key=lambda p: -p.score):
+        for grp in per_pos:
+            if (grp[0].x - c.x) ** 2 + (grp[0].y - c.y) ** 2 < r_pos:
+                if len(grp) < HYPOTHESES_PER_POSITION and c.score >= 0.8 * grp[0].score:
+                    grp.append(c)
+                break
+        else:
+            per_pos.append([c])
+    cands = [c for grp in per_pos for c in grp]
+    stats["n_tracked"] = float(len(cands))
+    # 3. least-squares refinement on the remaining levels down to 0; after the first of them,
+    #    hypotheses at one position (e.g. other angles of a nearly symmetric part) compete
     found: list[Match] = []
-    fine = img.astype(np.float32) if cands else None
-    for c in cands:
-        if clock.expired():
-            timed_out = True
-            break
-        pose = c
-        lv = lowest_discrete
-        score, rms = c.score, float("nan")
-        for lv2 in range(max(lv - 1, 0), -1, -1):
+    lsq_levels = list(range(max(lowest_discrete - 1, 0), -1, -1))
+    poses: list[tuple[_Pose, int, float, float]] = [(c, lowest_discrete, c.score, float("nan"))
+                                                   for c in cands]
+    for step, lv2 in enumerate(lsq_levels):
+        nxt2: list[tuple[_Pose, int, float, float]] = []
+        for pose, lv, _, _ in poses:
+            if clock.expired():
+                timed_out = True
+                break
             f = 2.0 ** (lv - lv2)
             pose = _Pose(pose.x * f, pose.y * f, pose.theta, pose.score)
-            lv = lv2
             sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
-            pose, score, rms = _refine_lsq(pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
-                                           search_px=3.0, iterations=8 if lv2 == 0 else 5,
-                                           fine=fine if lv2 == 0 else None,
-                                           min_contrast=model.params.min_contrast)
-            if score < sp.min_score * (0.8 if lv2 > 0 else 1.0):
-                break
-        if score < sp.min_score:
+            pose, score, rms = _refine_lsq(
+                pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
+                search_px=3.0 if step == 0 else 2.0, iterations=5 if step == 0 else 3,
+                fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
+                subset=model.levels[lv2].features if lv2 > 0 else None,
+                reject_below=0.7 * sp.min_score)
+            if score >= sp.min_score * (0.8 if lv2 > 0 else 1.0):
+                nxt2.append((_Pose(pose.x, pose.y, pose.theta, score), lv2, score, rms))
+        nxt2.sort(key=lambda t: -t[2])
+        kept: list[tuple[_Pose, int, float, float]] = []
+        r2 = (min_dist / 2.0 ** lv2) ** 2
+        for t in nxt2:
+            if all((t[0].x - o[0].x) ** 2 + (t[0].y - o[0].y) ** 2 >= r2 for o in kept):
+                kept.append(t)
+        poses = kept
+        if timed_out:
+            break
+    for pose, lv, score, rms in poses:
+        if lv != 0:
             continue
-        inside = su <= pose.x <= su + sw and sv <= pose.y <= sv + sh
-        if not inside:
-            continue
-        found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms))
+        if su <= pose.x <= su + sw and sv <= pose.y <= sv + sh:
+            found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms))
     # final non-maximum suppression on level 0
     found.sort(key=lambda m: -m.score)
     final: list[Match] = []
