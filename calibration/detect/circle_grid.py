@@ -24,7 +24,7 @@ from calibration.targets import CircleGrid
 
 def blob_detector(image_area_px: int, n_circles: int) -> cv2.SimpleBlobDetector:
     """A blob detector for dark circles from a few pixels up to a grid filling the image."""
-    p = cv2.SimpleBlobDetector_Params()
+    p = cv2.SimpleBlobDetector.Params()
     p.filterByColor = True
     p.blobColor = 0
     p.minArea = 10
@@ -33,7 +33,7 @@ def blob_detector(image_area_px: int, n_circles: int) -> cv2.SimpleBlobDetector:
     p.minInertiaRatio = 0.2
     p.filterByConvexity = True
     p.minConvexity = 0.85
-    return cv2.SimpleBlobDetector_create(p)
+    return cv2.SimpleBlobDetector.create(p)
 
 
 def find_circles_opencv(grey: NDArray[np.uint8], target: CircleGrid) -> NDArray[np.float64] | None:

@@ -26,6 +26,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "pose",
     "measure",
     "detect",
+    "target",
 )
 
 
