@@ -1,0 +1,37 @@
+"""Typed errors of the store; every message says what was wrong and what to do."""
+
+from __future__ import annotations
+
+
+class StoreError(RuntimeError):
+    """Base of the store's errors (a ``RuntimeError``: the CLI prints its message as one line)."""
+
+
+class NotFound(StoreError, KeyError):
+    """A calibration or recipe asked for by id does not exist in this cell's store.
+
+    Also a ``KeyError``, so ``except KeyError`` works, but its ``str()`` is the plain message.
+    """
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "not found"
+
+
+class InvalidInput(StoreError, ValueError):
+    """An argument to a store call is malformed (bad kind, empty id, payload not JSON-able)."""
+
+
+class NothingToRollBack(StoreError, ValueError):
+    """``rollback`` was asked for a camera/robot pair that has no earlier activation."""
+
+
+class StoreFormatError(StoreError):
+    """The database was written by a newer cellctl, or is not a cellctl store at all."""
+
+
+class CorruptRecord(StoreError):
+    """A stored record's checksum does not match its payload (storage damaged outside cellctl)."""
+
+
+class RestoreRefused(StoreError):
+    """``restore`` would overwrite a non-empty store (without ``force``) or the backup is unusable."""

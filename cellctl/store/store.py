@@ -1,0 +1,455 @@
+"""The store of one cell: versioned calibrations with their inputs, the active pointer with its
+history, recipes and the audit log — one data-access layer over SQLite or PostgreSQL.
+
+Every write is one database transaction that also appends its audit entry, so a process killed at
+any moment leaves either the whole act (record + audit) or nothing. A :class:`Store` is safe to
+share between threads: each call checks a connection out of the engine's pool for its duration.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import sqlalchemy as sa
+
+import cellctl
+from cellctl.store import schema as S
+from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
+from cellctl.store.errors import (
+    CorruptRecord,
+    InvalidInput,
+    NotFound,
+    NothingToRollBack,
+    StoreError,
+    StoreFormatError,
+)
+from cellctl.store.records import (
+    CALIBRATION_KINDS,
+    AuditEntry,
+    CalibrationKind,
+    CalibrationRecord,
+    CalibrationSummary,
+    Recipe,
+)
+
+MAX_AUDIT_LIMIT = 10_000
+
+
+def to_json_text(value: Any, what: str) -> str:
+    """``value`` as JSON text; numpy arrays/scalars become lists/numbers; NaN/inf are kept."""
+
+    def default(obj: Any) -> Any:
+        if hasattr(obj, "tolist"):  # numpy arrays and scalars
+            return obj.tolist()
+        raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+    try:
+        return json.dumps(value, default=default, separators=(",", ":"), sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInput(f"{what} cannot be stored as JSON: {exc}") from None
+
+
+def payload_sha256(result_json: str, inputs_json: str) -> str:
+    h = hashlib.sha256(result_json.encode())
+    h.update(b"\n")
+    h.update(inputs_json.encode())
+    return h.hexdigest()
+
+
+def describe_key(kind: str, camera_id: str, robot_id: str | None) -> str:
+    return f"{kind}/{camera_id}" + (f"/{robot_id}" if robot_id else "")
+
+
+class Store:
+    """One cell's store. Open it with :func:`cellctl.store.open_store` or ``Store(url, cell_id)``.
+
+    ``url`` is a SQLAlchemy URL: ``sqlite:////abs/path.db`` or
+    ``postgresql+psycopg://user@host:port/dbname``. The tables are created when missing; a store
+    written by a newer cellctl is refused with :class:`StoreFormatError`.
+    """
+
+    def __init__(self, url: str | sa.URL, cell_id: str) -> None:
+        if not cell_id:
+            raise InvalidInput("store: cell_id must not be empty")
+        self.url = parse_url(url)
+        self.cell_id = cell_id
+        self.backend: Backend = backend_of(self.url)
+        self._engine = make_engine(self.url)
+        try:
+            self._create_schema()
+        except BaseException:
+            self._engine.dispose()
+            raise
+
+    # ------------------------------------------------------------------ plumbing
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the connections; safe to call twice."""
+        self._engine.dispose()
+
+    @property
+    def engine(self) -> sa.Engine:
+        return self._engine
+
+    def describe(self) -> str:
+        """The URL without its password (for logs and CLI output)."""
+        return self.url.render_as_string(hide_password=True)
+
+    @contextmanager
+    def _read(self) -> Iterator[sa.Connection]:
+        try:
+            with self._engine.connect() as conn, conn.begin():
+                yield conn
+        except sa.exc.OperationalError as exc:
+            raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
+
+    @contextmanager
+    def _write(self) -> Iterator[sa.Connection]:
+        """One write transaction: committed when the block ends, rolled back on any exception."""
+        try:
+            with self._engine.connect() as conn:
+                conn.execution_options(**{WRITE_OPTION: True})
+                with conn.begin():
+                    if self.backend == "postgresql":
+                        conn.execute(sa.select(sa.func.pg_advisory_xact_lock(advisory_key(self.cell_id))))
+                    yield conn
+        except sa.exc.OperationalError as exc:
+            raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
+
+    def _create_schema(self) -> None:
+        with self._write() as conn:
+            if self.backend == "postgresql":  # one creator at a time across processes
+                conn.execute(sa.select(sa.func.pg_advisory_xact_lock(advisory_key("\0schema"))))
+            inspector = sa.inspect(conn)
+            existing = set(inspector.get_table_names())
+            ours = {t.name for t in S.metadata.sorted_tables}
+            if existing & (ours - {S.meta.name}) and S.meta.name not in existing:
+                raise StoreFormatError(f"store {self.describe()}: has tables named like cellctl's but no "
+                                       f"{S.meta.name} table; it is not a cellctl store: "
+                                       "point store.url/path elsewhere")
+            S.metadata.create_all(conn)
+            rows = dict(conn.execute(sa.select(S.meta.c.key, S.meta.c.value)).tuples().all())
+            if not rows:
+                conn.execute(S.meta.insert(), [{"key": "format", "value": S.STORE_MARKER},
+                                               {"key": "schema_version", "value": str(S.SCHEMA_VERSION)}])
+                return
+            if rows.get("format") != S.STORE_MARKER:
+                raise StoreFormatError(f"store {self.describe()}: not a cellctl store (format={rows.get('format')!r})")
+            version = int(rows.get("schema_version", "0"))
+            if version > S.SCHEMA_VERSION:
+                raise StoreFormatError(f"store {self.describe()} has schema version {version}, newer than this "
+                                       f"cellctl supports ({S.SCHEMA_VERSION}); upgrade cellctl")
+
+    def _audit(self, conn: sa.Connection, who: str, action: str, target: str, detail: dict[str, Any],
+               result: str, at_s: float | None = None) -> None:
+        conn.execute(S.audit.insert().values(
+            cell_id=self.cell_id, at_s=time.time() if at_s is None else at_s, who=who, action=action,
+            target=target, detail_json=to_json_text(detail, "audit detail"), result=result))
+
+    # ------------------------------------------------------------------ calibrations
+
+    def save_calibration(self, kind: CalibrationKind, camera_id: str, robot_id: str | None,
+                         result: dict[str, Any], inputs: dict[str, Any], creator: str,
+                         note: str = "") -> CalibrationRecord:
+        """Store a new immutable version for (kind, camera_id, robot_id); it is not activated.
+
+        ``result`` is the solver's output (``cam.json``/``he.json``/``np.json`` content), ``inputs``
+        what it was computed from (observations, robot poses). The version number is one more than
+        the highest stored for that key. Nothing is ever overwritten.
+        """
+        _check_key(kind, camera_id, robot_id)
+        _check_text(creator, "creator")
+        if not isinstance(result, dict) or not isinstance(inputs, dict):
+            raise InvalidInput("save_calibration: result and inputs must be dicts")
+        result_json = to_json_text(result, "calibration result")
+        inputs_json = to_json_text(inputs, "calibration inputs")
+        sha = payload_sha256(result_json, inputs_json)
+        now = time.time()
+        rid = robot_id or ""
+        c = S.calibrations.c
+        with self._write() as conn:
+            version = conn.execute(sa.select(sa.func.coalesce(sa.func.max(c.version), 0)).where(
+                c.cell_id == self.cell_id, c.kind == kind, c.camera_id == camera_id, c.robot_id == rid,
+            )).scalar_one() + 1
+            cal_id = conn.execute(S.calibrations.insert().values(
+                cell_id=self.cell_id, kind=kind, camera_id=camera_id, robot_id=rid, version=version,
+                result_json=result_json, inputs_json=inputs_json, sha256=sha,
+                tool_version=cellctl.__version__, creator=creator, note=note, created_s=now,
+            ).returning(c.id)).scalar_one()
+            self._audit(conn, creator, "calibration.save", f"calibration:{cal_id}",
+                        {"kind": kind, "camera_id": camera_id, "robot_id": robot_id, "version": version,
+                         "note": note, "sha256": sha}, "ok", now)
+            active_id = self._active_id(conn, kind, camera_id, rid)
+        return CalibrationRecord(
+            id=int(cal_id), cell_id=self.cell_id, kind=kind, camera_id=camera_id, robot_id=robot_id,
+            version=int(version), tool_version=cellctl.__version__, creator=creator, note=note, created_s=now,
+            active=active_id == cal_id, result=json.loads(result_json), inputs=json.loads(inputs_json), sha256=sha)
+
+    def list_calibrations(self, kind: CalibrationKind | None = None, camera_id: str | None = None,
+                          robot_id: str | None = None) -> list[CalibrationSummary]:
+        """Stored versions (without result and inputs), oldest first; ``None`` filters match all."""
+        if kind is not None and kind not in CALIBRATION_KINDS:
+            raise InvalidInput(f"kind {kind!r} is not one of {', '.join(CALIBRATION_KINDS)}")
+        c = S.calibrations.c
+        q = sa.select(c.id, c.kind, c.camera_id, c.robot_id, c.version, c.tool_version, c.creator, c.note,
+                      c.created_s).where(c.cell_id == self.cell_id)
+        if kind is not None:
+            q = q.where(c.kind == kind)
+        if camera_id is not None:
+            q = q.where(c.camera_id == camera_id)
+        if robot_id is not None:
+            q = q.where(c.robot_id == robot_id)
+        with self._read() as conn:
+            rows = conn.execute(q.order_by(c.id)).all()
+            active = self._all_active_ids(conn)
+        return [CalibrationSummary(
+            id=r.id, cell_id=self.cell_id, kind=r.kind, camera_id=r.camera_id, robot_id=r.robot_id or None,
+            version=r.version, tool_version=r.tool_version, creator=r.creator, note=r.note,
+            created_s=r.created_s, active=r.id in active) for r in rows]
+
+    def get_calibration(self, cal_id: int) -> CalibrationRecord:
+        """One version, complete; :class:`NotFound` when this cell has no calibration ``cal_id``."""
+        with self._read() as conn:
+            row = self._calibration_row(conn, cal_id)
+            active = self._active_id(conn, row.kind, row.camera_id, row.robot_id) == row.id
+        return self._record(row, active)
+
+    def activate(self, cal_id: int, who: str) -> CalibrationRecord:
+        """Make ``cal_id`` the active version of its (kind, camera_id, robot_id); logged.
+
+        Activating the version that is already active changes nothing but is still logged.
+        """
+        _check_text(who, "who")
+        with self._write() as conn:
+            row = self._calibration_row(conn, cal_id)
+            current = self._current_state(conn, row.kind, row.camera_id, row.robot_id)
+            key = describe_key(row.kind, row.camera_id, row.robot_id or None)
+            detail = {"kind": row.kind, "camera_id": row.camera_id, "robot_id": row.robot_id or None,
+                      "version": row.version,
+                      "previous_calibration_id": current.calibration_id if current is not None else None}
+            if current is not None and current.calibration_id == row.id:
+                self._audit(conn, who, "calibration.activate", f"calibration:{row.id}", detail, "already active")
+            else:
+                self._append_state(conn, row.kind, row.camera_id, row.robot_id, row.id,
+                                   current.seq if current is not None else None, "activate", who,
+                                   (current.seq if current is not None else 0) + 1)
+                self._audit(conn, who, "calibration.activate", f"calibration:{row.id}", detail, f"ok: active {key}")
+        return self._record(row, True)
+
+    def active(self, kind: CalibrationKind, camera_id: str, robot_id: str | None = None) -> CalibrationRecord | None:
+        """The active version of (kind, camera_id, robot_id), or ``None`` when none is."""
+        _check_key(kind, camera_id, robot_id)
+        with self._read() as conn:
+            cal_id = self._active_id(conn, kind, camera_id, robot_id or "")
+            if cal_id is None:
+                return None
+            return self._record(self._calibration_row(conn, cal_id), True)
+
+    def rollback(self, kind: CalibrationKind, camera_id: str, robot_id: str | None,
+                 who: str) -> CalibrationRecord | None:
+        """Re-activate the version that was active before the current one; logged.
+
+        Repeated rollbacks walk back through the activation history. Rolling back the first
+        activation leaves none active (returns ``None``); with nothing to go back to it raises
+        :class:`NothingToRollBack`.
+        """
+        _check_key(kind, camera_id, robot_id)
+        _check_text(who, "who")
+        rid = robot_id or ""
+        key = describe_key(kind, camera_id, robot_id)
+        a = S.activations.c
+        with self._write() as conn:
+            current = self._current_state(conn, kind, camera_id, rid)
+            if current is None or (current.calibration_id is None and current.previous_seq is None):
+                raise NothingToRollBack(f"rollback: no earlier activation of the {key} calibration to go back to")
+            if current.previous_seq is None:
+                target_id, target_prev = None, None
+            else:
+                prev = conn.execute(sa.select(a.calibration_id, a.previous_seq).where(
+                    a.cell_id == self.cell_id, a.kind == kind, a.camera_id == camera_id, a.robot_id == rid,
+                    a.seq == current.previous_seq)).one()
+                target_id, target_prev = prev.calibration_id, prev.previous_seq
+            self._append_state(conn, kind, camera_id, rid, target_id, target_prev, "rollback", who, current.seq + 1)
+            self._audit(conn, who, "calibration.rollback", key,
+                        {"kind": kind, "camera_id": camera_id, "robot_id": robot_id,
+                         "from_calibration_id": current.calibration_id, "to_calibration_id": target_id},
+                        f"ok: active {target_id}" if target_id is not None else "ok: none active")
+            row = self._calibration_row(conn, target_id) if target_id is not None else None
+        return self._record(row, True) if row is not None else None
+
+    def activation_history(self, kind: CalibrationKind, camera_id: str,
+                           robot_id: str | None = None) -> list[dict[str, Any]]:
+        """Every activation/rollback of (kind, camera_id, robot_id), oldest first."""
+        _check_key(kind, camera_id, robot_id)
+        a = S.activations.c
+        with self._read() as conn:
+            rows = conn.execute(sa.select(a.seq, a.calibration_id, a.action, a.who, a.at_s).where(
+                a.cell_id == self.cell_id, a.kind == kind, a.camera_id == camera_id,
+                a.robot_id == (robot_id or "")).order_by(a.seq)).all()
+        return [dict(r._mapping) for r in rows]
+
+    def _calibration_row(self, conn: sa.Connection, cal_id: int) -> sa.Row[Any]:
+        if isinstance(cal_id, bool) or not isinstance(cal_id, int):
+            raise InvalidInput(f"calibration id must be an integer, got {cal_id!r}")
+        c = S.calibrations.c
+        row = conn.execute(sa.select(S.calibrations).where(c.id == cal_id, c.cell_id == self.cell_id)).one_or_none()
+        if row is None:
+            raise NotFound(f"calibration {cal_id} not found in the store of cell {self.cell_id!r}; "
+                           "list the stored ones with list_calibrations / GET /calibrations")
+        return row
+
+    def _record(self, row: sa.Row[Any], active: bool) -> CalibrationRecord:
+        if payload_sha256(row.result_json, row.inputs_json) != row.sha256:
+            raise CorruptRecord(f"calibration {row.id}: stored payload does not match its checksum; "
+                                "restore the store from a backup")
+        return CalibrationRecord(
+            id=row.id, cell_id=row.cell_id, kind=row.kind, camera_id=row.camera_id, robot_id=row.robot_id or None,
+            version=row.version, tool_version=row.tool_version, creator=row.creator, note=row.note,
+            created_s=row.created_s, active=active, result=json.loads(row.result_json),
+            inputs=json.loads(row.inputs_json), sha256=row.sha256)
+
+    def _current_state(self, conn: sa.Connection, kind: str, camera_id: str, rid: str) -> sa.Row[Any] | None:
+        a = S.activations.c
+        q = sa.select(S.activations).where(
+            a.cell_id == self.cell_id, a.kind == kind, a.camera_id == camera_id, a.robot_id == rid,
+        ).order_by(a.seq.desc()).limit(1)
+        return conn.execute(q).one_or_none()
+
+    def _active_id(self, conn: sa.Connection, kind: str, camera_id: str, rid: str) -> int | None:
+        state = self._current_state(conn, kind, camera_id, rid)
+        return None if state is None else state.calibration_id
+
+    def _all_active_ids(self, conn: sa.Connection) -> set[int]:
+        a = S.activations.c
+        latest = sa.select(a.kind, a.camera_id, a.robot_id, sa.func.max(a.seq).label("seq")).where(
+            a.cell_id == self.cell_id).group_by(a.kind, a.camera_id, a.robot_id).subquery()
+        q = sa.select(a.calibration_id).join(latest, sa.and_(
+            a.kind == latest.c.kind, a.camera_id == latest.c.camera_id, a.robot_id == latest.c.robot_id,
+            a.seq == latest.c.seq)).where(a.cell_id == self.cell_id, a.calibration_id.is_not(None))
+        return {int(x) for x in conn.execute(q).scalars()}
+
+    def _append_state(self, conn: sa.Connection, kind: str, camera_id: str, rid: str, cal_id: int | None,
+                      previous_seq: int | None, action: str, who: str, seq: int) -> None:
+        conn.execute(S.activations.insert().values(
+            cell_id=self.cell_id, kind=kind, camera_id=camera_id, robot_id=rid, seq=seq,
+            calibration_id=cal_id, previous_seq=previous_seq, action=action, who=who, at_s=time.time()))
+
+    # ------------------------------------------------------------------ audit
+
+    def audit(self, who: str, action: str, target: str, detail: dict[str, Any], result: str) -> None:
+        """Log one act (a motion, a calibration change, a restore ...) with its result."""
+        _check_text(who, "who")
+        _check_text(action, "action")
+        if not isinstance(detail, dict):
+            raise InvalidInput("audit: detail must be a dict")
+        with self._write() as conn:
+            self._audit(conn, who, action, target, detail, result)
+
+    def audit_log(self, limit: int = 100, action: str | None = None) -> list[AuditEntry]:
+        """The newest ``limit`` entries (newest first), optionally only one ``action``."""
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= MAX_AUDIT_LIMIT:
+            raise InvalidInput(f"audit_log: limit must be an integer in 1..{MAX_AUDIT_LIMIT}, got {limit!r}")
+        t = S.audit.c
+        q = sa.select(S.audit).where(t.cell_id == self.cell_id)
+        if action is not None:
+            q = q.where(t.action == action)
+        with self._read() as conn:
+            rows = conn.execute(q.order_by(t.id.desc()).limit(limit)).all()
+        return [AuditEntry(id=r.id, cell_id=r.cell_id, at_s=r.at_s, who=r.who, action=r.action, target=r.target,
+                           detail=json.loads(r.detail_json), result=r.result) for r in rows]
+
+    # ------------------------------------------------------------------ recipes
+
+    def save_recipe(self, recipe_id: int, name: str, data: dict[str, Any], who: str) -> Recipe:
+        """Store a new version of recipe ``recipe_id`` (the latest version is the one in force)."""
+        if isinstance(recipe_id, bool) or not isinstance(recipe_id, int) or recipe_id < 0:
+            raise InvalidInput(f"recipe id must be a non-negative integer (the PLC's recipe number), got {recipe_id!r}")
+        _check_text(name, "recipe name")
+        _check_text(who, "who")
+        if not isinstance(data, dict):
+            raise InvalidInput("save_recipe: data must be a dict")
+        data_json = to_json_text(data, "recipe data")
+        now = time.time()
+        r = S.recipes.c
+        with self._write() as conn:
+            version = conn.execute(sa.select(sa.func.coalesce(sa.func.max(r.version), 0)).where(
+                r.cell_id == self.cell_id, r.recipe_id == recipe_id)).scalar_one() + 1
+            conn.execute(S.recipes.insert().values(
+                cell_id=self.cell_id, recipe_id=recipe_id, version=version, name=name, data_json=data_json,
+                creator=who, created_s=now))
+            self._audit(conn, who, "recipe.save", f"recipe:{recipe_id}", {"name": name, "version": version}, "ok", now)
+        return Recipe(recipe_id=recipe_id, version=int(version), name=name, data=json.loads(data_json),
+                      creator=who, created_s=now, cell_id=self.cell_id)
+
+    def get_recipe(self, recipe_id: int, version: int | None = None) -> Recipe:
+        """The latest version of recipe ``recipe_id`` (or the given ``version``); :class:`NotFound` if absent."""
+        r = S.recipes.c
+        q = sa.select(S.recipes).where(r.cell_id == self.cell_id, r.recipe_id == recipe_id)
+        q = q.where(r.version == version) if version is not None else q.order_by(r.version.desc()).limit(1)
+        with self._read() as conn:
+            row = conn.execute(q).one_or_none()
+        if row is None:
+            which = f"recipe {recipe_id}" + (f" version {version}" if version is not None else "")
+            raise NotFound(f"{which} not found in the store of cell {self.cell_id!r}; list them with list_recipes")
+        return _recipe(row)
+
+    def list_recipes(self) -> list[Recipe]:
+        """The latest version of every recipe, by recipe id."""
+        r = S.recipes.c
+        latest = sa.select(r.recipe_id, sa.func.max(r.version).label("version")).where(
+            r.cell_id == self.cell_id).group_by(r.recipe_id).subquery()
+        q = sa.select(S.recipes).join(latest, sa.and_(r.recipe_id == latest.c.recipe_id,
+                                                      r.version == latest.c.version)).where(
+            r.cell_id == self.cell_id).order_by(r.recipe_id)
+        with self._read() as conn:
+            return [_recipe(row) for row in conn.execute(q).all()]
+
+    # ------------------------------------------------------------------ whole-store
+
+    def counts(self) -> dict[str, int]:
+        """Rows of this cell per table."""
+        with self._read() as conn:
+            return {t.name: int(conn.execute(sa.select(sa.func.count()).select_from(t).where(
+                t.c.cell_id == self.cell_id)).scalar_one()) for t in S.CELL_TABLES}
+
+    def is_empty(self) -> bool:
+        return not any(self.counts().values())
+
+
+def _recipe(row: sa.Row[Any]) -> Recipe:
+    return Recipe(recipe_id=row.recipe_id, version=row.version, name=row.name, data=json.loads(row.data_json),
+                  creator=row.creator, created_s=row.created_s, cell_id=row.cell_id)
+
+
+def _check_key(kind: str, camera_id: str, robot_id: str | None) -> None:
+    if kind not in CALIBRATION_KINDS:
+        raise InvalidInput(f"calibration kind {kind!r} is not one of {', '.join(CALIBRATION_KINDS)}")
+    _check_text(camera_id, "camera_id")
+    if kind == "camera" and robot_id is not None:
+        raise InvalidInput("a camera calibration belongs to a camera alone; pass robot_id=None")
+    if kind != "camera" and robot_id is None:
+        raise InvalidInput(f"a {kind} calibration relates a camera to a robot; pass its robot_id")
+    if robot_id is not None:
+        _check_text(robot_id, "robot_id")
+
+
+def _check_text(value: object, what: str) -> None:
+    if not isinstance(value, str) or not value.strip():
+        raise InvalidInput(f"{what} must be a non-empty string, got {value!r}")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(getattr(exc, "orig", None) or exc)
+    return text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+

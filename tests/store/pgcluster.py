@@ -1,0 +1,115 @@
+"""A throwaway PostgreSQL server for tests: Debian's ``postgresql`` binaries, a cluster in a temp
+dir, listening on 127.0.0.1 at a free port with its unix socket inside the temp dir.
+
+initdb and postgres refuse to run as root, so as root (CI) the cluster belongs to ``nobody`` and
+its programs run through ``runuser``.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import pwd
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import psycopg
+
+SUPERUSER = "postgres"
+
+
+def pg_bin_dir() -> Path:
+    dirs = sorted(glob.glob("/usr/lib/postgresql/*/bin"), key=lambda d: int(Path(d).parent.name))
+    if not dirs:
+        raise RuntimeError("PostgreSQL server binaries not found under /usr/lib/postgresql/*/bin; "
+                           "install Debian's postgresql package (deploy/install-system-deps.sh)")
+    return Path(dirs[-1])
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class PostgresCluster:
+    """Start with :meth:`start`, always :meth:`stop` (it also removes the temp dir)."""
+
+    def __init__(self) -> None:
+        self.bin = pg_bin_dir()
+        self.root = Path(tempfile.mkdtemp(prefix="cellctl-pg-"))
+        self.data = self.root / "data"
+        self.sock = self.root / "sock"
+        self.log = self.root / "server.log"
+        self.port = 0
+        self._as_root = os.geteuid() == 0
+        if self._as_root:
+            user = pwd.getpwnam("nobody")
+            self.sock.mkdir()
+            for p in (self.root, self.sock):
+                os.chown(p, user.pw_uid, user.pw_gid)
+        else:
+            self.sock.mkdir()
+
+    def _run(self, *argv: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
+        cmd = list(argv)
+        if self._as_root:
+            cmd = ["runuser", "-u", "nobody", "--", *cmd]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=self.root,
+                              env={"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "LC_ALL": "C"})
+
+    def start(self) -> None:
+        r = self._run(str(self.bin / "initdb"), "-D", str(self.data), "-U", SUPERUSER, "-A", "trust",
+                      "-E", "UTF8", "--locale=C", "--no-sync", "--no-instructions")
+        if r.returncode != 0:
+            raise RuntimeError(f"initdb failed: {r.stderr.strip()[-2000:]}")
+        last = ""
+        for _ in range(3):  # the port may be taken between choosing and binding
+            self.port = _free_port()
+            opts = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sock} "
+                    "-c fsync=off -c synchronous_commit=off -c full_page_writes=off -c max_connections=60")
+            r = self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
+                          "-o", opts, "start", timeout_s=90)
+            if r.returncode == 0:
+                self._wait_ready()
+                return
+            last = (self.log.read_text()[-2000:] if self.log.exists() else "") + r.stderr
+        raise RuntimeError(f"pg_ctl start failed: {last.strip()}")
+
+    def _wait_ready(self, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                with psycopg.connect(self.dsn("postgres"), connect_timeout=2):
+                    return
+            except psycopg.OperationalError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+
+    def dsn(self, dbname: str) -> str:
+        return f"host=127.0.0.1 port={self.port} user={SUPERUSER} dbname={dbname}"
+
+    def url(self, dbname: str) -> str:
+        """A SQLAlchemy URL of database ``dbname`` on this server."""
+        return f"postgresql+psycopg://{SUPERUSER}@127.0.0.1:{self.port}/{dbname}"
+
+    def create_database(self, name: str) -> str:
+        with psycopg.connect(self.dsn("postgres"), autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        return self.url(name)
+
+    def drop_database(self, name: str) -> None:
+        with psycopg.connect(self.dsn("postgres"), autocommit=True) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+    def stop(self) -> None:
+        try:
+            if (self.data / "postmaster.pid").exists():
+                self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "immediate", "-w", "stop")
+        finally:
+            shutil.rmtree(self.root, ignore_errors=True)
