@@ -27,6 +27,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "measure",
     "detect",
     "target",
+    "pick",
 )
 
 

@@ -1,0 +1,119 @@
+"""``cellctl pick teach|find``: teach a part model from an image ROI, find it in images.
+
+``find`` with one ``--model`` answers ``[{"image", "matches": [{"u_px", "v_px", "angle_deg",
+"score"}]}]`` (INTERFACES.md §4); with several it recognises which part each match is and adds
+``part``, ``margin`` and ``runner_up`` to each match.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from cellctl.cli.output import CommandError
+from cellctl.pick import blob, shape
+from cellctl.pick.model import PartModel, teach
+from cellctl.pick.recognize import recognize
+from cellctl.pick.shape import SearchParams
+
+
+def _roi(text: str) -> tuple[float, float, float, float]:
+    parts = text.replace(" ", "").split(",")
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        vals = []
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"ROI must be U,V,W,H (four numbers, pixels), got {text!r}")
+    return (vals[0], vals[1], vals[2], vals[3])
+
+
+def read_image(path: str) -> NDArray[np.uint8]:
+    """A grey image from a file, or a one-line error naming the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise CommandError(f"image {path} does not exist")
+    img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    if img is None or img.size == 0:
+        raise CommandError(f"cannot read image {path}: not an image file OpenCV can decode (PNG, BMP, TIFF, JPEG)")
+    return np.asarray(img, dtype=np.uint8)
+
+
+def _teach(args: argparse.Namespace) -> dict[str, Any]:
+    img = read_image(args.image)
+    name = args.name or Path(args.out_model).stem
+    m = teach(img, args.roi, mode=args.mode, name=name, teach_image=str(args.image),
+              shape_params=shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels),
+              blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity))
+    m.save(args.out_model)
+    return {"model": str(args.out_model), **m.summary()}
+
+
+def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
+    models = [PartModel.load(p) for p in args.model]
+    if args.max is not None and args.max < 0:
+        raise CommandError("--max must be >= 0 (0: all matches)")
+    if not 0.0 <= args.min_score <= 1.0:
+        raise CommandError("--min-score must be between 0 and 1")
+    sp = SearchParams(min_score=args.min_score, max_count=args.max or 0,
+                      angle_start_deg=args.angle_start, angle_extent_deg=args.angle_extent,
+                      roi=args.search_roi,
+                      timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0)
+    out: list[dict[str, Any]] = []
+    for path in args.images:
+        img = read_image(path)
+        for m in models:
+            if (img.shape[1], img.shape[0]) != m.image_size and args.strict_size:
+                raise CommandError(f"image {path} is {img.shape[1]}x{img.shape[0]}, model {m.name} was "
+                                   f"taught on {m.image_size[0]}x{m.image_size[1]}")
+        if len(models) == 1:
+            res = models[0].find(img, sp)
+            matches: list[dict[str, Any]] = [mt.as_dict() for mt in res.matches]
+            timed_out, elapsed = res.timed_out, res.elapsed_s
+        else:
+            rr = recognize(models, img, sp)
+            matches = [r.as_dict() for r in rr.matches]
+            timed_out, elapsed = rr.timed_out, rr.elapsed_s
+        out.append({"image": path, "matches": matches, "timed_out": timed_out,
+                    "time_ms": round(elapsed * 1000.0, 2)})
+    return out
+
+
+def register(sub: Any) -> None:
+    parser: argparse.ArgumentParser = sub.add_parser("pick", help="teach part models and find parts")
+    psub = parser.add_subparsers(dest="pick_command", metavar="ACTION", required=True)
+
+    t = psub.add_parser("teach", help="a part model from the ROI of one image")
+    t.add_argument("--image", required=True, help="the teach image")
+    t.add_argument("--roi", required=True, type=_roi, metavar="U,V,W,H",
+                   help="rectangle from (U,V) to (U+W,V+H) in pixels; its centre is the reference point")
+    t.add_argument("--out", required=True, dest="out_model", help="model file to write (JSON)")
+    t.add_argument("--mode", choices=("shape", "blob"), default="shape")
+    t.add_argument("--name", help="part name (default: the model file's stem)")
+    t.add_argument("--min-contrast", type=float, default=12.0, help="shape: least grey step of an edge")
+    t.add_argument("--num-levels", type=int, default=0, help="shape: pyramid levels (0: automatic)")
+    t.add_argument("--threshold", type=float, default=None, help="blob: fixed grey threshold (default Otsu)")
+    t.add_argument("--polarity", choices=("auto", "bright", "dark"), default="auto", help="blob: part polarity")
+    t.set_defaults(func=_teach)
+
+    f = psub.add_parser("find", help="instances of a part (or several parts) in images")
+    f.add_argument("--model", required=True, action="append",
+                   help="part model file; repeat to recognise several part types")
+    f.add_argument("images", nargs="+", metavar="IMAGE")
+    f.add_argument("--max", type=int, default=None, help="most matches per image (default: all)")
+    f.add_argument("--min-score", type=float, default=0.5, help="least score 0..1 (default 0.5)")
+    f.add_argument("--angle-start", type=float, default=-180.0, help="degrees (default -180)")
+    f.add_argument("--angle-extent", type=float, default=360.0, help="degrees (default 360)")
+    f.add_argument("--search-roi", type=_roi, default=None, metavar="U,V,W,H",
+                   help="where the reference point may lie (default: the whole image)")
+    f.add_argument("--timeout-ms", type=float, default=None, help="answer with what was found so far")
+    f.add_argument("--strict-size", action="store_true",
+                   help="refuse images of another size than the teach image")
+    f.add_argument("--out", dest="out_json", help="also write the JSON result to this file")
+    f.set_defaults(func=_find)
