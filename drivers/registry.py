@@ -25,8 +25,11 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
         "sim": ("drivers.sim.robot", "SimRobot"),
         "replay": ("drivers.replay", "ReplayRobot"),
         "ur_rtde": ("drivers.robot.ur_rtde", "URRTDERobot"),
+        "modbus": ("drivers.robot.modbus", "ModbusRobot"),
     },
-    "io": {},
+    "io": {
+        "modbus": ("drivers.io.modbus", "ModbusDigitalIO"),
+    },
 }
 
 

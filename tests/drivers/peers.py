@@ -132,3 +132,52 @@ class MjpegServer:
             self._thread.join(timeout=5)
             self.server = None
             time.sleep(self.period_s * 3)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+class GarbageServer:
+    """A TCP peer on 127.0.0.1 that answers every request with bytes that follow no protocol."""
+
+    def __init__(self, port: int = 0, reply: bytes = b"\x00\x07Zgarbage!\xff\xff\x00" * 3) -> None:
+        self.reply = reply
+        self.srv = socket.socket()
+        self.srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.srv.bind(("127.0.0.1", port))
+        self.srv.listen(8)
+        self.srv.settimeout(0.1)
+        self.port: int = self.srv.getsockname()[1]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def start(self) -> GarbageServer:
+        self._thread.start()
+        return self
+
+    def _serve(self) -> None:
+        conns: list[socket.socket] = []
+        while not self._stop.is_set():
+            try:
+                c, _ = self.srv.accept()
+                c.settimeout(0.05)
+                conns.append(c)
+                c.sendall(self.reply)
+            except TimeoutError:
+                pass
+            for c in conns:
+                with contextlib.suppress(OSError):
+                    if c.recv(4096):
+                        c.sendall(self.reply)
+        for c in conns:
+            c.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.srv.close()

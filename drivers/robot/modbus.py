@@ -1,0 +1,511 @@
+"""Robots (or the PLCs in front of them) over Modbus TCP, with a register map in the config (``kind: modbus``).
+
+The map names, for each value, its register address, data type (``int16``, ``uint16``,
+``int32``, ``uint32``, ``float32``; 32-bit values in the configured word order) and scale
+(engineering value = raw value x scale, in the unit the map states). It covers:
+
+- pose readback (``actual_pose``: x, y, z, rx, ry, rz, in ``position_unit`` / ``rotation_unit``,
+  rotation as fixed-axis XYZ roll-pitch-yaw or as a rotation vector);
+- a move request: ``target_pose`` + ``speed`` + a command register, answered through a status
+  register (ready / busy / done / error) and an error-code register;
+- digital IO (coils out, discrete inputs in);
+- a heartbeat both ways: we change ``heartbeat_out_address`` every ``heartbeat_period_s`` (the
+  PLC's watchdog), and the PLC's counter at ``heartbeat_in_address`` must keep changing (else the
+  robot is reported unavailable: its program is dead even if Modbus still answers).
+
+A poll thread reads the pose, status and inputs at ``poll_hz`` and stamps each sample with the
+host time; ``state()`` never does IO and refuses a sample older than ``state_max_age_s``. Lost
+connections are reopened with exponential backoff; the outages are counted (``health()``). The
+defaults match the simulator in ``drivers/sim/modbus_robot.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pymodbus.client import ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from scipy.spatial.transform import Rotation
+
+from drivers.base import (
+    DeviceOperationError,
+    DeviceTimeout,
+    DeviceUnavailable,
+    MotionLimits,
+    RobotBase,
+    RobotState,
+)
+
+DataTypeName = Literal["int16", "uint16", "int32", "uint32", "float32"]
+WordOrder = Literal["big", "little"]
+_WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
+_DT = ModbusTcpClient.DATATYPE
+_PYMODBUS_TYPE = {
+    "int16": _DT.INT16,
+    "uint16": _DT.UINT16,
+    "int32": _DT.INT32,
+    "uint32": _DT.UINT32,
+    "float32": _DT.FLOAT32,
+}
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class RegisterSpec(_Strict):
+    """One value in holding registers."""
+
+    address: int = Field(ge=0, le=65535)
+    data_type: DataTypeName = "float32"
+    scale: float = Field(1.0, description="engineering value = raw register value x scale")
+
+    @property
+    def width(self) -> int:
+        return _WIDTH[self.data_type]
+
+
+def _f(address: int) -> RegisterSpec:
+    return RegisterSpec(address=address)
+
+
+class PoseRegisters(_Strict):
+    x: RegisterSpec
+    y: RegisterSpec
+    z: RegisterSpec
+    rx: RegisterSpec
+    ry: RegisterSpec
+    rz: RegisterSpec
+
+    def fields(self) -> list[RegisterSpec]:
+        return [self.x, self.y, self.z, self.rx, self.ry, self.rz]
+
+
+def _pose_map(start: int) -> PoseRegisters:
+    return PoseRegisters(
+        x=_f(start), y=_f(start + 2), z=_f(start + 4), rx=_f(start + 6), ry=_f(start + 8), rz=_f(start + 10)
+    )
+
+
+class ModbusRobotSettings(_Strict):
+    """Connection, register map and handshake of a Modbus TCP robot."""
+
+    host: str = Field(min_length=1)
+    port: int = Field(502, ge=1, le=65535)
+    device_id: int = Field(1, ge=0, le=247)
+    word_order: WordOrder = Field("big", description="order of the two 16-bit words of 32-bit values")
+    timeout_s: float = Field(1.0, gt=0, le=60, description="deadline of one Modbus request")
+    poll_hz: float = Field(50.0, gt=0, le=1000)
+    state_max_age_s: float = Field(0.5, gt=0, le=60)
+    reconnect_initial_s: float = Field(0.25, gt=0, le=60)
+    reconnect_max_s: float = Field(5.0, gt=0, le=600)
+    position_unit: Literal["mm", "m"] = "mm"
+    rotation_unit: Literal["deg", "rad"] = "deg"
+    rotation_form: Literal["rpy_xyz", "rotvec"] = Field(
+        "rpy_xyz", description="fixed-axis XYZ roll/pitch/yaw or rotation vector"
+    )
+    actual_pose: PoseRegisters = Field(default_factory=lambda: _pose_map(0))
+    target_pose: PoseRegisters = Field(default_factory=lambda: _pose_map(20))
+    speed: RegisterSpec = Field(default_factory=lambda: _f(32))
+    speed_unit: Literal["mm/s", "m/s"] = "mm/s"
+    command_address: int = Field(40, ge=0, le=65535)
+    move_value: int = 1
+    stop_value: int = 2
+    clear_value: int = 0
+    status_address: int = Field(41, ge=0, le=65535)
+    status_ready: int = 0
+    status_busy: int = 1
+    status_done: int = 2
+    status_error: int = 3
+    error_code_address: int | None = Field(42, ge=0, le=65535)
+    error_messages: dict[int, str] = Field(
+        default_factory=lambda: {
+            1: "target out of reach",
+            2: "watchdog expired (heartbeat lost)",
+            3: "unknown command",
+            4: "bad speed",
+        }
+    )
+    heartbeat_out_address: int | None = Field(50, ge=0, le=65535)
+    heartbeat_period_s: float = Field(0.2, gt=0, le=60)
+    heartbeat_in_address: int | None = Field(51, ge=0, le=65535)
+    heartbeat_timeout_s: float = Field(1.0, gt=0, le=60, description="PLC counter unchanged this long: dead")
+    digital_out_coil_start: int | None = Field(0, ge=0, le=65535)
+    digital_in_start: int | None = Field(0, ge=0, le=65535)
+    digital_count: int = Field(8, ge=0, le=64)
+    move_timeout_margin_s: float = Field(5.0, gt=0, le=600, description="added to distance/speed")
+
+    @model_validator(mode="after")
+    def _heartbeat(self) -> ModbusRobotSettings:
+        if self.heartbeat_timeout_s <= 1.0 / self.poll_hz:
+            raise ValueError("heartbeat_timeout_s must be longer than one poll period (1 / poll_hz)")
+        return self
+
+
+@dataclass(frozen=True)
+class _Sample:
+    host_time_s: float
+    pose: tuple[float, ...]
+    status: int
+    error_code: int
+    heartbeat_in: int | None
+    digital_in: tuple[bool, ...]
+    seq: int
+
+
+class ModbusRobot(RobotBase):
+    """A robot behind a Modbus TCP server, driven through a configurable register map."""
+
+    Settings = ModbusRobotSettings
+
+    def __init__(self, robot_id: str, settings: ModbusRobotSettings | dict[str, Any], limits: MotionLimits) -> None:
+        super().__init__(robot_id, limits)
+        self.config = (
+            settings if isinstance(settings, ModbusRobotSettings) else ModbusRobotSettings.model_validate(settings)
+        )
+        c = self.config
+        self._client = ModbusTcpClient(
+            c.host, port=c.port, timeout=c.timeout_s, retries=0, reconnect_delay=0, reconnect_delay_max=0
+        )
+        self._io_lock = threading.Lock()
+        self._sample: _Sample | None = None
+        self._sample_cv = threading.Condition()
+        self._closing = threading.Event()
+        self._poller: threading.Thread | None = None
+        self._connected = False
+        self._reason = "not connected"
+        self._heartbeat_value = 0
+        self._heartbeat_sent = 0.0
+        self._hb_in_last: int | None = None
+        self._hb_in_changed = 0.0
+        self._stop_requested = threading.Event()
+        self.outages = 0
+        self.reconnects = 0
+        self.last_outage_s = 0.0
+        self._outage_since: float | None = None
+        self._outage_lock = threading.Lock()
+        self._seq = 0
+
+    # -- register codec ------------------------------------------------------------------------------
+    def _decode(self, spec: RegisterSpec, regs: list[int]) -> float:
+        value = ModbusTcpClient.convert_from_registers(
+            regs, _PYMODBUS_TYPE[spec.data_type], word_order=self.config.word_order
+        )
+        return float(value) * spec.scale  # type: ignore[arg-type]
+
+    def _encode(self, spec: RegisterSpec, value: float) -> list[int]:
+        raw = value / spec.scale
+        if spec.data_type != "float32":
+            raw = int(round(raw))
+        regs: list[int] = ModbusTcpClient.convert_to_registers(
+            raw, _PYMODBUS_TYPE[spec.data_type], word_order=self.config.word_order
+        )
+        return regs
+
+    def _pose_to_T(self, v: list[float]) -> NDArray[np.float64]:
+        c = self.config
+        p = np.array(v[:3]) * (1e-3 if c.position_unit == "mm" else 1.0)
+        ang = np.array(v[3:]) * (math.pi / 180.0 if c.rotation_unit == "deg" else 1.0)
+        R = Rotation.from_euler("xyz", ang) if c.rotation_form == "rpy_xyz" else Rotation.from_rotvec(ang)
+        T = np.eye(4)
+        T[:3, :3] = R.as_matrix()
+        T[:3, 3] = p
+        return T
+
+    def _T_to_pose(self, T: NDArray[np.float64]) -> list[float]:
+        c = self.config
+        R = Rotation.from_matrix(T[:3, :3])
+        ang = R.as_euler("xyz") if c.rotation_form == "rpy_xyz" else R.as_rotvec()
+        ang = ang * (180.0 / math.pi if c.rotation_unit == "deg" else 1.0)
+        p = T[:3, 3] * (1e3 if c.position_unit == "mm" else 1.0)
+        return [float(x) for x in (*p, *ang)]
+
+    # -- Modbus IO (always under _io_lock) -----------------------------------------------------------
+    def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        with self._io_lock:
+            if not self._client.connected and not self._client.connect():
+                raise DeviceUnavailable(
+                    f"robot {self.robot_id}: cannot connect to Modbus TCP "
+                    f"{self.config.host}:{self.config.port}; check address, port and cabling"
+                )
+            try:
+                rr = fn(*args, device_id=self.config.device_id, **kwargs)
+            except (ModbusException, OSError) as exc:
+                self._client.close()
+                raise DeviceUnavailable(
+                    f"robot {self.robot_id}: Modbus {what} to {self.config.host}:{self.config.port} failed: {exc}"
+                ) from exc
+            if rr.isError():
+                raise DeviceOperationError(f"robot {self.robot_id}: the device refused Modbus {what}: {rr}")
+            return rr
+
+    def _read_regs(self, address: int, count: int) -> list[int]:
+        regs: list[int] = self._call(
+            f"read of holding registers {address}-{address + count - 1}",
+            self._client.read_holding_registers,
+            address,
+            count=count,
+        ).registers
+        if len(regs) != count:
+            raise DeviceOperationError(
+                f"robot {self.robot_id}: asked for {count} registers at {address}, got {len(regs)}: malformed reply"
+            )
+        return regs
+
+    def _write_regs(self, address: int, values: list[int]) -> None:
+        self._call(
+            f"write of holding registers {address}-{address + len(values) - 1}",
+            self._client.write_registers,
+            address,
+            values,
+        )
+
+    def _read_fields(self, specs: list[RegisterSpec]) -> list[list[int]]:
+        lo = min(s.address for s in specs)
+        hi = max(s.address + s.width for s in specs)
+        if hi - lo <= 125:
+            block = self._read_regs(lo, hi - lo)
+            return [block[s.address - lo : s.address - lo + s.width] for s in specs]
+        return [self._read_regs(s.address, s.width) for s in specs]
+
+    # -- polling ------------------------------------------------------------------------------------------
+    def _poll_once(self) -> None:
+        c = self.config
+        specs = self.config.actual_pose.fields()
+        extra = [RegisterSpec(address=c.status_address, data_type="uint16")]
+        if c.error_code_address is not None:
+            extra.append(RegisterSpec(address=c.error_code_address, data_type="uint16"))
+        if c.heartbeat_in_address is not None:
+            extra.append(RegisterSpec(address=c.heartbeat_in_address, data_type="uint16"))
+        raw = self._read_fields(specs + extra)
+        pose = tuple(self._decode(s, r) for s, r in zip(specs, raw[:6], strict=True))
+        status = raw[6][0]
+        error = raw[7][0] if c.error_code_address is not None else 0
+        hb_in = raw[-1][0] if c.heartbeat_in_address is not None else None
+        din: tuple[bool, ...] = ()
+        if c.digital_in_start is not None and c.digital_count:
+            bits = self._call(
+                "read of discrete inputs", self._client.read_discrete_inputs, c.digital_in_start, count=c.digital_count
+            ).bits
+            din = tuple(bool(b) for b in bits[: c.digital_count])
+        now = time.time()
+        if c.heartbeat_out_address is not None and now - self._heartbeat_sent >= c.heartbeat_period_s:
+            self._heartbeat_value = (self._heartbeat_value + 1) & 0xFFFF
+            self._write_regs(c.heartbeat_out_address, [self._heartbeat_value])
+            self._heartbeat_sent = now
+        if hb_in is not None and hb_in != self._hb_in_last:
+            self._hb_in_last = hb_in
+            self._hb_in_changed = now
+        self._seq += 1
+        with self._sample_cv:
+            self._sample = _Sample(now, pose, status, error, hb_in, din, self._seq)
+            self._sample_cv.notify_all()
+
+    def _poll(self) -> None:
+        c = self.config
+        period = 1.0 / c.poll_hz
+        backoff = c.reconnect_initial_s
+        while not self._closing.is_set():
+            t0 = time.monotonic()
+            try:
+                self._poll_once()
+                self._connected = True
+                with self._outage_lock:
+                    if self._outage_since is not None:
+                        self.last_outage_s = time.monotonic() - self._outage_since
+                        self._outage_since = None
+                backoff = c.reconnect_initial_s
+                self._reason = ""
+                self._closing.wait(max(0.0, period - (time.monotonic() - t0)))
+            except Exception as exc:  # a poll thread that dies would serve nothing: every failure is an outage
+                self._reason = (
+                    str(exc)
+                    if isinstance(exc, (DeviceUnavailable, DeviceOperationError))
+                    else (f"robot {self.robot_id}: unexpected {type(exc).__name__} while polling: {exc}")
+                )
+                self._connected = False
+                self._open_outage()
+                with self._io_lock:
+                    self._client.close()
+                if self._closing.wait(backoff):
+                    return
+                backoff = min(backoff * 2.0, c.reconnect_max_s)
+                self.reconnects += 1
+
+    def _open_outage(self) -> None:
+        """Count an outage once, from the first failed poll or stale read until the next good poll."""
+        with self._outage_lock:
+            if self._outage_since is None and self._sample is not None:
+                self._outage_since = time.monotonic()
+                self.outages += 1
+
+    # -- contract ------------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        """Start polling and wait for the first sample (at most ``timeout_s`` + one poll)."""
+        if self._poller is None:
+            self._closing.clear()
+            self._poller = threading.Thread(target=self._poll, name=f"modbus-{self.robot_id}", daemon=True)
+            self._poller.start()
+        deadline = time.monotonic() + self.config.timeout_s + 2.0 / self.config.poll_hz + 0.5
+        with self._sample_cv:
+            while self._sample is None:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceUnavailable(
+                        f"robot {self.robot_id}: no answer from Modbus TCP {self.config.host}:"
+                        f"{self.config.port} ({self._reason}); it keeps retrying in the background"
+                    )
+                self._sample_cv.wait(remaining)
+
+    def close(self) -> None:
+        """Stop polling and close the connection; safe to call twice."""
+        self._closing.set()
+        if self._poller is not None:
+            self._poller.join(timeout=self.config.timeout_s + 2.0)
+            self._poller = None
+        with self._io_lock:
+            self._client.close()
+
+    def _fresh(self) -> _Sample:
+        s = self._sample
+        now = time.time()
+        if s is None:
+            raise DeviceUnavailable(
+                f"robot {self.robot_id}: no state yet from {self.config.host}:{self.config.port} ({self._reason})"
+            )
+        age = now - s.host_time_s
+        if age > self.config.state_max_age_s:
+            self._open_outage()
+            raise DeviceUnavailable(
+                f"robot {self.robot_id}: newest state is {age:.2f} s old (limit "
+                f"{self.config.state_max_age_s} s): {self._reason or 'no answer'}; reconnecting"
+            )
+        if s.heartbeat_in is not None and now - self._hb_in_changed > self.config.heartbeat_timeout_s:
+            raise DeviceUnavailable(
+                f"robot {self.robot_id}: the controller's heartbeat (register "
+                f"{self.config.heartbeat_in_address}) has not changed for "
+                f"{now - self._hb_in_changed:.1f} s; its program is not running"
+            )
+        return s
+
+    def state(self) -> RobotState:
+        s = self._fresh()
+        c = self.config
+        status_name = {
+            c.status_ready: "ready",
+            c.status_busy: "busy",
+            c.status_done: "done",
+            c.status_error: "error",
+        }.get(s.status, f"status_{s.status}")
+        return RobotState(
+            T_base_tool=self._pose_to_T(list(s.pose)),
+            joints_rad=np.zeros(0),
+            timestamp_s=s.host_time_s,
+            moving=s.status == c.status_busy,
+            mode="error" if s.status == c.status_error else "running",
+            metadata={
+                "status": status_name,
+                "error_code": s.error_code,
+                "digital_in": list(s.digital_in),
+                "raw_pose": list(s.pose),
+            },
+        )
+
+    def health(self) -> dict[str, Any]:
+        try:
+            self._fresh()
+            available, reason = True, ""
+        except DeviceUnavailable as exc:
+            available, reason = False, str(exc)
+        return {
+            "available": available,
+            "reason": reason,
+            "outages": self.outages,
+            "reconnects": self.reconnects,
+            "last_outage_s": self.last_outage_s,
+        }
+
+    def _next_sample(self, after_seq: int, timeout_s: float) -> _Sample:
+        deadline = time.monotonic() + timeout_s
+        with self._sample_cv:
+            while True:
+                s = self._sample
+                if s is not None and s.seq > after_seq:
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeout(f"robot {self.robot_id}: no new state from the controller in {timeout_s} s")
+                self._sample_cv.wait(remaining)
+        return self._fresh()
+
+    def _error_text(self, code: int) -> str:
+        return self.config.error_messages.get(code, f"error code {code}")
+
+    def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
+        c = self.config
+        s = self._fresh()
+        if s.status == c.status_busy:
+            raise DeviceOperationError(f"robot {self.robot_id} is busy with another move; stop() it first")
+        if s.status != c.status_ready:  # a finished or failed command still waiting to be cleared
+            self._write_regs(c.command_address, [c.clear_value])
+            s = self._next_sample(s.seq, c.timeout_s * 2 + 1.0)
+        pose = self._T_to_pose(T_base_tool)
+        for spec, value in zip(c.target_pose.fields(), pose, strict=True):
+            self._write_regs(spec.address, self._encode(spec, value))
+        speed = speed_m_s * (1000.0 if c.speed_unit == "mm/s" else 1.0)
+        self._write_regs(c.speed.address, self._encode(c.speed, speed))
+        dist_m = float(np.linalg.norm(T_base_tool[:3, 3] - self._pose_to_T(list(s.pose))[:3, 3]))
+        timeout_s = dist_m / speed_m_s + c.move_timeout_margin_s
+        self._stop_requested.clear()
+        self._write_regs(c.command_address, [c.move_value])
+        seq = self._sample.seq if self._sample is not None else 0
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                s = self._next_sample(seq, c.state_max_age_s + c.timeout_s)
+                seq = s.seq
+                if s.status == c.status_error:
+                    raise DeviceOperationError(
+                        f"robot {self.robot_id}: the controller refused or aborted the move: "
+                        f"{self._error_text(s.error_code)}"
+                    )
+                if s.status == c.status_done:
+                    if self._stop_requested.is_set():
+                        raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
+                    return
+                if time.monotonic() > deadline:
+                    with contextlib.suppress(DeviceUnavailable, DeviceOperationError):
+                        self._write_regs(c.command_address, [c.stop_value])
+                    raise DeviceTimeout(
+                        f"robot {self.robot_id}: the move did not finish within {timeout_s:.1f} s; a stop was sent"
+                    )
+        finally:
+            with contextlib.suppress(DeviceUnavailable, DeviceOperationError, DeviceTimeout):
+                self._write_regs(c.command_address, [c.clear_value])
+                self._next_sample(self._sample.seq if self._sample is not None else 0, c.timeout_s + 0.5)
+
+    def stop(self) -> None:
+        """Write the stop command."""
+        self._stop_requested.set()
+        self._write_regs(self.config.command_address, [self.config.stop_value])
+
+    def set_digital_out(self, channel: int, value: bool) -> None:
+        c = self.config
+        if c.digital_out_coil_start is None or not 0 <= channel < c.digital_count:
+            raise DeviceOperationError(
+                f"robot {self.robot_id}: digital output {channel} is not configured (0..{c.digital_count - 1})"
+            )
+        self._call(
+            f"write of coil {c.digital_out_coil_start + channel}",
+            self._client.write_coil,
+            c.digital_out_coil_start + channel,
+            bool(value),
+        )

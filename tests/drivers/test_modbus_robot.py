@@ -1,0 +1,202 @@
+"""The Modbus TCP robot and IO adapters against the pymodbus robot simulator on 127.0.0.1."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable, MotionLimits
+from drivers.io.modbus import ModbusDigitalIO
+from drivers.registry import adapter_class
+from drivers.robot.modbus import ModbusRobot
+from tests.drivers.peers import GarbageServer, PeerProcess, free_port
+
+LIMITS = MotionLimits(x_mm=(-900, 900), y_mm=(-900, 900), z_mm=(0, 900), max_linear_speed_m_s=1.0)
+
+
+def _settings(port: int, **kw: object) -> dict[str, object]:
+    return {"host": "127.0.0.1", "port": port, "timeout_s": 0.3, "state_max_age_s": 0.3, "poll_hz": 50,
+            "reconnect_initial_s": 0.1, "reconnect_max_s": 0.5, **kw}
+
+
+def start_sim(port: int, *args: str) -> PeerProcess:
+    return PeerProcess("drivers.sim.modbus_robot", "--port", str(port), *args, ready_port=port).start()
+
+
+@pytest.fixture
+def sim() -> Iterator[PeerProcess]:
+    peer = start_sim(free_port())
+    try:
+        yield peer
+    finally:
+        peer.stop()
+
+
+@pytest.fixture
+def robot(sim: PeerProcess) -> Iterator[ModbusRobot]:
+    port = int(sim.args[1])
+    r = ModbusRobot("plc0", _settings(port), LIMITS)
+    r.connect()
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float) -> float:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        try:
+            if predicate():
+                return time.monotonic() - t0
+        except (DeviceUnavailable, DeviceOperationError):
+            pass
+        time.sleep(0.01)
+    raise AssertionError(f"condition not met within {timeout_s} s")
+
+
+def test_registry_and_settings() -> None:
+    assert adapter_class("robot", "modbus") is ModbusRobot
+    assert adapter_class("io", "modbus") is ModbusDigitalIO
+    with pytest.raises(ValueError, match="data_type"):
+        ModbusRobot.Settings.model_validate({"host": "h", "speed": {"address": 1, "data_type": "float64"}})
+    with pytest.raises(ValueError, match="heartbeat_timeout_s"):
+        ModbusRobot.Settings.model_validate({"host": "h", "poll_hz": 1, "heartbeat_timeout_s": 0.5})
+
+
+def test_state_decodes_the_register_map(robot: ModbusRobot) -> None:
+    st = robot.state()
+    np.testing.assert_allclose(st.T_base_tool[:3, 3], [0.4, 0.0, 0.3], atol=1e-6)  # 400, 0, 300 mm
+    np.testing.assert_allclose(st.T_base_tool[:3, :3], Rotation.from_euler("xyz", [180, 0, 0], degrees=True)
+                               .as_matrix(), atol=1e-6)
+    assert st.age_s() < 0.3 and st.metadata["status"] == "ready" and not st.moving
+
+
+def _target(robot: ModbusRobot, dx_m: float, dy_m: float, dz_m: float, yaw_deg: float = 0.0) -> np.ndarray:
+    T = robot.state().T_base_tool.copy()
+    T[:3, 3] += [dx_m, dy_m, dz_m]
+    T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ T[:3, :3]
+    return T
+
+
+def test_move_linear_handshake_units_and_watchdog(robot: ModbusRobot) -> None:
+    # 0.25 m at 0.2 m/s = 1.25 s: longer than the PLC's 1 s watchdog, so our heartbeat must run
+    target = _target(robot, 0.15, -0.2, 0.0, yaw_deg=30)
+    t0 = time.monotonic()
+    robot.move_linear(target, speed_m_s=0.2)
+    elapsed = time.monotonic() - t0
+    assert 1.2 < elapsed < 1.8
+    st = robot.state()
+    np.testing.assert_allclose(st.T_base_tool, target, atol=1e-5)
+    assert st.metadata["status"] == "ready"  # the command was cleared
+    with pytest.raises(DeviceOperationError, match="target out of reach"):
+        robot.move_linear(_target(robot, 0.3, 0.45, 0.5), speed_m_s=0.2)  # inside our box, beyond its reach
+    robot.move_linear(_target(robot, 0.0, 0.0, 0.02), speed_m_s=0.5)  # recovers from the refused move
+
+
+def test_little_word_order() -> None:
+    port = free_port()
+    peer = start_sim(port, "--word-order", "little")
+    r = ModbusRobot("plc0", _settings(port, word_order="little"), LIMITS)
+    try:
+        r.connect()
+        np.testing.assert_allclose(r.state().T_base_tool[:3, 3], [0.4, 0.0, 0.3], atol=1e-6)
+        target = _target(r, -0.05, 0.05, 0.05)
+        r.move_linear(target, speed_m_s=0.5)
+        np.testing.assert_allclose(r.state().T_base_tool, target, atol=1e-5)
+    finally:
+        r.close()
+        peer.stop()
+
+
+def test_stop_and_digital_io(robot: ModbusRobot, sim: PeerProcess) -> None:
+    start = robot.state().T_base_tool
+    errors: list[Exception] = []
+
+    def move() -> None:
+        try:
+            robot.move_linear(_target(robot, 0.0, 0.3, 0.0), speed_m_s=0.1)
+        except Exception as exc:
+            errors.append(exc)
+
+    th = threading.Thread(target=move)
+    th.start()
+    wait_for(lambda: robot.state().moving, 2.0)
+    time.sleep(0.3)
+    robot.stop()
+    th.join(timeout=5)
+    assert errors and isinstance(errors[0], DeviceOperationError)
+    travelled = robot.state().T_base_tool[1, 3] - start[1, 3]
+    assert 0.02 < travelled < 0.1
+
+    robot.set_digital_out(5, True)
+    wait_for(lambda: robot.state().metadata["digital_in"][5], 1.0)
+    io = ModbusDigitalIO("io0", {"host": "127.0.0.1", "port": int(sim.args[1]), "timeout_s": 0.3})
+    with io:
+        assert io.read_input(5) and io.read_output(5)
+        io.write_output(5, False)
+        assert not io.read_input(5)
+        with pytest.raises(DeviceOperationError, match="output 9 is not in 0..7"):
+            io.write_output(9, True)
+
+
+def test_connect_timeout() -> None:
+    port = free_port()  # nothing listens
+    r = ModbusRobot("plc0", _settings(port), LIMITS)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceUnavailable, match="no answer from Modbus TCP"):
+        r.connect()
+    assert time.monotonic() - t0 < 2.0
+    assert r.health()["available"] is False
+    r.close()
+    r.close()
+    with pytest.raises(DeviceUnavailable, match="cannot connect"):
+        ModbusDigitalIO("io0", {"host": "127.0.0.1", "port": port}).open()
+
+
+def test_peer_killed_and_restarted(robot: ModbusRobot, sim: PeerProcess) -> None:
+    sim.kill()
+    wait_for(lambda: not robot.health()["available"], 1.0)
+    with pytest.raises(DeviceUnavailable, match="reconnecting"):
+        robot.state()
+    sim.start()
+    recovered = wait_for(lambda: robot.state().age_s() < 0.3, 5.0)  # stated: within 5 s (backoff <= 0.5 s)
+    assert recovered < 5.0
+    h = robot.health()
+    assert h["outages"] == 1 and h["reconnects"] >= 1 and h["last_outage_s"] > 0
+    robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
+
+
+def test_frozen_peer_read_timeout(robot: ModbusRobot, sim: PeerProcess) -> None:
+    sim.freeze()
+    try:
+        wait_for(lambda: not robot.health()["available"], 1.5)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceUnavailable):
+            robot.state()
+        with pytest.raises((DeviceTimeout, DeviceUnavailable)):
+            robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        sim.thaw()
+    wait_for(lambda: robot.state().age_s() < 0.3, 5.0)
+    assert robot.health()["outages"] == 1
+
+
+def test_malformed_replies() -> None:
+    peer = GarbageServer().start()
+    r = ModbusRobot("plc0", _settings(peer.port), LIMITS)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceUnavailable):
+            r.connect()
+        assert time.monotonic() - t0 < 2.0
+        assert "Modbus" in r.health()["reason"]
+    finally:
+        r.close()
+        peer.stop()
