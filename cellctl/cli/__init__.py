@@ -28,6 +28,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "detect",
     "target",
     "pick",
+    "store_cmd",
 )
 
 
