@@ -219,15 +219,13 @@ def _fit_h(src: FloatArray, dst: FloatArray) -> FloatArray | None:
     return None if H is None else np.asarray(H, dtype=np.float64)
 
 
-def _assign(frame: _Frame, cols: int, rows: int
+def _assign(frame: _Frame, cols: int, rows: int, mirrored: bool
             ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64], bool] | None:
-    """Best grid hypothesis: (H grid->image, mark indices, ids, mirrored)."""
+    """Best grid hypothesis of one handedness: (H grid->image, mark indices, ids, mirrored)."""
     C, R = cols, rows
     plate = np.array([[-1, -1], [C, -1], [C, R], [-1, R]], dtype=np.float64)
     best: tuple[int, float, FloatArray, NDArray[np.int64], NDArray[np.int64], bool] | None = None
-    for mirrored in (False, True):
-        if mirrored and best is not None and best[0] >= len(frame.marks) - 1:
-            break  # the printed side faces the camera and (almost) every blob fits: no need to try mirrors
+    for _ in range(1):
         Q = frame.corners if not mirrored else frame.corners[::-1]
         for s in range(4):
             Qs = np.roll(Q, -s, axis=0)
@@ -243,9 +241,8 @@ def _assign(frame: _Frame, cols: int, rows: int
             pred = _apply_h(H, plate)
             pitch_px = np.median(np.hypot(*np.diff(pred, axis=0).T)) / max(C, R) if len(ids) else 1.0
             frame_err = float(np.max(np.hypot(*(pred - Qs).T))) / max(pitch_px, 1e-9)
-            # most marks first; on a tie the printed side faces the camera (not mirrored)
-            key = (len(ids), not mirrored, -frame_err)
-            if best is None or key > (best[0], not best[5], best[1]):
+            key = (len(ids), -frame_err)
+            if best is None or key > (best[0], best[1]):
                 best = (len(ids), -frame_err, H, idx, ids, mirrored)
     if best is None:
         return None
@@ -476,11 +473,16 @@ def local_homographies(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int =
     Each is a DLT over the marks within ``neighbourhood`` grid steps of mark i (all marks if
     fewer than 9), batched: normalized coordinates, smallest eigenvector of ``AᵀA``.
     """
-    n = len(uv)
     d = np.max(np.abs(grid_xy[:, None, :] - grid_xy[None, :, :]), axis=2)  # (n, n)
     w = (d <= neighbourhood).astype(np.float64)
     few = w.sum(axis=1) < 9
     w[few] = 1.0
+    return _weighted_local_h(grid_xy, uv, w)
+
+
+def _weighted_local_h(grid_xy: FloatArray, uv: FloatArray, w: FloatArray) -> FloatArray:
+    """Batched DLT: homography i fitted to all marks with weights ``w[i]``, in coordinates relative to mark i."""
+    n = len(uv)
     X = grid_xy[None, :, :] - grid_xy[:, None, :]  # (n, n, 2) plate, relative
     U = uv[None, :, :] - uv[:, None, :]  # (n, n, 2) image, relative
     su = np.sqrt((w[:, :, None] * U**2).sum(axis=(1, 2)) / np.maximum(w.sum(axis=1), 1)) + 1e-12
@@ -502,6 +504,33 @@ def local_homographies(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int =
     Sx[:, 0, 0] = Sx[:, 1, 1] = 1 / sx
     Sx[:, 2, 2] = 1
     return np.asarray(Su @ Hn @ Sx, dtype=np.float64)
+
+
+def _consistent(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int = 2) -> NDArray[np.bool_]:
+    """Marks whose position agrees with the homography of their grid neighbours (leave-one-out).
+
+    The tolerance is 1.5% of the local pitch plus 0.15 px: far above the sub-pixel noise and the
+    residual of a local homography under lens distortion, far below the shift of a half-hidden
+    mark. The worst offender is dropped and the test repeated.
+    """
+    n = len(uv)
+    keep = np.ones(n, dtype=bool)
+    d = np.max(np.abs(grid_xy[:, None, :] - grid_xy[None, :, :]), axis=2)
+    for _ in range(8):
+        w = ((d <= neighbourhood) & (d > 0) & keep[None, :]).astype(np.float64)
+        few = w.sum(axis=1) < 6
+        w[few] = ((d > 0) & keep[None, :])[few]
+        H = _weighted_local_h(grid_xy, uv, w)
+        pred = H[:, :2, 2] / H[:, 2:3, 2]  # image of the mark's own grid point, relative to its uv
+        step_h = H @ np.array([1.0, 0.0, 1.0])
+        step = step_h[:, :2] / step_h[:, 2:3] - pred
+        resid = np.hypot(*pred.T) / (0.015 * np.hypot(*step.T) + 0.15)
+        resid[~np.isfinite(resid)] = np.inf
+        worst = int(np.argmax(np.where(keep, resid, -1.0)))
+        if resid[worst] <= 1.0:
+            break
+        keep[worst] = False
+    return keep
 
 
 def perspective_bias(grid_xy: FloatArray, uv: FloatArray, radius_pitch: float, neighbourhood: int = 2
@@ -543,24 +572,35 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
                          f"has {cols}x{rows} = {n_expected}")
             failure = failure if failure and failure.stage > f.stage else f
             continue
-        assigned = _assign(frame, cols, rows)
-        if assigned is None:
-            f = _Failure(1, f"mark count mismatch: the {len(frame.marks)} marks inside the frame do not "
-                         f"form the target's {cols}x{rows} grid")
-            failure = failure if failure and failure.stage > f.stage else f
+        found_k: tuple[int, FloatArray, NDArray[np.int64], NDArray[np.int64]] | None = None
+        # The printed side faces the camera unless only the mirror image fits (mirrored views).
+        for mirrored in (False, True):
+            assigned = _assign(frame, cols, rows, mirrored)
+            if assigned is None:
+                f = _Failure(1, f"mark count mismatch: the {len(frame.marks)} marks inside the frame do not "
+                             f"form the target's {cols}x{rows} grid")
+                failure = failure if failure and failure.stage > f.stage else f
+                continue
+            H, idx, ids, _ = assigned
+            unmatched = len(frame.marks) - len(idx)
+            if len(idx) < n_expected - max_missing or unmatched > max_missing:
+                f = _Failure(1, f"mark count mismatch: {len(idx)} of {n_expected} marks of the {cols}x{rows} "
+                             f"grid found ({unmatched} other blobs inside the frame)")
+                failure = failure if failure and failure.stage > f.stage else f
+                continue
+            k, why = _orientation(grey, H, cols, rows)
+            if k >= 0 and cols != rows and k in (1, 3):
+                k, why = -1, ("orientation unreadable: the triangle is in a corner that does not fit the "
+                              f"plate's {cols}x{rows} shape")
+            if k < 0:
+                f = _Failure(2, why)
+                failure = failure if failure and failure.stage > f.stage else f
+                continue
+            found_k = (k, H, idx, ids)
+            break
+        if found_k is None:
             continue
-        H, idx, ids, mirrored = assigned
-        unmatched = len(frame.marks) - len(idx)
-        if len(idx) < n_expected - max_missing or unmatched > max_missing:
-            f = _Failure(1, f"mark count mismatch: {len(idx)} of {n_expected} marks of the {cols}x{rows} grid "
-                         f"found ({unmatched} other blobs inside the frame)")
-            failure = failure if failure and failure.stage > f.stage else f
-            continue
-        k, why = _orientation(grey, H, cols, rows)
-        if k < 0:
-            f = _Failure(2, why)
-            failure = failure if failure and failure.stage > f.stage else f
-            continue
+        k, H, idx, ids = found_k
         # re-express ids so that the triangle corner is the target's (-1, -1)
         gx, gy = ids % cols, ids // cols
         if k == 0:
@@ -568,14 +608,8 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
         elif k == 2:
             nx, ny = cols - 1 - gx, rows - 1 - gy
         elif k == 1:
-            if cols != rows:
-                return _Failure(2, "orientation unreadable: the triangle is in a corner that does not fit the "
-                                f"plate's {cols}x{rows} shape")
             nx, ny = gy, cols - 1 - gx
         else:
-            if cols != rows:
-                return _Failure(2, "orientation unreadable: the triangle is in a corner that does not fit the "
-                                f"plate's {cols}x{rows} shape")
             nx, ny = rows - 1 - gy, gx
         new_ids = (ny * cols + nx).astype(np.int64)
         # sub-pixel ellipses
@@ -595,10 +629,17 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
         new_ids, uv_ell = new_ids[order], uv_ell[order]
         grid = _grid_xy(new_ids, cols)
         radius_pitch = target.diameter_mm / 2 / target.pitch_mm
+        # a mark that its neighbours do not predict is partly hidden or merged: leave it out
+        keep = _consistent(grid, uv_ell)
+        new_ids, uv_ell, grid = new_ids[keep], uv_ell[keep], grid[keep]
+        if len(new_ids) < n_expected - max_missing:
+            f = _Failure(1, f"mark count mismatch: only {len(new_ids)} of {n_expected} marks fit the plate "
+                         "(occluded or damaged)")
+            failure = failure if failure and failure.stage > f.stage else f
+            continue
         uv = uv_ell.copy()
         for _ in range(2):
             uv = uv_ell - perspective_bias(grid, uv, radius_pitch)
-        del mirrored
         return Detection(image_name, True, ids=new_ids, uv=uv, uv_ellipse=uv_ell)
     assert failure is not None
     return failure
