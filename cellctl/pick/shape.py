@@ -49,7 +49,7 @@ N_BINS = 8
 _BIN_W = math.pi / N_BINS
 TOP_STEP_FACTOR = 1.4
 """Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
-MIN_TOP_RADIUS_PX = 6.0
+MIN_TOP_RADIUS_PX = 8.0
 """Automatic pyramid depth: the top level must show the model at least this large."""
 MAX_TOP_CANDIDATES = 64
 HYPOTHESES_PER_POSITION = 3
@@ -452,7 +452,7 @@ def _response_table() -> U8:
 _RESPONSE_TABLE = _response_table()
 
 
-def response_maps(img: U8, thr: float, sigma: float = 0.0) -> U8:
+def response_maps(img: U8, thr: float, sigma: float = 0.0, spread: bool = True) -> U8:
     """(N_BINS, H, W) uint8 responses 0..4 to each orientation bin, spread by a 3x3 max filter."""
     gx, gy = gradients(img, sigma)
     mag = cv2.magnitude(gx, gy)
@@ -462,6 +462,8 @@ def response_maps(img: U8, thr: float, sigma: float = 0.0) -> U8:
     h, w = img.shape
     stack = np.zeros((N_BINS, h + 1, w), np.uint8)  # a zero row between bins keeps the max filter apart
     stack[:, :h] = _RESPONSE_TABLE[:, q]
+    if not spread:
+        return np.ascontiguousarray(stack[:, :h])
     flat = cv2.dilate(stack.reshape(N_BINS * (h + 1), w), np.ones((3, 3), np.uint8))
     return np.ascontiguousarray(flat.reshape(N_BINS, h + 1, w)[:, :h])
 
@@ -479,36 +481,46 @@ def _rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], N
     return dx, dy, b
 
 
-def _track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64
-           ) -> tuple[F64, F64, F64, F64]:
-    """Best pose of each candidate over +-1 px and +-1 angle step: (x, y, theta, score) arrays.
+def _track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64,
+           n_steps: int = 1, reach: int = 1) -> tuple[F64, F64, F64, F64]:
+    """Best pose of each candidate over +-reach px and +-n_steps angle steps: (x, y, theta, score).
 
-    With the responses spread over 3x3, this covers a candidate that is up to 2 px off.
+    With the responses spread over 3x3, reach 1 covers a candidate that is up to 2 px off.
     """
     da = lm.angle_step
     m = lm.points[lm.features]
     n = lm.normals[lm.features]
     nf = len(m)
-    thetas = th[:, None] + np.array([-da, 0.0, da])[None, :]  # (C, 3)
+    na = 2 * n_steps + 1
+    thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * da  # (C, na)
     c, s = np.cos(thetas)[..., None], np.sin(thetas)[..., None]
     dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)  # (C, 3, F)
     dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
     phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
     b = (np.floor(np.mod(phi, math.pi) / _BIN_W).astype(np.int64)) % N_BINS
     _, h, w = resp.shape
-    offs = np.arange(-1, 2)
-    ox = (offs[None, :] * np.ones((3, 1), np.int64)).ravel()  # (9,)
-    oy = (offs[:, None] * np.ones((1, 3), np.int64)).ravel()
-    X = cx[:, None, None, None] + ox[None, None, :, None] + dx[:, :, None, :]  # (C, 3, 25, F)
-    Y = cy[:, None, None, None] + oy[None, None, :, None] + dy[:, :, None, :]
-    ok = (X >= 0) & (X < w) & (Y >= 0) & (Y < h)
-    idx = (b[:, :, None, :] * h + np.clip(Y, 0, h - 1)) * w + np.clip(X, 0, w - 1)
+    offs = np.arange(-reach, reach + 1)
+    npos = len(offs) ** 2
+    ox = (offs[None, :] * np.ones((len(offs), 1), np.int64)).ravel()
+    oy = (offs[:, None] * np.ones((1, len(offs)), np.int64)).ravel()
+    px_ = cx[:, None, None, None] + ox[None, None, :, None] + dx[:, :, None, :]  # (C, A, P, F)
+    py_ = cy[:, None, None, None] + oy[None, None, :, None] + dy[:, :, None, :]
+    ok = (px_ >= 0) & (px_ < w) & (py_ >= 0) & (py_ < h)
+    idx = (b[:, :, None, :] * h + np.clip(py_, 0, h - 1)) * w + np.clip(px_, 0, w - 1)
     sc = (resp.ravel()[idx] * ok).sum(axis=3, dtype=np.int32).reshape(len(cx), -1)  # (C, 75)
-    k = np.argmax(sc, axis=1)
-    ai, pi = k // 9, k % 9
+    # ties (the spread responses make plateaus) go to the angle nearest the prediction, and the
+    # position is the plateau's centre rather than its first pixel
+    tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
+    k = np.argmax(sc - tie[None, :], axis=1)
+    ai = k // npos
     rows = np.arange(len(cx))
-    return ((cx + ox[pi]).astype(np.float64), (cy + oy[pi]).astype(np.float64), thetas[rows, ai],
-            sc[rows, k] / (4.0 * nf))
+    best = sc[rows, k]
+    at_a = sc.reshape(len(cx), na, npos)[rows, ai]  # (C, npos)
+    plateau = at_a == best[:, None]
+    cnt = plateau.sum(axis=1)
+    px = (plateau * ox[None, :]).sum(axis=1) / cnt
+    py = (plateau * oy[None, :]).sum(axis=1) / cnt
+    return cx + px, cy + py, thetas[rows, ai], best / (4.0 * nf)
 
 
 # ----------------------------------------------------------------------------- refinement
@@ -602,7 +614,7 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
             if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 1e-3:
                 break
     # score: fraction of model edges seen where they should be (orientation-weighted)
-    s_i = np.where(found, cosd * np.clip(1.0 - np.abs(d) / 1.5, 0.0, 1.0), 0.0)
+    s_i = np.where(found, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
     inl = found & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
     return _Pose(x + x0, y + y0, th, float(s_i.mean())), float(s_i.mean()), rms
@@ -739,16 +751,21 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         if not cands or timed_out:
             break
         lm = model.levels[lv]
-        resp = response_maps(pyr[lv], thr_grad)
+        last = lv == lowest_discrete
+        # the spread responses leave +-1 px plateaus; the last level is scored unspread, +-2 px
+        resp = response_maps(pyr[lv], thr_grad, spread=not last)
         cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
-        cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)
+        cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)  # plateau centres: *2, rounded
         th = np.array([c.theta for c in cands])
         nxt: list[_Pose] = []
         for start in range(0, len(cands), 32):
             sl = slice(start, start + 32)
-            xs_, ys_, ts_, sc_ = _track(resp, lm, cx[sl], cy[sl], th[sl])
+            # below the top level the angle is still coarse: +-2 steps there, +-1 further down
+            xs_, ys_, ts_, sc_ = _track(resp, lm, cx[sl], cy[sl], th[sl], 2 if lv == L - 1 else 1,
+                                        2 if last else 1)
             nxt += [_Pose(float(a), float(b_), float(t_), float(c_))
-                    for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True) if c_ >= sp.min_score * 0.8]
+                    for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True)
+                    if c_ >= sp.min_score * (0.6 if last else 0.8)]
             if clock.expired():
                 timed_out = True
                 break
@@ -786,7 +803,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
             pose, score, rms = _refine_lsq(
                 pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
-                search_px=3.0 if step == 0 else 2.0, iterations=5 if step == 0 else 3,
+                search_px=4.5 if step == 0 else 2.0, iterations=6 if step == 0 else 3,
                 fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
                 subset=model.levels[lv2].features if lv2 > 0 else None,
                 reject_below=0.7 * sp.min_score)
