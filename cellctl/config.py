@@ -101,6 +101,19 @@ class IOConfig(DeviceConfig):
     pass
 
 
+class CalibrationDefaults(_Strict):
+    """Defaults of the calibration routines (each request may override them)."""
+
+    camera: str = "cam0"
+    robot: str = "robot0"
+    target: str = "plate"
+    setup: Literal["eye-in-hand", "eye-to-hand"] = "eye-in-hand"
+    model: Literal["opencv5", "opencv8", "division"] = "opencv5"
+    speed_m_s: float = Field(0.1, gt=0, le=2.0)
+    verify_tolerance_px: float = Field(1.0, gt=0)
+    verify_tolerance_mm: float = Field(0.5, gt=0)
+
+
 class CellConfig(_Strict):
     format_version: int = CONFIG_FORMAT_VERSION
     cell_id: str = Field("cell", pattern=r"^[A-Za-z0-9_.-]+$")
@@ -110,6 +123,18 @@ class CellConfig(_Strict):
     cameras: dict[str, CameraConfig] = {}
     robots: dict[str, RobotConfig] = {}
     io: dict[str, IOConfig] = {}
+    targets: dict[str, dict[str, Any]] = {}
+    """Named calibration targets (the YAML of shared/INTERFACES.md §2)."""
+    calibration: CalibrationDefaults = CalibrationDefaults()
+
+    @field_validator("targets")
+    @classmethod
+    def _targets(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        from calibration.targets import target_from_dict
+
+        for name, desc in v.items():
+            target_from_dict(desc, f"targets.{name}")
+        return v
 
     @field_validator("format_version")
     @classmethod

@@ -11,10 +11,12 @@ from starlette.concurrency import run_in_threadpool
 
 from cellctl import __version__
 from cellctl.api.errors import install_error_handlers
-from cellctl.api.routes import cameras, health, robots
+from cellctl.api.routes import calibrations, cameras, health, jobs, robots, targets
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
+from cellctl.jobs import JobManager
+from cellctl.services import Services
 
 log = logging.getLogger(__name__)
 
@@ -24,14 +26,20 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        from cellctl.store import open_store
+
         cell = Cell(config)
+        store = await run_in_threadpool(open_store, config)
+        services = Services(config, cell, store, JobManager())
         app.state.cell = cell
+        app.state.services = services
         await run_in_threadpool(cell.open_all)
-        log.info("cell %s ready: cameras %s, robots %s", config.cell_id, sorted(cell.cameras), sorted(cell.robots))
+        log.info("cell %s ready: cameras %s, robots %s; store %s", config.cell_id, sorted(cell.cameras),
+                 sorted(cell.robots), store.describe())
         try:
             yield
         finally:
-            await run_in_threadpool(cell.close)
+            await run_in_threadpool(services.close)
 
     app = FastAPI(
         title="cellctl",
@@ -43,6 +51,6 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
     install_error_handlers(app)
-    for module in (health, cameras, robots):
+    for module in (health, cameras, robots, targets, calibrations, jobs):
         app.include_router(module.router)
     return app

@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field
 
-from cellctl.api.deps import CellDep, Viewer, device_call
+from calibration import geometry as g
+from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call
+from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.robot_state import state_to_json
 from drivers.base import DeviceUnavailable, RobotBase, RobotState
@@ -15,12 +17,23 @@ from drivers.base import DeviceUnavailable, RobotBase, RobotState
 router = APIRouter(prefix="/robots", tags=["robots"])
 
 MAX_STATE_AGE_S = 1.0
+MOVE_TIMEOUT_S = 120.0
+
+
+class PoseUR(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x_m: float
+    y_m: float
+    z_m: float
+    rx_rad: float
+    ry_rad: float
+    rz_rad: float
 
 
 class RobotStatePublic(BaseModel):
     robot_id: str
     T_base_tool: list[list[float]]
-    pose_ur: dict[str, float]
+    pose_ur: PoseUR
     joints_rad: list[float]
     timestamp_s: float
     age_s: float
@@ -53,3 +66,50 @@ async def robot_state(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]
         raise DeviceUnavailable(f"robot {robot_id}: newest state is {out['age_s']:.2f} s old "
                                 f"(limit {MAX_STATE_AGE_S} s)")
     return out
+
+
+class MoveInput(BaseModel):
+    """A linear move of the tool to ``T_base_tool`` (4x4, m) or to a UR pose (m, rad); speed in m/s."""
+
+    model_config = ConfigDict(extra="forbid")
+    T_base_tool: list[list[float]] | None = None
+    pose_ur: PoseUR | None = None
+    speed_m_s: float = Field(0.05, gt=0, le=5.0)
+
+
+@router.post("/{robot_id}/move", response_model=RobotStatePublic, responses={422: {}, 503: {}})
+async def move(robot_id: str, body: MoveInput, cell: CellDep, services: ServicesDep, who: Engineer
+               ) -> dict[str, Any]:
+    slot = _slot(cell, robot_id)
+    if (body.T_base_tool is None) == (body.pose_ur is None):
+        raise ApiError(422, "invalid_request", "give exactly one of T_base_tool (4x4, m) or pose_ur (m, rad)")
+    try:
+        if body.pose_ur is not None:
+            p = body.pose_ur
+            T = g.ur_pose_to_transform([p.x_m, p.y_m, p.z_m, p.rx_rad, p.ry_rad, p.rz_rad])
+        else:
+            assert body.T_base_tool is not None
+            T = g.as_transform(body.T_base_tool, "T_base_tool")
+    except g.PoseError as exc:
+        raise ApiError(422, "invalid_pose", str(exc)) from None
+    detail = {"pose_ur": [float(v) for v in g.transform_to_ur_pose(T)], "speed_m_s": body.speed_m_s}
+
+    def go(robot: RobotBase) -> RobotState:
+        robot.move_linear(T, body.speed_m_s)
+        return robot.state()
+
+    try:
+        state: RobotState = await device_call(slot, go, timeout_s=MOVE_TIMEOUT_S)
+    except Exception as exc:
+        services.store.audit(who.name, "robot.move", robot_id, detail, f"refused: {exc}")
+        raise
+    services.store.audit(who.name, "robot.move", robot_id, detail, "ok")
+    return state_to_json(robot_id, state)
+
+
+@router.post("/{robot_id}/stop")
+async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operator) -> dict[str, Any]:
+    slot = _slot(cell, robot_id)
+    await device_call(slot, lambda robot: robot.stop())
+    services.store.audit(who.name, "robot.stop", robot_id, {}, "ok")
+    return {"robot_id": robot_id, "stopped": True}

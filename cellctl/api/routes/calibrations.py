@@ -1,0 +1,137 @@
+"""Calibrations: list, get, activate, roll back, export (OpenCV / ROS / HALCON), report."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query
+from fastapi.responses import HTMLResponse, PlainTextResponse
+from pydantic import BaseModel, ConfigDict
+
+from cellctl.api.deps import Engineer, Viewer
+from cellctl.api.deps_services import ServicesDep
+from cellctl.api.errors import ApiError
+from cellctl.store import NotFound, NothingToRollBack
+
+router = APIRouter(prefix="/calibrations", tags=["calibrations"])
+
+Kind = Literal["camera", "handeye", "npoint"]
+
+
+class CalibrationSummaryPublic(BaseModel):
+    id: int
+    cell_id: str
+    kind: str
+    camera_id: str
+    robot_id: str | None
+    version: int
+    tool_version: str
+    creator: str
+    note: str
+    created_s: float
+    active: bool
+
+
+class RollbackInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    kind: Kind
+    camera_id: str
+    robot_id: str | None = None
+
+
+def _get(services: ServicesDep, cal_id: int) -> Any:
+    try:
+        return services.store.get_calibration(cal_id)
+    except NotFound as exc:
+        raise ApiError(404, "unknown_calibration", str(exc)) from None
+
+
+@router.get("", response_model=list[CalibrationSummaryPublic])
+def list_calibrations(services: ServicesDep, _: Viewer, kind: Kind | None = None, camera_id: str | None = None,
+                      robot_id: str | None = None) -> list[dict[str, Any]]:
+    return [s.to_dict() for s in services.store.list_calibrations(kind, camera_id, robot_id)]
+
+
+@router.get("/{cal_id}")
+def get_calibration(cal_id: int, services: ServicesDep, _: Viewer,
+                    inputs: Annotated[bool, Query(description="include the stored inputs")] = False
+                    ) -> dict[str, Any]:
+    rec = _get(services, cal_id)
+    out: dict[str, Any] = {**rec.summary().to_dict(), "result": rec.result}
+    if inputs:
+        out["inputs"] = rec.inputs
+    return out
+
+
+@router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic)
+def activate(cal_id: int, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+    _get(services, cal_id)
+    rec = services.store.activate(cal_id, who.name)
+    summary: dict[str, Any] = rec.summary().to_dict()
+    return summary
+
+
+@router.post("/rollback", response_model=CalibrationSummaryPublic)
+def rollback(body: RollbackInput, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+    try:
+        rec = services.store.rollback(body.kind, body.camera_id, body.robot_id, who.name)
+    except NothingToRollBack as exc:
+        raise ApiError(409, "nothing_to_roll_back", str(exc)) from None
+    if rec is None:
+        raise ApiError(409, "nothing_to_roll_back", "no earlier active version to return to")
+    summary: dict[str, Any] = rec.summary().to_dict()
+    return summary
+
+
+@router.get("/{cal_id}/export", response_class=PlainTextResponse)
+def export(cal_id: int, services: ServicesDep, _: Viewer,
+           format: Literal["opencv", "ros", "halcon", "json"] = "opencv",
+           pixel_pitch_um: Annotated[float, Query(gt=0, description="sensor cell size for HALCON")] = 3.45
+           ) -> PlainTextResponse:
+    import json
+
+    from calibration import export as ex
+    from calibration.camera_io import camera_from_json
+
+    rec = _get(services, cal_id)
+    if format == "json":
+        return PlainTextResponse(json.dumps(rec.result, indent=2), media_type="application/json")
+    if rec.kind != "camera":
+        raise ApiError(422, "not_a_camera", f"calibration {cal_id} is a {rec.kind} calibration; only camera "
+                                            "calibrations export to OpenCV/ROS/HALCON (use format=json)")
+    camera = camera_from_json(rec.result, f"calibration {cal_id}")
+    try:
+        if format == "halcon":
+            return PlainTextResponse(ex.halcon_cam_par(camera, pixel_pitch_um * 1e-6))
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "camera.yaml"
+            if format == "opencv":
+                ex.write_opencv_yaml(camera, path)
+            else:
+                ex.write_ros_yaml(camera, path, name=rec.camera_id)
+            return PlainTextResponse(path.read_text(), media_type="application/x-yaml")
+    except ex.ExportError as exc:
+        raise ApiError(422, "export_unsupported", str(exc)) from None
+
+
+@router.get("/{cal_id}/report", response_class=HTMLResponse)
+def report(cal_id: int, services: ServicesDep, _: Viewer) -> HTMLResponse:
+    rec = _get(services, cal_id)
+    rows = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in _headline(rec.kind, rec.result).items())
+    verdict = rec.result.get("verdict", {})
+    problems = "".join(f"<li><b>{p.get('code')}</b>: {p.get('message')}</li>" for p in verdict.get("problems", []))
+    html = (f"<!doctype html><html><head><meta charset='utf-8'><title>calibration {cal_id}</title></head><body>"
+            f"<h1>{rec.kind} calibration {cal_id} (v{rec.version}) of {rec.camera_id}"
+            f"{' / ' + rec.robot_id if rec.robot_id else ''}</h1>"
+            f"<p>verdict: <b>{'ok' if verdict.get('ok', True) else 'NOT OK'}</b></p><ul>{problems}</ul>"
+            f"<table>{rows}</table></body></html>")
+    return HTMLResponse(html)
+
+
+def _headline(kind: str, result: dict[str, Any]) -> dict[str, Any]:
+    keys = {"camera": ["model", "width", "height", "K", "dist", "rms_px", "uncertainty"],
+            "handeye": ["setup", "T_tool_cam", "T_base_cam", "rms_px", "uncertainty"],
+            "npoint": ["model", "H", "rms_mm", "affine"]}[kind]
+    return {k: result[k] for k in keys if k in result}

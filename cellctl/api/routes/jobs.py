@@ -1,0 +1,134 @@
+"""Routines as jobs: ``POST /routines/{name}`` starts one; ``/jobs`` reads, follows (SSE), cancels."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Any
+
+from fastapi import APIRouter, Body, Request
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.concurrency import run_in_threadpool
+
+from cellctl.api.deps import Operator, Viewer
+from cellctl.api.deps_services import ServicesDep
+from cellctl.api.errors import ApiError
+from cellctl.jobs import JobInputError
+from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+
+router = APIRouter(tags=["jobs"])
+
+
+class JobPublic(BaseModel):
+    id: str
+    name: str
+    state: str
+    progress: float
+    message: str
+    result: dict[str, Any] | None
+    error: str | None
+    started_by: str
+    params: dict[str, Any]
+    created_s: float
+    finished_s: float | None
+    waiting_for: dict[str, Any] | None
+    events: int
+
+
+class RecordInput(BaseModel):
+    """Operator input for a waiting routine (jog-to-mark: the tool is at the mark)."""
+
+    model_config = ConfigDict(extra="forbid")
+    x_mm: float | None = Field(None, description="robot x of the mark, mm (default: read from the robot)")
+    y_mm: float | None = Field(None, description="robot y of the mark, mm (default: read from the robot)")
+
+
+@router.get("/routines")
+def list_routines(_: Viewer) -> list[dict[str, Any]]:
+    return [{"name": n, "moves_robot": n in MOVES_ROBOT, "role": "engineer" if n in MOVES_ROBOT else "operator"}
+            for n in sorted(ROUTINE_MODULES)]
+
+
+@router.post("/routines/{name}", status_code=202, response_model=JobPublic)
+def start_routine(name: str, services: ServicesDep, who: Operator,
+                  params: dict[str, Any] | None = Body(None)) -> dict[str, Any]:  # noqa: B008
+    if name not in ROUTINE_MODULES:
+        raise ApiError(404, "unknown_routine", f"no routine {name!r}; routines: {', '.join(sorted(ROUTINE_MODULES))}")
+    # Routines that move the robot need the engineer role (an operator may present the plate by hand).
+    moves = name in MOVES_ROBOT and (params or {}).get("mode", "robot") == "robot"
+    if not who.has("engineer") and moves:
+        raise ApiError(403, "forbidden", f"routine {name} needs the engineer role; token {who.name!r} has {who.role}")
+    module = routine(name)
+    try:
+        module.Params.model_validate(params or {})
+    except ValidationError as exc:
+        msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ApiError(422, "invalid_params", f"routine {name}: {msg}") from None
+    job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name)
+    services.store.audit(who.name, "routine.start", name, {"job_id": job.id, "params": params or {}}, "started")
+    return job.public()
+
+
+@router.get("/jobs", response_model=list[JobPublic])
+def list_jobs(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
+    return [j.public() for j in services.jobs.list()]
+
+
+def _job(services: ServicesDep, job_id: str) -> Any:
+    try:
+        return services.jobs.get(job_id)
+    except KeyError as exc:
+        raise ApiError(404, "unknown_job", str(exc.args[0])) from None
+
+
+@router.get("/jobs/{job_id}", response_model=JobPublic)
+def get_job(job_id: str, services: ServicesDep, _: Viewer) -> dict[str, Any]:
+    public: dict[str, Any] = _job(services, job_id).public()
+    return public
+
+
+@router.delete("/jobs/{job_id}", response_model=JobPublic)
+def cancel_job(job_id: str, services: ServicesDep, who: Operator) -> dict[str, Any]:
+    job = _job(services, job_id)
+    services.jobs.cancel(job_id)
+    services.store.audit(who.name, "routine.cancel", job.name, {"job_id": job_id}, "requested")
+    public: dict[str, Any] = job.public()
+    return public
+
+
+@router.post("/jobs/{job_id}/record", response_model=JobPublic)
+def record_input(job_id: str, services: ServicesDep, who: Operator,
+                 body: RecordInput | None = Body(None)) -> dict[str, Any]:  # noqa: B008
+    _job(services, job_id)
+    try:
+        job = services.jobs.give_input(job_id, {**(body.model_dump(exclude_none=True) if body else {}),
+                                                "who": who.name})
+    except JobInputError as exc:
+        raise ApiError(409, "not_waiting", str(exc)) from None
+    public: dict[str, Any] = job.public()
+    return public
+
+
+@router.get("/jobs/{job_id}/events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {}}}})
+async def job_events(job_id: str, request: Request, services: ServicesDep, _: Viewer) -> StreamingResponse:
+    job = _job(services, job_id)
+
+    async def stream() -> AsyncIterator[str]:
+        seq = -1
+        while True:
+            events = await run_in_threadpool(job.events_after, seq, 1.0)
+            for ev in events:
+                seq = ev.seq
+                yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(ev.data)}\n\n"
+            if job.state != "running" and seq >= len(job.events) - 1:
+                return
+            if await request.is_disconnected():
+                return
+            if not events:
+                yield ": keep-alive\n\n"
+            await asyncio.sleep(0)
+
+    return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-store"})

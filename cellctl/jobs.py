@@ -1,0 +1,216 @@
+"""Long-running work as jobs: a thread each, progress events, cancellation, operator input.
+
+A routine is a function ``fn(ctx: JobContext) -> dict`` run in its own thread. It reports
+progress with ``ctx.report``; it calls ``ctx.check_cancelled()`` between steps (which raises
+``JobCancelled`` once ``DELETE /jobs/{id}`` asked); it can wait for operator input
+(``ctx.wait_input``) that ``POST /jobs/{id}/record`` delivers. Whatever the outcome, the
+routine's ``on_end`` hooks run (routines use one to stop the robot).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+log = logging.getLogger(__name__)
+
+JobStateName = Literal["running", "succeeded", "failed", "cancelled"]
+MAX_FINISHED_JOBS = 200
+
+
+class JobCancelled(Exception):
+    """Raised inside a routine when its job was cancelled."""
+
+
+class JobInputError(ValueError):
+    """Operator input given to a job that is not waiting for it, or that is malformed."""
+
+
+@dataclass
+class Event:
+    seq: int
+    time_s: float
+    kind: str
+    """'progress', 'input_needed', 'state'."""
+    data: dict[str, Any]
+
+
+@dataclass
+class Job:
+    id: str
+    name: str
+    started_by: str
+    params: dict[str, Any]
+    state: JobStateName = "running"
+    progress: float = 0.0
+    message: str = "starting"
+    result: dict[str, Any] | None = None
+    error: str | None = None
+    created_s: float = field(default_factory=time.time)
+    finished_s: float | None = None
+    events: list[Event] = field(default_factory=list)
+    waiting_for: dict[str, Any] | None = None
+    _cancel: threading.Event = field(default_factory=threading.Event)
+    _inputs: queue.Queue[dict[str, Any]] = field(default_factory=queue.Queue)
+    _changed: threading.Condition = field(default_factory=threading.Condition)
+
+    def public(self) -> dict[str, Any]:
+        return {
+            "id": self.id, "name": self.name, "state": self.state, "progress": round(self.progress, 4),
+            "message": self.message, "result": self.result, "error": self.error, "started_by": self.started_by,
+            "params": self.params, "created_s": self.created_s, "finished_s": self.finished_s,
+            "waiting_for": self.waiting_for, "events": len(self.events),
+        }
+
+    def _emit(self, kind: str, data: dict[str, Any]) -> None:
+        with self._changed:
+            self.events.append(Event(len(self.events), time.time(), kind, data))
+            self._changed.notify_all()
+
+    def events_after(self, seq: int, timeout_s: float) -> list[Event]:
+        """Events with ``seq`` greater than the given one, waiting up to ``timeout_s`` for one."""
+        with self._changed:
+            if len(self.events) <= seq + 1 and self.state == "running":
+                self._changed.wait(timeout_s)
+            return self.events[seq + 1 :]
+
+
+class JobContext:
+    """What a running routine sees of its job."""
+
+    def __init__(self, job: Job) -> None:
+        self._job = job
+        self.on_end: list[Callable[[], None]] = []
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self._job.params
+
+    @property
+    def started_by(self) -> str:
+        return self._job.started_by
+
+    def report(self, progress: float, message: str, **data: Any) -> None:
+        job = self._job
+        job.progress = max(0.0, min(1.0, progress))
+        job.message = message
+        log.info("job %s (%s): %.0f%% %s", job.id, job.name, job.progress * 100, message)
+        job._emit("progress", {"progress": job.progress, "message": message, **data})
+
+    def check_cancelled(self) -> None:
+        if self._job._cancel.is_set():
+            raise JobCancelled("cancelled on request")
+
+    def sleep(self, seconds: float) -> None:
+        if self._job._cancel.wait(seconds):
+            raise JobCancelled("cancelled on request")
+
+    def wait_input(self, what: dict[str, Any], timeout_s: float = 3600.0) -> dict[str, Any]:
+        """Announce what the routine needs from the operator and wait for it (cancellable)."""
+        job = self._job
+        job.waiting_for = what
+        job._emit("input_needed", what)
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                self.check_cancelled()
+                try:
+                    return job._inputs.get(timeout=0.1)
+                except queue.Empty:
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(f"no operator input within {timeout_s:.0f} s") from None
+        finally:
+            job.waiting_for = None
+
+
+class JobManager:
+    """Starts routines in threads and keeps their jobs (the newest ``MAX_FINISHED_JOBS``)."""
+
+    def __init__(self) -> None:
+        self._jobs: dict[str, Job] = {}
+        self._lock = threading.Lock()
+        self._threads: dict[str, threading.Thread] = {}
+
+    def start(self, name: str, fn: Callable[[JobContext], dict[str, Any]], params: dict[str, Any],
+              started_by: str) -> Job:
+        job = Job(id=uuid.uuid4().hex[:12], name=name, started_by=started_by, params=params)
+        with self._lock:
+            self._jobs[job.id] = job
+            self._prune()
+        thread = threading.Thread(target=self._run, args=(job, fn), name=f"job-{name}-{job.id}", daemon=True)
+        self._threads[job.id] = thread
+        thread.start()
+        return job
+
+    def _run(self, job: Job, fn: Callable[[JobContext], dict[str, Any]]) -> None:
+        ctx = JobContext(job)
+        try:
+            result = fn(ctx)
+            job.result = result
+            job.state = "succeeded"
+            job.progress = 1.0
+            job.message = "done"
+        except JobCancelled:
+            job.state = "cancelled"
+            job.message = "cancelled; the robot was stopped and nothing was stored"
+        except Exception as exc:  # noqa: BLE001 - a routine's failure is reported, never raised into the server
+            log.warning("job %s (%s) failed: %s", job.id, job.name, exc, exc_info=not isinstance(exc, ValueError))
+            job.state = "failed"
+            job.error = f"{exc}"
+            job.message = "failed; the robot was stopped and nothing was stored"
+        finally:
+            for hook in ctx.on_end:
+                try:
+                    hook()
+                except Exception:  # noqa: BLE001 - every end hook runs
+                    log.exception("job %s end hook failed", job.id)
+            job.finished_s = time.time()
+            job._emit("state", {"state": job.state, "message": job.message, "error": job.error})
+
+    def _prune(self) -> None:
+        finished = [j for j in self._jobs.values() if j.state != "running"]
+        for j in sorted(finished, key=lambda j: j.created_s)[: max(0, len(finished) - MAX_FINISHED_JOBS)]:
+            self._jobs.pop(j.id, None)
+            self._threads.pop(j.id, None)
+
+    def get(self, job_id: str) -> Job:
+        with self._lock:
+            job = self._jobs.get(job_id)
+        if job is None:
+            raise KeyError(f"no job {job_id!r} (finished jobs are kept for a while, then forgotten)")
+        return job
+
+    def list(self) -> list[Job]:
+        with self._lock:
+            return sorted(self._jobs.values(), key=lambda j: j.created_s, reverse=True)
+
+    def cancel(self, job_id: str) -> Job:
+        job = self.get(job_id)
+        job._cancel.set()
+        return job
+
+    def give_input(self, job_id: str, data: dict[str, Any]) -> Job:
+        job = self.get(job_id)
+        if job.state != "running" or job.waiting_for is None:
+            raise JobInputError(f"job {job_id} ({job.name}) is not waiting for input (state {job.state})")
+        job._inputs.put(data)
+        return job
+
+    def join(self, job_id: str, timeout_s: float | None = None) -> Job:
+        thread = self._threads.get(job_id)
+        if thread is not None:
+            thread.join(timeout_s)
+        return self.get(job_id)
+
+    def shutdown(self, timeout_s: float = 10.0) -> None:
+        for job in self.list():
+            if job.state == "running":
+                job._cancel.set()
+        for thread in list(self._threads.values()):
+            thread.join(timeout_s)

@@ -1,0 +1,33 @@
+"""Calibration routines run as jobs: name -> ``run(services, ctx) -> result``.
+
+Every routine leaves the robot stopped when it fails or is cancelled (an end hook), and stores
+nothing unless it completes; a new calibration is stored but not activated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Final
+
+from cellctl.jobs import JobContext
+from cellctl.services import Services
+
+Routine = Callable[[Services, JobContext], dict[str, Any]]
+
+ROUTINE_MODULES: Final[dict[str, str]] = {
+    "intrinsics-capture": "cellctl.routines.intrinsics_capture",
+    "handeye-capture": "cellctl.routines.handeye_capture",
+    "jog-to-mark": "cellctl.routines.jog_to_mark",
+    "verify": "cellctl.routines.verify",
+}
+MOVES_ROBOT: Final[frozenset[str]] = frozenset({"intrinsics-capture", "handeye-capture"})
+
+
+def routine(name: str) -> Any:
+    """The routine module (with ``Params`` and ``run``) registered under ``name``."""
+    import importlib
+
+    try:
+        return importlib.import_module(ROUTINE_MODULES[name])
+    except KeyError:
+        raise KeyError(f"no routine {name!r}; routines: {', '.join(sorted(ROUTINE_MODULES))}") from None

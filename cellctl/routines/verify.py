@@ -1,0 +1,77 @@
+"""``verify``: one shot of the plate compared with what the active calibration predicts.
+
+With an active hand-eye calibration the plate's pose is predicted from the robot pose
+(eye-in-hand: ``inv(T_base_tool @ T_tool_cam) @ T_base_target``; eye-to-hand:
+``inv(T_base_cam) @ T_base_tool @ T_tool_target``) and compared with the pose measured in the
+image: drift in pixels (RMS over the plate's points) and in mm (RMS over the points, 3D). With
+only a camera calibration, the image residual of the measured pose is the check. Pass/fail
+against the configured tolerances. Nothing is stored.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from calibration import geometry as g
+from calibration.camera_io import camera_from_json
+from calibration.pnp import estimate_pose
+from cellctl.jobs import JobContext
+from cellctl.routines.common import RoutineError, capture, devices, routine_target
+from cellctl.services import Services
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    camera_id: str | None = None
+    robot_id: str | None = None
+    target: str | None = None
+    tolerance_px: float | None = Field(None, gt=0)
+    tolerance_mm: float | None = Field(None, gt=0)
+
+
+def run(services: Services, ctx: JobContext) -> dict[str, Any]:
+    p = Params.model_validate(ctx.params)
+    d = services.config.calibration
+    camera_id, robot_id = p.camera_id or d.camera, p.robot_id or d.robot
+    tol_px, tol_mm = p.tolerance_px or d.verify_tolerance_px, p.tolerance_mm or d.verify_tolerance_mm
+    _, target = routine_target(services, p.target)
+    cam_cal = services.store.active("camera", camera_id, None)
+    if cam_cal is None:
+        raise RoutineError(f"camera {camera_id} has no active calibration to verify")
+    camera = camera_from_json(cam_cal.result, f"calibration {cam_cal.id}")
+    he_cal = services.store.active("handeye", camera_id, robot_id)
+    cam, robot = devices(services, camera_id, robot_id if he_cal is not None else None)
+    ctx.report(0.2, "capturing the plate")
+    c = capture(cam, robot, target, "verify")
+    if not c.detection.found:
+        raise RoutineError(f"the plate is not seen ({c.detection.reason}); put it in view and verify again")
+    pts = target.points()
+    lookup = {int(i): k for k, i in enumerate(pts.ids)}
+    X = np.array([pts.xyz_m[lookup[int(i)]] for i in c.detection.ids])
+    measured = estimate_pose(camera, X, c.detection.uv)
+    out: dict[str, Any] = {"camera_calibration_id": cam_cal.id, "n_points": len(X),
+                           "pose_rms_px": measured.rms_px, "tolerance_px": tol_px, "tolerance_mm": tol_mm}
+    if he_cal is None or c.T_base_tool is None:
+        out["drift_px"] = measured.rms_px
+        out["drift_mm"] = None
+        out["passed"] = bool(measured.rms_px <= tol_px)
+        out["checked"] = "camera only (no active hand-eye calibration)"
+        return out
+    he = he_cal.result
+    if he["setup"] == "eye-in-hand":
+        predicted = g.invert(c.T_base_tool @ np.array(he["T_tool_cam"])) @ np.array(he["T_base_target"])
+    else:
+        predicted = g.invert(np.array(he["T_base_cam"])) @ c.T_base_tool @ np.array(he["T_tool_target"])
+    uv_pred = camera.project(g.transform_points(predicted, X))
+    drift_px = float(np.sqrt(np.mean(np.sum((uv_pred - c.detection.uv) ** 2, axis=1))))
+    diff = g.transform_points(predicted, X) - g.transform_points(measured.T_cam_target, X)
+    drift_mm = float(1000 * np.sqrt(np.mean(np.sum(diff**2, axis=1))))
+    out.update({"handeye_calibration_id": he_cal.id, "drift_px": drift_px, "drift_mm": drift_mm,
+                "passed": bool(drift_px <= tol_px and drift_mm <= tol_mm),
+                "checked": f"camera + hand-eye ({he['setup']})"})
+    ctx.report(1.0, "passed" if out["passed"] else "FAILED: the calibration has drifted")
+    return out
