@@ -15,6 +15,9 @@ PostgreSQL database and back), checks it (format, schema version, cell id, colum
 **one** write transaction of the target store, deletes this cell's rows (only with ``force``; a
 non-empty store is refused otherwise), inserts the backup's rows with their ids and logs a
 ``store.restore`` audit entry. A failure or a kill at any point leaves the store as it was.
+When a row id of the backup is taken by another cell (moving a cell into a PostgreSQL database
+that other cells already use), the cell's rows are renumbered in their original order, references
+follow, and the renumbering is written into the restore's audit entry.
 """
 
 from __future__ import annotations
@@ -100,7 +103,7 @@ def dump_cell(store: Store) -> dict[str, Any]:
         with conn.begin():
             for t in S.CELL_TABLES:
                 cols = [c.name for c in t.columns]
-                rows = conn.execute(sa.select(t).where(t.c.cell_id == store.cell_id).order_by(t.c.id)).tuples()
+                rows = conn.execute(sa.select(t).where(t.c.cell_id == store.cell_id).order_by(t.c.id))
                 tables[t.name] = {"columns": cols, "rows": [list(r) for r in rows]}
     return {"format": DUMP_FORMAT, "schema_version": S.SCHEMA_VERSION, "cell_id": store.cell_id,
             "created_s": time.time(), "tool_version": cellctl.__version__, "source": store.describe(),
@@ -192,7 +195,8 @@ def _check_dump(dump: dict[str, Any], path: Path, cell_id: str) -> None:
 def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dict[str, Any]:
     """Replace this cell's rows in ``store`` by those of the backup ``src``, atomically.
 
-    Refused when the store already holds rows of this cell, unless ``force``.
+    Refused when the store already holds rows of this cell, unless ``force``. Row ids are kept
+    unless another cell in the same database uses them (then renumbered, see the module docstring).
     """
     dump = read_backup(src, store.cell_id)
     counts = {t.name: len(dump["tables"][t.name]["rows"]) for t in S.CELL_TABLES}
@@ -207,33 +211,78 @@ def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dic
                                      "pass --force to replace it with the backup")
             for t in reversed(S.CELL_TABLES):
                 conn.execute(t.delete().where(t.c.cell_id == store.cell_id))
-            for t in S.CELL_TABLES:
-                entry = dump["tables"][t.name]
-                rows = [dict(zip(entry["columns"], r, strict=True)) for r in entry["rows"]]
-                if store.backend == "postgresql":
-                    _check_ids_free(conn, t, [r["id"] for r in rows], store.cell_id)
-                for i in range(0, len(rows), INSERT_CHUNK):
-                    conn.execute(t.insert(), rows[i:i + INSERT_CHUNK])
-                if store.backend == "postgresql":
-                    conn.execute(sa.text(f"SELECT setval(pg_get_serial_sequence('{t.name}', 'id'), "
-                                         f"GREATEST((SELECT max(id) FROM {t.name}), 1))"))
+            rows = {t.name: [dict(zip(dump["tables"][t.name]["columns"], r, strict=True))
+                             for r in dump["tables"][t.name]["rows"]] for t in S.CELL_TABLES}
+            remap = _ids_taken(conn, rows, store.cell_id)
+            id_map = _insert_rows(conn, rows, remap)
+            if store.backend == "postgresql":
+                for t in S.CELL_TABLES:
+                    _advance_sequence(conn, t)
             store._audit(conn, who, "store.restore", f"cell:{store.cell_id}",
                          {"from": str(Path(src).resolve()), "counts": counts, "replaced": existing if replaced else {},
-                          "backup_created_s": dump.get("created_s")}, "ok")
+                          "backup_created_s": dump.get("created_s"),
+                          "calibration_ids_renumbered": {str(k): v for k, v in id_map.items()}}, "ok")
     except sa.exc.IntegrityError as exc:
         raise RestoreRefused(f"restore: the backup's rows violate the store's constraints "
                              f"({str(exc.orig).strip().splitlines()[0]}); nothing was changed") from None
     return {"backend": store.backend, "store": store.describe(), "cell_id": store.cell_id, "from": str(src),
-            "counts": counts, "replaced": replaced}
+            "counts": counts, "replaced": replaced, "ids_renumbered": remap}
 
 
-def _check_ids_free(conn: sa.Connection, table: sa.Table, ids: list[int], cell_id: str) -> None:
-    for i in range(0, len(ids), INSERT_CHUNK):
-        taken = conn.execute(sa.select(table.c.id).where(table.c.id.in_(ids[i:i + INSERT_CHUNK]),
-                                                         table.c.cell_id != cell_id).limit(1)).scalar()
-        if taken is not None:
-            raise RestoreRefused(f"restore: {table.name} id {taken} of the backup is used by another cell in this "
-                                 "database; restore into the database the backup came from or into a new one")
+def _ids_taken(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], cell_id: str) -> bool:
+    """Whether any of the backup's row ids is used by another cell (a database shared by cells)."""
+    for t in S.CELL_TABLES:
+        ids = [r["id"] for r in rows[t.name]]
+        for i in range(0, len(ids), INSERT_CHUNK):
+            taken = conn.execute(sa.select(t.c.id).where(t.c.id.in_(ids[i:i + INSERT_CHUNK]),
+                                                         t.c.cell_id != cell_id).limit(1)).scalar()
+            if taken is not None:
+                return True
+    return False
+
+
+def _insert_rows(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], remap: bool) -> dict[int, int]:
+    """Insert the backup's rows; with ``remap`` they get new ids (in their original order).
+
+    Renumbering keeps every reference right: activations point at the new calibration ids and
+    audit targets ``calibration:N`` are rewritten; returns ``{old id: new id}`` of the calibrations.
+    """
+    if not remap:
+        for t in S.CELL_TABLES:
+            for i in range(0, len(rows[t.name]), INSERT_CHUNK):
+                conn.execute(t.insert(), rows[t.name][i:i + INSERT_CHUNK])
+        return {}
+    cal_map: dict[int, int] = {}
+    for r in rows[S.calibrations.name]:
+        new_id = conn.execute(S.calibrations.insert().values({k: v for k, v in r.items() if k != "id"})
+                              .returning(S.calibrations.c.id)).scalar_one()
+        cal_map[int(r["id"])] = int(new_id)
+    for t in (S.activations, S.recipes, S.audit):
+        fixed = []
+        for r in rows[t.name]:
+            r = {k: v for k, v in r.items() if k != "id"}
+            if t is S.activations and r["calibration_id"] is not None:
+                if int(r["calibration_id"]) not in cal_map:
+                    raise RestoreRefused(f"restore: an activation refers to calibration {r['calibration_id']}, "
+                                         "which the backup does not hold; the backup is damaged")
+                r["calibration_id"] = cal_map[int(r["calibration_id"])]
+            if t is S.audit and str(r["target"]).startswith("calibration:"):
+                old = str(r["target"]).split(":", 1)[1]
+                if old.isdigit() and int(old) in cal_map:
+                    r["target"] = f"calibration:{cal_map[int(old)]}"
+            fixed.append(r)
+        for i in range(0, len(fixed), INSERT_CHUNK):  # executemany keeps the order, so ids stay increasing
+            conn.execute(t.insert(), fixed[i:i + INSERT_CHUNK])
+    return cal_map
+
+
+def _advance_sequence(conn: sa.Connection, table: sa.Table) -> None:
+    """Move the id sequence past the restored ids; never backwards (other cells may be inserting)."""
+    seq = conn.execute(sa.text("SELECT pg_get_serial_sequence(:t, 'id')"), {"t": table.name}).scalar_one()
+    last = conn.execute(sa.text(f"SELECT last_value FROM {seq}")).scalar_one()  # noqa: S608 - name from the catalog
+    top = conn.execute(sa.select(sa.func.max(table.c.id))).scalar()
+    if top is not None and top > last:
+        conn.execute(sa.text("SELECT setval(:s, :v)"), {"s": seq, "v": top})
 
 
 def _fsync_dir(path: Path) -> None:

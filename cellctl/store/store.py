@@ -139,7 +139,7 @@ class Store:
                                        f"{S.meta.name} table; it is not a cellctl store: "
                                        "point store.url/path elsewhere")
             S.metadata.create_all(conn)
-            rows = dict(conn.execute(sa.select(S.meta.c.key, S.meta.c.value)).tuples().all())
+            rows = {str(r[0]): str(r[1]) for r in conn.execute(sa.select(S.meta.c.key, S.meta.c.value))}
             if not rows:
                 conn.execute(S.meta.insert(), [{"key": "format", "value": S.STORE_MARKER},
                                                {"key": "schema_version", "value": str(S.SCHEMA_VERSION)}])
