@@ -11,7 +11,7 @@ from starlette.concurrency import run_in_threadpool
 
 from cellctl import __version__
 from cellctl.api.errors import install_error_handlers
-from cellctl.api.routes import calibrations, cameras, health, jobs, robots, targets
+from cellctl.api.routes import calibrations, cameras, health, jobs, map, robots, targets
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
@@ -51,6 +51,6 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
     install_error_handlers(app)
-    for module in (health, cameras, robots, targets, calibrations, jobs):
+    for module in (health, cameras, robots, targets, calibrations, jobs, map):
         app.include_router(module.router)
     return app

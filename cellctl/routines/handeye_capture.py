@@ -105,7 +105,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     move(services, ctx, robot, first.T_base_tool, speed, "handeye-capture: back to start")
     ctx.check_cancelled()
     ctx.report(0.95, f"solving hand-eye from {len(caps)} stations")
-    result = calibrate_handeye(setup, [c.T_base_tool for c in caps if c.T_base_tool is not None], [c.detection for c in caps], camera, target)
+    poses = [c.T_base_tool for c in caps if c.T_base_tool is not None]
+    result = calibrate_handeye(setup, poses, [c.detection for c in caps], camera, target)
     he = result.to_json()
     he["camera_calibration_id"] = active.id
     he["target"] = tname

@@ -1,0 +1,73 @@
+"""``POST /map``: a pixel to a robot-frame point (mm) with its 1-sigma uncertainty (active calibration)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from fastapi import APIRouter
+from pydantic import BaseModel, ConfigDict, Field
+
+from calibration import geometry as g
+from calibration.pixel_to_robot import MappingError
+from cellctl.api.deps import Viewer
+from cellctl.api.deps_services import ServicesDep
+from cellctl.api.errors import ApiError
+from cellctl.mapping import NoCalibration, active_mapping, npoint_pose_check
+
+router = APIRouter(tags=["map"])
+
+
+class MapInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    u_px: float = Field(ge=-1e6, le=1e6)
+    v_px: float = Field(ge=-1e6, le=1e6)
+    camera_id: str | None = None
+    robot_id: str | None = None
+    plane_z_mm: float | None = Field(None, ge=-1e5, le=1e5, description="working plane height, base frame")
+    robot_pose_ur: list[float] | None = Field(None, min_length=6, max_length=6,
+                                              description="T_base_tool at capture (m, rad); default: now")
+    calibration: Literal["auto", "handeye", "npoint"] = "auto"
+
+
+class MapOutput(BaseModel):
+    x_mm: float
+    y_mm: float
+    z_mm: float | None
+    sigma_mm: list[float]
+    calibration_kind: str
+    calibration_id: int
+    robot_pose_source: str | None
+    warning: str | None = None
+
+
+@router.post("/map", response_model=MapOutput)
+def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any]:
+    d = services.config.calibration
+    camera_id, robot_id = body.camera_id or d.camera, body.robot_id or d.robot
+    if camera_id not in services.cell.cameras or robot_id not in services.cell.robots:
+        raise ApiError(404, "unknown_device", f"camera {camera_id!r} or robot {robot_id!r} is not configured")
+    try:
+        mapping = active_mapping(services, camera_id, robot_id, body.calibration, body.plane_z_mm is not None)
+    except NoCalibration as exc:
+        raise ApiError(409, "no_active_calibration", str(exc)) from None
+    source = None
+    T = None
+    if body.robot_pose_ur is not None:
+        try:
+            T = g.ur_pose_to_transform(body.robot_pose_ur)
+        except g.PoseError as exc:
+            raise ApiError(422, "invalid_pose", str(exc)) from None
+        source = "given"
+    elif mapping.kind == "npoint" or mapping.calib.get("setup") == "eye-in-hand":
+        T = services.cell.robot(robot_id).ensure_open().state().T_base_tool
+        source = "robot state now"
+    warning = npoint_pose_check(mapping, T)
+    try:
+        pt = mapping.map(np.array([body.u_px, body.v_px]), body.plane_z_mm, T)
+    except (MappingError, NoCalibration) as exc:
+        raise ApiError(422, "cannot_map", str(exc)) from None
+    z = float(pt.xyz_mm[2])
+    return {"x_mm": float(pt.xyz_mm[0]), "y_mm": float(pt.xyz_mm[1]), "z_mm": z if np.isfinite(z) else None,
+            "sigma_mm": [float(s) for s in pt.sigma_mm], "calibration_kind": mapping.kind,
+            "calibration_id": mapping.calibration_id, "robot_pose_source": source, "warning": warning}

@@ -1,0 +1,105 @@
+"""``jog-to-mark``: the seed's N-point routine — the camera sees the marks, the operator jogs the
+tool tip to each mark and records; the image→robot map is fitted and its error reported.
+
+Flow: one shot of the plate from the current (capture) pose; the routine picks ``marks`` marks
+spread over the plate (a 3x3 pattern by default) and, for each, waits for
+``POST /jobs/{id}/record`` (the robot position is read then, or ``x_mm, y_mm`` given in the
+body). Then it fits the map (model by leave-one-out unless given), stores it (not activated)
+with the capture pose, and reports the residuals. The robot is never moved by this routine.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from calibration import geometry as g
+from calibration.camera_io import camera_from_json
+from calibration.npoint import fit_npoint
+from calibration.targets import Target
+from cellctl.jobs import JobContext
+from cellctl.routines.common import RoutineError, capture, devices, routine_target
+from cellctl.services import Services
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    camera_id: str | None = None
+    robot_id: str | None = None
+    target: str | None = None
+    marks: int = Field(9, ge=4, le=49)
+    model: Literal["affine", "similarity", "homography"] | None = None
+    undistort: bool = True
+    """Remove lens distortion first when the camera has an active calibration."""
+    note: str = ""
+
+
+def choose_marks(target: Target, found_ids: list[int], n: int) -> list[int]:
+    """``n`` found mark ids spread over the plate: corners, edge midpoints, centre, then more."""
+    rows = getattr(target, "rows", 0)
+    cols = getattr(target, "cols", 0)
+    found = set(found_ids)
+    preferred: list[int] = []
+    if rows and cols:
+        side = int(np.ceil(np.sqrt(n)))
+        rr = np.linspace(0, rows - 1, max(side, 2)).round().astype(int)
+        cc = np.linspace(0, cols - 1, max(side, 2)).round().astype(int)
+        preferred = [int(r * cols + c) for r in rr for c in cc]
+    ordered = [i for i in dict.fromkeys(preferred) if i in found] + [i for i in found_ids if i not in preferred]
+    if len(ordered) < n:
+        raise RoutineError(f"only {len(ordered)} marks are visible; {n} are needed — put the whole plate in view")
+    return ordered[:n]
+
+
+def run(services: Services, ctx: JobContext) -> dict[str, Any]:
+    p = Params.model_validate(ctx.params)
+    d = services.config.calibration
+    camera_id, robot_id = p.camera_id or d.camera, p.robot_id or d.robot
+    tname, target = routine_target(services, p.target)
+    cam, robot = devices(services, camera_id, robot_id)
+    assert robot is not None
+    shot = capture(cam, robot, target, "marks")
+    if not shot.detection.found:
+        raise RoutineError(f"the marks are not seen ({shot.detection.reason}); put the plate in view and start again")
+    ids = [int(i) for i in shot.detection.ids]
+    chosen = choose_marks(target, ids, p.marks)
+    uv_of = {int(i): shot.detection.uv[k] for k, i in enumerate(shot.detection.ids)}
+    cols = getattr(target, "cols", 1) or 1
+    marks = [{"step": k + 1, "mark_id": i, "row": i // cols, "col": i % cols,
+              "u_px": float(uv_of[i][0]), "v_px": float(uv_of[i][1])} for k, i in enumerate(chosen)]
+    ctx.report(0.05, f"{len(marks)} marks to record", marks=marks)
+    pairs = []
+    for k, mark in enumerate(marks):
+        got = ctx.wait_input({**mark, "of": len(marks), "marks": marks,
+                              "instruction": f"jog the tool tip onto mark {mark['step']} (row {mark['row']}, "
+                                             f"col {mark['col']}) and press record"})
+        if "x_mm" in got and "y_mm" in got:
+            x_mm, y_mm = float(got["x_mm"]), float(got["y_mm"])
+        else:
+            T = robot.state().T_base_tool
+            x_mm, y_mm = float(T[0, 3] * 1e3), float(T[1, 3] * 1e3)
+        pairs.append({**mark, "x_mm": x_mm, "y_mm": y_mm, "recorded_by": got.get("who", ctx.started_by)})
+        ctx.report(0.05 + 0.85 * (k + 1) / len(marks), f"mark {k + 1}/{len(marks)} recorded",
+                   recorded=k + 1, x_mm=x_mm, y_mm=y_mm)
+    camera = None
+    if p.undistort:
+        active = services.store.active("camera", camera_id, None)
+        if active is not None:
+            camera = camera_from_json(active.result, f"calibration {active.id}")
+    uv = np.array([[m["u_px"], m["v_px"]] for m in pairs])
+    xy = np.array([[m["x_mm"], m["y_mm"]] for m in pairs])
+    result = fit_npoint(uv, xy, p.model, camera)
+    np_json = result.to_json()
+    assert shot.T_base_tool is not None
+    np_json["capture_pose_ur"] = [float(v) for v in g.transform_to_ur_pose(shot.T_base_tool)]
+    np_json["target"] = tname
+    record = services.store.save_calibration(
+        "npoint", camera_id, robot_id, np_json, {"pairs": pairs, "image_size": list(shot.frame.size)},
+        creator=ctx.started_by, note=p.note or f"jog-to-mark, {len(pairs)} marks")
+    return {"calibration_id": record.id, "version": record.version, "kind": "npoint", "model": np_json["model"],
+            "rms_mm": np_json["rms_mm"], "loo_rms_mm": np_json["loo_rms_mm"],
+            "field_sigma_mm": np_json["field_sigma_mm"], "affine": np_json["affine"],
+            "residuals_mm": np_json["residuals_mm"], "pairs": pairs, "activated": False}
