@@ -73,7 +73,7 @@ MAX_PAIR_ANGLE_DEG: Final = 170.0
 MIN_AXIS_SPREAD_DEG: Final = 5.0
 WARN_AXIS_SPREAD_DEG: Final = 15.0
 OUTLIER_FACTOR: Final = 8.0
-OUTLIER_FLOOR_MM: Final = 2.0
+OUTLIER_FLOOR: Final = 3.0
 
 Mat4 = NDArray[np.float64]
 
@@ -146,6 +146,7 @@ class HandEyeResult:
     """(N, 6) per used station: orientation (rad) and position (m) corrections of the robot pose."""
     loo: dict[str, Any] = field(default_factory=dict)
     time_s: float = 0.0
+    camera: CameraModel | None = None
 
     @property
     def uncertainty_rot_deg(self) -> float:
@@ -188,6 +189,7 @@ class HandEyeResult:
             "init": self.init,
             "leave_one_out": self.loo,
             "time_s": self.time_s,
+            **({"camera": self.camera.to_dict()} if self.camera is not None else {}),
             "verdict": {"ok": not errors, "problems": [p.to_json() for p in self.problems]},
         }
 
@@ -485,36 +487,37 @@ def check_motion(setup: str, G: Sequence[Mat4], C: Sequence[Mat4]
     return kept, info, problems
 
 
-def find_outlier_stations(setup: str, G: Sequence[Mat4], C: Sequence[Mat4], min_stations: int = MIN_STATIONS
-                          ) -> tuple[list[int], NDArray[np.float64]]:
+def _screw(T: Mat4) -> tuple[float, float]:
+    """Rotation angle (deg) and translation along the rotation axis (mm): invariant under conjugation."""
+    w = _log_so3(T[:3, :3])
+    ang = float(np.linalg.norm(w))
+    d = float(abs(T[:3, 3] @ (w / ang))) if ang > 1e-9 else float(np.linalg.norm(T[:3, 3]))
+    return float(np.degrees(ang)), 1e3 * d
+
+
+def find_outlier_stations(setup: str, G: Sequence[Mat4], C: Sequence[Mat4]) -> tuple[list[int], NDArray[np.float64]]:
     """Stations whose image does not match their robot pose (e.g. rows of poses.csv shifted).
 
-    Leave-one-out with the closed form: solve without station i, predict where it sees the target,
-    and flag it when the miss is > 8x the median miss and > 2 mm. Repeats after removing the worst.
-    Returns (flagged indices, last leave-one-out miss per station in mm).
+    Uses the screw invariants of AX = XB, which hold whatever X is: the rotation angle of A equals
+    that of B, and so does the translation along the rotation axis. A station's score is the median
+    over its pairs of ``hypot(Δangle / 0.1°, Δaxial / 1 mm)``; it is flagged when that is > 8x the
+    median score and > 3 (i.e. 0.3° or 3 mm). A mis-paired station spoils all its pairs, a good one
+    only its pair with the bad one, so the median separates them without any prior solution.
+    Returns (flagged indices, score per station).
     """
-    active = list(range(len(G)))
-    flagged: list[int] = []
-    miss = np.zeros(len(G))
-    while len(active) > min_stations + 1:
-        miss = np.full(len(G), np.nan)
-        for i in active:
-            rest = [k for k in active if k != i]
-            H = [_hand(setup, G[k]) for k in rest]
-            pairs = [p for p in _pairs(H, [C[k] for k in rest]) if MIN_PAIR_ANGLE_DEG <= p[4] <= MAX_PAIR_ANGLE_DEG]
-            if len(pairs) < 2:
-                return flagged, miss
-            X = _solve_pairs(pairs)
-            Z = _mean_pose([target_from_station(setup, X, G[k], C[k]) for k in rest])
-            miss[i] = 1e3 * np.linalg.norm(predict_cam_target(setup, X, Z, G[i])[:3, 3] - C[i][:3, 3])
-        worst = int(np.nanargmax(miss))
-        med = float(np.nanmedian(miss))
-        if miss[worst] > max(OUTLIER_FACTOR * med, OUTLIER_FLOOR_MM):
-            flagged.append(worst)
-            active.remove(worst)
-        else:
-            break
-    return flagged, miss
+    n = len(G)
+    H = [_hand(setup, g) for g in G]
+    M = np.zeros((n, n))
+    for i, j, A, B, _ in _pairs(H, C):
+        aa, da = _screw(A)
+        ab, db = _screw(B)
+        M[i, j] = M[j, i] = float(np.hypot((aa - ab) / 0.1, (da - db) / 1.0))
+    score = np.array([np.median(np.delete(M[i], i)) for i in range(n)])
+    med = float(np.median(score))
+    flagged = [int(i) for i in np.flatnonzero(score > max(OUTLIER_FACTOR * med, OUTLIER_FLOOR))]
+    if n - len(flagged) < MIN_STATIONS:
+        return [], score
+    return flagged, score
 
 
 # --------------------------------------------------------------------------------------------
@@ -682,24 +685,25 @@ def calibrate_handeye(
                                 "recommended for a reliable result and a meaningful leave-one-out test"))
     G = [s.G for s in stations]
     C = [s.C for s in stations]
-    conventions = check_conventions(setup, G, C, raw)
-    kept, pair_info, motion_problems = check_motion(setup, G, C)
-    problems += motion_problems
-
     outliers, _ = find_outlier_stations(setup, G, C)
+    inl = [k for k in range(len(stations)) if k not in outliers]
+    conventions = check_conventions(setup, [G[k] for k in inl], [C[k] for k in inl],
+                                    None if raw is None else raw[inl])
     if outliers:
         names = ", ".join(f"{stations[i].image} (#{i})" for i in outliers)
         if not drop_outliers:
-            raise HandEyeError(f"image(s) {names} do not match their robot pose (the target would be far from "
-                               "where the other poses put it); check those rows of poses.csv")
-        problems.append(Problem("pose_outlier",
-                                f"image(s) {names} do not match their robot pose — their leave-one-out target "
-                                "position misses by far more than the others'; left out of the solution. Check "
-                                "those rows of poses.csv (shifted or swapped rows are typical)."))
-        stations = [s for k, s in enumerate(stations) if k not in outliers]
+            raise HandEyeError(f"image(s) {names} do not match their robot pose (their relative motions disagree "
+                               "with what the camera saw); check those rows of poses.csv")
+        problems.append(Problem(
+            "pose_outlier",
+            f"image(s) {names} do not match their robot pose — their relative motions disagree with the "
+            "camera's (rotation angle / shift along the axis) far more than the others'; left out of the "
+            "solution. Check those rows of poses.csv (shifted or swapped rows are typical)."))
+        stations = [stations[k] for k in inl]
         G = [s.G for s in stations]
         C = [s.C for s in stations]
-        kept, pair_info, _ = check_motion(setup, G, C)
+    kept, pair_info, motion_problems = check_motion(setup, G, C)
+    problems += motion_problems
 
     # closed forms
     candidates: dict[str, Mat4] = {"PAIRS_LSQ": _solve_pairs(kept)}
@@ -780,7 +784,7 @@ def calibrate_handeye(
         setup=setup,  # type: ignore[arg-type]
         X=X, Z=Z, cov_X=cov_X, cov_Z=cov_Z, rms_px=rms_px, sigma_px=sigma_px, chi2_reduced=chi2,
         robot_noise=noise, stations=station_json, consistency=consistency, init=init_info,
-        problems=problems, pairs=pair_info, corrections=d,
+        problems=problems, pairs=pair_info, corrections=d, camera=camera,
     )
     if leave_one_out and len(stations) > MIN_STATIONS:
         result.loo = _leave_one_out(setup, stations, camera, sigma_px, noise, X, Z)

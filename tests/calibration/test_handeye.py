@@ -1,0 +1,169 @@
+"""Hand-eye: truth within the reported uncertainty, convention mistakes named, degenerate motion refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calibration.camera_model import CameraModel
+from calibration.geometry import invert, make_transform, rotvec_to_matrix, transform_to_ur_pose, ur_pose_to_transform
+from calibration.handeye import (
+    ConventionError,
+    HandEyeError,
+    RobotNoise,
+    calibrate_handeye,
+    simulate_handeye,
+    transform_error_deg_mm,
+)
+from calibration.observations import Detection
+from calibration.targets import Chessboard
+
+CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
+                  np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
+TARGET = Chessboard(8, 6, 30.0)
+NOISE = RobotNoise(sigma_mm=0.05, sigma_deg=0.01)
+
+
+def _sim(setup: str, seed: int, n: int = 10):
+    return simulate_handeye(setup, n, np.random.default_rng(seed), camera=CAM, target=TARGET,
+                            robot_noise=NOISE, pixel_sigma_px=0.05)
+
+
+def _detections_for(setup: str, G: list[np.ndarray], X: np.ndarray, Z: np.ndarray, rng: np.random.Generator):
+    tp = TARGET.points()
+    dets = []
+    for k, g in enumerate(G):
+        C = invert(X) @ invert(g if setup == "eye-in-hand" else invert(g)) @ Z
+        uv = CAM.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3]) + rng.normal(0, 0.05, (len(tp.ids), 2))
+        assert np.all((uv > 0) & (uv < [CAM.width, CAM.height])), "test geometry: target left the image"
+        dets.append(Detection(f"v{k:02d}.png", True, tp.ids.copy(), uv, image_size=CAM.size))
+    return dets
+
+
+@pytest.mark.parametrize("setup", ["eye-in-hand", "eye-to-hand"])
+def test_truth_within_reported_uncertainty(setup: str) -> None:
+    sim = _sim(setup, seed=3)
+    res = calibrate_handeye(setup, sim.G_recorded, sim.detections, CAM, TARGET, NOISE)
+    rot_deg, trans_mm = transform_error_deg_mm(res.X, sim.X_true)
+    # 3-sigma in the RMS sense (3 dof each): the error is a single draw of the reported distribution
+    assert rot_deg < 3.0 * res.uncertainty_rot_deg
+    assert trans_mm < 3.0 * res.uncertainty_trans_mm
+    # and the reported uncertainty is not uselessly large: sub-millimetre for this UR-class noise
+    assert res.uncertainty_trans_mm < 0.5 and res.uncertainty_rot_deg < 0.05
+    assert res.rms_px < 0.2
+    assert 0.5 < res.chi2_reduced < 2.0
+    js = res.to_json()
+    names = ("T_tool_cam", "T_base_target") if setup == "eye-in-hand" else ("T_base_cam", "T_tool_target")
+    for key in (*names, "rms_px", "rot_deg", "trans_mm", "uncertainty", "poses", "leave_one_out"):
+        assert key in js
+    assert js["setup"] == setup
+    assert js["uncertainty"]["trans_mm"] == pytest.approx(res.uncertainty_trans_mm)
+    assert len(js["poses"]) == 10 and all("loo_mm" in p and "rms_px" in p for p in js["poses"])
+    # leave-one-out prediction is at the level of the robot noise, not millimetres
+    assert js["leave_one_out"]["position_mm"]["rms"] < 1.0
+    assert js["verdict"]["ok"]
+
+
+def test_joint_refinement_beats_treating_the_robot_as_exact() -> None:
+    """The robot-noise prior is what makes it ML: with an (almost) exact-robot prior it gets worse."""
+    errs_ml, errs_exact = [], []
+    for seed in (11, 12):
+        sim = simulate_handeye("eye-in-hand", 10, np.random.default_rng(seed), camera=CAM, target=TARGET,
+                               robot_noise=RobotNoise(0.1, 0.02), pixel_sigma_px=0.03)
+        ml = calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, CAM, TARGET, RobotNoise(0.1, 0.02),
+                               leave_one_out=False)
+        exact = calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, CAM, TARGET,
+                                  RobotNoise(1e-4, 2e-5), leave_one_out=False)
+        errs_ml.append(transform_error_deg_mm(ml.X, sim.X_true)[1])
+        errs_exact.append(transform_error_deg_mm(exact.X, sim.X_true)[1])
+    assert np.mean(errs_ml) < np.mean(errs_exact)
+
+
+def test_inverted_poses_named() -> None:
+    sim = _sim("eye-in-hand", seed=4)
+    with pytest.raises(ConventionError, match="inverted"):
+        calibrate_handeye("eye-in-hand", [invert(g) for g in sim.G_recorded], sim.detections, CAM, TARGET, NOISE)
+
+
+def test_wrong_setup_looks_like_inverted_poses_and_says_so() -> None:
+    sim = _sim("eye-in-hand", seed=5)
+    with pytest.raises(ConventionError, match="setup"):
+        calibrate_handeye("eye-to-hand", sim.G_recorded, sim.detections, CAM, TARGET, NOISE)
+
+
+def test_millimetres_named() -> None:
+    sim = _sim("eye-to-hand", seed=6)
+    raw = np.array([transform_to_ur_pose(g) for g in sim.G_recorded])
+    raw[:, :3] *= 1000.0
+    G_mm = [ur_pose_to_transform(r) for r in raw]
+    with pytest.raises(ConventionError, match="millimetres"):
+        calibrate_handeye("eye-to-hand", G_mm, sim.detections, CAM, TARGET, NOISE, raw_ur_poses=raw)
+
+
+def test_euler_angles_named() -> None:
+    sim = _sim("eye-in-hand", seed=7)
+    raw = np.array([np.concatenate([g[:3, 3], Rotation.from_matrix(g[:3, :3]).as_euler("xyz")])
+                    for g in sim.G_recorded])
+    G_wrong = [ur_pose_to_transform(r) for r in raw]  # the file's Euler angles parsed as a rotation vector
+    with pytest.raises(ConventionError, match="Euler") as info:
+        calibrate_handeye("eye-in-hand", G_wrong, sim.detections, CAM, TARGET, NOISE, raw_ur_poses=raw)
+    assert "rpy2rotvec" in str(info.value)
+
+
+def test_pure_translation_refused() -> None:
+    sim = _sim("eye-in-hand", seed=8)
+    rng = np.random.default_rng(8)
+    G0 = sim.G_true[0]
+    G = [G0 @ make_transform(np.eye(3), rng.uniform(-0.03, 0.03, 3)) for _ in range(8)]
+    dets = _detections_for("eye-in-hand", G, sim.X_true, sim.Z_true, rng)
+    with pytest.raises(HandEyeError, match="only by translation"):
+        calibrate_handeye("eye-in-hand", G, dets, CAM, TARGET, NOISE)
+
+
+def test_rotation_about_one_axis_refused() -> None:
+    sim = _sim("eye-in-hand", seed=9)
+    rng = np.random.default_rng(9)
+    G0 = sim.G_true[0]
+    axis = invert(sim.X_true)[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the camera's optical axis, in the tool frame
+    G = [G0 @ make_transform(rotvec_to_matrix(axis * np.radians(a)), rng.uniform(-0.01, 0.01, 3))
+         for a in (-30, -18, -6, 6, 18, 30, 40, -40)]
+    dets = _detections_for("eye-in-hand", G, sim.X_true, sim.Z_true, rng)
+    with pytest.raises(HandEyeError, match="one axis"):
+        calibrate_handeye("eye-in-hand", G, dets, CAM, TARGET, NOISE)
+
+
+def test_too_few_poses_refused() -> None:
+    sim = _sim("eye-in-hand", seed=10, n=2)
+    with pytest.raises(HandEyeError, match="at least 3"):
+        calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, CAM, TARGET, NOISE)
+
+
+def test_mismatched_counts_refused() -> None:
+    sim = _sim("eye-in-hand", seed=10, n=5)
+    with pytest.raises(HandEyeError, match="each image needs"):
+        calibrate_handeye("eye-in-hand", sim.G_recorded[:4], sim.detections, CAM, TARGET, NOISE)
+
+
+def test_image_paired_with_wrong_pose_reported_and_left_out() -> None:
+    sim = _sim("eye-to-hand", seed=13, n=12)
+    G = list(sim.G_recorded)
+    G[4] = G[9]  # a duplicated row: image 4 now carries the pose of image 9
+    res = calibrate_handeye("eye-to-hand", G, sim.detections, CAM, TARGET, NOISE, leave_one_out=False)
+    outl = [p for p in res.problems if p.code == "pose_outlier"]
+    assert outl and "view04.png" in outl[0].message
+    assert len(res.stations) == 11
+    rot_deg, trans_mm = transform_error_deg_mm(res.X, sim.X_true)
+    assert trans_mm < 3.0 * res.uncertainty_trans_mm and rot_deg < 3.0 * res.uncertainty_rot_deg
+
+
+def test_small_rotation_pairs_dropped_and_reported() -> None:
+    sim = _sim("eye-in-hand", seed=14, n=9)
+    G = list(sim.G_recorded) + [sim.G_recorded[0] @ make_transform(rotvec_to_matrix([0.0, 0.01, 0.0]), [0.0, 0, 0])]
+    rng = np.random.default_rng(14)
+    extra = _detections_for("eye-in-hand", [G[-1]], sim.X_true, sim.Z_true, rng)[0]
+    extra.image = "near_duplicate.png"
+    res = calibrate_handeye("eye-in-hand", G, [*sim.detections, extra], CAM, TARGET, NOISE, leave_one_out=False)
+    dropped = [p for p in res.problems if p.code == "pairs_dropped"]
+    assert dropped and "dropped" in dropped[0].message
+    assert res.pairs["dropped_small"] >= 1
