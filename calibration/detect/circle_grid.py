@@ -47,6 +47,27 @@ def find_circles_opencv(grey: NDArray[np.uint8], target: CircleGrid) -> NDArray[
     return np.asarray(centres, dtype=np.float64).reshape(-1, 2)
 
 
+def circles_beyond_border(grey: NDArray[np.uint8], G: NDArray[np.float64], asymmetric: bool) -> int:
+    """Blobs one grid step beyond the found grid's border: > 0 means a larger grid (OpenCV then
+    happily returns a sub-grid of it, with ids that belong to no printed target)."""
+    if asymmetric:
+        if len(G) < 3:
+            return 0
+        outer = [G[1] + (G[0] - G[2]), G[-2] + (G[-1] - G[-3])]
+    else:
+        outer = [G[0] + (G[0] - G[1]), G[-1] + (G[-1] - G[-2])]
+    outer += [G[:, 0] + (G[:, 0] - G[:, 1]), G[:, -1] + (G[:, -1] - G[:, -2])]
+    pts = np.concatenate(outer)
+    h, w = grey.shape
+    keypoints = blob_detector(h * w, G.shape[0] * G.shape[1]).detect(grey)
+    if not keypoints:
+        return 0
+    kp = np.array([k.pt for k in keypoints], dtype=np.float64)
+    step = float(np.median(np.hypot(*np.diff(G, axis=1).reshape(-1, 2).T)))
+    d = np.hypot(pts[:, None, 0] - kp[None, :, 0], pts[:, None, 1] - kp[None, :, 1]).min(axis=1)
+    return int((d < 0.25 * step).sum())
+
+
 def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: str = "") -> Detection:
     """Circle centres of ``target`` in ``grey`` with target ids, or a reason why not."""
     kind = "asymmetric" if target.asymmetric else "symmetric"
@@ -56,6 +77,10 @@ def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: 
                          "(grid not fully visible, blurred, or a different size)")
     cols, rows = target.cols, target.rows
     G = uv.reshape(rows, cols, 2)
+    extra = circles_beyond_border(grey, G, target.asymmetric)
+    if extra:
+        return Detection(image_name, False, reason=f"the circle grid is larger than the target's {cols}x{rows} "
+                         f"({extra} circles beyond its border); check cols/rows in the target file")
     if target.asymmetric:
         ex = G[0, -1] - G[0, 0]
         ey = G[-1, 0] - G[0, 0]
