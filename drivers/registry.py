@@ -20,6 +20,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
         "sim": ("drivers.sim.camera", "SimCamera"),
         "replay": ("drivers.replay", "ReplayCamera"),
         "opencv": ("drivers.camera.opencv", "OpenCVCamera"),
+        "aravis": ("drivers.camera.aravis", "AravisCamera"),
     },
     "robot": {
         "sim": ("drivers.sim.robot", "SimRobot"),
