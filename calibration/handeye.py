@@ -17,8 +17,8 @@ What is OpenCV's and what is ours:
   ANDREFF, DANIILIDIS; eye-to-hand by passing the inverted robot poses, as OpenCV documents) plus
   our own pair-filtered least-squares (Kabsch on the rotation logs, then linear translation),
   which drops pairs whose relative rotation is too small or near 180°;
-- the per-station target pose starts from ``cv2.solvePnP`` and is refined on pixels through our
-  :class:`~calibration.camera_model.CameraModel` (any lens model, division included);
+- the per-station target pose is ``calibration.pnp.estimate_pose`` (OpenCV's PnP on undistorted
+  points, refined on pixels through our camera model; any lens model, division included);
 - the **joint refinement** is ours: a maximum-likelihood estimate over ``X``, ``Z`` and a small
   pose correction per station, minimising the reprojection error of every target point in every
   image plus a Gaussian prior on the corrections (the stated robot noise model). Treating the
@@ -47,12 +47,12 @@ from typing import Any, Final, Literal
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform, invert, make_transform, rotation_angle, transform_to_ur_pose
 from calibration.observations import Detection
+from calibration.pnp import PoseEstimationError, estimate_pose
 from calibration.targets import Points3D, Target
 
 Setup = Literal["eye-in-hand", "eye-to-hand"]
@@ -233,27 +233,14 @@ def target_from_station(setup: str, X: Mat4, G: Mat4, C: Mat4) -> Mat4:
 # --------------------------------------------------------------------------------------------
 # per-station target pose
 # --------------------------------------------------------------------------------------------
-def _pose_residual(p: NDArray[np.float64], camera: CameraModel, obj: NDArray[np.float64],
-                   uv: NDArray[np.float64]) -> NDArray[np.float64]:
-    R = _exp_so3(p[:3])
-    return (camera.project(obj @ R.T + p[3:]) - uv).ravel()
-
-
 def station_pose(camera: CameraModel, obj: NDArray[np.float64], uv: NDArray[np.float64]) -> tuple[Mat4, float]:
-    """``T_cam_target`` from one view: ``cv2.solvePnP`` on undistorted normalized points, then a
-    Levenberg-Marquardt refinement on pixels through the full camera model. Returns (T, rms_px)."""
-    xy = camera.undistort_normalized(camera.pixels_to_normalized(uv))
-    planar = bool(np.ptp(obj[:, 2]) < 1e-12)
-    flags = cv2.SOLVEPNP_IPPE if planar and len(obj) >= 4 else cv2.SOLVEPNP_ITERATIVE
-    ok, rvec, tvec = cv2.solvePnP(obj.astype(np.float64), xy.reshape(-1, 1, 2).astype(np.float64),
-                                  np.eye(3), None, flags=flags)
-    if not ok:
-        raise HandEyeError("solvePnP failed on a station; check the detections and the camera model")
-    p0 = np.concatenate([np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()])
-    res = least_squares(_pose_residual, p0, args=(camera, obj, uv), method="lm")
-    r = res.fun.reshape(-1, 2)
-    T = make_transform(_exp_so3(res.x[:3]), res.x[3:])
-    return T, float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    """``T_cam_target`` of one view (``calibration.pnp.estimate_pose``: OpenCV's PnP on undistorted
+    points, then a refinement on pixels through the full camera model). Returns (T, rms_px)."""
+    try:
+        pose = estimate_pose(camera, obj, uv)
+    except PoseEstimationError as exc:
+        raise HandEyeError(f"target pose of a station failed: {exc}") from exc
+    return pose.T_cam_target, pose.rms_px
 
 
 def make_stations(T_base_tool: Sequence[ArrayLike], detections: Sequence[Detection], camera: CameraModel,
