@@ -23,14 +23,17 @@ from cellctl.pick.recognize import recognize
 from cellctl.pick.shape import SearchParams
 
 
-def _roi(text: str) -> tuple[float, float, float, float]:
+def _roi(text: str | None, option: str) -> tuple[float, float, float, float] | None:
+    """``U,V,W,H`` as four floats, or a one-line error naming the option."""
+    if text is None:
+        return None
     parts = text.replace(" ", "").split(",")
     try:
         vals = [float(p) for p in parts]
     except ValueError:
         vals = []
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
-        raise argparse.ArgumentTypeError(f"ROI must be U,V,W,H (four numbers, pixels), got {text!r}")
+        raise CommandError(f"{option} must be U,V,W,H (four numbers, pixels), got {text!r}")
     return (vals[0], vals[1], vals[2], vals[3])
 
 
@@ -48,7 +51,9 @@ def read_image(path: str) -> NDArray[np.uint8]:
 def _teach(args: argparse.Namespace) -> dict[str, Any]:
     img = read_image(args.image)
     name = args.name or Path(args.out_model).stem
-    m = teach(img, args.roi, mode=args.mode, name=name, teach_image=str(args.image),
+    roi = _roi(args.roi, "--roi")
+    assert roi is not None
+    m = teach(img, roi, mode=args.mode, name=name, teach_image=str(args.image),
               shape_params=shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels),
               blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity))
     m.save(args.out_model)
@@ -63,7 +68,7 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
         raise CommandError("--min-score must be between 0 and 1")
     sp = SearchParams(min_score=args.min_score, max_count=args.max or 0,
                       angle_start_deg=args.angle_start, angle_extent_deg=args.angle_extent,
-                      roi=args.search_roi,
+                      roi=_roi(args.search_roi, "--search-roi"),
                       timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0)
     out: list[dict[str, Any]] = []
     for path in args.images:
@@ -91,7 +96,7 @@ def register(sub: Any) -> None:
 
     t = psub.add_parser("teach", help="a part model from the ROI of one image")
     t.add_argument("--image", required=True, help="the teach image")
-    t.add_argument("--roi", required=True, type=_roi, metavar="U,V,W,H",
+    t.add_argument("--roi", required=True, metavar="U,V,W,H",
                    help="rectangle from (U,V) to (U+W,V+H) in pixels; its centre is the reference point")
     t.add_argument("--out", required=True, dest="out_model", help="model file to write (JSON)")
     t.add_argument("--mode", choices=("shape", "blob"), default="shape")
@@ -110,7 +115,7 @@ def register(sub: Any) -> None:
     f.add_argument("--min-score", type=float, default=0.5, help="least score 0..1 (default 0.5)")
     f.add_argument("--angle-start", type=float, default=-180.0, help="degrees (default -180)")
     f.add_argument("--angle-extent", type=float, default=360.0, help="degrees (default 360)")
-    f.add_argument("--search-roi", type=_roi, default=None, metavar="U,V,W,H",
+    f.add_argument("--search-roi", default=None, metavar="U,V,W,H",
                    help="where the reference point may lie (default: the whole image)")
     f.add_argument("--timeout-ms", type=float, default=None, help="answer with what was found so far")
     f.add_argument("--strict-size", action="store_true",

@@ -667,7 +667,7 @@ def _nms_pose(poses: list[_Pose], dist: float, dtheta: float) -> list[_Pose]:
 def _angles(start: float, extent: float, step: float) -> F64:
     if extent >= 2 * math.pi - 1e-9:
         n = int(math.ceil(2 * math.pi / step))
-        return start + np.arange(n) * (2 * math.pi / n)
+        return np.asarray(start + np.arange(n) * (2 * math.pi / n), dtype=np.float64)
     n = int(math.ceil(extent / step)) + 1
     return np.linspace(start, start + extent, max(n, 1))
 

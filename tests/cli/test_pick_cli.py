@@ -1,0 +1,136 @@
+"""``cellctl pick teach`` / ``cellctl pick find`` through the real console script, and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cellctl.pick import synth
+from cellctl.pick.model import FORMAT_VERSION
+
+CELLCTL = str(Path(sys.executable).with_name("cellctl"))
+SIZE = (640, 480)
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([CELLCTL, *args], capture_output=True, text=True, timeout=120)
+
+
+@dataclass
+class Files:
+    dir: Path
+    roi: str
+    truth: list[synth.Truth]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> Files:
+    d = tmp_path_factory.mktemp("pick")
+    part = synth.part_bracket()
+    st = synth.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=6)
+    teach, roi = synth.teach_scene(part, np.random.default_rng(0), centre=(320.0, 240.0), style=st)
+    cv2.imwrite(str(d / "teach.png"), teach)
+    insts = [synth.Instance(part, 170.25, 150.5, 120.0), synth.Instance(part, 470.6, 330.1, -35.0)]
+    scene, truth = synth.render(insts, st, np.random.default_rng(1))
+    cv2.imwrite(str(d / "scene.png"), scene)
+    (d / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
+    return Files(d, ",".join(f"{x:g}" for x in roi), truth)
+
+
+def test_teach_then_find(files: Files) -> None:
+    d = files.dir
+    model = d / "bracket.json"
+    r = run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out", str(model))
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["mode"] == "shape" and summary["reference_px"] == [320.0, 240.0]
+    assert json.loads(model.read_text())["format_version"] == FORMAT_VERSION
+
+    out = d / "found.json"
+    r = run("pick", "find", "--model", str(model), str(d / "scene.png"), "--max", "5", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert json.loads(out.read_text()) == res
+    assert res[0]["image"] == str(d / "scene.png")
+    ms = res[0]["matches"]
+    assert len(ms) == 2
+    for t in files.truth:
+        m = min(ms, key=lambda m: math.hypot(m["u_px"] - t.u_px, m["v_px"] - t.v_px))
+        assert set(m) >= {"u_px", "v_px", "angle_deg", "score"}
+        assert math.hypot(m["u_px"] - t.u_px, m["v_px"] - t.v_px) < 0.1
+        assert abs(synth.wrap_deg(m["angle_deg"] - t.angle_deg)) < 0.1
+        assert -180.0 < m["angle_deg"] <= 180.0
+
+    r = run("pick", "find", "--model", str(model), str(d / "scene.png"), "--max", "1", "--min-score", "0.9")
+    assert r.returncode == 0 and len(json.loads(r.stdout)[0]["matches"]) == 1
+
+
+def test_blob_mode_and_two_models(files: Files) -> None:
+    d = files.dir
+    r = run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--mode", "blob",
+            "--out", str(d / "blob.json"))
+    assert r.returncode == 0, r.stderr
+    r = run("pick", "find", "--model", str(d / "blob.json"), str(d / "scene.png"))
+    assert r.returncode == 0, r.stderr
+    assert len(json.loads(r.stdout)[0]["matches"]) == 2
+    # two models: recognition answers name the part
+    run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out",
+        str(d / "bracket.json"))
+    r = run("pick", "find", "--model", str(d / "bracket.json"), "--model", str(d / "blob.json"),
+            str(d / "scene.png"))
+    assert r.returncode == 0, r.stderr
+    for m in json.loads(r.stdout)[0]["matches"]:
+        assert m["part"] in ("bracket", "blob") and "margin" in m
+
+
+@pytest.mark.parametrize("roi, words", [
+    ("600,100,100,100", "outside"),
+    ("-5,10,100,100", "outside"),
+    ("100,100,0,50", "empty"),
+    ("100,100,50", "U,V,W,H"),
+    ("a,b,c,d", "U,V,W,H"),
+])
+def test_bad_roi(files: Files, roi: str, words: str) -> None:
+    d = files.dir
+    r = run("pick", "teach", "--image", str(d / "teach.png"), f"--roi={roi}", "--out", str(d / "x.json"))
+    assert r.returncode != 0
+    assert words in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) <= 3
+
+
+def test_newer_model_version(files: Files) -> None:
+    d = files.dir
+    run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out",
+        str(d / "m.json"))
+    data = json.loads((d / "m.json").read_text())
+    data["format_version"] = FORMAT_VERSION + 1
+    (d / "future.json").write_text(json.dumps(data))
+    r = run("pick", "find", "--model", str(d / "future.json"), str(d / "scene.png"))
+    assert r.returncode == 2
+    assert "newer than this cellctl reads" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("name, words", [("broken.png", "cannot read image"), ("missing.png", "does not exist")])
+def test_bad_images(files: Files, name: str, words: str) -> None:
+    d = files.dir
+    r = run("pick", "teach", "--image", str(d / name), "--roi", "10,10,50,50", "--out", str(d / "y.json"))
+    assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr
+    run("pick", "teach", "--image", str(d / "teach.png"), "--roi", "200,160,240,160", "--out",
+        str(d / "z.json"))
+    r = run("pick", "find", "--model", str(d / "z.json"), str(d / name))
+    assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr
+
+
+def test_corrupt_model_file(files: Files) -> None:
+    d = files.dir
+    (d / "corrupt.json").write_text('{"format_version": 1, "mode": "shape", "teach": {"roi": [1, 2]}}')
+    r = run("pick", "find", "--model", str(d / "corrupt.json"), str(d / "scene.png"))
+    assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
