@@ -97,7 +97,12 @@ def read_image(path: str | Path) -> NDArray[np.uint8]:
         raise DetectionError(f"{p}: no such image file")
     if p.stat().st_size == 0:
         raise DetectionError(f"{p}: image file is empty (0 bytes)")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our one-line error says it all
+    try:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if img is None or img.size == 0:
         raise DetectionError(f"{p}: cannot decode image (corrupt or not a PNG/JPEG/BMP/TIFF file)")
     return to_grey(img, str(p))

@@ -18,7 +18,7 @@ def test_asymmetric_board_ids_follow_the_board(camera: CameraModel, roll_deg: fl
     """9x6: cols + rows odd, so the half turn is read from the square colours."""
     board = Chessboard(9, 6, 20.0)
     T = plate_pose(board, 0.45, 30, tilt_dir_deg=40, roll_deg=roll_deg)
-    det = detect(render_target(camera, board, T, noise=2.0, blur=0.7, seed=roll_deg), board)
+    det = detect(render_target(camera, board, T, noise=2.0, blur=0.7, seed=int(roll_deg)), board)
     assert det.found, det.reason
     assert det.ids.tolist() == list(range(54))
     assert np.hypot(*(det.uv - truth_uv(camera, board, T)[det.ids]).T).max() < 0.15
