@@ -1,0 +1,200 @@
+"""All four routines to completion on ``cellctl serve`` (virtual cell), checked against truth.
+
+One served process for the module: intrinsics-capture → activate → handeye-capture → activate →
+verify → jog-to-mark (the test plays the operator: it jogs the robot onto each mark's true
+position over the API and presses record) → activate → /map.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from calibration import geometry as g
+from calibration.targets import target_from_dict
+from tests.conftest import CELLCTL, Served, start_served, stop_served
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    s = start_served(tmp_path_factory.mktemp("routines"))
+    try:
+        yield s
+    finally:
+        stop_served(s)
+
+
+@pytest.fixture(scope="module")
+def truth() -> dict[str, Any]:
+    out = subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout
+    return dict(json.loads(out))
+
+
+def run_job(http: httpx.Client, name: str, params: dict[str, Any], timeout_s: float = 240.0) -> dict[str, Any]:
+    r = http.post(f"/routines/{name}", json=params)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = http.get(f"/jobs/{job_id}").json()
+        if job["state"] != "running":
+            return dict(job)
+        time.sleep(0.3)
+    raise AssertionError(f"{name} did not finish in {timeout_s} s")
+
+
+@pytest.fixture(scope="module")
+def calibrated(served: Served) -> dict[str, Any]:
+    """Runs intrinsics-capture and handeye-capture once, activating both."""
+    out: dict[str, Any] = {}
+    with served.client(timeout_s=60) as http:
+        job = run_job(http, "intrinsics-capture", {"views": 12})
+        assert job["state"] == "succeeded", job["error"]
+        out["intrinsics"] = job["result"]
+        assert http.post(f"/calibrations/{job['result']['calibration_id']}/activate").status_code == 200
+        job = run_job(http, "handeye-capture", {"stations": 10})
+        assert job["state"] == "succeeded", job["error"]
+        out["handeye"] = job["result"]
+        assert http.post(f"/calibrations/{job['result']['calibration_id']}/activate").status_code == 200
+    return out
+
+
+def test_intrinsics_capture_recovers_the_camera(calibrated: dict[str, Any], truth: dict[str, Any]) -> None:
+    res = calibrated["intrinsics"]
+    K, K_true = np.array(res["K"]), np.array(truth["camera"]["K"])
+    assert res["views_used"] >= 6
+    assert res["rms_px"] < 0.1
+    assert abs(K[0, 0] - K_true[0, 0]) < 3.0 and abs(K[1, 1] - K_true[1, 1]) < 3.0
+    assert abs(K[0, 2] - K_true[0, 2]) < 3.0 and abs(K[1, 2] - K_true[1, 2]) < 3.0
+    assert res["activated"] is False
+
+
+def test_handeye_capture_recovers_T_tool_cam(calibrated: dict[str, Any], truth: dict[str, Any]) -> None:
+    res = calibrated["handeye"]
+    rot, trans = g.transform_error(np.array(res["T_tool_cam"]), np.array(truth["T_tool_cam"]))
+    sig = res["uncertainty"]
+    # Within 4 sigma of the reported uncertainty, and absolutely small.
+    assert trans * 1e3 < max(4 * sig["trans_mm"], 0.2), (trans * 1e3, sig)
+    assert np.degrees(rot) < max(4 * sig["rot_deg"], 0.05), (np.degrees(rot), sig)
+
+
+def test_verify_passes_with_active_calibrations(served: Served, calibrated: dict[str, Any]) -> None:
+    with served.client() as http:
+        job = run_job(http, "verify", {})
+    assert job["state"] == "succeeded", job["error"]
+    res = job["result"]
+    assert res["passed"] is True
+    assert res["handeye_calibration_id"] == calibrated["handeye"]["calibration_id"]
+    assert res["drift_px"] < 0.5 and res["drift_mm"] < 0.3
+
+
+def test_jog_to_mark_and_map(served: Served, calibrated: dict[str, Any], truth: dict[str, Any]) -> None:
+    plate = truth["targets"]["plate"]
+    target = target_from_dict(plate["target"])
+    pts = target.points()
+    T_base_target = np.array(plate["T_base_target"])
+    with served.client(timeout_s=60) as http:
+        home = http.get("/robots/robot0/state").json()["T_base_tool"]
+        r = http.post("/routines/jog-to-mark", json={"marks": 9})
+        assert r.status_code == 202
+        job_id = r.json()["id"]
+        for _ in range(9):
+            deadline = time.monotonic() + 30
+            while (job := http.get(f"/jobs/{job_id}").json())["waiting_for"] is None:
+                assert job["state"] == "running", job["error"]
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+            mark = job["waiting_for"]
+            p_base = g.transform_points(T_base_target, pts.xyz_m[list(pts.ids).index(mark["mark_id"])])[0]
+            # The operator jogs the tool tip onto the mark (tool pointing down, 5 mm above it)...
+            pose = {"x_m": p_base[0], "y_m": p_base[1], "z_m": p_base[2] + 0.005, "rx_rad": np.pi, "ry_rad": 0.0,
+                    "rz_rad": 0.0}
+            assert http.post("/robots/robot0/move", json={"pose_ur": pose, "speed_m_s": 0.2}).status_code == 200
+            # ...and presses record.
+            assert http.post(f"/jobs/{job_id}/record").status_code == 200
+        deadline = time.monotonic() + 30
+        while (job := http.get(f"/jobs/{job_id}").json())["state"] == "running":
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert job["state"] == "succeeded", job["error"]
+        res = job["result"]
+        # Robot repeatability is 0.02 mm: the fitted map is that good.
+        assert res["rms_mm"] < 0.1
+        assert http.post(f"/calibrations/{res['calibration_id']}/activate").status_code == 200
+        # Back to the capture pose, then map a mark's pixel and compare with its true position.
+        assert http.post("/robots/robot0/move", json={"T_base_tool": home, "speed_m_s": 0.2}).status_code == 200
+        m = res["pairs"][4]
+        p_true = g.transform_points(T_base_target, pts.xyz_m[list(pts.ids).index(m["mark_id"])])[0] * 1e3
+        r = http.post("/map", json={"u_px": m["u_px"], "v_px": m["v_px"], "calibration": "npoint"})
+        assert r.status_code == 200, r.text
+        out = r.json()
+        assert out["calibration_kind"] == "npoint" and out["warning"] is None
+        assert np.hypot(out["x_mm"] - p_true[0], out["y_mm"] - p_true[1]) < 0.2
+        # The hand-eye route maps the same pixel onto the plate plane.
+        r = http.post("/map", json={"u_px": m["u_px"], "v_px": m["v_px"], "plane_z_mm": p_true[2],
+                                    "calibration": "handeye"})
+        assert r.status_code == 200, r.text
+        out = r.json()
+        assert out["calibration_kind"] == "handeye"
+        assert np.hypot(out["x_mm"] - p_true[0], out["y_mm"] - p_true[1]) < 0.5
+        assert all(s > 0 for s in out["sigma_mm"][:2])
+
+
+def test_sse_progress_arrives(served: Served, calibrated: dict[str, Any]) -> None:
+    with served.client(timeout_s=60) as http:
+        job_id = http.post("/routines/verify", json={}).json()["id"]
+        kinds = []
+        with http.stream("GET", f"/jobs/{job_id}/events") as stream:
+            assert stream.headers["content-type"].startswith("text/event-stream")
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    kinds.append(line[7:])
+    assert "progress" in kinds and kinds[-1] == "state"
+
+
+def test_cancel_mid_routine_stops_robot_and_stores_nothing(served: Served, calibrated: dict[str, Any]) -> None:
+    with served.client(timeout_s=60) as http:
+        before = http.get("/calibrations").json()
+        job_id = http.post("/routines/intrinsics-capture", json={"views": 16}).json()["id"]
+        deadline = time.monotonic() + 60
+        while http.get(f"/jobs/{job_id}").json()["progress"] < 0.15:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert http.delete(f"/jobs/{job_id}").status_code == 200
+        while (job := http.get(f"/jobs/{job_id}").json())["state"] == "running":
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert job["state"] == "cancelled"
+        assert http.get("/calibrations").json() == before
+        state = http.get("/robots/robot0/state").json()
+        assert state["moving"] is False
+        audit = http.get("/audit", params={"action": "routine.cancel"}).json()
+        assert any(a["detail"]["job_id"] == job_id for a in audit)
+
+
+def test_routine_bad_params_are_422(served: Served) -> None:
+    with served.client() as http:
+        r = http.post("/routines/intrinsics-capture", json={"views": "many"})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_params"
+        r = http.post("/routines/dance", json={})
+        assert r.status_code == 404 and r.json()["error"]["code"] == "unknown_routine"
+
+
+def test_move_outside_envelope_is_refused_and_audited(served: Served) -> None:
+    with served.client() as http:
+        before = http.get("/robots/robot0/state").json()["T_base_tool"]
+        r = http.post("/robots/robot0/move", json={"pose_ur": {"x_m": 2.0, "y_m": 0, "z_m": 0.3, "rx_rad": 3.14,
+                                                               "ry_rad": 0, "rz_rad": 0}})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "motion_rejected"
+        assert "outside the workspace envelope" in r.json()["error"]["message"]
+        after = http.get("/robots/robot0/state").json()["T_base_tool"]
+        assert np.allclose(before, after, atol=1e-3)
+        audit = http.get("/audit", params={"action": "robot.move"}).json()
+        assert audit[0]["result"].startswith("refused")
