@@ -181,3 +181,32 @@ class GarbageServer:
         self._stop.set()
         self._thread.join(timeout=5)
         self.srv.close()
+
+
+class SocatPair:
+    """A pseudo-terminal pair from socat: ``a`` and ``b`` are linked serial ports (stopped by pid)."""
+
+    def __init__(self, directory: Path) -> None:
+        self.a = directory / "tty-a"
+        self.b = directory / "tty-b"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> SocatPair:
+        self.proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={self.a}",
+                                      f"pty,raw,echo=0,link={self.b}"], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 5
+        while not (self.a.exists() and self.b.exists()):
+            if time.monotonic() > deadline:
+                raise TimeoutError("socat did not create the pty pair")
+            time.sleep(0.02)
+        return self
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(timeout=5)
+        self.proc = None
+        deadline = time.monotonic() + 2
+        while (self.a.exists() or self.b.exists()) and time.monotonic() < deadline:
+            time.sleep(0.02)
