@@ -35,6 +35,16 @@ class _Strict(BaseModel):
 class HttpConfig(_Strict):
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=1, le=65535)
+    tls_cert: str | None = None
+    """PEM certificate (chain) for HTTPS, e.g. /etc/cellctl/tls/cert.pem; None: plain HTTP."""
+    tls_key: str | None = None
+    """PEM private key of ``tls_cert``, e.g. /etc/cellctl/tls/key.pem (readable by the service user only)."""
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> HttpConfig:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together: give both (HTTPS) or neither (plain HTTP)")
+        return self
 
     def is_loopback(self) -> bool:
         if self.host == "localhost":

@@ -18,6 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from cellctl import metrics
+
 log = logging.getLogger(__name__)
 
 JobStateName = Literal["running", "succeeded", "failed", "cancelled"]
@@ -171,6 +173,7 @@ class JobManager:
                 except Exception:  # noqa: BLE001 - every end hook runs
                     log.exception("job %s end hook failed", job.id)
             job.finished_s = time.time()
+            metrics.routine_finished(job.name, job.state, source=self)
             job._emit("state", {"state": job.state, "message": job.message, "error": job.error})
 
     def _prune(self) -> None:

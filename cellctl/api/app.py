@@ -9,9 +9,11 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
-from cellctl import __version__
+from cellctl import __version__, metrics
 from cellctl.api.errors import install_error_handlers
+from cellctl.api.middleware import RequestMiddleware
 from cellctl.api.routes import calibrations, cameras, health, jobs, map, robots, targets
+from cellctl.api.routes import metrics as metrics_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
@@ -33,6 +35,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         services = Services(config, cell, store, JobManager())
         app.state.cell = cell
         app.state.services = services
+        metrics.attach(app.state.metrics, services)
         await run_in_threadpool(cell.open_all)
         log.info("cell %s ready: cameras %s, robots %s; store %s", config.cell_id, sorted(cell.cameras),
                  sorted(cell.robots), store.describe())
@@ -40,6 +43,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
             yield
         finally:
             await run_in_threadpool(services.close)
+            metrics.detach(app.state.metrics)
 
     app = FastAPI(
         title="cellctl",
@@ -50,7 +54,10 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     )
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
+    app.state.metrics = metrics.CellMetrics()
+    app.add_middleware(RequestMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
     for module in (health, cameras, robots, targets, calibrations, jobs, map):
         app.include_router(module.router)
+    app.include_router(metrics_route.router)
     return app

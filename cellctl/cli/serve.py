@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import ssl
 import sys
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from typing import Any
 from cellctl.auth import hash_token, new_token
 from cellctl.cli.output import CommandError
 from cellctl.config import CellConfig, load_config
+from cellctl.logging_setup import configure_logging
 from cellctl.paths import data_dir
 
 log = logging.getLogger(__name__)
@@ -22,6 +24,12 @@ def register(sub: Any) -> None:
     p.add_argument("--config", help="cell.yaml (default: the built-in virtual cell)")
     p.add_argument("--host", help="bind address (default: the config's http.host, 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default: the config's http.port, 8080)")
+    p.add_argument("--tls-cert", help="PEM certificate for HTTPS (default: the config's http.tls_cert; "
+                                      "documented place: /etc/cellctl/tls/cert.pem)")
+    p.add_argument("--tls-key", help="PEM private key for HTTPS (default: the config's http.tls_key; "
+                                     "documented place: /etc/cellctl/tls/key.pem)")
+    p.add_argument("--log-format", choices=("json", "text"), default=None,
+                   help="log lines as JSON objects or text (default: text on a terminal, json otherwise)")
     p.set_defaults(func=run)
 
 
@@ -35,7 +43,10 @@ def run(args: argparse.Namespace) -> None:
     from cellctl.api.app import create_app
 
     config = load_config(args.config)
-    http = config.http.model_copy(update={k: v for k, v in (("host", args.host), ("port", args.port)) if v})
+    http = config.http.model_copy(update={k: v for k, v in (("host", args.host), ("port", args.port),
+                                                            ("tls_cert", args.tls_cert), ("tls_key", args.tls_key))
+                                          if v})
+    _check_tls(http.tls_cert, http.tls_key)
     config = config.model_copy(update={"http": http})
     session: list[tuple[str, Any, str]] = []
     if not config.auth.tokens:
@@ -52,5 +63,35 @@ def run(args: argparse.Namespace) -> None:
         session.append(("session", "engineer", hash_token(token)))
         print(f"cellctl: no tokens in the config; this run's engineer token (also in {path}):\n{token}",
               file=sys.stderr, flush=True)
+    configure_logging(args.log_format)
+    if http.tls_cert is None and not http.is_loopback():
+        log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
+                    http.host)
     app = create_app(config, session)
-    uvicorn.run(app, host=http.host, port=http.port, log_level="info")
+    # Our handler formats uvicorn's records too (log_config=None); the middleware writes the access
+    # log with the request id, so uvicorn's own access log is off.
+    uvicorn.run(app, host=http.host, port=http.port, log_level="info", log_config=None, access_log=False,
+                ssl_certfile=http.tls_cert, ssl_keyfile=http.tls_key)
+
+
+def _check_tls(cert: str | None, key: str | None) -> None:
+    """Refuse a half or unusable TLS setup with one clear line (uvicorn would print a traceback)."""
+    if cert is None and key is None:
+        return
+    if cert is None or key is None:
+        raise CommandError("TLS needs both a certificate and a key: give --tls-cert and --tls-key "
+                           "(or http.tls_cert and http.tls_key in the config)")
+    for what, path in (("certificate", cert), ("key", key)):
+        if not os.access(path, os.R_OK):
+            raise CommandError(f"TLS {what} {path}: missing or not readable by this user; "
+                               "check the path and its permissions")
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(cert, key, password=_no_password)
+    except (ssl.SSLError, ValueError) as exc:
+        raise CommandError(f"TLS certificate {cert} with key {key} cannot be used ({exc}); "
+                           "give a PEM certificate and its matching unencrypted PEM key") from None
+
+
+def _no_password() -> str:
+    """An encrypted key is refused, never prompted for (the service runs unattended)."""
+    return ""

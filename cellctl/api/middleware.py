@@ -1,0 +1,106 @@
+"""Per-request bookkeeping: a request id, the latency metric and one access-log line.
+
+A pure ASGI middleware (not Starlette's ``BaseHTTPMiddleware``), so server-sent event streams pass
+through untouched. The request id is the caller's ``X-Request-Id`` when it is a sane token
+(letters, digits, ``._:-``, at most 128 characters), otherwise a fresh random one; it is echoed in
+the response's ``X-Request-Id`` header and set in ``cellctl.logging_setup.request_id_var`` for every
+log record written while the request is served. Latency runs from the request's arrival to the
+last byte of the response (for an SSE stream: until the stream ends).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+import uuid
+from typing import Any
+
+from starlette.datastructures import MutableHeaders
+from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from cellctl.logging_setup import request_id_var
+from cellctl.metrics import CellMetrics
+
+access_log = logging.getLogger("cellctl.access")
+
+REQUEST_ID_HEADER = "X-Request-Id"
+_SANE_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
+UNMATCHED = "unmatched"
+
+
+def incoming_request_id(scope: Scope) -> str | None:
+    """The caller's request id if it is safe to log and echo, else None."""
+    for name, value in scope.get("headers", ()):
+        if name.lower() == b"x-request-id":
+            text = value.decode("latin-1").strip()
+            return text if _SANE_ID.match(text) else None
+    return None
+
+
+def route_template(scope: Scope) -> str:
+    """The path template of the route that served the request, e.g. ``/robots/{robot_id}/state``."""
+    route = scope.get("route")
+    path = getattr(route, "path", None)
+    if isinstance(path, str) and path:
+        return path
+    app: Any = scope.get("app")
+    router = getattr(app, "router", None)
+    for r in getattr(router, "routes", ()):
+        try:
+            match, _ = r.matches(scope)
+        except Exception:  # noqa: BLE001 - a route that cannot match this scope is not ours
+            continue
+        if match == Match.FULL:
+            p = getattr(r, "path", None)
+            if isinstance(p, str):
+                return p or "/"
+    return UNMATCHED
+
+
+class RequestMiddleware:
+    """Request id, latency histogram and access log for every HTTP request."""
+
+    def __init__(self, app: ASGIApp, metrics: CellMetrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        rid = incoming_request_id(scope) or uuid.uuid4().hex
+        token = request_id_var.set(rid)
+        start = time.perf_counter()
+        status = 500  # what the caller gets when the app raises before answering
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+                MutableHeaders(scope=message).append(REQUEST_ID_HEADER, rid)
+            await send(message)
+
+        failed = False
+        try:
+            await self.app(scope, receive, send_with_id)
+        except BaseException:
+            failed = True
+            raise
+        finally:
+            duration_s = time.perf_counter() - start
+            route = route_template(scope)
+            method = str(scope.get("method", "?"))
+            try:
+                self.metrics.observe_request(method, route, status, duration_s)
+            except Exception:  # noqa: BLE001 - a metric must not break a request
+                access_log.debug("request metric failed", exc_info=True)
+            client = scope.get("client")
+            access_log.info("%s %s %d %.1f ms", method, scope.get("path", ""), status, duration_s * 1e3,
+                            extra={"method": method, "path": scope.get("path", ""), "route": route,
+                                   "status": status, "duration_ms": round(duration_s * 1e3, 3),
+                                   "client": f"{client[0]}:{client[1]}" if client else None})
+            if not failed:
+                # On failure the id stays set so the outer error handler's log line still carries it.
+                request_id_var.reset(token)

@@ -1,0 +1,240 @@
+"""Prometheus metrics of a running cell (``GET /metrics``), one registry per service instance.
+
+What is measured, and where it comes from:
+
+- ``cellctl_http_request_duration_seconds{method,route,status}`` (histogram): every HTTP request,
+  timed by ``cellctl.api.middleware.RequestMiddleware``, labelled with the route *template*
+  (``/robots/{robot_id}/state``, never the raw path, so scanners cannot blow up the series count;
+  paths no route matches are ``route="unmatched"``).
+- ``cellctl_pick_latency_seconds`` (histogram), ``cellctl_pick_match_score`` (histogram of every
+  match's score) and ``cellctl_picks_total{result="found"|"none"}``: fed by ``observe_pick``, which
+  whatever runs a pick (REST route, PLC front ends) calls.
+- ``cellctl_routine_outcomes_total{routine,state}``: every finished job (succeeded / failed /
+  cancelled), fed by ``cellctl.jobs.JobManager`` through ``routine_finished``.
+- Read from the live cell at each scrape: ``cellctl_device_available{category,device,kind}``,
+  ``cellctl_device_outages_total{category,device}``, ``cellctl_robot_connected{robot}`` (1 when the
+  robot's slot is open and its adapter reports fresh state), and per camera, when its adapter counts
+  them, ``cellctl_camera_frames_total``, ``cellctl_camera_lost_frames_total``,
+  ``cellctl_camera_incomplete_frames_total`` (adapter ``health()``), and
+  ``cellctl_camera_frame_rate_hz`` (the acquisition rate the camera reports in ``settings()``). The
+  measured frame rate is ``rate(cellctl_camera_frames_total[1m])`` in PromQL.
+
+Each app has its own ``CollectorRegistry`` (not prometheus_client's global one), so several apps in
+one process never collide. The module functions ``observe_pick`` and ``routine_finished`` find the
+app's metrics through the object they are given (the ``Services``, its ``Cell`` or ``JobManager``,
+registered by ``attach``); without one they record in every attached instance (in a service process
+there is one). They never raise: a metric must not break a pick or a routine.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from typing import TYPE_CHECKING, Any
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from cellctl import __version__
+
+if TYPE_CHECKING:
+    from cellctl.cell import Cell, DeviceSlot
+
+log = logging.getLogger(__name__)
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+REQUEST_BUCKETS_S = (0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+PICK_BUCKETS_S = (0.01, 0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 5.0)
+SCORE_BUCKETS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0)
+SETTINGS_TIMEOUT_S = 0.5
+"""A camera's ``settings()`` may ask the device; a scrape waits this long for it, then skips it."""
+
+
+class CellMetrics:
+    """All metrics of one service instance, in its own registry."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.request_duration = Histogram(
+            "cellctl_http_request_duration_seconds", "HTTP request latency, by route template and status",
+            ["method", "route", "status"], buckets=REQUEST_BUCKETS_S, registry=r)
+        self.pick_latency = Histogram("cellctl_pick_latency_seconds", "time from pick request to result",
+                                      buckets=PICK_BUCKETS_S, registry=r)
+        self.match_score = Histogram("cellctl_pick_match_score", "score of each match a pick returned",
+                                     buckets=SCORE_BUCKETS, registry=r)
+        self.picks = Counter("cellctl_picks", "picks, by whether anything was found", ["result"], registry=r)
+        self.routines = Counter("cellctl_routine_outcomes", "finished routines (jobs), by routine and final state",
+                                ["routine", "state"], registry=r)
+        info = Gauge("cellctl_build_info", "the running cellctl version (value 1)", ["version"], registry=r)
+        info.labels(__version__).set(1)
+        self.devices = DeviceCollector()
+        r.register(self.devices)
+
+    def observe_request(self, method: str, route: str, status: int, duration_s: float) -> None:
+        self.request_duration.labels(method, route, str(status)).observe(duration_s)
+
+    def observe_pick(self, latency_s: float, scores: Iterable[float]) -> None:
+        """One pick: its latency (seconds) and the scores of the matches it returned (may be none)."""
+        self.pick_latency.observe(float(latency_s))
+        n = 0
+        for s in scores:
+            self.match_score.observe(float(s))
+            n += 1
+        self.picks.labels("found" if n else "none").inc()
+
+    def routine_finished(self, routine: str, state: str) -> None:
+        self.routines.labels(routine, state).inc()
+
+    def render(self) -> bytes:
+        """The registry in Prometheus' text exposition format."""
+        return generate_latest(self.registry)
+
+
+class DeviceCollector(Collector):
+    """Reads the cell's device slots at each scrape (nothing is cached between scrapes)."""
+
+    def __init__(self) -> None:
+        self.cell: Cell | None = None
+        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="metrics-settings")
+        self._pending: dict[str, Future[dict[str, Any]]] = {}
+        self._lock = threading.Lock()
+
+    def describe(self) -> Iterable[Metric]:
+        return []  # the series depend on the cell; describe nothing so registration never scrapes
+
+    def collect(self) -> Iterator[Metric]:
+        cell = self.cell
+        available = GaugeMetricFamily("cellctl_device_available", "1 when the device is open and answering",
+                                      labels=["category", "device", "kind"])
+        outages = CounterMetricFamily("cellctl_device_outages", "times the device was lost (service or adapter "
+                                      "count, whichever is higher)", labels=["category", "device"])
+        connected = GaugeMetricFamily("cellctl_robot_connected", "1 when the robot is connected with fresh state",
+                                      labels=["robot"])
+        frames = CounterMetricFamily("cellctl_camera_frames", "frames the camera adapter received",
+                                     labels=["camera"])
+        lost = CounterMetricFamily("cellctl_camera_lost_frames", "frames the camera sent that never arrived",
+                                   labels=["camera"])
+        incomplete = CounterMetricFamily("cellctl_camera_incomplete_frames", "frames that arrived incomplete",
+                                         labels=["camera"])
+        rate = GaugeMetricFamily("cellctl_camera_frame_rate_hz", "acquisition frame rate the camera reports",
+                                 labels=["camera"])
+        if cell is not None:
+            for category, slots in (("camera", cell.cameras), ("robot", cell.robots), ("io", cell.io)):
+                for device_id, slot in slots.items():
+                    health = _health(slot)
+                    up = bool(slot.is_open and health.get("available", True))
+                    available.add_metric([category, device_id, slot.kind], 1.0 if up else 0.0)
+                    outages.add_metric([category, device_id], float(max(slot.outages,
+                                                                        _number(health.get("outages")) or 0)))
+                    if category == "robot":
+                        connected.add_metric([device_id], 1.0 if up else 0.0)
+                    if category != "camera":
+                        continue
+                    for family, keys in ((frames, ("completed", "frames_read")), (lost, ("lost",)),
+                                         (incomplete, ("incomplete",))):
+                        value = _first_number(health, keys)
+                        if value is not None:
+                            family.add_metric([device_id], value)
+                    fps = _number(self._settings(device_id, slot).get("frame_rate_hz")) if slot.is_open else None
+                    if fps is not None:
+                        rate.add_metric([device_id], fps)
+        yield from (available, outages, connected, frames, lost, incomplete, rate)
+
+    def _settings(self, device_id: str, slot: DeviceSlot[Any]) -> dict[str, Any]:
+        """The camera's ``settings()``, or {} when it fails or does not answer in time."""
+        with self._lock:
+            pending = self._pending.get(device_id)
+            if pending is not None and not pending.done():
+                return {}  # the previous scrape's call is still stuck in the device: do not pile up
+            future = self._pool.submit(slot.device.settings)
+            self._pending[device_id] = future
+        try:
+            result = future.result(timeout=SETTINGS_TIMEOUT_S)
+        except FutureTimeout:
+            log.debug("camera %s settings() did not answer within %.1f s", device_id, SETTINGS_TIMEOUT_S)
+            return {}
+        except Exception:  # noqa: BLE001 - a scrape reports what it can
+            log.debug("camera %s settings() failed", device_id, exc_info=True)
+            return {}
+        return result if isinstance(result, dict) else {}
+
+
+def _health(slot: DeviceSlot[Any]) -> dict[str, Any]:
+    fn = getattr(slot.device, "health", None)
+    if fn is None:
+        return {}
+    try:
+        h = fn()
+    except Exception:  # noqa: BLE001 - a scrape reports what it can
+        log.debug("%s health() failed", slot.device_id, exc_info=True)
+        return {"available": False}
+    return h if isinstance(h, dict) else {}
+
+
+def _number(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return None
+    return float(v)
+
+
+def _first_number(d: dict[str, Any], keys: Sequence[str]) -> float | None:
+    for k in keys:
+        v = _number(d.get(k))
+        if v is not None:
+            return v
+    return None
+
+
+# -- the function API other modules call -------------------------------------------------------------
+
+_attached: dict[int, CellMetrics] = {}
+"""id() of each attached source object (Services, its Cell and JobManager) -> its app's metrics."""
+_attached_lock = threading.Lock()
+
+
+def attach(metrics: CellMetrics, services: Any) -> None:
+    """Connect an app's metrics to its running services (called in the app's lifespan)."""
+    metrics.devices.cell = services.cell
+    with _attached_lock:
+        for obj in (services, services.cell, services.jobs):
+            _attached[id(obj)] = metrics
+
+
+def detach(metrics: CellMetrics) -> None:
+    """Forget an app's services (its shutdown); its registry keeps the counts."""
+    metrics.devices.cell = None
+    with _attached_lock:
+        for key in [k for k, m in _attached.items() if m is metrics]:
+            del _attached[key]
+
+
+def _targets(source: object | None) -> list[CellMetrics]:
+    with _attached_lock:
+        if source is None:
+            return list({id(m): m for m in _attached.values()}.values())
+        m = _attached.get(id(source))
+        return [m] if m is not None else []
+
+
+def observe_pick(latency_s: float, scores: Iterable[float], source: object | None = None) -> None:
+    """Record one pick (latency in seconds, the returned matches' scores); never raises."""
+    score_list = list(scores)
+    for m in _targets(source):
+        try:
+            m.observe_pick(latency_s, score_list)
+        except Exception:  # noqa: BLE001 - metrics never break a pick
+            log.debug("observe_pick failed", exc_info=True)
+
+
+def routine_finished(routine: str, state: str, source: object | None = None) -> None:
+    """Record a finished routine (job) and its final state; never raises."""
+    for m in _targets(source):
+        try:
+            m.routine_finished(routine, state)
+        except Exception:  # noqa: BLE001 - metrics never break a job
+            log.debug("routine_finished failed", exc_info=True)
