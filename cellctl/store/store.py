@@ -111,7 +111,9 @@ class Store:
         try:
             with self._engine.connect() as conn, conn.begin():
                 yield conn
-        except sa.exc.OperationalError as exc:
+        except sa.exc.IntegrityError:
+            raise
+        except sa.exc.DBAPIError as exc:  # unreachable server, locked/damaged file, not a database ...
             raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
 
     @contextmanager
@@ -124,7 +126,9 @@ class Store:
                     if self.backend == "postgresql":
                         conn.execute(sa.select(sa.func.pg_advisory_xact_lock(advisory_key(self.cell_id))))
                     yield conn
-        except sa.exc.OperationalError as exc:
+        except sa.exc.IntegrityError:
+            raise
+        except sa.exc.DBAPIError as exc:
             raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
 
     def _create_schema(self) -> None:

@@ -20,6 +20,7 @@ from cellctl.store import (
     NothingToRollBack,
     RestoreRefused,
     Store,
+    StoreError,
     StoreFormatError,
     open_store,
     store_url,
@@ -317,3 +318,6 @@ def test_open_store_follows_the_config(tmp_path: Path, monkeypatch: pytest.Monke
         Store("mysql://u@127.0.0.1/x", "c")
     with pytest.raises(InvalidInput, match="in-memory SQLite"):
         Store("sqlite://", "c")
+    (tmp_path / "junk.db").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(StoreError, match="junk.db: file is not a database"):
+        Store(f"sqlite:///{tmp_path / 'junk.db'}", "c")
