@@ -25,6 +25,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "calib",
     "pose",
     "measure",
+    "map",
     "detect",
     "target",
     "pick",

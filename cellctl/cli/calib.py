@@ -10,7 +10,8 @@ import argparse
 import importlib
 from typing import Any, Final
 
-CALIB_MODULES: Final[tuple[str, ...]] = ()
+CALIB_MODULES: Final[tuple[str, ...]] = ("calib_intrinsics", "calib_dlt", "calib_export", "calib_handeye",
+                                          "calib_npoint")
 
 
 def register(sub: Any) -> None:

@@ -1,0 +1,59 @@
+"""``cellctl map``: a pixel to a robot-frame point in mm with its 1-σ uncertainty.
+
+Works with an N-point map (``np.json``) or a hand-eye calibration (``he.json``; needs the working
+plane's height ``--plane-z-mm`` in the base frame and, eye-in-hand, ``--robot-pose`` at capture
+in UR's form ``x,y,z,rx,ry,rz`` (metres, rotation vector in radians)).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from cellctl.cli.output import CommandError
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "map", help="pixel -> robot-frame point (mm) with 1-sigma uncertainty",
+        description="Map an image point through np.json (n-point) or he.json (hand-eye) to the robot base frame.")
+    p.add_argument("--calib", required=True, help="np.json or he.json")
+    p.add_argument("--camera", help="cam.json (hand-eye; default: the camera stored in he.json)")
+    p.add_argument("--plane-z-mm", type=float, help="working-plane height in the robot base frame, mm")
+    p.add_argument("--robot-pose", help="eye-in-hand: T_base_tool at capture as x,y,z,rx,ry,rz (m, rad)")
+    p.add_argument("--pixel-sigma-px", type=float, help="pixel noise of the query point, 1-sigma (px)")
+    p.add_argument("u", type=float, metavar="U", help="pixel column")
+    p.add_argument("v", type=float, metavar="V", help="pixel row")
+    p.add_argument("--out", dest="out_json", help="write the result JSON here too")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.pixel_to_robot import pixel_to_robot
+
+    path = Path(args.calib)
+    try:
+        calib = json.loads(path.read_text())
+    except OSError as exc:
+        raise CommandError(f"{path}: cannot read calibration ({exc.strerror})") from exc
+    except json.JSONDecodeError as exc:
+        raise CommandError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+    camera = None
+    if args.camera:
+        from calibration.camera_io import read_camera
+
+        camera = read_camera(args.camera)[0]
+    pose = None
+    if args.robot_pose is not None:
+        try:
+            pose = [float(x) for x in args.robot_pose.split(",")]
+        except ValueError:
+            raise CommandError(f"--robot-pose must be six numbers x,y,z,rx,ry,rz, got {args.robot_pose!r}") from None
+        if len(pose) != 6:
+            raise CommandError(f"--robot-pose must be six numbers x,y,z,rx,ry,rz (m, rad), got {len(pose)}")
+    out = pixel_to_robot(calib, [args.u, args.v], camera=camera, plane_z_mm=args.plane_z_mm, robot_pose=pose,
+                         pixel_sigma_px=args.pixel_sigma_px).to_json()
+    out["u_px"], out["v_px"] = args.u, args.v
+    return out
