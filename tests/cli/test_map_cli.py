@@ -46,7 +46,8 @@ def test_map_eye_in_hand(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     uv = CAM.project(transform_points(invert(T_base_cam), P[None]))[0]
     pose = ",".join(repr(float(v)) for v in transform_to_ur_pose(G))
     assert main(["map", "--calib", str(he), "--camera", str(tmp_path / "cam.json"), "--plane-z-mm",
-                 repr(float(P[2] * 1e3)), "--robot-pose", pose, "--pixel-sigma-px", "0", repr(float(uv[0])), repr(float(uv[1]))]) == 0
+                 repr(float(P[2] * 1e3)), "--robot-pose", pose, "--pixel-sigma-px", "0",
+                 repr(float(uv[0])), repr(float(uv[1]))]) == 0
     out = json.loads(capsys.readouterr().out)
     err = np.array([out["x_mm"], out["y_mm"], out["z_mm"]]) - P * 1e3
     assert np.linalg.norm(err) < 3 * out["sigma"]["total_mm"] < 3.0
