@@ -31,6 +31,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
     "io": {
         "modbus": ("drivers.io.modbus", "ModbusDigitalIO"),
         "serial_light": ("drivers.io.serial_light", "SerialLightController"),
+        "robotiq_gripper": ("drivers.io.robotiq_gripper", "RobotiqGripper"),
     },
 }
 
