@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from cellctl.cell import Cell
 from cellctl.config import CellConfig
 from cellctl.jobs import JobManager
+from cellctl.pick.frames import FrameCache
 
 
 @dataclass
@@ -19,6 +20,7 @@ class Services:
     store: Any
     """``cellctl.store.Store`` (SQLite or PostgreSQL)."""
     jobs: JobManager
+    frames: FrameCache = field(default_factory=FrameCache)
 
     def close(self) -> None:
         self.jobs.shutdown()

@@ -1,0 +1,136 @@
+"""Pick guidance on the virtual cell: teach, move the part, find it, and pick it — against truth.
+
+The calibrations are the virtual cell's true camera and hand-eye (stored and activated as any
+calibration would be), so this measures the pick pipeline itself; the served end-to-end tests
+run the same flow through calibrations the routines computed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration import geometry as g
+from cellctl.cell import Cell
+from cellctl.config import default_config_text, parse_config
+from cellctl.jobs import JobManager
+from cellctl.pick.flow import PickError, Recipe, fold_yaw, run_pick
+from cellctl.pick.model import teach
+from cellctl.services import Services
+from cellctl.store import open_store
+from drivers.sim.world import SimWorld, world_for
+
+SEED = 11
+
+
+@pytest.fixture()
+def services(tmp_path: Path) -> Iterator[Services]:
+    data = yaml.safe_load(default_config_text())
+    data["store"] = {"path": str(tmp_path / "cell.db")}
+    data["cameras"]["cam0"]["settings"]["seed"] = SEED
+    data["robots"]["robot0"]["settings"]["seed"] = SEED
+    config = parse_config(data)
+    from drivers.sim import world as world_module
+
+    world_module._WORLDS.pop(("built-in", SEED), None)
+    svc = Services(config, Cell(config), open_store(config), JobManager())
+    world = world_for(None, SEED)
+    truth = world.truth()
+    cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
+    he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": np.eye(4).tolist(),
+          "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
+          "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
+    h = svc.store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
+    svc.store.activate(cam.id, "test")
+    svc.store.activate(h.id, "test")
+    try:
+        yield svc
+    finally:
+        svc.close()
+
+
+def part_pixel(world: SimWorld, x_mm: float, y_mm: float) -> tuple[float, float]:
+    T_cam_base = g.invert(world.T_base_cam())
+    uv = world.camera_model.project(g.transform_points(T_cam_base, [x_mm * 1e-3, y_mm * 1e-3, 0.0]))[0]
+    return float(uv[0]), float(uv[1])
+
+
+def teach_bracket(services: Services) -> Recipe:
+    world = world_for(None, SEED)
+    part = world.scene.parts[0]
+    u, v = part_pixel(world, part.x_mm, part.y_mm)
+    image = world.render()
+    model = teach(image, (u - 100, v - 100, 200, 200), mode="shape", name="bracket")
+    recipe = Recipe(name="bracket", models=[model.to_dict()], plane_z_mm=0.0, grasp_z_mm=5.0, approach_height_mm=40.0)
+    services.store.save_recipe(1, "bracket", recipe.model_dump(mode="json"), "test")
+    return recipe
+
+
+def test_pick_pose_matches_truth_after_the_part_moved(services: Services) -> None:
+    teach_bracket(services)
+    world = world_for(None, SEED)
+    part = world.scene.parts[0]
+    before = run_pick(services, 1)
+    assert before["picks"] and before["picks"][0]["part"] == "bracket"
+    yaw0 = before["picks"][0]["part_yaw_deg"]
+    p0 = before["picks"][0]["pick_pose"]
+    assert math.hypot(p0["x_mm"] - part.x_mm, p0["y_mm"] - part.y_mm) < 0.3
+    # The part is put down elsewhere, turned by 45 degrees.
+    part.x_mm, part.y_mm, part.angle_deg = part.x_mm - 20.0, part.y_mm - 25.0, part.angle_deg + 45.0
+    after = run_pick(services, 1)
+    best = after["picks"][0]
+    assert best["part"] == "bracket" and best["reachable"]
+    p = best["pick_pose"]
+    assert math.hypot(p["x_mm"] - part.x_mm, p["y_mm"] - part.y_mm) < 0.3
+    assert abs(p["z_mm"] - 5.0) < 1e-6
+    turn = (best["part_yaw_deg"] - yaw0 + 180) % 360 - 180
+    assert abs(abs(turn) - 45.0) < 0.2
+    assert best["uncertainty"]["sigma_mm"][0] > 0
+    assert after["latency_ms"]["total"] > 0 and after["image_url"] == f"/frames/{after['frame_id']}.png"
+    # The tool points down and the parallel gripper never turns more than 90 degrees from its yaw now.
+    T = np.array(best["T_base_tool"])
+    assert np.allclose(T[:3, 2], [0, 0, -1], atol=1e-9)
+    assert abs(best["gripper_yaw_deg"]) <= 90.0 + 1e-9
+
+
+def test_robot_picks_the_part(services: Services) -> None:
+    teach_bracket(services)
+    world = world_for(None, SEED)
+    part = world.scene.parts[0]
+    answer = run_pick(services, 1, move=True, who="engineer")
+    assert answer["moved"]
+    T_pick = np.array(answer["picked"]["T_base_tool"])
+    assert math.hypot(T_pick[0, 3] * 1e3 - part.x_mm, T_pick[1, 3] * 1e3 - part.y_mm) < 0.3
+    # The robot retreated straight up from the pick pose.
+    T_now = world.T_base_tool_true
+    assert np.allclose(T_now[:2, 3], T_pick[:2, 3], atol=1e-9)
+    assert abs(T_now[2, 3] - T_pick[2, 3] - 0.040) < 1e-9
+    moves = [a for a in services.store.audit_log(10, "robot.move")]
+    assert [m.detail["why"] for m in moves[:3]] == ["pick retreat", "pick pick", "pick approach"]
+
+
+def test_pose_outside_envelope_is_not_reachable_and_never_sent(services: Services) -> None:
+    recipe = teach_bracket(services)
+    low = recipe.model_copy(update={"grasp_z_mm": -50.0})  # below the table: outside z >= 2 mm
+    services.store.save_recipe(2, "too low", low.model_dump(mode="json"), "test")
+    world = world_for(None, SEED)
+    before = world.T_base_tool_true
+    answer = run_pick(services, 2)
+    assert answer["picks"] and not answer["picks"][0]["reachable"]
+    assert "outside the workspace envelope" in answer["picks"][0]["not_reachable_reason"]
+    with pytest.raises(PickError, match="no reachable pick"):
+        run_pick(services, 2, move=True)
+    assert np.allclose(world.T_base_tool_true, before)
+
+
+def test_fold_yaw_respects_gripper_symmetry() -> None:
+    assert fold_yaw(math.radians(170), math.pi, 0.0) == pytest.approx(math.radians(-10))
+    assert fold_yaw(math.radians(-100), math.pi, 0.0) == pytest.approx(math.radians(80))
+    assert fold_yaw(math.radians(100), 2 * math.pi, 0.0) == pytest.approx(math.radians(100))
+    assert fold_yaw(math.radians(44), math.pi / 2, 0.0) == pytest.approx(math.radians(44))
+    assert fold_yaw(math.radians(46), math.pi / 2, 0.0) == pytest.approx(math.radians(-44))
