@@ -53,6 +53,7 @@ MIN_TOP_RADIUS_PX = 8.0
 """Automatic pyramid depth: the top level must show the model at least this large."""
 MAX_TOP_CANDIDATES = 64
 HYPOTHESES_PER_POSITION = 3
+PERSPECTIVE_DEFAULT = True
 MAX_TOP_FEATURES = 32  # 4 * 60 < 255: uint8 accumulators cannot overflow
 MAX_TRACK_FEATURES = 120
 MAX_FINE_POINTS = 500
@@ -158,6 +159,11 @@ class SearchParams:
     timeout_s: float | None = None
     min_distance_px: float | None = None
     """Two matches closer than this are one (default: a third of the model's smaller size)."""
+    max_scale_dev: float = 0.05
+    """The final fit may scale the model by up to this fraction (a slightly tilted view); 0: rigid."""
+    perspective: bool = PERSPECTIVE_DEFAULT
+    """Finish with a plane-homography fit (a tilted camera): the reference point and angle are then
+    those of the part's plane seen in perspective."""
 
 
 @dataclass
@@ -168,9 +174,12 @@ class Match:
     score: float
     rms_px: float = float("nan")
     """RMS normal distance of the inlier model edge points after refinement."""
+    scale: float = 1.0
+    """Apparent size relative to the teach image (a tilted view), from the final fit."""
 
     def as_dict(self) -> dict[str, float]:
-        return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score}
+        return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
+                "scale": self.scale}
 
 
 @dataclass
@@ -532,19 +541,36 @@ class _Pose:
     y: float
     theta: float  # rad
     score: float
+    scale: float = 1.0
+
+
+def _gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, fit_scale: bool) -> F64:
+    """One weighted Gauss-Newton step for (x, y, theta[, scale]) on normal distances."""
+    cols = [n[:, 0], n[:, 1], scale * np.sum(n * Rdm, axis=1)]
+    if fit_scale:
+        cols.append(np.sum(n * Rm, axis=1))
+    J = np.stack(cols, axis=1)
+    A = J.T @ (J * wgt[:, None]) + np.eye(J.shape[1]) * 1e-9
+    delta = np.linalg.solve(A, J.T @ (wgt * resid))
+    return delta if fit_scale else np.append(delta, 0.0)
 
 
 def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: float,
                 search_px: float, iterations: int, fine: U8 | None = None,
                 min_contrast: float = 0.0, subset: NDArray[np.int64] | None = None,
-                reject_below: float = 0.0) -> tuple[_Pose, float, float]:
-    """Gauss-Newton fit of the model edge points to the image edges; returns (pose, score, rms)."""
+                reject_below: float = 0.0, fit_scale: bool = False,
+                max_scale_dev: float = 0.1, perspective: bool = False) -> tuple[_Pose, float, float]:
+    """Gauss-Newton fit of the model edge points to the image edges; returns (pose, score, rms).
+
+    With ``fit_scale`` the fit is a similarity (a slightly tilted view makes the part look a few
+    per cent larger or smaller; a rigid fit would turn that into a position error).
+    """
     m = lm.points if subset is None else lm.points[subset]
     nrm_m = lm.normals if subset is None else lm.normals[subset]
     npts = len(m)
     rows = np.arange(npts)
     dm0 = np.stack([m[:, 1], -m[:, 0]], axis=1)  # d(R m)/d theta = R (m_y, -m_x)
-    reach = lm.radius + search_px + 5 + 3 * sigma
+    reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
     h, w = img_level.shape
     x0, y0 = max(int(pose.x - reach), 0), max(int(pose.y - reach), 0)
     x1, y1 = min(int(pose.x + reach) + 1, w - 1), min(int(pose.y + reach) + 1, h - 1)
@@ -552,14 +578,25 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
         return pose, 0.0, float("nan")
     gx, gy = gradients(img_level[y0:y1 + 1, x0:x1 + 1], sigma)
     G = cv2.merge([gx, gy])
-    x, y, th = pose.x - x0, pose.y - y0, pose.theta
+    x, y, th, sc = pose.x - x0, pose.y - y0, pose.theta, pose.scale
     rng = search_px
     d = np.zeros(npts)
     found = np.zeros(npts, bool)
     cosd = np.zeros(npts)
+
+    def update(delta: F64) -> float:
+        nonlocal x, y, th, sc
+        x += float(delta[0])
+        y += float(delta[1])
+        th += float(delta[2])
+        sc = float(np.clip(sc + float(delta[3]), 1 - max_scale_dev, 1 + max_scale_dev))
+        return abs(float(delta[0])) + abs(float(delta[1])) + (abs(float(delta[2])) + abs(float(delta[3]))) \
+            * lm.radius
+
     for it in range(iterations):
         R = rot(th)
-        q = m @ R.T + np.array([x, y])
+        Rm = m @ R.T
+        q = sc * Rm + np.array([x, y])
         n = nrm_m @ R.T
         ts = np.arange(-math.ceil(rng), math.ceil(rng) + 1, dtype=np.float64)
         k = len(ts)
@@ -583,41 +620,76 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
         c = max(rng * 0.75, 1.0)
         wgt = np.where(found & (np.abs(d) < c), (1 - (d / c) ** 2) ** 2, 0.0)
         if wgt.sum() < 6 or (it == 0 and np.count_nonzero(found) < reject_below * npts):
-            return _Pose(x + x0, y + y0, th, 0.0), 0.0, float("nan")
-        J = np.stack([n[:, 0], n[:, 1], np.sum(n * (dm0 @ R.T), axis=1)], axis=1)
-        delta = np.linalg.solve(J.T @ (J * wgt[:, None]) + np.eye(3) * 1e-9, J.T @ (wgt * d))
-        x += float(delta[0])
-        y += float(delta[1])
-        th += float(delta[2])
+            return _Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan")
+        moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and it > 0))
         rng = max(rng * 0.6, 1.5)
-        if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 0.01:
+        if moved < 0.01:
             break
     if fine is not None:
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         sel = found & (np.abs(d) < 1.0)
         ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
-        for _ in range(2):
+        for _ in range(3):
             R = rot(th)
-            q = ms @ R.T + np.array([x, y])
+            Rm = ms @ R.T
+            q = sc * Rm + np.array([x, y])
             n = ns @ R.T
             off, S, clean = _profile_ok(img_f, q, n)
             ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast)
             wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
             if wgt.sum() < 6:
                 break
-            J = np.stack([n[:, 0], n[:, 1], np.sum(n * (dms @ R.T), axis=1)], axis=1)
-            delta = np.linalg.solve(J.T @ (J * wgt[:, None]) + np.eye(3) * 1e-9, J.T @ (wgt * off))
-            x += float(delta[0])
-            y += float(delta[1])
-            th += float(delta[2])
-            if abs(delta[0]) + abs(delta[1]) + abs(delta[2]) * lm.radius < 1e-3:
+            if update(_gn_step(n, Rm, dms @ R.T, sc, wgt, off, fit_scale)) < 1e-3:
                 break
+        if perspective:
+            x, y, th, sc = _perspective_fit(img_f, ms, ns, x, y, th, sc, min_contrast)
     # score: fraction of model edges seen where they should be (orientation-weighted)
     s_i = np.where(found, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
     inl = found & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
-    return _Pose(x + x0, y + y0, th, float(s_i.mean())), float(s_i.mean()), rms
+    return _Pose(x + x0, y + y0, th, float(s_i.mean()), sc), float(s_i.mean()), rms
+
+
+def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
+                     min_contrast: float) -> tuple[float, float, float, float]:
+    """Refine a similarity to a plane homography of the model (a tilted camera's view).
+
+    ``q = (A m + c) / (1 + p.m)``; the reference point is ``c`` and the reported angle and scale
+    are those of the local linear map ``A - c p^T`` at the reference point (the direction the
+    part's x axis takes there). Gauss-Newton on the centroid normal distances.
+    """
+    R = rot(th)
+    A = sc * R
+    c = np.array([x, y])
+    pv = np.zeros(2)
+    for _ in range(3):
+        w = 1.0 + m @ pv
+        q = (m @ A.T + c) / w[:, None]
+        J_lin = A - np.outer(c, pv)
+        n = nrm @ J_lin.T
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        off, S, clean = _profile_ok(img_f, q, n)
+        ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast)
+        wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
+        if np.count_nonzero(wgt) < 20:
+            break
+        mx, my = m[:, 0] / w, m[:, 1] / w
+        inv = 1.0 / w
+        nx, ny = n[:, 0], n[:, 1]
+        qn = nx * q[:, 0] + ny * q[:, 1]
+        J = np.stack([nx * mx, nx * my, nx * inv, ny * mx, ny * my, ny * inv, -qn * mx, -qn * my], axis=1)
+        Hm = J.T @ (J * wgt[:, None]) + np.eye(8) * 1e-9 * (1 + np.abs(J).max())
+        delta = np.linalg.solve(Hm, J.T @ (wgt * off))
+        A = A + np.array([[delta[0], delta[1]], [delta[3], delta[4]]])
+        c = c + np.array([delta[2], delta[5]])
+        pv = pv + delta[6:8]
+        if np.abs(delta[[2, 5]]).sum() < 1e-4:
+            break
+    J_lin = A - np.outer(c, pv)
+    theta = math.atan2(-J_lin[1, 0], J_lin[0, 0])
+    scale = math.sqrt(abs(np.linalg.det(J_lin)))
+    return float(c[0]), float(c[1]), theta, scale
 
 
 # ----------------------------------------------------------------------------- find
@@ -799,16 +871,17 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                 timed_out = True
                 break
             f = 2.0 ** (lv - lv2)
-            pose = _Pose(pose.x * f, pose.y * f, pose.theta, pose.score)
+            pose = _Pose(pose.x * f, pose.y * f, pose.theta, pose.score, pose.scale)
             sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
             pose, score, rms = _refine_lsq(
                 pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
                 search_px=4.5 if step == 0 else 2.0, iterations=6 if step == 0 else 3,
                 fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
                 subset=model.levels[lv2].features if lv2 > 0 else None,
-                reject_below=0.7 * sp.min_score)
+                reject_below=0.7 * sp.min_score, fit_scale=lv2 == 0 and sp.max_scale_dev > 0,
+                max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective)
             if score >= sp.min_score * (0.8 if lv2 > 0 else 1.0):
-                nxt2.append((_Pose(pose.x, pose.y, pose.theta, score), lv2, score, rms))
+                nxt2.append((_Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
         nxt2.sort(key=lambda t: -t[2])
         kept: list[tuple[_Pose, int, float, float]] = []
         r2 = (min_dist / 2.0 ** lv2) ** 2
@@ -822,7 +895,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         if lv != 0:
             continue
         if su <= pose.x <= su + sw and sv <= pose.y <= sv + sh:
-            found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms))
+            found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms, pose.scale))
     # final non-maximum suppression on level 0
     found.sort(key=lambda m: -m.score)
     final: list[Match] = []
