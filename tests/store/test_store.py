@@ -321,3 +321,34 @@ def test_open_store_follows_the_config(tmp_path: Path, monkeypatch: pytest.Monke
     (tmp_path / "junk.db").write_bytes(b"this is not a database" * 100)
     with pytest.raises(StoreError, match="junk.db: file is not a database"):
         Store(f"sqlite:///{tmp_path / 'junk.db'}", "c")
+
+
+def test_backup_is_online_and_consistent(store: Store, tmp_path: Path) -> None:
+    """A backup taken while another thread keeps writing is one consistent moment of the store."""
+    stop = threading.Event()
+    written: list[int] = []
+
+    def writer() -> None:
+        while not stop.is_set():
+            written.append(store.save_calibration("camera", "cam0", None, {"i": len(written)},
+                                                  {"pad": "y" * 20_000}, "w").id)
+
+    t = threading.Thread(target=writer)
+    t.start()
+    try:
+        while len(written) < 3:
+            time.sleep(0.01)
+        backups = [backup(store, tmp_path / f"b{i}", None) for i in range(3)]
+    finally:
+        stop.set()
+        t.join(timeout=60)
+    for i, b in enumerate(backups):
+        assert b["format"] == ("sqlite" if store.backend == "sqlite" else "json")
+        # each version's row and its audit entry are in the same backup, or neither is
+        assert b["counts"]["calibrations"] == b["counts"]["audit"] >= 3
+        with Store(f"sqlite:///{tmp_path / f'r{i}.db'}", store.cell_id) as target:
+            restore(target, tmp_path / f"b{i}", "test")
+            got = target.list_calibrations()
+            assert [s.version for s in got] == list(range(1, len(got) + 1))
+            assert all(target.get_calibration(s.id).inputs == {"pad": "y" * 20_000} for s in got)
+    assert len(written) >= backups[-1]["counts"]["calibrations"]
