@@ -105,7 +105,7 @@ def test_export_import_round_trip_cli(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("case", ["no_images", "missing_file", "too_few_views", "bad_target", "bad_detections",
                                   "halcon_wrong_model", "cv_k1"])
-def test_bad_input_clear_error(tmp_path: Path, case: str) -> None:
+def test_bad_input_clear_error(tmp_path: Path, case: str, capsys: pytest.CaptureFixture[str]) -> None:
     det = _detections_file(tmp_path, 12)
     target = str(tmp_path / "board.yaml")
     args = {
@@ -117,11 +117,20 @@ def test_bad_input_clear_error(tmp_path: Path, case: str) -> None:
         "halcon_wrong_model": ["--target", target, "--detections", str(det), "--export-halcon", "x.cal"],
         "cv_k1": ["--target", target, "--detections", str(det), "--cross-validate", "1"],
     }[case]
-    p = subprocess.run([CELLCTL, "calib", "intrinsics", *args], capture_output=True, text=True, timeout=60)
+    capsys.readouterr()
+    assert main(["calib", "intrinsics", *args]) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("cellctl: error:")]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+
+
+def test_console_script_bad_input_exits_2_without_traceback(tmp_path: Path) -> None:
+    p = subprocess.run([CELLCTL, "calib", "intrinsics", "--target", str(tmp_path / "missing.yaml"), "x.png"],
+                       capture_output=True, text=True, timeout=60)
     assert p.returncode == 2
-    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("cellctl: error:")]
-    assert len(lines) == 1, p.stderr
-    assert "Traceback" not in p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith("cellctl: error:")
+    assert "missing.yaml" in p.stderr and "Traceback" not in p.stderr
 
 
 def _few(tmp_path: Path, det: Path) -> Path:
