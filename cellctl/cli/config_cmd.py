@@ -29,6 +29,7 @@ def register(sub: Any) -> None:
     a.add_argument("--config", required=True)
     a.add_argument("--name", required=True)
     a.add_argument("--role", required=True, choices=sorted(ROLE_RANK, key=ROLE_RANK.__getitem__))
+    a.add_argument("--out", dest="out_json", help="also write the JSON (with the token) to this file")
     a.set_defaults(func=add_token)
 
 
