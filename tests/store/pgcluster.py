@@ -41,12 +41,13 @@ class PostgresCluster:
 
     def __init__(self) -> None:
         self.bin = pg_bin_dir()
-        self.root = Path(tempfile.mkdtemp(prefix="cellctl-pg-"))
+        self._as_root = os.geteuid() == 0
+        # as root the cluster belongs to nobody, who must reach it: /tmp, not a root-only $TMPDIR
+        self.root = Path(tempfile.mkdtemp(prefix="cellctl-pg-", dir="/tmp" if self._as_root else None))
         self.data = self.root / "data"
         self.sock = self.root / "sock"
         self.log = self.root / "server.log"
         self.port = 0
-        self._as_root = os.geteuid() == 0
         if self._as_root:
             user = pwd.getpwnam("nobody")
             self.sock.mkdir()
