@@ -283,9 +283,9 @@ class AravisCamera(CameraBase):
                 continue
             buf = stream.timeout_pop_buffer(100_000)  # us; the GIL is released while Aravis waits
             if buf is not None:
-                self._handle_buffer(buf)
+                complete = self._handle_buffer(buf)
                 stream.push_buffer(buf)
-                if buf.get_status() == self._arv.BufferStatus.SUCCESS:
+                if complete:
                     last_frame = time.monotonic()
                 continue
             silent = time.monotonic() - last_frame
@@ -312,16 +312,18 @@ class AravisCamera(CameraBase):
         except Exception:
             return False
 
-    def _handle_buffer(self, buf: Any) -> None:
+    def _handle_buffer(self, buf: Any) -> bool:
+        """Count the buffer and publish it when complete; True when it was complete."""
         status = buf.get_status()
         frame_id = int(buf.get_frame_id())
-        if self._last_frame_id is not None and frame_id > self._last_frame_id + 1:
-            self.counters["lost"] += frame_id - self._last_frame_id - 1
-        if self._last_frame_id is None or frame_id > self._last_frame_id:
-            self._last_frame_id = frame_id
+        if self._last_frame_id is not None:
+            gap = frame_id - self._last_frame_id - 1
+            if 0 < gap < 1000:  # GigE ids are 16 bit and wrap (65535 -> 1): a negative gap is a wrap
+                self.counters["lost"] += gap
+        self._last_frame_id = frame_id
         if status != self._arv.BufferStatus.SUCCESS:
             self.counters["incomplete"] += 1
-            return
+            return False
         self.counters["completed"] += 1
         data = buf.get_data()
         pixels = _to_pixels(data, buf.get_image_width(), buf.get_image_height(), self._pixel_format)
@@ -340,6 +342,7 @@ class AravisCamera(CameraBase):
                 },
             )
             self._cv.notify_all()
+        return True
 
     # -- contract ------------------------------------------------------------------------------------------
     def grab(self, timeout_s: float = 2.0) -> Frame:
