@@ -55,7 +55,7 @@ MAX_TOP_CANDIDATES = 64
 HYPOTHESES_PER_POSITION = 3
 PERSPECTIVE_DEFAULT = True
 MAX_TOP_FEATURES = 32  # 4 * 60 < 255: uint8 accumulators cannot overflow
-MAX_TRACK_FEATURES = 120
+MAX_TRACK_FEATURES = 64
 MAX_FINE_POINTS = 500
 GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
 
@@ -159,7 +159,7 @@ class SearchParams:
     timeout_s: float | None = None
     min_distance_px: float | None = None
     """Two matches closer than this are one (default: a third of the model's smaller size)."""
-    max_scale_dev: float = 0.05
+    max_scale_dev: float = 0.1
     """The final fit may scale the model by up to this fraction (a slightly tilted view); 0: rigid."""
     perspective: bool = PERSPECTIVE_DEFAULT
     """Finish with a plane-homography fit (a tilted camera): the reference point and angle are then
@@ -552,7 +552,36 @@ def _gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, fit_
     J = np.stack(cols, axis=1)
     A = J.T @ (J * wgt[:, None]) + np.eye(J.shape[1]) * 1e-9
     delta = np.linalg.solve(A, J.T @ (wgt * resid))
-    return delta if fit_scale else np.append(delta, 0.0)
+    return np.asarray(delta if fit_scale else np.append(delta, 0.0), dtype=np.float64)
+
+
+def _associate(G: F32, q: F64, n: F64, reach: float, thr: float) -> tuple[F64, NDArray[np.bool_], F64]:
+    """Nearest image edge of matching orientation along each normal within ``reach`` px.
+
+    Returns the signed distances (sub-pixel, Gaussian fit of the gradient component along the
+    normal), whether an edge was found, and ``|cos|`` of the orientation difference there.
+    """
+    npts = len(q)
+    rows = np.arange(npts)
+    ts = np.arange(-math.ceil(reach), math.ceil(reach) + 1, dtype=np.float64)
+    k = len(ts)
+    sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
+    sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
+    gxy = bilinear2(G, sx.ravel(), sy.ravel()).reshape(npts, k, 2)
+    gn = np.abs(gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2])
+    gm2 = gxy[..., 0] ** 2 + gxy[..., 1] ** 2
+    good = (gn >= thr) & (gn * gn >= 0.81 * gm2)
+    g = np.where(good, gn, 0.0)
+    locmax = np.zeros_like(good)
+    locmax[:, 1:-1] = good[:, 1:-1] & (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
+    cost = np.where(locmax, np.abs(ts)[None, :], np.inf)
+    j = np.argmin(cost, axis=1)
+    found = locmax[rows, j]
+    jj = np.minimum(np.maximum(j, 1), k - 2)
+    off = _gauss_peak(g[rows, jj - 1], g[rows, jj], g[rows, jj + 1])
+    d = np.where(found, ts[jj] + off, 0.0)
+    cosd = np.where(found, gn[rows, jj] / np.sqrt(np.maximum(gm2[rows, jj], 1e-12)), 0.0)
+    return d, found, cosd
 
 
 def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: float,
@@ -568,7 +597,6 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
     m = lm.points if subset is None else lm.points[subset]
     nrm_m = lm.normals if subset is None else lm.normals[subset]
     npts = len(m)
-    rows = np.arange(npts)
     dm0 = np.stack([m[:, 1], -m[:, 0]], axis=1)  # d(R m)/d theta = R (m_y, -m_x)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
     h, w = img_level.shape
@@ -598,30 +626,13 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
         Rm = m @ R.T
         q = sc * Rm + np.array([x, y])
         n = nrm_m @ R.T
-        ts = np.arange(-math.ceil(rng), math.ceil(rng) + 1, dtype=np.float64)
-        k = len(ts)
-        sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
-        sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
-        gxy = bilinear2(G, sx.ravel(), sy.ravel()).reshape(npts, k, 2)
-        gn = np.abs(gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2])
-        gm2 = gxy[..., 0] ** 2 + gxy[..., 1] ** 2
-        good = (gn >= thr) & (gn * gn >= 0.81 * gm2)
-        g = np.where(good, gn, 0.0)
-        locmax = np.zeros_like(good)
-        locmax[:, 1:-1] = good[:, 1:-1] & (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
-        cost = np.where(locmax, np.abs(ts)[None, :], np.inf)
-        j = np.argmin(cost, axis=1)
-        found = locmax[rows, j]
-        jj = np.minimum(np.maximum(j, 1), k - 2)
-        off = _gauss_peak(g[rows, jj - 1], g[rows, jj], g[rows, jj + 1])
-        d = np.where(found, ts[jj] + off, 0.0)
-        cosd = np.where(found, gn[rows, jj] / np.sqrt(np.maximum(gm2[rows, jj], 1e-12)), 0.0)
+        d, found, cosd = _associate(G, q, n, rng, thr)
         # Tukey weights on the normal distances
         c = max(rng * 0.75, 1.0)
         wgt = np.where(found & (np.abs(d) < c), (1 - (d / c) ** 2) ** 2, 0.0)
         if wgt.sum() < 6 or (it == 0 and np.count_nonzero(found) < reject_below * npts):
             return _Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan")
-        moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and it > 0))
+        moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and (it > 0 or iterations == 1)))
         rng = max(rng * 0.6, 1.5)
         if moved < 0.01:
             break
@@ -630,7 +641,7 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         sel = found & (np.abs(d) < 1.0)
         ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
-        for _ in range(3):
+        for _ in range(1 if perspective else 3):
             R = rot(th)
             Rm = ms @ R.T
             q = sc * Rm + np.array([x, y])
@@ -644,7 +655,11 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
                 break
         if perspective:
             x, y, th, sc = _perspective_fit(img_f, ms, ns, x, y, th, sc, min_contrast)
-    # score: fraction of model edges seen where they should be (orientation-weighted)
+        # the score is taken at the final pose
+        R = rot(th)
+        q = sc * (m @ R.T) + np.array([x, y])
+        n = nrm_m @ R.T
+        d, found, cosd = _associate(G, q, n, 2.0, thr)
     s_i = np.where(found, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
     inl = found & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
@@ -663,7 +678,7 @@ def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float
     A = sc * R
     c = np.array([x, y])
     pv = np.zeros(2)
-    for _ in range(3):
+    for _ in range(2):
         w = 1.0 + m @ pv
         q = (m @ A.T + c) / w[:, None]
         J_lin = A - np.outer(c, pv)
@@ -797,20 +812,30 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                 done = ai + 1
                 break
         thr_top = int(math.floor(4 * nf * sp.min_score * 0.7))
-        # local maxima over position and angle (circular when the range is the full turn)
-        dil = cv2.dilate(allacc[:done].reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8))
-        dil = dil.reshape(done, nh + 1, nw)
-        full = ext >= 2 * math.pi - 1e-9 and done == na
-        if done > 1:
-            up = np.roll(dil, 1, axis=0)
-            dn = np.roll(dil, -1, axis=0)
-            if not full:
-                up[0] = 0
-                dn[-1] = 0
-            dil = np.maximum(dil, np.maximum(up, dn))
+        # local maxima over position and angle (circular when the range is the full turn),
+        # checked only where the score passes the threshold
         sub = allacc[:done]
-        ai_, ys, xs = np.nonzero((sub == dil) & (sub >= thr_top))
-        sc = sub[ai_, ys, xs]
+        dil = cv2.dilate(sub.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).ravel()
+        flat = sub.ravel()
+        idx = np.flatnonzero(flat >= thr_top)
+        idx = idx[flat[idx] >= dil[idx]]
+        plane = (nh + 1) * nw
+        ai_ = idx // plane
+        if done > 1:
+            full = ext >= 2 * math.pi - 1e-9 and done == na
+            for step in (-1, 1):
+                nb = ai_ + step
+                wrap = (nb < 0) | (nb >= done)
+                nbi = idx + step * plane
+                if full:
+                    nbi = np.where(wrap, idx + step * plane - np.sign(step) * done * plane, nbi)
+                    ok = flat[idx] >= dil[nbi]
+                else:
+                    ok = wrap | (flat[idx] >= dil[np.clip(nbi, 0, len(dil) - 1)])
+                idx, ai_ = idx[ok], ai_[ok]
+        rem = idx - ai_ * plane
+        ys, xs = rem // nw, rem % nw
+        sc = flat[idx]
         order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
         cands = [_Pose(float(xs[i] + rx0), float(ys[i] + ry0), float(thetas[ai_[i]]), sc[i] / (4.0 * nf))
                  for i in order]
@@ -875,10 +900,10 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
             pose, score, rms = _refine_lsq(
                 pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
-                search_px=4.5 if step == 0 else 2.0, iterations=6 if step == 0 else 3,
+                search_px=4.5 if step == 0 else 2.0, iterations=5 if step == 0 else 1,
                 fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
                 subset=model.levels[lv2].features if lv2 > 0 else None,
-                reject_below=0.7 * sp.min_score, fit_scale=lv2 == 0 and sp.max_scale_dev > 0,
+                reject_below=0.7 * sp.min_score, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
                 max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective)
             if score >= sp.min_score * (0.8 if lv2 > 0 else 1.0):
                 nxt2.append((_Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
