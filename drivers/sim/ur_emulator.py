@@ -341,6 +341,8 @@ class _RobotSim:
         if cmd == CMD_STOP_SCRIPT:
             self.stop_program("stopScript")
             return
+        if cmd in CONTINUOUS_CMDS:
+            return  # servo/speed/watchdog streams: the client does not wait for "done"; not simulated
         if cmd in (CMD_MOVEL, CMD_MOVEJ):
             self.cmd_state = "busy"
             if cmd == CMD_MOVEL:
