@@ -59,6 +59,18 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _driver(_: Request, exc: DriverError) -> JSONResponse:
         return JSONResponse(status_code=502, content=error_body("device_error", str(exc)))
 
+    @app.exception_handler(LookupError)
+    async def _not_found(_: Request, exc: LookupError) -> JSONResponse:
+        # The store's NotFound and our "no such ..." KeyErrors carry a message for people.
+        msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
+        return JSONResponse(status_code=404, content=error_body("not_found", msg))
+
+    @app.exception_handler(ValueError)
+    async def _invalid(_: Request, exc: ValueError) -> JSONResponse:
+        # Our typed input errors subclass ValueError (store InvalidInput, calibration and pick errors).
+        log.warning("refused: %s", exc, exc_info=True)
+        return JSONResponse(status_code=422, content=error_body("invalid_input", str(exc)))
+
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
         parts = []

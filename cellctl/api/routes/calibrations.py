@@ -6,7 +6,7 @@ import tempfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Path, Query
 from fastapi.responses import HTMLResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict
 
@@ -18,6 +18,7 @@ from cellctl.store import NotFound, NothingToRollBack
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 
 Kind = Literal["camera", "handeye", "npoint"]
+CalId = Annotated[int, Path(ge=1, le=2**62, description="calibration id")]
 
 
 class CalibrationSummaryPublic(BaseModel):
@@ -55,7 +56,7 @@ def list_calibrations(services: ServicesDep, _: Viewer, kind: Kind | None = None
 
 
 @router.get("/{cal_id}")
-def get_calibration(cal_id: int, services: ServicesDep, _: Viewer,
+def get_calibration(cal_id: CalId, services: ServicesDep, _: Viewer,
                     inputs: Annotated[bool, Query(description="include the stored inputs")] = False
                     ) -> dict[str, Any]:
     rec = _get(services, cal_id)
@@ -66,7 +67,7 @@ def get_calibration(cal_id: int, services: ServicesDep, _: Viewer,
 
 
 @router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic)
-def activate(cal_id: int, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+def activate(cal_id: CalId, services: ServicesDep, who: Engineer) -> dict[str, Any]:
     _get(services, cal_id)
     rec = services.store.activate(cal_id, who.name)
     summary: dict[str, Any] = rec.summary().to_dict()
@@ -86,7 +87,7 @@ def rollback(body: RollbackInput, services: ServicesDep, who: Engineer) -> dict[
 
 
 @router.get("/{cal_id}/export", response_class=PlainTextResponse)
-def export(cal_id: int, services: ServicesDep, _: Viewer,
+def export(cal_id: CalId, services: ServicesDep, _: Viewer,
            format: Literal["opencv", "ros", "halcon", "json"] = "opencv",
            pixel_pitch_um: Annotated[float, Query(gt=0, description="sensor cell size for HALCON")] = 3.45
            ) -> PlainTextResponse:
@@ -117,7 +118,7 @@ def export(cal_id: int, services: ServicesDep, _: Viewer,
 
 
 @router.get("/{cal_id}/report", response_class=HTMLResponse)
-def report(cal_id: int, services: ServicesDep, _: Viewer) -> HTMLResponse:
+def report(cal_id: CalId, services: ServicesDep, _: Viewer) -> HTMLResponse:
     rec = _get(services, cal_id)
     rows = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in _headline(rec.kind, rec.result).items())
     verdict = rec.result.get("verdict", {})

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import logging
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import cv2
-from fastapi import APIRouter
+from fastapi import APIRouter, Path
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
@@ -52,7 +52,7 @@ def list_recipes(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
 
 
 @router.get("/recipes/{recipe_id}")
-def get_recipe(recipe_id: int, services: ServicesDep, _: Viewer) -> dict[str, Any]:
+def get_recipe(recipe_id: Annotated[int, Path(ge=0, le=65535)], services: ServicesDep, _: Viewer) -> dict[str, Any]:
     try:
         r = services.store.get_recipe(recipe_id)
     except NotFound as exc:
@@ -110,7 +110,7 @@ async def pick(body: PickInput, services: ServicesDep, who: Operator) -> dict[st
 
 
 @router.get("/frames/{frame_id}.png", response_class=Response, responses={200: {"content": {"image/png": {}}}})
-def frame_png(frame_id: int, services: ServicesDep, _: Viewer) -> Response:
+def frame_png(frame_id: Annotated[int, Path(ge=1, le=2**62)], services: ServicesDep, _: Viewer) -> Response:
     try:
         f = services.frames.get(frame_id)
     except KeyError as exc:
