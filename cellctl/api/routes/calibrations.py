@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import tempfile
-from pathlib import Path
+from pathlib import Path as FilePath
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query
@@ -107,7 +107,7 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
         if format == "halcon":
             return PlainTextResponse(ex.halcon_cam_par(camera, pixel_pitch_um * 1e-6))
         with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "camera.yaml"
+            path = FilePath(tmp) / "camera.yaml"
             if format == "opencv":
                 ex.write_opencv_yaml(camera, path)
             else:
