@@ -124,6 +124,44 @@ class CalibrationDefaults(_Strict):
     verify_tolerance_mm: float = Field(0.5, gt=0)
 
 
+class ModbusServerConfig(_Strict):
+    """The Modbus TCP server for PLCs (register map: docs/plc-modbus.md). Modbus has no security:
+    bind it to the PLC's network only."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(5020, ge=1, le=65535)
+    unit_id: int = Field(1, ge=0, le=255)
+    """Modbus unit (device) id the server answers to; 0 answers every unit id."""
+
+
+class OpcUaServerConfig(_Strict):
+    """The OPC UA server for PLCs (address space: docs/plc-opcua.md)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(4840, ge=1, le=65535)
+    security: Literal["none", "basic256sha256"] = "none"
+    """none: the lab; basic256sha256: Basic256Sha256 SignAndEncrypt with ``cert``/``key`` (production)."""
+    cert: str | None = None
+    """Server application certificate (PEM or DER), e.g. /etc/cellctl/opcua/cert.pem."""
+    key: str | None = None
+    """Its private key (PEM), readable by the service user only."""
+    trusted_client_certs: str | None = None
+    """Directory of trusted client certificates (DER/PEM); None: any client certificate is accepted."""
+
+    @model_validator(mode="after")
+    def _certs(self) -> OpcUaServerConfig:
+        if self.security == "basic256sha256" and (self.cert is None or self.key is None):
+            raise ValueError("security basic256sha256 needs the server certificate and key: set cert and key")
+        return self
+
+
+class PlcConfig(_Strict):
+    modbus: ModbusServerConfig = ModbusServerConfig()
+    opcua: OpcUaServerConfig = OpcUaServerConfig()
+
+
 class CellConfig(_Strict):
     format_version: int = CONFIG_FORMAT_VERSION
     cell_id: str = Field("cell", pattern=r"^[A-Za-z0-9_.-]+$")
@@ -136,6 +174,8 @@ class CellConfig(_Strict):
     targets: dict[str, dict[str, Any]] = {}
     """Named calibration targets (the YAML of shared/INTERFACES.md §2)."""
     calibration: CalibrationDefaults = CalibrationDefaults()
+    plc: PlcConfig = PlcConfig()
+    """PLC-native front ends (Modbus TCP, OPC UA); both off unless enabled."""
 
     @field_validator("targets")
     @classmethod
