@@ -23,6 +23,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "sim",
     "record",
     "calib",
+    "job",
     "pose",
     "measure",
     "map",

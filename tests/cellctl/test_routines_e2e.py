@@ -198,3 +198,20 @@ def test_move_outside_envelope_is_refused_and_audited(served: Served) -> None:
         assert np.allclose(before, after, atol=1e-3)
         audit = http.get("/audit", params={"action": "robot.move"}).json()
         assert audit[0]["result"].startswith("refused")
+
+
+def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
+    r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
+                        "--token", served.token, "--param", "tolerance_px=2.0"],
+                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0, r.stderr
+    job = json.loads(r.stdout)
+    assert job["state"] == "succeeded" and job["result"]["tolerance_px"] == 2.0
+    assert "100.0%" in r.stderr and "succeeded" in r.stderr
+
+
+def test_cli_job_run_bad_token_is_one_line_error(served: Served) -> None:
+    r = subprocess.run([CELLCTL, "job", "run", "verify", "--url", served.base_url, "--token", "nope"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "401" in r.stderr
