@@ -53,10 +53,14 @@ MIN_TOP_RADIUS_PX = 8.0
 """Automatic pyramid depth: the top level must show the model at least this large."""
 MAX_TOP_CANDIDATES = 64
 HYPOTHESES_PER_POSITION = 3
+_TRACE: list[tuple[str, int, list[tuple[float, float, float, float]]]] | None = None
+"""Set to a list to record the candidates of each stage (diagnostics)."""
+TOP_STRIDE = 1
+"""Top-level positions are scored on a grid of this stride (responses spread to match)."""
 PERSPECTIVE_DEFAULT = True
 MAX_TOP_FEATURES = 32  # 4 * 60 < 255: uint8 accumulators cannot overflow
 MAX_TRACK_FEATURES = 64
-MAX_FINE_POINTS = 500
+MAX_FINE_POINTS = 240
 GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
 
 
@@ -427,7 +431,7 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
                 raise ValueError("too few clean edges in the ROI: choose a region that shows the part")
         pts = pts - ref / s
         if lv == 0:
-            sel = _spread_subset(pts, mag, MAX_FINE_POINTS, 1.5)
+            sel = _spread_subset(pts, mag, MAX_FINE_POINTS, 2.0)
             pts, nrm, mag = pts[sel], nrm[sel], mag[sel]
             feats = np.arange(len(pts), dtype=np.int64)
         else:
@@ -459,22 +463,37 @@ def _response_table() -> U8:
 
 
 _RESPONSE_TABLE = _response_table()
+_RESPONSE_LUT = np.zeros((N_BINS, 1, 256), np.uint8)
+_RESPONSE_LUT[:, 0, :4 * N_BINS + 1] = _RESPONSE_TABLE
 
 
-def response_maps(img: U8, thr: float, sigma: float = 0.0, spread: bool = True) -> U8:
-    """(N_BINS, H, W) uint8 responses 0..4 to each orientation bin, spread by a 3x3 max filter."""
+def response_maps(img: U8, thr: float, sigma: float = 0.0, spread: int = 3) -> U8:
+    """(N_BINS, H, W) uint8 responses 0..4 to each orientation bin, spread by a max filter.
+
+    ``spread`` is the max filter's size (1: none).
+    """
     gx, gy = gradients(img, sigma)
     mag = cv2.magnitude(gx, gy)
     ang = cv2.phase(gx, gy, angleInDegrees=True)  # 0..360
-    q = (ang * (4.0 * N_BINS / 180.0)).astype(np.int32) % (4 * N_BINS)
+    q = cv2.convertScaleAbs(ang, alpha=4.0 * N_BINS / 180.0, beta=-0.5)  # floor: quarter-bins 0..63
+    q = cv2.bitwise_and(q, 4 * N_BINS - 1)  # orientation modulo 180 deg
     q[mag < thr] = 4 * N_BINS
     h, w = img.shape
-    stack = np.zeros((N_BINS, h + 1, w), np.uint8)  # a zero row between bins keeps the max filter apart
-    stack[:, :h] = _RESPONSE_TABLE[:, q]
-    if not spread:
-        return np.ascontiguousarray(stack[:, :h])
-    flat = cv2.dilate(stack.reshape(N_BINS * (h + 1), w), np.ones((3, 3), np.uint8))
-    return np.ascontiguousarray(flat.reshape(N_BINS, h + 1, w)[:, :h])
+    out = np.empty((N_BINS, h, w), np.uint8)
+    for b in range(N_BINS):
+        cv2.LUT(q, _RESPONSE_LUT[b], dst=out[b])
+    return _spread(out, spread)
+
+
+def _spread(resp: U8, size: int) -> U8:
+    """Max filter of each bin's responses (``size`` x ``size``; 1 returns ``resp``)."""
+    if size <= 1:
+        return resp
+    nb, h, w = resp.shape
+    stack = np.zeros((nb, h + size // 2, w), np.uint8)  # zero rows between bins keep them apart
+    stack[:, :h] = resp
+    flat = cv2.dilate(stack.reshape(nb * (h + size // 2), w), np.ones((size, size), np.uint8))
+    return np.ascontiguousarray(flat.reshape(nb, h + size // 2, w)[:, :h])
 
 
 def _rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], NDArray[np.int64],
@@ -503,20 +522,26 @@ def _track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64
     na = 2 * n_steps + 1
     thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * da  # (C, na)
     c, s = np.cos(thetas)[..., None], np.sin(thetas)[..., None]
-    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)  # (C, 3, F)
-    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
+    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int32)  # (C, A, F)
+    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int32)
     phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
-    b = (np.floor(np.mod(phi, math.pi) / _BIN_W).astype(np.int64)) % N_BINS
+    b = (np.floor(np.mod(phi, math.pi) / _BIN_W).astype(np.int32)) % N_BINS
     _, h, w = resp.shape
+    P = int(math.ceil(lm.radius)) + reach + 2  # zero border: no bounds checks in the gather
+    padded = np.zeros((N_BINS, h + 2 * P, w + 2 * P), np.uint8)
+    padded[:, P:P + h, P:P + w] = resp
+    hp, wp = h + 2 * P, w + 2 * P
+    cx = np.clip(cx, 0, w - 1)
+    cy = np.clip(cy, 0, h - 1)
     offs = np.arange(-reach, reach + 1)
     npos = len(offs) ** 2
-    ox = (offs[None, :] * np.ones((len(offs), 1), np.int64)).ravel()
-    oy = (offs[:, None] * np.ones((1, len(offs)), np.int64)).ravel()
-    px_ = cx[:, None, None, None] + ox[None, None, :, None] + dx[:, :, None, :]  # (C, A, P, F)
-    py_ = cy[:, None, None, None] + oy[None, None, :, None] + dy[:, :, None, :]
-    ok = (px_ >= 0) & (px_ < w) & (py_ >= 0) & (py_ < h)
-    idx = (b[:, :, None, :] * h + np.clip(py_, 0, h - 1)) * w + np.clip(px_, 0, w - 1)
-    sc = (resp.ravel()[idx] * ok).sum(axis=3, dtype=np.int32).reshape(len(cx), -1)  # (C, 75)
+    ox = np.tile(offs, len(offs))
+    oy = np.repeat(offs, len(offs))
+    base = ((cy + P) * wp + cx + P).astype(np.int32)
+    pos = (oy * wp + ox).astype(np.int32)
+    feat = b * (hp * wp) + dy * wp + dx  # (C, A, F)
+    idx = base[:, None, None, None] + pos[None, None, :, None] + feat[:, :, None, :]  # (C, A, P, F)
+    sc = padded.ravel()[idx].sum(axis=3, dtype=np.int32).reshape(len(cx), -1)
     # ties (the spread responses make plateaus) go to the angle nearest the prediction, and the
     # position is the plateau's centre rather than its first pixel
     tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
@@ -634,7 +659,7 @@ def _refine_lsq(img_level: U8, lm: LevelModel, pose: _Pose, sigma: float, thr: f
             return _Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan")
         moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and (it > 0 or iterations == 1)))
         rng = max(rng * 0.6, 1.5)
-        if moved < 0.01:
+        if moved < 0.02:
             break
     if fine is not None:
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
@@ -712,6 +737,7 @@ def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float
 
 class _Clock:
     def __init__(self, timeout_s: float | None) -> None:
+        self.c0 = time.process_time()
         self.t0 = time.perf_counter()
         self.deadline = None if timeout_s is None else self.t0 + timeout_s
 
@@ -720,6 +746,9 @@ class _Clock:
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0
+
+    def cpu(self) -> float:
+        return time.process_time() - self.c0
 
 
 def _local_maxima(best: U8, thr: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -738,16 +767,16 @@ def _nms(poses: list[_Pose], min_dist: float) -> list[_Pose]:
 
 def _nms_pose(poses: list[_Pose], dist: float, dtheta: float) -> list[_Pose]:
     """Drop poses within ``dist`` and ``dtheta`` of a better one (poses sorted best first)."""
-    if not poses:
+    if len(poses) < 2:
         return poses
     P = np.array([[p.x, p.y, p.theta] for p in poses])
+    dd = (P[:, None, 0] - P[None, :, 0]) ** 2 + (P[:, None, 1] - P[None, :, 1]) ** 2
+    da = np.abs(np.mod(P[:, None, 2] - P[None, :, 2] + math.pi, 2 * math.pi) - math.pi)
+    close = (dd <= dist * dist) & (da <= dtheta)
     keep = np.ones(len(poses), bool)
     for i in range(len(poses)):
-        if not keep[i]:
-            continue
-        dd = (P[i + 1:, 0] - P[i, 0]) ** 2 + (P[i + 1:, 1] - P[i, 1]) ** 2
-        da = np.abs(np.angle(np.exp(1j * (P[i + 1:, 2] - P[i, 2]))))
-        keep[i + 1:] &= ~((dd <= dist * dist) & (da <= dtheta))
+        if keep[i]:
+            keep[i + 1:] &= ~close[i, i + 1:]
     return [p for p, k in zip(poses, keep, strict=True) if k]
 
 
@@ -781,7 +810,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     # 1. exhaustive search on the top level
     top = model.levels[L]
     s = 2.0 ** L
-    resp = response_maps(pyr[L], thr_grad)
+    resp = response_maps(pyr[L], thr_grad, spread=2 * TOP_STRIDE + 1)
     _, hL, wL = resp.shape
     rx0, ry0 = max(int(math.ceil(su / s)), 0), max(int(math.ceil(sv / s)), 0)
     rx1, ry1 = min(int(math.floor((su + sw) / s)), wL - 1), min(int(math.floor((sv + sh) / s)), hL - 1)
@@ -790,23 +819,28 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     if rx1 >= rx0 and ry1 >= ry0:
         thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step)
         dx, dy, b = _rotated_features(top, thetas)
-        P = int(max(np.abs(dx).max(), np.abs(dy).max())) + 1
-        pad = np.zeros((N_BINS, hL + 2 * P, wL + 2 * P), np.uint8)
+        T = TOP_STRIDE
+        P = int(max(np.abs(dx).max(), np.abs(dy).max())) + T + 1
+        pad = np.zeros((N_BINS, hL + 2 * P + T, wL + 2 * P + T), np.uint8)
         pad[:, P:P + hL, P:P + wL] = resp
-        nh, nw = ry1 - ry0 + 1, rx1 - rx0 + 1
+        # positions on a grid of stride T (LINE-MOD's linearised memories): one sub-sampled copy of
+        # the responses per grid phase, so every feature is one contiguous slice
+        phases = [[np.ascontiguousarray(pad[:, py::T, px::T]) for px in range(T)] for py in range(T)]
+        nh, nw = (ry1 - ry0) // T + 1, (rx1 - rx0) // T + 1
         nf = dx.shape[1]
         na = len(thetas)
         # one score map per angle, with a zero row below each so one max filter serves all
         allacc = np.zeros((na, nh + 1, nw), np.uint8)
-        oy, ox = P + ry0, P + rx0
-        dxl, dyl, bl = (dx + ox).tolist(), (dy + oy).tolist(), b.tolist()
+        ay, ax = dy + P + ry0, dx + P + rx0  # padded row/column of each feature at grid node (0, 0)
+        phy, phx, by_, bx_ = (ay % T).tolist(), (ax % T).tolist(), (ay // T).tolist(), (ax // T).tolist()
+        bl = b.tolist()
         done = na
         for ai in range(na):
             acc = allacc[ai, :nh]
-            xa, ya, ba = dxl[ai], dyl[ai], bl[ai]
+            fy, fx, oy_, ox_, ba = phy[ai], phx[ai], by_[ai], bx_[ai], bl[ai]
             for k in range(nf):
-                y, x = ya[k], xa[k]
-                np.add(acc, pad[ba[k], y:y + nh, x:x + nw], out=acc)
+                y, x = oy_[k], ox_[k]
+                np.add(acc, phases[fy[k]][fx[k]][ba[k], y:y + nh, x:x + nw], out=acc)
             if (ai & 7) == 7 and clock.expired():
                 timed_out = True
                 done = ai + 1
@@ -837,9 +871,12 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         ys, xs = rem // nw, rem % nw
         sc = flat[idx]
         order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
-        cands = [_Pose(float(xs[i] + rx0), float(ys[i] + ry0), float(thetas[ai_[i]]), sc[i] / (4.0 * nf))
-                 for i in order]
+        cands = [_Pose(float(T * xs[i] + rx0), float(T * ys[i] + ry0), float(thetas[ai_[i]]),
+                       sc[i] / (4.0 * nf)) for i in order]
+    if _TRACE is not None:
+        _TRACE.append(("top", L, [(c.x, c.y, c.theta, c.score) for c in cands]))
     stats["t_top_s"] = clock.elapsed()
+    stats["cpu_top_s"] = clock.cpu()
     stats["n_top_candidates"] = float(len(cands))
 
     # 2. discrete tracking down to level 2 (or 1 if the pyramid is short)
@@ -849,17 +886,25 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             break
         lm = model.levels[lv]
         last = lv == lowest_discrete
-        # the spread responses leave +-1 px plateaus; the last level is scored unspread, +-2 px
-        resp = response_maps(pyr[lv], thr_grad, spread=not last)
+        first = lv == L - 1
+        raw = response_maps(pyr[lv], thr_grad, spread=1)
+        spread = _spread(raw, 3)
         cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
         cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)  # plateau centres: *2, rounded
         th = np.array([c.theta for c in cands])
         nxt: list[_Pose] = []
         for start in range(0, len(cands), 32):
             sl = slice(start, start + 32)
-            # below the top level the angle is still coarse: +-2 steps there, +-1 further down
-            xs_, ys_, ts_, sc_ = _track(resp, lm, cx[sl], cy[sl], th[sl], 2 if lv == L - 1 else 1,
-                                        2 if last else 1)
+            # below the top level the angle and position are still coarse: +-2 steps and +-2 px
+            # (+-3 with the spread) there, +-1 further down
+            xs_, ys_, ts_, sc_ = _track(spread, lm, cx[sl], cy[sl], th[sl], 2 if first else 1,
+                                        2 if first else 1)
+            if last:
+                # the spread responses leave +-1 px plateaus: settle on the unspread ones
+                keep = sc_ >= sp.min_score * 0.7
+                xs_, ys_, ts_ = xs_[keep], ys_[keep], ts_[keep]
+                xs_, ys_, ts_, sc_ = _track(raw, lm, np.rint(xs_).astype(np.int64),
+                                            np.rint(ys_).astype(np.int64), ts_, 1, 1)
             nxt += [_Pose(float(a), float(b_), float(t_), float(c_))
                     for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True)
                     if c_ >= sp.min_score * (0.6 if last else 0.8)]
@@ -867,8 +912,11 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                 timed_out = True
                 break
         nxt.sort(key=lambda p: -p.score)
+        if _TRACE is not None:
+            _TRACE.append(("track", lv, [(c.x, c.y, c.theta, c.score) for c in nxt]))
         cands = _nms_pose(nxt, 2.0, 2.5 * lm.angle_step)
     stats["t_track_s"] = clock.elapsed()
+    stats["cpu_track_s"] = clock.cpu()
 
     # at most a few angle hypotheses per position go on to the (costlier) least-squares stage
     per_pos: list[list[_Pose]] = []
@@ -908,6 +956,8 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             if score >= sp.min_score * (0.8 if lv2 > 0 else 1.0):
                 nxt2.append((_Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
         nxt2.sort(key=lambda t: -t[2])
+        if _TRACE is not None:
+            _TRACE.append(("lsq", lv2, [(t[0].x, t[0].y, t[0].theta, t[2]) for t in nxt2]))
         kept: list[tuple[_Pose, int, float, float]] = []
         r2 = (min_dist / 2.0 ** lv2) ** 2
         for t in nxt2:
@@ -930,4 +980,5 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     if sp.max_count > 0:
         final = final[:sp.max_count]
     stats["t_total_s"] = clock.elapsed()
+    stats["cpu_total_s"] = clock.cpu()
     return FindResult(final, timed_out, clock.elapsed(), stats)
