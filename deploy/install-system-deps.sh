@@ -14,6 +14,8 @@ PACKAGES=(
   util-linux iproute2
   # store tests: a throwaway PostgreSQL cluster on loopback (plant-scale store backend)
   postgresql
+  # deployment tests: systemd-analyze verify/security of deploy/cellctl.service; openssl for TLS test certs
+  systemd openssl
 )
 
 missing=()
