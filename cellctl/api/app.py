@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from cellctl import __version__, metrics
 from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
-from cellctl.api.routes import calibrations, cameras, health, jobs, map, pick, robots, targets
+from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
 from cellctl.api.routes import metrics as metrics_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
@@ -57,7 +57,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.state.metrics = metrics.CellMetrics()
     app.add_middleware(RequestMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
-    for module in (health, cameras, robots, targets, calibrations, jobs, map, pick):
+    for module in (health, auth, cameras, robots, targets, calibrations, jobs, map, pick, ui):
         app.include_router(module.router)
     app.include_router(metrics_route.router)
     return app
