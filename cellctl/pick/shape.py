@@ -163,6 +163,8 @@ class SearchParams:
     timeout_s: float | None = None
     min_distance_px: float | None = None
     """Two matches closer than this are one (default: a third of the model's smaller size)."""
+    max_overlap: float = 0.5
+    """A match whose model rectangle overlaps a better one's by more than this fraction is dropped."""
     max_scale_dev: float = 0.1
     """The final fit may scale the model by up to this fraction (a slightly tilted view); 0: rigid."""
     perspective: bool = PERSPECTIVE_DEFAULT
@@ -780,6 +782,18 @@ def _nms_pose(poses: list[_Pose], dist: float, dtheta: float) -> list[_Pose]:
     return [p for p, k in zip(poses, keep, strict=True) if k]
 
 
+def _overlap(roi: tuple[float, float, float, float], a: Match, b: Match) -> float:
+    """Intersection of two matches' model rectangles over the smaller one (HALCON's MaxOverlap)."""
+    u, v, w, h = roi
+    ra = ((a.u_px, a.v_px), (w * a.scale, h * a.scale), -a.angle_deg)
+    rb = ((b.u_px, b.v_px), (w * b.scale, h * b.scale), -b.angle_deg)
+    kind, pts = cv2.rotatedRectangleIntersection(ra, rb)
+    if kind == cv2.INTERSECT_NONE or pts is None or len(pts) < 3:
+        return 0.0
+    inter = float(cv2.contourArea(cv2.convexHull(pts)))
+    return inter / max(min(ra[1][0] * ra[1][1], rb[1][0] * rb[1][1]), 1e-9)
+
+
 def _angles(start: float, extent: float, step: float) -> F64:
     if extent >= 2 * math.pi - 1e-9:
         n = int(math.ceil(2 * math.pi / step))
@@ -975,7 +989,8 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     found.sort(key=lambda m: -m.score)
     final: list[Match] = []
     for mt in found:
-        if all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2 for o in final):
+        if all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2
+               and _overlap(model.roi, mt, o) <= sp.max_overlap for o in final):
             final.append(mt)
     if sp.max_count > 0:
         final = final[:sp.max_count]

@@ -34,9 +34,11 @@ def test_round_trip_gives_the_same_matches(taught: tuple[pm.PartModel, np.ndarra
     assert d["teach"]["params"]["min_contrast"] == 12.0
     back = pm.PartModel.load(path)
     a, b = m.find(scene).matches, back.find(scene).matches
-    assert len(a) == len(b) == 1
-    assert b[0].u_px == pytest.approx(a[0].u_px, abs=2e-3)  # points are stored to 1e-4 px
-    assert b[0].angle_deg == pytest.approx(a[0].angle_deg, abs=2e-3)
+    assert len(a) == len(b) >= 1
+    for x, y in zip(a, b, strict=True):
+        assert y.u_px == pytest.approx(x.u_px, abs=2e-3)  # points are stored to 1e-4 px
+        assert y.angle_deg == pytest.approx(x.angle_deg, abs=2e-3)
+    assert a[0].u_px == pytest.approx(200.3, abs=0.1) and a[0].score > 0.9
 
 
 def test_blob_round_trip(taught: tuple[pm.PartModel, np.ndarray, np.ndarray], tmp_path: Path) -> None:
