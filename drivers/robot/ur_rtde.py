@@ -143,6 +143,7 @@ class URRTDERobot(RobotBase):
         self.reconnects = 0
         self.last_outage_s = 0.0
         self._outage_since: float | None = None
+        self._outage_lock = threading.Lock()
         self._last_seq = 0.0
         self._last_seq_change = 0.0
         self._worker_streaming = False
@@ -199,18 +200,16 @@ class URRTDERobot(RobotBase):
             with self._lock:
                 now = time.monotonic()
                 seq = self._shm[_SEQ]
-                age = self._sample_age()
-                if age is not None and age > self.config.state_max_age_s and self._outage_since is None:
-                    self._outage_since = now - (age - self.config.state_max_age_s)
-                    self.outages += 1
+                self._note_staleness()
                 if seq != self._last_seq:
                     self._last_seq = seq
                     self._last_seq_change = now
                     self._worker_streaming = True
                     self._backoff_s = self.config.reconnect_initial_s
-                    if self._outage_since is not None:
-                        self.last_outage_s = now - self._outage_since
-                        self._outage_since = None
+                    with self._outage_lock:
+                        if self._outage_since is not None:
+                            self.last_outage_s = now - self._outage_since
+                            self._outage_since = None
                     self._reason = ""
                     continue
                 proc = self._state_proc
@@ -253,10 +252,21 @@ class URRTDERobot(RobotBase):
             self._kill_state_worker()
         self._kill_control_worker(graceful=True)
 
+    def _note_staleness(self) -> None:
+        """Open an outage (counted once) when the newest sample is too old; the supervisor closes it."""
+        age = self._sample_age()
+        if age is not None and age > self.config.state_max_age_s:
+            with self._outage_lock:
+                if self._outage_since is None:
+                    self._outage_since = time.monotonic() - (age - self.config.state_max_age_s)
+                    self.outages += 1
+
     def health(self) -> dict[str, Any]:
         """``available``, ``reason``, outage and reconnect counts, the newest sample's age."""
         age = self._sample_age()
         available = age is not None and age <= self.config.state_max_age_s
+        if not available:
+            self._note_staleness()
         return {
             "available": available,
             "reason": "" if available else self._unavailable_reason(age),
@@ -295,6 +305,7 @@ class URRTDERobot(RobotBase):
         s = self._snapshot()
         age = None if s[_HOST_T] == 0.0 else time.time() - s[_HOST_T]
         if age is None or age > self.config.state_max_age_s:
+            self._note_staleness()
             raise DeviceUnavailable(f"robot {self.robot_id}: {self._unavailable_reason(age)}")
         pose = np.array(s[_POSE : _POSE + 6])
         qd = np.array(s[_QD : _QD + 6])

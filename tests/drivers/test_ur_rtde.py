@@ -13,13 +13,21 @@ import pytest
 from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
-from drivers.sim.ur_emulator import HOME_Q, forward_kinematics
+from drivers.sim.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from tests.drivers.peers import PeerProcess, wait_port
 
-LIMITS = MotionLimits(x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5,
-                      max_joint_speed_rad_s=1.0)
-SETTINGS = {"host": "127.0.0.1", "connect_timeout_s": 5.0, "state_max_age_s": 0.1, "stall_timeout_s": 0.5,
-            "command_timeout_s": 5.0, "reconnect_initial_s": 0.2, "reconnect_max_s": 1.0}
+LIMITS = MotionLimits(
+    x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5, max_joint_speed_rad_s=1.0
+)
+SETTINGS = {
+    "host": "127.0.0.1",
+    "connect_timeout_s": 5.0,
+    "state_max_age_s": 0.1,
+    "stall_timeout_s": 0.5,
+    "command_timeout_s": 5.0,
+    "reconnect_initial_s": 0.2,
+    "reconnect_max_s": 1.0,
+}
 
 
 @pytest.fixture
@@ -53,97 +61,114 @@ def test_registry_and_settings_validation() -> None:
         cls.Settings.model_validate({"host": "127.0.0.1", "port": 30004})
 
 
-def test_state_is_fresh_and_matches_the_controller(robot: URRTDERobot) -> None:
-    st = robot.state()
-    assert st.age_s() < 0.1
-    np.testing.assert_allclose(st.T_base_tool, forward_kinematics(np.array(HOME_Q)), atol=1e-6)
-    np.testing.assert_allclose(st.joints_rad, HOME_Q, atol=1e-9)
-    assert st.mode == "running" and not st.moving
-    # the stream is live: successive samples advance at the controller's rate
-    t1 = robot.state().metadata["controller_time_s"]
-    time.sleep(0.05)
-    t2 = robot.state().metadata["controller_time_s"]
-    assert 0.03 < t2 - t1 < 0.2
-
-
-def test_move_linear_arrives_at_the_commanded_pose_and_speed(robot: URRTDERobot) -> None:
-    start = robot.state().T_base_tool
-    target = start.copy()
-    target[:3, 3] += [0.03, -0.02, 0.05]  # metres
-    dist = float(np.linalg.norm([0.03, -0.02, 0.05]))
-    t0 = time.monotonic()
-    robot.move_linear(target, speed_m_s=0.2)
-    elapsed = time.monotonic() - t0
-    st = robot.state()
-    assert np.linalg.norm(st.T_base_tool[:3, 3] - target[:3, 3]) < 0.2e-3
-    np.testing.assert_allclose(st.T_base_tool[:3, :3], target[:3, :3], atol=1e-6)
-    # moved at 0.2 m/s: dist / speed = 0.31 s (plus handshake), never the mm/s or instant
-    assert dist / 0.2 * 0.9 < elapsed < dist / 0.2 + 1.0
-
-
-def test_move_joint_and_envelope(robot: URRTDERobot) -> None:
-    q = np.array(HOME_Q) + [0.1, 0.05, -0.05, 0.0, 0.0, 0.2]
-    robot.move_joint(q, speed_rad_s=0.5)
-    st = robot.state()
-    np.testing.assert_allclose(st.joints_rad, q, atol=2e-3)
-    np.testing.assert_allclose(st.T_base_tool, forward_kinematics(q), atol=1e-3)
-    before = robot.state().T_base_tool
-    outside = before.copy()
-    outside[2, 3] = -0.2
-    with pytest.raises(MotionRejected, match="z = -200.0 mm is outside"):
-        robot.move_linear(outside, speed_m_s=0.1)
-    with pytest.raises(MotionRejected, match="speed"):
-        robot.move_linear(before, speed_m_s=2.0)
-    # a joint target whose tool pose leaves the envelope is refused (the controller's kinematics)
-    with pytest.raises(MotionRejected, match="outside"):
-        robot.move_joint(np.array([0.0, -0.3, 2.2, 0.0, 0.0, 0.0]), speed_rad_s=0.5)
-    time.sleep(0.05)
-    np.testing.assert_allclose(robot.state().T_base_tool, before, atol=1e-9)
-
-
-def test_stop_interrupts_a_move(robot: URRTDERobot) -> None:
-    start = robot.state().T_base_tool
-    target = start.copy()
-    target[0, 3] += 0.2
-    errors: list[Exception] = []
-
-    def move() -> None:
+@pytest.fixture(scope="class")
+def shared_robot() -> Iterator[URRTDERobot]:
+    """One emulator and one connected adapter for the tests that do not break the peer."""
+    with fixed_port_lock():
+        peer = PeerProcess("drivers.sim.ur_emulator", ready_port=30003).start()
+        r = URRTDERobot("ur0", SETTINGS, LIMITS)
         try:
+            r.connect()
+            yield r
+        finally:
+            r.close()
+            peer.stop()
+
+
+class TestAgainstOneEmulator:
+    def test_state_is_fresh_and_matches_the_controller(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        st = robot.state()
+        assert st.age_s() < 0.1
+        np.testing.assert_allclose(st.T_base_tool, forward_kinematics(np.array(HOME_Q)), atol=1e-6)
+        np.testing.assert_allclose(st.joints_rad, HOME_Q, atol=1e-9)
+        assert st.mode == "running" and not st.moving
+        # the stream is live: successive samples advance at the controller's rate
+        t1 = robot.state().metadata["controller_time_s"]
+        time.sleep(0.05)
+        t2 = robot.state().metadata["controller_time_s"]
+        assert 0.0 < t2 - t1 < 0.5  # the controller clock advances (loosely: the machine is shared)
+
+    def test_move_linear_arrives_at_the_commanded_pose_and_speed(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        start = robot.state().T_base_tool
+        target = start.copy()
+        target[:3, 3] += [0.03, -0.02, 0.05]  # metres
+        dist = float(np.linalg.norm([0.03, -0.02, 0.05]))
+        robot.move_linear(start, speed_m_s=0.2)  # starts the control connection (not timed)
+        t0 = time.monotonic()
+        robot.move_linear(target, speed_m_s=0.2)
+        elapsed = time.monotonic() - t0
+        st = robot.state()
+        assert np.linalg.norm(st.T_base_tool[:3, 3] - target[:3, 3]) < 0.2e-3
+        np.testing.assert_allclose(st.T_base_tool[:3, :3], target[:3, :3], atol=1e-6)
+        # moved at 0.2 m/s: dist / speed = 0.31 s (plus handshake), never the mm/s or instant
+        assert dist / 0.2 * 0.9 < elapsed < dist / 0.2 + 1.0
+
+    def test_move_joint_and_envelope(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        q = np.array(HOME_Q) + [0.1, 0.05, -0.05, 0.0, 0.0, 0.2]
+        robot.move_joint(q, speed_rad_s=0.5)
+        st = robot.state()
+        np.testing.assert_allclose(st.joints_rad, q, atol=2e-3)
+        np.testing.assert_allclose(st.T_base_tool, forward_kinematics(q), atol=1e-3)
+        before = robot.state().T_base_tool
+        outside = before.copy()
+        outside[2, 3] = -0.2
+        with pytest.raises(MotionRejected, match="z = -200.0 mm is outside"):
+            robot.move_linear(outside, speed_m_s=0.1)
+        with pytest.raises(MotionRejected, match="speed"):
+            robot.move_linear(before, speed_m_s=2.0)
+        # a joint target whose tool pose leaves the envelope is refused (the controller's kinematics)
+        with pytest.raises(MotionRejected, match="outside"):
+            robot.move_joint(np.array([0.0, -0.3, 2.2, 0.0, 0.0, 0.0]), speed_rad_s=0.5)
+        time.sleep(0.05)
+        np.testing.assert_allclose(robot.state().T_base_tool, before, atol=1e-9)
+
+    def test_stop_interrupts_a_move(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        start = robot.state().T_base_tool
+        target = start.copy()
+        target[0, 3] += 0.2
+        errors: list[Exception] = []
+
+        def move() -> None:
+            try:
+                robot.move_linear(target, speed_m_s=0.1)
+            except Exception as exc:
+                errors.append(exc)
+
+        th = threading.Thread(target=move)
+        th.start()
+        wait_for(lambda: robot.state().moving, 5.0)
+        time.sleep(0.3)
+        robot.stop()
+        th.join(timeout=5)
+        assert not th.is_alive()
+        assert errors and isinstance(errors[0], DeviceOperationError)
+        time.sleep(0.05)
+        travelled = robot.state().T_base_tool[0, 3] - start[0, 3]
+        assert 0.02 < travelled < 0.15
+
+    def test_digital_io_and_dashboard(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        robot.set_digital_out(3, True)
+        wait_for(lambda: robot.state().metadata["digital_out"][3], 2.0)
+        assert robot.state().metadata["digital_in"][3]  # the emulator wires output i to input i
+        robot.set_digital_out(3, False)
+        wait_for(lambda: not robot.state().metadata["digital_in"][3], 2.0)
+        assert robot.dashboard("robotmode") == "Robotmode: RUNNING"
+        robot.dashboard("powerOff")
+        wait_for(lambda: robot.state().metadata["robot_mode"] == "power_off", 2.0)
+        target = robot.state().T_base_tool.copy()
+        target[2, 3] += 0.01
+        with pytest.raises(DeviceOperationError, match="power_off"):
             robot.move_linear(target, speed_m_s=0.1)
-        except Exception as exc:
-            errors.append(exc)
-
-    th = threading.Thread(target=move)
-    th.start()
-    wait_for(lambda: robot.state().moving, 5.0)
-    time.sleep(0.3)
-    robot.stop()
-    th.join(timeout=5)
-    assert not th.is_alive()
-    assert errors and isinstance(errors[0], DeviceOperationError)
-    time.sleep(0.05)
-    travelled = robot.state().T_base_tool[0, 3] - start[0, 3]
-    assert 0.02 < travelled < 0.15
-
-
-def test_digital_io_and_dashboard(robot: URRTDERobot) -> None:
-    robot.set_digital_out(3, True)
-    wait_for(lambda: robot.state().metadata["digital_out"][3], 2.0)
-    assert robot.state().metadata["digital_in"][3]  # the emulator wires output i to input i
-    robot.set_digital_out(3, False)
-    wait_for(lambda: not robot.state().metadata["digital_in"][3], 2.0)
-    assert robot.dashboard("robotmode") == "Robotmode: RUNNING"
-    robot.dashboard("powerOff")
-    wait_for(lambda: robot.state().metadata["robot_mode"] == "power_off", 2.0)
-    target = robot.state().T_base_tool.copy()
-    target[2, 3] += 0.01
-    with pytest.raises(DeviceOperationError, match="power_off"):
+        robot.power_on()
+        robot.brake_release()
+        wait_for(lambda: robot.state().metadata["robot_mode"] == "running", 2.0)
         robot.move_linear(target, speed_m_s=0.1)
-    robot.power_on()
-    robot.brake_release()
-    wait_for(lambda: robot.state().metadata["robot_mode"] == "running", 2.0)
-    robot.move_linear(target, speed_m_s=0.1)
-    assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
+        assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
 
 
 def test_connect_timeout_without_a_controller(ur_ports: None) -> None:
