@@ -47,7 +47,7 @@ U8 = NDArray[np.uint8]
 
 N_BINS = 8
 _BIN_W = math.pi / N_BINS
-TOP_STEP_FACTOR = 1.4
+TOP_STEP_FACTOR = 1.8
 """Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
 MIN_TOP_RADIUS_PX = 8.0
 """Automatic pyramid depth: the top level must show the model at least this large."""
@@ -58,7 +58,7 @@ _TRACE: list[tuple[str, int, list[tuple[float, float, float, float]]]] | None = 
 TOP_STRIDE = 1
 """Top-level positions are scored on a grid of this stride (responses spread to match)."""
 PERSPECTIVE_DEFAULT = True
-MAX_TOP_FEATURES = 32  # 4 * 60 < 255: uint8 accumulators cannot overflow
+MAX_TOP_FEATURES = 24  # 4 * 63 < 256: uint8 accumulators cannot overflow (keep <= 63)
 MAX_TRACK_FEATURES = 64
 MAX_FINE_POINTS = 240
 GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
