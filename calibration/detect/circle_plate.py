@@ -264,8 +264,13 @@ def _disc_mean(grey: NDArray[np.uint8], uv: FloatArray, radius: float) -> float:
     return float(grey[v0 : v1 + 1, u0 : u1 + 1][m].mean())
 
 
-def _orientation(grey: NDArray[np.uint8], H: FloatArray, cols: int, rows: int) -> tuple[int, str]:
-    """Which inner frame corner holds the triangle: 0 (-1,-1), 1 (C,-1), 2 (C,R), 3 (-1,R); -1 if unreadable."""
+def _orientation(grey: NDArray[np.uint8], H: FloatArray, cols: int, rows: int,
+                 grid_xy: FloatArray | None = None, uv: FloatArray | None = None) -> tuple[int, str]:
+    """Which inner frame corner holds the triangle: 0 (-1,-1), 1 (C,-1), 2 (C,R), 3 (-1,R); -1 if unreadable.
+
+    Each corner is probed through a homography fitted to the marks near that corner (lens
+    distortion makes the plate-wide ``H`` extrapolate poorly to the frame), falling back to ``H``.
+    """
     C, R = cols, rows
     e = TRIANGLE_INSET
     corners = np.array([[-1, -1], [C, -1], [C, R], [-1, R]], dtype=np.float64)
@@ -273,13 +278,21 @@ def _orientation(grey: NDArray[np.uint8], H: FloatArray, cols: int, rows: int) -
     probes = corners + e * inward
     white = corners + 0.5 * inward  # bright plate between the frame corner and the corner mark
     dark = corners - 0.25 * inward  # on the frame itself
+    Hk = []
+    for k in range(4):
+        Hc = None
+        if grid_xy is not None and uv is not None:
+            near = np.max(np.abs(grid_xy - (corners[k] + inward[k])), axis=1) <= 2
+            if near.sum() >= 6:
+                Hc = _fit_h(grid_xy[near], uv[near])
+        Hk.append(H if Hc is None else Hc)
     scale = np.hypot(*(_apply_h(H, np.array([[0.0, 0.0], [1.0, 0.0]]))[1] - _apply_h(H, np.array([[0.0, 0.0]]))[0]))
     r = max(1.0, 0.06 * scale)
     t = []
     for k in range(4):
-        p = _disc_mean(grey, _apply_h(H, probes[k : k + 1])[0], r)
-        wv = _disc_mean(grey, _apply_h(H, white[k : k + 1])[0], r)
-        dv = _disc_mean(grey, _apply_h(H, dark[k : k + 1])[0], r)
+        p = _disc_mean(grey, _apply_h(Hk[k], probes[k : k + 1])[0], r)
+        wv = _disc_mean(grey, _apply_h(Hk[k], white[k : k + 1])[0], r)
+        dv = _disc_mean(grey, _apply_h(Hk[k], dark[k : k + 1])[0], r)
         if not (np.isfinite(p) and np.isfinite(wv) and np.isfinite(dv)) or wv - dv < 10:
             t.append(np.nan)
         else:
@@ -509,9 +522,10 @@ def _weighted_local_h(grid_xy: FloatArray, uv: FloatArray, w: FloatArray) -> Flo
 def _consistent(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int = 2) -> NDArray[np.bool_]:
     """Marks whose position agrees with the homography of their grid neighbours (leave-one-out).
 
-    The tolerance is 1.5% of the local pitch plus 0.15 px: far above the sub-pixel noise and the
-    residual of a local homography under lens distortion, far below the shift of a half-hidden
-    mark. The worst offender is dropped and the test repeated.
+    The tolerance is 1.5% of the local pitch plus 0.15 px (far above the sub-pixel noise, far below
+    the ~10% of a pitch that a half-hidden mark's centre moves), or four times the median
+    residual when strong lens distortion makes the local homography itself that inexact. The
+    worst offender is dropped and the test repeated.
     """
     n = len(uv)
     keep = np.ones(n, dtype=bool)
@@ -524,7 +538,9 @@ def _consistent(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int = 2) -> 
         pred = H[:, :2, 2] / H[:, 2:3, 2]  # image of the mark's own grid point, relative to its uv
         step_h = H @ np.array([1.0, 0.0, 1.0])
         step = step_h[:, :2] / step_h[:, 2:3] - pred
-        resid = np.hypot(*pred.T) / (0.015 * np.hypot(*step.T) + 0.15)
+        resid_px = np.hypot(*pred.T)
+        typical = float(np.median(resid_px[keep])) if keep.any() else 0.0
+        resid = resid_px / np.maximum(0.015 * np.hypot(*step.T) + 0.15, 4.0 * typical)
         resid[~np.isfinite(resid)] = np.inf
         worst = int(np.argmax(np.where(keep, resid, -1.0)))
         if resid[worst] <= 1.0:
@@ -588,7 +604,7 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
                              f"grid found ({unmatched} other blobs inside the frame)")
                 failure = failure if failure and failure.stage > f.stage else f
                 continue
-            k, why = _orientation(grey, H, cols, rows)
+            k, why = _orientation(grey, H, cols, rows, _grid_xy(ids, cols), frame.marks[idx])
             if k >= 0 and cols != rows and k in (1, 3):
                 k, why = -1, ("orientation unreadable: the triangle is in a corner that does not fit the "
                               f"plate's {cols}x{rows} shape")
