@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -252,3 +254,29 @@ def test_malformed_replies(ur_ports: None) -> None:
         stop.set()
         th.join(timeout=2)
         srv.close()
+
+
+PROTECTIVE_STOP = """
+import rtde_control
+c = rtde_control.RTDEControlInterface("127.0.0.1")
+c.triggerProtectiveStop()
+c.disconnect()
+"""
+
+
+def test_protective_stop_is_reported_and_cleared_through_the_dashboard(robot: URRTDERobot) -> None:
+    target = robot.state().T_base_tool.copy()
+    target[2, 3] += 0.01
+    robot.move_linear(target, speed_m_s=0.1)
+    # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol
+    subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, timeout=60, check=True)
+    wait_for(lambda: robot.state().metadata["safety_mode"] == "protective_stop", 2.0)
+    assert robot.state().mode == "protective_stop"
+    target[2, 3] += 0.01
+    with pytest.raises(DeviceOperationError, match="protective_stop"):
+        robot.move_linear(target, speed_m_s=0.1)
+    assert "PROTECTIVE_STOP" in robot.dashboard("safetystatus")
+    robot.unlock_protective_stop()
+    wait_for(lambda: robot.state().metadata["safety_mode"] == "normal", 2.0)
+    robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
+    assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
