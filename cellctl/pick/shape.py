@@ -2,29 +2,36 @@
 
 The model is a set of edge points with their gradient directions, taken from the teach image's
 ROI on every level of an image pyramid (``cv2.pyrDown``: level-``l`` pixel ``x`` lies at
-level-0 ``2**l * x``). Matching ignores edge polarity (orientations modulo 180°), so contrast
-reversal and uneven light do not matter; only a minimum edge contrast does.
+level-0 ``2**l * x``); the ROI centre is the reference point. Matching ignores edge polarity
+(orientations modulo 180°), so contrast reversal and uneven light do not matter; only a minimum
+edge contrast does.
 
 Search, coarse to fine:
 
 1. **Top level, exhaustive** (line2Dup / LINE-MOD style): the image's gradient orientation is
-   quantized into 8 bins over 180°; per bin a response map (0..4 by orientation difference),
-   spread by a 3x3 max filter. A rotated template's score map is the sum of its features'
-   response maps shifted by the rotated feature offsets — one vectorised ``uint8`` add per
-   feature and angle, all positions at once. Angle step ``1/r`` (r: model radius at that
-   level), so a feature moves at most half a pixel between steps. Local maxima over position
-   and angle, then non-maximum suppression by distance.
-2. **Tracking down the pyramid**: each candidate is re-scored on the next finer level's
-   response maps over +-2 px and +-1 (halved) angle step, with one vectorised gather.
+   quantized into 8 bins over 180°; per bin a response map (0..4 by orientation difference,
+   through ``cv2.LUT``), spread by a 3x3 max filter. A rotated template's score map is the sum
+   of its features' response maps shifted by the rotated feature offsets — one vectorised
+   ``uint8`` add per feature and angle, all positions at once. Angle step ``1.8/r`` (r: model
+   radius at that level). Local maxima over position *and* angle, so several angle hypotheses
+   of a nearly symmetric part survive.
+2. **Tracking down the pyramid** (batched gathers): on the level below the top, +-2 angle steps
+   and +-2 px on spread responses; on each finer level +-1; on the last discrete level a second
+   pass on unspread responses settles the +-1 px plateaus the spreading leaves.
 3. **Least-squares refinement** on level 1, then level 0: each model edge point is moved along
    its (rotated) normal to the nearest image edge of matching orientation (peak of the gradient
-   component along the normal, sub-pixel by a Gaussian fit to three samples), and Gauss-Newton
-   on (u, v, angle) minimises the squared normal distances with Tukey weights (occlusion and
-   clutter get weight 0).
+   component along the normal, sub-pixel by a Gaussian fit), and Gauss-Newton on (u, v, angle,
+   scale) minimises the squared normal distances with Tukey weights (occlusion and clutter get
+   weight 0). On level 0 the edge positions are then taken as the centroid of the intensity
+   profile's differences along the normal — exact for a step edge whatever its sub-pixel phase,
+   where a peak fit aliases by a few hundredths of a pixel — and the fit ends with a plane
+   homography (a slightly tilted camera's perspective), whose local linear map at the reference
+   point gives the angle and scale.
 
-The final score is the mean over model points of ``|cos|`` of the orientation difference times
-a distance weight — the fraction of the model's edges that are seen where they should be, so it
-falls smoothly with occlusion (about 0.7 with 30 % of the outline hidden).
+The score is the mean over model points of ``|cos|`` of the orientation difference times a
+distance weight at the final pose — the fraction of the model's edges that are seen where they
+should be, so it falls smoothly with occlusion. Matches closer than a third of the ROI's smaller
+side, or whose model rectangles overlap a better match by more than ``max_overlap``, are dropped.
 
 Own code over OpenCV primitives: OpenCV has no rotation-invariant shape matcher with sub-pixel
 refinement (``matchTemplate`` is translation-only, ``matchShapes`` gives no pose).
@@ -270,22 +277,17 @@ def _gauss_peak(gm: F64, g0: F64, gp: F64) -> F64:
 CENTROID_HALF_WIDTH = 3
 
 
-def centroid_offsets(img: F32, q: F64, n: F64, half_width: int = CENTROID_HALF_WIDTH) -> tuple[F64, F64]:
+def _centroid(img: F32, q: F64, n: F64, half_width: int = CENTROID_HALF_WIDTH
+              ) -> tuple[F64, F64, F64]:
     """Edge offsets along the normals by the centroid of the intensity profile's differences.
 
     Samples ``img`` at ``q + t n`` for ``t = -K..K`` (bilinear) and returns
-    ``(offset, contrast)`` with ``offset = sum (t+1/2) D_t / sum D_t`` over the signed
+    ``(offset, contrast, differences)`` with ``offset = sum (t+1/2) D_t / sum D_t`` over the signed
     differences ``D_t`` of the profile. For a monotonic step that fits in the window this is exact
     whatever the edge's sub-pixel phase — unlike a peak fit, which aliases by a few hundredths of
     a pixel on sharp, pixel-integrated edges — and bilinear interpolation along an axis-aligned
     normal does not change it. ``contrast`` is the signed step ``I(K) - I(-K)``.
     """
-    off, S, _ = _centroid(img, q, n, half_width)
-    return off, S
-
-
-def _centroid(img: F32, q: F64, n: F64, half_width: int = CENTROID_HALF_WIDTH
-              ) -> tuple[F64, F64, F64]:
     ts = np.arange(-half_width, half_width + 1, dtype=np.float64)
     sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
     sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
@@ -751,20 +753,6 @@ class _Clock:
 
     def cpu(self) -> float:
         return time.process_time() - self.c0
-
-
-def _local_maxima(best: U8, thr: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    dil = cv2.dilate(best, np.ones((3, 3), np.uint8))
-    ys, xs = np.nonzero((best == dil) & (best >= thr))
-    return xs.astype(np.int64), ys.astype(np.int64)
-
-
-def _nms(poses: list[_Pose], min_dist: float) -> list[_Pose]:
-    out: list[_Pose] = []
-    for p in sorted(poses, key=lambda p: -p.score):
-        if all((p.x - o.x) ** 2 + (p.y - o.y) ** 2 >= min_dist * min_dist for o in out):
-            out.append(p)
-    return out
 
 
 def _nms_pose(poses: list[_Pose], dist: float, dtheta: float) -> list[_Pose]:
