@@ -10,12 +10,16 @@ PACKAGES=(
   libgirepository1.0-dev libcairo2-dev pkg-config
   # serial tests: pseudo-terminal pairs
   socat
+  # README tour commands
+  curl
   # network namespaces for loopback-only camera tests (unshare, ip)
   util-linux iproute2
   # store tests: a throwaway PostgreSQL cluster on loopback (plant-scale store backend)
   postgresql
   # deployment tests: systemd-analyze verify/security of deploy/cellctl.service; openssl for TLS test certs
   systemd openssl
+  # operator web page tests: headless Chromium driven by Playwright (executable_path=/usr/bin/chromium)
+  chromium chromium-driver
 )
 
 missing=()
