@@ -181,6 +181,7 @@ class HandEyeResult:
             "robot_noise": {
                 "sigma_mm": self.robot_noise.sigma_mm,
                 "sigma_deg": self.robot_noise.sigma_deg,
+                "estimated": any(p.code == "robot_noise_estimated" for p in self.problems),
                 "model": "per axis, base frame: position N(0, sigma_mm^2), orientation Exp(w) with "
                          "w ~ N(0, sigma_deg^2)",
             },
@@ -620,6 +621,26 @@ class _LMResult:
     cost: float
 
 
+def _vce_robot_noise(job: _Joint, res: _LMResult, noise: RobotNoise) -> RobotNoise:
+    """One variance-component step for the two robot groups (orientation, position).
+
+    Each prior row has one non-zero, so its leverage is ``J_ii² (JᵀJ)⁻¹_cc``; the group's new
+    variance is the old one times ``Σ r² / Σ (1 - h)`` (Förstner's estimator)."""
+    J = res.jac
+    Ninv = np.linalg.inv(np.einsum("ij,ik->jk", J, J))
+    base = 2 * job.n_obs
+    n = job.n
+    out = []
+    for g, sig in ((0, np.radians(noise.sigma_deg)), (1, noise.sigma_mm * 1e-3)):
+        rows = base + 3 * n * g + np.arange(3 * n)
+        cols = 12 + 6 * np.repeat(np.arange(n), 3) + 3 * g + np.tile(np.arange(3), n)
+        h = J[rows, cols] ** 2 * Ninv[cols, cols]
+        red = max(float(np.sum(1.0 - h)), 1e-9)
+        factor = float(res.fun[rows] @ res.fun[rows]) / red
+        out.append(sig * np.sqrt(max(factor, 1e-6)))
+    return RobotNoise(sigma_mm=max(float(out[1]) * 1e3, 1e-4), sigma_deg=max(float(np.degrees(out[0])), 1e-5))
+
+
 def _refine(setup: str, stations: Sequence[Station], camera: CameraModel, sigma_px: float, noise: RobotNoise,
             X0: Mat4, Z0: Mat4) -> tuple[_Joint, Any]:
     job = _Joint(setup, stations, camera, sigma_px, noise, X0, Z0)
@@ -644,13 +665,17 @@ def calibrate_handeye(
     sigma_px: float | None = None,
     leave_one_out: bool = True,
     drop_outliers: bool = True,
+    estimate_robot_noise: bool = False,
 ) -> HandEyeResult:
     """Hand-eye calibration of ``setup`` from robot poses and per-image target detections.
 
     Runs the checks (pose count, robot-pose conventions, degenerate motion, mis-paired images),
     the closed forms, the joint maximum-likelihood refinement, the covariance and (optionally)
-    leave-one-out prediction. Raises HandEyeError/ConventionError with an actionable message when
-    the data cannot give a trustworthy result.
+    leave-one-out prediction. With ``estimate_robot_noise`` the robot's position and orientation
+    sigmas are estimated from the data (variance-component estimation, starting from
+    ``robot_noise``) — for real robots whose absolute error is unknown. Raises
+    HandEyeError/ConventionError with an actionable message when the data cannot give a
+    trustworthy result.
     """
     t_start = time.perf_counter()
     if setup not in SETUPS:
@@ -725,6 +750,19 @@ def calibrate_handeye(
             best_name, best_rms, best_X, best_Z = name, rms, Xc, Zc
 
     job, res = _refine(setup, stations, camera, sigma_px, noise, best_X, best_Z)
+    if estimate_robot_noise:
+        for _ in range(8):
+            new = _vce_robot_noise(job, res, noise)
+            done = (abs(np.log(new.sigma_mm / noise.sigma_mm)) < 0.02
+                    and abs(np.log(new.sigma_deg / noise.sigma_deg)) < 0.02)
+            noise = new
+            X1, Z1, _ = job.poses(res.x)
+            job, res = _refine(setup, stations, camera, sigma_px, noise, X1, Z1)
+            if done:
+                break
+        problems.append(Problem("robot_noise_estimated",
+                                f"robot noise estimated from the data: {noise.sigma_mm:.3g} mm / "
+                                f"{noise.sigma_deg:.3g} deg (1-sigma per axis)"))
     X, Z, Gc = job.poses(res.x)
     for name, Xc in candidates.items():
         r, t = transform_error_deg_mm(Xc, X)

@@ -36,6 +36,8 @@ def register(sub: Any) -> None:
                    help="robot position noise, 1-sigma per axis, mm (default 0.05, UR-class)")
     p.add_argument("--robot-sigma-deg", type=float, default=0.01,
                    help="robot orientation noise, 1-sigma per axis, deg (default 0.01)")
+    p.add_argument("--estimate-robot-noise", action="store_true",
+                   help="estimate the robot's noise from the data (real robots: absolute error is often mm)")
     p.add_argument("--no-loo", action="store_true", help="skip the leave-one-out validation (faster)")
     p.add_argument("--out", dest="out_json", help="write he.json here too")
     p.set_defaults(func=run)
@@ -97,7 +99,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
     result = calibrate_handeye(args.setup, poses.T_base_tool, detections, camera, target, noise,
-                               raw_ur_poses=poses.ur_poses, leave_one_out=not args.no_loo)
+                               raw_ur_poses=poses.ur_poses, leave_one_out=not args.no_loo,
+                               estimate_robot_noise=args.estimate_robot_noise)
     out = result.to_json()
     for prob in out["verdict"]["problems"]:
         print(f"cellctl: {prob['severity']}: {prob['message']}", file=sys.stderr)
