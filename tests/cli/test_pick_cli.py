@@ -134,3 +134,13 @@ def test_corrupt_model_file(files: Files) -> None:
     (d / "corrupt.json").write_text('{"format_version": 1, "mode": "shape", "teach": {"roi": [1, 2]}}')
     r = run("pick", "find", "--model", str(d / "corrupt.json"), str(d / "scene.png"))
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_strict_size_refuses_other_image_sizes(files: Files) -> None:
+    d = files.dir
+    run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out", str(d / "s.json"))
+    small = cv2.imread(str(d / "scene.png"), cv2.IMREAD_GRAYSCALE)[:400, :600]
+    cv2.imwrite(str(d / "small.png"), small)
+    r = run("pick", "find", "--strict-size", "--model", str(d / "s.json"), str(d / "small.png"))
+    assert r.returncode == 2 and "600x400" in r.stderr and "640x480" in r.stderr
+    assert "Traceback" not in r.stderr
