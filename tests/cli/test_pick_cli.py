@@ -139,8 +139,9 @@ def test_corrupt_model_file(files: Files) -> None:
 def test_strict_size_refuses_other_image_sizes(files: Files) -> None:
     d = files.dir
     run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out", str(d / "s.json"))
-    small = cv2.imread(str(d / "scene.png"), cv2.IMREAD_GRAYSCALE)[:400, :600]
-    cv2.imwrite(str(d / "small.png"), small)
+    full = cv2.imread(str(d / "scene.png"), cv2.IMREAD_GRAYSCALE)
+    assert full is not None
+    cv2.imwrite(str(d / "small.png"), full[:400, :600])
     r = run("pick", "find", "--strict-size", "--model", str(d / "s.json"), str(d / "small.png"))
     assert r.returncode == 2 and "600x400" in r.stderr and "640x480" in r.stderr
     assert "Traceback" not in r.stderr
