@@ -70,6 +70,7 @@ def serve(
     sim = LightControllerSim(channels)
     stop = stop or threading.Event()
     with serial.Serial(port, baudrate=baudrate, timeout=0.1) as ser:
+        print(f"light controller simulator ready on {port}", flush=True)
         buf = b""
         while not stop.is_set():
             chunk = ser.read(256)

@@ -32,17 +32,33 @@ def wait_port(port: int, timeout_s: float = 10.0, host: str = "127.0.0.1") -> No
 class PeerProcess:
     """A peer started as ``python -m module args`` in its own process; stopped by its pid only."""
 
-    def __init__(self, module: str, *args: str, ready_port: int | None = None) -> None:
+    def __init__(self, module: str, *args: str, ready_port: int | None = None, ready_text: str | None = None) -> None:
         self.module = module
         self.args = args
         self.ready_port = ready_port
+        self.ready_text = ready_text
         self.proc: subprocess.Popen[bytes] | None = None
 
-    def start(self) -> PeerProcess:
+    def start(self, timeout_s: float = 15.0) -> PeerProcess:
+        """Start the peer; wait for its port to accept, or for ``ready_text`` on its stdout."""
         self.proc = subprocess.Popen([sys.executable, "-m", self.module, *self.args], cwd=REPO,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                     stdout=subprocess.PIPE if self.ready_text else subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL)
         if self.ready_port is not None:
-            wait_port(self.ready_port)
+            wait_port(self.ready_port, timeout_s)
+        if self.ready_text is not None:
+            assert self.proc.stdout is not None
+            stdout = self.proc.stdout
+            found = threading.Event()
+
+            def watch() -> None:
+                for line in stdout:
+                    if self.ready_text and self.ready_text.encode() in line:
+                        found.set()
+
+            threading.Thread(target=watch, daemon=True).start()
+            if not found.wait(timeout_s):
+                raise TimeoutError(f"{self.module} did not print {self.ready_text!r} within {timeout_s} s")
         return self
 
     @property

@@ -26,8 +26,9 @@ def pty_pair(tmp_path: Path) -> Iterator[SocatPair]:
 
 
 def start_sim(pair: SocatPair, *extra: str) -> PeerProcess:
-    peer = PeerProcess("drivers.sim.robotiq_gripper", "--port", str(pair.b), *extra).start()
-    time.sleep(0.8)  # the simulator opens its end of the pty
+    peer = PeerProcess(
+        "drivers.sim.robotiq_gripper", "--port", str(pair.b), *extra, ready_text="gripper simulator on"
+    ).start()
     return peer
 
 
@@ -89,8 +90,9 @@ def test_no_object_and_move_before_activation(pty_pair: SocatPair) -> None:
         peer.stop()
 
 
-def test_read_timeout_peer_killed_and_restarted(gripper: tuple[RobotiqGripper, PeerProcess],
-                                                 pty_pair: SocatPair) -> None:
+def test_read_timeout_peer_killed_and_restarted(
+    gripper: tuple[RobotiqGripper, PeerProcess], pty_pair: SocatPair
+) -> None:
     g, peer = gripper
     peer.kill()
     t0 = time.monotonic()

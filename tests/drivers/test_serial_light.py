@@ -24,16 +24,16 @@ def pty_pair(tmp_path: Path) -> Iterator[SocatPair]:
 
 
 def start_sim(pair: SocatPair, *extra: str) -> PeerProcess:
-    peer = PeerProcess("drivers.sim.serial_light", "--port", str(pair.b), *extra).start()
-    time.sleep(0.4)  # the simulator opens its end
+    peer = PeerProcess("drivers.sim.serial_light", "--port", str(pair.b), *extra, ready_text="ready on").start()
     return peer
 
 
 @pytest.fixture
 def light(pty_pair: SocatPair) -> Iterator[tuple[SerialLightController, PeerProcess]]:
     peer = start_sim(pty_pair)
-    ctl = SerialLightController("light0", {"port": str(pty_pair.a), "timeout_s": 0.3, "reconnect_initial_s": 0.1,
-                                           "reconnect_max_s": 0.4})
+    ctl = SerialLightController(
+        "light0", {"port": str(pty_pair.a), "timeout_s": 0.3, "reconnect_initial_s": 0.1, "reconnect_max_s": 0.4}
+    )
     ctl.open()
     try:
         yield ctl, peer
@@ -68,8 +68,9 @@ def test_intensity_strobe_and_digital_io(light: tuple[SerialLightController, Pee
     assert ctl.health()["available"]
 
 
-def test_read_timeout_peer_killed_and_restarted(light: tuple[SerialLightController, PeerProcess],
-                                                 pty_pair: SocatPair) -> None:
+def test_read_timeout_peer_killed_and_restarted(
+    light: tuple[SerialLightController, PeerProcess], pty_pair: SocatPair
+) -> None:
     ctl, peer = light
     ctl.set_intensity_percent(0, 20)
     peer.kill()  # the controller dies; the port stays
