@@ -236,6 +236,11 @@ class _RobotSim:
             return tuple(_T_to_pose(self.T))
         if name in ("actual_TCP_speed", "target_TCP_speed"):
             return self._tcp_speed(now)
+        if name in ("actual_qd", "target_qd"):
+            m = self.motion
+            if m is None or m.duration_s <= 0:
+                return (0.0,) * 6
+            return tuple(float(v) for v in (m.q_end - m.q_start) / m.duration_s)
         if name == "robot_mode":
             return self.robot_mode
         if name in ("safety_mode", "safety_status"):
