@@ -136,16 +136,22 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
 
 def to_grey(reflectance: NDArray[np.float64], imaging: Imaging, rng: np.random.Generator | None = None
             ) -> NDArray[np.uint8]:
-    """Reflectance to an 8-bit image: levels, lighting gradient, Gaussian blur, noise, rounding."""
-    img = imaging.black_level + (imaging.white_level - imaging.black_level) * reflectance
+    """Reflectance to an 8-bit image: levels, lighting gradient, Gaussian blur, noise, rounding.
+
+    Works in float32 (grey levels need no more), which keeps a 1280x960 frame at a few ms.
+    """
+    img = (imaging.black_level + (imaging.white_level - imaging.black_level) * reflectance).astype(np.float32)
     if imaging.light_gradient:
         w = img.shape[1]
-        img = img * (1.0 + imaging.light_gradient * (np.arange(w) / max(w - 1, 1) - 0.5))[None, :]
+        ramp = 1.0 + imaging.light_gradient * (np.arange(w, dtype=np.float32) / max(w - 1, 1) - 0.5)
+        img *= ramp[None, :]
     if imaging.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), imaging.blur_sigma_px)
     if imaging.noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng()
-        img = img + rng.normal(0.0, imaging.noise_sigma, img.shape)
+        noise = rng.standard_normal(img.shape, dtype=np.float32)
+        noise *= np.float32(imaging.noise_sigma)
+        img += noise
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.render import Imaging, PlanarObject, render
+from calibration.render import Imaging, PlanarObject, render_reflectance, to_grey
 from drivers.sim.scene import SceneSpec, load_scene
 
 
@@ -34,6 +34,7 @@ class SimWorld:
         self._T_report_error = np.eye(4)
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
+        self._reflectance_cache: tuple[bytes, NDArray[np.float64]] | None = None
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -84,15 +85,27 @@ class SimWorld:
         return objs
 
     def render(self) -> NDArray[np.uint8]:
-        """A grey image of what the camera sees now (noise drawn from the world's generator)."""
+        """A grey image of what the camera sees now (noise drawn from the world's generator).
+
+        The geometric rendering (the expensive part) is cached for as long as the camera's pose
+        and the scene's parts stay put; every frame still gets its own lighting, blur and noise.
+        """
         im = self.scene.camera.imaging
         imaging = Imaging(im.black_level, im.white_level, im.background, im.blur_sigma_px,
                           im.noise_sigma, im.light_gradient)
         with self._lock:
+            key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
+            cached = self._reflectance_cache
             objects = self.planar_objects()
             self.frame_counter += 1
             rng = np.random.default_rng(self._rng.integers(2**63))
-        return render(self.camera_model, objects, imaging, rng, supersample=im.supersample)
+        if cached is not None and cached[0] == key:
+            reflectance = cached[1]
+        else:
+            reflectance = render_reflectance(self.camera_model, objects, im.background, im.supersample)
+            with self._lock:
+                self._reflectance_cache = (key, reflectance)
+        return to_grey(reflectance, imaging, rng)
 
     def _table_reflectance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
         table = self.scene.table
