@@ -75,7 +75,8 @@ def main() -> None:
         "| --- | --- | --- | --- |",
         f"| POST /pick trigger-to-answer, client side (ms) | {np.median(c):.1f} | {np.percentile(c, 99):.1f} "
         f"| p50 <= 50 ms: {met} |",
-        f"| same, inside the service (grab + find + convert, ms) | {np.median(s_):.1f} | {np.percentile(s_, 99):.1f} | |",
+        f"| same, inside the service (grab + find + convert, ms) | {np.median(s_):.1f} "
+        f"| {np.percentile(s_, 99):.1f} | |",
         f"| GET /health round trip, same run (ms) | {np.median(h):.2f} | {np.percentile(h, 99):.2f} | reference |",
         f"| pick position error vs truth (mm) | {np.median(e):.3f} | {np.percentile(e, 99):.3f} | |",
     ])
