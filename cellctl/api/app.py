@@ -39,9 +39,18 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         await run_in_threadpool(cell.open_all)
         log.info("cell %s ready: cameras %s, robots %s; store %s", config.cell_id, sorted(cell.cameras),
                  sorted(cell.robots), store.describe())
+        from cellctl.plc import start_plc_servers
+
+        try:
+            plc = await run_in_threadpool(start_plc_servers, services)
+        except BaseException:
+            await run_in_threadpool(services.close)
+            metrics.detach(app.state.metrics)
+            raise
         try:
             yield
         finally:
+            await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
             metrics.detach(app.state.metrics)
 

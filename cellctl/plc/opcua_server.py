@@ -1,0 +1,281 @@
+"""The OPC UA server for PLCs (asyncua): the cell's status and its Pick / VerifyCalibration methods.
+
+Endpoint ``opc.tcp://<plc.opcua.host>:<port>/cellctl/``, application URI ``urn:cellctl:<cell_id>``
+(a production certificate's subjectAltName must carry that URI). Namespace ``urn:cellctl``;
+under ``Objects`` one object ``Cell`` (full description: docs/plc-opcua.md):
+
+Variables (read-only, refreshed every second and after every call)
+    ``CellId`` String, ``RobotAvailable`` Boolean, ``CameraAvailable`` Boolean,
+    ``ActiveCameraCalibrationId`` / ``ActiveHandEyeCalibrationId`` Int64 (0: none),
+    ``Busy`` Boolean, ``LastPickCount`` Int32, ``LastPickLatencyMs`` Double,
+    ``LastErrorCode`` Int32 (the error-text index of cellctl.plc.requests.ERROR_TEXTS, 0 = none),
+    ``LastError`` String (the one-line message, empty when the last call succeeded).
+
+Methods
+    ``Pick(RecipeId: Int32) -> (Count: Int32, Poses: Double[], Reachable: Boolean[])``: grab,
+    locate, convert (the robot does not move). ``Poses`` is flat, ``POSE_STRIDE`` = 8 doubles per
+    pick, best first: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad (UR rotation vector of T_base_tool),
+    gripper_yaw_deg, score. ``Reachable[k]`` says whether pick k is inside the robot's envelope.
+    ``VerifyCalibration() -> (Passed: Boolean, DriftPx: Double, DriftMm: Double)`` (DriftMm is NaN
+    with no active hand-eye calibration). A drifted calibration is ``Passed = false``, not an error.
+
+Failures are OPC UA status codes (the message in ``LastError``): unknown recipe BadNotFound,
+recipe number outside 0..65535 BadOutOfRange, a wrong argument type BadInvalidArgument, no
+calibration or a recipe that cannot be used BadInvalidState, camera/robot unavailable
+BadResourceUnavailable, timeout BadTimeout, anything else BadInternalError.
+
+Security (``plc.opcua.security``): ``none`` — the lab, one endpoint without security;
+``basic256sha256`` — one Basic256Sha256 SignAndEncrypt endpoint with the server certificate and key
+from the config; client certificates are checked against ``trusted_client_certs`` when given.
+Both run anonymous sessions: the secure channel authenticates the client application.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from asyncua import Node, Server, ua
+
+from cellctl.config import OpcUaServerConfig
+from cellctl.plc.loop_thread import LoopThread
+from cellctl.plc.requests import (
+    TEXT_BAD_RECIPE,
+    TEXT_CANNOT_PICK,
+    TEXT_DEVICE,
+    TEXT_NO_CALIBRATION,
+    TEXT_RECIPE_RANGE,
+    TEXT_TIMEOUT,
+    TEXT_UNKNOWN_RECIPE,
+    TEXT_VERIFY_FAILED_TO_RUN,
+    Outcome,
+    execute_pick,
+    execute_verify,
+)
+from cellctl.services import Services
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "urn:cellctl"
+POSE_STRIDE = 8
+REFRESH_S = 1.0
+STATUS_OF_TEXT: dict[int, int] = {
+    TEXT_UNKNOWN_RECIPE: ua.StatusCodes.BadNotFound,
+    TEXT_RECIPE_RANGE: ua.StatusCodes.BadOutOfRange,
+    TEXT_NO_CALIBRATION: ua.StatusCodes.BadInvalidState,
+    TEXT_BAD_RECIPE: ua.StatusCodes.BadInvalidState,
+    TEXT_CANNOT_PICK: ua.StatusCodes.BadInvalidState,
+    TEXT_DEVICE: ua.StatusCodes.BadResourceUnavailable,
+    TEXT_VERIFY_FAILED_TO_RUN: ua.StatusCodes.BadResourceUnavailable,
+    TEXT_TIMEOUT: ua.StatusCodes.BadTimeout,
+}
+
+_VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
+    ("RobotAvailable", False, ua.VariantType.Boolean),
+    ("CameraAvailable", False, ua.VariantType.Boolean),
+    ("ActiveCameraCalibrationId", 0, ua.VariantType.Int64),
+    ("ActiveHandEyeCalibrationId", 0, ua.VariantType.Int64),
+    ("Busy", False, ua.VariantType.Boolean),
+    ("LastPickCount", 0, ua.VariantType.Int32),
+    ("LastPickLatencyMs", 0.0, ua.VariantType.Double),
+    ("LastErrorCode", 0, ua.VariantType.Int32),
+    ("LastError", "", ua.VariantType.String),
+)
+
+
+def _arg(name: str, vtype: ua.VariantType, description: str, array: bool = False) -> ua.Argument:
+    a = ua.Argument()
+    a.Name = name
+    a.DataType = ua.NodeId(ua.Int32(vtype.value))
+    a.ValueRank = 1 if array else -1
+    a.ArrayDimensions = [0] if array else []
+    a.Description = ua.LocalizedText(description)
+    return a
+
+
+def _status_code(code: int) -> ua.StatusCode:
+    return ua.StatusCode(ua.UInt32(code))
+
+
+def endpoint_url(host: str, port: int) -> str:
+    return f"opc.tcp://{host}:{port}/cellctl/"
+
+
+class OpcUaPlcServer:
+    """The PLC's OPC UA server for one cell; ``start()`` listens, ``stop()`` ends it."""
+
+    def __init__(self, services: Services, config: OpcUaServerConfig) -> None:
+        self.services, self.config = services, config
+        self.url = endpoint_url(config.host, config.port)
+        self.application_uri = f"urn:cellctl:{services.config.cell_id}"
+        self._thread = LoopThread(f"plc-opcua-{config.port}")
+        self._executor = ThreadPoolExecutor(max_workers=2, thread_name_prefix="plc-opcua-request")
+        self._server: Server | None = None
+        self._vars: dict[str, Node] = {}
+        self._refresher: asyncio.Task[None] | None = None
+        self._call_lock: asyncio.Lock | None = None
+
+    # -- life cycle ---------------------------------------------------------------------------------
+    def start(self) -> OpcUaPlcServer:
+        # asyncua logs every standard node it adds at INFO: thousands of lines per start.
+        logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
+        self._thread.start(self._serve, timeout_s=60.0)
+        log.info("PLC OPC UA server at %s (security %s)", self.url, self.config.security)
+        return self
+
+    def stop(self) -> None:
+        async def shutdown() -> None:
+            if self._refresher is not None:
+                self._refresher.cancel()
+            if self._server is not None:
+                await self._server.stop()
+
+        self._thread.stop(shutdown, timeout_s=15.0)
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+    async def _serve(self) -> None:
+        cfg = self.config
+        server = Server()
+        await server.init()
+        server.set_endpoint(self.url)
+        server.set_server_name(f"cellctl {self.services.config.cell_id}")
+        await server.set_application_uri(self.application_uri)
+        if cfg.security == "none":
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        else:
+            await self._secure(server)
+        server.set_identity_tokens([ua.AnonymousIdentityToken])
+        idx = await server.register_namespace(NAMESPACE)
+        cell = await server.nodes.objects.add_object(idx, "Cell")
+        self._vars["CellId"] = await cell.add_variable(idx, "CellId", self.services.config.cell_id,
+                                                       ua.VariantType.String)
+        for name, value, vtype in _VARIABLES:
+            self._vars[name] = await cell.add_variable(idx, name, value, vtype)
+        await cell.add_method(
+            idx, "Pick", self._pick,
+            [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
+            [_arg("Count", ua.VariantType.Int32, "number of picks, best first"),
+             _arg("Poses", ua.VariantType.Double, "8 per pick: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad, "
+                                                  "gripper_yaw_deg, score", array=True),
+             _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)])
+        await cell.add_method(
+            idx, "VerifyCalibration", self._verify, [],
+            [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
+             _arg("DriftPx", ua.VariantType.Double, "RMS drift of the plate's points, pixels"),
+             _arg("DriftMm", ua.VariantType.Double, "RMS drift in 3D, mm (NaN: no hand-eye calibration)")])
+        self._call_lock = asyncio.Lock()
+        try:
+            await server.start()
+        except OSError as exc:
+            raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
+                          "free the port or change plc.opcua.port") from None
+        self._server = server
+        await self._refresh()
+        self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
+
+    async def _secure(self, server: Server) -> None:
+        cfg = self.config
+        assert cfg.cert is not None and cfg.key is not None
+        for what, path in (("certificate", cfg.cert), ("key", cfg.key)):
+            if not Path(path).is_file():
+                raise OSError(f"plc.opcua: the server {what} {path} is missing; create it (docs/plc-opcua.md)")
+        await server.load_certificate(cfg.cert)
+        await server.load_private_key(cfg.key)
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+        if cfg.trusted_client_certs is not None:
+            from asyncua.crypto.truststore import TrustStore
+            from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+
+            trusted = Path(cfg.trusted_client_certs)
+            if not trusted.is_dir():
+                raise OSError(f"plc.opcua.trusted_client_certs {trusted} is not a directory of client certificates")
+            store = TrustStore([trusted], [])
+            await store.load()
+            opts = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.TRUSTED
+                    | CertificateValidatorOptions.PEER_CLIENT)
+            server.set_certificate_validator(CertificateValidator(opts, store))
+
+    # -- status -------------------------------------------------------------------------------------
+    def _status(self) -> dict[str, Any]:
+        """Device and calibration status (blocking: the store is a database)."""
+        svc = self.services
+        d = svc.config.calibration
+        cam = svc.store.active("camera", d.camera, None)
+        he = svc.store.active("handeye", d.camera, d.robot)
+        robot = svc.cell.robots.get(d.robot)
+        camera = svc.cell.cameras.get(d.camera)
+        return {"RobotAvailable": bool(robot is not None and robot.is_open),
+                "CameraAvailable": bool(camera is not None and camera.is_open),
+                "ActiveCameraCalibrationId": int(cam.id) if cam is not None else 0,
+                "ActiveHandEyeCalibrationId": int(he.id) if he is not None else 0}
+
+    async def _set(self, name: str, value: Any) -> None:
+        node = self._vars[name]
+        vtype = {n: t for n, _, t in _VARIABLES}.get(name, ua.VariantType.String)
+        await node.write_value(ua.DataValue(ua.Variant(value, vtype)))
+
+    async def _refresh(self) -> None:
+        try:
+            status = await asyncio.get_running_loop().run_in_executor(self._executor, self._status)
+        except Exception as exc:  # noqa: BLE001 - status is best effort; the server keeps serving
+            log.warning("OPC UA status refresh failed: %s", exc)
+            return
+        for name, value in status.items():
+            await self._set(name, value)
+
+    async def _refresh_forever(self) -> None:
+        while True:
+            await asyncio.sleep(REFRESH_S)
+            await self._refresh()
+
+    # -- methods ------------------------------------------------------------------------------------
+    async def _call(self, work: Callable[[], Outcome]) -> Outcome:
+        assert self._call_lock is not None
+        async with self._call_lock:
+            await self._set("Busy", True)
+            try:
+                out = await asyncio.get_running_loop().run_in_executor(self._executor, work)
+            finally:
+                await self._set("Busy", False)
+        await self._set("LastErrorCode", out.text_index)
+        await self._set("LastError", "" if out.ok else out.message)
+        await self._refresh()
+        return out
+
+    async def _pick(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
+        value = recipe.Value if isinstance(recipe, ua.Variant) else None
+        if not isinstance(value, int) or isinstance(value, bool):
+            await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
+            await self._set("LastError", f"Pick needs one Int32 recipe number, got {value!r}")
+            return _status_code(ua.StatusCodes.BadInvalidArgument)
+        out = await self._call(lambda: execute_pick(self.services, value, "plc:opcua"))
+        if not out.ok:
+            return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
+        poses: list[float] = []
+        reachable: list[bool] = []
+        for p in out.picks:
+            q = p["pick_pose"]
+            poses += [q["x_mm"], q["y_mm"], q["z_mm"], q["rx_rad"], q["ry_rad"], q["rz_rad"],
+                      float(p["gripper_yaw_deg"]), float(p["score"])]
+            reachable.append(bool(p["reachable"]))
+        await self._set("LastPickCount", len(out.picks))
+        await self._set("LastPickLatencyMs", out.latency_ms)
+        return [ua.Variant(len(out.picks), ua.VariantType.Int32),
+                ua.Variant([float(x) for x in poses], ua.VariantType.Double),
+                ua.Variant(reachable, ua.VariantType.Boolean)]
+
+    async def _verify(self, parent: ua.NodeId) -> Any:
+        out = await self._call(lambda: execute_verify(self.services, "plc:opcua"))
+        if out.verify is None:
+            return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
+        v = out.verify
+        drift_mm = v.get("drift_mm")
+        return [ua.Variant(bool(v.get("passed")), ua.VariantType.Boolean),
+                ua.Variant(float(v.get("drift_px", math.nan)), ua.VariantType.Double),
+                ua.Variant(float(drift_mm) if drift_mm is not None else math.nan, ua.VariantType.Double)]
+

@@ -1,0 +1,173 @@
+"""What a PLC may ask of the cell (pick, verify), run the same way for every PLC front end.
+
+Both front ends (Modbus TCP, OPC UA) turn a PLC request into :func:`execute_pick` or
+:func:`execute_verify`, which never raise: every failure becomes an :class:`Outcome` with an error
+class (what the PLC program should do about it), an error-text index (which text an HMI shows) and
+the one-line message. The tables below are the documented ones (docs/plc-modbus.md).
+
+One PLC request runs at a time per process (:data:`PLC_LOCK`): a PLC pick and a PLC verify never
+fight over the camera. They run in the calling thread — front ends call them from an executor,
+never on their event loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from pydantic import ValidationError
+
+from cellctl.mapping import NoCalibration
+from cellctl.pick.flow import PickError, run_pick
+from cellctl.pick.model import ModelFileError
+from cellctl.services import Services
+from cellctl.store import NotFound
+from drivers.base import DriverError
+
+log = logging.getLogger(__name__)
+
+PLC_LOCK = threading.Lock()
+VERIFY_TIMEOUT_S = 120.0
+
+# Error classes: what the PLC program should do.
+CLASS_NONE = 0
+CLASS_REQUEST = 1
+"""The request is wrong (command code, recipe number): fix the PLC program or its data."""
+CLASS_BUSY = 2
+"""A request is running: wait until BUSY clears, then send again."""
+CLASS_SETUP = 3
+"""The cell is not set up for this (recipe, calibration): call the engineer."""
+CLASS_RUNTIME = 4
+"""A device or vision failure at run time: retry, then call maintenance."""
+CLASS_DRIFT = 5
+"""Verify measured a drifted calibration: stop picking, recalibrate."""
+CLASS_INTERNAL = 9
+"""A bug: report it with the service log."""
+
+# Error-text index -> (class, text). The index is what an HMI text list is keyed by.
+TEXT_NONE = 0
+TEXT_UNKNOWN_COMMAND = 1
+TEXT_BUSY = 2
+TEXT_UNKNOWN_RECIPE = 3
+TEXT_BAD_RECIPE = 4
+TEXT_NO_CALIBRATION = 5
+TEXT_DEVICE = 6
+TEXT_CANNOT_PICK = 7
+TEXT_VERIFY_FAILED_TO_RUN = 8
+TEXT_DRIFTED = 9
+TEXT_TIMEOUT = 10
+TEXT_RECIPE_RANGE = 11
+TEXT_INTERNAL = 99
+
+ERROR_TEXTS: dict[int, tuple[int, str]] = {
+    TEXT_NONE: (CLASS_NONE, "no error"),
+    TEXT_UNKNOWN_COMMAND: (CLASS_REQUEST, "unknown command code"),
+    TEXT_BUSY: (CLASS_BUSY, "refused: a request is running"),
+    TEXT_UNKNOWN_RECIPE: (CLASS_SETUP, "unknown recipe number"),
+    TEXT_BAD_RECIPE: (CLASS_SETUP, "the recipe cannot be used (invalid part model or settings)"),
+    TEXT_NO_CALIBRATION: (CLASS_SETUP, "no active calibration for the recipe's camera and robot"),
+    TEXT_DEVICE: (CLASS_RUNTIME, "camera or robot unavailable"),
+    TEXT_CANNOT_PICK: (CLASS_SETUP, "the pick cannot be done as the recipe asks"),
+    TEXT_VERIFY_FAILED_TO_RUN: (CLASS_RUNTIME, "verify could not run (plate not seen, device error)"),
+    TEXT_DRIFTED: (CLASS_DRIFT, "calibration drifted beyond tolerance"),
+    TEXT_TIMEOUT: (CLASS_RUNTIME, "the request timed out"),
+    TEXT_RECIPE_RANGE: (CLASS_REQUEST, "recipe number out of range (0..65535)"),
+    TEXT_INTERNAL: (CLASS_INTERNAL, "internal error (see the service log)"),
+}
+
+
+@dataclass
+class Outcome:
+    """The answer to one PLC request."""
+
+    ok: bool
+    text_index: int = TEXT_NONE
+    message: str = ""
+    picks: list[dict[str, Any]] = field(default_factory=list)
+    """``run_pick``'s picks, best first."""
+    verify: dict[str, Any] | None = None
+    """``verify``'s result (passed, drift_px, drift_mm...)."""
+    latency_ms: float = 0.0
+
+    @property
+    def error_class(self) -> int:
+        return ERROR_TEXTS[self.text_index][0]
+
+
+def failure(text_index: int, message: str | None = None) -> Outcome:
+    return Outcome(False, text_index, message or ERROR_TEXTS[text_index][1])
+
+
+def execute_pick(services: Services, recipe_id: int, who: str) -> Outcome:
+    """Run a pick (no robot motion: the PLC moves the robot) and classify any failure."""
+    t0 = time.perf_counter()
+    if not 0 <= recipe_id <= 65535:
+        out = failure(TEXT_RECIPE_RANGE, f"recipe number {recipe_id} is out of range (0..65535)")
+    else:
+        with PLC_LOCK:
+            try:
+                answer = run_pick(services, recipe_id, None, False, who)
+                out = Outcome(True, picks=list(answer["picks"]))
+            except NotFound as exc:
+                out = failure(TEXT_UNKNOWN_RECIPE, str(exc))
+            except NoCalibration as exc:
+                out = failure(TEXT_NO_CALIBRATION, str(exc))
+            except (ModelFileError, ValidationError) as exc:
+                out = failure(TEXT_BAD_RECIPE, f"recipe {recipe_id} cannot be used: {_first_line(exc)}")
+            except PickError as exc:
+                out = failure(TEXT_CANNOT_PICK, str(exc))
+            except (DriverError, OSError, KeyError) as exc:
+                out = failure(TEXT_DEVICE, _first_line(exc))
+            except Exception as exc:  # noqa: BLE001 - a PLC request never takes the server down
+                log.exception("PLC pick of recipe %d failed", recipe_id)
+                out = failure(TEXT_INTERNAL, f"internal error: {_first_line(exc)}")
+    out.latency_ms = (time.perf_counter() - t0) * 1e3
+    if not out.ok:
+        log.warning("PLC pick of recipe %d refused/failed: %s", recipe_id, out.message)
+    return out
+
+
+def execute_verify(services: Services, who: str, timeout_s: float = VERIFY_TIMEOUT_S) -> Outcome:
+    """Run the ``verify`` routine as a job (visible in /jobs) and wait for it."""
+    from cellctl.routines import verify
+
+    t0 = time.perf_counter()
+    with PLC_LOCK:
+        try:
+            job = services.jobs.start("verify", lambda ctx: verify.run(services, ctx), {}, who)
+            job = services.jobs.join(job.id, timeout_s)
+            if job.state == "running":
+                services.jobs.cancel(job.id)
+                out = failure(TEXT_TIMEOUT, f"verify did not finish within {timeout_s:.0f} s; cancelled")
+            elif job.state == "succeeded" and job.result is not None:
+                res = job.result
+                if res.get("passed"):
+                    out = Outcome(True, verify=res)
+                else:
+                    out = failure(TEXT_DRIFTED, f"calibration drifted: {_fmt(res.get('drift_px'))} px, "
+                                                f"{_fmt(res.get('drift_mm'))} mm (tolerance "
+                                                f"{_fmt(res.get('tolerance_px'))} px, "
+                                                f"{_fmt(res.get('tolerance_mm'))} mm)")
+                    out.verify = res
+            else:
+                msg = job.error or job.message
+                text = TEXT_NO_CALIBRATION if "no active calibration" in msg else TEXT_VERIFY_FAILED_TO_RUN
+                out = failure(text, f"verify: {msg}")
+        except Exception as exc:  # noqa: BLE001 - a PLC request never takes the server down
+            log.exception("PLC verify failed")
+            out = failure(TEXT_INTERNAL, f"internal error: {_first_line(exc)}")
+    out.latency_ms = (time.perf_counter() - t0) * 1e3
+    return out
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.3f}" if isinstance(v, float) and math.isfinite(v) else "n/a"
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
