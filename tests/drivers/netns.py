@@ -16,6 +16,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -122,6 +123,27 @@ def scenario_faults() -> dict[str, Any]:
     cam = AravisCamera("cam0", settings)
     _, dt, err = _timed(cam.open)  # no camera yet: connect timeout
     out["connect_without_camera"] = {"s": dt, "error": err}
+    # a peer on the GVCP port that answers every packet with bytes that follow no protocol
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", 3956))
+    stop = threading.Event()
+
+    def garbage() -> None:
+        udp.settimeout(0.05)
+        while not stop.is_set():
+            try:
+                _, addr = udp.recvfrom(2048)
+            except TimeoutError:
+                continue
+            udp.sendto(b"\x00\x00\x00\x03garbage-not-gvcp\xff" * 4, addr)
+
+    th = threading.Thread(target=garbage, daemon=True)
+    th.start()
+    _, dt, err = _timed(AravisCamera("cam0", settings).open)
+    out["garbage_peer"] = {"s": dt, "error": err}
+    stop.set()
+    th.join()
+    udp.close()
     peer = FakeCamera().start()
     cam = AravisCamera("cam0", settings)
     try:

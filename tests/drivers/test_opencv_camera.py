@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import pytest
 from drivers.base import DeviceInitError, DeviceOperationError, DeviceTimeout, DeviceUnavailable
 from drivers.camera.opencv import OpenCVCamera
 from drivers.registry import adapter_class
-from tests.drivers.peers import MjpegServer
+from tests.drivers.peers import MjpegServer, free_port
 
 
 def _images(n: int) -> list[np.ndarray]:
@@ -112,3 +113,23 @@ def test_stream_newest_frame_and_recovery_after_the_peer_restarts() -> None:
     finally:
         cam.close()
         peer.stop()
+
+
+def test_stream_connect_and_read_timeouts() -> None:
+    port = free_port()  # nothing listens: refused at once
+    t0 = time.monotonic()
+    with pytest.raises(DeviceUnavailable, match="cannot open stream"):
+        OpenCVCamera("cam0", {"source": f"http://127.0.0.1:{port}/stream.mjpg", "open_timeout_s": 2}).open()
+    assert time.monotonic() - t0 < 1.0
+    # a peer that accepts and then says nothing: bounded by open_timeout_s, no hang
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(4)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceUnavailable, match="cannot open stream"):
+            OpenCVCamera("cam0", {"source": f"http://127.0.0.1:{silent.getsockname()[1]}/stream.mjpg",
+                                  "open_timeout_s": 1.0, "stall_timeout_s": 1.0}).open()
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        silent.close()
