@@ -203,7 +203,15 @@ def _exp_so3(w: ArrayLike) -> NDArray[np.float64]:
 
 
 def _log_so3(R: ArrayLike) -> NDArray[np.float64]:
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+    """Rotation vector of a rotation matrix (closed form; scipy near 180°, where it is ill-conditioned)."""
+    M = np.asarray(R, dtype=np.float64)
+    th = float(np.arccos(np.clip((M[0, 0] + M[1, 1] + M[2, 2] - 1.0) / 2.0, -1.0, 1.0)))
+    v = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    if th < 1e-6:
+        return 0.5 * v
+    if th > np.pi - 1e-3:
+        return np.asarray(Rotation.from_matrix(M).as_rotvec(), dtype=np.float64)
+    return th / (2.0 * np.sin(th)) * v
 
 
 def _perturb(T: Mat4, p: ArrayLike) -> Mat4:
@@ -757,7 +765,10 @@ def calibrate_handeye(
                     and abs(np.log(new.sigma_deg / noise.sigma_deg)) < 0.02)
             noise = new
             X1, Z1, _ = job.poses(res.x)
-            job, res = _refine(setup, stations, camera, sigma_px, noise, X1, Z1)
+            job = _Joint(setup, stations, camera, sigma_px, noise, X1, Z1)
+            x1 = res.x.copy()
+            x1[:12] = 0.0
+            res = job.solve(x1)
             if done:
                 break
         problems.append(Problem("robot_noise_estimated",

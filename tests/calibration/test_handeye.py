@@ -167,3 +167,51 @@ def test_small_rotation_pairs_dropped_and_reported() -> None:
     dropped = [p for p in res.problems if p.code == "pairs_dropped"]
     assert dropped and "dropped" in dropped[0].message
     assert res.pairs["dropped_small"] >= 1
+
+
+def test_robot_noise_estimated_from_data() -> None:
+    true = RobotNoise(0.3, 0.05)
+    sim = simulate_handeye("eye-to-hand", 15, np.random.default_rng(15), camera=CAM, target=TARGET, robot_noise=true,
+                           pixel_sigma_px=0.05)
+    res = calibrate_handeye("eye-to-hand", sim.G_recorded, sim.detections, CAM, TARGET, NOISE, leave_one_out=False,
+                            estimate_robot_noise=True)
+    assert 0.5 * true.sigma_mm < res.robot_noise.sigma_mm < 2.0 * true.sigma_mm
+    assert 0.5 * true.sigma_deg < res.robot_noise.sigma_deg < 2.0 * true.sigma_deg
+    assert any(p.code == "robot_noise_estimated" for p in res.problems)
+    rot_deg, trans_mm = transform_error_deg_mm(res.X, sim.X_true)
+    assert trans_mm < 3.0 * res.uncertainty_trans_mm and rot_deg < 3.0 * res.uncertainty_rot_deg
+
+
+def test_real_robot_arm_data_no_false_alarms() -> None:
+    """ETH ASL robot arm + SR300 (real, shared/data): the measured camera poses become virtual
+    detections of a grid; the real data must pass the checks and agree with OpenCV's closed form."""
+    from pathlib import Path
+
+    from calibration.geometry import quaternion_to_matrix
+    from calibration.handeye import opencv_handeye
+
+    data = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "handeye_ethz_robot_arm_sr300"
+    rob = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv", delimiter=",")
+    cam = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_target_ir.csv", delimiter=",")[::100]
+    cam = cam[(cam[:, 0] - 0.02 > rob[0, 0]) & (cam[:, 0] - 0.02 < rob[-1, 0])]
+    G = []
+    for t in cam[:, 0] - 0.02:  # nearest robot sample (50 Hz) at the published time offset
+        r = rob[np.argmin(np.abs(rob[:, 0] - t))]
+        G.append(make_transform(quaternion_to_matrix(r[4:8]), r[1:4]))
+    sr300 = CameraModel("opencv5", 640, 480, np.array([[471.845, 0, 316.85], [0, 471.686, 237.389], [0, 0, 1]]),
+                        np.array([-0.15024, -0.00326, -0.00126, -0.00042, 0.0]))
+    grid = Chessboard(6, 6, 40.0)
+    tp = grid.points()
+    dets = []
+    for k, row in enumerate(cam):
+        C = invert(make_transform(quaternion_to_matrix(row[4:8]), row[1:4]))
+        dets.append(Detection(f"t{k:03d}", True, tp.ids.copy(), sr300.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3])))
+    res = calibrate_handeye("eye-in-hand", G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3,
+                            leave_one_out=False, estimate_robot_noise=True)
+    codes = {p.code for p in res.problems}
+    assert "pose_outlier" not in codes
+    assert res.robot_noise.sigma_mm > 0.3  # a real arm's absolute error, not UR repeatability
+    X_cv = opencv_handeye("eye-in-hand", G, [invert(make_transform(quaternion_to_matrix(r[4:8]), r[1:4]))
+                                             for r in cam], "TSAI")
+    rot_deg, trans_mm = transform_error_deg_mm(res.X, X_cv)
+    assert trans_mm < 10.0 and rot_deg < 1.0
