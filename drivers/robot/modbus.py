@@ -373,6 +373,8 @@ class ModbusRobot(RobotBase):
             self._poller = None
         with self._io_lock:
             self._client.close()
+        with self._sample_cv:
+            self._sample = None  # a later connect() waits for a new sample
 
     def _fresh(self) -> _Sample:
         s = self._sample

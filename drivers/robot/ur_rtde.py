@@ -304,6 +304,8 @@ class URRTDERobot(RobotBase):
         """The newest sample; ``DeviceUnavailable`` when it is older than ``state_max_age_s``."""
         s = self._snapshot()
         age = None if s[_HOST_T] == 0.0 else time.time() - s[_HOST_T]
+        if self._supervisor is None:
+            raise DeviceUnavailable(f"robot {self.robot_id}: not connected (call connect())")
         if age is None or age > self.config.state_max_age_s:
             self._note_staleness()
             raise DeviceUnavailable(f"robot {self.robot_id}: {self._unavailable_reason(age)}")

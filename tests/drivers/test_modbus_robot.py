@@ -200,3 +200,12 @@ def test_malformed_replies() -> None:
     finally:
         r.close()
         peer.stop()
+
+
+def test_close_and_connect_again(robot: ModbusRobot) -> None:
+    """The cell closes a failed device and connects it again later: the adapter must allow that."""
+    robot.close()
+    with pytest.raises(DeviceUnavailable, match="no state yet"):
+        robot.state()
+    robot.connect()
+    assert robot.state().age_s() < 0.3

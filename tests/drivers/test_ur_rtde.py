@@ -280,3 +280,15 @@ def test_protective_stop_is_reported_and_cleared_through_the_dashboard(robot: UR
     wait_for(lambda: robot.state().metadata["safety_mode"] == "normal", 2.0)
     robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
     assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
+
+
+def test_close_and_connect_again(robot: URRTDERobot) -> None:
+    """The cell closes a failed device and connects it again later: the adapter must allow that."""
+    robot.close()
+    with pytest.raises(DeviceUnavailable, match="not connected"):
+        robot.state()
+    robot.connect()
+    assert robot.state().age_s() < 0.1
+    target = robot.state().T_base_tool.copy()
+    target[0, 3] += 0.005
+    robot.move_linear(target, speed_m_s=0.1)
