@@ -296,7 +296,8 @@ def _row(name: str, who: str, t: Tally) -> str:
     found = 100.0 * (t.n_truth - t.missed) / max(t.n_truth, 1)
     return (f"| {name} | {who} | {t.n_truth} | {t.rms(t.pos_err):.4f} | {t.rms(t.ang_err):.4f} | "
             f"{t.missed} | {t.false} | {found:.1f} | {1e3 * statistics.median(t.wall_s):.1f} | "
-            f"{1e3 * _pct(t.wall_s, 99):.1f} | {1e3 * statistics.median(t.cpu_s):.1f} |")
+            f"{1e3 * _pct(t.wall_s, 99):.1f} | {1e3 * statistics.median(t.cpu_s):.1f} | "
+            f"{1e3 * _pct(t.cpu_s, 99):.1f} |")
 
 
 def _merge(ts: list[Tally]) -> Tally:
@@ -328,8 +329,8 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
         "process's CPU time (steadier on a busy machine; OpenCV's own threads count in it).",
         "",
         "| set | matcher | instances | position RMS px | angle RMS deg | missed | false | found % "
-        "| median ms | p99 ms | median CPU ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| median ms | p99 ms | median CPU ms | p99 CPU ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, *_ in SETS:
         lines.append(_row(name, "cellctl", ours[name]))
@@ -342,6 +343,7 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
         lines.append(_row("**all**", "OpenCV baseline", allt))
     lines += ["", "## Against the targets", ""]
     clean = _merge([ours["top-down"]])
+    unocc = _merge([ours["top-down"], ours["tilted <= 5 deg"]])
     occ30 = ours["occluded 30 %"]
 
     def mark(ok: bool) -> str:
@@ -350,6 +352,8 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
     found30 = 100.0 * (occ30.n_truth - occ30.missed) / max(occ30.n_truth, 1)
     med = 1e3 * statistics.median(allo.wall_s)
     p99 = 1e3 * _pct(allo.wall_s, 99)
+    med_cpu = 1e3 * statistics.median(allo.cpu_s)
+    p99_cpu = 1e3 * _pct(allo.cpu_s, 99)
     lines += [
         "| target | cellctl | verdict |",
         "| --- | --- | --- |",
@@ -357,11 +361,11 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
         f"{mark(clean.rms(clean.pos_err) <= 0.05)} |",
         f"| angle <= 0.05 deg RMS (top-down) | {clean.rms(clean.ang_err):.4f} deg | "
         f"{mark(clean.rms(clean.ang_err) <= 0.05)} |",
-        f"| zero missed / false on the un-occluded set | {clean.missed} / {clean.false} | "
-        f"{mark(clean.missed == 0 and clean.false == 0)} |",
+        f"| zero missed / false on the un-occluded sets (top-down + tilted) | {unocc.missed} / "
+        f"{unocc.false} | {mark(unocc.missed == 0 and unocc.false == 0)} |",
         f"| >= 95 % found at 30 % occlusion | {found30:.1f} % | {mark(found30 >= 95.0)} |",
-        f"| median <= 20 ms per image | {med:.1f} ms | {mark(med <= 20.0)} |",
-        f"| p99 <= 50 ms per image | {p99:.1f} ms | {mark(p99 <= 50.0)} |",
+        f"| median <= 20 ms per image | {med:.1f} ms wall ({med_cpu:.1f} ms CPU) | {mark(med <= 20.0)} |",
+        f"| p99 <= 50 ms per image | {p99:.1f} ms wall ({p99_cpu:.1f} ms CPU) | {mark(p99 <= 50.0)} |",
     ]
     if theirs is not None:
         allt = _merge(list(theirs.values()))
