@@ -14,7 +14,7 @@ import os
 import sys
 from typing import Any
 
-from cellctl.cli.output import CommandError
+from cellctl.cli.output import CommandError, emit
 from cellctl.paths import data_dir
 
 
@@ -86,9 +86,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if not args.follow:
                 return job
             _follow(http, job["id"])
-            return _check(http.get(f"/jobs/{job['id']}"))
+            final = _check(http.get(f"/jobs/{job['id']}"))
     except httpx.HTTPError as exc:
         raise CommandError(f"cannot reach the service at {args.url} ({exc}); is `cellctl serve` running?") from None
+    if final["state"] != "succeeded":
+        emit(final, args.out_json)
+        raise CommandError(f"job {final['id']} ({final['name']}) {final['state']}: {final.get('error') or ''}",
+                           exit_code=1)
+    return final
 
 
 def _bar(progress: float, message: str) -> None:

@@ -37,6 +37,15 @@ def truth() -> dict[str, Any]:
     return dict(json.loads(out))
 
 
+HOME_POSE = {"x_m": 0.40, "y_m": 0.0, "z_m": 0.55, "rx_rad": np.pi, "ry_rad": 0.0, "rz_rad": 0.0}
+
+
+def go_home(http: httpx.Client) -> None:
+    """Back to the start pose, where the whole plate is in view (a cancelled routine stops anywhere)."""
+    r = http.post("/robots/robot0/move", json={"pose_ur": HOME_POSE, "speed_m_s": 0.2})
+    assert r.status_code == 200, r.text
+
+
 def run_job(http: httpx.Client, name: str, params: dict[str, Any], timeout_s: float = 240.0) -> dict[str, Any]:
     r = http.post(f"/routines/{name}", json=params)
     assert r.status_code == 202, r.text
@@ -87,6 +96,7 @@ def test_handeye_capture_recovers_T_tool_cam(calibrated: dict[str, Any], truth: 
 
 def test_verify_passes_with_active_calibrations(served: Served, calibrated: dict[str, Any]) -> None:
     with served.client() as http:
+        go_home(http)
         job = run_job(http, "verify", {})
     assert job["state"] == "succeeded", job["error"]
     res = job["result"]
@@ -101,6 +111,7 @@ def test_jog_to_mark_and_map(served: Served, calibrated: dict[str, Any], truth: 
     pts = target.points()
     T_base_target = np.array(plate["T_base_target"])
     with served.client(timeout_s=60) as http:
+        go_home(http)
         home = http.get("/robots/robot0/state").json()["T_base_tool"]
         r = http.post("/routines/jog-to-mark", json={"marks": 9})
         assert r.status_code == 202
@@ -149,6 +160,7 @@ def test_jog_to_mark_and_map(served: Served, calibrated: dict[str, Any], truth: 
 
 def test_sse_progress_arrives(served: Served, calibrated: dict[str, Any]) -> None:
     with served.client(timeout_s=60) as http:
+        go_home(http)
         job_id = http.post("/routines/verify", json={}).json()["id"]
         kinds = []
         with http.stream("GET", f"/jobs/{job_id}/events") as stream:
@@ -201,6 +213,8 @@ def test_move_outside_envelope_is_refused_and_audited(served: Served) -> None:
 
 
 def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
+    with served.client() as http:
+        go_home(http)
     r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
                         "--token", served.token, "--param", "tolerance_px=2.0"],
                        capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
@@ -208,6 +222,15 @@ def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
     job = json.loads(r.stdout)
     assert job["state"] == "succeeded" and job["result"]["tolerance_px"] == 2.0
     assert "100.0%" in r.stderr and "succeeded" in r.stderr
+
+
+def test_cli_job_run_exits_non_zero_when_the_job_fails(served: Served) -> None:
+    r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
+                        "--token", served.token, "--param", "target=nosuch"],
+                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert r.returncode == 1
+    assert json.loads(r.stdout)["state"] == "failed"
+    assert "no target 'nosuch'" in r.stderr
 
 
 def test_cli_job_run_bad_token_is_one_line_error(served: Served) -> None:
