@@ -195,7 +195,11 @@ class OpcUaPlcServer:
             if not trusted.is_dir():
                 raise OSError(f"plc.opcua.trusted_client_certs {trusted} is not a directory of client certificates")
             store = TrustStore([trusted], [])
-            await store.load()
+            try:
+                await store.load()
+            except ValueError as exc:
+                raise OSError(f"plc.opcua.trusted_client_certs {trusted}: a file there is not a certificate "
+                              f"({exc}); keep only client certificates (.der/.pem) there") from None
             opts = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.TRUSTED
                     | CertificateValidatorOptions.PEER_CLIENT)
             server.set_certificate_validator(CertificateValidator(opts, store))

@@ -1,0 +1,172 @@
+"""The OPC UA server of a served virtual cell, called by an asyncua client over loopback.
+
+Security None (the lab) on the shared served cell; Basic256Sha256 SignAndEncrypt with self-signed
+certificates made here (server certificate and a trusted client certificate) on a second one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asyncua import Client, Node, ua
+from asyncua.crypto import cert_gen
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua.ua.uaerrors import UaError, UaStatusCodeError
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from cellctl.plc.opcua_server import NAMESPACE, POSE_STRIDE
+from cellctl.plc.requests import TEXT_NONE, TEXT_UNKNOWN_RECIPE
+from tests.conftest import stop_served
+from tests.plc.conftest import RECIPE, PlcCell, start_plc_cell
+
+CLIENT_URI = "urn:cellctl:test-plc"
+# A Pick on the virtual cell renders a frame (~3 s on a loaded 2-core machine); asyncua's server
+# answers one request per connection at a time, so the client's watchdog probe waits behind it.
+CLIENT_OPTIONS: dict[str, Any] = {"timeout": 60, "watchdog_intervall": 60}
+
+
+def make_cert(folder: Path, name: str, uri: str, server: bool, key_folder: Path | None = None) -> tuple[Path, Path]:
+    """A self-signed OPC UA application certificate (PEM) and its key (PEM, in ``key_folder``) for ``uri``."""
+    key = cert_gen.generate_private_key()
+    alt: list[x509.GeneralName] = [x509.UniformResourceIdentifier(uri)]
+    if server:
+        alt += [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+    usage = [ExtendedKeyUsageOID.SERVER_AUTH] if server else [ExtendedKeyUsageOID.CLIENT_AUTH]
+    cert = cert_gen.generate_self_signed_app_certificate(key, name, {}, alt, usage, days=2)
+    key_folder = key_folder or folder
+    for f in (folder, key_folder):
+        f.mkdir(parents=True, exist_ok=True)
+    cert_path, key_path = folder / f"{name}-cert.pem", key_folder / f"{name}-key.pem"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+    return cert_path, key_path
+
+
+async def cell_node(client: Client) -> tuple[Node, int]:
+    idx = await client.get_namespace_index(NAMESPACE)
+    return await client.nodes.objects.get_child(f"{idx}:Cell"), idx
+
+
+async def read(cell: Node, idx: int, name: str) -> Any:
+    return await (await cell.get_child(f"{idx}:{name}")).read_value()
+
+
+def check_pick(result: list[Any], cell: PlcCell) -> int:
+    count, poses, reachable = result
+    assert count >= 1 and len(poses) == POSE_STRIDE * count and len(reachable) == count
+    x_mm, y_mm, z_mm, rx, ry, rz, yaw_deg, score = poses[:POSE_STRIDE]
+    assert math.hypot(x_mm - cell.part_x_mm, y_mm - cell.part_y_mm) < 0.5
+    assert abs(z_mm - 5.0) < 1e-6 and abs(math.hypot(rx, ry, rz) - math.pi) < 0.1  # pointing down
+    assert abs(yaw_deg) <= 90.0 and 0.6 <= score <= 1.0 and reachable[0] is True
+    return int(count)
+
+
+def test_pick_verify_and_status_with_security_none(plc_cell: PlcCell) -> None:
+    async def run() -> None:
+        async with Client(plc_cell.opcua_url, **CLIENT_OPTIONS) as client:
+            cell, idx = await cell_node(client)
+            assert await read(cell, idx, "CellId") == "virtual-cell"
+            assert await read(cell, idx, "RobotAvailable") is True
+            assert await read(cell, idx, "ActiveCameraCalibrationId") == plc_cell.camera_calibration_id
+            assert await read(cell, idx, "ActiveHandEyeCalibrationId") == plc_cell.handeye_calibration_id
+
+            count = check_pick(await cell.call_method(f"{idx}:Pick", ua.Variant(RECIPE, ua.VariantType.Int32)),
+                               plc_cell)
+            assert await read(cell, idx, "LastPickCount") == count
+            assert await read(cell, idx, "LastPickLatencyMs") > 0
+            assert await read(cell, idx, "LastErrorCode") == TEXT_NONE and await read(cell, idx, "LastError") == ""
+            assert await read(cell, idx, "Busy") is False
+
+            passed, drift_px, drift_mm = await cell.call_method(f"{idx}:VerifyCalibration")
+            assert passed is True and 0 <= drift_px < 1.0 and 0 <= drift_mm < 0.5
+
+            # Bad calls: a status code, the message in LastError, and the server goes on.
+            with pytest.raises(UaStatusCodeError) as e:
+                await cell.call_method(f"{idx}:Pick", ua.Variant(65000, ua.VariantType.Int32))
+            assert e.value.code == ua.StatusCodes.BadNotFound
+            assert "65000" in await read(cell, idx, "LastError")
+            assert await read(cell, idx, "LastErrorCode") == TEXT_UNKNOWN_RECIPE
+            with pytest.raises(UaStatusCodeError) as e:
+                await cell.call_method(f"{idx}:Pick", ua.Variant(-3, ua.VariantType.Int32))
+            assert e.value.code == ua.StatusCodes.BadOutOfRange
+            with pytest.raises(UaStatusCodeError) as e:
+                await cell.call_method(f"{idx}:Pick", ua.Variant("one", ua.VariantType.String))
+            assert e.value.code == ua.StatusCodes.BadInvalidArgument
+            # The client is read-only: status variables refuse writes.
+            with pytest.raises(UaStatusCodeError):
+                await (await cell.get_child(f"{idx}:LastError")).write_value("forged")
+            assert await read(cell, idx, "CellId") == "virtual-cell"
+
+    asyncio.run(run())
+
+
+@pytest.fixture(scope="module")
+def secure_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[PlcCell, Path]]:
+    tmp = tmp_path_factory.mktemp("plc-secure")
+    pki = tmp / "pki"
+    server_cert, server_key = make_cert(pki / "server", "cellctl", "urn:cellctl:virtual-cell", server=True)
+    make_cert(pki / "trusted", "plc", CLIENT_URI, server=False, key_folder=pki / "keys")
+    cell = start_plc_cell(tmp, modbus=False, opcua={
+        "security": "basic256sha256", "cert": str(server_cert), "key": str(server_key),
+        "trusted_client_certs": str(pki / "trusted")})
+    try:
+        yield cell, pki
+    finally:
+        stop_served(cell.served)
+
+
+def test_pick_and_verify_with_basic256sha256(secure_cell: tuple[PlcCell, Path]) -> None:
+    cell_info, pki = secure_cell
+
+    async def run() -> None:
+        client = Client(cell_info.opcua_url, **CLIENT_OPTIONS)
+        client.application_uri = CLIENT_URI
+        await client.set_security(SecurityPolicyBasic256Sha256, str(pki / "trusted" / "plc-cert.pem"),
+                                  str(pki / "keys" / "plc-key.pem"),
+                                  server_certificate=str(pki / "server" / "cellctl-cert.pem"),
+                                  mode=ua.MessageSecurityMode.SignAndEncrypt)
+        async with client:
+            endpoints = await client.get_endpoints()
+            assert {e.SecurityPolicyUri for e in endpoints} == {SecurityPolicyBasic256Sha256.URI}
+            assert {e.SecurityMode for e in endpoints} == {ua.MessageSecurityMode.SignAndEncrypt}
+            cell, idx = await cell_node(client)
+            assert await read(cell, idx, "CellId") == "virtual-cell"
+            check_pick(await cell.call_method(f"{idx}:Pick", ua.Variant(RECIPE, ua.VariantType.Int32)), cell_info)
+            passed, drift_px, _ = await cell.call_method(f"{idx}:VerifyCalibration")
+            assert passed is True and drift_px < 1.0
+
+    asyncio.run(run())
+
+
+def test_basic256sha256_refuses_plain_and_untrusted_clients(secure_cell: tuple[PlcCell, Path]) -> None:
+    cell_info, pki = secure_cell
+    stranger_cert, stranger_key = make_cert(pki / "untrusted", "stranger", "urn:cellctl:stranger", server=False)
+
+    async def plain() -> None:
+        async with Client(cell_info.opcua_url, timeout=10) as client:
+            await client.nodes.objects.get_children()
+
+    async def untrusted() -> None:
+        client = Client(cell_info.opcua_url, timeout=10)
+        client.application_uri = "urn:cellctl:stranger"
+        await client.set_security(SecurityPolicyBasic256Sha256, str(stranger_cert), str(stranger_key),
+                                  server_certificate=str(pki / "server" / "cellctl-cert.pem"))
+        async with client:
+            await client.nodes.objects.get_children()
+
+    # The server checks the client's certificate against the trusted folder.
+    with pytest.raises(UaStatusCodeError) as e:
+        asyncio.run(untrusted())
+    assert e.value.code == ua.StatusCodes.BadCertificateUntrusted
+    # No endpoint without security is offered, so a plain client finds none to open a session on.
+    with pytest.raises(UaError, match="No matching endpoints"):
+        asyncio.run(plain())
