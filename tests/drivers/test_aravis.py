@@ -94,7 +94,7 @@ def test_gige_faults_in_loopback_namespace() -> None:
     assert r["connect_without_camera"]["s"] < 6.0
     assert r["garbage_peer"]["error"].startswith("DeviceUnavailable") and r["garbage_peer"]["s"] < 6.0
     assert r["grab_after_kill"]["error"].startswith(("DeviceTimeout", "DeviceUnavailable"))
-    assert r["grab_after_kill"]["s"] < 1.5  # no hang
+    assert r["grab_after_kill"]["s"] < 2.5  # no hang
     assert r["unavailable_after_s"] < 6.0 and r["health_down"]["available"] is False
     assert "reconnecting" in r["health_down"]["reason"]
     rec = r["recovered"]

@@ -90,7 +90,7 @@ def test_move_linear_handshake_units_and_watchdog(robot: ModbusRobot) -> None:
     t0 = time.monotonic()
     robot.move_linear(target, speed_m_s=0.2)
     elapsed = time.monotonic() - t0
-    assert 1.2 < elapsed < 1.8
+    assert 1.2 < elapsed < 3.0
     st = robot.state()
     np.testing.assert_allclose(st.T_base_tool, target, atol=1e-5)
     assert st.metadata["status"] == "ready"  # the command was cleared
@@ -181,7 +181,7 @@ def test_frozen_peer_read_timeout(robot: ModbusRobot, sim: PeerProcess) -> None:
             robot.state()
         with pytest.raises((DeviceTimeout, DeviceUnavailable)):
             robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
-        assert time.monotonic() - t0 < 1.0
+        assert time.monotonic() - t0 < 2.0
     finally:
         sim.thaw()
     wait_for(lambda: robot.state().age_s() < 0.3, 5.0)

@@ -64,7 +64,7 @@ def test_activate_grip_object_and_open(gripper: tuple[RobotiqGripper, PeerProces
     # the object sits at position 200: the fingers stop there and report it while closing
     assert s["object_detected"] and s["position"] == 200 and s["position_request"] == 255
     assert s["current"] == round(0.4 * 255) // 2
-    assert 0.5 < elapsed < 1.2  # 200 units at 100 + 1.5 x 128 units/s = 0.68 s
+    assert 0.5 < elapsed < 2.5  # 200 units at 100 + 1.5 x 128 units/s = 0.68 s
     assert g.read_input(0)
     g.write_output(0, False)
     s = g.status()
@@ -98,7 +98,7 @@ def test_read_timeout_peer_killed_and_restarted(
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeout, match="did not answer the status read within 0.3 s"):
         g.status()
-    assert time.monotonic() - t0 < 1.5
+    assert time.monotonic() - t0 < 3.0
     assert g.health()["available"] is False and g.health()["outages"] == 1
     peer = start_sim(pty_pair)
     try:
@@ -157,7 +157,7 @@ def test_malformed_replies(pty_pair: SocatPair) -> None:
         t0 = time.monotonic()
         with pytest.raises((DeviceTimeout, DeviceOperationError, DeviceUnavailable)):
             g.status()
-        assert time.monotonic() - t0 < 1.5
+        assert time.monotonic() - t0 < 3.0
         assert g.health()["available"] is False
     finally:
         g.close()

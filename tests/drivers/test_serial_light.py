@@ -77,7 +77,7 @@ def test_read_timeout_peer_killed_and_restarted(
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeout, match="no reply to 'GET 0' within 0.3 s"):
         ctl.intensity_percent(0)
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 2.0
     assert ctl.health() == {"available": False, "reason": "no reply to 'GET 0'", "outages": 1, "reconnects": 0}
     peer = start_sim(pty_pair)
     try:
