@@ -302,7 +302,7 @@ function verdictText(kind, result) {
     if (v.ok) return { text: "OK", ok: true };
     return { text: `NOT OK: ${(v.problems || []).map((p) => p.code).join(", ")}`, ok: false };
   }
-  if (kind === "npoint") return { text: "fit (no verdict for n-point)", ok: true };
+  if (kind === "npoint") return { text: "n/a (n-point)", ok: true };
   return { text: "no verdict", ok: true };
 }
 
@@ -479,7 +479,7 @@ function wizEvent(kind, data) {
     wiz.current = data;
     if (data.marks) wiz.marks = data.marks;
     $("#wiz-step").textContent = `Mark ${data.step} of ${data.of}`;
-    $("#wiz-instruction").textContent = `Jog the tool to mark ${data.step} (row ${data.row}, col ${data.col}) `
+    $("#wiz-instruction").textContent = `Jog the tool to mark ${data.step} (plate mark ${data.mark_id}: row ${data.row}, col ${data.col}) `
       + "and press Record.";
     $("#wiz-run").dataset.step = String(data.step);
     $("#wiz-run").dataset.markId = String(data.mark_id);
@@ -637,20 +637,29 @@ function setupRoutineCard(card) {
   const name = card.dataset.routine;
   const start = $(".start", card), cancel = $(".cancel", card), bar = $(".bar", card);
   const msg = $(".message", card), err = $(".error", card), result = $(".result", card), act = $(".activate", card);
+  const log = $(".log", card);
+  const note = (text) => {
+    msg.textContent = text;
+    const li = document.createElement("li");
+    li.textContent = text;
+    log.append(li);
+    while (log.children.length > 12) log.firstChild.remove();
+  };
   let job = null;
   start.addEventListener("click", async () => {
     const params = {};
     for (const input of $$("input[name]", card)) params[input.name] = Number(input.value);
     start.disabled = true; cancel.disabled = false; act.hidden = true;
-    err.textContent = ""; result.replaceChildren(); bar.style.width = "0";
+    err.textContent = ""; result.replaceChildren(); log.replaceChildren(); bar.style.width = "0";
     card.dataset.state = "running";
     const session = state.session;
     try {
       job = await startRoutine(name, params);
-      msg.textContent = "started";
+      card.dataset.jobId = job.id;
+      note(`started (job ${job.id})`);
       const done = await followJob(job, (kind, data) => {
-        if (kind === "progress") { bar.style.width = `${Math.round(data.progress * 100)}%`; msg.textContent = data.message; }
-        if (kind === "state") msg.textContent = data.message;
+        if (kind === "progress") { bar.style.width = `${Math.round(data.progress * 100)}%`; note(data.message); }
+        if (kind === "state") note(`${data.state}: ${data.message}`);
       }, () => session === state.session);
       card.dataset.state = done.state;
       if (done.state === "succeeded") {

@@ -238,6 +238,38 @@ def test_engineer_runs_the_wizard_to_completion_and_activates(
     page.close()
 
 
+def test_engineer_follows_a_capture_routine_over_sse(cell: tuple[Served, dict[str, str]], browser: Browser) -> None:
+    served, tokens = cell
+    page, errors = new_page(browser, served)
+    log_in(page, tokens["engineer"])
+    page.click("#tabs button[data-tab=routines]")
+    card = page.locator(".routine[data-routine=intrinsics-capture]")
+    card.locator("input[name=views]").fill("6")
+    card.locator("button.start").click()
+    expect(card.locator(".log li").nth(2)).to_contain_text("view ", timeout=90_000)
+    page.screenshot(path=str(SHOTS / "routine-progress.png"), full_page=True)
+    expect(card).to_have_attribute("data-state", "succeeded", timeout=120_000)
+    log = card.locator(".log li").all_inner_texts()
+    # Every event the routine emitted reached the page, in order, through the streamed fetch.
+    with served.client(tokens["engineer"]) as http:
+        job = http.get(f"/jobs/{card.get_attribute('data-job-id')}").json()
+        assert job["state"] == "succeeded"
+        lines = http.get(f"/jobs/{job['id']}/events").text.splitlines()
+    messages = [json.loads(ln[len("data: "):]) for ln in lines if ln.startswith("data: ")]
+    expected = [m["message"] for m in messages if "progress" in m] + ["succeeded: done"]
+    assert log[1:] == expected[-(len(log) - 1):]
+    assert any(m.startswith("calibrating ") for m in log)
+    result = dict(zip(card.locator(".result th").all_inner_texts(), card.locator(".result td").all_inner_texts(),
+                      strict=True))
+    assert result["calibration"] == f"#{job['result']['calibration_id']}"
+    assert result["views used"] == str(job["result"]["views_used"])
+    assert result["verdict"].startswith("OK" if job["result"]["verdict"]["ok"] else "NOT OK")
+    expect(card.locator("button.activate")).to_be_visible()
+    page.screenshot(path=str(SHOTS / "routine-done.png"), full_page=True)
+    assert errors == []
+    page.close()
+
+
 def test_operator_is_not_offered_engineer_controls(cell: tuple[Served, dict[str, str]], browser: Browser,
                                                   truth: dict[str, Any]) -> None:
     served, tokens = cell
