@@ -119,6 +119,7 @@ class OpcUaPlcServer:
         self._vars: dict[str, Node] = {}
         self._refresher: asyncio.Task[None] | None = None
         self._call_lock: asyncio.Lock | None = None
+        self._pending_refresh: asyncio.Task[None] | None = None
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -248,7 +249,8 @@ class OpcUaPlcServer:
                 await self._set("Busy", False)
         await self._set("LastErrorCode", out.text_index)
         await self._set("LastError", "" if out.ok else out.message)
-        await self._refresh()
+        # Device and calibration status are refreshed after the answer, not before it.
+        self._pending_refresh = asyncio.get_running_loop().create_task(self._refresh())
         return out
 
     async def _pick(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
