@@ -55,6 +55,7 @@ thread (one at a time), so a slow pick never delays register reads.
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import logging
 import math
 import time
@@ -95,6 +96,13 @@ READ_ONLY = STATUS
 BUSY, DONE, ERROR, REFUSED = 0x1, 0x2, 0x4, 0x8
 CMD_IDLE, CMD_PICK, CMD_VERIFY = 0, 1, 2
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
+
+
+def is_loopback(host: str) -> bool:
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def int32_words(value: float) -> list[int]:
@@ -154,6 +162,9 @@ class ModbusPlcServer:
         self._thread.start(serve)
         log.info("PLC Modbus TCP server on %s:%d (unit id %d, register map v%d)", self.host, self.port,
                  self.unit_id, MAP_VERSION)
+        if not is_loopback(self.host):
+            log.warning("PLC Modbus TCP server on %s: Modbus has no authentication; keep this address on the "
+                        "PLC's network only", self.host)
         return self
 
     def stop(self) -> None:

@@ -44,6 +44,7 @@ from asyncua import Node, Server, ua
 
 from cellctl.config import OpcUaServerConfig
 from cellctl.plc.loop_thread import LoopThread
+from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
     TEXT_CANNOT_PICK,
@@ -127,6 +128,9 @@ class OpcUaPlcServer:
         logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
         self._thread.start(self._serve, timeout_s=60.0)
         log.info("PLC OPC UA server at %s (security %s)", self.url, self.config.security)
+        if self.config.security == "none" and not is_loopback(self.config.host):
+            log.warning("PLC OPC UA server on %s without security: anyone on that network can call Pick; "
+                        "use security basic256sha256 (docs/plc-opcua.md)", self.config.host)
         return self
 
     def stop(self) -> None:
