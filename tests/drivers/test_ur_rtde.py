@@ -77,6 +77,14 @@ def shared_robot() -> Iterator[URRTDERobot]:
             peer.stop()
 
 
+PROTECTIVE_STOP = """
+import rtde_control
+c = rtde_control.RTDEControlInterface("127.0.0.1")
+c.triggerProtectiveStop()
+c.disconnect()
+"""
+
+
 class TestAgainstOneEmulator:
     def test_state_is_fresh_and_matches_the_controller(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot
@@ -172,6 +180,36 @@ class TestAgainstOneEmulator:
         robot.move_linear(target, speed_m_s=0.1)
         assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
 
+    def test_protective_stop_is_reported_and_cleared_through_the_dashboard(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        target = robot.state().T_base_tool.copy()
+        target[2, 3] += 0.01
+        robot.move_linear(target, speed_m_s=0.1)
+        # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol
+        subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, timeout=60, check=True)
+        wait_for(lambda: robot.state().metadata["safety_mode"] == "protective_stop", 2.0)
+        assert robot.state().mode == "protective_stop"
+        target[2, 3] += 0.01
+        with pytest.raises(DeviceOperationError, match="protective_stop"):
+            robot.move_linear(target, speed_m_s=0.1)
+        assert "PROTECTIVE_STOP" in robot.dashboard("safetystatus")
+        robot.unlock_protective_stop()
+        wait_for(lambda: robot.state().metadata["safety_mode"] == "normal", 2.0)
+        robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
+        assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
+
+    def test_close_and_connect_again(self, shared_robot: URRTDERobot) -> None:
+        robot = shared_robot
+        """The cell closes a failed device and connects it again later: the adapter must allow that."""
+        robot.close()
+        with pytest.raises(DeviceUnavailable, match="not connected"):
+            robot.state()
+        robot.connect()
+        assert robot.state().age_s() < 0.1
+        target = robot.state().T_base_tool.copy()
+        target[0, 3] += 0.005
+        robot.move_linear(target, speed_m_s=0.1)
+
 
 def test_connect_timeout_without_a_controller(ur_ports: None) -> None:
     r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 1.0}, LIMITS)
@@ -254,41 +292,3 @@ def test_malformed_replies(ur_ports: None) -> None:
         stop.set()
         th.join(timeout=2)
         srv.close()
-
-
-PROTECTIVE_STOP = """
-import rtde_control
-c = rtde_control.RTDEControlInterface("127.0.0.1")
-c.triggerProtectiveStop()
-c.disconnect()
-"""
-
-
-def test_protective_stop_is_reported_and_cleared_through_the_dashboard(robot: URRTDERobot) -> None:
-    target = robot.state().T_base_tool.copy()
-    target[2, 3] += 0.01
-    robot.move_linear(target, speed_m_s=0.1)
-    # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol
-    subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, timeout=60, check=True)
-    wait_for(lambda: robot.state().metadata["safety_mode"] == "protective_stop", 2.0)
-    assert robot.state().mode == "protective_stop"
-    target[2, 3] += 0.01
-    with pytest.raises(DeviceOperationError, match="protective_stop"):
-        robot.move_linear(target, speed_m_s=0.1)
-    assert "PROTECTIVE_STOP" in robot.dashboard("safetystatus")
-    robot.unlock_protective_stop()
-    wait_for(lambda: robot.state().metadata["safety_mode"] == "normal", 2.0)
-    robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
-    assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
-
-
-def test_close_and_connect_again(robot: URRTDERobot) -> None:
-    """The cell closes a failed device and connects it again later: the adapter must allow that."""
-    robot.close()
-    with pytest.raises(DeviceUnavailable, match="not connected"):
-        robot.state()
-    robot.connect()
-    assert robot.state().age_s() < 0.1
-    target = robot.state().T_base_tool.copy()
-    target[0, 3] += 0.005
-    robot.move_linear(target, speed_m_s=0.1)
