@@ -20,8 +20,16 @@ LIMITS = MotionLimits(x_mm=(-900, 900), y_mm=(-900, 900), z_mm=(0, 900), max_lin
 
 
 def _settings(port: int, **kw: object) -> dict[str, object]:
-    return {"host": "127.0.0.1", "port": port, "timeout_s": 0.3, "state_max_age_s": 0.3, "poll_hz": 50,
-            "reconnect_initial_s": 0.1, "reconnect_max_s": 0.5, **kw}
+    return {
+        "host": "127.0.0.1",
+        "port": port,
+        "timeout_s": 0.3,
+        "state_max_age_s": 0.3,
+        "poll_hz": 50,
+        "reconnect_initial_s": 0.1,
+        "reconnect_max_s": 0.5,
+        **kw,
+    }
 
 
 def start_sim(port: int, *args: str) -> PeerProcess:
@@ -69,14 +77,6 @@ def test_registry_and_settings() -> None:
         ModbusRobot.Settings.model_validate({"host": "h", "poll_hz": 1, "heartbeat_timeout_s": 0.5})
 
 
-def test_state_decodes_the_register_map(robot: ModbusRobot) -> None:
-    st = robot.state()
-    np.testing.assert_allclose(st.T_base_tool[:3, 3], [0.4, 0.0, 0.3], atol=1e-6)  # 400, 0, 300 mm
-    np.testing.assert_allclose(st.T_base_tool[:3, :3], Rotation.from_euler("xyz", [180, 0, 0], degrees=True)
-                               .as_matrix(), atol=1e-6)
-    assert st.age_s() < 0.3 and st.metadata["status"] == "ready" and not st.moving
-
-
 def _target(robot: ModbusRobot, dx_m: float, dy_m: float, dz_m: float, yaw_deg: float = 0.0) -> np.ndarray:
     T = robot.state().T_base_tool.copy()
     T[:3, 3] += [dx_m, dy_m, dz_m]
@@ -84,19 +84,84 @@ def _target(robot: ModbusRobot, dx_m: float, dy_m: float, dz_m: float, yaw_deg: 
     return T
 
 
-def test_move_linear_handshake_units_and_watchdog(robot: ModbusRobot) -> None:
-    # 0.25 m at 0.2 m/s = 1.25 s: longer than the PLC's 1 s watchdog, so our heartbeat must run
-    target = _target(robot, 0.15, -0.2, 0.0, yaw_deg=30)
-    t0 = time.monotonic()
-    robot.move_linear(target, speed_m_s=0.2)
-    elapsed = time.monotonic() - t0
-    assert 1.2 < elapsed < 3.0
-    st = robot.state()
-    np.testing.assert_allclose(st.T_base_tool, target, atol=1e-5)
-    assert st.metadata["status"] == "ready"  # the command was cleared
-    with pytest.raises(DeviceOperationError, match="target out of reach"):
-        robot.move_linear(_target(robot, 0.3, 0.45, 0.5), speed_m_s=0.2)  # inside our box, beyond its reach
-    robot.move_linear(_target(robot, 0.0, 0.0, 0.02), speed_m_s=0.5)  # recovers from the refused move
+@pytest.fixture(scope="class")
+def shared() -> Iterator[tuple[ModbusRobot, PeerProcess]]:
+    """One simulator and one connected adapter for the tests that do not break the peer."""
+    port = free_port()
+    peer = start_sim(port)
+    r = ModbusRobot("plc0", _settings(port), LIMITS)
+    try:
+        r.connect()
+        yield r, peer
+    finally:
+        r.close()
+        peer.stop()
+
+
+class TestAgainstOneSimulator:
+    def test_state_decodes_the_register_map(self, shared: tuple[ModbusRobot, PeerProcess]) -> None:
+        robot, _ = shared
+        st = robot.state()
+        np.testing.assert_allclose(st.T_base_tool[:3, 3], [0.4, 0.0, 0.3], atol=1e-6)  # 400, 0, 300 mm
+        np.testing.assert_allclose(
+            st.T_base_tool[:3, :3], Rotation.from_euler("xyz", [180, 0, 0], degrees=True).as_matrix(), atol=1e-6
+        )
+        assert st.age_s() < 0.3 and st.metadata["status"] == "ready" and not st.moving
+
+    def test_move_linear_handshake_units_and_watchdog(self, shared: tuple[ModbusRobot, PeerProcess]) -> None:
+        robot, _ = shared
+        # 0.25 m at 0.2 m/s = 1.25 s: longer than the PLC's 1 s watchdog, so our heartbeat must run
+        target = _target(robot, 0.15, -0.2, 0.0, yaw_deg=30)
+        t0 = time.monotonic()
+        robot.move_linear(target, speed_m_s=0.2)
+        elapsed = time.monotonic() - t0
+        assert 1.2 < elapsed < 3.0
+        st = robot.state()
+        np.testing.assert_allclose(st.T_base_tool, target, atol=1e-5)
+        assert st.metadata["status"] == "ready"  # the command was cleared
+        with pytest.raises(DeviceOperationError, match="target out of reach"):
+            robot.move_linear(_target(robot, 0.3, 0.45, 0.5), speed_m_s=0.2)  # inside our box, beyond its reach
+        robot.move_linear(_target(robot, 0.0, 0.0, 0.02), speed_m_s=0.5)  # recovers from the refused move
+
+    def test_stop_and_digital_io(self, shared: tuple[ModbusRobot, PeerProcess]) -> None:
+        robot, sim = shared
+        start = robot.state().T_base_tool
+        errors: list[Exception] = []
+
+        def move() -> None:
+            try:
+                robot.move_linear(_target(robot, 0.0, 0.3, 0.0), speed_m_s=0.1)
+            except Exception as exc:
+                errors.append(exc)
+
+        th = threading.Thread(target=move)
+        th.start()
+        wait_for(lambda: robot.state().moving, 2.0)
+        time.sleep(0.3)
+        robot.stop()
+        th.join(timeout=5)
+        assert errors and isinstance(errors[0], DeviceOperationError)
+        travelled = robot.state().T_base_tool[1, 3] - start[1, 3]
+        assert 0.02 < travelled < 0.1
+
+        robot.set_digital_out(5, True)
+        wait_for(lambda: robot.state().metadata["digital_in"][5], 1.0)
+        io = ModbusDigitalIO("io0", {"host": "127.0.0.1", "port": int(sim.args[1]), "timeout_s": 0.3})
+        with io:
+            assert io.read_input(5) and io.read_output(5)
+            io.write_output(5, False)
+            assert not io.read_input(5)
+            with pytest.raises(DeviceOperationError, match="output 9 is not in 0..7"):
+                io.write_output(9, True)
+
+    def test_close_and_connect_again(self, shared: tuple[ModbusRobot, PeerProcess]) -> None:
+        """The cell closes a failed device and connects it again later: the adapter must allow that."""
+        robot, _ = shared
+        robot.close()
+        with pytest.raises(DeviceUnavailable, match="no state yet"):
+            robot.state()
+        robot.connect()
+        assert robot.state().age_s() < 0.3
 
 
 def test_little_word_order() -> None:
@@ -112,37 +177,6 @@ def test_little_word_order() -> None:
     finally:
         r.close()
         peer.stop()
-
-
-def test_stop_and_digital_io(robot: ModbusRobot, sim: PeerProcess) -> None:
-    start = robot.state().T_base_tool
-    errors: list[Exception] = []
-
-    def move() -> None:
-        try:
-            robot.move_linear(_target(robot, 0.0, 0.3, 0.0), speed_m_s=0.1)
-        except Exception as exc:
-            errors.append(exc)
-
-    th = threading.Thread(target=move)
-    th.start()
-    wait_for(lambda: robot.state().moving, 2.0)
-    time.sleep(0.3)
-    robot.stop()
-    th.join(timeout=5)
-    assert errors and isinstance(errors[0], DeviceOperationError)
-    travelled = robot.state().T_base_tool[1, 3] - start[1, 3]
-    assert 0.02 < travelled < 0.1
-
-    robot.set_digital_out(5, True)
-    wait_for(lambda: robot.state().metadata["digital_in"][5], 1.0)
-    io = ModbusDigitalIO("io0", {"host": "127.0.0.1", "port": int(sim.args[1]), "timeout_s": 0.3})
-    with io:
-        assert io.read_input(5) and io.read_output(5)
-        io.write_output(5, False)
-        assert not io.read_input(5)
-        with pytest.raises(DeviceOperationError, match="output 9 is not in 0..7"):
-            io.write_output(9, True)
 
 
 def test_connect_timeout() -> None:
@@ -200,12 +234,3 @@ def test_malformed_replies() -> None:
     finally:
         r.close()
         peer.stop()
-
-
-def test_close_and_connect_again(robot: ModbusRobot) -> None:
-    """The cell closes a failed device and connects it again later: the adapter must allow that."""
-    robot.close()
-    with pytest.raises(DeviceUnavailable, match="no state yet"):
-        robot.state()
-    robot.connect()
-    assert robot.state().age_s() < 0.3
