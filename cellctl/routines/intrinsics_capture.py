@@ -82,6 +82,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason}); "
                                "move the robot so the whole plate is in view, then start again")
         assert first.T_base_tool is not None
+        ctx.report(0.02, "view 1: ok (start pose)")
         w, h = first.frame.size
         approx = approximate_camera(w, h)
         T_cam_target = target_pose(approx, target, first.detection)

@@ -19,6 +19,7 @@ RANK = {r: i for i, r in enumerate(ROLES)}
 # (method, path, body, least role). Bodies are valid enough to get past auth; the status for an
 # allowed role may be 2xx, 404, 409 or 422 — never 401/403 — depending on the cell's state.
 ROUTES: list[tuple[str, str, dict[str, Any] | None, str]] = [
+    ("GET", "/auth/whoami", None, "viewer"),
     ("GET", "/cameras", None, "viewer"),
     ("GET", "/cameras/cam0/settings", None, "viewer"),
     ("GET", "/cameras/cam0/image", None, "viewer"),
@@ -95,7 +96,7 @@ def test_auth_matrix(served_with_tokens: tuple[Served, dict[str, str]], method: 
 
 def test_open_routes_need_no_token(served_with_tokens: tuple[Served, dict[str, str]]) -> None:
     served, _ = served_with_tokens
-    for path in ("/health", "/openapi.json", "/docs"):
+    for path in ("/health", "/openapi.json", "/docs", "/", "/ui/app.js"):
         assert httpx.get(served.base_url + path, timeout=10).status_code == 200
 
 

@@ -14,6 +14,9 @@ from drivers.base import CameraBase, Frame
 
 router = APIRouter(prefix="/cameras", tags=["cameras"])
 
+CAMERA_TIMEOUT_S = 5.0
+"""A frame may take a while (exposure, a first virtual render); past this the camera is unavailable."""
+
 
 def _slot(cell: CellDep, camera_id: str) -> Any:
     if camera_id not in cell.cameras:
@@ -45,7 +48,7 @@ async def camera_image(
     def grab(cam: CameraBase) -> Frame:
         return cam.grab(timeout_s=2.5)
 
-    frame: Frame = await device_call(slot, grab)
+    frame: Frame = await device_call(slot, grab, timeout_s=CAMERA_TIMEOUT_S)
     ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", frame.pixels)
     if not ok:
         raise ApiError(502, "encode_failed", f"camera {camera_id}: the frame could not be encoded as {fmt}")
