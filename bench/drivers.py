@@ -56,7 +56,7 @@ print(json.dumps(times))
 
 
 def camera(seconds: float) -> dict[str, Any]:
-    return run_scenario("bench", 120 + 6 * seconds, str(seconds), "100,300")
+    return run_scenario("bench", 120 + 6 * seconds, str(seconds), "100,300", "2")
 
 
 def robot(n_moves: int, state_reads: int) -> dict[str, Any]:
@@ -102,8 +102,9 @@ def _ms(values: list[float], q: float) -> float:
 
 def report(cam: dict[str, Any], rob: dict[str, Any], seconds: float) -> str:
     lines = ["# Driver benchmark", "",
-             f"Machine: {os.cpu_count()} cores (shared). Camera runs: {seconds:g} s per rate and client "
-             "(the issue asks 30 s; shortened for the shared 2-core machine). Peer of the camera adapter: a bare "
+             f"Machine: {os.cpu_count()} cores (shared; load average {os.getloadavg()[0]:.1f} at the end). "
+             f"Camera runs: {seconds:g} s per rate and client, as {cam['rounds']} alternating rounds (the issue "
+             "asks 30 s; shortened for the shared 2-core machine). Peer of the camera adapter: a bare "
              "Aravis loop on the same fake camera in the same run; peer of the robot adapter: ur_rtde called "
              "directly, same emulator, same run.", "",
              "## Camera: arv-fake-gv-camera-0.8 (512x512 Mono8) over GigE Vision on loopback, in a network namespace",

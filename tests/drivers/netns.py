@@ -30,12 +30,19 @@ def run_scenario(name: str, timeout_s: float = 90.0, *args: str) -> dict[str, An
     """Run scenario ``name`` in a fresh network namespace and return its JSON result."""
     unshare = ["unshare", "-n"] if os.geteuid() == 0 else ["unshare", "-rn"]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.run([*unshare, sys.executable, str(Path(__file__).resolve()), name, *args], cwd=REPO,
-                          capture_output=True, text=True, timeout=timeout_s, env=env)
+    proc = subprocess.run(
+        [*unshare, sys.executable, str(Path(__file__).resolve()), name, *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=env,
+    )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
     if proc.returncode != 0 or not lines:
-        raise RuntimeError(f"netns scenario {name} failed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n"
-                           f"{proc.stderr[-3000:]}")
+        raise RuntimeError(
+            f"netns scenario {name} failed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+        )
     result: dict[str, Any] = json.loads(lines[-1])
     return result
 
@@ -57,8 +64,9 @@ class FakeCamera:
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> FakeCamera:
-        self.proc = subprocess.Popen([FAKE_CAMERA, "-i", "127.0.0.1"], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+        self.proc = subprocess.Popen(
+            [FAKE_CAMERA, "-i", "127.0.0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         time.sleep(0.5)
         return self
 
@@ -87,18 +95,36 @@ def scenario_gige() -> dict[str, Any]:
             cam = AravisCamera("cam0", {"device_id": key, "interfaces": ["GigEVision"], "frame_rate_hz": 20})
             cam.open()
             f = cam.grab(5.0)
-            out[f"open_{key}"] = {"shape": list(f.pixels.shape), "dtype": str(f.pixels.dtype),
-                                  "serial": cam.settings()["serial"], "age_s": time.time() - f.timestamp_s,
-                                  "camera_timestamp_ns": f.metadata["camera_timestamp_ns"]}
+            out[f"open_{key}"] = {
+                "shape": list(f.pixels.shape),
+                "dtype": str(f.pixels.dtype),
+                "serial": cam.settings()["serial"],
+                "age_s": time.time() - f.timestamp_s,
+                "camera_timestamp_ns": f.metadata["camera_timestamp_ns"],
+            }
             cam.close()
-        cam = AravisCamera("cam0", {"device_id": "127.0.0.1", "interfaces": ["GigEVision"], "pixel_format": "Mono16",
-                                    "roi": {"x_px": 16, "y_px": 8, "width_px": 256, "height_px": 128},
-                                    "exposure_us": 5000, "gain_db": 3, "frame_rate_hz": 30})
+        cam = AravisCamera(
+            "cam0",
+            {
+                "device_id": "127.0.0.1",
+                "interfaces": ["GigEVision"],
+                "pixel_format": "Mono16",
+                "roi": {"x_px": 16, "y_px": 8, "width_px": 256, "height_px": 128},
+                "exposure_us": 5000,
+                "gain_db": 3,
+                "frame_rate_hz": 30,
+            },
+        )
         cam.open()
         frames = [cam.grab(5.0) for _ in range(10)]
         s = cam.settings()
-        out["configured"] = {"shape": list(frames[-1].pixels.shape), "dtype": str(frames[-1].pixels.dtype),
-                             "settings": s, "ids": [f.frame_id for f in frames], "health": cam.health()}
+        out["configured"] = {
+            "shape": list(frames[-1].pixels.shape),
+            "dtype": str(frames[-1].pixels.dtype),
+            "settings": s,
+            "ids": [f.frame_id for f in frames],
+            "health": cam.health(),
+        }
         cam.set_trigger("software")
         time.sleep(0.3)
         before = cam.health()["completed"]
@@ -118,8 +144,14 @@ def scenario_faults() -> dict[str, Any]:
     from drivers.camera.aravis import AravisCamera
 
     out: dict[str, Any] = {}
-    settings = {"device_id": "127.0.0.1", "interfaces": ["GigEVision"], "frame_rate_hz": 20,
-                "stall_timeout_s": 0.5, "reconnect_initial_s": 0.2, "reconnect_max_s": 1.0}
+    settings = {
+        "device_id": "127.0.0.1",
+        "interfaces": ["GigEVision"],
+        "frame_rate_hz": 20,
+        "stall_timeout_s": 0.5,
+        "reconnect_initial_s": 0.2,
+        "reconnect_max_s": 1.0,
+    }
     cam = AravisCamera("cam0", settings)
     _, dt, err = _timed(cam.open)  # no camera yet: connect timeout
     out["connect_without_camera"] = {"s": dt, "error": err}
@@ -167,8 +199,12 @@ def scenario_faults() -> dict[str, Any]:
     return out
 
 
-def scenario_bench(seconds: str = "10", rates: str = "100,300") -> dict[str, Any]:
-    """Frames/s and lost frames: the adapter vs a bare Aravis loop, same camera, same run."""
+def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2") -> dict[str, Any]:
+    """Frames/s and lost frames: the adapter vs a bare Aravis loop, same camera, same run.
+
+    Per rate, ``rounds`` alternating runs of each client share ``seconds`` (so a change of the
+    machine's load hits both alike); counts are summed over the rounds.
+    """
     import gi
     import numpy as np
 
@@ -177,76 +213,112 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300") -> dict[str, Any
 
     from drivers.camera.aravis import AravisCamera
 
-    duration = float(seconds)
-    out: dict[str, Any] = {"duration_s": duration, "rates": {}}
+    def bare(rate: float, secs: float) -> dict[str, float]:
+        """Pop a buffer, copy it to numpy, push it back: the least a client can do."""
+        Aravis.disable_interface("USB3Vision")
+        Aravis.disable_interface("Fake")
+        Aravis.enable_interface("GigEVision")
+        cam = Aravis.Camera.new("127.0.0.1")
+        cam.set_frame_rate(rate)
+        stream = cam.create_stream(None, None)
+        for _ in range(8):
+            stream.push_buffer(Aravis.Buffer.new_allocate(cam.get_payload()))
+        cam.start_acquisition()
+        n_ok = n_bad = lost = 0
+        last_id: int | None = None
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < secs:
+            buf = stream.timeout_pop_buffer(100_000)
+            if buf is None:
+                continue
+            fid = int(buf.get_frame_id())
+            if last_id is not None and 0 < fid - last_id - 1 < 1000:
+                lost += fid - last_id - 1
+            last_id = fid
+            if buf.get_status() == Aravis.BufferStatus.SUCCESS:
+                np.frombuffer(buf.get_data(), np.uint8).copy()
+                n_ok += 1
+            else:
+                n_bad += 1
+            stream.push_buffer(buf)
+        elapsed = time.monotonic() - t0
+        cam.stop_acquisition()
+        return {"frames": n_ok, "incomplete": n_bad, "lost": lost, "elapsed_s": elapsed}
+
+    def adapter(rate: float, secs: float, latencies: list[float]) -> dict[str, float]:
+        """The adapter, with the application grabbing every frame it can."""
+        cam = AravisCamera(
+            "cam0", {"device_id": "127.0.0.1", "interfaces": ["GigEVision"], "frame_rate_hz": rate, "buffer_count": 8}
+        )
+        cam.open()
+        cam.grab(5.0)
+        h0 = dict(cam.health())
+        n = 0
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < secs:
+            try:
+                f = cam.grab(1.0)
+            except Exception:
+                continue
+            n += 1
+            latencies.append(time.time() - f.timestamp_s)
+        elapsed = time.monotonic() - t0
+        h1 = cam.health()
+        cam.close()
+        return {
+            "frames": h1["completed"] - h0["completed"],
+            "grabbed": n,
+            "incomplete": h1["incomplete"] - h0["incomplete"],
+            "lost": h1["lost"] - h0["lost"],
+            "elapsed_s": elapsed,
+        }
+
+    def total(runs: list[dict[str, float]]) -> dict[str, float]:
+        return {k: sum(r[k] for r in runs) for k in runs[0]}
+
+    n_rounds = int(rounds)
+    secs = float(seconds) / n_rounds
+    out: dict[str, Any] = {"duration_s": float(seconds), "rounds": n_rounds, "rates": {}}
     peer = FakeCamera().start()
     try:
         for rate in (float(r) for r in rates.split(",")):
-            row: dict[str, Any] = {}
-            # bare Aravis loop: pop, copy to numpy, push back
-            Aravis.disable_interface("USB3Vision")
-            Aravis.disable_interface("Fake")
-            Aravis.enable_interface("GigEVision")
-            cam = Aravis.Camera.new("127.0.0.1")
-            cam.set_frame_rate(rate)
-            stream = cam.create_stream(None, None)
-            for _ in range(8):
-                stream.push_buffer(Aravis.Buffer.new_allocate(cam.get_payload()))
-            cam.start_acquisition()
-            n_ok = n_bad = 0
-            first_id = last_id = None
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < duration:
-                buf = stream.timeout_pop_buffer(100_000)
-                if buf is None:
-                    continue
-                if buf.get_status() == Aravis.BufferStatus.SUCCESS:
-                    np.frombuffer(buf.get_data(), np.uint8).copy()
-                    n_ok += 1
-                    fid = buf.get_frame_id()
-                    first_id = fid if first_id is None else first_id
-                    last_id = fid
-                else:
-                    n_bad += 1
-                stream.push_buffer(buf)
-            elapsed = time.monotonic() - t0
-            cam.stop_acquisition()
-            expected = (last_id - first_id + 1) if first_id is not None and last_id is not None else 0
-            row["bare"] = {"fps": n_ok / elapsed, "frames": n_ok, "incomplete": n_bad,
-                           "lost": max(0, expected - n_ok)}
-            del stream, cam
-            # the adapter, grabbing every frame as the application would
-            adapter = AravisCamera("cam0", {"device_id": "127.0.0.1", "interfaces": ["GigEVision"],
-                                            "frame_rate_hz": rate, "buffer_count": 8})
-            adapter.open()
-            adapter.grab(5.0)
-            h0 = dict(adapter.health())
+            b_runs: list[dict[str, float]] = []
+            a_runs: list[dict[str, float]] = []
             latencies: list[float] = []
-            n = 0
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < duration:
-                try:
-                    f = adapter.grab(1.0)
-                except Exception:
-                    continue
-                n += 1
-                latencies.append(time.time() - f.timestamp_s)
-            elapsed = time.monotonic() - t0
-            h1 = adapter.health()
-            adapter.close()
-            received = h1["completed"] - h0["completed"]
-            row["adapter"] = {"fps_received": received / elapsed, "fps_grabbed": n / elapsed,
-                              "incomplete": h1["incomplete"] - h0["incomplete"], "lost": h1["lost"] - h0["lost"],
-                              "latency_ms_median": 1000 * float(np.median(latencies)) if latencies else None,
-                              "latency_ms_p99": 1000 * float(np.percentile(latencies, 99)) if latencies else None}
-            out["rates"][str(int(rate))] = row
+            for _ in range(n_rounds):
+                b_runs.append(bare(rate, secs))
+                a_runs.append(adapter(rate, secs, latencies))
+            b, a = total(b_runs), total(a_runs)
+            out["rates"][str(int(rate))] = {
+                "bare": {
+                    "fps": b["frames"] / b["elapsed_s"],
+                    "frames": b["frames"],
+                    "incomplete": b["incomplete"],
+                    "lost": b["lost"],
+                },
+                "adapter": {
+                    "fps_received": a["frames"] / a["elapsed_s"],
+                    "fps_grabbed": a["grabbed"] / a["elapsed_s"],
+                    "incomplete": a["incomplete"],
+                    "lost": a["lost"],
+                    "latency_ms_median": 1000 * float(np.median(latencies)) if latencies else None,
+                    "latency_ms_p99": 1000 * float(np.percentile(latencies, 99)) if latencies else None,
+                },
+                "per_round_fps": {
+                    "bare": [r["frames"] / r["elapsed_s"] for r in b_runs],
+                    "adapter": [r["frames"] / r["elapsed_s"] for r in a_runs],
+                },
+            }
     finally:
         peer.kill()
     return out
 
 
 SCENARIOS: dict[str, Callable[..., dict[str, Any]]] = {
-    "gige": scenario_gige, "faults": scenario_faults, "bench": scenario_bench}
+    "gige": scenario_gige,
+    "faults": scenario_faults,
+    "bench": scenario_bench,
+}
 
 
 def main() -> None:
