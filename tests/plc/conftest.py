@@ -18,7 +18,7 @@ import yaml
 
 from calibration import geometry as g
 from cellctl.config import default_config_text, parse_config
-from cellctl.pick.flow import Recipe
+from cellctl.pick.flow import Recipe, SearchSettings
 from cellctl.pick.model import teach
 from cellctl.store import open_store
 from drivers.sim.world import world_for
@@ -64,8 +64,9 @@ def prepare_cell(tmp: Path, plc: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
         T_cam_base = g.invert(world.T_base_cam())
         u, v = world.camera_model.project(g.transform_points(T_cam_base, [part.x_mm * 1e-3, part.y_mm * 1e-3, 0.0]))[0]
         model = teach(world.render(), (float(u) - 100, float(v) - 100, 200, 200), mode="shape", name="bracket")
+        # A generous search timeout: on a loaded shared machine the default 1 s can cut the search short.
         recipe = Recipe(name="bracket", models=[model.to_dict()], plane_z_mm=0.0, grasp_z_mm=5.0,
-                        approach_height_mm=40.0)
+                        approach_height_mm=40.0, search=SearchSettings(timeout_s=20.0))
         store.save_recipe(RECIPE, "bracket", recipe.model_dump(mode="json"), "test")
     finally:
         store.close()

@@ -13,8 +13,8 @@ from pymodbus.client import ModbusTcpClient
 from cellctl.cell import Cell
 from cellctl.config import ConfigError, default_config_text, load_config, parse_config
 from cellctl.jobs import JobManager
-from cellctl.plc import start_plc_servers
 from cellctl.plc import modbus_server as mb
+from cellctl.plc import start_plc_servers
 from cellctl.services import Services
 from cellctl.store import open_store
 from tests.conftest import free_port
@@ -45,7 +45,7 @@ def test_the_virtual_cell_keeps_its_plc_servers_off() -> None:
 
 
 def test_bad_plc_settings_are_refused_with_the_key(tmp_path: Path) -> None:
-    cases = [
+    cases: list[tuple[dict[str, object], str]] = [
         ({"modbus": {"enabled": True, "port": 70000}}, "plc.modbus.port"),
         ({"modbus": {"unit": 1}}, "plc.modbus.unit: unknown key"),
         ({"opcua": {"security": "basic128"}}, "plc.opcua.security"),
