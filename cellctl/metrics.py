@@ -31,8 +31,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Iterable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
@@ -100,8 +98,7 @@ class DeviceCollector(Collector):
 
     def __init__(self) -> None:
         self.cell: Cell | None = None
-        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="metrics-settings")
-        self._pending: dict[str, Future[dict[str, Any]]] = {}
+        self._pending: dict[str, threading.Thread] = {}
         self._lock = threading.Lock()
 
     def describe(self) -> Iterable[Metric]:
@@ -146,21 +143,31 @@ class DeviceCollector(Collector):
         yield from (available, outages, connected, frames, lost, incomplete, rate)
 
     def _settings(self, device_id: str, slot: DeviceSlot[Any]) -> dict[str, Any]:
-        """The camera's ``settings()``, or {} when it fails or does not answer in time."""
+        """The camera's ``settings()``, or {} when it fails or does not answer in time.
+
+        Asked in a daemon thread, so a camera that hangs delays a scrape by at most
+        ``SETTINGS_TIMEOUT_S`` and never blocks the process from exiting.
+        """
         with self._lock:
             pending = self._pending.get(device_id)
-            if pending is not None and not pending.done():
+            if pending is not None and pending.is_alive():
                 return {}  # the previous scrape's call is still stuck in the device: do not pile up
-            future = self._pool.submit(slot.device.settings)
-            self._pending[device_id] = future
-        try:
-            result = future.result(timeout=SETTINGS_TIMEOUT_S)
-        except FutureTimeout:
+            box: dict[str, Any] = {}
+
+            def ask() -> None:
+                try:
+                    box["settings"] = slot.device.settings()
+                except Exception:  # noqa: BLE001 - a scrape reports what it can
+                    log.debug("camera %s settings() failed", device_id, exc_info=True)
+
+            thread = threading.Thread(target=ask, name=f"metrics-{device_id}", daemon=True)
+            self._pending[device_id] = thread
+            thread.start()
+        thread.join(SETTINGS_TIMEOUT_S)
+        if thread.is_alive():
             log.debug("camera %s settings() did not answer within %.1f s", device_id, SETTINGS_TIMEOUT_S)
             return {}
-        except Exception:  # noqa: BLE001 - a scrape reports what it can
-            log.debug("camera %s settings() failed", device_id, exc_info=True)
-            return {}
+        result = box.get("settings")
         return result if isinstance(result, dict) else {}
 
 

@@ -8,6 +8,7 @@ OpenCV video-file devices) and a real ``JobManager``.
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,6 +27,7 @@ from cellctl.cell import Cell
 from cellctl.config import default_config_text, parse_config
 from cellctl.jobs import JobCancelled, JobContext, JobManager
 from cellctl.services import Services
+from drivers.sim.camera import SimCamera, SimCameraSettings
 from tests.conftest import Served, start_served, stop_served
 
 VIEWER = "cct_test-viewer-token-0123456789"
@@ -236,3 +238,40 @@ def test_camera_frames_rate_and_outages_from_the_slots(tmp_path: Path) -> None:
     finally:
         metrics.detach(m)
         cell.close()
+
+
+class StuckSettingsCamera(SimCamera):
+    """The simulated camera with a control channel that stops answering ``settings()``."""
+
+    release = threading.Event()
+
+    def settings(self) -> dict[str, Any]:
+        self.release.wait(30)
+        return {"frame_rate_hz": 5.0}
+
+
+def test_a_camera_that_stops_answering_does_not_stall_the_scrape() -> None:
+    services = virtual_services()
+    slot = services.cell.camera("cam0")
+    settings = SimCameraSettings.model_validate(services.config.cameras["cam0"].settings)
+    slot.device = StuckSettingsCamera("cam0", settings)
+    m = metrics.CellMetrics()
+    metrics.attach(m, services)
+    try:
+        services.cell.open_all()
+        for _ in range(2):  # the second scrape does not start another call while one is stuck
+            t0 = time.perf_counter()
+            got = samples(m.render().decode())
+            assert time.perf_counter() - t0 < metrics.SETTINGS_TIMEOUT_S + 1.0
+            assert ("cellctl_camera_frame_rate_hz", (("camera", "cam0"),)) not in got
+            assert got[("cellctl_robot_connected", (("robot", "robot0"),))] == 1
+        assert sum(t.name == "metrics-cam0" for t in threading.enumerate()) == 1
+        StuckSettingsCamera.release.set()  # the camera answers again
+        deadline = time.monotonic() + 5
+        while ("cellctl_camera_frame_rate_hz", (("camera", "cam0"),)) not in (got := samples(m.render().decode())):
+            assert time.monotonic() < deadline
+        assert got[("cellctl_camera_frame_rate_hz", (("camera", "cam0"),))] == 5.0
+    finally:
+        StuckSettingsCamera.release.set()
+        metrics.detach(m)
+        services.cell.close()
