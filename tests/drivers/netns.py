@@ -226,6 +226,7 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
         cam.start_acquisition()
         n_ok = n_bad = lost = 0
         last_id: int | None = None
+        cpu0 = time.process_time()
         t0 = time.monotonic()
         while time.monotonic() - t0 < secs:
             buf = stream.timeout_pop_buffer(100_000)
@@ -242,8 +243,9 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
                 n_bad += 1
             stream.push_buffer(buf)
         elapsed = time.monotonic() - t0
+        cpu = time.process_time() - cpu0
         cam.stop_acquisition()
-        return {"frames": n_ok, "incomplete": n_bad, "lost": lost, "elapsed_s": elapsed}
+        return {"frames": n_ok, "incomplete": n_bad, "lost": lost, "elapsed_s": elapsed, "cpu_s": cpu}
 
     def adapter(rate: float, secs: float, latencies: list[float]) -> dict[str, float]:
         """The adapter, with the application grabbing every frame it can."""
@@ -254,6 +256,7 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
         cam.grab(5.0)
         h0 = dict(cam.health())
         n = 0
+        cpu0 = time.process_time()
         t0 = time.monotonic()
         while time.monotonic() - t0 < secs:
             try:
@@ -263,6 +266,7 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
             n += 1
             latencies.append(time.time() - f.timestamp_s)
         elapsed = time.monotonic() - t0
+        cpu = time.process_time() - cpu0
         h1 = cam.health()
         cam.close()
         return {
@@ -271,6 +275,7 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
             "incomplete": h1["incomplete"] - h0["incomplete"],
             "lost": h1["lost"] - h0["lost"],
             "elapsed_s": elapsed,
+            "cpu_s": cpu,
         }
 
     def total(runs: list[dict[str, float]]) -> dict[str, float]:
@@ -295,12 +300,14 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
                     "frames": b["frames"],
                     "incomplete": b["incomplete"],
                     "lost": b["lost"],
+                    "cpu_ms_per_frame": 1000 * b["cpu_s"] / max(1.0, b["frames"]),
                 },
                 "adapter": {
                     "fps_received": a["frames"] / a["elapsed_s"],
                     "fps_grabbed": a["grabbed"] / a["elapsed_s"],
                     "incomplete": a["incomplete"],
                     "lost": a["lost"],
+                    "cpu_ms_per_frame": 1000 * a["cpu_s"] / max(1.0, a["frames"]),
                     "latency_ms_median": 1000 * float(np.median(latencies)) if latencies else None,
                     "latency_ms_p99": 1000 * float(np.percentile(latencies, 99)) if latencies else None,
                 },
