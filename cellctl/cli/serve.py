@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> None:
         session.append(("session", "engineer", hash_token(token)))
         print(f"cellctl: no tokens in the config; this run's engineer token (also in {path}):\n{token}",
               file=sys.stderr, flush=True)
-    configure_logging(args.log_format)
+    configure_logging(args.log_format, logging.DEBUG if getattr(args, "verbose", False) else logging.INFO)
     if http.tls_cert is None and not http.is_loopback():
         log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
                     http.host)
