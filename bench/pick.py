@@ -234,6 +234,7 @@ class Tally:
     false: int = 0
     wall_s: list[float] = field(default_factory=list)
     cpu_s: list[float] = field(default_factory=list)
+    stages: list[tuple[float, float, float]] = field(default_factory=list)
 
     def add(self, truth: list[synth.Truth], found: list[Found]) -> None:
         used: set[int] = set()
@@ -279,6 +280,9 @@ def run(n: int, seed: int, with_baseline: bool) -> str:
         ours[set_name].wall_s.append(t1 - t0)
         ours[set_name].cpu_s.append(c1 - c0)
         ours[set_name].add(sc.truth, [Found(m.u_px, m.v_px, m.angle_deg, m.score) for m in res.matches])
+        st = res.stats
+        ours[set_name].stages.append((st["cpu_top_s"], st["cpu_track_s"] - st["cpu_top_s"],
+                                      st["cpu_total_s"] - st["cpu_track_s"]))
         if base is not None:
             t0, c0 = time.perf_counter(), time.process_time()
             fb = base.find(sc.img)
@@ -310,6 +314,7 @@ def _merge(ts: list[Tally]) -> Tally:
         out.false += t.false
         out.wall_s += t.wall_s
         out.cpu_s += t.cpu_s
+        out.stages += t.stages
     return out
 
 
@@ -366,6 +371,29 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
         f"| >= 95 % found at 30 % occlusion | {found30:.1f} % | {mark(found30 >= 95.0)} |",
         f"| median <= 20 ms per image | {med:.1f} ms wall ({med_cpu:.1f} ms CPU) | {mark(med <= 20.0)} |",
         f"| p99 <= 50 ms per image | {p99:.1f} ms wall ({p99_cpu:.1f} ms CPU) | {mark(p99 <= 50.0)} |",
+    ]
+    stg = np.median(np.array(allo.stages), axis=0) * 1e3 if allo.stages else np.zeros(3)
+    lines += [
+        "",
+        "## Where cellctl's time goes (median CPU ms per image, all sets)",
+        "",
+        "| top level: pyramid, response maps, exhaustive search | tracking down the pyramid "
+        "| least-squares refinement (levels 1 and 0) |",
+        "| --- | --- | --- |",
+        f"| {stg[0]:.1f} | {stg[1]:.1f} | {stg[2]:.1f} |",
+        "",
+        "Notes. The accuracy targets are met with margin on every set, the perspective (tilted) one "
+        "included, thanks to the final plane-homography fit; recall at 30 % occlusion is close to "
+        "the target's edge (see the table for the count of misses). The speed targets are missed: "
+        "wall times here are inflated 3-4x by the other jobs "
+        "on the 2 cores (see the load average), but even the CPU time per image is above 20 ms. "
+        "The exhaustive top-level search is overhead-bound (one numpy call per feature and angle, "
+        "~1000 calls of a few microseconds), and the refinement costs ~2-3 ms per instance in "
+        "numpy call overhead on a few hundred points; a compiled inner loop (line2Dup's SIMD "
+        "linear memories, or numba) would be the way to the 20 ms target. Narrowing the search "
+        "(an angle range, a search ROI, fewer instances with max_count) cuts the time in proportion. "
+        "The baseline's false detections are other parts and clutter reaching |NCC| >= 0.5 at some "
+        "rotation (the same minimum score as cellctl's); its misses grow with occlusion.",
     ]
     if theirs is not None:
         allt = _merge(list(theirs.values()))
