@@ -225,25 +225,24 @@ def _assign(frame: _Frame, cols: int, rows: int, mirrored: bool
     C, R = cols, rows
     plate = np.array([[-1, -1], [C, -1], [C, R], [-1, R]], dtype=np.float64)
     best: tuple[int, float, FloatArray, NDArray[np.int64], NDArray[np.int64], bool] | None = None
-    for _ in range(1):
-        Q = frame.corners if not mirrored else frame.corners[::-1]
-        for s in range(4):
-            Qs = np.roll(Q, -s, axis=0)
-            H = cv2.getPerspectiveTransform(plate.astype(np.float32), Qs.astype(np.float32)).astype(np.float64)
-            idx, ids = _match(H, frame.marks, C, R, 0.35)
-            for _ in range(2):
-                H2 = _fit_h(_grid_xy(ids, C), frame.marks[idx])
-                if H2 is None:
-                    break
-                H = H2
-                idx, ids = _match(H, frame.marks, C, R, 0.3)
-            # consistency of the frame with the grid: predicted inner corners vs measured ones
-            pred = _apply_h(H, plate)
-            pitch_px = np.median(np.hypot(*np.diff(pred, axis=0).T)) / max(C, R) if len(ids) else 1.0
-            frame_err = float(np.max(np.hypot(*(pred - Qs).T))) / max(pitch_px, 1e-9)
-            key = (len(ids), -frame_err)
-            if best is None or key > (best[0], best[1]):
-                best = (len(ids), -frame_err, H, idx, ids, mirrored)
+    Q = frame.corners if not mirrored else frame.corners[::-1]
+    for s in range(4):
+        Qs = np.roll(Q, -s, axis=0)
+        H = cv2.getPerspectiveTransform(plate.astype(np.float32), Qs.astype(np.float32)).astype(np.float64)
+        idx, ids = _match(H, frame.marks, C, R, 0.35)
+        for _ in range(2):
+            H2 = _fit_h(_grid_xy(ids, C), frame.marks[idx])
+            if H2 is None:
+                break
+            H = H2
+            idx, ids = _match(H, frame.marks, C, R, 0.3)
+        # consistency of the frame with the grid: predicted inner corners vs measured ones
+        pred = _apply_h(H, plate)
+        pitch_px = np.median(np.hypot(*np.diff(pred, axis=0).T)) / max(C, R) if len(ids) else 1.0
+        frame_err = float(np.max(np.hypot(*(pred - Qs).T))) / max(pitch_px, 1e-9)
+        key = (len(ids), -frame_err)
+        if best is None or key > (best[0], best[1]):
+            best = (len(ids), -frame_err, H, idx, ids, mirrored)
     if best is None:
         return None
     n, neg_err, H, idx, ids, mirrored = best

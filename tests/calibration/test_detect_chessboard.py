@@ -38,10 +38,12 @@ def test_symmetric_board_up_to_its_half_turn(camera: CameraModel, roll_deg: floa
     assert G[0, -1, 0] > G[0, 0, 0]  # convention: the x axis points rightwards on screen
 
 
-def _found(folder: str, cols: int, rows: int) -> dict[str, tuple[bool, str]]:
+def _found(folder: str, cols: int, rows: int, skip: tuple[str, ...] = ()) -> dict[str, tuple[bool, str]]:
     board = Chessboard(cols, rows, 1.0)
     out = {}
     for p in sorted((DATA / folder).glob("*.jpg")):
+        if p.name in skip:
+            continue
         det = detect_file(p, board)
         out[p.name] = (det.found, det.reason)
         if det.found:
@@ -59,8 +61,8 @@ def test_udacity_camera_cal_9x6() -> None:
 
 
 def test_udacity_gopro_wide_8x6() -> None:
-    res = _found("udacity_gopro_wide_8x6", 8, 6)
-    res.pop("test_image.jpg")  # the notebook's undistortion test image, not a calibration view
+    # test_image.jpg is the notebook's undistortion test image, not a calibration view
+    res = _found("udacity_gopro_wide_8x6", 8, 6, skip=("test_image.jpg",))
     assert len(res) == 36
     missing = sorted(k for k, (ok, _) in res.items() if not ok)
     assert missing == ["GOPR0055.jpg"]
