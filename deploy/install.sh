@@ -79,7 +79,7 @@ if [ -z "$(uid_gid)" ]; then
       --shell /usr/sbin/nologin --comment "cellctl service" "$SERVICE_USER"
     say "created system user $SERVICE_USER in $ROOT/etc/passwd"
   else
-    say "skipped creating user $SERVICE_USER: $ROOT/etc/passwd is absent (or not root); files stay root's"
+    say "skipped creating user $SERVICE_USER: $ROOT/etc/passwd is absent (or not root); files keep their installing owner"
   fi
 fi
 OWNER=$(uid_gid)
