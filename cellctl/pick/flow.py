@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
+from cellctl import metrics
 from cellctl.mapping import ActiveMapping, active_mapping, npoint_pose_check
 from cellctl.pick.model import PartModel
 from cellctl.pick.recognize import recognize
@@ -157,6 +158,7 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
                       "reachable": reason is None, "not_reachable_reason": reason})
     frame_id = services.frames.add(frame.pixels, [{**p, "part": p["part"]} for p in picks])
     t_done = time.perf_counter()
+    metrics.observe_pick(t_done - t0, [p["score"] for p in picks], source=services)
     answer: dict[str, Any] = {
         "recipe_id": recipe_id, "recipe_version": stored.version, "camera_id": cam_id, "robot_id": robot_id,
         "frame_id": frame_id, "image_url": f"/frames/{frame_id}.png", "timed_out": found.timed_out,
