@@ -15,8 +15,8 @@ the way tests/plc prepares it) with both PLC servers on loopback. In the same ru
   time is the answer's ``latency_ms.total``.
 
 "overhead" = client-measured latency minus the server-side pick time of the same request: what the
-front end adds. On the virtual cell the pick itself is dominated by the simulated camera rendering
-a 1280x960 frame (seconds on a shared 2-core machine), so compare overheads, not totals.
+front end adds. On the virtual cell the pick itself is mostly the simulated camera rendering
+a 1280x960 frame in software (0.1 s idle, up to 3 s on the loaded shared machine), so compare overheads.
 
 Run: ``.venv/bin/python bench/plc.py [--n-modbus 200] [--n-opcua 50] [--n-rest 50] [--out bench/results/plc.md]``.
 """
@@ -200,8 +200,8 @@ def main(argv: list[str] | None = None) -> None:
         f"(Modbus {over['modbus']:.2f} ms, OPC UA {over['opcua']:.2f} ms, REST {over['rest']:.2f} ms).",
         "",
         "The server-side pick time is the same pipeline for all three paths (grab -> locate -> convert); "
-        "on the virtual cell it is dominated by the simulated camera rendering a frame, so the totals "
-        "measure the renderer, and the overhead column measures the front end. The Modbus overhead "
+        "on the virtual cell it is the simulated camera rendering a frame in software plus the shape search, "
+        "so the totals measure those, and the overhead column measures the front end. The Modbus overhead "
         "includes the PLC's polling period (1 ms here; a PLC polling every cycle of 10 ms adds up to 10 ms). "
         "The three pick paths run interleaved (a Modbus pick every round, an OPC UA and a REST pick every "
         f"{max(1, a.n_modbus // max(1, a.n_opcua))} rounds), so they share the machine's load. "

@@ -4,7 +4,8 @@ The PLC is the Modbus client; ``cellctl serve`` answers on ``plc.modbus.host:por
 ``plc.modbus.unit_id``). All data are 16-bit holding registers, read with FC3 (or FC4, same
 registers) and written with FC6/FC16; other function codes are refused (exception 01). Addresses
 are protocol addresses, 0-based (the "4x" reference is 40001 + address). Unmapped addresses and
-writes to the read-only block answer exception 02 (illegal data address).
+writes to the read-only block answer exception 02 (illegal data address); other unit ids
+exception 0B.
 
 Register map (version 1; full description with the handshake in docs/plc-modbus.md)::
 
@@ -98,6 +99,11 @@ CMD_IDLE, CMD_PICK, CMD_VERIFY = 0, 1, 2
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
 
 
+async def _gateway_no_response(function_code: int, start_address: int, address: int, count: int,
+                               registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes:
+    return ExcCodes.GATEWAY_NO_RESPONSE
+
+
 def is_loopback(host: str) -> bool:
     try:
         return host == "localhost" or ipaddress.ip_address(host).is_loopback
@@ -152,7 +158,7 @@ class ModbusPlcServer:
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> ModbusPlcServer:
         async def serve() -> None:
-            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port))
+            self._server = ModbusTcpServer(self._devices(), address=(self.host, self.port))
             try:
                 await self._server.serve_forever(background=True)
             except (RuntimeError, OSError) as exc:
@@ -175,8 +181,8 @@ class ModbusPlcServer:
         self._thread.stop(shutdown)
         self._executor.shutdown(wait=True, cancel_futures=True)
 
-    def _device(self) -> SimDevice:
-        return SimDevice(
+    def _devices(self) -> list[SimDevice]:
+        ours = SimDevice(
             id=self.unit_id,
             simdata=[
                 SimData(COMMAND, count=3, values=0, datatype=DataType.REGISTERS),
@@ -184,6 +190,13 @@ class ModbusPlcServer:
             ],
             action=self._action,
         )
+        if self.unit_id == 0:
+            return [ours]
+        # Every other unit id: exception 0B. (pymodbus 3.16's SimCore would raise a KeyError for an
+        # unknown id, answered as exception 04 with a traceback in the log.)
+        others = SimDevice(id=0, simdata=[SimData(0, count=65536, values=0, datatype=DataType.REGISTERS)],
+                           action=_gateway_no_response)
+        return [ours, others]
 
     # -- requests (all on the server's loop) --------------------------------------------------------
     async def _action(self, function_code: int, start_address: int, address: int, count: int,
