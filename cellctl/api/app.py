@@ -43,7 +43,8 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
 
         try:
             plc = await run_in_threadpool(start_plc_servers, services)
-        except BaseException:
+        except BaseException as exc:
+            log.error("the PLC servers cannot start: %s", exc)
             await run_in_threadpool(services.close)
             metrics.detach(app.state.metrics)
             raise
