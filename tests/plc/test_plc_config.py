@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -84,6 +85,10 @@ def test_modbus_server_starts_and_stops_from_the_config(tmp_path: Path) -> None:
             assert r.registers[mb.MAX_PICKS_REG - mb.STATUS] == mb.MAX_PICKS
             assert r.registers[mb.MAP_VERSION_REG - mb.STATUS] == mb.MAP_VERSION
             assert r.registers[mb.ECHO_SEQ - mb.STATUS] == 0  # no answer yet
+            beat = r.registers[mb.HEARTBEAT - mb.STATUS]
+            time.sleep(0.35)
+            later = plc.read_holding_registers(mb.HEARTBEAT, count=1, device_id=7).registers[0]
+            assert 2 <= (later - beat) % 65536 <= 60  # counts every 100 ms
     finally:
         servers.stop()
         svc.close()
