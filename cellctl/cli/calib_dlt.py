@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import csv
+import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cellctl.cli.output import CommandError
+
+log = logging.getLogger("cellctl.calib.dlt")
 
 
 def register(sub: Any) -> None:
@@ -63,6 +66,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if (args.width is None) != (args.height is None):
         raise CommandError("give both --width and --height, or neither")
     size = (args.width, args.height) if args.width else None
+    if size is None:
+        log.warning("image size not given (--width/--height): assuming twice the principal point")
     try:
         res = calibrate_dlt(tp.xyz_m[[where[int(i)] for i in ids]], uv, size, args.model,
                             distortion=not args.no_distortion)
