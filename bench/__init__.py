@@ -1,0 +1,1 @@
+"""Benchmarks: each script prints a markdown table against a named peer (see README)."""
