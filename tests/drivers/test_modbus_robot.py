@@ -234,3 +234,22 @@ def test_malformed_replies() -> None:
     finally:
         r.close()
         peer.stop()
+
+
+def test_register_codec_types_word_order_and_scale() -> None:
+    """int16/uint16/int32/uint32/float32 with scale, both word orders: what a PLC map may use."""
+    from drivers.robot.modbus import RegisterSpec
+
+    for order in ("big", "little"):
+        r = ModbusRobot("plc0", {"host": "127.0.0.1", "word_order": order}, LIMITS)
+        cases = [("int16", 0.1, -123.4, 1), ("uint16", 1.0, 65000.0, 1), ("int32", 0.001, -654321.123, 2),
+                 ("uint32", 1.0, 4_000_000_000.0, 2), ("float32", 1.0, 1234.5, 2)]
+        for dtype, scale, value, width in cases:
+            spec = RegisterSpec(address=0, data_type=dtype, scale=scale)  # type: ignore[arg-type]
+            regs = r._encode(spec, value)
+            assert len(regs) == width and all(0 <= v <= 0xFFFF for v in regs)
+            assert r._decode(spec, regs) == pytest.approx(value, abs=scale / 2)
+        # the word order really changes the layout of 32-bit values
+        spec = RegisterSpec(address=0, data_type="int32", scale=1.0)
+        regs = r._encode(spec, 0x00010002)
+        assert regs == ([1, 2] if order == "big" else [2, 1])
