@@ -54,7 +54,7 @@ def robot_state(args: argparse.Namespace) -> dict[str, Any]:
         raise CommandError(f"no robot {args.robot!r} in the config; configured: {sorted(cell.robots)}")
     slot = cell.robots[args.robot]
     try:
-        state = slot.ensure_open().state()
+        # The age is taken when the state is read, not after the adapter has closed.
+        return state_to_json(args.robot, slot.ensure_open().state())
     finally:
         slot.close()
-    return state_to_json(args.robot, state)
