@@ -808,6 +808,9 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     a0 = math.radians(sp.angle_start_deg)
     ext = math.radians(max(min(sp.angle_extent_deg, 360.0), 0.0))
     stats: dict[str, float] = {}
+    # coarse levels score lower than level 0 (blur, fewer features): their thresholds stop at the
+    # default's, only the final level-0 score is held to a higher minimum
+    coarse_min = min(sp.min_score, 0.5)
 
     # 1. exhaustive search on the top level
     top = model.levels[L]
@@ -847,7 +850,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                 timed_out = True
                 done = ai + 1
                 break
-        thr_top = int(math.floor(4 * nf * sp.min_score * 0.7))
+        thr_top = int(math.floor(4 * nf * coarse_min * 0.7))
         # local maxima over position and angle (circular when the range is the full turn),
         # checked only where the score passes the threshold
         sub = allacc[:done]
@@ -903,13 +906,13 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                                         2 if first else 1)
             if last:
                 # the spread responses leave +-1 px plateaus: settle on the unspread ones
-                keep = sc_ >= sp.min_score * 0.7
+                keep = sc_ >= coarse_min * 0.7
                 xs_, ys_, ts_ = xs_[keep], ys_[keep], ts_[keep]
                 xs_, ys_, ts_, sc_ = _track(raw, lm, np.rint(xs_).astype(np.int64),
                                             np.rint(ys_).astype(np.int64), ts_, 1, 1)
             nxt += [_Pose(float(a), float(b_), float(t_), float(c_))
                     for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True)
-                    if c_ >= sp.min_score * (0.6 if last else 0.8)]
+                    if c_ >= coarse_min * (0.6 if last else 0.8)]
             if clock.expired():
                 timed_out = True
                 break
@@ -953,9 +956,9 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
                 search_px=4.5 if step == 0 else 2.0, iterations=5 if step == 0 else 1,
                 fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
                 subset=model.levels[lv2].features if lv2 > 0 else None,
-                reject_below=0.7 * sp.min_score, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
+                reject_below=0.7 * coarse_min, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
                 max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective)
-            if score >= sp.min_score * (0.8 if lv2 > 0 else 1.0):
+            if score >= (coarse_min * 0.8 if lv2 > 0 else sp.min_score):
                 nxt2.append((_Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
         nxt2.sort(key=lambda t: -t[2])
         if _TRACE is not None:

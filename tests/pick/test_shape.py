@@ -149,3 +149,12 @@ def test_teach_refuses_featureless_roi() -> None:
     img = np.full((100, 100), 128, np.uint8)
     with pytest.raises(ValueError, match="no edges"):
         shape.teach(img, (10, 10, 50, 50))
+
+
+def test_high_min_score_keeps_clean_instances(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+    """Coarse levels score lower than level 0; a high minimum must not lose a clean instance."""
+    part, model = bracket
+    insts = [synth.Instance(part, 170.4, 160.3, 75.0), synth.Instance(part, 450.2, 300.9, -20.0, 0.3)]
+    img, _ = synth.render(insts, _style(), np.random.default_rng(12))
+    ms = shape.find(model, img, shape.SearchParams(min_score=0.9)).matches
+    assert len(ms) == 1 and abs(ms[0].u_px - 170.4) < 0.1 and ms[0].score >= 0.9
