@@ -175,7 +175,7 @@ def accuracy_table(summary: list[dict[str, Any]], label_keys: tuple[str, ...]) -
     head = ("| " + " | ".join(label_keys) + " | sets | cellctl rot ° | best CV rot ° (method) | ratio | "
             "cellctl trans mm | best CV trans mm (method) | ratio | reported 1σ rot ° / trans mm | actual RMS "
             "rot ° / trans mm | actual/reported | cellctl ms | CV ms (best) |")
-    lines = [head, "|" + "---|" * (len(label_keys) + 13)]
+    lines = [head, "|" + "---|" * (len(label_keys) + 12)]
     for s in summary:
         labels = [(_fmt_noise(s[k]) if k == "noise" else str(s[k])) for k in label_keys]
         q = (s["rms_err_trans"] / s["rms_sig_trans"], s["rms_err_rot"] / s["rms_sig_rot"])
