@@ -157,16 +157,26 @@ def test_image_paired_with_wrong_pose_reported_and_left_out() -> None:
     assert trans_mm < 3.0 * res.uncertainty_trans_mm and rot_deg < 3.0 * res.uncertainty_rot_deg
 
 
-def test_small_rotation_pairs_dropped_and_reported() -> None:
+def test_small_and_near_180_rotation_pairs_dropped_and_reported() -> None:
     sim = _sim("eye-in-hand", seed=14, n=9)
-    G = list(sim.G_recorded) + [sim.G_recorded[0] @ make_transform(rotvec_to_matrix([0.0, 0.01, 0.0]), [0.0, 0, 0])]
     rng = np.random.default_rng(14)
-    extra = _detections_for("eye-in-hand", [G[-1]], sim.X_true, sim.Z_true, rng)[0]
-    extra.image = "near_duplicate.png"
-    res = calibrate_handeye("eye-in-hand", G, [*sim.detections, extra], CAM, TARGET, NOISE, leave_one_out=False)
+    near = sim.G_true[0] @ make_transform(rotvec_to_matrix([0.0, 0.01, 0.0]), [0.0, 0, 0])
+    # a half turn (175 deg) of the camera about the line from it to the target's centre
+    C0 = sim.C_true[0]
+    centre_cam = C0[:3, :3] @ TARGET.points().xyz_m.mean(axis=0) + C0[:3, 3]
+    axis_cam = centre_cam / np.linalg.norm(centre_cam)
+    spin = make_transform(rotvec_to_matrix(axis_cam * np.radians(175.0)), np.zeros(3))
+    about = make_transform(np.eye(3), centre_cam) @ spin @ make_transform(np.eye(3), -centre_cam)
+    half = sim.G_true[0] @ sim.X_true @ about @ invert(sim.X_true)
+    extra = _detections_for("eye-in-hand", [near, half], sim.X_true, sim.Z_true, rng)
+    extra[0].image, extra[1].image = "near_duplicate.png", "half_turn.png"
+    res = calibrate_handeye("eye-in-hand", [*sim.G_recorded, near, half], [*sim.detections, *extra], CAM, TARGET,
+                            NOISE, leave_one_out=False)
     dropped = [p for p in res.problems if p.code == "pairs_dropped"]
-    assert dropped and "dropped" in dropped[0].message
-    assert res.pairs["dropped_small"] >= 1
+    assert dropped and "dropped" in dropped[0].message and "near 180" in dropped[0].message
+    assert res.pairs["dropped_small"] >= 1 and res.pairs["dropped_near_180"] >= 1
+    rot_deg, trans_mm = transform_error_deg_mm(res.X, sim.X_true)
+    assert trans_mm < 3.0 * res.uncertainty_trans_mm and rot_deg < 3.0 * res.uncertainty_rot_deg
 
 
 def test_robot_noise_estimated_from_data() -> None:
