@@ -21,10 +21,11 @@ Steps:
    uneven light does not shift it); a direct least-squares ellipse (Fitzgibbon/Halir-Flusser)
    is fitted to those edge points, with outlier rejection (partly hidden marks are dropped).
 5. Perspective bias (Heikkilä, PAMI 2000): the imaged ellipse's centre is not the image of the
-   mark's centre. A homography from plate to image is fitted locally around each mark (its
-   grid neighbours, so that lens distortion is followed too), the mark's circle is mapped as a
-   conic, and (conic centre - mapped centre) is subtracted; twice, refitting on the corrected
-   centres. ``Detection.uv`` holds the corrected centres, ``uv_ellipse`` the raw ellipse centres.
+   mark's centre. The plate-to-image mapping is modelled around each mark from its grid
+   neighbours (a homography plus a quadratic correction, so that lens distortion is followed
+   too), the mark's rim is mapped through it and fitted with an ellipse, and (ellipse centre -
+   mapped centre) is subtracted; twice, refitting on the corrected centres. ``Detection.uv``
+   holds the corrected centres, ``uv_ellipse`` the raw ellipse centres.
 """
 
 from __future__ import annotations
@@ -552,23 +553,41 @@ def _consistent(grid_xy: FloatArray, uv: FloatArray, neighbourhood: int = 2) -> 
     return keep
 
 
-def perspective_bias(grid_xy: FloatArray, uv: FloatArray, radius_pitch: float, neighbourhood: int = 2
-                     ) -> FloatArray:
+def perspective_bias(grid_xy: FloatArray, uv: FloatArray, radius_pitch: float, neighbourhood: int = 3,
+                     n_rim: int = 64) -> FloatArray:
     """(N, 2) bias of each mark (imaged-ellipse centre - image of its centre), no camera needed.
 
     ``grid_xy`` are the marks' plate coordinates in pitches, ``uv`` the current estimates of the
-    images of their centres. The homography around each mark is fitted to its grid neighbours
-    (``local_homographies``), so lens distortion is followed locally; the mark's circle is mapped
-    through it as a conic (Heikkilä 2000), and the bias is the conic's centre minus the mapped
-    circle centre.
+    images of their centres. Around each mark the plate-to-image mapping is modelled from its grid
+    neighbours (within ``neighbourhood`` steps) as a homography (``local_homographies``) plus a
+    quadratic correction fitted to the homography's residuals, which follows lens distortion's
+    curvature (without it, a strong lens left 0.03 px of bias at 45° tilt; with it 0.01-0.02 px).
+    The mark's rim is mapped through that model, an ellipse fitted to it (as the detector does to
+    the real edge), and the bias is the ellipse's centre minus the mapped centre (Heikkilä 2000).
+    With fewer than 12 neighbours the correction is left out (homography only).
     """
     H = local_homographies(grid_xy, uv, neighbourhood)
-    Hinv = np.linalg.inv(H)
-    Ct = np.diag([1.0, 1.0, -radius_pitch**2])
-    Ci = Hinv.transpose(0, 2, 1) @ Ct @ Hinv
-    cc = -np.linalg.solve(Ci[:, :2, :2], Ci[:, :2, 2:3])[:, :, 0]
-    p = H[:, :, 2]
-    return np.asarray(cc - p[:, :2] / p[:, 2:3], dtype=np.float64)
+    d = np.max(np.abs(grid_xy[:, None, :] - grid_xy[None, :, :]), axis=2)
+    w = (d <= neighbourhood).astype(np.float64)
+    few = w.sum(axis=1) < 12
+    X = grid_xy[None, :, :] - grid_xy[:, None, :]  # (n, n, 2) plate, relative to mark i
+    U = uv[None, :, :] - uv[:, None, :]  # (n, n, 2) image, relative to mark i
+    P = np.einsum("nij,nmj->nmi", H, np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2))
+    res = U - P[..., :2] / P[..., 2:3]
+    x, y = X[..., 0], X[..., 1]
+    A = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=2) * w[:, :, None]
+    AtA = np.einsum("nmi,nmj->nij", A, A) + 1e-9 * np.eye(6)
+    coef = np.linalg.solve(AtA, np.einsum("nmi,nmk->nik", A, res * w[:, :, None]))  # (n, 6, 2)
+    coef[few] = 0.0
+    t = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+    bx, by = radius_pitch * np.cos(t), radius_pitch * np.sin(t)
+    Pb = np.einsum("nij,kj->nki", H, np.stack([bx, by, np.ones_like(bx)], axis=1))
+    rim = Pb[..., :2] / Pb[..., 2:3]
+    rim = rim + np.einsum("kj,njc->nkc", np.stack([bx * bx, bx * by, by * by, bx, by, np.ones_like(bx)], axis=1),
+                          coef)
+    q, _ = fit_ellipses_direct(rim[..., 0], rim[..., 1], np.ones(rim.shape[:2]))
+    centre = H[:, :2, 2] / H[:, 2:3, 2] + coef[:, 5, :]
+    return np.asarray(conic_centres(q) - centre, dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------------------------
