@@ -406,7 +406,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{total} rendered {W}x{H} images; cameras opencv5 (f 1400), opencv8 rational (f 1050), division "
             f"(f 1800, kappa -0.25); tilt 0-50° (or fixed), target filling 10-80% of the image, noise 0.5-3 "
             f"grey levels, blur 0.3-1.2 px, light gradient 0-50%. Errors against the rendered truth; OpenCV "
-            f"scored under its best grid symmetry. Wrong order: a found result with any point > 1 px off (its errors still count in RMS/max). "
+            f"scored under its best grid symmetry. Wrong order: a found result with any point > 1 px off "
+            f"(its errors still count in RMS/max). "
             f"Times are medians on a shared 2-core machine ({platform.processor() or platform.machine()}, "
             f"OpenCV {cv2.__version__}), single-threaded Python; whole run {elapsed:.0f} s.\n")
     text = head + "\n" + "\n".join(sections)
