@@ -138,8 +138,10 @@ def main() -> None:
                   f"{os.cpu_count()} cores)\n\nCommand: `.venv/bin/python bench/api.py --clients {args.clients} "
                   f"--seconds {args.seconds:.0f}`. Reference: a bare uvicorn+FastAPI endpoint in the same run. "
                   "Target: p99 of state and map within 3x of the bare endpoint's p99, no errors. The image "
-                  "route renders a new 1280x960 frame per request (virtual camera), so it runs with 4 clients "
-                  "and has no target.\n\n")
+                  "route grabs a new 1280x960 frame per request (the virtual camera adds fresh noise and "
+                  "encodes a PNG each time), so it runs with 4 clients and has no target. The load generator "
+                  "shares the 2 cores with the servers, so absolute times are the machine's; the ratios are the "
+                  "result.\n\n")
         text = header + table + "\n"
         print(text)
         (REPO / "bench" / "results").mkdir(exist_ok=True)
