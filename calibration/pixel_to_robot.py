@@ -85,7 +85,8 @@ def _matrix(calib: dict[str, Any], key: str) -> NDArray[np.float64]:
 
 
 def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, plane_z_mm: float,
-                robot_pose: ArrayLike | None = None, pixel_sigma_px: float | None = None) -> RobotPoint:
+                robot_pose: ArrayLike | None = None, pixel_sigma_px: float | None = None,
+                with_uncertainty: bool = True) -> RobotPoint:
     """Map a pixel with a ``he.json`` calibration onto the plane ``z = plane_z_mm`` (base frame).
 
     ``robot_pose`` (eye-in-hand only): ``T_base_tool`` at capture, 4x4 or UR ``[x, y, z, rx, ry, rz]``.
@@ -122,6 +123,8 @@ def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, pl
 
     p0 = np.zeros(14)
     x0 = f(p0)
+    if not with_uncertainty:  # the point alone (e.g. a direction probe): skip the 28 Jacobian rays
+        return RobotPoint(x0 * 1e3, np.full((3, 3), np.nan), f"hand-eye ({setup})", sig_px)
     J = np.zeros((3, 14))
     for k in range(14):
         h = 1e-4 if k in (6, 7) else 1e-7

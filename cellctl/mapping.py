@@ -35,13 +35,13 @@ class ActiveMapping:
     camera_calibration_id: int | None
 
     def map(self, uv_px: NDArray[np.float64], plane_z_mm: float | None,
-            T_base_tool_capture: NDArray[np.float64] | None) -> RobotPoint:
+            T_base_tool_capture: NDArray[np.float64] | None, with_uncertainty: bool = True) -> RobotPoint:
         if self.kind == "handeye":
             assert self.camera is not None
             if plane_z_mm is None:
                 raise NoCalibration("hand-eye mapping needs the working plane height plane_z_mm (base frame)")
             pose = T_base_tool_capture if self.calib.get("setup") == "eye-in-hand" else None
-            return map_handeye(self.calib, uv_px, self.camera, plane_z_mm, pose)
+            return map_handeye(self.calib, uv_px, self.camera, plane_z_mm, pose, with_uncertainty=with_uncertainty)
         return map_npoint(self.calib, uv_px, None, plane_z_mm)
 
 

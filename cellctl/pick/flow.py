@@ -86,7 +86,7 @@ def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_
     a = math.radians(angle_deg)
     p0 = mapping.map(np.array([u, v]), z_plane, T_capture)
     p1 = mapping.map(np.array([u + AXIS_PROBE_PX * math.cos(a), v - AXIS_PROBE_PX * math.sin(a)]),
-                     z_plane, T_capture)
+                     z_plane, T_capture, with_uncertainty=False)
     d = p1.xyz_mm[:2] - p0.xyz_mm[:2]
     part_yaw = math.atan2(d[1], d[0])
     c, s = math.cos(part_yaw), math.sin(part_yaw)
