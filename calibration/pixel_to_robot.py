@@ -60,9 +60,10 @@ class RobotPoint:
         return out
 
 
-def _ray_plane(camera: CameraModel, T_base_cam: NDArray[np.float64], uv: NDArray[np.float64], z_m: float
-               ) -> NDArray[np.float64]:
-    d = T_base_cam[:3, :3] @ camera.unproject(uv.reshape(1, 2))[0]
+def _ray_plane(camera: CameraModel, T_base_cam: NDArray[np.float64], uv: NDArray[np.float64], z_m: float,
+               ray_cam: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """The pixel's ray (or the given camera-frame ray of it) intersected with the plane z = z_m."""
+    d = T_base_cam[:3, :3] @ (camera.unproject(uv.reshape(1, 2))[0] if ray_cam is None else ray_cam)
     o = T_base_cam[:3, 3]
     if abs(d[2]) < 1e-9 * np.linalg.norm(d):
         raise MappingError("the pixel's ray is parallel to the working plane; check --plane-z-mm and the calibration")
@@ -115,11 +116,13 @@ def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, pl
     sig_px = float(calib.get("pixel_sigma_px", 0.1) if pixel_sigma_px is None else pixel_sigma_px)
     z = plane_z_mm * 1e-3
 
+    ray0 = camera.unproject(uv.reshape(1, 2))[0]  # shared by every perturbation that leaves the pixel alone
+
     def f(p: NDArray[np.float64]) -> NDArray[np.float64]:
         Xp = _perturb(X, p[0:6])
         Gp = _perturb(G, p[8:14])
         T = Gp @ Xp if setup == "eye-in-hand" else Xp
-        return _ray_plane(camera, T, uv + p[6:8], z)
+        return _ray_plane(camera, T, uv + p[6:8], z, None if p[6] or p[7] else ray0)
 
     p0 = np.zeros(14)
     x0 = f(p0)
