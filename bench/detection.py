@@ -270,8 +270,10 @@ def bench_grid(n: int, seed: int, cams: list[CameraModel], grid: CircleGrid) -> 
         truth = sc.camera.project(transform_points(sc.T, xyz))
         det, dt = timed(detect, img, grid)
         if det.found:
-            e = best_error(det.uv, truth[det.ids], grid.rows, grid.cols) if not grid.asymmetric else \
-                np.hypot(*(det.uv - truth[det.ids]).T)
+            e = np.hypot(*(det.uv - truth[det.ids]).T)
+            if not grid.asymmetric:  # a symmetric grid is ours up to its half turn (ids i <-> N-1-i)
+                e_turn = np.hypot(*(det.uv - truth[len(truth) - 1 - det.ids]).T)
+                e = min(e, e_turn, key=lambda x: float(np.mean(x**2)))
             ours.add(True, e, dt, wrong=bool(e.max() > 1.0))
         else:
             ours.add(False, None, dt)

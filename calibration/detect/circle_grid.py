@@ -7,7 +7,8 @@ convention. An asymmetric grid with an odd number of rows is unambiguous; we kee
 after checking its handedness.
 
 ``Detection.uv_ellipse`` holds OpenCV's blob centres; ``uv`` the same corrected for perspective
-bias with the local-homography conic mapping of ``calibration.detect.circle_plate``.
+bias with the bias model of ``calibration.detect.circle_plate``. A centre that its grid
+neighbours do not predict (OpenCV occasionally misplaces one) is left out.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detect.chessboard import canonical_order
-from calibration.detect.circle_plate import perspective_bias
+from calibration.detect.circle_plate import _consistent, perspective_bias
 from calibration.observations import Detection
 from calibration.targets import CircleGrid
 
@@ -91,5 +92,9 @@ def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: 
     raw = np.ascontiguousarray(G.reshape(-1, 2))
     pts = target.points()
     grid = pts.xyz_m[:, :2] / target.pitch_m
+    # OpenCV now and then places one blob centre off (a merged or split blob): drop centres that
+    # their neighbours do not predict (the plate detector's leave-one-out check)
+    keep = _consistent(grid, raw)
+    ids, raw, grid = pts.ids[keep], raw[keep], grid[keep]
     corrected = raw - perspective_bias(grid, raw, target.diameter_mm / 2 / target.pitch_mm)
-    return Detection(image_name, True, ids=pts.ids.copy(), uv=corrected, uv_ellipse=raw)
+    return Detection(image_name, True, ids=ids.copy(), uv=corrected, uv_ellipse=raw)
