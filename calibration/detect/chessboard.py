@@ -76,6 +76,18 @@ def _sample(grey: NDArray[np.uint8], uv: FloatArray, radius: float) -> float:
     return float(grey[v - r : v + r + 1, u - r : u + r + 1].mean())
 
 
+def _parity_contrast(grey: NDArray[np.uint8], G: FloatArray) -> float:
+    """Mean grey of the odd inner squares minus that of the even ones (positive: even are dark)."""
+    centres = 0.5 * (G[:-1, :-1] + G[1:, 1:])
+    step = float(np.median(np.linalg.norm(G[1:, 1:] - G[:-1, :-1], axis=2)))
+    total = 0.0
+    for r, c in np.ndindex(centres.shape[:2]):
+        value = _sample(grey, centres[r, c], 0.12 * step)
+        if np.isfinite(value):
+            total += value if (r + c) % 2 else -value
+    return total
+
+
 def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int, colour_cue: bool = True
                     ) -> FloatArray:
     """Re-order a (rows, cols, 2) corner grid into the target frame's order (see module docstring)."""
@@ -86,15 +98,10 @@ def canonical_order(grey: NDArray[np.uint8], G: FloatArray, cols: int, rows: int
     right = [c for c in cands if c.shape[:2] == (rows, cols) and _handedness(c) > 0]
     # right holds a grid and its half-turn (two each for square boards, equal up to a quarter turn).
     if colour_cue and (cols + rows) % 2 == 1:
-        best, best_score = right[0], -np.inf
-        for c in right:
-            out0 = c[0, 0] + 0.5 * (c[0, 0] - c[1, 1])
-            step = float(np.linalg.norm(c[1, 1] - c[0, 0]))
-            dark = _sample(grey, out0, 0.12 * step)
-            score = -dark if np.isfinite(dark) else -1e9
-            if score > best_score:
-                best, best_score = c, score
-        return best
+        # Inner squares only (always inside the image): in the target frame the square between
+        # corners (r, c) and (r+1, c+1) is black when r + c is even. The candidate whose even
+        # squares are darker than its odd ones has the target's orientation.
+        return max(right, key=lambda c: _parity_contrast(grey, c))
     if cols == rows:
         # Four quarter turns look alike on an even square board: x axis closest to screen-right.
         return min(right, key=lambda c: abs(np.arctan2(*(c[0, -1] - c[0, 0])[::-1])))
