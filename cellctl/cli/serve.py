@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import socket
 import ssl
 import sys
 from pathlib import Path
@@ -67,11 +68,34 @@ def run(args: argparse.Namespace) -> None:
     if http.tls_cert is None and not http.is_loopback():
         log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
                     http.host)
+    _check_ports(config)
     app = create_app(config, session)
     # Our handler formats uvicorn's records too (log_config=None); the middleware writes the access
     # log with the request id, so uvicorn's own access log is off.
     uvicorn.run(app, host=http.host, port=http.port, log_level="info", log_config=None, access_log=False,
                 ssl_certfile=http.tls_cert, ssl_keyfile=http.tls_key)
+
+
+def _check_ports(config: CellConfig) -> None:
+    """Refuse, with one line, to start when a port the service must listen on is taken.
+
+    (uvicorn and the PLC servers would otherwise fail half-way through start-up with a traceback.)
+    """
+    wanted = [("HTTP", config.http.host, config.http.port)]
+    plc = config.plc
+    if plc.modbus.enabled:
+        wanted.append(("Modbus TCP (plc.modbus)", plc.modbus.host, plc.modbus.port))
+    if plc.opcua.enabled:
+        wanted.append(("OPC UA (plc.opcua)", plc.opcua.host, plc.opcua.port))
+    for what, host, port in wanted:
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError as exc:
+                raise CommandError(f"cannot listen for {what} on {host}:{port} ({exc.strerror}); stop what "
+                                   "uses that port or choose another one in the config") from None
 
 
 def _check_tls(cert: str | None, key: str | None) -> None:

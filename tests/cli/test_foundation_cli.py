@@ -68,3 +68,18 @@ def test_sim_truth_has_the_ground_truth() -> None:
     t = json.loads(r.stdout)
     assert {"camera", "T_tool_cam", "T_base_cam", "targets", "parts"} <= set(t)
     assert t["targets"]["plate"]["target"]["type"] == "circle_plate"
+
+
+def test_serve_on_a_taken_port_is_a_one_line_error(tmp_path: Path) -> None:
+    import os
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run([CELLCTL, "serve", "--port", str(port)], capture_output=True, text=True, timeout=60,
+                           env={**os.environ, "CELLCTL_DATA_DIR": str(tmp_path)})
+    assert r.returncode == 2
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("cellctl: error: cannot listen for HTTP on 127.0.0.1:") and "Traceback" not in r.stderr

@@ -121,12 +121,17 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
 def report(cal_id: CalId, services: ServicesDep, _: Viewer) -> HTMLResponse:
     rec = _get(services, cal_id)
     rows = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in _headline(rec.kind, rec.result).items())
-    verdict = rec.result.get("verdict", {})
-    problems = "".join(f"<li><b>{p.get('code')}</b>: {p.get('message')}</li>" for p in verdict.get("problems", []))
+    verdict = rec.result.get("verdict")
+    if verdict is None:
+        verdict_text = "none given for this kind of calibration"
+    else:
+        verdict_text = "ok" if verdict.get("ok", False) else "NOT OK"
+    problems = "".join(f"<li><b>{p.get('code')}</b>: {p.get('message')}</li>"
+                       for p in (verdict or {}).get("problems", []))
     html = (f"<!doctype html><html><head><meta charset='utf-8'><title>calibration {cal_id}</title></head><body>"
             f"<h1>{rec.kind} calibration {cal_id} (v{rec.version}) of {rec.camera_id}"
             f"{' / ' + rec.robot_id if rec.robot_id else ''}</h1>"
-            f"<p>verdict: <b>{'ok' if verdict.get('ok', True) else 'NOT OK'}</b></p><ul>{problems}</ul>"
+            f"<p>verdict: <b>{verdict_text}</b></p><ul>{problems}</ul>"
             f"<table>{rows}</table></body></html>")
     return HTMLResponse(html)
 
