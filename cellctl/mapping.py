@@ -45,6 +45,14 @@ class ActiveMapping:
         return map_npoint(self.calib, uv_px, None, plane_z_mm)
 
 
+def active_camera(services: Services, camera_id: str) -> tuple[Any, CameraModel] | None:
+    """The camera's active calibration record and its model, or None when none is active."""
+    record = services.store.active("camera", camera_id, None)
+    if record is None:
+        return None
+    return record, camera_from_json(record.result, f"calibration {record.id}")
+
+
 def active_mapping(services: Services, camera_id: str, robot_id: str, prefer: str = "auto",
                    plane_z_known: bool = True) -> ActiveMapping:
     store = services.store

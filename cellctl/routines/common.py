@@ -69,11 +69,15 @@ def approximate_camera(width: int, height: int) -> CameraModel:
                        np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]]), np.zeros(5))
 
 
-def target_pose(camera: CameraModel, target: Target, det: Detection) -> Mat4:
+def detected_points_m(target: Target, det: Detection) -> NDArray[np.float64]:
+    """(N, 3) target-frame points (m) of the detection's ids, in the detection's order."""
     pts = target.points()
     lookup = {int(i): k for k, i in enumerate(pts.ids)}
-    X = np.array([pts.xyz_m[lookup[int(i)]] for i in det.ids])
-    return estimate_pose(camera, X, det.uv).T_cam_target
+    return np.array([pts.xyz_m[lookup[int(i)]] for i in det.ids])
+
+
+def target_pose(camera: CameraModel, target: Target, det: Detection) -> Mat4:
+    return estimate_pose(camera, detected_points_m(target, det), det.uv).T_cam_target
 
 
 def plan_pivot_stations(T0: Mat4, pivot_base_m: NDArray[np.float64], n: int, max_tilt_deg: float,

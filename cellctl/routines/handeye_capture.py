@@ -14,9 +14,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from calibration.camera_io import camera_from_json
 from calibration.handeye import calibrate_handeye
 from cellctl.jobs import JobContext
+from cellctl.mapping import active_camera
 from cellctl.routines.common import (
     Capture,
     RoutineError,
@@ -72,11 +72,11 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         raise RoutineError("handeye-capture plans stations for eye-in-hand cells; for eye-to-hand, capture "
                            "the stations yourself and run `cellctl calib handeye --setup eye-to-hand`")
     tname, target = routine_target(services, p.target)
-    active = services.store.active("camera", camera_id, None)
-    if active is None:
+    found = active_camera(services, camera_id)
+    if found is None:
         raise RoutineError(f"camera {camera_id} has no active calibration; run intrinsics-capture and "
                            "activate its result first")
-    camera = camera_from_json(active.result, f"calibration {active.id}")
+    active, camera = found
     cam, robot = devices(services, camera_id, robot_id)
     assert robot is not None
     stop_robot_on_end(ctx, robot)

@@ -16,10 +16,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from calibration.camera_io import camera_from_json
 from calibration.npoint import fit_npoint
 from calibration.targets import Target
 from cellctl.jobs import JobContext
+from cellctl.mapping import active_camera
 from cellctl.routines.common import RoutineError, capture, devices, routine_target
 from cellctl.services import Services
 
@@ -84,11 +84,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         pairs.append({**mark, "x_mm": x_mm, "y_mm": y_mm, "recorded_by": got.get("who", ctx.started_by)})
         ctx.report(0.05 + 0.85 * (k + 1) / len(marks), f"mark {k + 1}/{len(marks)} recorded",
                    recorded=k + 1, x_mm=x_mm, y_mm=y_mm)
-    camera = None
-    if p.undistort:
-        active = services.store.active("camera", camera_id, None)
-        if active is not None:
-            camera = camera_from_json(active.result, f"calibration {active.id}")
+    found = active_camera(services, camera_id) if p.undistort else None
+    camera = found[1] if found is not None else None
     uv = np.array([[m["u_px"], m["v_px"]] for m in pairs])
     xy = np.array([[m["x_mm"], m["y_mm"]] for m in pairs])
     result = fit_npoint(uv, xy, p.model, camera)

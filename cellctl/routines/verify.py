@@ -16,10 +16,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from calibration.camera_io import camera_from_json
 from calibration.pnp import estimate_pose
 from cellctl.jobs import JobContext
-from cellctl.routines.common import RoutineError, capture, devices, routine_target
+from cellctl.mapping import active_camera
+from cellctl.routines.common import RoutineError, capture, detected_points_m, devices, routine_target
 from cellctl.services import Services
 
 
@@ -39,19 +39,17 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     camera_id, robot_id = p.camera_id or d.camera, p.robot_id or d.robot
     tol_px, tol_mm = p.tolerance_px or d.verify_tolerance_px, p.tolerance_mm or d.verify_tolerance_mm
     _, target = routine_target(services, p.target)
-    cam_cal = services.store.active("camera", camera_id, None)
-    if cam_cal is None:
+    found = active_camera(services, camera_id)
+    if found is None:
         raise RoutineError(f"camera {camera_id} has no active calibration to verify")
-    camera = camera_from_json(cam_cal.result, f"calibration {cam_cal.id}")
+    cam_cal, camera = found
     he_cal = services.store.active("handeye", camera_id, robot_id)
     cam, robot = devices(services, camera_id, robot_id if he_cal is not None else None)
     ctx.report(0.2, "capturing the plate")
     c = capture(cam, robot, target, "verify")
     if not c.detection.found:
         raise RoutineError(f"the plate is not seen ({c.detection.reason}); put it in view and verify again")
-    pts = target.points()
-    lookup = {int(i): k for k, i in enumerate(pts.ids)}
-    X = np.array([pts.xyz_m[lookup[int(i)]] for i in c.detection.ids])
+    X = detected_points_m(target, c.detection)
     measured = estimate_pose(camera, X, c.detection.uv)
     out: dict[str, Any] = {"camera_calibration_id": cam_cal.id, "n_points": len(X),
                            "pose_rms_px": measured.rms_px, "tolerance_px": tol_px, "tolerance_mm": tol_mm}
