@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
-from typing import Annotated, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -57,6 +57,13 @@ def require(role: Role) -> Callable[..., Principal]:
 Viewer = Annotated[Principal, Depends(require("viewer"))]
 Operator = Annotated[Principal, Depends(require("operator"))]
 Engineer = Annotated[Principal, Depends(require("engineer"))]
+
+
+def slot_or_404(slots: dict[str, DeviceSlot[Any]], kind: str, device_id: str) -> DeviceSlot[Any]:
+    """The configured device's slot, or a 404 naming the configured ones (``kind``: camera, robot)."""
+    if device_id not in slots:
+        raise ApiError(404, f"unknown_{kind}", f"no {kind} {device_id!r}; configured: {sorted(slots)}")
+    return slots[device_id]
 
 
 async def device_call(slot: DeviceSlot, fn: Callable[..., T], timeout_s: float = DEVICE_CALL_TIMEOUT_S) -> T:

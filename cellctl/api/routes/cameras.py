@@ -8,7 +8,7 @@ import cv2
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from cellctl.api.deps import CellDep, Viewer, device_call
+from cellctl.api.deps import CellDep, Viewer, device_call, slot_or_404
 from cellctl.api.errors import ApiError
 from drivers.base import CameraBase, Frame
 
@@ -19,9 +19,7 @@ CAMERA_TIMEOUT_S = 5.0
 
 
 def _slot(cell: CellDep, camera_id: str) -> Any:
-    if camera_id not in cell.cameras:
-        raise ApiError(404, "unknown_camera", f"no camera {camera_id!r}; configured: {sorted(cell.cameras)}")
-    return cell.cameras[camera_id]
+    return slot_or_404(cell.cameras, "camera", camera_id)
 
 
 @router.get("")

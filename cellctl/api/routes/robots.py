@@ -8,7 +8,7 @@ from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call
+from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.robot_state import state_to_json
@@ -42,9 +42,7 @@ class RobotStatePublic(BaseModel):
 
 
 def _slot(cell: CellDep, robot_id: str) -> Any:
-    if robot_id not in cell.robots:
-        raise ApiError(404, "unknown_robot", f"no robot {robot_id!r}; configured: {sorted(cell.robots)}")
-    return cell.robots[robot_id]
+    return slot_or_404(cell.robots, "robot", robot_id)
 
 
 @router.get("")
