@@ -96,10 +96,12 @@ class SimWorld:
         with self._lock:
             key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
             cached = self._reflectance_cache
-            objects = self.planar_objects()
+            hit = cached is not None and cached[0] == key
+            objects = [] if hit else self.planar_objects()
             self.frame_counter += 1
             rng = np.random.default_rng(self._rng.integers(2**63))
-        if cached is not None and cached[0] == key:
+        if hit:
+            assert cached is not None
             reflectance = cached[1]
         else:
             reflectance = render_reflectance(self.camera_model, objects, im.background, im.supersample)
