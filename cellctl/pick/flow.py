@@ -1,116 +1,28 @@
 """The pick flow: grab, locate the recipe's parts, convert each match to a gripper pose, check it.
 
-A match ``(u, v, angle)`` becomes a pose in the robot base frame through the active calibration
-(``cellctl.mapping``): the reference point is mapped onto the working plane; the part's x axis
-(the image direction at ``angle``, counter-clockwise on screen) is mapped by a second point, which
-gives the part's yaw in the base frame (mirrored cameras included). The gripper's pose is the
-recipe's grasp offset (part frame, mm) and grasp yaw from there, the gripper's symmetry folding
-the yaw to the one nearest the tool's current yaw (a parallel gripper never turns more than 90°),
-the tool pointing as the recipe says. Every pose — pick and approach — is checked against the
-robot's envelope; a pose outside it is reported ``reachable: false`` and never sent.
+Every pose — pick and approach — is checked against the robot's envelope; a pose outside it is
+reported ``reachable: false`` and never sent. The conversion of a match to a pose is
+``cellctl.pick.pose``; the recipe is ``cellctl.pick.recipe``.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
-from calibration import geometry as g
 from cellctl import metrics
-from cellctl.mapping import ActiveMapping, active_mapping, npoint_pose_check
-from cellctl.pick.model import PartModel
+from cellctl.mapping import active_mapping, npoint_pose_check
+from cellctl.pick.pose import fold_yaw, pick_pose, pose_json
+from cellctl.pick.recipe import PickError, Recipe, SearchSettings
 from cellctl.pick.recognize import recognize
 from cellctl.pick.shape import SearchParams
 from cellctl.services import Services
 from drivers.base import MotionRejected, RobotBase
 
-AXIS_PROBE_PX = 25.0
-
-
-class PickError(ValueError):
-    """The pick cannot be done as asked (no calibration, bad recipe, image of the wrong size...)."""
-
-
-class SearchSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    min_score: float = Field(0.6, gt=0, le=1)
-    max_count: int = Field(5, ge=1, le=100)
-    angle_start_deg: float = -180.0
-    angle_extent_deg: float = Field(360.0, gt=0, le=360)
-    roi: tuple[float, float, float, float] | None = None
-    timeout_s: float | None = Field(1.0, gt=0, le=60)
-
-
-class Recipe(BaseModel):
-    """What to pick and how (stored versioned in the store under a PLC recipe number)."""
-
-    model_config = ConfigDict(extra="forbid")
-    name: str
-    models: list[dict[str, Any]] = Field(min_length=1, description="part models (cellctl pick teach output)")
-    camera_id: str | None = None
-    robot_id: str | None = None
-    calibration: Literal["auto", "handeye", "npoint"] = "auto"
-    plane_z_mm: float | None = Field(None, description="height of the parts' top face in the base frame, mm")
-    grasp_offset_mm: tuple[float, float] = (0.0, 0.0)
-    """Grasp point from the part's reference point, in the part's frame (x along its taught x), mm."""
-    grasp_z_mm: float = 0.0
-    """Tool z above the working plane at the grasp, mm."""
-    approach_height_mm: float = Field(50.0, ge=0)
-    grasp_yaw_deg: float = 0.0
-    gripper_symmetry_deg: float = Field(180.0, gt=0, le=360)
-    tool_rotvec_rad: tuple[float, float, float] = (math.pi, 0.0, 0.0)
-    """Tool orientation at gripper yaw 0 (default: pointing down, tool x along base x)."""
-    speed_m_s: float = Field(0.1, gt=0, le=2)
-    search: SearchSettings = SearchSettings()
-
-    def part_models(self) -> list[PartModel]:
-        return [PartModel.from_dict(m, f"recipe {self.name} model {k}") for k, m in enumerate(self.models)]
-
-
-def fold_yaw(yaw: float, symmetry: float, near: float) -> float:
-    """The yaw equivalent under the gripper's ``symmetry`` (radians) closest to ``near``."""
-    k = round((near - yaw) / symmetry)
-    out = yaw + k * symmetry
-    return math.atan2(math.sin(out), math.cos(out))
-
-
-def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
-              T_capture: NDArray[np.float64] | None, current_yaw: float) -> dict[str, Any]:
-    """Gripper pick and approach poses (T_base_tool) for one match, with uncertainty."""
-    z_plane = recipe.plane_z_mm
-    a = math.radians(angle_deg)
-    p0 = mapping.map(np.array([u, v]), z_plane, T_capture)
-    p1 = mapping.map(np.array([u + AXIS_PROBE_PX * math.cos(a), v - AXIS_PROBE_PX * math.sin(a)]),
-                     z_plane, T_capture, with_uncertainty=False)
-    d = p1.xyz_mm[:2] - p0.xyz_mm[:2]
-    part_yaw = math.atan2(d[1], d[0])
-    c, s = math.cos(part_yaw), math.sin(part_yaw)
-    ox, oy = recipe.grasp_offset_mm
-    x_mm = p0.xyz_mm[0] + c * ox - s * oy
-    y_mm = p0.xyz_mm[1] + s * ox + c * oy
-    z0 = z_plane if z_plane is not None else 0.0
-    yaw = fold_yaw(part_yaw + math.radians(recipe.grasp_yaw_deg), math.radians(recipe.gripper_symmetry_deg),
-                   current_yaw)
-    R = g.rotvec_to_matrix([0.0, 0.0, yaw]) @ g.rotvec_to_matrix(recipe.tool_rotvec_rad)
-    T_pick = g.make_transform(R, [x_mm * 1e-3, y_mm * 1e-3, (z0 + recipe.grasp_z_mm) * 1e-3])
-    T_approach = T_pick.copy()
-    T_approach[2, 3] += recipe.approach_height_mm * 1e-3
-    sig0 = p0.sigma_mm
-    lever = float(np.linalg.norm(d))
-    sigma_yaw = math.degrees(math.sqrt(float(sig0[0] ** 2 + sig0[1] ** 2) * 2) / lever) if lever > 0 else float("nan")
-    return {"T_pick": T_pick, "T_approach": T_approach, "part_yaw_deg": math.degrees(part_yaw),
-            "gripper_yaw_deg": math.degrees(yaw), "sigma_mm": [float(x) for x in sig0],
-            "sigma_yaw_deg": sigma_yaw}
-
-
-def pose_json(T: NDArray[np.float64]) -> dict[str, float]:
-    x, y, z, rx, ry, rz = (float(v) for v in g.transform_to_ur_pose(T))
-    return {"x_mm": x * 1e3, "y_mm": y * 1e3, "z_mm": z * 1e3, "rx_rad": rx, "ry_rad": ry, "rz_rad": rz}
+__all__ = ["PickError", "Recipe", "SearchSettings", "fold_yaw", "pick_pose", "pose_json", "run_pick"]
 
 
 def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, move: bool = False,

@@ -1,0 +1,65 @@
+"""A match in the image -> the gripper's pick and approach poses in the robot base frame.
+
+A match ``(u, v, angle)`` becomes a pose in the robot base frame through the active calibration
+(``cellctl.mapping``): the reference point is mapped onto the working plane; the part's x axis
+(the image direction at ``angle``, counter-clockwise on screen) is mapped by a second point, which
+gives the part's yaw in the base frame (mirrored cameras included). The gripper's pose is the
+recipe's grasp offset (part frame, mm) and grasp yaw from there, the gripper's symmetry folding
+the yaw to the one nearest the tool's current yaw (a parallel gripper never turns more than 90 deg),
+the tool pointing as the recipe says.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration import geometry as g
+from cellctl.mapping import ActiveMapping
+from cellctl.pick.recipe import Recipe
+
+AXIS_PROBE_PX = 25.0
+
+
+def fold_yaw(yaw: float, symmetry: float, near: float) -> float:
+    """The yaw equivalent under the gripper's ``symmetry`` (radians) closest to ``near``."""
+    k = round((near - yaw) / symmetry)
+    out = yaw + k * symmetry
+    return math.atan2(math.sin(out), math.cos(out))
+
+
+def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
+              T_capture: NDArray[np.float64] | None, current_yaw: float) -> dict[str, Any]:
+    """Gripper pick and approach poses (T_base_tool) for one match, with uncertainty."""
+    z_plane = recipe.plane_z_mm
+    a = math.radians(angle_deg)
+    p0 = mapping.map(np.array([u, v]), z_plane, T_capture)
+    p1 = mapping.map(np.array([u + AXIS_PROBE_PX * math.cos(a), v - AXIS_PROBE_PX * math.sin(a)]),
+                     z_plane, T_capture, with_uncertainty=False)
+    d = p1.xyz_mm[:2] - p0.xyz_mm[:2]
+    part_yaw = math.atan2(d[1], d[0])
+    c, s = math.cos(part_yaw), math.sin(part_yaw)
+    ox, oy = recipe.grasp_offset_mm
+    x_mm = p0.xyz_mm[0] + c * ox - s * oy
+    y_mm = p0.xyz_mm[1] + s * ox + c * oy
+    z0 = z_plane if z_plane is not None else 0.0
+    yaw = fold_yaw(part_yaw + math.radians(recipe.grasp_yaw_deg), math.radians(recipe.gripper_symmetry_deg),
+                   current_yaw)
+    R = g.rotvec_to_matrix([0.0, 0.0, yaw]) @ g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    T_pick = g.make_transform(R, [x_mm * 1e-3, y_mm * 1e-3, (z0 + recipe.grasp_z_mm) * 1e-3])
+    T_approach = T_pick.copy()
+    T_approach[2, 3] += recipe.approach_height_mm * 1e-3
+    sig0 = p0.sigma_mm
+    lever = float(np.linalg.norm(d))
+    sigma_yaw = math.degrees(math.sqrt(float(sig0[0] ** 2 + sig0[1] ** 2) * 2) / lever) if lever > 0 else float("nan")
+    return {"T_pick": T_pick, "T_approach": T_approach, "part_yaw_deg": math.degrees(part_yaw),
+            "gripper_yaw_deg": math.degrees(yaw), "sigma_mm": [float(x) for x in sig0],
+            "sigma_yaw_deg": sigma_yaw}
+
+
+def pose_json(T: NDArray[np.float64]) -> dict[str, float]:
+    x, y, z, rx, ry, rz = (float(v) for v in g.transform_to_ur_pose(T))
+    return {"x_mm": x * 1e3, "y_mm": y * 1e3, "z_mm": z * 1e3, "rx_rad": rx, "ry_rad": ry, "rz_rad": rz}
