@@ -383,8 +383,18 @@ async function refreshCalibrations() {
   if (!active.length) summary.textContent = "none active";
 }
 
+// Activation of a calibration whose verdict is not ok is refused (409 verdict_not_ok) unless the
+// engineer confirms, naming the problems; the forced activation is audited by the service.
 async function activate(id) {
-  await api("POST", `/calibrations/${id}/activate`);
+  try {
+    await api("POST", `/calibrations/${id}/activate`, {});
+  } catch (e) {
+    if (!(e instanceof ApiError) || e.code !== "verdict_not_ok") throw e;
+    if (!window.confirm(`${e.message}\n\nActivate calibration #${id} anyway?`)) {
+      throw new Error(`calibration #${id} not activated: its verdict is not ok`);
+    }
+    await api("POST", `/calibrations/${id}/activate`, { force: true });
+  }
   await refreshCalibrations();
 }
 

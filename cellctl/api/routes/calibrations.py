@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import logging
 import tempfile
 from pathlib import Path as FilePath
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Body, Path, Query
 from fastapi.responses import HTMLResponse, PlainTextResponse
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.api.deps import Engineer, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.store import NotFound, NothingToRollBack
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 
 Kind = Literal["camera", "handeye", "npoint"]
@@ -42,6 +44,12 @@ class RollbackInput(BaseModel):
     robot_id: str | None = None
 
 
+class ActivateInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    force: bool = Field(False, description="activate even though the calibration's verdict is not ok "
+                                           "(logged in the audit log with the problems)")
+
+
 def _get(services: ServicesDep, cal_id: int) -> Any:
     try:
         return services.store.get_calibration(cal_id)
@@ -66,12 +74,41 @@ def get_calibration(cal_id: CalId, services: ServicesDep, _: Viewer,
     return out
 
 
-@router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic)
-def activate(cal_id: CalId, services: ServicesDep, who: Engineer) -> dict[str, Any]:
-    _get(services, cal_id)
+@router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic,
+             responses={409: {"description": "verdict_not_ok: the calibration's verdict is not ok; the message "
+                                             "names the problems; send {\"force\": true} to activate anyway"}})
+def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
+             body: Annotated[ActivateInput | None, Body()] = None) -> dict[str, Any]:
+    """Make this calibration the active one of its camera (and robot).
+
+    A calibration whose verdict is not ok is refused with 409 ``verdict_not_ok`` unless the body
+    says ``{"force": true}``; a forced activation is written to the audit log with the problems.
+    """
+    rec = _get(services, cal_id)
+    force = body is not None and body.force
+    problems = verdict_problems(rec.result)
+    if problems is not None:
+        listed = "; ".join(f"{p['code']}: {p['message']}" if p["message"] else p["code"] for p in problems)
+        if not force:
+            raise ApiError(409, "verdict_not_ok",
+                           f"calibration {cal_id}'s verdict is not ok ({listed or 'no problems listed'}); "
+                           "fix the data and calibrate again, or send {\"force\": true} to activate it anyway")
+        log.warning("calibration %d activated by %s although its verdict is not ok: %s", cal_id, who.name, listed)
+        services.store.audit(who.name, "calibration.force_activate", f"calibration:{cal_id}",
+                             {"problems": problems}, "forced: verdict not ok")
     rec = services.store.activate(cal_id, who.name)
     summary: dict[str, Any] = rec.summary().to_dict()
     return summary
+
+
+def verdict_problems(result: dict[str, Any]) -> list[dict[str, str]] | None:
+    """The verdict's problems when the verdict is not ok; ``None`` when it is ok or there is none."""
+    verdict = result.get("verdict")
+    if not isinstance(verdict, dict) or verdict.get("ok", False) is True:
+        return None
+    problems = verdict.get("problems") or []
+    return [{"code": str(p.get("code", "")), "message": str(p.get("message", ""))}
+            for p in problems if isinstance(p, dict)]
 
 
 @router.post("/rollback", response_model=CalibrationSummaryPublic)
