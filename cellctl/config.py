@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class
@@ -101,10 +101,15 @@ class RobotConfig(DeviceConfig):
     envelope: Envelope
     max_linear_speed_m_s: float = Field(0.25, gt=0, le=5.0)
     max_joint_speed_rad_s: float = Field(1.0, gt=0, le=6.3)
+    tool_down_cone_deg: float | None = Field(60.0, gt=0, le=180)
+    """Largest angle of the tool's z axis from straight down (deg); null: orientation not checked."""
+    max_move_duration_s: float = Field(60.0, gt=0, le=3600)
+    """A move that would take longer at its speed is refused (s)."""
 
     def limits(self) -> MotionLimits:
         e = self.envelope
-        return MotionLimits(e.x_mm, e.y_mm, e.z_mm, self.max_linear_speed_m_s, self.max_joint_speed_rad_s)
+        return MotionLimits(e.x_mm, e.y_mm, e.z_mm, self.max_linear_speed_m_s, self.max_joint_speed_rad_s,
+                            tool_down_cone_deg=self.tool_down_cone_deg, max_move_duration_s=self.max_move_duration_s)
 
 
 class IOConfig(DeviceConfig):
@@ -176,6 +181,12 @@ class CellConfig(_Strict):
     calibration: CalibrationDefaults = CalibrationDefaults()
     plc: PlcConfig = PlcConfig()
     """PLC-native front ends (Modbus TCP, OPC UA); both off unless enabled."""
+    _source: Path | None = PrivateAttr(None)
+    """The file this config was read from (None: built in); the service re-reads its tokens on change."""
+
+    @property
+    def source(self) -> Path | None:
+        return self._source
 
     @field_validator("targets")
     @classmethod
@@ -243,8 +254,22 @@ def load_config(path: str | Path | None) -> CellConfig:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_config(data, str(p))
+        raise ConfigError(f"{p}: not valid YAML ({yaml_error_text(exc)})") from None
+    cfg = parse_config(data, str(p))
+    cfg._source = p.resolve()
+    return cfg
+
+
+def yaml_error_text(exc: yaml.YAMLError) -> str:
+    """A YAML error in one line that names where it is: ``line L, column C: what``."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    if context and getattr(exc, "context_mark", None) is not None and exc.context_mark is not mark:  # type: ignore[attr-defined]
+        what = f"{what} ({context} that starts on line {exc.context_mark.line + 1})"  # type: ignore[attr-defined]
+    if mark is None:
+        return what
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
 
 
 def default_config_text() -> str:

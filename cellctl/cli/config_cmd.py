@@ -1,17 +1,16 @@
-"""``cellctl config default`` and ``cellctl token add``."""
+"""``cellctl config default|check`` and ``cellctl token add|list|remove``.
+
+Token edits keep ``cell.yaml`` as written (comments, order); a running service picks them up
+without a restart (it re-reads the tokens when the file changes).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
-import yaml
-
-from cellctl.auth import hash_token, new_token
-from cellctl.cli.output import CommandError
-from cellctl.config import ROLE_RANK, load_config, parse_config
+from cellctl.config import ROLE_RANK, load_config
 
 
 def register(sub: Any) -> None:
@@ -23,14 +22,25 @@ def register(sub: Any) -> None:
     c.add_argument("--config", required=True)
     c.set_defaults(func=check)
 
-    t: argparse.ArgumentParser = sub.add_parser("token", help="manage REST tokens")
+    t: argparse.ArgumentParser = sub.add_parser(
+        "token", help="manage REST tokens",
+        description="Tokens are stored hashed in cell.yaml (auth.tokens); edits keep the file's comments. "
+                    "A running service takes added and removed tokens into account at once (no restart).")
     tsub = t.add_subparsers(dest="token_command", metavar="ACTION", required=True)
     a = tsub.add_parser("add", help="add a token to cell.yaml (stored hashed) and print it once")
-    a.add_argument("--config", required=True)
-    a.add_argument("--name", required=True)
-    a.add_argument("--role", required=True, choices=sorted(ROLE_RANK, key=ROLE_RANK.__getitem__))
+    a.add_argument("--config", required=True, help="the cell.yaml to edit")
+    a.add_argument("--name", required=True, help="a name for the token (who or what uses it)")
+    a.add_argument("--role", required=True, choices=sorted(ROLE_RANK, key=ROLE_RANK.__getitem__),
+                   help="viewer < operator < engineer")
     a.add_argument("--out", dest="out_json", help="also write the JSON (with the token) to this file")
     a.set_defaults(func=add_token)
+    ls = tsub.add_parser("list", help="the configured tokens' names and roles (never the tokens)")
+    ls.add_argument("--config", required=True, help="the cell.yaml to read")
+    ls.set_defaults(func=list_tokens)
+    rm = tsub.add_parser("remove", help="revoke a token: remove it from cell.yaml (effective at once)")
+    rm.add_argument("--config", required=True, help="the cell.yaml to edit")
+    rm.add_argument("--name", required=True, help="the token's name (see `cellctl token list`)")
+    rm.set_defaults(func=remove_token)
 
 
 def print_default(args: argparse.Namespace) -> None:
@@ -48,18 +58,21 @@ def check(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def add_token(args: argparse.Namespace) -> dict[str, Any]:
-    path = Path(args.config)
-    load_config(path)  # refuse to touch a config that does not validate
-    data = yaml.safe_load(path.read_text()) or {}
-    tokens = data.setdefault("auth", {}).setdefault("tokens", []) or []
-    if any(t.get("name") == args.name for t in tokens):
-        raise CommandError(f"{path}: a token named {args.name!r} exists already; choose another name")
-    token = new_token()
-    tokens.append({"name": args.name, "role": args.role, "sha256": hash_token(token)})
-    data["auth"]["tokens"] = tokens
-    parse_config(data, str(path))
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(yaml.safe_dump(data, sort_keys=False))
-    tmp.replace(path)
+    from cellctl import config_edit
+
+    token = config_edit.add_token(args.config, args.name, args.role)
     return {"name": args.name, "role": args.role, "token": token,
             "note": "shown once; only its hash is stored in the config"}
+
+
+def list_tokens(args: argparse.Namespace) -> dict[str, Any]:
+    from cellctl import config_edit
+
+    return {"config": str(args.config), "tokens": config_edit.list_tokens(args.config)}
+
+
+def remove_token(args: argparse.Namespace) -> dict[str, Any]:
+    from cellctl import config_edit
+
+    removed = config_edit.remove_token(args.config, args.name)
+    return {"removed": removed, "note": "a running service refuses this token from its next request on"}

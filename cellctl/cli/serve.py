@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> None:
                                           if v})
     _check_tls(http.tls_cert, http.tls_key)
     config = config.model_copy(update={"http": http})
+    _check_ports(config)  # before the session-token file: a serve that cannot start must not replace it
     session: list[tuple[str, Any, str]] = []
     if not config.auth.tokens:
         if not http.is_loopback():
@@ -68,7 +69,6 @@ def run(args: argparse.Namespace) -> None:
     if http.tls_cert is None and not http.is_loopback():
         log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
                     http.host)
-    _check_ports(config)
     app = create_app(config, session)
     # Our handler formats uvicorn's records too (log_config=None); the middleware writes the access
     # log with the request id, so uvicorn's own access log is off.
