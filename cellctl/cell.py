@@ -21,6 +21,10 @@ log = logging.getLogger(__name__)
 
 D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase)
 
+class UnknownDevice(LookupError):
+    """A camera or robot id that the config does not name."""
+
+
 RETRY_INITIAL_S = 0.5
 RETRY_MAX_S = 10.0
 
@@ -145,10 +149,10 @@ class Cell:
         try:
             return self.cameras[camera_id]
         except KeyError:
-            raise KeyError(f"no camera {camera_id!r} in the config; configured: {sorted(self.cameras)}") from None
+            raise UnknownDevice(f"no camera {camera_id!r} in the config; configured: {sorted(self.cameras)}") from None
 
     def robot(self, robot_id: str) -> DeviceSlot[RobotBase]:
         try:
             return self.robots[robot_id]
         except KeyError:
-            raise KeyError(f"no robot {robot_id!r} in the config; configured: {sorted(self.robots)}") from None
+            raise UnknownDevice(f"no robot {robot_id!r} in the config; configured: {sorted(self.robots)}") from None

@@ -4,7 +4,10 @@ A routine is a function ``fn(ctx: JobContext) -> dict`` run in its own thread. I
 progress with ``ctx.report``; it calls ``ctx.check_cancelled()`` between steps (which raises
 ``JobCancelled`` once ``DELETE /jobs/{id}`` asked); it can wait for operator input
 (``ctx.wait_input``) that ``POST /jobs/{id}/record`` delivers. Whatever the outcome, the
-routine's ``on_end`` hooks run (routines use one to stop the robot).
+routine's ``on_end`` hooks run (routines use one to halt the robot). A routine that moves the
+robot owns its motion for its whole run (``ctx.motion``, taken when it is started); a robot Stop
+aborts it: its next move or ``check_cancelled`` raises ``RobotStopped`` and the job ends
+``stopped`` with nothing stored.
 """
 
 from __future__ import annotations
@@ -19,11 +22,14 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from cellctl import metrics
+from drivers.base import MotionSession, RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
 
-JobStateName = Literal["running", "succeeded", "failed", "cancelled"]
+JobStateName = Literal["running", "succeeded", "failed", "cancelled", "stopped"]
 MAX_FINISHED_JOBS = 200
+MAX_RUNNING_JOBS = 4
+"""Routines running at once in one service (each holds a thread and may hold a camera)."""
 
 
 class JobCancelled(Exception):
@@ -32,6 +38,10 @@ class JobCancelled(Exception):
 
 class JobInputError(ValueError):
     """Operator input given to a job that is not waiting for it, or that is malformed."""
+
+
+class TooManyJobs(RuntimeError):
+    """``MAX_RUNNING_JOBS`` routines are running already."""
 
 
 @dataclass
@@ -86,8 +96,10 @@ class Job:
 class JobContext:
     """What a running routine sees of its job."""
 
-    def __init__(self, job: Job) -> None:
+    def __init__(self, job: Job, motion: MotionSession | None = None) -> None:
         self._job = job
+        self.motion = motion
+        """The robot motion this routine owns (taken when it was started), or None."""
         self.on_end: list[Callable[[], None]] = []
 
     @property
@@ -106,12 +118,20 @@ class JobContext:
         job._emit("progress", {"progress": job.progress, "message": message, **data})
 
     def check_cancelled(self) -> None:
+        """Raise ``JobCancelled`` once cancelled, ``RobotStopped`` once a Stop aborted the routine's motion."""
+        if self.motion is not None:
+            self.motion.check()
         if self._job._cancel.is_set():
             raise JobCancelled("cancelled on request")
 
     def sleep(self, seconds: float) -> None:
-        if self._job._cancel.wait(seconds):
-            raise JobCancelled("cancelled on request")
+        deadline = time.monotonic() + seconds
+        while True:
+            self.check_cancelled()
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            self._job._cancel.wait(min(left, 0.05))
 
     def wait_input(self, what: dict[str, Any], timeout_s: float = 3600.0) -> dict[str, Any]:
         """Announce what the routine needs from the operator and wait for it (cancellable)."""
@@ -140,18 +160,26 @@ class JobManager:
         self._threads: dict[str, threading.Thread] = {}
 
     def start(self, name: str, fn: Callable[[JobContext], dict[str, Any]], params: dict[str, Any],
-              started_by: str) -> Job:
+              started_by: str, motion: tuple[RobotBase, MotionSession] | None = None) -> Job:
+        """Run ``fn`` in a thread; ``motion``: the robot and the motion session the job owns (it ends
+        with the job). ``TooManyJobs`` when ``MAX_RUNNING_JOBS`` run already."""
         job = Job(id=uuid.uuid4().hex[:12], name=name, started_by=started_by, params=params)
         with self._lock:
+            running = sum(1 for j in self._jobs.values() if j.state == "running")
+            if running >= MAX_RUNNING_JOBS:
+                raise TooManyJobs(f"{running} routines are running already (at most {MAX_RUNNING_JOBS}); "
+                                  "wait for one to finish or cancel one")
             self._jobs[job.id] = job
             self._prune()
-        thread = threading.Thread(target=self._run, args=(job, fn), name=f"job-{name}-{job.id}", daemon=True)
+        thread = threading.Thread(target=self._run, args=(job, fn, motion), name=f"job-{name}-{job.id}",
+                                  daemon=True)
         self._threads[job.id] = thread
         thread.start()
         return job
 
-    def _run(self, job: Job, fn: Callable[[JobContext], dict[str, Any]]) -> None:
-        ctx = JobContext(job)
+    def _run(self, job: Job, fn: Callable[[JobContext], dict[str, Any]],
+             motion: tuple[RobotBase, MotionSession] | None) -> None:
+        ctx = JobContext(job, motion[1] if motion is not None else None)
         try:
             result = fn(ctx)
             job.result = result
@@ -161,6 +189,10 @@ class JobManager:
         except JobCancelled:
             job.state = "cancelled"
             job.message = "cancelled; the robot was stopped and nothing was stored"
+        except RobotStopped as exc:
+            job.state = "stopped"
+            job.error = f"{exc}"
+            job.message = "stopped by a robot Stop; nothing was stored (an engineer must resume the robot)"
         except Exception as exc:  # noqa: BLE001 - a routine's failure is reported, never raised into the server
             log.warning("job %s (%s) failed: %s", job.id, job.name, exc, exc_info=not isinstance(exc, ValueError))
             job.state = "failed"
@@ -172,6 +204,8 @@ class JobManager:
                     hook()
                 except Exception:  # noqa: BLE001 - every end hook runs
                     log.exception("job %s end hook failed", job.id)
+            if motion is not None:
+                motion[0].motion.end(motion[1])
             job.finished_s = time.time()
             metrics.routine_finished(job.name, job.state, source=self)
             job._emit("state", {"state": job.state, "message": job.message, "error": job.error})

@@ -12,8 +12,12 @@ rad/s (joint); envelopes in millimetres, as the config states them (``*_mm``).
 from __future__ import annotations
 
 import abc
+import contextlib
+import logging
 import math
+import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol, Self, runtime_checkable
@@ -21,31 +25,24 @@ from typing import Any, Protocol, Self, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-# -- errors -------------------------------------------------------------------------------------
+# -- errors (drivers/errors.py) and motion ownership (drivers/motion.py) -------------------------
+from drivers.errors import (  # re-exported: the errors are part of the contract
+    DeviceInitError,
+    DeviceOperationError,
+    DeviceTimeout,
+    DeviceUnavailable,
+    DriverError,
+    MotionRejected,
+)
+from drivers.motion import MotionOwner, MotionSession, RobotBusy, RobotStopped, move_deadline_s
 
+__all__ = [
+    "Camera", "CameraBase", "DeviceBase", "DeviceInitError", "DeviceOperationError", "DeviceTimeout",
+    "DeviceUnavailable", "DigitalIO", "DigitalIOBase", "DriverError", "Frame", "MotionLimits", "MotionOwner",
+    "MotionRejected", "MotionSession", "Robot", "RobotBase", "RobotBusy", "RobotState", "RobotStopped",
+]
 
-class DriverError(Exception):
-    """Root of every driver error. Messages say what failed and what to do about it."""
-
-
-class DeviceUnavailable(DriverError, ConnectionError):
-    """The device cannot be reached (not connected, unplugged, peer gone)."""
-
-
-class DeviceInitError(DriverError):
-    """The device was reached but could not be set up (bad setting, missing feature or library)."""
-
-
-class DeviceOperationError(DriverError):
-    """A command to a working device failed (malformed reply, rejected command)."""
-
-
-class DeviceTimeout(DriverError, TimeoutError):
-    """The device did not answer in time."""
-
-
-class MotionRejected(DriverError, ValueError):
-    """A commanded motion was refused before it was sent (envelope, speed, not allowed)."""
+log = logging.getLogger(__name__)
 
 
 # -- values -------------------------------------------------------------------------------------
@@ -97,6 +94,12 @@ class MotionLimits:
     max_linear_speed_m_s: float
     max_joint_speed_rad_s: float = math.pi / 2
     joint_limits_rad: tuple[tuple[float, float], ...] | None = None
+    tool_down_cone_deg: float | None = 60.0
+    """Largest angle between the tool's z axis and the base's -z ("down"); None: not checked."""
+    max_move_duration_s: float = 60.0
+    """A move that would take longer at the commanded speed is refused (too slow to supervise)."""
+    move_deadline_slack_s: float = 5.0
+    """A move may take 1.5x its nominal duration plus this (s) before it is stopped as late."""
 
     def check_pose(self, T_base_tool: NDArray[np.float64]) -> None:
         """Raise MotionRejected when the tool position is outside the envelope."""
@@ -110,6 +113,18 @@ class MotionLimits:
                     f"target {axis} = {value:.1f} mm is outside the workspace envelope "
                     f"[{lo:.1f}, {hi:.1f}] mm; choose a pose inside it or widen the envelope in cell.yaml"
                 )
+        R = T[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise MotionRejected("target pose's rotation is not a proper rotation matrix (orthonormal, det +1)")
+        if self.tool_down_cone_deg is not None:
+            # The tool's z axis in the base frame is R's third column; "down" is (0, 0, -1).
+            tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, -float(R[2, 2])))))
+            if tilt_deg > self.tool_down_cone_deg:
+                raise MotionRejected(
+                    f"target tool orientation is {tilt_deg:.1f} deg from pointing down, more than the allowed "
+                    f"{self.tool_down_cone_deg:.1f} deg; give a pose with the tool pointing down or widen "
+                    "tool_down_cone_deg for this robot in cell.yaml"
+                )
 
     def check_linear_speed(self, speed_m_s: float) -> None:
         if not math.isfinite(speed_m_s) or speed_m_s <= 0 or speed_m_s > self.max_linear_speed_m_s:
@@ -117,6 +132,17 @@ class MotionLimits:
                 f"linear speed {speed_m_s} m/s is outside (0, {self.max_linear_speed_m_s}] m/s "
                 "(the configured speed limit)"
             )
+
+    def check_duration(self, distance: float, speed: float, unit: str) -> float:
+        """The nominal duration (s) of a move of ``distance`` at ``speed``; refused when too long."""
+        duration_s = distance / speed
+        if not math.isfinite(duration_s) or duration_s > self.max_move_duration_s:
+            min_speed = distance / self.max_move_duration_s
+            raise MotionRejected(
+                f"at {speed:.3g} {unit}/s the move of {distance:.4g} {unit} would take {duration_s:.3g} s, more "
+                f"than the {self.max_move_duration_s:.0f} s a move may take; use at least {min_speed:.3g} {unit}/s"
+            )
+        return duration_s
 
     def check_joint_speed(self, speed_rad_s: float) -> None:
         if not math.isfinite(speed_rad_s) or speed_rad_s <= 0 or speed_rad_s > self.max_joint_speed_rad_s:
@@ -162,13 +188,17 @@ class Robot(Protocol):
 
     robot_id: str
     limits: MotionLimits
+    motion: MotionOwner
 
     def connect(self) -> None: ...
     def close(self) -> None: ...
     def state(self) -> RobotState: ...
-    def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None: ...
-    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float) -> None: ...
-    def stop(self) -> None: ...
+    def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float,
+                    session: MotionSession | None = None) -> None: ...
+    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
+                   session: MotionSession | None = None) -> None: ...
+    def stop(self, by: str = "") -> None: ...
+    def resume(self) -> bool: ...
 
 
 @runtime_checkable
@@ -237,11 +267,22 @@ class CameraBase(DeviceBase):
 
 
 class RobotBase(DeviceBase):
-    """Base of robot adapters. The public motion methods check limits, then call the hooks."""
+    """Base of robot adapters: the public motion methods own the rules, the adapter fills hooks.
+
+    ``move_linear`` / ``move_joint`` check the envelope, orientation, speed and duration, take the
+    robot's motion (``self.motion``: one owner at a time, refused while latched), run the adapter's
+    hook under a deadline, and raise ``RobotStopped`` when a Stop halted the move — whatever the
+    hook returned. ``stop`` halts and latches; ``resume`` clears the latch; ``halt`` stops motion
+    without latching (cleanup after a failed sequence). Adapters implement ``_move_linear``,
+    ``_stop`` and may poll ``_motion_aborted()`` while they wait for arrival.
+    """
 
     def __init__(self, robot_id: str, limits: MotionLimits) -> None:
         self.robot_id = robot_id
         self.limits = limits
+        self.motion = MotionOwner(robot_id)
+        self._move_lock = threading.Lock()
+        self._moving_session: MotionSession | None = None
 
     def _open_device(self) -> None:
         self.connect()
@@ -254,14 +295,32 @@ class RobotBase(DeviceBase):
     def state(self) -> RobotState:
         """The current state; DeviceUnavailable when it is not fresh."""
 
-    def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
-        """Move the tool in a straight line to ``T_base_tool`` (metres) at ``speed_m_s``."""
+    # -- motion sessions -----------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def motion_session(self, who: str, what: str) -> Iterator[MotionSession]:
+        """Own the robot's motion for a sequence of moves (``RobotBusy`` / ``RobotStopped`` if not free)."""
+        session = self.motion.begin(who, what)
+        try:
+            yield session
+        finally:
+            self.motion.end(session)
+
+    def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float,
+                    session: MotionSession | None = None) -> None:
+        """Move the tool in a straight line to ``T_base_tool`` (metres) at ``speed_m_s``.
+
+        Without ``session`` the move is a sequence of its own (refused while another one runs).
+        """
         target = np.asarray(T_base_tool, dtype=np.float64)
         self.limits.check_pose(target)
         self.limits.check_linear_speed(speed_m_s)
-        self._move_linear(target, speed_m_s)
+        distance_m = self._distance_to(target)
+        nominal_s = self.limits.check_duration(distance_m, speed_m_s, "m")
+        self._supervised(session, f"linear move to {_xyz_mm(target)}", nominal_s,
+                         lambda: self._move_linear(target, speed_m_s))
 
-    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float) -> None:
+    def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
+                   session: MotionSession | None = None) -> None:
         """Move in joint space to ``joints_rad``; the resulting tool pose is checked too."""
         q = np.asarray(joints_rad, dtype=np.float64)
         self.limits.check_joints(q)
@@ -269,7 +328,111 @@ class RobotBase(DeviceBase):
         T = self.forward_kinematics(q)
         if T is not None:
             self.limits.check_pose(T)
-        self._move_joint(q, speed_rad_s)
+        span_rad = self._joint_span_to(q)
+        nominal_s = self.limits.check_duration(span_rad, speed_rad_s, "rad")
+        self._supervised(session, "joint move", nominal_s, lambda: self._move_joint(q, speed_rad_s))
+
+    def move_deadline_s(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> float:
+        """How long a linear move to ``T_base_tool`` may take before it is stopped (s)."""
+        distance_m = self._distance_to(np.asarray(T_base_tool, dtype=np.float64))
+        return move_deadline_s(distance_m / speed_m_s if speed_m_s > 0 else math.inf,
+                               self.limits.move_deadline_slack_s)
+
+    def _supervised(self, session: MotionSession | None, what: str, nominal_s: float,
+                    hook: Callable[[], None]) -> None:
+        if session is None:
+            with self.motion_session("direct", what) as own:
+                self._run_move(own, nominal_s, hook)
+        else:
+            if not self.motion.is_current(session):
+                session.check()
+                raise RobotBusy(f"robot {self.robot_id}: {session.what} does not own the robot's motion")
+            self._run_move(session, nominal_s, hook)
+
+    def _run_move(self, session: MotionSession, nominal_s: float, hook: Callable[[], None]) -> None:
+        session.check()
+        deadline_s = move_deadline_s(nominal_s, self.limits.move_deadline_slack_s)
+        timed_out = threading.Event()
+        stop_failures: list[BaseException] = []
+
+        def on_deadline() -> None:
+            timed_out.set()
+            try:
+                self._stop()
+            except Exception as exc:  # noqa: BLE001 - reported with the timeout below
+                stop_failures.append(exc)
+                log.error("robot %s: stopping a move past its deadline failed: %s", self.robot_id, exc)
+
+        timer = threading.Timer(deadline_s, on_deadline)
+        timer.daemon = True
+        with self._move_lock:
+            self._moving_session = session
+        timer.start()
+        try:
+            hook()
+        except Exception as exc:
+            if session.aborted:
+                raise RobotStopped(f"robot {self.robot_id}: the move was stopped ({session.abort_reason})") from exc
+            if timed_out.is_set():
+                raise self._deadline_error(deadline_s, nominal_s, stop_failures) from exc
+            raise
+        finally:
+            timer.cancel()
+            with self._move_lock:
+                self._moving_session = None
+        if session.aborted:
+            # A Stop came while the adapter moved: whatever the adapter says, the move did not happen as asked.
+            raise RobotStopped(f"robot {self.robot_id}: the move was stopped ({session.abort_reason})")
+        if timed_out.is_set():
+            raise self._deadline_error(deadline_s, nominal_s, stop_failures)
+
+    def _deadline_error(self, deadline_s: float, nominal_s: float, stop_failures: list[BaseException]
+                        ) -> DeviceTimeout:
+        msg = (f"robot {self.robot_id}: the move did not finish within {deadline_s:.1f} s (nominal "
+               f"{nominal_s:.1f} s) and was stopped")
+        if stop_failures:
+            msg += f"; STOPPING IT FAILED: {stop_failures[0]} — check the robot now"
+        return DeviceTimeout(msg)
+
+    def _motion_aborted(self) -> bool:
+        """True while the move in progress belongs to a session a Stop has aborted (adapters poll it)."""
+        with self._move_lock:
+            s = self._moving_session
+        return s is not None and s.aborted
+
+    def _distance_to(self, target: NDArray[np.float64]) -> float:
+        """Straight-line distance (m) from the current tool position to ``target`` (for the deadline)."""
+        try:
+            current = self.state().T_base_tool
+        except DriverError:
+            return 0.0  # the hook will report the outage; the deadline then is the slack alone
+        return float(np.linalg.norm(target[:3, 3] - current[:3, 3]))
+
+    def _joint_span_to(self, q: NDArray[np.float64]) -> float:
+        try:
+            current = self.state().joints_rad
+        except DriverError:
+            return 0.0
+        if current.shape != q.shape:
+            return 0.0
+        return float(np.max(np.abs(q - current))) if q.size else 0.0
+
+    # -- stop, resume ------------------------------------------------------------------------------
+    def stop(self, by: str = "") -> None:
+        """Halt now, abort the sequence that owns the robot, and latch until ``resume``.
+
+        The latch holds even when the adapter's stop fails; that failure is raised, never swallowed.
+        """
+        self.motion.latch(by, "Stop")
+        self._stop()
+
+    def resume(self) -> bool:
+        """Clear the Stop latch (an engineer's act); True when the robot was latched."""
+        return self.motion.resume()
+
+    def halt(self) -> None:
+        """Stop any motion without latching (cleanup after a failed or cancelled sequence)."""
+        self._stop()
 
     def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """``T_base_tool`` for ``joints_rad`` if the adapter knows it (for the envelope check)."""
@@ -277,14 +440,19 @@ class RobotBase(DeviceBase):
 
     @abc.abstractmethod
     def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
-        """Send a checked linear move to the controller."""
+        """Send a checked linear move to the controller and wait until it arrives."""
 
     def _move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float) -> None:
         raise MotionRejected(f"robot {self.robot_id}: joint moves are not supported by this adapter")
 
     @abc.abstractmethod
-    def stop(self) -> None:
-        """Stop any motion now."""
+    def _stop(self) -> None:
+        """Tell the controller to stop any motion now."""
+
+
+def _xyz_mm(T: NDArray[np.float64]) -> str:
+    x, y, z = (float(v) * 1000.0 for v in T[:3, 3])
+    return f"({x:.1f}, {y:.1f}, {z:.1f}) mm"
 
 
 class DigitalIOBase(DeviceBase):

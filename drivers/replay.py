@@ -163,5 +163,5 @@ class ReplayRobot(RobotBase):
     def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
         raise MotionRejected(f"robot {self.robot_id} is a replay of a recording and cannot move")
 
-    def stop(self) -> None:
+    def _stop(self) -> None:
         """Nothing moves in a replay."""

@@ -2,7 +2,9 @@
 
 A device that is unreachable answers 503 with ``{"available": false, "reason": ...}`` (INTERFACES
 §5); bad input answers 4xx with a machine-readable code and a human message; never a 500 for
-anything a caller or a device did.
+anything a caller or a device did. Only the project's own error types map to a 4xx; anything
+else (a builtin ``KeyError``, a numpy ``ValueError``) is a bug: 500 with the request id, logged
+with its traceback.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected
+from cellctl.logging_setup import request_id_var
+from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected, RobotBusy, RobotStopped
 
 log = logging.getLogger(__name__)
 
@@ -53,23 +56,33 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(MotionRejected)
     async def _rejected(_: Request, exc: MotionRejected) -> JSONResponse:
-        return JSONResponse(status_code=422, content=error_body("motion_rejected", str(exc)))
+        return JSONResponse(status_code=422, content=error_body("motion_rejected", _with_notes(exc)))
 
     @app.exception_handler(DriverError)
     async def _driver(_: Request, exc: DriverError) -> JSONResponse:
         return JSONResponse(status_code=502, content=error_body("device_error", str(exc)))
 
+    @app.exception_handler(RobotBusy)
+    async def _busy(_: Request, exc: RobotBusy) -> JSONResponse:
+        return JSONResponse(status_code=409, content=error_body("robot_busy", str(exc)))
+
+    @app.exception_handler(RobotStopped)
+    async def _stopped(_: Request, exc: RobotStopped) -> JSONResponse:
+        return JSONResponse(status_code=409, content=error_body("robot_stopped", str(exc)))
+
     @app.exception_handler(LookupError)
-    async def _not_found(_: Request, exc: LookupError) -> JSONResponse:
-        # The store's NotFound and our "no such ..." KeyErrors carry a message for people.
+    async def _not_found(request: Request, exc: LookupError) -> JSONResponse:
+        if not is_own_error(exc):
+            return internal_error(request, exc)  # a KeyError in our code is a bug, not the caller's 404
         msg = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
         return JSONResponse(status_code=404, content=error_body("not_found", msg))
 
     @app.exception_handler(ValueError)
-    async def _invalid(_: Request, exc: ValueError) -> JSONResponse:
-        # Our typed input errors subclass ValueError (store InvalidInput, calibration and pick errors).
-        log.warning("refused: %s", exc, exc_info=True)
-        return JSONResponse(status_code=422, content=error_body("invalid_input", str(exc)))
+    async def _invalid(request: Request, exc: ValueError) -> JSONResponse:
+        if not is_own_error(exc):
+            return internal_error(request, exc)  # a numpy or stdlib ValueError is our bug
+        log.warning("refused: %s", exc)
+        return JSONResponse(status_code=422, content=error_body("invalid_input", _with_notes(exc)))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -87,7 +100,27 @@ def install_error_handlers(app: FastAPI) -> None:
                             headers=getattr(exc, "headers", None))
 
     @app.exception_handler(Exception)
-    async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
-        log.exception("unexpected error")
-        return JSONResponse(status_code=500, content=error_body(
-            "internal_error", f"{type(exc).__name__}: {exc} (this is a cellctl bug; please report it)"))
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        return internal_error(request, exc)
+
+
+OWN_PACKAGES = frozenset({"cellctl", "drivers", "calibration", "vision"})
+
+
+def is_own_error(exc: BaseException) -> bool:
+    """True for the project's own typed errors (their messages are written for people)."""
+    return type(exc).__module__.split(".", 1)[0] in OWN_PACKAGES
+
+
+def _with_notes(exc: BaseException) -> str:
+    notes = getattr(exc, "__notes__", None) or []
+    return " ".join([str(exc), *notes])
+
+
+def internal_error(request: Request, exc: BaseException) -> JSONResponse:
+    """A bug: 500 with the request id, the traceback in the log (never dressed as a 4xx)."""
+    rid = request_id_var.get() or request.headers.get("x-request-id") or "-"
+    log.error("unexpected error (request %s)", rid, exc_info=(type(exc), exc, exc.__traceback__))
+    return JSONResponse(status_code=500, content=error_body(
+        "internal_error", f"{type(exc).__name__}: {exc} (a cellctl bug; report it with request id {rid})"),
+        headers={"X-Request-Id": rid} if rid != "-" else None)

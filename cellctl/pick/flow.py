@@ -15,28 +15,59 @@ import numpy as np
 
 from cellctl import metrics
 from cellctl.mapping import active_mapping, npoint_pose_check
+from cellctl.motion import audited_move, halt_after_failure
 from cellctl.pick.pose import fold_yaw, pick_pose, pose_json
 from cellctl.pick.recipe import PickError, Recipe, SearchSettings
-from cellctl.pick.recognize import recognize
-from cellctl.pick.shape import SearchParams
 from cellctl.services import Services
 from drivers.base import MotionRejected, RobotBase
+from vision.recognize import recognize
+from vision.types import SearchParams
 
 __all__ = ["PickError", "Recipe", "SearchSettings", "fold_yaw", "pick_pose", "pose_json", "run_pick"]
 
 
 def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, move: bool = False,
              who: str = "plc") -> dict[str, Any]:
-    """Grab, locate, convert, check; with ``move`` the robot picks the best reachable match."""
-    t0 = time.perf_counter()
+    """Grab, locate, convert, check; with ``move`` the robot picks the best reachable match.
+
+    With ``move`` the pick owns the robot's motion from before the grab to the retreat (a second
+    mover gets ``RobotBusy``); a Stop aborts it (``RobotStopped``) and nothing more is moved.
+    """
     stored = services.store.get_recipe(recipe_id)
     recipe = Recipe.model_validate(stored.data)
+    robot_id = recipe.robot_id or services.config.calibration.robot
+    robot: RobotBase = services.cell.robot(robot_id).ensure_open()
+    if not move:
+        return _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
+    with robot.motion_session(who, f"pick of recipe {recipe_id}") as session:
+        answer = _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
+        session.check()  # a Stop during the grab or the search ends the pick here
+        best = next((p for p in answer["picks"] if p["reachable"]), None)
+        if best is None:
+            raise PickError(answer.get("reason") or
+                            "no reachable pick: nothing found, or every pose is outside the envelope")
+        T_pick = np.array(best["T_base_tool"])
+        T_app = T_pick.copy()
+        T_app[2, 3] += recipe.approach_height_mm * 1e-3
+        try:
+            for T, why in ((T_app, "approach"), (T_pick, "pick"), (T_app, "retreat")):
+                audited_move(services.store, who, robot, T, recipe.speed_m_s, f"pick {why}", session)
+        except Exception as exc:
+            halt_after_failure(robot, exc)
+            raise
+    answer["moved"] = True
+    answer["picked"] = best
+    return answer
+
+
+def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str | None,
+            robot: RobotBase) -> dict[str, Any]:
+    t0 = time.perf_counter()
     d = services.config.calibration
     cam_id = camera_id or recipe.camera_id or d.camera
-    robot_id = recipe.robot_id or d.robot
+    robot_id = robot.robot_id
     models = recipe.part_models()
     mapping = active_mapping(services, cam_id, robot_id, recipe.calibration, recipe.plane_z_mm is not None)
-    robot: RobotBase = services.cell.robot(robot_id).ensure_open()
     T_capture = robot.state().T_base_tool
     problem = npoint_pose_check(mapping, T_capture)
     if problem:
@@ -72,7 +103,7 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
     t_done = time.perf_counter()
     metrics.observe_pick(t_done - t0, [p["score"] for p in picks], source=services)
     answer: dict[str, Any] = {
-        "recipe_id": recipe_id, "recipe_version": stored.version, "camera_id": cam_id, "robot_id": robot_id,
+        "recipe_id": recipe_id, "recipe_version": version, "camera_id": cam_id, "robot_id": robot_id,
         "frame_id": frame_id, "image_url": f"/frames/{frame_id}.png", "timed_out": found.timed_out,
         "calibration": {"kind": mapping.kind, "id": mapping.calibration_id},
         "capture_pose": pose_json(T_capture), "picks": picks,
@@ -80,21 +111,4 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
                        "total": (t_done - t0) * 1e3},
         "moved": False,
     }
-    if move:
-        best = next((p for p in picks if p["reachable"]), None)
-        if best is None:
-            raise PickError("no reachable pick: nothing found, or every pose is outside the envelope")
-        T_pick = np.array(best["T_base_tool"])
-        T_app = T_pick.copy()
-        T_app[2, 3] += recipe.approach_height_mm * 1e-3
-        try:
-            for T, why in ((T_app, "approach"), (T_pick, "pick"), (T_app, "retreat")):
-                robot.move_linear(T, recipe.speed_m_s)
-                services.store.audit(who, "robot.move", robot_id, {"pose": pose_json(T), "why": f"pick {why}"},
-                                     "ok")
-        except Exception:
-            robot.stop()
-            raise
-        answer["moved"] = True
-        answer["picked"] = best
     return answer

@@ -23,6 +23,7 @@ from calibration.observations import Detection
 from calibration.pnp import estimate_pose
 from calibration.targets import Target, target_from_dict
 from cellctl.jobs import JobContext
+from cellctl.motion import audited_move
 from cellctl.services import Services
 from drivers.base import CameraBase, Frame, MotionRejected, RobotBase
 
@@ -151,21 +152,15 @@ def reachable(robot: RobotBase, poses: list[Mat4]) -> tuple[list[Mat4], int]:
 
 
 def move(services: Services, ctx: JobContext, robot: RobotBase, T: Mat4, speed_m_s: float, why: str) -> None:
-    """A checked linear move, audited under the job's caller."""
-    pose = [float(v) for v in g.transform_to_ur_pose(T)]
-    try:
-        robot.move_linear(T, speed_m_s)
-    except Exception as exc:
-        services.store.audit(ctx.started_by, "robot.move", robot.robot_id,
-                             {"pose_ur": pose, "speed_m_s": speed_m_s, "why": why}, f"failed: {exc}")
-        raise
-    services.store.audit(ctx.started_by, "robot.move", robot.robot_id,
-                         {"pose_ur": pose, "speed_m_s": speed_m_s, "why": why}, "ok")
+    """A checked linear move in the routine's motion session, audited under the job's caller."""
+    ctx.check_cancelled()
+    audited_move(services.store, ctx.started_by, robot, T, speed_m_s, why, ctx.motion)
 
 
 def stop_robot_on_end(ctx: JobContext, robot: RobotBase | None) -> None:
+    """Halt the robot when the routine ends, whatever the outcome (no latch: that is Stop's)."""
     if robot is not None:
-        ctx.on_end.append(robot.stop)
+        ctx.on_end.append(robot.halt)
 
 
 def detection_inputs(caps: list[Capture]) -> list[dict[str, Any]]:

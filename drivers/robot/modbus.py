@@ -468,6 +468,8 @@ class ModbusRobot(RobotBase):
         timeout_s = dist_m / speed_m_s + c.move_timeout_margin_s
         self._stop_requested.clear()
         self._write_regs(c.command_address, [c.move_value])
+        if self._motion_aborted():  # a Stop raced the command: the controller must not keep moving
+            self._stop()
         seq = self._sample.seq if self._sample is not None else 0
         deadline = time.monotonic() + timeout_s
         try:
@@ -494,7 +496,7 @@ class ModbusRobot(RobotBase):
                 self._write_regs(c.command_address, [c.clear_value])
                 self._next_sample(self._sample.seq if self._sample is not None else 0, c.timeout_s + 0.5)
 
-    def stop(self) -> None:
+    def _stop(self) -> None:
         """Write the stop command."""
         self._stop_requested.set()
         self._write_regs(self.config.command_address, [self.config.stop_value])

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import logging
 import math
 import multiprocessing as mp
 import threading
@@ -36,6 +37,7 @@ from drivers.base import (
     DeviceOperationError,
     DeviceTimeout,
     DeviceUnavailable,
+    DriverError,
     MotionLimits,
     MotionRejected,
     RobotBase,
@@ -58,6 +60,8 @@ from drivers.robot._ur_rtde_worker import (
     _control_worker,
     _state_worker,
 )
+
+log = logging.getLogger(__name__)
 
 ROBOT_MODES = {
     -1: "no_controller",
@@ -468,6 +472,8 @@ class URRTDERobot(RobotBase):
         deadline = time.monotonic() + timeout_s
         while True:
             s = self.state()
+            if self._motion_aborted() and not self._stop_requested.is_set():
+                self._stop()  # a Stop raced the command (it came before the move was sent)
             if self._stop_requested.is_set():
                 raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
             if s.metadata["safety_mode"] != "normal":
@@ -483,15 +489,21 @@ class URRTDERobot(RobotBase):
             if arrived(s) and not s.moving:
                 return
             if time.monotonic() > deadline:
-                with contextlib.suppress(Exception):
-                    self.stop()
+                try:
+                    self._stop()
+                except DriverError as exc:
+                    log.error("robot %s: stopping a late move failed: %s", self.robot_id, exc)
+                    raise DeviceTimeout(
+                        f"robot {self.robot_id}: the move did not arrive within {timeout_s:.1f} s and STOPPING "
+                        f"IT FAILED ({exc}); check the robot now"
+                    ) from exc
                 raise DeviceTimeout(
                     f"robot {self.robot_id}: the move did not arrive within {timeout_s:.1f} s; "
                     "the robot was told to stop"
                 )
             time.sleep(0.002)
 
-    def stop(self) -> None:
+    def _stop(self) -> None:
         """Decelerate any motion this adapter commanded (stopL, then stopJ)."""
         self._stop_requested.set()
         if self._control_proc is None:

@@ -1,7 +1,17 @@
-"""Simulated robot (``kind: sim``): moves the virtual cell's tool to commanded poses.
+"""Simulated robot (``kind: sim``): a virtual arm as strict as a real controller.
 
-The motion checks live in ``RobotBase``; this adapter only places the tool. The reported pose
-carries the scene's repeatability noise (drawn once per move), the true pose drives the camera.
+- Moves take real time (distance / speed times the scene's ``motion_time_scale``, 1 by default):
+  the tool travels the straight line (position linear, orientation by slerp) and the camera sees
+  it on the way; ``state().moving`` is true meanwhile.
+- ``_stop`` halts the tool where it is, and the interrupted move raises ``DeviceOperationError``
+  like the UR adapter (``RobotBase`` turns it into ``RobotStopped`` for the caller).
+- Faults of the scene (``robot.faults``): a protective stop halfway through a move (the move
+  raises, moves are refused until ``unlock_protective_stop``), and a controller that drops off the
+  network (state and moves raise ``DeviceUnavailable`` until reconnected).
+- With ``robot.kinematic_error`` the true pose is the perturbed arm's (``drivers.sim.kinematics``);
+  the reported pose stays the controller's belief with repeatability noise.
+
+The motion checks, the motion owner and the Stop latch live in ``RobotBase``.
 """
 
 from __future__ import annotations
@@ -12,9 +22,14 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation, Slerp
 
-from drivers.base import DeviceUnavailable, MotionLimits, RobotBase, RobotState
+from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected, RobotBase, RobotState
+from drivers.sim.kinematics import OutOfReach
 from drivers.sim.world import SimWorld, world_for
+
+STEP_S = 0.01
+"""How often a moving tool's pose is updated (s)."""
 
 
 class SimRobotSettings(BaseModel):
@@ -23,6 +38,8 @@ class SimRobotSettings(BaseModel):
     scene: str | None = None
     """Scene file path; empty for the built-in virtual cell (must match the sim camera's)."""
     seed: int | None = Field(None, ge=0)
+    motion_time_scale: float | None = Field(None, ge=0, le=10)
+    """Overrides the scene's ``robot.motion_time_scale`` (1: real time; 0: instantaneous moves)."""
 
 
 class SimRobot(RobotBase):
@@ -34,45 +51,124 @@ class SimRobot(RobotBase):
         super().__init__(robot_id, limits)
         self._settings = settings
         self._world: SimWorld | None = None
-        self._stop = threading.Event()
+        self._halt = threading.Event()
         self._moving = False
+        self._moves = 0
+        self._protective_stop = False
+        self._dropped = False
 
     @property
     def world(self) -> SimWorld:
         if self._world is None:
             raise DeviceUnavailable(f"robot {self.robot_id}: not connected; connect() it first")
+        if self._dropped:
+            raise DeviceUnavailable(f"robot {self.robot_id}: the controller does not answer (simulated drop-off)")
         return self._world
+
+    @property
+    def time_scale(self) -> float:
+        s = self._settings.motion_time_scale
+        return self.world.scene.robot.motion_time_scale if s is None else s
 
     def connect(self) -> None:
         self._world = world_for(self._settings.scene, self._settings.seed)
+        self._dropped = False
+        self._moves = 0
 
     def close(self) -> None:
+        self._halt.set()
         self._world = None
 
     def state(self) -> RobotState:
         world = self.world
         return RobotState(
             T_base_tool=world.T_base_tool_reported(),
-            joints_rad=np.zeros(6),
+            joints_rad=world.joints_rad,
             timestamp_s=time.time(),
             moving=self._moving,
-            mode="running",
-            metadata={"simulated": True},
+            mode="protective_stop" if self._protective_stop else "running",
+            metadata={"simulated": True, "safety_mode": "protective_stop" if self._protective_stop else "normal"},
         )
 
+    # -- faults -----------------------------------------------------------------------------------
+    def simulate_protective_stop(self) -> None:
+        """Like a collision: halt now; moves are refused until ``unlock_protective_stop``."""
+        self._protective_stop = True
+        self._halt.set()
+
+    def unlock_protective_stop(self) -> None:
+        self._protective_stop = False
+
+    def simulate_drop_off(self) -> None:
+        """The controller vanishes from the network (until the next ``connect``)."""
+        self._dropped = True
+        self._halt.set()
+
+    # -- motion -----------------------------------------------------------------------------------
     def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
         world = self.world
-        self._stop.clear()
-        scale = world.scene.robot.motion_time_scale
-        if scale > 0:
-            distance = float(np.linalg.norm(T_base_tool[:3, 3] - world.T_base_tool_true[:3, 3]))
-            self._moving = True
-            try:
-                if self._stop.wait(distance / speed_m_s * scale):
-                    return  # stopped: the tool stays where it was
-            finally:
-                self._moving = False
-        world.place_tool(T_base_tool)
+        if self._protective_stop:
+            raise DeviceOperationError(f"robot {self.robot_id} is in a protective stop; inspect the cell, "
+                                       "then unlock the protective stop before moving")
+        try:
+            joints, T_true_end = world.true_pose_for(T_base_tool)
+        except OutOfReach as exc:
+            raise MotionRejected(f"robot {self.robot_id}: {exc}") from exc
+        self._halt.clear()
+        faults = world.scene.robot.faults
+        self._moves += 1
+        protective_halfway = (faults.protective_stop_after_moves is not None
+                              and self._moves == faults.protective_stop_after_moves + 1)
+        duration_s = float(np.linalg.norm(T_base_tool[:3, 3] - world.T_base_tool_commanded[:3, 3])) / speed_m_s
+        duration_s *= self.time_scale
+        if duration_s > 0 or protective_halfway:
+            self._travel(world, T_base_tool, T_true_end, max(duration_s, STEP_S), protective_halfway)
+        world.place_tool(T_base_tool, T_true_end, joints)
+        if faults.drop_after_moves is not None and self._moves >= faults.drop_after_moves:
+            self._dropped = True
 
-    def stop(self) -> None:
-        self._stop.set()
+    def _travel(self, world: SimWorld, T_cmd_end: NDArray[np.float64], T_true_end: NDArray[np.float64],
+                duration_s: float, protective_halfway: bool) -> None:
+        """Move the tool along the line in real time; raise where a stop or a fault halts it."""
+        T_cmd0, T_true0 = world.T_base_tool_commanded, world.T_base_tool_true
+        cmd = _Line(T_cmd0, T_cmd_end)
+        true = _Line(T_true0, T_true_end)
+        t0 = time.monotonic()
+        self._moving = True
+        try:
+            while True:
+                s = min(1.0, (time.monotonic() - t0) / duration_s)
+                if protective_halfway and s >= 0.5:
+                    self._protective_stop = True
+                if self._halt.is_set() or self._protective_stop or self._motion_aborted():
+                    world.set_moving_pose(cmd.at(s), true.at(s))
+                    if self._dropped:
+                        raise DeviceUnavailable(f"robot {self.robot_id}: the controller dropped off during the move")
+                    if self._protective_stop:
+                        raise DeviceOperationError(f"robot {self.robot_id}: protective stop during the move; "
+                                                   "inspect the cell, then unlock the protective stop")
+                    raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
+                if s >= 1.0:
+                    return
+                world.set_moving_pose(cmd.at(s), true.at(s))
+                self._halt.wait(min(STEP_S, duration_s))
+        finally:
+            self._moving = False
+
+    def _stop(self) -> None:
+        """Halt the tool where it is (an interrupted move raises)."""
+        self._halt.set()
+
+
+class _Line:
+    """Straight-line interpolation between two poses: position linear, orientation slerp."""
+
+    def __init__(self, T0: NDArray[np.float64], T1: NDArray[np.float64]) -> None:
+        self._p0, self._p1 = T0[:3, 3].copy(), T1[:3, 3].copy()
+        self._slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))
+
+    def at(self, s: float) -> NDArray[np.float64]:
+        T = np.eye(4)
+        T[:3, :3] = self._slerp([s]).as_matrix()[0]
+        T[:3, 3] = self._p0 + s * (self._p1 - self._p0)
+        return T

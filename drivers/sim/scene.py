@@ -70,6 +70,25 @@ class CameraSpec(_Strict):
         return CameraModel(self.model, self.width, self.height, np.asarray(self.K), np.asarray(self.dist))
 
 
+class KinematicErrorSpec(_Strict):
+    """The physical arm differs from its controller's nominal model (seeded, deterministic)."""
+
+    seed: int = Field(0, ge=0)
+    link_sigma_mm: float = Field(0.5, ge=0, le=20)
+    """1-sigma error of each DH length (d, a), mm."""
+    joint_offset_sigma_deg: float = Field(0.05, ge=0, le=5)
+    """1-sigma error of each joint's zero offset, degrees."""
+
+
+class RobotFaultSpec(_Strict):
+    """Faults the virtual robot plays, like a real controller (counted in moves since connect)."""
+
+    protective_stop_after_moves: int | None = Field(None, ge=0)
+    """The N+1-th move ends halfway in a protective stop (the move raises; unlock to continue)."""
+    drop_after_moves: int | None = Field(None, ge=0)
+    """After N moves the controller drops off the network (state and moves raise DeviceUnavailable)."""
+
+
 class RobotSpec(_Strict):
     home: URPose
     """Initial ``T_base_tool`` (UR form)."""
@@ -77,8 +96,12 @@ class RobotSpec(_Strict):
     """1-sigma position error of the reported pose against the true one, per axis."""
     repeatability_deg: float = Field(0.005, ge=0, le=5)
     """1-sigma rotation error of the reported pose (about a random axis)."""
-    motion_time_scale: float = Field(0.0, ge=0, le=10)
-    """Simulated moves take distance/speed times this (0: instantaneous)."""
+    motion_time_scale: float = Field(1.0, ge=0, le=10)
+    """Simulated moves take distance/speed times this: 1 is real time (the default), 0 instantaneous
+    (for tests and benches that need speed; a sim robot's ``motion_time_scale`` setting overrides it)."""
+    kinematic_error: KinematicErrorSpec | None = None
+    """Pose-dependent error of the arm (perturbed UR5e link lengths and joint offsets); off when absent."""
+    faults: RobotFaultSpec = Field(default_factory=lambda: RobotFaultSpec())
 
 
 class TargetSpec(_Strict):

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from calibration.render import Imaging, PlanarObject, render_reflectance, to_grey
+from drivers.sim.kinematics import KinematicError
 from drivers.sim.scene import SceneSpec, load_scene
 
 
@@ -30,7 +31,11 @@ class SimWorld:
         self.camera_model = scene.camera.camera_model()
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(scene.seed)
-        self._T_base_tool_true = g.ur_pose_to_transform(scene.robot.home)
+        ke = scene.robot.kinematic_error
+        self._kinematics = (None if ke is None else
+                            KinematicError(ke.seed, ke.link_sigma_mm, ke.joint_offset_sigma_deg))
+        self._T_base_tool_cmd = g.ur_pose_to_transform(scene.robot.home)
+        self._joints_rad, self._T_base_tool_true = self.true_pose_for(self._T_base_tool_cmd)
         self._T_report_error = np.eye(4)
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
@@ -42,16 +47,56 @@ class SimWorld:
         with self._lock:
             return self._T_base_tool_true.copy()
 
-    def T_base_tool_reported(self) -> NDArray[np.float64]:
-        """The pose the robot controller reports: the true one with its repeatability error."""
+    @property
+    def T_base_tool_commanded(self) -> NDArray[np.float64]:
+        """Where the controller believes the tool is (the last commanded or interpolated pose)."""
         with self._lock:
-            return self._T_base_tool_true @ self._T_report_error
+            return self._T_base_tool_cmd.copy()
 
-    def place_tool(self, T_base_tool_commanded: NDArray[np.float64]) -> None:
-        """Complete a move: the tool is at the commanded pose, reported with fresh noise."""
-        spec = self.scene.robot
+    @property
+    def joints_rad(self) -> NDArray[np.float64]:
         with self._lock:
-            self._T_base_tool_true = np.asarray(T_base_tool_commanded, dtype=np.float64).copy()
+            return self._joints_rad.copy()
+
+    def T_base_tool_reported(self) -> NDArray[np.float64]:
+        """The pose the robot controller reports: its belief with its repeatability error.
+
+        Without a kinematic error model the belief is the true pose; with one, the true pose is
+        the perturbed arm's (``true_pose_for``) while the report stays near the commanded pose.
+        """
+        with self._lock:
+            return self._T_base_tool_cmd @ self._T_report_error
+
+    def true_pose_for(self, T_base_tool_commanded: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                                 NDArray[np.float64]]:
+        """(joints, true pose) of the arm when its controller is at ``T_base_tool_commanded``.
+
+        Raises ``OutOfReach`` (a ValueError) when the kinematic model has no solution.
+        """
+        T = np.asarray(T_base_tool_commanded, dtype=np.float64)
+        if self._kinematics is None:
+            return np.zeros(6), T.copy()
+        with self._lock:
+            return self._kinematics.solve(T)
+
+    def set_moving_pose(self, T_commanded: NDArray[np.float64], T_true: NDArray[np.float64]) -> None:
+        """The tool is on its way: believed and true pose of this instant (no fresh noise)."""
+        with self._lock:
+            self._T_base_tool_cmd = np.asarray(T_commanded, dtype=np.float64).copy()
+            self._T_base_tool_true = np.asarray(T_true, dtype=np.float64).copy()
+
+    def place_tool(self, T_base_tool_commanded: NDArray[np.float64],
+                   T_true: NDArray[np.float64] | None = None, joints_rad: NDArray[np.float64] | None = None) -> None:
+        """Complete a move: the tool settles at the commanded pose, reported with fresh noise."""
+        spec = self.scene.robot
+        if T_true is None:
+            joints, T_true = self.true_pose_for(T_base_tool_commanded)
+            joints_rad = joints if joints_rad is None else joints_rad
+        with self._lock:
+            self._T_base_tool_cmd = np.asarray(T_base_tool_commanded, dtype=np.float64).copy()
+            self._T_base_tool_true = np.asarray(T_true, dtype=np.float64).copy()
+            if joints_rad is not None:
+                self._joints_rad = np.asarray(joints_rad, dtype=np.float64).copy()
             dt = self._rng.normal(0.0, spec.repeatability_mm * 1e-3, 3)
             axis = self._rng.normal(size=3)
             axis /= np.linalg.norm(axis)

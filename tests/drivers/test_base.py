@@ -32,7 +32,7 @@ class _RecordingRobot(RobotBase):
     def _move_linear(self, T_base_tool: np.ndarray, speed_m_s: float) -> None:
         self.sent.append(T_base_tool)
 
-    def stop(self) -> None:
+    def _stop(self) -> None:
         pass
 
 

@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 from cellctl.api.deps import Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
-from cellctl.jobs import JobInputError
+from cellctl.jobs import JobInputError, TooManyJobs
 from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
 
 router = APIRouter(tags=["jobs"])
@@ -66,7 +66,18 @@ def start_routine(name: str, services: ServicesDep, who: Operator,
     except ValidationError as exc:
         msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
         raise ApiError(422, "invalid_params", f"routine {name}: {msg}") from None
-    job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name)
+    motion = None
+    if moves:
+        # The routine owns the robot's motion from now to its end: a second mover gets 409.
+        robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
+        robot = services.cell.robot(str(robot_id)).device
+        motion = (robot, robot.motion.begin(who.name, f"routine {name}"))
+    try:
+        job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name, motion)
+    except TooManyJobs as exc:
+        if motion is not None:
+            motion[0].motion.end(motion[1])
+        raise ApiError(429, "too_many_jobs", str(exc)) from None
     services.store.audit(who.name, "routine.start", name, {"job_id": job.id, "params": params or {}}, "started")
     return job.public()
 

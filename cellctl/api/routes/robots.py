@@ -11,8 +11,9 @@ from calibration import geometry as g
 from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
-from drivers.base import DeviceUnavailable, RobotBase, RobotState
+from drivers.base import DeviceUnavailable, MotionSession, RobotBase, RobotState
 
 router = APIRouter(prefix="/robots", tags=["robots"])
 
@@ -39,6 +40,8 @@ class RobotStatePublic(BaseModel):
     age_s: float
     moving: bool
     mode: str
+    latched: bool = False
+    """True while a Stop latches the robot (no motion until an engineer resumes)."""
 
 
 def _slot(cell: CellDep, robot_id: str) -> Any:
@@ -47,7 +50,7 @@ def _slot(cell: CellDep, robot_id: str) -> Any:
 
 @router.get("")
 def list_robots(cell: CellDep, _: Viewer) -> list[dict[str, Any]]:
-    return [slot.status() for slot in cell.robots.values()]
+    return [{**slot.status(), "motion": slot.device.motion.status()} for slot in cell.robots.values()]
 
 
 @router.get("/{robot_id}/state", response_model=RobotStatePublic, responses={503: {}})
@@ -63,21 +66,24 @@ async def robot_state(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]
         # A stale pose is never served as current.
         raise DeviceUnavailable(f"robot {robot_id}: newest state is {out['age_s']:.2f} s old "
                                 f"(limit {MAX_STATE_AGE_S} s)")
+    out["latched"] = slot.device.motion.latched
     return out
 
 
 class MoveInput(BaseModel):
     """A linear move of the tool to ``T_base_tool`` (4x4, m) or to a UR pose (m, rad); speed in m/s."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     T_base_tool: list[list[float]] | None = None
     pose_ur: PoseUR | None = None
     speed_m_s: float = Field(0.05, gt=0, le=5.0)
 
 
-@router.post("/{robot_id}/move", response_model=RobotStatePublic, responses={422: {}, 503: {}})
+@router.post("/{robot_id}/move", response_model=RobotStatePublic, responses={409: {}, 422: {}, 503: {}})
 async def move(robot_id: str, body: MoveInput, cell: CellDep, services: ServicesDep, who: Engineer
                ) -> dict[str, Any]:
+    """Move the tool (engineer). 409 ``robot_busy`` while another motion owns the robot, 409
+    ``robot_stopped`` while it is latched by a Stop, or when a Stop halted this move."""
     slot = _slot(cell, robot_id)
     if (body.T_base_tool is None) == (body.pose_ur is None):
         raise ApiError(422, "invalid_request", "give exactly one of T_base_tool (4x4, m) or pose_ur (m, rad)")
@@ -85,29 +91,56 @@ async def move(robot_id: str, body: MoveInput, cell: CellDep, services: Services
         if body.pose_ur is not None:
             p = body.pose_ur
             T = g.ur_pose_to_transform([p.x_m, p.y_m, p.z_m, p.rx_rad, p.ry_rad, p.rz_rad])
-        else:
-            assert body.T_base_tool is not None
+        elif body.T_base_tool is not None:
             T = g.as_transform(body.T_base_tool, "T_base_tool")
     except g.PoseError as exc:
         raise ApiError(422, "invalid_pose", str(exc)) from None
-    detail = {"pose_ur": [float(v) for v in g.transform_to_ur_pose(T)], "speed_m_s": body.speed_m_s}
 
     def go(robot: RobotBase) -> RobotState:
-        robot.move_linear(T, body.speed_m_s)
+        audited_move(services.store, who.name, robot, T, body.speed_m_s, "POST /robots/move")
         return robot.state()
 
-    try:
-        state: RobotState = await device_call(slot, go, timeout_s=MOVE_TIMEOUT_S)
-    except Exception as exc:
-        services.store.audit(who.name, "robot.move", robot_id, detail, f"refused: {exc}")
-        raise
-    services.store.audit(who.name, "robot.move", robot_id, detail, "ok")
+    deadline_s = await device_call(slot, lambda robot: robot.move_deadline_s(T, body.speed_m_s))
+    # The robot's own deadline stops a late move; the request waits a little longer for that answer.
+    state: RobotState = await device_call(slot, go, timeout_s=min(deadline_s, MOVE_TIMEOUT_S) + 5.0)
     return state_to_json(robot_id, state)
 
 
 @router.post("/{robot_id}/stop")
 async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operator) -> dict[str, Any]:
+    """Halt the robot now (operator), abort the sequence that moves it, and latch it stopped.
+
+    The latch is set even when the robot cannot be reached (then the answer is 503): nothing moves
+    it again until an engineer calls ``resume``.
+    """
     slot = _slot(cell, robot_id)
-    await device_call(slot, lambda robot: robot.stop())
-    services.store.audit(who.name, "robot.stop", robot_id, {}, "ok")
-    return {"robot_id": robot_id, "stopped": True}
+    robot: RobotBase = slot.device
+    aborted = robot.motion.latch(who.name, "Stop")
+    try:
+        await device_call(slot, lambda r: r.halt())
+    except Exception as exc:
+        services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
+                             f"latched; halting failed: {exc}")
+        raise
+    services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
+    return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status()}
+
+
+@router.post("/{robot_id}/resume")
+def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+    """Clear the Stop latch (engineer): the robot may be moved again."""
+    robot: RobotBase = _slot(cell, robot_id).device
+    was = robot.resume()
+    services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
+    return {"robot_id": robot_id, "resumed": was, **robot.motion.status()}
+
+
+@router.get("/{robot_id}/motion")
+def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
+    """Whether the robot is latched by a Stop, and who owns its motion now."""
+    robot: RobotBase = _slot(cell, robot_id).device
+    return {"robot_id": robot_id, **robot.motion.status()}
+
+
+def _what(session: MotionSession | None) -> str | None:
+    return None if session is None else f"{session.what} (by {session.who})"
