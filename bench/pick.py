@@ -1,6 +1,6 @@
 """Pick-guidance benchmark (issue 8): cellctl's shape matcher against a plain OpenCV baseline.
 
-Rendered 1280x960 scenes with known part poses (``cellctl.pick.synth``): a taught bracket, 1-5
+Rendered 1280x960 scenes with known part poses (``drivers.sim.pick_scenes``): a taught bracket, 1-5
 instances of it, 0-2 distractor parts of another type, clutter, uneven light, noise, and four
 sets — top-down, slightly tilted camera (perspective), 0-30 % occlusion, and exactly 30 %
 occlusion. Every image is searched by both matchers with the same model ROI.
@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cellctl.pick import shape, synth  # noqa: E402
+from drivers.sim import pick_scenes  # noqa: E402
+from vision import shape  # noqa: E402
 
 SIZE = (1280, 960)
 MATCH_PX = 3.0
@@ -160,7 +161,7 @@ class Baseline:
         py, px = np.unravel_index(int(np.argmax(r)), r.shape)
         dx = _parabola(r[py, px - 1], r[py, px], r[py, px + 1]) if 0 < px < r.shape[1] - 1 else 0.0
         dy = _parabola(r[py - 1, px], r[py, px], r[py + 1, px]) if 0 < py < r.shape[0] - 1 else 0.0
-        return Found(x0 + px + dx + c[0], y0 + py + dy + c[1], synth.wrap_deg(float(angles[k] + da)), s)
+        return Found(x0 + px + dx + c[0], y0 + py + dy + c[1], pick_scenes.wrap_deg(float(angles[k] + da)), s)
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -170,7 +171,7 @@ class Baseline:
 class Scene:
     name: str
     img: NDArray[np.uint8]
-    truth: list[synth.Truth]
+    truth: list[pick_scenes.Truth]
 
 
 SETS = (("top-down", 0.0, 0.0, 0.0), ("tilted <= 5 deg", 5.0, 0.0, 0.0),
@@ -179,8 +180,8 @@ SETS = (("top-down", 0.0, 0.0, 0.0), ("tilted <= 5 deg", 5.0, 0.0, 0.0),
 
 def make_scenes(n: int, seed: int) -> list[tuple[str, Scene]]:
     rng = np.random.default_rng(seed)
-    target = synth.part_bracket()
-    distractor = synth.part_tee()
+    target = pick_scenes.part_bracket()
+    distractor = pick_scenes.part_tee()
     out = []
     per = max(n // len(SETS), 1)
     for set_name, tilt, occ_lo, occ_hi in SETS:
@@ -190,12 +191,12 @@ def make_scenes(n: int, seed: int) -> list[tuple[str, Scene]]:
     return out
 
 
-def _scene(rng: np.random.Generator, target: synth.PartShape, distractor: synth.PartShape, tilt: float,
-           occ_lo: float, occ_hi: float) -> tuple[NDArray[np.uint8], list[synth.Truth]]:
+def _scene(rng: np.random.Generator, target: pick_scenes.PartShape, distractor: pick_scenes.PartShape, tilt: float,
+           occ_lo: float, occ_hi: float) -> tuple[NDArray[np.uint8], list[pick_scenes.Truth]]:
     n_t = int(rng.integers(1, 6))
     n_d = int(rng.integers(0, 3))
     w, h = SIZE
-    placed: list[synth.Instance] = []
+    placed: list[pick_scenes.Instance] = []
     tries = 0
     kinds = [target] * n_t + [distractor] * n_d
     while kinds and tries < 1000:
@@ -206,19 +207,19 @@ def _scene(rng: np.random.Generator, target: synth.PartShape, distractor: synth.
         if any(math.hypot(u - p.u_px, v - p.v_px) < r + p.part.extent_px() + 4 for p in placed):
             continue
         occ = float(rng.uniform(occ_lo, occ_hi)) if occ_hi > 0 and part is target else 0.0
-        placed.append(synth.Instance(part, float(u), float(v), float(rng.uniform(-180, 180)), occ))
+        placed.append(pick_scenes.Instance(part, float(u), float(v), float(rng.uniform(-180, 180)), occ))
         kinds.pop(0)
     H = None
     if tilt > 0:
-        H = synth.tilt_homography(SIZE, float(rng.uniform(0.5, 1.0)) * tilt, float(rng.uniform(0, 360)))
+        H = pick_scenes.tilt_homography(SIZE, float(rng.uniform(0.5, 1.0)) * tilt, float(rng.uniform(0, 360)))
     bright = rng.uniform() < 0.75
-    style = synth.SceneStyle(
+    style = pick_scenes.SceneStyle(
         background=float(rng.uniform(60, 110)) if bright else float(rng.uniform(160, 200)),
         part_value=float(rng.uniform(170, 220)) if bright else float(rng.uniform(40, 90)),
         blur_sigma_px=float(rng.uniform(0.5, 0.9)), noise_sigma=float(rng.uniform(1.0, 3.0)),
         light_gradient=float(rng.uniform(0.0, 0.5)), vignetting=float(rng.uniform(0.0, 0.3)),
         light_dir_deg=float(rng.uniform(0, 360)), clutter=int(rng.integers(10, 40)), size=SIZE, homography=H)
-    img, truth = synth.render(placed, style, rng)
+    img, truth = pick_scenes.render(placed, style, rng)
     return img, [t for t in truth if t.part == target.name]
 
 
@@ -236,14 +237,14 @@ class Tally:
     cpu_s: list[float] = field(default_factory=list)
     stages: list[tuple[float, float, float]] = field(default_factory=list)
 
-    def add(self, truth: list[synth.Truth], found: list[Found]) -> None:
+    def add(self, truth: list[pick_scenes.Truth], found: list[Found]) -> None:
         used: set[int] = set()
         for t in truth:
             self.n_truth += 1
             best, bd = -1, MATCH_PX
             for k, f in enumerate(found):
                 d = math.hypot(f.u_px - t.u_px, f.v_px - t.v_px)
-                if k not in used and d < bd and abs(synth.wrap_deg(f.angle_deg - t.angle_deg)) < MATCH_DEG:
+                if k not in used and d < bd and abs(pick_scenes.wrap_deg(f.angle_deg - t.angle_deg)) < MATCH_DEG:
                     best, bd = k, d
             if best < 0:
                 self.missed += 1
@@ -251,7 +252,7 @@ class Tally:
             used.add(best)
             f = found[best]
             self.pos_err.append(math.hypot(f.u_px - t.u_px, f.v_px - t.v_px))
-            self.ang_err.append(synth.wrap_deg(f.angle_deg - t.angle_deg))
+            self.ang_err.append(pick_scenes.wrap_deg(f.angle_deg - t.angle_deg))
         self.false += len(found) - len(used)
 
     def rms(self, xs: list[float]) -> float:
@@ -264,9 +265,9 @@ def _pct(xs: list[float], q: float) -> float:
 
 def run(n: int, seed: int, with_baseline: bool) -> str:
     load0 = os.getloadavg()
-    part = synth.part_bracket()
-    teach_img, roi = synth.teach_scene(part, np.random.default_rng(seed + 1000), centre=(640.3, 480.6),
-                                       style=synth.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
+    part = pick_scenes.part_bracket()
+    teach_img, roi = pick_scenes.teach_scene(part, np.random.default_rng(seed + 1000), centre=(640.3, 480.6),
+                                       style=pick_scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
     model = shape.teach(teach_img, roi)
     base = Baseline.build(teach_img, roi) if with_baseline else None
     scenes = make_scenes(n, seed)

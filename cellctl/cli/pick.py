@@ -17,10 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.cli.output import CommandError
-from cellctl.pick import blob, shape
 from cellctl.pick.model import PartModel, teach
-from cellctl.pick.recognize import recognize
-from cellctl.pick.shape import SearchParams
+from vision import blob, shape
+from vision.recognize import recognize
+from vision.types import SearchParams
 
 
 def _roi(text: str | None, option: str) -> tuple[float, float, float, float] | None:

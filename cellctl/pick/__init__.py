@@ -1,10 +1,10 @@
-"""Pick guidance, vision core: teach a part model, find it fast and sub-pixel accurate.
+"""Pick guidance: part models, recipes, the pick flow and the annotated frames.
 
 - ``model``: ``teach(image, roi, mode=...)`` -> ``PartModel`` (versioned JSON file), ``PartModel.find``.
-- ``shape``: shape-based matching (edge-gradient model over a pyramid, any rotation, sub-pixel).
-- ``blob``: threshold -> select regions by area/shape -> centre and orientation from moments.
-- ``recognize``: several part models in one call, with the score margin to the runner-up.
-- ``synth``: rendered scenes with known part poses (tests and ``bench/pick.py``).
+- ``recipe``, ``pose``, ``flow``: what to pick, match -> gripper pose, grab-locate-convert-check.
+- ``frames``: the last frames, annotated with the matches.
+
+The image search itself is the ``vision`` package (shape and blob matching, recognition).
 
 Conventions (shared/INTERFACES.md §4): pixel centres at integers; the ROI ``(U, V, W, H)`` spans
 ``(U, V)``..``(U+W, V+H)`` and its centre is the reference point; a match's ``angle_deg`` is the
@@ -13,8 +13,9 @@ sense), in (-180, 180].
 """
 
 from cellctl.pick.model import FORMAT_VERSION, ModelFileError, PartModel, teach
-from cellctl.pick.recognize import Recognition, RecognitionResult, recognize
-from cellctl.pick.shape import FindResult, Match, SearchParams, TeachParams
+from vision.recognize import Recognition, RecognitionResult, recognize
+from vision.shape import TeachParams
+from vision.types import FindResult, Match, SearchParams
 
 __all__ = [
     "FORMAT_VERSION",

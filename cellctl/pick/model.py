@@ -23,8 +23,10 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from cellctl.pick import blob, shape
-from cellctl.pick.shape import FindResult, SearchParams
+from vision import blob, shape
+from vision.errors import SettingsError, VisionError
+from vision.image import as_gray
+from vision.types import FindResult, SearchParams
 
 FORMAT_VERSION: Final[int] = 1
 KIND: Final[str] = "cellctl.pick.model"
@@ -33,7 +35,7 @@ MODES: Final[tuple[str, ...]] = ("shape", "blob")
 Roi = tuple[float, float, float, float]
 
 
-class ModelFileError(ValueError):
+class ModelFileError(VisionError):
     """A model file that cannot be used (unreadable, corrupt, or from a newer cellctl)."""
 
 
@@ -57,7 +59,8 @@ class PartModel:
     def find(self, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
         if self.shape is not None:
             return shape.find(self.shape, image, search)
-        assert self.blob is not None
+        if self.blob is None:
+            raise ModelFileError(f"part model {self.name} holds neither a shape nor a blob model")
         return blob.find(self.blob, image, search)
 
     def summary(self) -> dict[str, Any]:
@@ -139,12 +142,12 @@ def check_roi(roi: Roi, image_size: tuple[int, int]) -> None:
     """Refuse an empty ROI or one reaching outside the image (``image_size`` = (W, H))."""
     u, v, w, h = roi
     if not all(math.isfinite(x) for x in roi):
-        raise ValueError(f"ROI {roi} is not finite")
+        raise SettingsError(f"ROI {roi} is not finite")
     if w <= 0 or h <= 0:
-        raise ValueError(f"ROI {u:g},{v:g},{w:g},{h:g} is empty: width and height must be positive")
+        raise SettingsError(f"ROI {u:g},{v:g},{w:g},{h:g} is empty: width and height must be positive")
     W, H = image_size
     if u < 0 or v < 0 or u + w > W or v + h > H:
-        raise ValueError(f"ROI {u:g},{v:g},{w:g},{h:g} reaches outside the {W}x{H} image: "
+        raise SettingsError(f"ROI {u:g},{v:g},{w:g},{h:g} reaches outside the {W}x{H} image: "
                          f"keep 0 <= U, U+W <= {W} and 0 <= V, V+H <= {H}")
 
 
@@ -153,8 +156,8 @@ def teach(image: NDArray[Any], roi: Roi, *, mode: str = "shape", name: str = "pa
           blob_params: blob.BlobParams | None = None) -> PartModel:
     """Teach a part model from the ROI ``(U, V, W, H)`` of ``image``; the ROI centre is the reference."""
     if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}: use one of {', '.join(MODES)}")
-    img = shape.as_gray(np.asarray(image))
+        raise SettingsError(f"unknown mode {mode!r}: use one of {', '.join(MODES)}")
+    img = as_gray(np.asarray(image))
     size = (int(img.shape[1]), int(img.shape[0]))
     check_roi(roi, size)
     m = PartModel(name, mode, roi, size, teach_image)

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 
 from cellctl.pick import model as pm
-from cellctl.pick import synth
+from drivers.sim import pick_scenes as scenes
 
 SIZE = (480, 360)
 
 
 @pytest.fixture(scope="module")
 def taught() -> tuple[pm.PartModel, np.ndarray, np.ndarray]:
-    part = synth.part_tee()
-    style = synth.SceneStyle(size=SIZE, noise_sigma=1.0)
-    img, roi = synth.teach_scene(part, np.random.default_rng(0), centre=(240.0, 180.0), style=style)
-    scene, _ = synth.render([synth.Instance(part, 200.3, 170.6, -73.0)], style, np.random.default_rng(1))
+    part = scenes.part_tee()
+    style = scenes.SceneStyle(size=SIZE, noise_sigma=1.0)
+    img, roi = scenes.teach_scene(part, np.random.default_rng(0), centre=(240.0, 180.0), style=style)
+    scene, _ = scenes.render([scenes.Instance(part, 200.3, 170.6, -73.0)], style, np.random.default_rng(1))
     return pm.teach(img, roi, name="tee", teach_image="teach.png"), img, scene
 
 

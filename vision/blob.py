@@ -25,7 +25,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from cellctl.pick.shape import FindResult, Match, SearchParams, as_gray, wrap_deg
+from vision.errors import TeachError
+from vision.image import as_gray, wrap_deg
+from vision.types import FindResult, Match, SearchParams
 
 U8 = NDArray[np.uint8]
 
@@ -85,7 +87,7 @@ class BlobModel:
                        float(d["elongation"]), float(d["compactness"]), math.radians(float(d["angle_deg"])),
                        bool(d["directed"]), (float(d["offset_px"][0]), float(d["offset_px"][1])))
         except (KeyError, TypeError, IndexError, ValueError) as exc:
-            raise ValueError(f"blob model is incomplete or corrupt ({exc})") from exc
+            raise TeachError(f"blob model is incomplete or corrupt ({exc})") from exc
 
 
 @dataclass
@@ -160,7 +162,7 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
     x1, y1 = int(math.floor(u + w)), int(math.floor(v + h))
     crop = img[y0:y1 + 1, x0:x1 + 1]
     if crop.size < 16:
-        raise ValueError("the ROI is too small for a blob model (fewer than 16 pixels)")
+        raise TeachError("the ROI is too small for a blob model (fewer than 16 pixels)")
     thr = p.threshold if p.threshold is not None else _otsu(crop)
     polarities = [p.polarity] if p.polarity in ("bright", "dark") else ["bright", "dark"]
     best: tuple[float, str, _Region] | None = None
@@ -178,7 +180,7 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
                 if reg is not None:
                     best = (float(area), pol, reg)
     if best is None:
-        raise ValueError("no region inside the ROI stands out from the background: enlarge the ROI "
+        raise TeachError("no region inside the ROI stands out from the background: enlarge the ROI "
                          "so it shows the whole part with some background around it, or set a threshold")
     _, pol, reg = best
     ref = (u + w / 2.0, v + h / 2.0)

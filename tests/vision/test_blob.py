@@ -7,26 +7,27 @@ import math
 import numpy as np
 import pytest
 
-from cellctl.pick import blob, synth
-from cellctl.pick.shape import SearchParams
+from drivers.sim import pick_scenes as scenes
+from vision import blob
+from vision.types import SearchParams
 
 SIZE = (640, 480)
 
 
-def _style(**kw: object) -> synth.SceneStyle:
+def _style(**kw: object) -> scenes.SceneStyle:
     base: dict[str, object] = {"size": SIZE, "noise_sigma": 1.5}
     base.update(kw)
-    return synth.SceneStyle(**base)  # type: ignore[arg-type]
+    return scenes.SceneStyle(**base)  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
-def taught() -> tuple[synth.PartShape, blob.BlobModel]:
-    part = synth.part_bracket()
-    img, roi = synth.teach_scene(part, np.random.default_rng(0), centre=(320.0, 240.0), style=_style())
+def taught() -> tuple[scenes.PartShape, blob.BlobModel]:
+    part = scenes.part_bracket()
+    img, roi = scenes.teach_scene(part, np.random.default_rng(0), centre=(320.0, 240.0), style=_style())
     return part, blob.teach(img, roi)
 
 
-def test_teach_features(taught: tuple[synth.PartShape, blob.BlobModel]) -> None:
+def test_teach_features(taught: tuple[scenes.PartShape, blob.BlobModel]) -> None:
     _, m = taught
     assert m.polarity == "bright"
     assert m.directed
@@ -36,33 +37,33 @@ def test_teach_features(taught: tuple[synth.PartShape, blob.BlobModel]) -> None:
 
 
 @pytest.mark.parametrize("angle", [0.0, 45.0, -90.0, 135.5, 180.0, -179.0])
-def test_find_at_rotations(taught: tuple[synth.PartShape, blob.BlobModel], angle: float) -> None:
+def test_find_at_rotations(taught: tuple[scenes.PartShape, blob.BlobModel], angle: float) -> None:
     part, m = taught
-    img, truth = synth.render([synth.Instance(part, 300.6, 230.3, angle)], _style(), np.random.default_rng(3))
+    img, truth = scenes.render([scenes.Instance(part, 300.6, 230.3, angle)], _style(), np.random.default_rng(3))
     ms = blob.find(m, img).matches
     assert len(ms) == 1
     t = truth[0]
     assert math.hypot(ms[0].u_px - t.u_px, ms[0].v_px - t.v_px) < 0.25
-    assert abs(synth.wrap_deg(ms[0].angle_deg - t.angle_deg)) < 0.3
+    assert abs(scenes.wrap_deg(ms[0].angle_deg - t.angle_deg)) < 0.3
 
 
-def test_selects_by_area_and_shape(taught: tuple[synth.PartShape, blob.BlobModel]) -> None:
+def test_selects_by_area_and_shape(taught: tuple[scenes.PartShape, blob.BlobModel]) -> None:
     part, m = taught
-    insts = [synth.Instance(part, 170.0, 150.0, 30.0), synth.Instance(synth.part_flange(), 470.0, 320.0, 0.0),
-             synth.Instance(synth.part_bracket(0.7), 450.0, 120.0, 0.0)]
-    img, _ = synth.render(insts, _style(), np.random.default_rng(4))
+    insts = [scenes.Instance(part, 170.0, 150.0, 30.0), scenes.Instance(scenes.part_flange(), 470.0, 320.0, 0.0),
+             scenes.Instance(scenes.part_bracket(0.7), 450.0, 120.0, 0.0)]
+    img, _ = scenes.render(insts, _style(), np.random.default_rng(4))
     ms = blob.find(m, img).matches
     assert len(ms) == 1 and abs(ms[0].u_px - 170.0) < 0.5
 
 
 def test_dark_parts_and_fixed_threshold() -> None:
-    part = synth.part_tee()
+    part = scenes.part_tee()
     st = _style(background=200.0, part_value=50.0)
-    img, roi = synth.teach_scene(part, np.random.default_rng(5), centre=(320.0, 240.0), style=st)
+    img, roi = scenes.teach_scene(part, np.random.default_rng(5), centre=(320.0, 240.0), style=st)
     m = blob.teach(img, roi, blob.BlobParams(threshold=125.0))
     assert m.polarity == "dark" and m.threshold == 125.0
-    scene, truth = synth.render([synth.Instance(part, 250.2, 260.7, -120.0), synth.Instance(part, 470.0, 150.0, 60.0)],
-                                st, np.random.default_rng(6))
+    insts = [scenes.Instance(part, 250.2, 260.7, -120.0), scenes.Instance(part, 470.0, 150.0, 60.0)]
+    scene, truth = scenes.render(insts, st, np.random.default_rng(6))
     ms = blob.find(m, scene, SearchParams(max_count=1)).matches
     assert len(ms) == 1
     assert min(math.hypot(ms[0].u_px - t.u_px, ms[0].v_px - t.v_px) for t in truth) < 0.3

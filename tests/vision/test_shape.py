@@ -8,48 +8,50 @@ import cv2
 import numpy as np
 import pytest
 
-from cellctl.pick import shape, synth
+from drivers.sim import pick_scenes as scenes
+from vision import shape
+from vision.types import SearchParams
 
 SIZE = (640, 480)
 
 
-def _style(**kw: object) -> synth.SceneStyle:
+def _style(**kw: object) -> scenes.SceneStyle:
     base: dict[str, object] = {"size": SIZE, "noise_sigma": 1.5, "clutter": 8}
     base.update(kw)
-    return synth.SceneStyle(**base)  # type: ignore[arg-type]
+    return scenes.SceneStyle(**base)  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
-def bracket() -> tuple[synth.PartShape, shape.ShapeModel]:
-    part = synth.part_bracket()
-    img, roi = synth.teach_scene(part, np.random.default_rng(1), centre=(320.0, 240.0),
+def bracket() -> tuple[scenes.PartShape, shape.ShapeModel]:
+    part = scenes.part_bracket()
+    img, roi = scenes.teach_scene(part, np.random.default_rng(1), centre=(320.0, 240.0),
                                  style=_style(clutter=0))
     return part, shape.teach(img, roi)
 
 
-def _one(part: synth.PartShape, u: float, v: float, a: float, seed: int = 0,
-         **style: object) -> tuple[np.ndarray, synth.Truth]:
-    img, truth = synth.render([synth.Instance(part, u, v, a)], _style(**style), np.random.default_rng(seed))
+def _one(part: scenes.PartShape, u: float, v: float, a: float, seed: int = 0,
+         **style: object) -> tuple[np.ndarray, scenes.Truth]:
+    img, truth = scenes.render([scenes.Instance(part, u, v, a)], _style(**style), np.random.default_rng(seed))
     return img, truth[0]
 
 
 @pytest.mark.parametrize("angle", [0.0, 12.3, 37.5, 90.0, -90.0, -135.2, 179.6, -179.6, 180.0, -180.0])
-def test_any_rotation_subpixel(bracket: tuple[synth.PartShape, shape.ShapeModel], angle: float) -> None:
+def test_any_rotation_subpixel(bracket: tuple[scenes.PartShape, shape.ShapeModel], angle: float) -> None:
     part, model = bracket
     img, t = _one(part, 300.37, 231.81, angle, seed=int(abs(angle) * 10))
     res = shape.find(model, img)
     assert len(res.matches) == 1
     m = res.matches[0]
     assert abs(m.u_px - t.u_px) < 0.08 and abs(m.v_px - t.v_px) < 0.08
-    assert abs(synth.wrap_deg(m.angle_deg - t.angle_deg)) < 0.06
+    assert abs(scenes.wrap_deg(m.angle_deg - t.angle_deg)) < 0.06
     assert -180.0 < m.angle_deg <= 180.0
     assert m.score > 0.85
 
 
-def test_angle_sign_matches_getRotationMatrix2D(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_angle_sign_matches_getRotationMatrix2D(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     """Rotating the teach image with OpenCV by +30 deg must read as +30 deg about the reference point."""
     part, model = bracket
-    img, roi = synth.teach_scene(part, np.random.default_rng(5), centre=(320.0, 240.0), style=_style())
+    img, roi = scenes.teach_scene(part, np.random.default_rng(5), centre=(320.0, 240.0), style=_style())
     ref = (roi[0] + roi[2] / 2, roi[1] + roi[3] / 2)
     M = cv2.getRotationMatrix2D(ref, 30.0, 1.0)
     M[:, 2] += (-25.5, 14.25)  # and move it by a known sub-pixel offset
@@ -62,8 +64,8 @@ def test_angle_sign_matches_getRotationMatrix2D(bracket: tuple[synth.PartShape, 
 
 def test_reference_point_is_roi_centre_not_part_origin() -> None:
     """An ROI off the part's origin: the match reports where the ROI centre went, rotated with the part."""
-    part = synth.part_bracket()
-    img, (u, v, w, h) = synth.teach_scene(part, np.random.default_rng(2), centre=(320.0, 240.0),
+    part = scenes.part_bracket()
+    img, (u, v, w, h) = scenes.teach_scene(part, np.random.default_rng(2), centre=(320.0, 240.0),
                                           style=_style(clutter=0))
     off = np.array([7.5, -4.25])  # reference point = part origin + off
     roi = (u + off[0], v + off[1], w, h)
@@ -71,26 +73,26 @@ def test_reference_point_is_roi_centre_not_part_origin() -> None:
     for angle in (90.0, -160.0):
         scene, t = _one(part, 330.2, 250.6, angle, seed=3)
         m = shape.find(model, scene).matches[0]
-        expect = np.array([t.u_px, t.v_px]) + synth.rotation(angle) @ off
+        expect = np.array([t.u_px, t.v_px]) + scenes.rotation(angle) @ off
         assert m.u_px == pytest.approx(expect[0], abs=0.08)
         assert m.v_px == pytest.approx(expect[1], abs=0.08)
-        assert synth.wrap_deg(m.angle_deg - angle) == pytest.approx(0.0, abs=0.06)
+        assert scenes.wrap_deg(m.angle_deg - angle) == pytest.approx(0.0, abs=0.06)
 
 
-def test_contrast_reversal_and_uneven_light(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_contrast_reversal_and_uneven_light(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     part, model = bracket
     img, t = _one(part, 350.6, 220.1, 63.0, background=190.0, part_value=60.0, light_gradient=0.6,
                   vignetting=0.3)
     m = shape.find(model, img).matches[0]
     assert math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) < 0.1
-    assert abs(synth.wrap_deg(m.angle_deg - t.angle_deg)) < 0.08
+    assert abs(scenes.wrap_deg(m.angle_deg - t.angle_deg)) < 0.08
 
 
-def test_score_falls_smoothly_with_occlusion(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_score_falls_smoothly_with_occlusion(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     part, model = bracket
     scores = []
     for occ in (0.0, 0.1, 0.2, 0.3):
-        img, truth = synth.render([synth.Instance(part, 310.4, 245.3, -48.0, occ)], _style(),
+        img, truth = scenes.render([scenes.Instance(part, 310.4, 245.3, -48.0, occ)], _style(),
                                   np.random.default_rng(11))
         ms = shape.find(model, img).matches
         assert len(ms) == 1, f"not found at {occ:.0%} occlusion"
@@ -100,45 +102,45 @@ def test_score_falls_smoothly_with_occlusion(bracket: tuple[synth.PartShape, sha
     assert scores[-1] > 0.5 and scores[0] - scores[-1] > 0.15
 
 
-def test_several_instances_best_first_with_max_count(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_several_instances_best_first_with_max_count(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     part, model = bracket
-    insts = [synth.Instance(part, 150.3, 130.7, 10.0), synth.Instance(part, 470.1, 140.2, -100.0, 0.25),
-             synth.Instance(part, 320.8, 350.4, 170.0)]
-    img, truth = synth.render(insts, _style(), np.random.default_rng(4))
+    insts = [scenes.Instance(part, 150.3, 130.7, 10.0), scenes.Instance(part, 470.1, 140.2, -100.0, 0.25),
+             scenes.Instance(part, 320.8, 350.4, 170.0)]
+    img, truth = scenes.render(insts, _style(), np.random.default_rng(4))
     allm = shape.find(model, img).matches
     assert len(allm) == 3
     for t in truth:
         assert min(math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) for m in allm) < 0.3
     assert [m.score for m in allm] == sorted((m.score for m in allm), reverse=True)
-    two = shape.find(model, img, shape.SearchParams(max_count=2)).matches
+    two = shape.find(model, img, SearchParams(max_count=2)).matches
     assert len(two) == 2 and two[0].score == pytest.approx(allm[0].score)
     # the occluded one scores lowest
     assert math.hypot(allm[-1].u_px - 470.1, allm[-1].v_px - 140.2) < 0.5
 
 
-def test_search_roi_and_angle_range(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_search_roi_and_angle_range(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     part, model = bracket
-    insts = [synth.Instance(part, 160.0, 240.0, 20.0), synth.Instance(part, 480.0, 240.0, -120.0)]
-    img, _ = synth.render(insts, _style(), np.random.default_rng(6))
-    left = shape.find(model, img, shape.SearchParams(roi=(0, 0, 320, 480))).matches
+    insts = [scenes.Instance(part, 160.0, 240.0, 20.0), scenes.Instance(part, 480.0, 240.0, -120.0)]
+    img, _ = scenes.render(insts, _style(), np.random.default_rng(6))
+    left = shape.find(model, img, SearchParams(roi=(0, 0, 320, 480))).matches
     assert len(left) == 1 and abs(left[0].u_px - 160.0) < 0.3
-    near20 = shape.find(model, img, shape.SearchParams(angle_start_deg=0, angle_extent_deg=45)).matches
+    near20 = shape.find(model, img, SearchParams(angle_start_deg=0, angle_extent_deg=45)).matches
     assert len(near20) == 1 and abs(near20[0].angle_deg - 20.0) < 0.1
 
 
-def test_nothing_in_an_empty_scene(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_nothing_in_an_empty_scene(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     _, model = bracket
-    img, _ = synth.render([], _style(clutter=30), np.random.default_rng(9))
+    img, _ = scenes.render([], _style(clutter=30), np.random.default_rng(9))
     assert shape.find(model, img).matches == []
 
 
-def test_timeout_returns_partial_result_with_flag(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_timeout_returns_partial_result_with_flag(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     part, model = bracket
-    insts = [synth.Instance(part, 150.3, 130.7, 10.0), synth.Instance(part, 470.1, 340.2, -100.0)]
-    img, _ = synth.render(insts, _style(), np.random.default_rng(4))
-    full = shape.find(model, img, shape.SearchParams(timeout_s=30.0))
+    insts = [scenes.Instance(part, 150.3, 130.7, 10.0), scenes.Instance(part, 470.1, 340.2, -100.0)]
+    img, _ = scenes.render(insts, _style(), np.random.default_rng(4))
+    full = shape.find(model, img, SearchParams(timeout_s=30.0))
     assert not full.timed_out and len(full.matches) == 2
-    cut = shape.find(model, img, shape.SearchParams(timeout_s=0.0))
+    cut = shape.find(model, img, SearchParams(timeout_s=0.0))
     assert cut.timed_out
     assert len(cut.matches) < 2
     for m in cut.matches:  # whatever came back is a real, refined match
@@ -151,10 +153,10 @@ def test_teach_refuses_featureless_roi() -> None:
         shape.teach(img, (10, 10, 50, 50))
 
 
-def test_high_min_score_keeps_clean_instances(bracket: tuple[synth.PartShape, shape.ShapeModel]) -> None:
+def test_high_min_score_keeps_clean_instances(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
     """Coarse levels score lower than level 0; a high minimum must not lose a clean instance."""
     part, model = bracket
-    insts = [synth.Instance(part, 170.4, 160.3, 75.0), synth.Instance(part, 450.2, 300.9, -20.0, 0.3)]
-    img, _ = synth.render(insts, _style(), np.random.default_rng(12))
-    ms = shape.find(model, img, shape.SearchParams(min_score=0.9)).matches
+    insts = [scenes.Instance(part, 170.4, 160.3, 75.0), scenes.Instance(part, 450.2, 300.9, -20.0, 0.3)]
+    img, _ = scenes.render(insts, _style(), np.random.default_rng(12))
+    ms = shape.find(model, img, SearchParams(min_score=0.9)).matches
     assert len(ms) == 1 and abs(ms[0].u_px - 170.4) < 0.1 and ms[0].score >= 0.9

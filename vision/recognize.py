@@ -11,12 +11,25 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cellctl.pick.model import PartModel
-from cellctl.pick.shape import SearchParams
+from vision.errors import SettingsError
+from vision.types import FindResult, SearchParams
+
+
+class PartLike(Protocol):
+    """What recognition needs of a part model: a name, its teach ROI, and a search."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def roi(self) -> tuple[float, float, float, float]: ...
+
+    def find(self, image: NDArray[Any], search: SearchParams | None = None) -> FindResult: ...
 
 RUNNER_UP_FACTOR = 0.6
 """Other models are searched down to this fraction of ``min_score`` to measure the margin."""
@@ -46,20 +59,20 @@ class RecognitionResult:
     elapsed_s: float
 
 
-def _same_place_px(m: PartModel) -> float:
+def _same_place_px(m: PartLike) -> float:
     u, v, w, h = m.roi
     return min(w, h) / 3.0
 
 
-def recognize(models: Sequence[PartModel], image: NDArray[np.uint8],
+def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
               search: SearchParams | None = None) -> RecognitionResult:
     """Find all ``models`` in ``image``; one answer per place, best part first by score."""
     sp = search or SearchParams()
     if not models:
-        raise ValueError("recognition needs at least one part model")
+        raise SettingsError("recognition needs at least one part model")
     names = [m.name for m in models]
     if len(set(names)) != len(names):
-        raise ValueError(f"part model names must differ to tell the parts apart (got {names})")
+        raise SettingsError(f"part model names must differ to tell the parts apart (got {names})")
     t0 = time.perf_counter()
     low = replace(sp, min_score=sp.min_score * RUNNER_UP_FACTOR, max_count=0)
     allm: list[tuple[float, str, float, float, float, float]] = []  # score, name, u, v, angle, radius

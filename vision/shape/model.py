@@ -1,0 +1,241 @@
+"""Shape models: edge points with gradient directions on every pyramid level, taught from an ROI.
+
+The model is a set of edge points with their gradient directions, taken from the teach image's
+ROI on every level of an image pyramid (``cv2.pyrDown``: level-``l`` pixel ``x`` lies at
+level-0 ``2**l * x``); the ROI centre is the reference point. Level-0 points are moved to the
+centroid edge position of their intensity profile (phase-exact for a step edge), every level
+keeps a spread-out subset, and the coarse levels name the features of the discrete search.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from vision.errors import TeachError
+from vision.image import F64, U8, as_gray, bilinear, gauss_peak, gradients, profile_ok, pyramid
+
+MIN_TOP_RADIUS_PX = 8.0
+"""Automatic pyramid depth: the top level must show the model at least this large."""
+MAX_TOP_FEATURES = 24  # 4 * 63 < 256: uint8 accumulators cannot overflow (keep <= 63)
+MAX_TRACK_FEATURES = 64
+MAX_FINE_POINTS = 240
+GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
+
+
+@dataclass(frozen=True)
+class TeachParams:
+    """How the model was taught (stored in the model file)."""
+
+    min_contrast: float = 12.0
+    """Minimum grey-value step of an edge (teach and find)."""
+    num_levels: int = 0
+    """Pyramid levels (0 = automatic from the ROI size)."""
+    edge_sigma_px: float = 1.0
+    """Gaussian smoothing before the level-0 gradients."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
+                "edge_sigma_px": self.edge_sigma_px}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TeachParams:
+        return cls(float(d.get("min_contrast", 12.0)), int(d.get("num_levels", 0)),
+                   float(d.get("edge_sigma_px", 1.0)))
+
+
+@dataclass
+class LevelModel:
+    """Edge points of one pyramid level, relative to the reference point (level pixels)."""
+
+    level: int
+    points: F64
+    """(N, 2) sub-pixel edge points."""
+    normals: F64
+    """(N, 2) unit gradient directions (sign irrelevant)."""
+    features: NDArray[np.int64]
+    """Indices of the points used for the discrete search on this level."""
+
+    @property
+    def radius(self) -> float:
+        r = self.__dict__.get("_radius")
+        if r is None:
+            r = float(np.max(np.hypot(self.points[:, 0], self.points[:, 1])))
+            self.__dict__["_radius"] = r
+        return r
+
+    @property
+    def angle_step(self) -> float:
+        """Angle step (rad) of the discrete tracking: the outermost point moves <= 1 px."""
+        return 1.0 / max(self.radius, 2.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        phi = np.degrees(np.arctan2(self.normals[:, 1], self.normals[:, 0]))
+        return {"level": self.level,
+                "points": [[round(float(x), 4), round(float(y), 4), round(float(a), 3)]
+                           for (x, y), a in zip(self.points, phi, strict=True)],
+                "features": [int(i) for i in self.features]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> LevelModel:
+        arr = np.asarray(d["points"], dtype=np.float64).reshape(-1, 3)
+        a = np.radians(arr[:, 2])
+        feats = np.asarray(d["features"], dtype=np.int64)
+        if len(arr) < 3 or len(feats) == 0 or feats.max() >= len(arr) or feats.min() < 0:
+            raise TeachError(f"model level {d.get('level')} is corrupt (too few points or bad indices)")
+        return cls(int(d["level"]), arr[:, :2].copy(), np.stack([np.cos(a), np.sin(a)], axis=1), feats)
+
+
+@dataclass
+class ShapeModel:
+    """A taught shape model: one ``LevelModel`` per pyramid level (index = level)."""
+
+    levels: list[LevelModel]
+    params: TeachParams
+    roi: tuple[float, float, float, float]
+    image_size: tuple[int, int]
+
+    @property
+    def top_level(self) -> int:
+        return len(self.levels) - 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"levels": [lv.to_dict() for lv in self.levels]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
+                  image_size: tuple[int, int]) -> ShapeModel:
+        return cls([LevelModel.from_dict(x) for x in d["levels"]], params, roi, image_size)
+
+
+
+def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, float, float]
+                 ) -> tuple[F64, F64, F64]:
+    """Sub-pixel edge points (x, y), unit normals and magnitudes inside ``box`` (x0, y0, x1, y1)."""
+    h, w = img.shape
+    x0, y0, x1, y1 = box
+    m = 4 + int(math.ceil(3 * sigma))
+    cx0, cy0 = max(int(math.floor(x0)) - m, 0), max(int(math.floor(y0)) - m, 0)
+    cx1, cy1 = min(int(math.ceil(x1)) + m, w - 1), min(int(math.ceil(y1)) + m, h - 1)
+    crop = img[cy0:cy1 + 1, cx0:cx1 + 1]
+    gx, gy = gradients(crop, sigma)
+    mag = cv2.magnitude(gx, gy)
+    ys, xs = np.nonzero(mag >= thr)
+    keep = (xs >= 1) & (ys >= 1) & (xs < mag.shape[1] - 1) & (ys < mag.shape[0] - 1)
+    xs, ys = xs[keep].astype(np.float64), ys[keep].astype(np.float64)
+    g = mag[ys.astype(np.int64), xs.astype(np.int64)].astype(np.float64)
+    nx = gx[ys.astype(np.int64), xs.astype(np.int64)] / g
+    ny = gy[ys.astype(np.int64), xs.astype(np.int64)] / g
+
+    def along(t: float) -> F64:
+        return np.abs(bilinear(gx, xs + t * nx, ys + t * ny) * nx + bilinear(gy, xs + t * nx, ys + t * ny) * ny)
+
+    gm, g0, gp = along(-1.0), along(0.0), along(1.0)
+    is_max = (g0 >= gm) & (g0 > gp)
+    off = gauss_peak(gm, g0, gp)
+    px = xs + off * nx + cx0
+    py = ys + off * ny + cy0
+    inside = is_max & (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
+    return (np.stack([px[inside], py[inside]], axis=1), np.stack([nx[inside], ny[inside]], axis=1),
+            g0[inside])
+
+
+def _centroid_refine(img: U8, pts: F64, nrm: F64, mag: F64, min_contrast: float
+                     ) -> tuple[F64, F64, F64]:
+    """Move level-0 edge points to the centroid edge position; drop corners and cramped edges."""
+    f = img.astype(np.float32)
+    off, S, clean = profile_ok(f, pts, nrm)
+    keep = clean & (np.abs(off) < 0.75) & (np.abs(S) >= 0.5 * min_contrast)
+    pts = pts + off[:, None] * nrm
+    return pts[keep], nrm[keep], mag[keep]
+
+
+def _spread_subset(pts: F64, strength: F64, target: int, min_spacing: float) -> NDArray[np.int64]:
+    """Indices of at most ``target`` points, strongest first, no two closer than a spacing."""
+    order = np.argsort(-strength, kind="stable")
+    spacing = min_spacing
+    while True:
+        cell = spacing / math.sqrt(2.0)
+        taken: dict[tuple[int, int], int] = {}
+        chosen: list[int] = []
+        keys = np.floor(pts / cell).astype(np.int64)
+        r = int(math.ceil(spacing / cell))
+        for i in order:
+            kx, ky = int(keys[i, 0]), int(keys[i, 1])
+            ok = True
+            for dx in range(-r, r + 1):
+                for dy in range(-r, r + 1):
+                    j = taken.get((kx + dx, ky + dy))
+                    if j is not None and (pts[j, 0] - pts[i, 0]) ** 2 + (pts[j, 1] - pts[i, 1]) ** 2 \
+                            < spacing * spacing:
+                        ok = False
+                        break
+                if not ok:
+                    break
+            if ok:
+                taken[(kx, ky)] = int(i)
+                chosen.append(int(i))
+        if len(chosen) <= target:
+            return np.asarray(sorted(chosen), dtype=np.int64)
+        spacing *= 1.15
+
+
+def auto_levels(roi_w: float, roi_h: float) -> int:
+    """Pyramid levels so the top level shows the ROI's smaller side at >= 8 px (at most 5).
+
+    ``teach`` then drops top levels where the model is too thin (see ``MIN_TOP_RADIUS_PX``).
+    """
+    n = 1
+    while n < 5 and min(roi_w, roi_h) / 2 ** n >= 8.0:
+        n += 1
+    return n
+
+
+def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
+          params: TeachParams | None = None) -> ShapeModel:
+    """Teach a shape model from the ROI ``(U, V, W, H)``; its centre is the reference point."""
+    p = params or TeachParams()
+    img = as_gray(image)
+    u, v, w, h = roi
+    ref = np.array([u + w / 2.0, v + h / 2.0])
+    n_levels = p.num_levels if p.num_levels > 0 else auto_levels(w, h)
+    pyr = pyramid(img, n_levels)
+    levels: list[LevelModel] = []
+    for lv, im in enumerate(pyr):
+        s = 2.0 ** lv
+        sigma = p.edge_sigma_px if lv == 0 else 0.0
+        pts, nrm, mag = _edge_points(im, sigma, p.min_contrast * GRAD_PER_CONTRAST,
+                                     (u / s, v / s, (u + w) / s, (v + h) / s))
+        if len(pts) < 8:
+            if lv == 0:
+                raise TeachError(
+                    f"no edges of contrast >= {p.min_contrast:g} in the ROI: choose a region that "
+                    "shows the part, or lower the minimum contrast")
+            break
+        if lv == 0:
+            pts, nrm, mag = _centroid_refine(img, pts, nrm, mag, p.min_contrast)
+            if len(pts) < 8:
+                raise TeachError("too few clean edges in the ROI: choose a region that shows the part")
+        pts = pts - ref / s
+        if lv == 0:
+            sel = _spread_subset(pts, mag, MAX_FINE_POINTS, 2.0)
+            pts, nrm, mag = pts[sel], nrm[sel], mag[sel]
+            feats = np.arange(len(pts), dtype=np.int64)
+        else:
+            sel = _spread_subset(pts, mag, 4 * MAX_TRACK_FEATURES, 1.0)
+            pts, nrm, mag = pts[sel], nrm[sel], mag[sel]
+            feats = _spread_subset(pts, mag, MAX_TRACK_FEATURES, 1.5)
+        levels.append(LevelModel(lv, pts, nrm, feats))
+    # the top level is searched exhaustively: fewer, well spread features; drop levels that are too thin
+    while len(levels) > 1 and (len(levels[-1].points) < 16 or levels[-1].radius < MIN_TOP_RADIUS_PX):
+        levels.pop()
+    top = levels[-1]
+    top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5) \
+        if top.level > 0 else top.features[:MAX_TOP_FEATURES]
+    return ShapeModel(levels, p, (u, v, w, h), (img.shape[1], img.shape[0]))
+

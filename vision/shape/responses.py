@@ -1,0 +1,129 @@
+"""Orientation response maps (LINE-MOD / line2Dup style) and the discrete pose search on them.
+
+The image's gradient orientation is quantized into ``N_BINS`` bins over 180° (edge polarity
+ignored); per bin a response map holds 0..4 by the orientation difference to that bin (through
+``cv2.LUT``), spread by a max filter so a feature that is a pixel or two off still scores.
+``track`` scores a batch of candidate poses over a small neighbourhood of position and angle
+by gathering each feature's response at its rotated offset.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from vision.image import F64, U8, gradients
+from vision.shape.model import LevelModel
+
+N_BINS = 8
+BIN_W = math.pi / N_BINS
+
+
+def _response_table() -> U8:
+    """(N_BINS, 4*N_BINS+1) responses of each feature bin to each quarter-bin orientation."""
+    t = np.zeros((N_BINS, 4 * N_BINS + 1), np.uint8)  # last column: no edge
+    for b in range(N_BINS):
+        for qb in range(4 * N_BINS):
+            d = abs(qb + 0.5 - (4.0 * b + 2.0))
+            d = min(d, 4.0 * N_BINS - d)  # circular distance in quarter-bins (1 = 5.625 deg)
+            t[b, qb] = int(np.clip(4 - math.floor(d * 0.5), 0, 4))  # 4 within ~11 deg, 0 beyond 45
+    return t
+
+
+_RESPONSE_TABLE = _response_table()
+_RESPONSE_LUT = np.zeros((N_BINS, 1, 256), np.uint8)
+_RESPONSE_LUT[:, 0, :4 * N_BINS + 1] = _RESPONSE_TABLE
+
+
+def response_maps(img: U8, thr: float, sigma: float = 0.0, spread: int = 3) -> U8:
+    """(N_BINS, H, W) uint8 responses 0..4 to each orientation bin, spread by a max filter.
+
+    ``spread`` is the max filter's size (1: none).
+    """
+    gx, gy = gradients(img, sigma)
+    mag = cv2.magnitude(gx, gy)
+    ang = cv2.phase(gx, gy, angleInDegrees=True)  # 0..360
+    q = cv2.convertScaleAbs(ang, alpha=4.0 * N_BINS / 180.0, beta=-0.5)  # floor: quarter-bins 0..63
+    q = cv2.bitwise_and(q, 4 * N_BINS - 1)  # orientation modulo 180 deg
+    q[mag < thr] = 4 * N_BINS
+    h, w = img.shape
+    out = np.empty((N_BINS, h, w), np.uint8)
+    for b in range(N_BINS):
+        cv2.LUT(q, _RESPONSE_LUT[b], dst=out[b])
+    return spread_max(out, spread)
+
+
+def spread_max(resp: U8, size: int) -> U8:
+    """Max filter of each bin's responses (``size`` x ``size``; 1 returns ``resp``)."""
+    if size <= 1:
+        return resp
+    nb, h, w = resp.shape
+    stack = np.zeros((nb, h + size // 2, w), np.uint8)  # zero rows between bins keep them apart
+    stack[:, :h] = resp
+    flat = cv2.dilate(stack.reshape(nb * (h + size // 2), w), np.ones((size, size), np.uint8))
+    return np.ascontiguousarray(flat.reshape(nb, h + size // 2, w)[:, :h])
+
+
+def rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], NDArray[np.int64],
+                                                            NDArray[np.int64]]:
+    """Rounded feature offsets (A, F) dx, dy and orientation bins for each angle."""
+    m = lm.points[lm.features]
+    n = lm.normals[lm.features]
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)
+    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
+    phi = np.arctan2(n[:, 1], n[:, 0])[None, :] - thetas[:, None]
+    b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int64)) % N_BINS
+    return dx, dy, b
+
+
+def track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64,
+           n_steps: int = 1, reach: int = 1) -> tuple[F64, F64, F64, F64]:
+    """Best pose of each candidate over +-reach px and +-n_steps angle steps: (x, y, theta, score).
+
+    With the responses spread over 3x3, reach 1 covers a candidate that is up to 2 px off.
+    """
+    da = lm.angle_step
+    m = lm.points[lm.features]
+    n = lm.normals[lm.features]
+    nf = len(m)
+    na = 2 * n_steps + 1
+    thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * da  # (C, na)
+    c, s = np.cos(thetas)[..., None], np.sin(thetas)[..., None]
+    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int32)  # (C, A, F)
+    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int32)
+    phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
+    b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int32)) % N_BINS
+    _, h, w = resp.shape
+    P = int(math.ceil(lm.radius)) + reach + 2  # zero border: no bounds checks in the gather
+    padded = np.zeros((N_BINS, h + 2 * P, w + 2 * P), np.uint8)
+    padded[:, P:P + h, P:P + w] = resp
+    hp, wp = h + 2 * P, w + 2 * P
+    cx = np.clip(cx, 0, w - 1)
+    cy = np.clip(cy, 0, h - 1)
+    offs = np.arange(-reach, reach + 1)
+    npos = len(offs) ** 2
+    ox = np.tile(offs, len(offs))
+    oy = np.repeat(offs, len(offs))
+    base = ((cy + P) * wp + cx + P).astype(np.int32)
+    pos = (oy * wp + ox).astype(np.int32)
+    feat = b * (hp * wp) + dy * wp + dx  # (C, A, F)
+    idx = base[:, None, None, None] + pos[None, None, :, None] + feat[:, :, None, :]  # (C, A, P, F)
+    sc = padded.ravel()[idx].sum(axis=3, dtype=np.int32).reshape(len(cx), -1)
+    # ties (the spread responses make plateaus) go to the angle nearest the prediction, and the
+    # position is the plateau's centre rather than its first pixel
+    tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
+    k = np.argmax(sc - tie[None, :], axis=1)
+    ai = k // npos
+    rows = np.arange(len(cx))
+    best = sc[rows, k]
+    at_a = sc.reshape(len(cx), na, npos)[rows, ai]  # (C, npos)
+    plateau = at_a == best[:, None]
+    cnt = plateau.sum(axis=1)
+    px = (plateau * ox[None, :]).sum(axis=1) / cnt
+    py = (plateau * oy[None, :]).sum(axis=1) / cnt
+    return cx + px, cy + py, thetas[rows, ai], best / (4.0 * nf)
+

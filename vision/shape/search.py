@@ -1,0 +1,320 @@
+"""Shape-based search: every instance of a taught part at any rotation, coarse to fine.
+
+1. **Top level, exhaustive** (line2Dup / LINE-MOD style): a rotated template's score map is the
+   sum of its features' response maps shifted by the rotated feature offsets — one vectorised
+   ``uint8`` add per feature and angle, all positions at once. Angle step ``1.8/r`` (r: model
+   radius at that level). Local maxima over position *and* angle, so several angle hypotheses
+   of a nearly symmetric part survive.
+2. **Tracking down the pyramid** (batched gathers, ``responses.track``): on the level below the
+   top, +-2 angle steps and +-2 px on spread responses; on each finer level +-1; on the last
+   discrete level a second pass on unspread responses settles the +-1 px plateaus.
+3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
+
+The score is the mean over model points of ``|cos|`` of the orientation difference times a
+distance weight at the final pose — the fraction of the model's edges that are seen where they
+should be, so it falls smoothly with occlusion. Matches closer than a third of the ROI's smaller
+side, or whose model rectangles overlap a better match by more than ``max_overlap``, are dropped.
+
+Own code over OpenCV primitives: OpenCV has no rotation-invariant shape matcher with sub-pixel
+refinement (``matchTemplate`` is translation-only, ``matchShapes`` gives no pose).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from vision.image import F64, U8, as_gray, pyramid, wrap_deg
+from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
+from vision.shape.refine import Pose, refine_lsq
+from vision.shape.responses import N_BINS, response_maps, rotated_features, spread_max, track
+from vision.types import FindResult, Match, SearchParams
+
+TOP_STEP_FACTOR = 1.8
+"""Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
+MAX_TOP_CANDIDATES = 64
+HYPOTHESES_PER_POSITION = 3
+TOP_STRIDE = 1
+"""Top-level positions are scored on a grid of this stride (responses spread to match)."""
+
+Box = tuple[float, float, float, float]
+
+
+class _Clock:
+    def __init__(self, timeout_s: float | None) -> None:
+        self.c0 = time.process_time()
+        self.t0 = time.perf_counter()
+        self.deadline = None if timeout_s is None else self.t0 + timeout_s
+
+    def expired(self) -> bool:
+        return self.deadline is not None and time.perf_counter() > self.deadline
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def cpu(self) -> float:
+        return time.process_time() - self.c0
+
+
+def _nms_pose(poses: list[Pose], dist: float, dtheta: float) -> list[Pose]:
+    """Drop poses within ``dist`` and ``dtheta`` of a better one (poses sorted best first)."""
+    if len(poses) < 2:
+        return poses
+    P = np.array([[p.x, p.y, p.theta] for p in poses])
+    dd = (P[:, None, 0] - P[None, :, 0]) ** 2 + (P[:, None, 1] - P[None, :, 1]) ** 2
+    da = np.abs(np.mod(P[:, None, 2] - P[None, :, 2] + math.pi, 2 * math.pi) - math.pi)
+    close = (dd <= dist * dist) & (da <= dtheta)
+    keep = np.ones(len(poses), bool)
+    for i in range(len(poses)):
+        if keep[i]:
+            keep[i + 1:] &= ~close[i, i + 1:]
+    return [p for p, k in zip(poses, keep, strict=True) if k]
+
+
+def overlap(roi: Box, a: Match, b: Match) -> float:
+    """Intersection of two matches' model rectangles over the smaller one (HALCON's MaxOverlap)."""
+    u, v, w, h = roi
+    ra = ((a.u_px, a.v_px), (w * a.scale, h * a.scale), -a.angle_deg)
+    rb = ((b.u_px, b.v_px), (w * b.scale, h * b.scale), -b.angle_deg)
+    kind, pts = cv2.rotatedRectangleIntersection(ra, rb)
+    if kind == cv2.INTERSECT_NONE or pts is None or len(pts) < 3:
+        return 0.0
+    inter = float(cv2.contourArea(cv2.convexHull(pts)))
+    return inter / max(min(ra[1][0] * ra[1][1], rb[1][0] * rb[1][1]), 1e-9)
+
+
+def _angles(start: float, extent: float, step: float) -> F64:
+    if extent >= 2 * math.pi - 1e-9:
+        n = int(math.ceil(2 * math.pi / step))
+        return np.asarray(start + np.arange(n) * (2 * math.pi / n), dtype=np.float64)
+    n = int(math.ceil(extent / step)) + 1
+    return np.linspace(start, start + extent, max(n, 1))
+
+
+def _top_search(model: ShapeModel, level_img: U8, thr_grad: float, search_box: Box, a0: float,
+                ext: float, coarse_min: float, clock: _Clock) -> tuple[list[Pose], bool]:
+    """Exhaustive search of the top level: candidate poses (top-level pixels) and whether time ran out."""
+    L = model.top_level
+    top = model.levels[L]
+    s = 2.0 ** L
+    su, sv, sw, sh = search_box
+    resp = response_maps(level_img, thr_grad, spread=2 * TOP_STRIDE + 1)
+    _, hL, wL = resp.shape
+    rx0, ry0 = max(int(math.ceil(su / s)), 0), max(int(math.ceil(sv / s)), 0)
+    rx1, ry1 = min(int(math.floor((su + sw) / s)), wL - 1), min(int(math.floor((sv + sh) / s)), hL - 1)
+    if rx1 < rx0 or ry1 < ry0:
+        return [], False
+    timed_out = False
+    thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step)
+    dx, dy, b = rotated_features(top, thetas)
+    T = TOP_STRIDE
+    P = int(max(np.abs(dx).max(), np.abs(dy).max())) + T + 1
+    pad = np.zeros((N_BINS, hL + 2 * P + T, wL + 2 * P + T), np.uint8)
+    pad[:, P:P + hL, P:P + wL] = resp
+    # positions on a grid of stride T (LINE-MOD's linearised memories): one sub-sampled copy of
+    # the responses per grid phase, so every feature is one contiguous slice
+    phases = [[np.ascontiguousarray(pad[:, py::T, px::T]) for px in range(T)] for py in range(T)]
+    nh, nw = (ry1 - ry0) // T + 1, (rx1 - rx0) // T + 1
+    nf = dx.shape[1]
+    na = len(thetas)
+    # one score map per angle, with a zero row below each so one max filter serves all
+    allacc = np.zeros((na, nh + 1, nw), np.uint8)
+    ay, ax = dy + P + ry0, dx + P + rx0  # padded row/column of each feature at grid node (0, 0)
+    phy, phx, by_, bx_ = (ay % T).tolist(), (ax % T).tolist(), (ay // T).tolist(), (ax // T).tolist()
+    bl = b.tolist()
+    done = na
+    for ai in range(na):
+        acc = allacc[ai, :nh]
+        fy, fx, oy_, ox_, ba = phy[ai], phx[ai], by_[ai], bx_[ai], bl[ai]
+        for k in range(nf):
+            y, x = oy_[k], ox_[k]
+            np.add(acc, phases[fy[k]][fx[k]][ba[k], y:y + nh, x:x + nw], out=acc)
+        if (ai & 7) == 7 and clock.expired():
+            timed_out = True
+            done = ai + 1
+            break
+    thr_top = int(math.floor(4 * nf * coarse_min * 0.7))
+    # local maxima over position and angle (circular when the range is the full turn),
+    # checked only where the score passes the threshold
+    sub = allacc[:done]
+    dil = cv2.dilate(sub.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).ravel()
+    flat = sub.ravel()
+    idx = np.flatnonzero(flat >= thr_top)
+    idx = idx[flat[idx] >= dil[idx]]
+    plane = (nh + 1) * nw
+    ai_ = idx // plane
+    if done > 1:
+        full = ext >= 2 * math.pi - 1e-9 and done == na
+        for step in (-1, 1):
+            nb = ai_ + step
+            wrap = (nb < 0) | (nb >= done)
+            nbi = idx + step * plane
+            if full:
+                nbi = np.where(wrap, idx + step * plane - np.sign(step) * done * plane, nbi)
+                ok = flat[idx] >= dil[nbi]
+            else:
+                ok = wrap | (flat[idx] >= dil[np.clip(nbi, 0, len(dil) - 1)])
+            idx, ai_ = idx[ok], ai_[ok]
+    rem = idx - ai_ * plane
+    ys, xs = rem // nw, rem % nw
+    sc = flat[idx]
+    order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
+    cands = [Pose(float(T * xs[i] + rx0), float(T * ys[i] + ry0), float(thetas[ai_[i]]),
+                  sc[i] / (4.0 * nf)) for i in order]
+    return cands, timed_out
+
+
+def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Pose],
+                lowest_discrete: int, coarse_min: float, clock: _Clock) -> tuple[list[Pose], bool]:
+    """Discrete tracking from the level below the top down to ``lowest_discrete``."""
+    L = model.top_level
+    timed_out = False
+    for lv in range(L - 1, lowest_discrete - 1, -1):
+        if not cands:
+            break
+        lm = model.levels[lv]
+        last = lv == lowest_discrete
+        first = lv == L - 1
+        raw = response_maps(pyr[lv], thr_grad, spread=1)
+        spread_ = spread_max(raw, 3)
+        cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
+        cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)  # plateau centres: *2, rounded
+        th = np.array([c.theta for c in cands])
+        nxt: list[Pose] = []
+        for start in range(0, len(cands), 32):
+            sl = slice(start, start + 32)
+            # below the top level the angle and position are still coarse: +-2 steps and +-2 px
+            # (+-3 with the spread) there, +-1 further down
+            xs_, ys_, ts_, sc_ = track(spread_, lm, cx[sl], cy[sl], th[sl], 2 if first else 1,
+                                       2 if first else 1)
+            if last:
+                # the spread responses leave +-1 px plateaus: settle on the unspread ones
+                keep = sc_ >= coarse_min * 0.7
+                xs_, ys_, ts_ = xs_[keep], ys_[keep], ts_[keep]
+                xs_, ys_, ts_, sc_ = track(raw, lm, np.rint(xs_).astype(np.int64),
+                                           np.rint(ys_).astype(np.int64), ts_, 1, 1)
+            nxt += [Pose(float(a), float(b_), float(t_), float(c_))
+                    for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True)
+                    if c_ >= coarse_min * (0.6 if last else 0.8)]
+            if clock.expired():
+                timed_out = True
+                break
+        nxt.sort(key=lambda p: -p.score)
+        cands = _nms_pose(nxt, 2.0, 2.5 * lm.angle_step)
+        if timed_out:
+            break
+    return cands, timed_out
+
+
+def _few_per_position(cands: list[Pose], radius: float) -> list[Pose]:
+    """At most a few angle hypotheses per position go on to the (costlier) least-squares stage."""
+    per_pos: list[list[Pose]] = []
+    r_pos = radius ** 2
+    for c in sorted(cands, key=lambda p: -p.score):
+        for grp in per_pos:
+            if (grp[0].x - c.x) ** 2 + (grp[0].y - c.y) ** 2 < r_pos:
+                if len(grp) < HYPOTHESES_PER_POSITION and c.score >= 0.8 * grp[0].score:
+                    grp.append(c)
+                break
+        else:
+            per_pos.append([c])
+    return [c for grp in per_pos for c in grp]
+
+
+def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Pose],
+                 lowest_discrete: int, sp: SearchParams, coarse_min: float, min_dist: float,
+                 clock: _Clock) -> tuple[list[tuple[Pose, int, float, float]], bool]:
+    """Least-squares refinement on the remaining levels down to 0: (pose, level, score, rms).
+
+    After the first refined level, hypotheses at one position (e.g. other angles of a nearly
+    symmetric part) compete.
+    """
+    timed_out = False
+    poses: list[tuple[Pose, int, float, float]] = [(c, lowest_discrete, c.score, float("nan"))
+                                                  for c in cands]
+    for step, lv2 in enumerate(range(max(lowest_discrete - 1, 0), -1, -1)):
+        nxt2: list[tuple[Pose, int, float, float]] = []
+        for pose, lv, _, _ in poses:
+            if clock.expired():
+                timed_out = True
+                break
+            f = 2.0 ** (lv - lv2)
+            pose = Pose(pose.x * f, pose.y * f, pose.theta, pose.score, pose.scale)
+            sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
+            pose, score, rms = refine_lsq(
+                pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
+                search_px=4.5 if step == 0 else 2.0, iterations=5 if step == 0 else 1,
+                fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
+                subset=model.levels[lv2].features if lv2 > 0 else None,
+                reject_below=0.7 * coarse_min, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
+                max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective)
+            if score >= (coarse_min * 0.8 if lv2 > 0 else sp.min_score):
+                nxt2.append((Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
+        nxt2.sort(key=lambda t: -t[2])
+        kept: list[tuple[Pose, int, float, float]] = []
+        r2 = (min_dist / 2.0 ** lv2) ** 2
+        for t in nxt2:
+            if all((t[0].x - o[0].x) ** 2 + (t[0].y - o[0].y) ** 2 >= r2 for o in kept):
+                kept.append(t)
+        poses = kept
+        if timed_out:
+            break
+    return poses, timed_out
+
+
+def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
+    """Every instance of ``model`` in ``image`` with score >= ``min_score``, best first."""
+    sp = search or SearchParams()
+    clock = _Clock(sp.timeout_s)
+    img = as_gray(image)
+    H0, W0 = img.shape
+    L = model.top_level
+    pyr = pyramid(img, L + 1)
+    thr_grad = model.params.min_contrast * GRAD_PER_CONTRAST
+    u, v, w, h = model.roi
+    min_dist = sp.min_distance_px if sp.min_distance_px is not None else min(w, h) / 3.0
+    box: Box = sp.roi if sp.roi is not None else (-0.5, -0.5, W0, H0)
+    su, sv, sw, sh = box
+    a0 = math.radians(sp.angle_start_deg)
+    ext = math.radians(max(min(sp.angle_extent_deg, 360.0), 0.0))
+    stats: dict[str, float] = {}
+    # coarse levels score lower than level 0 (blur, fewer features): their thresholds stop at the
+    # default's, only the final level-0 score is held to a higher minimum
+    coarse_min = min(sp.min_score, 0.5)
+
+    cands, timed_out = _top_search(model, pyr[L], thr_grad, box, a0, ext, coarse_min, clock)
+    stats["t_top_s"] = clock.elapsed()
+    stats["cpu_top_s"] = clock.cpu()
+    stats["n_top_candidates"] = float(len(cands))
+
+    lowest_discrete = min(2, L) if L >= 2 else L
+    if not timed_out:
+        cands, timed_out = _track_down(model, pyr, thr_grad, cands, lowest_discrete, coarse_min, clock)
+    stats["t_track_s"] = clock.elapsed()
+    stats["cpu_track_s"] = clock.cpu()
+
+    cands = _few_per_position(cands, min_dist / 2.0 ** lowest_discrete)
+    stats["n_tracked"] = float(len(cands))
+    poses, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist, clock)
+    timed_out |= t_out
+    found: list[Match] = []
+    for pose, lv, score, rms in poses:
+        if lv == 0 and su <= pose.x <= su + sw and sv <= pose.y <= sv + sh:
+            found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms, pose.scale))
+    # final non-maximum suppression on level 0
+    found.sort(key=lambda m: -m.score)
+    final: list[Match] = []
+    for mt in found:
+        if all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2
+               and overlap(model.roi, mt, o) <= sp.max_overlap for o in final):
+            final.append(mt)
+    if sp.max_count > 0:
+        final = final[:sp.max_count]
+    stats["t_total_s"] = clock.elapsed()
+    stats["cpu_total_s"] = clock.cpu()
+    return FindResult(final, timed_out, clock.elapsed(), stats)
