@@ -49,9 +49,9 @@ from calibration.geometry import invert, make_transform, quaternion_to_matrix  #
 from calibration.handeye import (  # noqa: E402
     OPENCV_METHODS,
     RobotNoise,
-    _mean_pose,
     calibrate_handeye,
     make_stations,
+    mean_pose,
     opencv_handeye,
     predict_cam_target,
     simulate_handeye,
@@ -280,7 +280,7 @@ def eth_real(quick: bool) -> dict[str, Any] | None:
         for i in range(len(st)):
             rest = [s for k, s in enumerate(st) if k != i]
             Xm = PEERS[m](setup, [s.G for s in rest], [s.C for s in rest])
-            Zm = _mean_pose([target_from_station(setup, Xm, s.G, s.C) for s in rest])
+            Zm = mean_pose([target_from_station(setup, Xm, s.G, s.C) for s in rest])
             miss.append(1e3 * np.linalg.norm(predict_cam_target(setup, Xm, Zm, st[i].G)[:3, 3] - st[i].C[:3, 3]))
         Xall = PEERS[m](setup, [s.G for s in st], [s.C for s in st])
         e = np.array(miss)

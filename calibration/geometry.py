@@ -73,9 +73,43 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> NDArray[np.float6
     return P @ T[:3, :3].T + T[:3, 3]
 
 
+def exp_so3(rotvec: ArrayLike) -> NDArray[np.float64]:
+    """The SO(3) exponential: rotation vector(s) (axis * angle, radians), shape (3,) or (N, 3), to
+    rotation matrices, shape (3, 3) or (N, 3, 3) (Rodrigues' formula, vectorised).
+
+    The one copy in ``calibration``: every solver's small-angle perturbation goes through it.
+    """
+    w = np.asarray(rotvec, dtype=np.float64)
+    single = w.ndim == 1
+    rv = w.reshape(-1, 3)
+    th = np.linalg.norm(rv, axis=1)
+    small = th < 1e-12
+    k = rv / np.where(small, 1.0, th)[:, None]
+    Kx = np.zeros((len(rv), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    R = np.eye(3)[None] + s * Kx + (1 - c) * (Kx @ Kx)
+    R[small] = np.eye(3)
+    return R[0] if single else R
+
+
+def log_so3(R: ArrayLike) -> Vec:
+    """Rotation vector (radians) of a 3x3 rotation matrix: closed form, scipy near 180 deg where the
+    closed form is ill-conditioned."""
+    M = np.asarray(R, dtype=np.float64)
+    th = float(np.arccos(np.clip((M[0, 0] + M[1, 1] + M[2, 2] - 1.0) / 2.0, -1.0, 1.0)))
+    v = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    if th < 1e-6:
+        return 0.5 * v
+    if th > np.pi - 1e-3:
+        return np.asarray(Rotation.from_matrix(M).as_rotvec(), dtype=np.float64)
+    return th / (2.0 * np.sin(th)) * v
+
+
 def rotvec_to_matrix(rotvec: ArrayLike) -> Mat3:
-    """Rotation vector (axis * angle, radians) to a 3x3 matrix."""
-    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64).reshape(3)).as_matrix()
+    """Rotation vector (axis * angle, radians) to a 3x3 matrix (``exp_so3`` of one vector)."""
+    return exp_so3(np.asarray(rotvec, dtype=np.float64).reshape(3))
 
 
 def matrix_to_rotvec(R: ArrayLike) -> Vec:

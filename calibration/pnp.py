@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from calibration.camera_model import CameraModel
-from calibration.geometry import make_transform
+from calibration.geometry import exp_so3, make_transform
 
 F64 = NDArray[np.float64]
 
@@ -54,8 +54,7 @@ class PoseResult:
 
 
 def _rot(w: F64) -> F64:
-    R, _ = cv2.Rodrigues(np.asarray(w, dtype=np.float64).reshape(3, 1))
-    return np.asarray(R, dtype=np.float64)
+    return exp_so3(np.asarray(w, dtype=np.float64).reshape(3))
 
 
 def _residuals(camera: CameraModel, X: F64, uv: F64, R0: F64, x: F64) -> F64:
@@ -102,7 +101,8 @@ def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) ->
         cost = float(np.sum(r * r))
         if best is None or cost < best[0]:
             best = (cost, name, R, tv)
-    assert best is not None
+    if best is None:  # cands is not empty, so only a bug gets here
+        raise PoseEstimationError("internal error: no candidate pose was scored")
     _, name, R0, t0 = best
     sol = least_squares(lambda x: _residuals(camera, X, uv, R0, x), np.concatenate([np.zeros(3), t0]),
                         method="lm", x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3]))

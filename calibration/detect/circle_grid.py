@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detect.chessboard import canonical_order
-from calibration.detect.circle_plate import _consistent, perspective_bias
+from calibration.detect.mark_grid import consistent_marks, perspective_bias
 from calibration.observations import Detection
 from calibration.targets import CircleGrid
 
@@ -94,7 +94,7 @@ def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: 
     grid = pts.xyz_m[:, :2] / target.pitch_m
     # OpenCV now and then places one blob centre off (a merged or split blob): drop centres that
     # their neighbours do not predict (the plate detector's leave-one-out check)
-    keep = _consistent(grid, raw)
+    keep = consistent_marks(grid, raw)
     ids, raw, grid = pts.ids[keep], raw[keep], grid[keep]
     corrected = raw - perspective_bias(grid, raw, target.diameter_mm / 2 / target.pitch_mm)
     return Detection(image_name, True, ids=ids.copy(), uv=corrected, uv_ellipse=raw)

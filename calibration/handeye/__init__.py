@@ -1,0 +1,98 @@
+"""Hand-eye calibration (eye-in-hand and eye-to-hand) with checks, joint refinement and uncertainty.
+
+Conventions (shared/INTERFACES.md §1): ``T_a_b`` maps frame ``b`` into frame ``a``; SI inside.
+
+Model. With ``G_i = T_base_tool`` of station ``i`` and ``C_i = T_cam_target`` seen in its image:
+
+- eye-in-hand: ``C_i = inv(T_tool_cam) · inv(G_i) · T_base_target``;
+- eye-to-hand: ``C_i = inv(T_base_cam) · G_i · T_tool_target``.
+
+Both are ``H_i · X · C_i = Z`` with ``H_i = G_i`` (eye-in-hand) or ``inv(G_i)`` (eye-to-hand),
+``X`` the hand-eye transform and ``Z`` the constant target pose; relative motions give
+``A X = X B`` with ``A = inv(H_j) H_i`` and ``B = C_j inv(C_i)``.
+
+What is OpenCV's and what is ours:
+
+- the closed-form initial solutions are OpenCV's ``cv2.calibrateHandEye`` (TSAI, PARK, HORAUD,
+  ANDREFF, DANIILIDIS; eye-to-hand by passing the inverted robot poses, as OpenCV documents) plus
+  our own pair-filtered least-squares (Kabsch on the rotation logs, then linear translation),
+  which drops pairs whose relative rotation is too small or near 180°;
+- the per-station target pose is ``calibration.pnp.estimate_pose`` (OpenCV's PnP on undistorted
+  points, refined on pixels through our camera model; any lens model, division included);
+- the **joint refinement** is ours: a maximum-likelihood estimate over ``X``, ``Z`` and a small
+  pose correction per station, minimising the reprojection error of every target point in every
+  image plus a Gaussian prior on the corrections (the stated robot noise model). Treating the
+  recorded robot poses as exact was 2–10x worse (shared/FIELD_NOTES.md).
+
+Robot noise model (stated, used by the prior and by the benchmark's generator): the recorded
+flange pose ``G_i`` differs from the true one by an orientation error ``Exp(w_i)`` applied in the
+base frame and a position error ``v_i`` (base frame), ``w_i ~ N(0, σ_r² I)``, ``v_i ~ N(0, σ_t² I)``
+— σ per axis. Pixel noise σ_px is estimated from the per-station PnP residuals (which carry no
+robot noise) unless given.
+
+Uncertainty: the 6x6 covariance of ``X`` in the parametrisation ``R = Exp(ω) R̂`` (ω in radians,
+base/left perturbation) and ``t = t̂ + v`` (metres), from the Gauss-Newton normal matrix of the
+whitened problem, scaled up by the reduced χ² when the data are noisier than stated. The reported
+``uncertainty.rot_deg`` and ``trans_mm`` are the RMS rotation angle sqrt(trace Σ_ω) and RMS
+translation distance sqrt(trace Σ_v), 1-σ.
+
+Modules: ``model`` (types, limits, errors), ``frames`` (frame algebra, station poses),
+``closed_form`` (AX = XB closed forms), ``checks`` (conventions, motion, outliers), ``joint``
+(the joint refinement), ``solve`` (``calibrate_handeye``), ``simulate`` (virtual-cell data).
+Everything public is re-exported here: ``from calibration.handeye import X`` is the interface.
+"""
+
+from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
+from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, relative_motions, solve_pairs, stats
+from calibration.handeye.frames import (
+    hand_pose,
+    make_stations,
+    mean_pose,
+    perturb,
+    predict_cam_target,
+    station_pose,
+    target_from_station,
+    transform_error_deg_mm,
+)
+from calibration.handeye.joint import JointProblem, LMResult, refine, vce_robot_noise
+from calibration.handeye.model import (
+    MAX_PAIR_ANGLE_DEG,
+    MIN_AXIS_SPREAD_DEG,
+    MIN_PAIR_ANGLE_DEG,
+    MIN_STATIONS,
+    OPENCV_METHODS,
+    OUTLIER_FACTOR,
+    OUTLIER_FLOOR,
+    RECOMMENDED_STATIONS,
+    SETUPS,
+    WARN_AXIS_SPREAD_DEG,
+    ConventionError,
+    HandEyeError,
+    HandEyeResult,
+    Mat4,
+    Problem,
+    RobotNoise,
+    Setup,
+    Station,
+)
+from calibration.handeye.simulate import SimulatedHandEye, simulate_handeye
+from calibration.handeye.solve import calibrate_handeye, leave_one_out_prediction
+
+# The names these helpers had when hand-eye was one module (kept for code written against it).
+_mean_pose = mean_pose
+_perturb = perturb
+_hand = hand_pose
+_pairs = relative_motions
+_solve_pairs = solve_pairs
+_Joint = JointProblem
+
+__all__ = [
+    "MAX_PAIR_ANGLE_DEG", "MIN_AXIS_SPREAD_DEG", "MIN_PAIR_ANGLE_DEG", "MIN_STATIONS", "OPENCV_METHODS",
+    "OUTLIER_FACTOR", "OUTLIER_FLOOR", "RECOMMENDED_STATIONS", "SETUPS", "WARN_AXIS_SPREAD_DEG",
+    "ConventionError", "HandEyeError", "HandEyeResult", "JointProblem", "LMResult", "Mat4", "Problem",
+    "RobotNoise", "Setup", "SimulatedHandEye", "Station", "axxb_residuals", "calibrate_handeye",
+    "check_conventions", "check_motion", "find_outlier_stations", "hand_pose", "leave_one_out_prediction",
+    "make_stations", "mean_pose", "opencv_handeye", "perturb", "predict_cam_target", "refine",
+    "relative_motions", "simulate_handeye", "solve_pairs", "station_pose", "stats", "target_from_station",
+    "transform_error_deg_mm", "vce_robot_noise",
+]

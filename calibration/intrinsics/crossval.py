@@ -1,0 +1,58 @@
+"""k-fold cross-validation of an intrinsics calibration (mrcal's idea)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from calibration.intrinsics.results import (
+    MIN_VIEWS,
+    CalibrationError,
+)
+from calibration.intrinsics.solver import calibrate
+from calibration.intrinsics.uncertainty import (
+    covered_points,
+    projection_difference,
+)
+from calibration.observations import Detection
+from calibration.targets import Target
+
+
+def cross_validate(detections: Sequence[Detection], target: Target, model: str, k: int = 2, *,
+                   image_size: tuple[int, int] | None = None, drop_outliers: bool = False) -> dict[str, Any]:
+    """k-fold cross-validation (mrcal's idea): split the views into ``k`` disjoint folds
+    (view ``i`` goes to fold ``i mod k``), calibrate each fold on its own, and report the
+    projection difference between every pair of fold solutions over the image region the whole
+    data set covered (best rotation compensated). Two solutions from independent data differ by
+    about sqrt(2) times each one's projection uncertainty if the model fits the lens; a much
+    larger difference means the model cannot describe the lens (or the data are inconsistent).
+    """
+    if k < 2:
+        raise CalibrationError("cross-validation needs k >= 2 folds")
+    found = [d for d in detections if d.found]
+    if len(found) < MIN_VIEWS * k:
+        raise CalibrationError(f"{len(found)} views with the target are too few for {k}-fold "
+                               f"cross-validation (each fold needs {MIN_VIEWS}); use a smaller k")
+    full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers)
+    pts = covered_points(full)
+    fold_res = [calibrate(found[f::k], target, model, image_size=image_size, drop_outliers=drop_outliers)
+                for f in range(k)]
+    pairs = []
+    for a in range(k):
+        for b in range(a + 1, k):
+            d = projection_difference(fold_res[a].camera, fold_res[b].camera, pts)
+            pairs.append({"folds": [a, b], "rms_px": d["rms_px"], "max_px": d["max_px"]})
+    rms = [pp["rms_px"] for pp in pairs]
+    return {
+        "k": k,
+        "folds": [{"views": int(sum(v.used for v in r.views)), "rms_px": r.rms_px,
+                   "projection_uncertainty_px": r.uncertainty["projection_rms_px"]} for r in fold_res],
+        "pairs": pairs,
+        "projection_difference_rms_px": float(np.mean(rms)),
+        "projection_difference_max_px": float(np.max([pp["max_px"] for pp in pairs])),
+        "expected_from_uncertainty_px": float(np.mean([
+            np.hypot(fold_res[p["folds"][0]].uncertainty["projection_rms_px"] or 0.0,
+                     fold_res[p["folds"][1]].uncertainty["projection_rms_px"] or 0.0) for p in pairs])),
+    }

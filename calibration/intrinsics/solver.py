@@ -1,0 +1,150 @@
+"""``calibrate``: the public intrinsics solver (see the package docstring)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from calibration.camera_model import MODEL_NAMES, N_DIST
+from calibration.geometry import make_transform
+from calibration.intrinsics.model import (
+    camera_from_vector,
+    jacobians,
+    marginals,
+    normal_equations,
+    param_names,
+)
+from calibration.intrinsics.results import (
+    JACKKNIFE_MIN_VIEWS,
+    MIN_POINTS_PER_VIEW,
+    MIN_VIEWS,
+    CalibrationError,
+    IntrinsicsResult,
+    fin,
+)
+from calibration.intrinsics.uncertainty import (
+    cell_grid,
+    coverage_counts,
+    jackknife_projection_rms,
+    uncertainty_summary,
+)
+from calibration.intrinsics.views import (
+    ViewData,
+    collect_views,
+    flag_outliers,
+    solve_views,
+)
+from calibration.observations import Detection
+from calibration.targets import Target
+from calibration.verdict import assess
+
+# --------------------------------------------------------------------------------------------
+# the public solver
+
+
+def calibrate(detections: Sequence[Detection], target: Target, model: str = "opencv5", *,
+              image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
+              jackknife: bool = True) -> IntrinsicsResult:
+    """Calibrate one camera from detections of ``target`` (see the module docstring).
+
+    ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
+    scale the analytic covariance up when the jackknife's value is larger.
+
+    Raises CalibrationError with a message saying what to do when the data cannot determine
+    the model (fewer than 3 usable views, too few points, all views parallel...).
+    """
+    t0 = time.perf_counter()
+    if model not in MODEL_NAMES:
+        raise CalibrationError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
+    views, results, size = collect_views(detections, target, image_size)
+    if len(views) < MIN_VIEWS:
+        raise CalibrationError(f"only {len(views)} usable view(s) of the target; a calibration needs "
+                               f"at least {MIN_VIEWS} (10-20 recommended, tilted 20-45 deg about both axes)")
+    n_par = 4 + N_DIST[model]
+    n_obs = 2 * sum(len(v.X) for v in views)
+    if n_obs <= n_par + 6 * len(views):
+        raise CalibrationError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
+    p, c, R, t, iters = solve_views(model, size, views, target)
+    if drop_outliers:
+        p0_res = (p.project(c, R, t) - p.obs)
+        pt_out, view_out = flag_outliers(p, p0_res)
+        if np.any(pt_out) or np.any(view_out):
+            kept: list[ViewData] = []
+            keep_R, keep_t = [], []
+            for k, v in enumerate(views):
+                if view_out[k]:
+                    results[v.index].reason = "outlier view (RMS > 3x median), dropped"
+                    results[v.index].outlier = True
+                    continue
+                m = ~pt_out[p.starts[k]:p.starts[k + 1]]
+                if m.sum() < MIN_POINTS_PER_VIEW:
+                    results[v.index].reason = "too few points left after dropping outliers"
+                    continue
+                results[v.index].n_outlier_points = int((~m).sum())
+                kept.append(ViewData(v.index, v.image, v.ids[m], v.X[m], v.uv[m], v.ellipse))
+                keep_R.append(R[k])
+                keep_t.append(t[k])
+            if len(kept) < MIN_VIEWS:
+                raise CalibrationError(f"only {len(kept)} views left after dropping outliers; "
+                                       f"need at least {MIN_VIEWS}")
+            views = kept
+            start = (c, np.array(keep_R), np.array(keep_t))
+            p, c, R, t, it2 = solve_views(model, size, views, target, start=start)
+            iters += it2
+    # final Jacobian, covariance
+    free = np.ones(n_par, dtype=bool)
+    r = p.residuals(c, R, t)
+    Jc, Jp = jacobians(p, c, R, t, free)
+    nrm = normal_equations(p, r, Jc, Jp)
+    dof = max(len(r) - n_par - 6 * p.n_views, 1)
+    sigma2 = float(np.sum(r * r)) / dof
+    S_inv, pose_cov = marginals(nrm)
+    cov = sigma2 * S_inv
+    camera = camera_from_vector(model, size, c)
+    res = (p.project(c, R, t) - p.obs)
+    pt_out, view_out = flag_outliers(p, res)
+    all_uv = []
+    for k, v in enumerate(views):
+        sl = slice(p.starts[k], p.starts[k + 1])
+        vr = results[v.index]
+        vr.used = True
+        vr.n_points = len(v.X)
+        e = res[sl]
+        vr.rms_px = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+        vr.T_cam_target = make_transform(R[k], t[k])
+        vr.ids, vr.uv, vr.residuals_px = v.ids, v.uv, e
+        vr.n_outlier_points = max(vr.n_outlier_points, int(pt_out[sl].sum()))
+        if view_out[k]:
+            vr.outlier = True
+            vr.reason = "outlier view: RMS > 3x the median view RMS (drop_outliers removes it)"
+        all_uv.append(v.uv)
+    rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
+    coverage = coverage_counts(size, np.vstack(all_uv))
+    unc, umap = uncertainty_summary(camera, cov, coverage)
+    unc["projection_rms_analytic_px"] = unc["projection_rms_px"]
+    unc["inflation"] = 1.0
+    if jackknife and len(views) >= JACKKNIFE_MIN_VIEWS:
+        grid, _, _ = cell_grid(size, coverage.shape[1])
+        j = jackknife_projection_rms(model, size, views, target, c, R, t, grid[coverage.reshape(-1) > 0])
+        a = unc["projection_rms_px"]
+        if a and np.isfinite(j) and j > a:
+            # Detection errors correlated within a view make the analytic covariance optimistic;
+            # the view-level jackknife sees them. Scale the analytic covariance up to match.
+            cov = cov * (j / a) ** 2
+            unc, umap = uncertainty_summary(camera, cov, coverage)
+            unc["inflation"] = j / a
+        unc["projection_rms_analytic_px"] = a
+        unc["projection_rms_jackknife_px"] = fin(j)
+    names = param_names(model)
+    sig = {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+    normals = R[:, :, 2]
+    verdict = assess(n_views=len(views), size=size, coverage=coverage, normals=normals, sigmas=sig,
+                     values=dict(zip(names, c.tolist(), strict=True)), uncertainty=unc,
+                     n_outlier_views=int(view_out.sum()))
+    del pose_cov
+    return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
+                            param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,
+                            coverage=coverage, uncertainty_map_px=umap, iterations=iters,
+                            time_s=time.perf_counter() - t0)

@@ -1,0 +1,208 @@
+"""Projection uncertainty: coverage grid, covariance propagated to pixels, jackknife, comparing cameras."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+
+from calibration.camera_model import CameraModel
+from calibration.geometry import exp_so3
+from calibration.intrinsics.model import (
+    camera_from_vector,
+    intrinsic_steps,
+    intrinsics_vector,
+    project_normalized,
+)
+from calibration.intrinsics.results import (
+    F64,
+    JACKKNIFE_GROUPS,
+    IntrinsicsResult,
+    fin,
+)
+from calibration.intrinsics.views import (
+    ViewData,
+    solve_views,
+)
+from calibration.targets import Target
+
+# --------------------------------------------------------------------------------------------
+# uncertainty
+
+
+def cell_grid(size: tuple[int, int], nx: int = 16) -> tuple[F64, int, int]:
+    w, h = size
+    ny = max(4, int(round(nx * h / w)))
+    us = (np.arange(nx) + 0.5) * w / nx - 0.5
+    vs = (np.arange(ny) + 0.5) * h / ny - 0.5
+    uu, vv = np.meshgrid(us, vs)
+    return np.column_stack([uu.ravel(), vv.ravel()]), nx, ny
+
+
+def coverage_counts(size: tuple[int, int], uv: F64, nx: int = 16) -> NDArray[np.int64]:
+    """(ny, nx) number of observed points in each image cell."""
+    w, h = size
+    _, nx, ny = cell_grid(size, nx)
+    cnt = np.zeros((ny, nx), dtype=np.int64)
+    if len(uv):
+        ix = np.clip((uv[:, 0] + 0.5) * nx / w, 0, nx - 1).astype(int)
+        iy = np.clip((uv[:, 1] + 0.5) * ny / h, 0, ny - 1).astype(int)
+        np.add.at(cnt, (iy, ix), 1)
+    return cnt
+
+
+def projection_jacobians(camera: CameraModel, pts_px: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """For the rays through ``pts_px``: (2N, n_intr) d(pixel)/d(intrinsics), (2N, 3)
+    d(pixel)/d(camera rotation) and a validity mask (N,)."""
+    rays = camera.unproject(pts_px)
+    xy = rays[:, :2]
+    c = intrinsics_vector(camera)
+    valid = np.all(np.isfinite(xy), axis=1)
+    xy = np.where(valid[:, None], xy, 0.0)
+    hs = intrinsic_steps(c)
+    Jc = np.empty((2 * len(xy), len(c)))
+    for i in range(len(c)):
+        e = np.zeros_like(c)
+        e[i] = hs[i]
+        Jc[:, i] = ((project_normalized(camera.model, c + e, xy)
+                     - project_normalized(camera.model, c - e, xy)) / (2 * hs[i])).reshape(-1)
+    Jw = np.empty((2 * len(xy), 3))
+    P = np.column_stack([xy, np.ones(len(xy))])
+    h = 1e-7
+    for k in range(3):
+        w = np.zeros(3)
+        w[k] = h
+        Pp = P @ exp_so3(w[None])[0].T
+        Pm = P @ exp_so3(-w[None])[0].T
+        Jw[:, k] = ((project_normalized(camera.model, c, Pp[:, :2] / Pp[:, 2:])
+                     - project_normalized(camera.model, c, Pm[:, :2] / Pm[:, 2:])) / (2 * h)).reshape(-1)
+    bad = ~np.all(np.isfinite(Jc), axis=1) | ~np.all(np.isfinite(Jw), axis=1)
+    valid &= ~bad.reshape(-1, 2).any(axis=1)
+    return np.nan_to_num(Jc), np.nan_to_num(Jw), valid
+
+
+def projection_uncertainty(camera: CameraModel, cov: F64, pts_px: F64, fit_mask: NDArray[np.bool_]
+                           ) -> F64:
+    """1-sigma projection uncertainty (px, RMS length of the 2D error) at each of ``pts_px``,
+    after compensating the rotation that best explains the change over ``fit_mask`` points."""
+    Jc, Jw, valid = projection_jacobians(camera, pts_px)
+    m = np.repeat(fit_mask & valid, 2)
+    A = Jw[m]
+    if A.shape[0] >= 6:
+        G = np.linalg.pinv(A) @ Jc[m]            # best rotation per unit intrinsics change
+        M = Jc - Jw @ G
+    else:
+        M = Jc
+    Mi = M.reshape(len(pts_px), 2, -1)
+    var = np.einsum("nai,ij,naj->n", Mi, cov, Mi)
+    out = np.sqrt(np.maximum(var, 0.0))
+    out[~valid] = np.nan
+    return out
+
+
+def named_points(size: tuple[int, int]) -> dict[str, tuple[float, float]]:
+    w, h = size[0] - 1.0, size[1] - 1.0
+    return {"centre": (w / 2, h / 2), "top_left": (0.0, 0.0), "top_right": (w, 0.0),
+            "bottom_left": (0.0, h), "bottom_right": (w, h), "top": (w / 2, 0.0),
+            "bottom": (w / 2, h), "left": (0.0, h / 2), "right": (w, h / 2)}
+
+
+def uncertainty_summary(camera: CameraModel, cov: F64, coverage: NDArray[np.int64]
+                        ) -> tuple[dict[str, Any], F64]:
+    """The ``uncertainty`` block of ``cam.json`` and the per-cell map."""
+    grid, nx, ny = cell_grid(camera.size, coverage.shape[1])
+    covered = coverage.reshape(-1) > 0
+    named = named_points(camera.size)
+    pts = np.vstack([grid, np.array(list(named.values()))])
+    fit = np.concatenate([covered, np.zeros(len(named), dtype=bool)])
+    s = projection_uncertainty(camera, cov, pts, fit)
+    s_grid, s_named = s[: len(grid)], dict(zip(named, s[len(grid):], strict=True))
+    s_whole = projection_uncertainty(camera, cov, grid, np.ones(len(grid), dtype=bool))
+
+    def rms(a: F64) -> float:
+        a = a[np.isfinite(a)]
+        return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
+
+    summary = {
+        "projection_rms_px": fin(rms(s_grid[covered])),
+        "projection_rms_whole_image_px": fin(rms(s_whole)),
+        "projection_max_px": fin(float(np.nanmax(s_grid)) if np.any(np.isfinite(s_grid)) else float("nan")),
+        "centre_px": fin(float(s_named["centre"])),
+        "corners_px": {k: fin(float(s_named[k])) for k in ("top_left", "top_right", "bottom_left",
+                                                             "bottom_right")},
+        "edges_px": {k: fin(float(s_named[k])) for k in ("top", "bottom", "left", "right")},
+        "covered_fraction": float(covered.mean()),
+        "method": "intrinsics covariance (marginalised over poses) propagated through projection of "
+                  "rays through a pixel grid, best camera rotation compensated over the covered cells; "
+                  "1-sigma RMS length of the pixel error",
+    }
+    return summary, s_grid.reshape(ny, nx)
+
+
+def jackknife_projection_rms(model: str, size: tuple[int, int], views: list[ViewData], target: Target,
+                              c: F64, R: F64, t: F64, pts: F64) -> float:
+    """Grouped delete-a-group jackknife over views (G = min(views, 10) groups, view k in group
+    k mod G; replicates warm-started, at most 30 iterations): the RMS over ``pts`` of the
+    jackknife standard deviation of each point's projection (best rotation compensated per
+    replicate). Done in pixel space, not parameter space, because the rational model's
+    coefficients wander along a flat valley that projection does not see."""
+    G = min(len(views), JACKKNIFE_GROUPS)
+    full = camera_from_vector(model, size, c)
+    qs = []
+    for g in range(G):
+        keep = [k for k in range(len(views)) if k % G != g]
+        _, cg, _, _, _ = solve_views(model, size, [views[k] for k in keep], target, start=(c, R[keep], t[keep]),
+                                max_iter=30)
+        d = projection_difference(camera_from_vector(model, size, cg), full, pts)
+        if len(d["diff_px"]) != len(pts):
+            return float("nan")
+        qs.append(d["diff_px"])
+    Q = np.array(qs)                                   # (G, N, 2)
+    dev = Q - Q.mean(axis=0)
+    var = (G - 1) / G * np.sum(dev * dev, axis=(0, 2))
+    return float(np.sqrt(np.mean(var)))
+
+
+# --------------------------------------------------------------------------------------------
+# comparing cameras
+
+
+def projection_difference(camera: CameraModel, reference: CameraModel, pts_px: ArrayLike | None = None,
+                          fit_rotation: bool = True, nx: int = 32) -> dict[str, Any]:
+    """How far ``camera`` projects the rays of ``reference``'s pixels from those pixels.
+
+    For each pixel ``q`` (default: a grid over the whole image) the reference's ray is projected
+    with ``camera`` after the rotation of the camera frame that minimises the total squared
+    difference (``fit_rotation``). Returns RMS and max length (px), the rotation and the
+    per-point differences.
+    """
+    if pts_px is None:
+        pts, _, _ = cell_grid(reference.size, nx)
+    else:
+        pts = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
+    rays = reference.unproject(pts)
+    ok = np.all(np.isfinite(rays), axis=1)
+    rays, pts = rays[ok], pts[ok]
+    c = intrinsics_vector(camera)
+
+    def diff(w: F64) -> F64:
+        P = rays @ exp_so3(w[None])[0].T
+        q = project_normalized(camera.model, c, P[:, :2] / P[:, 2:])
+        d = q - pts
+        return np.nan_to_num(d, nan=1e6).reshape(-1)
+
+    w = np.zeros(3)
+    if fit_rotation:
+        w = least_squares(diff, w, method="lm", x_scale=1e-3).x
+    d = diff(w).reshape(-1, 2)
+    mag = np.linalg.norm(d, axis=1)
+    return {"rms_px": float(np.sqrt(np.mean(mag**2))), "max_px": float(mag.max()),
+            "rotation_deg": float(np.degrees(np.linalg.norm(w))), "diff_px": d, "points_px": pts}
+
+
+def covered_points(result: IntrinsicsResult) -> F64:
+    """Centres of the image cells the calibration data covered (for ``projection_difference``)."""
+    grid, _, _ = cell_grid(result.camera.size, result.coverage.shape[1])
+    return grid[result.coverage.reshape(-1) > 0]

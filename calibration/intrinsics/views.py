@@ -1,0 +1,170 @@
+"""Views for the solver: collecting detections, the closed-form start, the solve loop with the circle bias, outliers."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.camera_model import N_DIST
+from calibration.conic import circle_centre_bias_px
+from calibration.geometry import exp_so3, make_transform
+from calibration.intrinsics.model import (
+    BundleProblem,
+    camera_from_vector,
+    levenberg_marquardt,
+)
+from calibration.intrinsics.results import (
+    F64,
+    MIN_POINTS_PER_VIEW,
+    POINT_OUTLIER_SIGMAS,
+    VIEW_OUTLIER_FACTOR,
+    CalibrationError,
+    ViewResult,
+)
+from calibration.observations import Detection
+from calibration.targets import CirclePlate, Points3D, Target
+
+# --------------------------------------------------------------------------------------------
+# set-up
+
+
+@dataclass
+class ViewData:
+    index: int
+    image: str
+    ids: NDArray[np.int64]
+    X: F64
+    uv: F64
+    ellipse: bool
+
+
+def collect_views(detections: Sequence[Detection], target: Target,
+             image_size: tuple[int, int] | None) -> tuple[list[ViewData], list[ViewResult], tuple[int, int]]:
+    if isinstance(target, Points3D):
+        raise CalibrationError("calib intrinsics needs a planar target (chessboard, charuco, circle_plate, "
+                               "circle_grid); for a 3D target use calib dlt")
+    tp = target.points()
+    where = {int(i): k for k, i in enumerate(tp.ids)}
+    sizes = [d.image_size for d in detections if d.found and d.image_size != (0, 0)]
+    if image_size is None:
+        if not sizes:
+            raise CalibrationError("image size unknown: no detection carries it; pass image_size")
+        # The most common size wins; views of another size are reported as not used.
+        image_size = max(set(sizes), key=sizes.count)
+    views: list[ViewData] = []
+    results: list[ViewResult] = []
+    for k, d in enumerate(detections):
+        vr = ViewResult(image=d.image, used=False)
+        results.append(vr)
+        if not d.found:
+            vr.reason = d.reason or "target not found"
+            continue
+        if d.image_size not in ((0, 0), image_size):
+            vr.reason = f"image size {d.image_size} differs from {image_size}"
+            continue
+        ids = np.asarray(d.ids, dtype=np.int64).reshape(-1)
+        bad = [int(i) for i in ids if int(i) not in where]
+        if bad:
+            raise CalibrationError(f"{d.image}: point ids {bad[:5]} do not exist on the target "
+                                   f"({target.describe()}); wrong target file?")
+        use_ell = isinstance(target, CirclePlate) and d.uv_ellipse is not None
+        uv = np.asarray(d.uv_ellipse if use_ell else d.uv, dtype=np.float64).reshape(-1, 2)
+        ok = np.all(np.isfinite(uv), axis=1)
+        if ok.sum() < MIN_POINTS_PER_VIEW:
+            vr.reason = f"only {int(ok.sum())} points (need {MIN_POINTS_PER_VIEW})"
+            continue
+        X = tp.xyz_m[[where[int(i)] for i in ids[ok]]]
+        views.append(ViewData(k, d.image, ids[ok], X, uv[ok], use_ell))
+        vr.n_points = int(ok.sum())
+    return views, results, image_size
+
+
+def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64, F64, F64]:
+    """Zhang's closed form for K (principal point at the centre), then IPPE poses."""
+    obj = [v.X.astype(np.float32) for v in views]
+    img = [v.uv.astype(np.float32) for v in views]
+    try:
+        K = cv2.initCameraMatrix2D(obj, img, size, 1.0)
+    except cv2.error as exc:
+        raise CalibrationError(f"closed-form initialisation failed ({exc.err}); are the views degenerate "
+                               "(all parallel to each other)?") from exc
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        raise CalibrationError("closed-form initialisation failed: the views do not determine a focal "
+                               "length (all views parallel? tilt the target between views)")
+    # initCameraMatrix2D forces fx == fy from the mean; a wild value means degenerate views.
+    R = np.empty((len(views), 3, 3))
+    t = np.empty((len(views), 3))
+    for k, v in enumerate(views):
+        ok, rv, tv = cv2.solvePnP(v.X, v.uv, K, None, flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            ok, rv, tv = cv2.solvePnP(v.X, v.uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            raise CalibrationError(f"{v.image}: no initial pose (points degenerate?)")
+        R[k] = exp_so3(rv.ravel())
+        t[k] = tv.ravel()
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), R, t
+
+
+def build_problem(model: str, size: tuple[int, int], views: list[ViewData]) -> BundleProblem:
+    counts = np.array([len(v.X) for v in views])
+    return BundleProblem(model, size, np.vstack([v.X for v in views]), np.vstack([v.uv for v in views]),
+                    np.repeat(np.arange(len(views)), counts).astype(np.int64),
+                    np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+
+
+def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64, radius_m: float) -> F64:
+    cam = camera_from_vector(p.model, p.size, c)
+    out = np.zeros_like(p.obs)
+    for k, v in enumerate(views):
+        if v.ellipse:
+            sl = slice(p.starts[k], p.starts[k + 1])
+            out[sl] = circle_centre_bias_px(cam, make_transform(R[k], t[k]), v.X, radius_m)
+    return out
+
+
+def solve_views(model: str, size: tuple[int, int], views: list[ViewData], target: Target,
+           start: tuple[F64, F64, F64] | None = None, max_iter: int = 100
+           ) -> tuple[BundleProblem, F64, F64, F64, int]:
+    p = build_problem(model, size, views)
+    raw_obs = p.obs.copy()
+    nd = N_DIST[model]
+    if start is None:
+        c4, R, t = initial_estimate(views, size)
+        c = np.concatenate([c4, np.zeros(nd)])
+        free = np.zeros(4 + nd, dtype=bool)
+        free[:5] = True                           # fx, fy, cx, cy and k1 / kappa
+        c, R, t, it0 = levenberg_marquardt(p, c, R, t, free, max_iter=50)
+    else:
+        c, R, t = start
+        it0 = 0
+    free = np.ones(4 + nd, dtype=bool)
+    c, R, t, it = levenberg_marquardt(p, c, R, t, free, max_iter=max_iter)
+    it += it0
+    if any(v.ellipse for v in views) and isinstance(target, CirclePlate):
+        bias = np.zeros_like(raw_obs)
+        for _ in range(5):
+            new_bias = circle_bias(p, views, c, R, t, target.radius_m)
+            change = float(np.nanmax(np.abs(new_bias - bias)))
+            bias = new_bias
+            p.obs = raw_obs - bias
+            c, R, t, it1 = levenberg_marquardt(p, c, R, t, free, max_iter=max_iter)
+            it += it1
+            if change < 1e-4:
+                break
+    return p, c, R, t, it
+
+
+def flag_outliers(p: BundleProblem, res: F64) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Flag points (|e| > 5 robust sigma) and views (RMS > 3x median view RMS)."""
+    comp = np.abs(res.reshape(-1))
+    sigma_r = 1.4826 * float(np.median(comp)) if comp.size else 0.0
+    mag = np.linalg.norm(res, axis=1)
+    pt = mag > POINT_OUTLIER_SIGMAS * max(sigma_r, 1e-9)
+    vr = np.array([np.sqrt(np.mean(mag[p.starts[k]:p.starts[k + 1]] ** 2)) for k in range(p.n_views)])
+    med = float(np.median(vr))
+    vw = vr > VIEW_OUTLIER_FACTOR * max(med, 1e-9)
+    return pt, vw
