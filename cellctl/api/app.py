@@ -61,6 +61,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         description="Robot work-cell controller: cameras, robots, calibration, pick guidance. "
                     "Every route except /health, /docs and /openapi.json needs 'Authorization: Bearer <token>'.",
         lifespan=lifespan,
+        docs_url=None, redoc_url=None,  # served from local assets by routes/ui.py (no CDN)
     )
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
