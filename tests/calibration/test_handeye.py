@@ -133,6 +133,21 @@ def test_rotation_about_one_axis_refused() -> None:
         calibrate_handeye("eye-in-hand", G, dets, CAM, TARGET, NOISE)
 
 
+def test_top_down_only_motion_refused_with_pointer_to_4dof() -> None:
+    """A SCARA-style set (the tool turns only about the base z axis) is degenerate for 6-DOF AX=XB;
+    the refusal names the 4-DOF solver."""
+    sim = _sim("eye-in-hand", seed=12)
+    rng = np.random.default_rng(12)
+    G0 = sim.G_true[7]  # a view with the target well inside the image
+    centre = make_transform(np.eye(3), (sim.Z_true @ np.append(TARGET.points().xyz_m.mean(axis=0), 1.0))[:3])
+    G = [centre @ make_transform(rotvec_to_matrix([0.0, 0.0, np.radians(a)]), np.append(rng.uniform(-0.01, 0.01, 2), 0))
+         @ invert(centre) @ G0 for a in (-12, -8, -4, 0, 4, 8, 12, 15)]
+    dets = _detections_for("eye-in-hand", G, sim.X_true, sim.Z_true, rng)
+    with pytest.raises(HandEyeError, match="one axis") as err:
+        calibrate_handeye("eye-in-hand", G, dets, CAM, TARGET, NOISE)
+    assert "--dof 4 --target-z-mm" in str(err.value)
+
+
 def test_too_few_poses_refused() -> None:
     sim = _sim("eye-in-hand", seed=10, n=2)
     with pytest.raises(HandEyeError, match="at least 3"):
