@@ -11,6 +11,7 @@ import argparse
 import importlib
 import logging
 import sys
+import traceback
 from collections.abc import Sequence
 from typing import Final
 
@@ -63,10 +64,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             emit(result, getattr(args, "out_json", None))
         return 0
     except CommandError as exc:
+        if args.verbose:  # -v: the traceback too, then the one-line error last
+            traceback.print_exc(file=sys.stderr)
         print(f"cellctl: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except (ValueError, OSError, RuntimeError, TimeoutError) as exc:
         # Typed errors of our packages subclass these; their messages are meant for the user.
+        if args.verbose:
+            traceback.print_exc(file=sys.stderr)
         print(f"cellctl: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
