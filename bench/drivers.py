@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from drivers.base import MotionLimits  # noqa: E402
 from drivers.robot.ur_rtde import URRTDERobot  # noqa: E402
-from drivers.sim.ur_emulator import fixed_port_lock  # noqa: E402
+from drivers.peers.ur_emulator import fixed_port_lock  # noqa: E402
 from tests.drivers.netns import run_scenario  # noqa: E402
 from tests.drivers.peers import wait_port  # noqa: E402
 
@@ -62,7 +62,7 @@ def camera(seconds: float) -> dict[str, Any]:
 def robot(n_moves: int, state_reads: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
     with fixed_port_lock():
-        emu = subprocess.Popen([sys.executable, "-m", "drivers.sim.ur_emulator"], cwd=ROOT,
+        emu = subprocess.Popen([sys.executable, "-m", "drivers.peers.ur_emulator"], cwd=ROOT,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             wait_port(30003)

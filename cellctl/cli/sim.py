@@ -34,7 +34,7 @@ def truth(args: argparse.Namespace) -> dict[str, Any]:
 
 def ur(args: argparse.Namespace) -> None:
     try:
-        emulator = importlib.import_module("drivers.sim.ur_emulator")
+        emulator = importlib.import_module("drivers.peers.ur_emulator")
     except ImportError as exc:
         raise CommandError(f"the UR emulator is not available in this installation ({exc})") from None
     emulator.run(host=args.host)

@@ -2,7 +2,7 @@
 
 Robotiq's register map: the action request, position, speed and force go to holding registers
 1000-1002; the status (activated, moving, object detected), fault, position and current come back
-from input registers 2000-2002 (see ``drivers/sim/robotiq_gripper.py`` for the bytes).
+from input registers 2000-2002 (see ``drivers/peers/robotiq_gripper.py`` for the bytes).
 
 Gripper API: ``activate()``, ``open_gripper()``, ``close_gripper()``, ``move(position, ...)``
 (0 open .. 255 closed), ``status()``. As a digital IO device, output 0 closes (True) or opens

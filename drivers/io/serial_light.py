@@ -1,7 +1,7 @@
 """LED light controllers with an ASCII command protocol on a serial port (``kind: serial_light``).
 
 The commands are templates in the settings (the defaults speak the protocol of
-``drivers/sim/serial_light.py``; most controllers differ only in the words): set a channel's
+``drivers/peers/serial_light.py``; most controllers differ only in the words): set a channel's
 intensity, read it back, fire a strobe pulse. As a digital IO device, output *ch* switches channel
 *ch* on (at ``on_intensity_percent``) or off, and input *ch* reads whether it is lit.
 

@@ -16,7 +16,7 @@ The map names, for each value, its register address, data type (``int16``, ``uin
 A poll thread reads the pose, status and inputs at ``poll_hz`` and stamps each sample with the
 host time; ``state()`` never does IO and refuses a sample older than ``state_max_age_s``. Lost
 connections are reopened with exponential backoff; the outages are counted (``health()``). The
-defaults match the simulator in ``drivers/sim/modbus_robot.py``.
+defaults match the simulator in ``drivers/peers/modbus_robot.py``.
 """
 
 from __future__ import annotations

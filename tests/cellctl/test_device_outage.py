@@ -1,6 +1,6 @@
 """A device that is unreachable never hangs a route: 503 quickly, and the service reconnects by
 itself when the device comes back. The device is a Modbus TCP robot (the pymodbus simulator of
-``drivers/sim/modbus_robot.py``, a real protocol peer) on a loopback port."""
+``drivers/peers/modbus_robot.py``, a real protocol peer) on a loopback port."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def test_unreachable_robot_is_503_then_recovers(tmp_path: Path) -> None:
                 assert r.status_code == 503, r.text
                 body = r.json()
                 assert body["available"] is False and body["reason"]
-            peer = subprocess.Popen([sys.executable, "-m", "drivers.sim.modbus_robot", "--host", "127.0.0.1",
+            peer = subprocess.Popen([sys.executable, "-m", "drivers.peers.modbus_robot", "--host", "127.0.0.1",
                                      "--port", str(port)], cwd=REPO)
             deadline = time.monotonic() + 30
             while True:

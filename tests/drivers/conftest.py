@@ -12,7 +12,7 @@ from tests.drivers.peers import PeerProcess
 @pytest.fixture
 def ur_ports() -> Iterator[None]:
     """Exclusive use of the fixed UR ports on 127.0.0.1 (ur_rtde cannot use others)."""
-    from drivers.sim.ur_emulator import fixed_port_lock
+    from drivers.peers.ur_emulator import fixed_port_lock
 
     with fixed_port_lock():
         yield
@@ -20,7 +20,7 @@ def ur_ports() -> Iterator[None]:
 
 @pytest.fixture
 def ur_emulator(ur_ports: None) -> Iterator[PeerProcess]:
-    peer = PeerProcess("drivers.sim.ur_emulator", ready_port=30003).start()
+    peer = PeerProcess("drivers.peers.ur_emulator", ready_port=30003).start()
     try:
         yield peer
     finally:

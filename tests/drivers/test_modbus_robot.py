@@ -33,7 +33,7 @@ def _settings(port: int, **kw: object) -> dict[str, object]:
 
 
 def start_sim(port: int, *args: str) -> PeerProcess:
-    return PeerProcess("drivers.sim.modbus_robot", "--port", str(port), *args, ready_port=port).start()
+    return PeerProcess("drivers.peers.modbus_robot", "--port", str(port), *args, ready_port=port).start()
 
 
 @pytest.fixture

@@ -27,7 +27,7 @@ def pty_pair(tmp_path: Path) -> Iterator[SocatPair]:
 
 def start_sim(pair: SocatPair, *extra: str) -> PeerProcess:
     peer = PeerProcess(
-        "drivers.sim.robotiq_gripper", "--port", str(pair.b), *extra, ready_text="gripper simulator on"
+        "drivers.peers.robotiq_gripper", "--port", str(pair.b), *extra, ready_text="gripper simulator on"
     ).start()
     return peer
 

@@ -24,7 +24,7 @@ def pty_pair(tmp_path: Path) -> Iterator[SocatPair]:
 
 
 def start_sim(pair: SocatPair, *extra: str) -> PeerProcess:
-    peer = PeerProcess("drivers.sim.serial_light", "--port", str(pair.b), *extra, ready_text="ready on").start()
+    peer = PeerProcess("drivers.peers.serial_light", "--port", str(pair.b), *extra, ready_text="ready on").start()
     return peer
 
 

@@ -15,7 +15,7 @@ import pytest
 from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
-from drivers.sim.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
+from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from tests.drivers.peers import PeerProcess, wait_port
 
 LIMITS = MotionLimits(
@@ -67,7 +67,7 @@ def test_registry_and_settings_validation() -> None:
 def shared_robot() -> Iterator[URRTDERobot]:
     """One emulator and one connected adapter for the tests that do not break the peer."""
     with fixed_port_lock():
-        peer = PeerProcess("drivers.sim.ur_emulator", ready_port=30003).start()
+        peer = PeerProcess("drivers.peers.ur_emulator", ready_port=30003).start()
         r = URRTDERobot("ur0", SETTINGS, LIMITS)
         try:
             r.connect()

@@ -24,7 +24,7 @@ The handshake: write target and speed, write command 1; status goes 1 (busy) the
 the robot stays where it stopped). The reachable workspace is a
 1 m sphere around the base above z = 0.
 
-Run it with ``python -m drivers.sim.modbus_robot --port 5020`` (or in-process: :class:`ModbusRobotSim`).
+Run it with ``python -m drivers.peers.modbus_robot --port 5020`` (or in-process: :class:`ModbusRobotSim`).
 """
 
 from __future__ import annotations

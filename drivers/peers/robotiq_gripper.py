@@ -14,7 +14,7 @@ It follows Robotiq's 2F register map (device id 9, 115200 baud by default):
 Activation takes ``activation_s``; the fingers move at 100 + 1.5 x speed position units per second;
 an object sits at position ``--object-at`` (closing past it stops there with gOBJ = 2; -1 = none).
 
-Run it on one end of a pty pair: ``python -m drivers.sim.robotiq_gripper --port /tmp/gripper-b``.
+Run it on one end of a pty pair: ``python -m drivers.peers.robotiq_gripper --port /tmp/gripper-b``.
 """
 
 from __future__ import annotations

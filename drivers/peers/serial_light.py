@@ -12,7 +12,7 @@ anything else                 ``ERR <code> <text>`` (1 unknown command, 2 bad ch
 ============================  ===================================================
 
 Run it on one end of a pseudo-terminal pair (``socat -d -d pty,raw,echo=0,link=/tmp/light-a
-pty,raw,echo=0,link=/tmp/light-b``): ``python -m drivers.sim.serial_light --port /tmp/light-b``.
+pty,raw,echo=0,link=/tmp/light-b``): ``python -m drivers.peers.serial_light --port /tmp/light-b``.
 ``--garbage`` makes it answer every command with bytes that follow no protocol (for fault tests).
 """
 
