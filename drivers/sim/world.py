@@ -206,19 +206,23 @@ def part_mask(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], 
     """Points (table frame, metres) inside a part's outline and outside its holes."""
     a = np.radians(angle_deg)
     c, s = np.cos(a), np.sin(a)
-    dx, dy = x * 1000.0 - x_mm0, y * 1000.0 - y_mm0
-    px, py = c * dx + s * dy, -s * dx + c * dy  # into the part frame (mm)
     poly = np.asarray(outline_mm, dtype=np.float64)
     radius = float(np.max(np.linalg.norm(poly, axis=1)))
-    near = px * px + py * py <= radius * radius
     inside = np.zeros(x.shape, dtype=bool)
-    if not np.any(near):
+    # A box test on the raw coordinates first: most of a frame's points are far from every part.
+    r_m = radius / 1000.0 + 1e-6
+    box = (np.abs(x - x_mm0 / 1000.0) <= r_m) & (np.abs(y - y_mm0 / 1000.0) <= r_m)
+    if not np.any(box):
         return inside
+    dx, dy = x[box] * 1000.0 - x_mm0, y[box] * 1000.0 - y_mm0
+    px, py = c * dx + s * dy, -s * dx + c * dy  # into the part frame (mm)
+    near = px * px + py * py <= radius * radius
     qx, qy = px[near], py[near]
     m = _even_odd(poly, qx, qy)
     for hole in holes_mm:
         m &= ~_even_odd(np.asarray(hole, dtype=np.float64), qx, qy)
-    inside[near] = m
+    near[near] = m
+    inside[box] = near
     return inside
 
 

@@ -1,0 +1,152 @@
+"""Compiled inner loops of the renderer (numba): ray-plane hits, sub-pixel rays, edge pixels.
+
+Each loop fuses what would be a dozen full-image numpy passes into one, and compacts the rays
+that hit a plane so that the plane's reflectance (a numpy function) is evaluated on those only.
+Compiled once and cached on disk beside this module (``cache=True``); the renderer's
+``render_scene`` is the public entry, these are its private pieces.
+
+Conventions: ``field`` is the (H, W, 2) ray field (``[x, y, 1]`` rays, float64); a plane is the
+homography ``H`` from rays to homogeneous object coordinates (row 2 the plane normal) and
+``d = n . t`` (hit depth ``d / (n . ray)``); ``depth``, ``which`` and ``value`` are flat arrays
+over the rays being shaded (pixels, or sub-pixel rays ``e * n * n + j * n + i``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+
+@njit(cache=True, nogil=True)
+def hit_pixels(field: NDArray[np.float64], r0: int, r1: int, c0: int, c1: int, H: NDArray[np.float64],
+               d: float, index: int, depth: NDArray[np.float64], which: NDArray[np.int32],
+               ox: NDArray[np.float64], oy: NDArray[np.float64], lam: NDArray[np.float64],
+               flat: NDArray[np.int64]) -> int:  # pragma: no cover - compiled
+    """Pixel-centre rays of the window that hit the plane in front of ``depth`` (ties: the lower
+    object index wins); their object coordinates, depth and flat pixel index, compacted. Count."""
+    width = field.shape[1]
+    n = 0
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            x = field[r, c, 0]
+            y = field[r, c, 1]
+            w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+            if w == 0.0:
+                continue
+            lm = d / w
+            k = r * width + c
+            if lm > 0.0 and (lm < depth[k] or (lm == depth[k] and which[k] > index)):
+                ox[n] = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+                oy[n] = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+                lam[n] = lm
+                flat[n] = k
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def hit_subrays(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
+                only: NDArray[np.int64], nsub: int, r0: int, r1: int, c0: int, c1: int,
+                H: NDArray[np.float64], d: float, index: int, depth: NDArray[np.float64],
+                which: NDArray[np.int32], ox: NDArray[np.float64], oy: NDArray[np.float64],
+                lam: NDArray[np.float64], flat: NDArray[np.int64]) -> int:  # pragma: no cover
+    """As ``hit_pixels`` for the ``nsub x nsub`` sub-pixel rays of the listed pixels.
+
+    A pixel takes part when ``only`` names this plane, or when it is -2 (several objects
+    around it) and the pixel is inside the plane's window. Sub-rays are linear in the ray field
+    (central differences, one-sided at the image border).
+    """
+    h, w_img = field.shape[0], field.shape[1]
+    n2 = nsub * nsub
+    n = 0
+    for e in range(rows.size):
+        r = rows[e]
+        c = cols[e]
+        if only[e] != index and not (only[e] == -2 and r0 <= r < r1 and c0 <= c < c1):
+            continue
+        cl, cr = max(c - 1, 0), min(c + 1, w_img - 1)
+        ru, rd = max(r - 1, 0), min(r + 1, h - 1)
+        dux = (field[r, cr, 0] - field[r, cl, 0]) / (cr - cl)
+        duy = (field[r, cr, 1] - field[r, cl, 1]) / (cr - cl)
+        dvx = (field[rd, c, 0] - field[ru, c, 0]) / (rd - ru)
+        dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
+        bx = field[r, c, 0]
+        by = field[r, c, 1]
+        for j in range(nsub):
+            ov = (j + 0.5) / nsub - 0.5
+            for i in range(nsub):
+                ou = (i + 0.5) / nsub - 0.5
+                x = bx + ou * dux + ov * dvx
+                y = by + ou * duy + ov * dvy
+                w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+                if w == 0.0:
+                    continue
+                lm = d / w
+                k = e * n2 + j * nsub + i
+                if lm > 0.0 and (lm < depth[k] or (lm == depth[k] and which[k] > index)):
+                    ox[n] = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+                    oy[n] = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+                    lam[n] = lm
+                    flat[n] = k
+                    n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def take_hits(n: int, refl: NDArray[np.float64], lam: NDArray[np.float64], flat: NDArray[np.int64], index: int,
+              value: NDArray[np.float64], depth: NDArray[np.float64],
+              which: NDArray[np.int32]) -> None:  # pragma: no cover - compiled
+    """Store the hits whose reflectance is defined (not NaN: the object is there)."""
+    for i in range(n):
+        v = refl[i]
+        if np.isfinite(v):
+            k = flat[i]
+            value[k] = v
+            depth[k] = lam[i]
+            which[k] = index
+
+
+@njit(cache=True, nogil=True)
+def edge_pixels(value: NDArray[np.float64], which: NDArray[np.int32]
+                ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover
+    """Pixels whose value or object differs from one of their 8 neighbours (inside the image),
+    and the one object their 3x3 neighbourhood sees (-1 background, -2 several).
+
+    Each neighbouring pair is compared once (right, down-left, down, down-right) and marks both.
+    """
+    h, w = value.shape
+    mark = np.zeros((h, w), np.uint8)  # bit 0: edge; bit 1: more than one object around
+    for r in range(h):
+        for c in range(w):
+            v = value[r, c]
+            k = which[r, c]
+            for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+                rr = r + dr
+                cc = c + dc
+                if rr >= h or cc < 0 or cc >= w:
+                    continue
+                if which[rr, cc] != k:
+                    mark[r, c] |= 3
+                    mark[rr, cc] |= 3
+                elif value[rr, cc] != v:
+                    mark[r, c] |= 1
+                    mark[rr, cc] |= 1
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            if mark[r, c]:
+                n += 1
+    rows = np.empty(n, np.int64)
+    cols = np.empty(n, np.int64)
+    only = np.empty(n, np.int64)
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            m = mark[r, c]
+            if m:
+                rows[n] = r
+                cols[n] = c
+                only[n] = -2 if m & 2 else which[r, c]
+                n += 1
+    return rows, cols, only
