@@ -14,7 +14,9 @@ operator can argue with them):
   image width/height.
 - ``projection_uncertain``: the expected projection error over the covered region
   (``uncertainty.projection_rms_px``) above ``MAX_PROJECTION_RMS_PX``: the data do not pin the
-  model's parameters down (too many parameters for the data, or too little data).
+  model's parameters down (too many parameters for the data, or too little data). The advice
+  depends on the model: more and better-spread views always; fewer coefficients only where the
+  model has some to spare and the lens is not wide-angle (``WIDE_ANGLE_FOV_DEG``).
 - ``outlier_views``: views whose RMS is far above the rest (advice only; does not fail).
 """
 
@@ -31,6 +33,8 @@ CORNER_FRACTION: Final = 0.2
 MAX_FOCAL_REL_SIGMA: Final = 0.01
 MAX_PP_REL_SIGMA: Final = 0.01
 MAX_PROJECTION_RMS_PX: Final = 0.5
+WIDE_ANGLE_FOV_DEG: Final = 90.0
+"""A lens seeing this much across (horizontal) is wide-angle: its distortion terms are needed."""
 
 
 def tilts_deg(normals: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -51,10 +55,34 @@ def uncovered_corners(coverage: NDArray[np.int64], fraction: float = CORNER_FRAC
     return [k for k, r in regions.items() if r.sum() == 0]
 
 
+def horizontal_fov_deg(size: tuple[int, int], fx: float) -> float:
+    """Horizontal field of view (degrees) of a pinhole with focal length ``fx`` (px) over ``size``."""
+    return float(np.degrees(2.0 * np.arctan2(size[0] / 2.0, fx))) if fx > 0 else float("nan")
+
+
+def _projection_advice(model: str, size: tuple[int, int], values: dict[str, float]) -> str:
+    """What to do about a poorly determined projection, checked against the model and the lens."""
+    more_data = "add views (10-20), tilted 20-45 deg, that cover the image corners and edges"
+    fov = horizontal_fov_deg(size, float(values.get("fx", 0.0)))
+    if model == "division":
+        return more_data + " (the division model has a single distortion coefficient: none to drop)"
+    if np.isfinite(fov) and fov >= WIDE_ANGLE_FOV_DEG:
+        return (more_data + f" (a wide-angle lens, {fov:.0f} deg across: it needs its distortion terms, so "
+                "do not drop coefficients; the division model often describes such lenses with one)")
+    if model == "opencv8":
+        return more_data + ", or choose opencv5 (5 coefficients instead of 8)"
+    if model == "opencv5":
+        return more_data + ", or choose the division model (1 coefficient instead of 5)"
+    return more_data
+
+
 def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], normals: NDArray[np.float64],
            sigmas: dict[str, float], values: dict[str, float], uncertainty: dict[str, Any],
-           n_outlier_views: int = 0) -> dict[str, Any]:
-    """The ``verdict`` block of ``cam.json``: ``{"ok": bool, "problems": [{"code", "message"}]}``."""
+           n_outlier_views: int = 0, model: str = "") -> dict[str, Any]:
+    """The ``verdict`` block of ``cam.json``: ``{"ok": bool, "problems": [{"code", "message"}]}``.
+
+    ``model`` (the lens model's name) makes the advice fit it: no "fewer coefficients" for the
+    one-coefficient division model or for a wide-angle lens."""
     problems: list[dict[str, str]] = []
     advice: list[dict[str, str]] = []
     if n_views < MIN_GOOD_VIEWS:
@@ -104,8 +132,7 @@ def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], 
         problems.append({"code": "projection_uncertain",
                          "message": f"expected projection error over the covered region is {shown} "
                                     f"(limit {MAX_PROJECTION_RMS_PX} px): a parameter is poorly "
-                                    "determined; add views, cover the corners, or choose a model with fewer "
-                                    "coefficients"})
+                                    f"determined; {_projection_advice(model, size, values)}"})
     if n_outlier_views:
         advice.append({"code": "outlier_views",
                        "message": f"{n_outlier_views} view(s) fit far worse than the rest (see "

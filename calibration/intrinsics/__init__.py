@@ -55,6 +55,7 @@ from calibration.intrinsics.results import (
     POINT_OUTLIER_SIGMAS,
     VIEW_OUTLIER_FACTOR,
     CalibrationError,
+    CrossValidationError,
     IntrinsicsResult,
     ViewResult,
 )
@@ -74,7 +75,7 @@ _grid = cell_grid  # the name calibration.report imports (it predates the split)
 
 __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
-    "VIEW_OUTLIER_FACTOR", "CalibrationError", "IntrinsicsResult", "ViewResult", "calibrate",
+    "VIEW_OUTLIER_FACTOR", "CalibrationError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "coverage_counts", "covered_points", "cross_validate",
     "intrinsics_vector", "param_names", "plan_views", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations", "synthetic_detections",

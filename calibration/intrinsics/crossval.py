@@ -7,10 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.intrinsics.results import (
-    MIN_VIEWS,
-    CalibrationError,
-)
+from calibration.intrinsics.results import MIN_VIEWS, CalibrationError, CrossValidationError, IntrinsicsResult
 from calibration.intrinsics.solver import calibrate
 from calibration.intrinsics.uncertainty import (
     covered_points,
@@ -21,24 +18,40 @@ from calibration.targets import Target
 
 
 def cross_validate(detections: Sequence[Detection], target: Target, model: str, k: int = 2, *,
-                   image_size: tuple[int, int] | None = None, drop_outliers: bool = False) -> dict[str, Any]:
+                   image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
+                   full: IntrinsicsResult | None = None) -> dict[str, Any]:
     """k-fold cross-validation (mrcal's idea): split the views into ``k`` disjoint folds
     (view ``i`` goes to fold ``i mod k``), calibrate each fold on its own, and report the
     projection difference between every pair of fold solutions over the image region the whole
     data set covered (best rotation compensated). Two solutions from independent data differ by
     about sqrt(2) times each one's projection uncertainty if the model fits the lens; a much
     larger difference means the model cannot describe the lens (or the data are inconsistent).
+
+    Folds are made of the views the full calibration used (``full`` if given). Raises
+    CrossValidationError (the calibration itself is not affected) when ``k`` is too large for
+    the usable views or a fold cannot be calibrated.
     """
     if k < 2:
         raise CalibrationError("cross-validation needs k >= 2 folds")
     found = [d for d in detections if d.found]
-    if len(found) < MIN_VIEWS * k:
-        raise CalibrationError(f"{len(found)} views with the target are too few for {k}-fold "
-                               f"cross-validation (each fold needs {MIN_VIEWS}); use a smaller k")
-    full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers)
+    if full is None:
+        if len(found) < MIN_VIEWS * k:  # before spending a full calibration on it
+            raise CrossValidationError(_too_large(k, len(found), "views with the target"))
+        full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers)
+    used = {v.image for v in full.views if v.used}
+    usable = [d for d in found if d.image in used]
+    if len(usable) < MIN_VIEWS * k:
+        raise CrossValidationError(_too_large(k, len(usable), "usable views (after the full calibration's "
+                                                              "rejections)"))
     pts = covered_points(full)
-    fold_res = [calibrate(found[f::k], target, model, image_size=image_size, drop_outliers=drop_outliers)
-                for f in range(k)]
+    fold_res = []
+    for f in range(k):
+        try:
+            fold_res.append(calibrate(usable[f::k], target, model, image_size=full.camera.size,
+                                      drop_outliers=drop_outliers))
+        except CalibrationError as exc:
+            raise CrossValidationError(f"fold {f + 1} of {k} ({len(usable[f::k])} views) cannot be calibrated "
+                                       f"({exc}); use a smaller k") from exc
     pairs = []
     for a in range(k):
         for b in range(a + 1, k):
@@ -56,3 +69,10 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
             np.hypot(fold_res[p["folds"][0]].uncertainty["projection_rms_px"] or 0.0,
                      fold_res[p["folds"][1]].uncertainty["projection_rms_px"] or 0.0) for p in pairs])),
     }
+
+
+def _too_large(k: int, n: int, what: str) -> str:
+    hint = (f"use k <= {n // MIN_VIEWS}" if n // MIN_VIEWS >= 2
+            else f"cross-validation needs at least {2 * MIN_VIEWS} usable views")
+    return (f"k = {k} is too large for {n} views: {n} {what} are too few for {k}-fold cross-validation "
+            f"(each fold needs at least {MIN_VIEWS}); {hint}")

@@ -25,6 +25,11 @@ class CalibrationError(ValueError):
     """The data cannot produce a calibration (too few views or points, degenerate geometry)."""
 
 
+class CrossValidationError(CalibrationError):
+    """Cross-validation cannot run on these data (k too large for the usable views, a fold fails);
+    the calibration itself may still be fine."""
+
+
 # --------------------------------------------------------------------------------------------
 # results
 
@@ -88,6 +93,7 @@ class IntrinsicsResult:
         out = self.camera.to_dict()
         out["rms_px"] = fin(self.rms_px)
         out["views"] = [v.to_json() for v in self.views]
+        out["rejected_views"] = [{"image": v.image, "reason": v.reason} for v in self.views if not v.used]
         out["uncertainty"] = self.uncertainty
         out["verdict"] = self.verdict
         out["parameters"] = {

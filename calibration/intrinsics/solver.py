@@ -142,7 +142,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     normals = R[:, :, 2]
     verdict = assess(n_views=len(views), size=size, coverage=coverage, normals=normals, sigmas=sig,
                      values=dict(zip(names, c.tolist(), strict=True)), uncertainty=unc,
-                     n_outlier_views=int(view_out.sum()))
+                     n_outlier_views=int(view_out.sum()), model=model)
     del pose_cov
     return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
                             param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,

@@ -49,7 +49,14 @@ def collect_views(detections: Sequence[Detection], target: Target,
                                "circle_grid); for a 3D target use calib dlt")
     tp = target.points()
     where = {int(i): k for k, i in enumerate(tp.ids)}
-    sizes = [d.image_size for d in detections if d.found and d.image_size != (0, 0)]
+    found = [d for d in detections if d.found]
+    if detections and not found:
+        reasons = sorted({d.reason for d in detections if d.reason})
+        raise CalibrationError(
+            f"the target ({target.describe()}) was found in none of the {len(detections)} images"
+            + (f" ({reasons[0]})" if reasons else "")
+            + "; is the target file the one in the images (type, size, rows and columns)?")
+    sizes = [d.image_size for d in found if d.image_size != (0, 0)]
     if image_size is None:
         if not sizes:
             raise CalibrationError("image size unknown: no detection carries it; pass image_size")
@@ -64,7 +71,9 @@ def collect_views(detections: Sequence[Detection], target: Target,
             vr.reason = d.reason or "target not found"
             continue
         if d.image_size not in ((0, 0), image_size):
-            vr.reason = f"image size {d.image_size} differs from {image_size}"
+            vr.reason = (f"image size {d.image_size[0]}x{d.image_size[1]} differs from the calibration's "
+                         f"{image_size[0]}x{image_size[1]} (the most common size); one calibration per "
+                         "camera and resolution")
             continue
         ids = np.asarray(d.ids, dtype=np.int64).reshape(-1)
         bad = [int(i) for i in ids if int(i) not in where]

@@ -1,7 +1,8 @@
 """``cellctl calib intrinsics``: camera calibration from images (or detections) of a planar target.
 
 Prints the camera result (shared/INTERFACES.md §4 ``cam.json``) on stdout, writes it with
-``--out``, and prints each verdict problem on stderr. Exits 0 when the calibration itself
+``--out``, and prints each rejected view (with its reason), each verdict problem and a
+cross-validation that cannot run (k too large for the usable views) on stderr. Exits 0 when the calibration itself
 succeeded, even if the verdict says the data cannot support the model (``verdict.ok`` false);
 non-zero with one clear line when it could not calibrate.
 """
@@ -107,17 +108,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise CommandError(f"calibration failed: {exc}") from exc
     out = res.to_json()
     out["target"] = target.describe()
+    for rej in out["rejected_views"]:
+        print(f"cellctl: view rejected: {rej['image']}: {rej['reason']}", file=sys.stderr)
     if args.cross_validate:
         try:
             out["cross_validation"] = intrinsics.cross_validate(dets, target, args.model, args.cross_validate,
-                                                                drop_outliers=args.drop_outliers)
-        except intrinsics.CalibrationError as exc:
-            raise CommandError(f"cross-validation failed: {exc}") from exc
+                                                                drop_outliers=args.drop_outliers, full=res)
+        except intrinsics.CrossValidationError as exc:
+            # The calibration stands; only the cross-validation cannot run as asked.
+            out["cross_validation"] = {"k": args.cross_validate, "error": str(exc)}
+            print(f"cellctl: cross-validation not run: {exc}", file=sys.stderr)
     _exports(args, res.camera)
     if args.report:
         from calibration.report import write_report
 
-        write_report(res, args.report, cross_validation=out.get("cross_validation"))
+        cv = out.get("cross_validation")
+        write_report(res, args.report, cross_validation=cv if cv and "error" not in cv else None)
         log.info("report written to %s", args.report)
     for prob in res.verdict["problems"]:
         print(f"cellctl: verdict: {prob['code']}: {prob['message']}", file=sys.stderr)
