@@ -37,7 +37,7 @@ from calibration.sensor import Imaging, to_grey
 
 __all__ = ["Imaging", "PlanarObject", "ray_field", "render", "render_reflectance", "render_scene", "to_grey"]
 
-Reflectance = Callable[[NDArray[np.floating], NDArray[np.floating]], NDArray[np.float64]]
+Reflectance = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
 
 
@@ -56,8 +56,8 @@ _WINDOW_PX = 8
 class PlanarObject:
     """A plane ``z = 0`` of frame ``obj`` placed at ``T_cam_obj``, with its printed pattern.
 
-    ``reflectance(x, y)`` takes object-frame coordinates (metres; float32 arrays for pixel
-    centres, float64 for supersamples) and returns values in [0, 1], NaN where the object is not.
+    ``reflectance(x, y)`` takes object-frame coordinates (metres, 1-D float64 arrays of the rays
+    that hit the plane) and returns values in [0, 1], NaN where the object is not.
     ``extent_m`` ``(x_min, y_min, x_max, y_max)`` bounds where it may be non-NaN; it only saves
     work. It defaults to the target's own ``extent_m()`` when ``reflectance`` is a method of a
     target that has one, else the plane is unbounded.

@@ -37,6 +37,29 @@ class _Strict(BaseModel):
 
 
 class ImagingSpec(_Strict):
+    """How the virtual camera turns what it sees into grey levels (DN, 0..255), defects included.
+
+    Every defect is off by default. They apply in the order light meets them
+    (``calibration.sensor``, where the formulas are):
+
+    - ``light_gradient``: brightness ramp from the image's left to its right edge;
+    - ``vignetting``: fraction of the light lost at the image corners (cos^4 law of the distance
+      from the image centre): 0.3 leaves the corners 70 % of the centre's brightness;
+    - blur: ``blur_sigma_px`` (Gaussian) and defocus in quadrature: with ``focus_distance_m``
+      (camera z of the plane in focus) set, a pixel seeing depth ``z`` is blurred by
+      ``defocus_sigma_px_per_diopter * |1/z - 1/focus_distance_m|`` px (a thin lens's blur circle);
+    - ``motion_blur_px``: uniform motion of that length (px) along ``motion_blur_angle_deg``
+      (image frame: 0 is +u, 90 is +v, down);
+    - noise: ``noise_sigma`` (Gaussian, DN), shot noise of ``grey / gain_dn_per_e`` electrons
+      (Poisson; ``gain_dn_per_e`` 0 is off) and ``read_noise_dn`` (Gaussian): variance
+      ``gain * grey + read^2``;
+    - ``gamma``: encoding ``255 (grey / 255)^(1 / gamma)`` (1: linear);
+    - ``jpeg_quality``: JPEG compression at that quality (1..100; none when absent).
+
+    Random draws follow the scene's ``seed`` (or the camera's ``seed`` setting): one seed, one
+    sequence of frames.
+    """
+
     black_level: float = Field(25.0, ge=0, le=255)
     white_level: float = Field(225.0, ge=0, le=255)
     background: float = Field(0.45, ge=0, le=1)
@@ -45,6 +68,20 @@ class ImagingSpec(_Strict):
     """Gaussian noise, grey levels (1-sigma)."""
     light_gradient: float = Field(0.0, ge=-1, le=1)
     supersample: int = Field(6, ge=1, le=16)
+    vignetting: float = Field(0.0, ge=0, lt=1)
+    """Fraction of the light lost at the image corners."""
+    focus_distance_m: float | None = Field(None, gt=0, le=100)
+    """Camera z (m) of the plane in focus; absent: no defocus."""
+    defocus_sigma_px_per_diopter: float = Field(0.0, ge=0, le=50)
+    """Defocus blur sigma (px) per diopter (1/m) of distance from the focus plane."""
+    motion_blur_px: float = Field(0.0, ge=0, le=100)
+    motion_blur_angle_deg: float = Field(0.0, ge=-360, le=360)
+    gain_dn_per_e: float = Field(0.0, ge=0, le=10)
+    """Grey levels per electron (shot noise); 0: no shot noise."""
+    read_noise_dn: float = Field(0.0, ge=0, le=50)
+    """Read noise, grey levels (1-sigma)."""
+    gamma: float = Field(1.0, ge=0.2, le=5)
+    jpeg_quality: int | None = Field(None, ge=1, le=100)
 
 
 class CameraSpec(_Strict):

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.render import Imaging, PlanarObject, render_reflectance, to_grey
+from calibration.render import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
 from drivers.sim.scene import SceneSpec, load_scene
 
@@ -39,7 +39,7 @@ class SimWorld:
         self._T_report_error = np.eye(4)
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
-        self._reflectance_cache: tuple[bytes, NDArray[np.float64]] | None = None
+        self._reflectance_cache: tuple[bytes, NDArray[np.float64], NDArray[np.float64]] | None = None
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -133,11 +133,11 @@ class SimWorld:
         """A grey image of what the camera sees now (noise drawn from the world's generator).
 
         The geometric rendering (the expensive part) is cached for as long as the camera's pose
-        and the scene's parts stay put; every frame still gets its own lighting, blur and noise.
+        and the scene's parts stay put; every frame still gets its own lighting, blur, noise and
+        the other imaging defects of the scene (``calibration.sensor``).
         """
         im = self.scene.camera.imaging
-        imaging = Imaging(im.black_level, im.white_level, im.background, im.blur_sigma_px,
-                          im.noise_sigma, im.light_gradient)
+        imaging = Imaging(**im.model_dump(exclude={"supersample"}))
         with self._lock:
             key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
             cached = self._reflectance_cache
@@ -147,12 +147,12 @@ class SimWorld:
             rng = np.random.default_rng(self._rng.integers(2**63))
         if hit:
             assert cached is not None
-            reflectance = cached[1]
+            reflectance, depth_m = cached[1], cached[2]
         else:
-            reflectance = render_reflectance(self.camera_model, objects, im.background, im.supersample)
+            reflectance, depth_m = render_scene(self.camera_model, objects, im.background, im.supersample)
             with self._lock:
-                self._reflectance_cache = (key, reflectance)
-        return to_grey(reflectance, imaging, rng)
+                self._reflectance_cache = (key, reflectance, depth_m)
+        return to_grey(reflectance, imaging, rng, depth_m)
 
     def _table_reflectance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
         table = self.scene.table
