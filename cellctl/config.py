@@ -39,6 +39,12 @@ class HttpConfig(_Strict):
     """PEM certificate (chain) for HTTPS, e.g. /etc/cellctl/tls/cert.pem; None: plain HTTP."""
     tls_key: str | None = None
     """PEM private key of ``tls_cert``, e.g. /etc/cellctl/tls/key.pem (readable by the service user only)."""
+    max_body_mb: float = Field(8.0, gt=0, le=1024)
+    """Largest request body (MB, 10^6 bytes); a larger one is refused with 413 before it is parsed or authorised."""
+    max_event_streams: int = Field(16, ge=1, le=1000)
+    """Open event streams (``/jobs/{id}/events``) over all callers; more are refused with 429."""
+    max_event_streams_per_token: int = Field(4, ge=1, le=1000)
+    """Open event streams per token; more are refused with 429."""
 
     @model_validator(mode="after")
     def _tls_pair(self) -> HttpConfig:
@@ -140,6 +146,12 @@ class ModbusServerConfig(_Strict):
     """Modbus unit (device) id the server answers to; 0 answers every unit id."""
 
 
+TRUST_HINT = ("security basic256sha256 needs trusted_client_certs: a directory holding the certificate of "
+              "each PLC/client allowed to connect (DER or PEM, e.g. /etc/cellctl/opcua/trusted/plc.der); copy the "
+              "client's application certificate there and set plc.opcua.trusted_client_certs to that directory "
+              "(docs/plc-opcua.md, 'Trusting a client')")
+
+
 class OpcUaServerConfig(_Strict):
     """The OPC UA server for PLCs (address space: docs/plc-opcua.md)."""
 
@@ -153,18 +165,25 @@ class OpcUaServerConfig(_Strict):
     key: str | None = None
     """Its private key (PEM), readable by the service user only."""
     trusted_client_certs: str | None = None
-    """Directory of trusted client certificates (DER/PEM); None: any client certificate is accepted."""
+    """Directory of trusted client certificates (DER/PEM); required with basic256sha256 (only the
+    clients whose certificate is there may connect)."""
 
     @model_validator(mode="after")
     def _certs(self) -> OpcUaServerConfig:
         if self.security == "basic256sha256" and (self.cert is None or self.key is None):
             raise ValueError("security basic256sha256 needs the server certificate and key: set cert and key")
+        if self.security == "basic256sha256" and self.trusted_client_certs is None:
+            # Without a trust list any self-signed client certificate would be accepted (and could call Pick).
+            raise ValueError(TRUST_HINT)
         return self
 
 
 class PlcConfig(_Strict):
     modbus: ModbusServerConfig = ModbusServerConfig()
     opcua: OpcUaServerConfig = OpcUaServerConfig()
+    allow_motion: bool = False
+    """Let a PLC start a pick that moves the robot (Modbus command 3, OPC UA ``PickAndMove``): an
+    engineer-level act, off by default; the motion owner and the Stop latch apply as for REST."""
 
 
 class CellConfig(_Strict):

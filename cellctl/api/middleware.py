@@ -6,6 +6,10 @@ through untouched. The request id is the caller's ``X-Request-Id`` when it is a 
 the response's ``X-Request-Id`` header and set in ``cellctl.logging_setup.request_id_var`` for every
 log record written while the request is served. Latency runs from the request's arrival to the
 last byte of the response (for an SSE stream: until the stream ends).
+
+It also applies the edge guards of ``cellctl.api.guards`` before anything else sees the request:
+the body size limit (413), non-finite JSON numbers (422) and the cap on open event streams (429),
+with the limits of the config's ``http`` section (or ``limits`` when given).
 """
 
 from __future__ import annotations
@@ -20,6 +24,26 @@ from starlette.datastructures import MutableHeaders
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from cellctl.api.guards import (
+    BODY_TOO_LARGE,
+    TOO_MANY,
+    UNPROCESSABLE,
+    BodyTooLarge,
+    ClientGone,
+    EdgeLimits,
+    StreamLimiter,
+    StreamRefused,
+    declared_length,
+    error_message,
+    has_body,
+    is_event_stream,
+    non_finite_field,
+    non_finite_text,
+    read_body,
+    replaying,
+    stream_key,
+    too_large_text,
+)
 from cellctl.logging_setup import request_id_var
 from cellctl.metrics import CellMetrics
 
@@ -62,9 +86,19 @@ def route_template(scope: Scope) -> str:
 class RequestMiddleware:
     """Request id, latency histogram and access log for every HTTP request."""
 
-    def __init__(self, app: ASGIApp, metrics: CellMetrics) -> None:
+    def __init__(self, app: ASGIApp, metrics: CellMetrics, limits: EdgeLimits | None = None) -> None:
         self.app = app
         self.metrics = metrics
+        self._limits = limits
+        self.streams = StreamLimiter()
+
+    def limits(self, scope: Scope) -> EdgeLimits:
+        """The edge limits: given ones, else the serving app's ``config.http``, else the defaults."""
+        if self._limits is None:
+            config = getattr(getattr(scope.get("app"), "state", None), "config", None)
+            http = getattr(config, "http", None)
+            self._limits = EdgeLimits.from_http_config(http) if http is not None else EdgeLimits()
+        return self._limits
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -84,7 +118,7 @@ class RequestMiddleware:
 
         failed = False
         try:
-            await self.app(scope, receive, send_with_id)
+            await self._guarded(scope, receive, send_with_id)
         except BaseException:
             failed = True
             raise
@@ -104,3 +138,58 @@ class RequestMiddleware:
             if not failed:
                 # On failure the id stays set so the outer error handler's log line still carries it.
                 request_id_var.reset(token)
+
+    async def _guarded(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Refuse oversized bodies, non-finite JSON numbers and surplus event streams; else run the app."""
+        limits = self.limits(scope)
+        if has_body(scope):
+            length = declared_length(scope)
+            if length is not None and length > limits.max_body_bytes:
+                await _answer(send, BODY_TOO_LARGE, "body_too_large",
+                              too_large_text(limits.max_body_bytes, f"of {length / 1e6:.1f} MB is over"), CLOSE)
+                return
+            try:
+                body = await read_body(receive, limits.max_body_bytes)
+            except BodyTooLarge:
+                await _answer(send, BODY_TOO_LARGE, "body_too_large", too_large_text(limits.max_body_bytes, "passed"),
+                              CLOSE)
+                return
+            except ClientGone:
+                return  # nobody to answer
+            bad = non_finite_field(body)
+            if bad is not None:
+                await _answer(send, UNPROCESSABLE, "invalid_request", non_finite_text(*bad))
+                return
+            receive = replaying(body, receive)
+
+        held: str | None = None
+
+        async def send_counted(message: Message) -> None:
+            nonlocal held
+            if message["type"] == "http.response.start" and is_event_stream(message):
+                key = stream_key(scope)
+                refusal = self.streams.acquire(key, limits)
+                if refusal is not None:
+                    await _answer(send, TOO_MANY, "too_many_streams", refusal, [(b"retry-after", b"5")])
+                    raise StreamRefused
+                held = key
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_counted)
+        except StreamRefused:
+            pass  # answered 429; the stream never started
+        finally:
+            if held is not None:
+                self.streams.release(held)
+
+
+# The server closes the connection after a refused body instead of reading the rest of it.
+CLOSE = [(b"connection", b"close")]
+
+
+async def _answer(send: Send, status: int, code: str, message: str,
+                  headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    start, body = error_message(status, code, message, headers)
+    await send(start)
+    await send(body)

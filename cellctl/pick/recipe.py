@@ -7,9 +7,9 @@ angles degrees (``*_deg``) or radians (``*_rad``), speeds m/s.
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from cellctl.pick.model import PartModel
 
@@ -18,36 +18,58 @@ class PickError(ValueError):
     """The pick cannot be done as asked (no calibration, bad recipe, image of the wrong size...)."""
 
 
+# Bounds of numbers a recipe may hold (the edge refuses the rest with 422 naming the field).
+MAX_COORD_MM = 1e5
+"""Lengths and heights, mm: nothing in a work cell is 100 m away."""
+MIN_SCORE_FLOOR = 0.05
+"""Below this a match score accepts noise as parts and the search tries every position."""
+MIN_SPEED_M_S = 0.001
+"""A pick slower than 1 mm/s cannot be supervised (and would outlast any move deadline)."""
+
+Mm = Annotated[float, Field(ge=-MAX_COORD_MM, le=MAX_COORD_MM)]
+Px = Annotated[float, Field(ge=-1e5, le=1e5)]
+Deg = Annotated[float, Field(ge=-360.0, le=360.0)]
+Rad = Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)]
+
+
 class SearchSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    min_score: float = Field(0.6, gt=0, le=1)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    min_score: float = Field(0.6, le=1, description=f"lowest score of a match, {MIN_SCORE_FLOOR}..1")
     max_count: int = Field(5, ge=1, le=100)
-    angle_start_deg: float = -180.0
+    angle_start_deg: Deg = -180.0
     angle_extent_deg: float = Field(360.0, gt=0, le=360)
-    roi: tuple[float, float, float, float] | None = None
+    roi: tuple[Px, Px, Px, Px] | None = None
     timeout_s: float | None = Field(1.0, gt=0, le=60)
+
+    @field_validator("min_score")
+    @classmethod
+    def _min_score(cls, v: float) -> float:
+        if not v >= MIN_SCORE_FLOOR:
+            raise ValueError(f"min_score {v:g} is below {MIN_SCORE_FLOOR}: so low a score takes noise for parts and "
+                             "makes the search try every position; use 0.3..0.9 (default 0.6)")
+        return v
 
 
 class Recipe(BaseModel):
     """What to pick and how (stored versioned in the store under a PLC recipe number)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str
     models: list[dict[str, Any]] = Field(min_length=1, description="part models (cellctl pick teach output)")
     camera_id: str | None = None
     robot_id: str | None = None
     calibration: Literal["auto", "handeye", "npoint"] = "auto"
-    plane_z_mm: float | None = Field(None, description="height of the parts' top face in the base frame, mm")
-    grasp_offset_mm: tuple[float, float] = (0.0, 0.0)
+    plane_z_mm: Mm | None = Field(None, description="height of the parts' top face in the base frame, mm")
+    grasp_offset_mm: tuple[Mm, Mm] = (0.0, 0.0)
     """Grasp point from the part's reference point, in the part's frame (x along its taught x), mm."""
-    grasp_z_mm: float = 0.0
+    grasp_z_mm: Mm = 0.0
     """Tool z above the working plane at the grasp, mm."""
-    approach_height_mm: float = Field(50.0, ge=0)
-    grasp_yaw_deg: float = 0.0
+    approach_height_mm: float = Field(50.0, ge=0, le=MAX_COORD_MM)
+    grasp_yaw_deg: Deg = 0.0
     gripper_symmetry_deg: float = Field(180.0, gt=0, le=360)
-    tool_rotvec_rad: tuple[float, float, float] = (math.pi, 0.0, 0.0)
+    tool_rotvec_rad: tuple[Rad, Rad, Rad] = (math.pi, 0.0, 0.0)
     """Tool orientation at gripper yaw 0 (default: pointing down, tool x along base x)."""
-    speed_m_s: float = Field(0.1, gt=0, le=2)
+    speed_m_s: float = Field(0.1, ge=MIN_SPEED_M_S, le=2)
     search: SearchSettings = SearchSettings()
 
     def part_models(self) -> list[PartModel]:

@@ -6,20 +6,21 @@ from typing import Any, Literal
 
 import numpy as np
 from fastapi import APIRouter
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
 from calibration.pixel_to_robot import MappingError
 from cellctl.api.deps import Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.api.numbers import pixel_problem, point_problem, pose_envelope_problem, pose_ur_problem
 from cellctl.mapping import NoCalibration, active_mapping, npoint_pose_check
 
 router = APIRouter(tags=["map"])
 
 
 class MapInput(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     u_px: float = Field(ge=-1e6, le=1e6)
     v_px: float = Field(ge=-1e6, le=1e6)
     camera_id: str | None = None
@@ -28,6 +29,14 @@ class MapInput(BaseModel):
     robot_pose_ur: list[float] | None = Field(None, min_length=6, max_length=6,
                                               description="T_base_tool at capture (m, rad); default: now")
     calibration: Literal["auto", "handeye", "npoint"] = "auto"
+
+    @field_validator("robot_pose_ur")
+    @classmethod
+    def _pose_magnitudes(cls, v: list[float] | None) -> list[float] | None:
+        problem = None if v is None else pose_ur_problem(v, "robot_pose_ur")
+        if problem:
+            raise ValueError(problem)
+        return v
 
 
 class MapOutput(BaseModel):
@@ -53,6 +62,13 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
         raise ApiError(409, "no_active_calibration", str(exc)) from None
     source = None
     T = None
+    envelope = services.config.robots[robot_id].envelope
+    problem = (None if body.robot_pose_ur is None else pose_envelope_problem(
+        body.robot_pose_ur, (envelope.x_mm, envelope.y_mm, envelope.z_mm), robot_id, "robot_pose_ur"))
+    size = mapping.camera.size if mapping.camera is not None else mapping.calib.get("image_size")
+    problem = problem or pixel_problem(body.u_px, body.v_px, tuple(size) if size else None, camera_id)
+    if problem:
+        raise ApiError(422, "invalid_request", problem)
     if body.robot_pose_ur is not None:
         try:
             T = g.ur_pose_to_transform(body.robot_pose_ur)
@@ -68,6 +84,10 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
     except (MappingError, NoCalibration) as exc:
         raise ApiError(422, "cannot_map", str(exc)) from None
     z = float(pt.xyz_mm[2])
+    problem = point_problem([float(c) for c in pt.xyz_mm], [float(c) for c in pt.sigma_mm],
+                            z_may_be_unknown=mapping.kind == "npoint" and body.plane_z_mm is None)
+    if problem:
+        raise ApiError(422, "cannot_map", problem)
     return {"x_mm": float(pt.xyz_mm[0]), "y_mm": float(pt.xyz_mm[1]), "z_mm": z if np.isfinite(z) else None,
             "sigma_mm": [float(s) for s in pt.sigma_mm], "calibration_kind": mapping.kind,
             "calibration_id": mapping.calibration_id, "robot_pose_source": source, "warning": warning}

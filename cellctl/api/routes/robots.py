@@ -5,12 +5,13 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
 from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.api.numbers import pose_ur_problem, transform_problem
 from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
 from drivers.base import DeviceUnavailable, MotionSession, RobotBase, RobotState
@@ -77,6 +78,23 @@ class MoveInput(BaseModel):
     T_base_tool: list[list[float]] | None = None
     pose_ur: PoseUR | None = None
     speed_m_s: float = Field(0.05, gt=0, le=5.0)
+
+    @field_validator("pose_ur")
+    @classmethod
+    def _pose_magnitudes(cls, v: PoseUR | None) -> PoseUR | None:
+        problem = None if v is None else pose_ur_problem(
+            [v.x_m, v.y_m, v.z_m, v.rx_rad, v.ry_rad, v.rz_rad], "pose_ur")
+        if problem:
+            raise ValueError(problem)
+        return v
+
+    @field_validator("T_base_tool")
+    @classmethod
+    def _matrix_magnitudes(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        problem = None if v is None else transform_problem(v, "T_base_tool")
+        if problem:
+            raise ValueError(problem)
+        return v
 
 
 @router.post("/{robot_id}/move", response_model=RobotStatePublic, responses={409: {}, 422: {}, 503: {}})

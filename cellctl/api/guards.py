@@ -1,0 +1,229 @@
+"""Edge guards against hostile requests, applied before routing, parsing and authorisation.
+
+- **Body size**: a body larger than ``http.max_body_mb`` is refused with 413 — at once when its
+  ``Content-Length`` says so (nothing is read), else as soon as the streamed bytes pass the limit
+  (what was read is dropped). uvicorn discards the rest of a refused body without keeping it.
+- **Non-finite numbers**: Python's ``json`` accepts ``NaN``, ``Infinity`` and ``1e999`` (which
+  becomes infinity); no cellctl route wants them. A body that parses as JSON and holds one is
+  refused with 422 naming the field (``body.recipe.plane_z_mm``), whatever the route.
+- **Event streams**: responses of type ``text/event-stream`` are counted per token and over all
+  callers while they are open; one over ``http.max_event_streams_per_token`` /
+  ``http.max_event_streams`` is refused with 429 before its first byte. (Each open stream holds a
+  worker thread while it waits for events, so an unbounded number starves every other route.)
+
+Pure ASGI, used by ``cellctl.api.middleware.RequestMiddleware``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from starlette.types import Message, Receive, Scope
+
+BODY_TOO_LARGE = 413
+UNPROCESSABLE = 422
+TOO_MANY = 429
+
+# Cheap pre-filter: only a body with one of these is parsed to look for a non-finite number.
+_SUSPECT = re.compile(rb"NaN|Infinity|[0-9][eE][+]?[0-9]{3}")
+
+
+@dataclass(frozen=True)
+class EdgeLimits:
+    """The limits of the edge guards (``http`` section of cell.yaml)."""
+
+    max_body_bytes: int = 8_000_000
+    max_event_streams: int = 16
+    max_event_streams_per_token: int = 4
+
+    @classmethod
+    def from_http_config(cls, http: Any) -> EdgeLimits:
+        return cls(int(http.max_body_mb * 1e6), int(http.max_event_streams), int(http.max_event_streams_per_token))
+
+
+def error_message(status: int, code: str, message: str, extra_headers: list[tuple[bytes, bytes]] | None = None
+                  ) -> tuple[Message, Message]:
+    """The two ASGI messages of a JSON error response ``{"error": {"code", "message"}}``."""
+    body = json.dumps({"error": {"code": code, "message": message}}).encode()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+               *(extra_headers or [])]
+    return ({"type": "http.response.start", "status": status, "headers": headers},
+            {"type": "http.response.body", "body": body, "more_body": False})
+
+
+def _header(scope: Scope, name: bytes) -> bytes | None:
+    for key, value in scope.get("headers", ()):
+        if key.lower() == name:
+            return bytes(value)
+    return None
+
+
+def too_large_text(limit_bytes: int, what: str) -> str:
+    return (f"the request body {what} the limit of {limit_bytes / 1e6:g} MB; send a smaller body "
+            "(or raise http.max_body_mb in cell.yaml)")
+
+
+def declared_length(scope: Scope) -> int | None:
+    """The request's ``Content-Length`` (None when absent or not a number)."""
+    raw = _header(scope, b"content-length")
+    if raw is None:
+        return None
+    try:
+        return int(raw.strip())
+    except ValueError:
+        return None
+
+
+def has_body(scope: Scope) -> bool:
+    length = declared_length(scope)
+    if length is not None:
+        return length > 0
+    return _header(scope, b"transfer-encoding") is not None
+
+
+class BodyTooLarge(Exception):
+    """The streamed body passed the limit (raised by :func:`read_body`)."""
+
+
+class ClientGone(Exception):
+    """The client disconnected before its body was complete."""
+
+
+async def read_body(receive: Receive, limit_bytes: int) -> bytes:
+    """The whole request body; ``BodyTooLarge`` as soon as it passes ``limit_bytes``."""
+    chunks: list[bytes] = []
+    total = 0
+    while True:
+        message = await receive()
+        if message["type"] == "http.disconnect":
+            raise ClientGone
+        chunk = message.get("body", b"")
+        total += len(chunk)
+        if total > limit_bytes:
+            raise BodyTooLarge
+        chunks.append(chunk)
+        if not message.get("more_body", False):
+            return b"".join(chunks)
+
+
+def replaying(body: bytes, receive: Receive) -> Receive:
+    """A ``receive`` that gives the app ``body`` in one message, then the client's own messages."""
+    given = False
+
+    async def replay() -> Message:
+        nonlocal given
+        if not given:
+            given = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
+
+
+class _NonFinite:
+    """A JSON number that is not a finite double (the parser's stand-in, found by :func:`non_finite_field`)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+
+
+def _parse_float(text: str) -> float | _NonFinite:
+    value = float(text)
+    return value if math.isfinite(value) else _NonFinite(text)
+
+
+def non_finite_field(body: bytes) -> tuple[str, str] | None:
+    """``(field path, literal)`` of the first NaN/Infinity/overflowing number in a JSON body, else None.
+
+    A body that is not JSON is not judged here (the route answers what is wrong with it).
+    """
+    if not _SUSPECT.search(body):
+        return None
+    try:
+        doc = json.loads(body, parse_constant=_NonFinite, parse_float=_parse_float)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return None
+    for path, value in _walk(doc):
+        if isinstance(value, _NonFinite):
+            return ".".join(["body", *path]), value.text
+    return None
+
+
+def _walk(doc: Any) -> Iterator[tuple[list[str], Any]]:
+    """Every leaf of a parsed JSON document with its path (iterative: deep documents are fine)."""
+    stack: list[tuple[list[str], Any]] = [([], doc)]
+    while stack:
+        path, value = stack.pop()
+        if isinstance(value, dict):
+            stack.extend((path + [str(k)], v) for k, v in reversed(list(value.items())))
+        elif isinstance(value, list):
+            stack.extend((path + [str(i)], v) for i, v in reversed(list(enumerate(value))))
+        else:
+            yield path, value
+
+
+def non_finite_text(field: str, literal: str) -> str:
+    return (f"{field}: {literal} is not a finite number; JSON numbers here must be finite "
+            "(no NaN, Infinity or values beyond +-1.8e308): send a finite value in the field's range")
+
+
+class StreamLimiter:
+    """Counts open event streams per token and over all callers (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._per_key: dict[str, int] = {}
+        self._total = 0
+
+    def acquire(self, key: str, limits: EdgeLimits) -> str | None:
+        """Take a slot for ``key``; None when taken, else the reason it is refused."""
+        with self._lock:
+            mine = self._per_key.get(key, 0)
+            if mine >= limits.max_event_streams_per_token:
+                return (f"this token has {mine} event streams open, the limit per token is "
+                        f"{limits.max_event_streams_per_token}: close one (each followed job holds one) "
+                        "and retry, or raise http.max_event_streams_per_token in cell.yaml")
+            if self._total >= limits.max_event_streams:
+                return (f"{self._total} event streams are open, the cell's limit is {limits.max_event_streams}: "
+                        "retry later, or raise http.max_event_streams in cell.yaml")
+            self._per_key[key] = mine + 1
+            self._total += 1
+            return None
+
+    def release(self, key: str) -> None:
+        with self._lock:
+            left = self._per_key.get(key, 0) - 1
+            if left > 0:
+                self._per_key[key] = left
+            else:
+                self._per_key.pop(key, None)
+            self._total = max(0, self._total - 1)
+
+    @property
+    def open_streams(self) -> int:
+        with self._lock:
+            return self._total
+
+
+def stream_key(scope: Scope) -> str:
+    """Who holds a stream: a hash of the request's bearer credentials ("-" without any)."""
+    raw = _header(scope, b"authorization")
+    return hashlib.sha256(raw).hexdigest()[:16] if raw else "-"
+
+
+def is_event_stream(message: Message) -> bool:
+    for key, value in message.get("headers", ()):
+        if bytes(key).lower() == b"content-type":
+            return bytes(value).split(b";", 1)[0].strip().lower() == b"text/event-stream"
+    return False
+
+
+class StreamRefused(Exception):
+    """Raised into the app when its event stream is refused (the 429 has been sent)."""
