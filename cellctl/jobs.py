@@ -36,6 +36,10 @@ class JobCancelled(Exception):
     """Raised inside a routine when its job was cancelled."""
 
 
+class InputTimedOut(JobCancelled):
+    """An interactive step waited longer than its timeout: the job ends cancelled, saying so."""
+
+
 class JobInputError(ValueError):
     """Operator input given to a job that is not waiting for it, or that is malformed."""
 
@@ -145,8 +149,8 @@ class JobContext:
                 try:
                     return job._inputs.get(timeout=0.1)
                 except queue.Empty:
-                    if time.monotonic() > deadline:
-                        raise TimeoutError(f"no operator input within {timeout_s:.0f} s") from None
+                    if time.monotonic() > deadline:  # an abandoned step cancels the job
+                        raise InputTimedOut(f"no operator input within {timeout_s:.0f} s") from None
         finally:
             job.waiting_for = None
 
@@ -186,9 +190,11 @@ class JobManager:
             job.state = "succeeded"
             job.progress = 1.0
             job.message = "done"
-        except JobCancelled:
+        except JobCancelled as exc:
             job.state = "cancelled"
             job.message = "cancelled; the robot was stopped and nothing was stored"
+            if isinstance(exc, InputTimedOut):
+                job.error = f"{exc}: the step was abandoned"
         except RobotStopped as exc:
             job.state = "stopped"
             job.error = f"{exc}"

@@ -12,28 +12,100 @@ import argparse
 import json
 import os
 import sys
-from typing import Any
+import textwrap
+from typing import Any, TextIO
 
 from cellctl.cli.output import CommandError, emit
 from cellctl.paths import data_dir
+
+URL_HELP = "the service's base URL (default: $CELLCTL_URL or http://127.0.0.1:8080)"
+TOKEN_HELP = ("bearer token (default: $CELLCTL_TOKEN, else the session-token file of a local lab service "
+              "started without tokens)")
+
+
+class _HelpWithParams(argparse.Action):
+    """``job run --help``: the usual help, then every routine's parameters (read from their models
+    only when asked, so other commands do not import the routines)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0,
+                         help="show this help, with every routine's parameters, and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        parser.epilog = routine_params_help()
+        parser.print_help()
+        parser.exit()
+
+
+def routine_params_help() -> str:
+    """Every routine's parameters as text: name, type, default, range and what it means (with units)."""
+    from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+
+    lines = ["routines and their parameters (give them as --param KEY=VALUE; all are optional):"]
+    for name in sorted(ROUTINE_MODULES):
+        module = routine(name)
+        doc = " ".join((module.__doc__ or "").strip().split("\n\n")[0].split()).replace("``", "")
+        role = "engineer" if name in MOVES_ROBOT else "operator"
+        lines += ["", f"{name}  (role: {role})", *textwrap.wrap(doc, 100, initial_indent="  ",
+                                                                   subsequent_indent="  ")]
+        schema = module.Params.model_json_schema()
+        for key, prop in schema.get("properties", {}).items():
+            lines += textwrap.wrap(f"{key} ({_kind(prop)}{_range(prop)}; default {_default(prop)}): "
+                                   f"{prop.get('description', '')}", 100, initial_indent="    ",
+                                   subsequent_indent="        ")
+    return "\n".join(lines)
+
+
+def _kind(prop: dict[str, Any]) -> str:
+    options = prop.get("anyOf", [prop])
+    kinds = []
+    for o in options:
+        if "enum" in o:
+            kinds.append("|".join(str(v) for v in o["enum"]))
+        elif o.get("type") != "null":
+            kinds.append(str(o.get("type", "value")))
+    return " or ".join(kinds) or "value"
+
+
+def _range(prop: dict[str, Any]) -> str:
+    lo = prop.get("minimum", prop.get("exclusiveMinimum"))
+    hi = prop.get("maximum", prop.get("exclusiveMaximum"))
+    if lo is None and hi is None:
+        return ""
+    left = "[" if "minimum" in prop else "("
+    right = "]" if "maximum" in prop else ")"
+    return f", {left}{'' if lo is None else f'{lo:g}'}..{'' if hi is None else f'{hi:g}'}{right}"
+
+
+def _default(prop: dict[str, Any]) -> str:
+    if "default" not in prop or prop["default"] is None:
+        return "from the config"
+    return json.dumps(prop["default"])
 
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("job", help="run and follow routines on a running service")
     jsub = p.add_subparsers(dest="job_command", metavar="ACTION", required=True)
-    r = jsub.add_parser("run", help="start a routine (intrinsics-capture, handeye-capture, jog-to-mark, verify)")
-    r.add_argument("name")
+    r = jsub.add_parser("run", help="start a routine (intrinsics-capture, handeye-capture, jog-to-mark, verify)",
+                        add_help=False, formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=textwrap.fill("Start a routine on a running `cellctl serve` and print its "
+                                                  "job as JSON. The routines and their parameters follow "
+                                                  "(the service lists them too: GET /routines).", 100))
+    r.add_argument("-h", "--help", action=_HelpWithParams)
+    r.add_argument("name", help="the routine: intrinsics-capture, handeye-capture, jog-to-mark or verify")
     r.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
-                   help="routine parameter (JSON value or plain string); repeatable")
-    r.add_argument("--follow", action="store_true", help="show progress until the job ends")
-    r.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"))
-    r.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"))
+                   help="routine parameter (JSON value or plain string); repeatable, e.g. --param views=14")
+    r.add_argument("--follow", action="store_true",
+                   help="show progress on stderr until the job ends (and ask before each operator step)")
+    r.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"), help=URL_HELP)
+    r.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"), help=TOKEN_HELP)
     r.add_argument("--out", dest="out_json", help="also write the final job JSON to this file")
     r.set_defaults(func=run)
     s = jsub.add_parser("status", help="print a job")
-    s.add_argument("job_id")
-    s.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"))
-    s.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"))
+    s.add_argument("job_id", help="the job's id (the 'id' of the job run answer)")
+    s.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"), help=URL_HELP)
+    s.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"), help=TOKEN_HELP)
     s.set_defaults(func=status)
 
 
@@ -96,13 +168,50 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return final
 
 
-def _bar(progress: float, message: str) -> None:
-    n = int(progress * 30)
-    sys.stderr.write(f"\r[{'#' * n}{'.' * (30 - n)}] {progress * 100:5.1f}% {message[:70]:<70}")
-    sys.stderr.flush()
+class Progress:
+    """Progress on stderr. On a terminal: each new message on a line of its own (never cut), and a
+    bar below it redrawn in place. Elsewhere (a log file, a pipe): one plain line per message, no
+    carriage returns or escape codes."""
+
+    def __init__(self, stream: TextIO | None = None) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._last = ""
+        self._bar_shown = False
+
+    def update(self, progress: float, message: str) -> None:
+        pct = f"{progress * 100:5.1f}%"
+        if not self.tty:
+            self.stream.write(f"[{pct}] {message}\n")
+        else:
+            if message != self._last:
+                self._clear()
+                self.stream.write(message + "\n")
+            n = int(max(0.0, min(1.0, progress)) * 30)
+            self.stream.write(f"\r[{'#' * n}{'.' * (30 - n)}] {pct}")
+            self._bar_shown = True
+        self._last = message
+        self.stream.flush()
+
+    def line(self, text: str) -> None:
+        """A line of its own (a question, the final state)."""
+        self._clear()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def ask(self, text: str) -> None:
+        self._clear()
+        self.stream.write(text)
+        self.stream.flush()
+
+    def _clear(self) -> None:
+        if self.tty and self._bar_shown:
+            self.stream.write("\r\033[K")
+            self._bar_shown = False
 
 
-def _follow(http: Any, job_id: str) -> None:
+def _follow(http: Any, job_id: str, progress: Progress | None = None) -> None:
+    out = progress or Progress()
     event = ""
     with http.stream("GET", f"/jobs/{job_id}/events", timeout=None) as stream:
         for line in stream.iter_lines():
@@ -111,15 +220,15 @@ def _follow(http: Any, job_id: str) -> None:
             elif line.startswith("data: "):
                 data = json.loads(line[6:])
                 if event == "progress":
-                    _bar(float(data.get("progress", 0.0)), str(data.get("message", "")))
+                    out.update(float(data.get("progress", 0.0)), str(data.get("message", "")))
                 elif event == "input_needed":
-                    sys.stderr.write(f"\n{data.get('instruction', 'input needed')} — press Enter to record ")
-                    sys.stderr.flush()
+                    out.ask(f"{data.get('instruction', 'input needed')} — press Enter to record ")
                     if sys.stdin.readline() == "":
                         raise CommandError("no terminal input to record with; cancel the job or record over HTTP")
                     _check(http.post(f"/jobs/{job_id}/record"))
                 elif event == "state":
-                    sys.stderr.write(f"\n{data.get('state')}: {data.get('message')}\n")
+                    error = f" ({data['error']})" if data.get("error") else ""
+                    out.line(f"{data.get('state')}: {data.get('message')}{error}")
                     return
 
 

@@ -35,17 +35,22 @@ from cellctl.services import Services
 
 
 class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Parameters of ``handeye-capture`` (all optional)."""
 
-    camera_id: str | None = None
-    robot_id: str | None = None
-    target: str | None = None
-    setup: Literal["eye-in-hand", "eye-to-hand"] | None = None
-    stations: int = Field(12, ge=4, le=40)
-    max_tilt_deg: float = Field(25.0, ge=5, le=45)
-    max_spin_deg: float = Field(40.0, ge=0, le=90)
-    speed_m_s: float | None = Field(None, gt=0)
-    note: str = ""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, title="HandeyeCaptureParams")
+
+    camera_id: str | None = Field(None, description="camera to calibrate (default: the config's calibration.camera)")
+    robot_id: str | None = Field(None, description="robot to use (default: the config's calibration.robot)")
+    target: str | None = Field(None, description="name of a target in the config's targets "
+                                                 "(default: calibration.target)")
+    setup: Literal["eye-in-hand", "eye-to-hand"] | None = Field(
+        None, description="where the camera is; default: the config's calibration.setup")
+    stations: int = Field(12, ge=4, le=40, description="number of robot stations, including the start pose")
+    max_tilt_deg: float = Field(25.0, ge=5, le=45, description="largest tilt about the plate's centre, degrees "
+                                                               "(the checks ask for 15-30)")
+    max_spin_deg: float = Field(40.0, ge=0, le=90, description="largest spin about the view axis, degrees")
+    speed_m_s: float | None = Field(None, gt=0, description="tool speed, m/s (default: calibration.speed_m_s)")
+    note: str = Field("", max_length=500, description="note stored with the calibration")
 
 
 def rotation_axis_spread_deg(poses: list[np.ndarray]) -> float:

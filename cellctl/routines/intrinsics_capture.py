@@ -17,35 +17,44 @@ from cellctl.jobs import JobContext
 from cellctl.routines.common import (
     Capture,
     RoutineError,
-    approximate_camera,
     capture,
-    corner_shifts_m,
     detection_inputs,
     devices,
     move,
-    pivot_point,
-    plan_pivot_stations,
-    reachable,
     routine_target,
     stop_robot_on_end,
-    target_pose,
 )
+from cellctl.routines.planned_capture import PlannedCapture
 from cellctl.services import Services
 
 
 class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Parameters of ``intrinsics-capture`` (all optional)."""
 
-    camera_id: str | None = None
-    robot_id: str | None = None
-    target: str | None = None
-    model: Literal["opencv5", "opencv8", "division"] | None = None
-    mode: Literal["robot", "operator"] = "robot"
-    views: int = Field(16, ge=4, le=60)
-    max_tilt_deg: float = Field(32.0, ge=5, le=60)
-    min_point_fraction: float = Field(0.8, gt=0, le=1)
-    speed_m_s: float | None = Field(None, gt=0)
-    note: str = ""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, title="IntrinsicsCaptureParams")
+
+    camera_id: str | None = Field(None, description="camera to calibrate (default: the config's calibration.camera)")
+    robot_id: str | None = Field(None, description="robot to use (default: the config's calibration.robot)")
+    target: str | None = Field(None, description="name of a target in the config's targets "
+                                                 "(default: calibration.target)")
+    model: Literal["opencv5", "opencv8", "division"] | None = Field(
+        None, description="lens model: opencv5 (k1,k2,p1,p2,k3), opencv8 (rational) or division (one kappa); "
+                          "default: the config's calibration.model")
+    mode: Literal["robot", "operator"] = Field(
+        "robot", description="robot: the robot shows the plate from planned views (engineer role); "
+                             "operator: the operator presents the plate by hand and records each view")
+    views: int = Field(16, ge=4, le=60, description="good views to collect before the first verdict, "
+                                                    "including the start pose")
+    max_views: int = Field(32, ge=4, le=120, description="robot mode: most views to try (rejected and "
+                                                         "unreachable ones count); the routine adds views "
+                                                         "until the verdict is ok or this budget is spent")
+    max_tilt_deg: float = Field(32.0, ge=5, le=60, description="largest tilt of the view direction, degrees")
+    min_point_fraction: float = Field(0.8, gt=0, le=1, description="a view counts when at least this fraction "
+                                                                   "of the target's points is detected")
+    speed_m_s: float | None = Field(None, gt=0, description="tool speed, m/s (default: calibration.speed_m_s)")
+    step_timeout_s: float = Field(600.0, gt=0, le=86400, description="operator mode: a view not recorded within "
+                                                                     "this many seconds cancels the job")
+    note: str = Field("", max_length=500, description="note stored with the calibration")
 
 
 def run(services: Services, ctx: JobContext) -> dict[str, Any]:
@@ -68,7 +77,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         for k in range(p.views):
             ctx.wait_input({"step": k + 1, "of": p.views,
                             "instruction": "present the plate in a new pose (tilt it, move it to image corners), "
-                                           "then record"})
+                                           "then record"}, timeout_s=p.step_timeout_s)
             c = capture(cam, None, target, f"view{k + 1:02d}")
             if good(c):
                 caps.append(c)
@@ -78,37 +87,19 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
                        + ("ok" if good(c) else f"rejected ({c.detection.reason or 'too few points'})"))
     else:
         first = capture(cam, robot, target, "view01")
-        if not good(first):
+        if not good(first) or first.T_base_tool is None:
             raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason}); "
                                "move the robot so the whole plate is in view, then start again")
-        assert first.T_base_tool is not None
         ctx.report(0.02, "view 1: ok (start pose)")
-        w, h = first.frame.size
-        approx = approximate_camera(w, h)
-        T_cam_target = target_pose(approx, target, first.detection)
-        centre = target.points().xyz_m.mean(axis=0)
-        distance = float((T_cam_target[:3, :3] @ centre + T_cam_target[:3, 3])[2])
-        plan = plan_pivot_stations(first.T_base_tool, pivot_point(first.T_base_tool, T_cam_target, target),
-                                   p.views, p.max_tilt_deg, 25.0,
-                                   corner_shifts_m(approx, distance, target, first.detection))
-        stations, unreachable = reachable(robot, plan[1:])
         caps.append(first)
-        speed = p.speed_m_s or defaults.speed_m_s
-        for k, T in enumerate(stations):
-            ctx.check_cancelled()
-            move(services, ctx, robot, T, speed, f"intrinsics-capture view {k + 2}")
-            c = capture(cam, robot, target, f"view{k + 2:02d}")
-            if good(c):
-                caps.append(c)
-            else:
-                skipped += 1
-            ctx.report((k + 2) / (len(stations) + 2), f"view {k + 2}/{len(stations) + 1}: "
-                       + ("ok" if good(c) else f"rejected ({c.detection.reason or 'too few points'})"))
-        move(services, ctx, robot, first.T_base_tool, speed, "intrinsics-capture: back to start")
-        skipped += unreachable
+        planned = PlannedCapture(services, ctx, robot, cam, target, p, good, first, caps)
+        result, skipped = planned.run()
+        move(services, ctx, robot, first.T_base_tool, planned.speed, "intrinsics-capture: back to start")
+    if robot is None:
+        ctx.check_cancelled()
+        ctx.report(0.95, f"calibrating {model} from {len(caps)} views")
+        result = calibrate([c.detection for c in caps], target, model)
     ctx.check_cancelled()
-    ctx.report(0.95, f"calibrating {model} from {len(caps)} views")
-    result = calibrate([c.detection for c in caps], target, model)
     cam_json = result.to_json()
     cam_json["target"] = tname
     record = services.store.save_calibration(

@@ -25,16 +25,22 @@ from cellctl.services import Services
 
 
 class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Parameters of ``jog-to-mark`` (all optional)."""
 
-    camera_id: str | None = None
-    robot_id: str | None = None
-    target: str | None = None
-    marks: int = Field(9, ge=4, le=49)
-    model: Literal["affine", "similarity", "homography"] | None = None
-    undistort: bool = True
-    """Remove lens distortion first when the camera has an active calibration."""
-    note: str = ""
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, title="JogToMarkParams")
+
+    camera_id: str | None = Field(None, description="camera to calibrate (default: the config's calibration.camera)")
+    robot_id: str | None = Field(None, description="robot to use (default: the config's calibration.robot)")
+    target: str | None = Field(None, description="name of a target in the config's targets "
+                                                 "(default: calibration.target)")
+    marks: int = Field(9, ge=4, le=49, description="number of marks to jog to, spread over the plate")
+    model: Literal["affine", "similarity", "homography"] | None = Field(
+        None, description="image-to-robot map; default: chosen by leave-one-out error")
+    undistort: bool = Field(True, description="remove lens distortion first when the camera has an active "
+                                              "calibration")
+    step_timeout_s: float = Field(600.0, gt=0, le=86400, description="a mark not recorded within this many "
+                                                                     "seconds cancels the job (abandoned wizard)")
+    note: str = Field("", max_length=500, description="note stored with the calibration")
 
 
 def choose_marks(target: Target, found_ids: list[int], n: int) -> list[int]:
@@ -75,7 +81,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     for k, mark in enumerate(marks):
         got = ctx.wait_input({**mark, "of": len(marks), "marks": marks,
                               "instruction": f"jog the tool tip onto mark {mark['step']} (row {mark['row']}, "
-                                             f"col {mark['col']}) and press record"})
+                                             f"col {mark['col']}) and press record"},
+                              timeout_s=p.step_timeout_s)
         if "x_mm" in got and "y_mm" in got:
             x_mm, y_mm = float(got["x_mm"]), float(got["y_mm"])
         else:

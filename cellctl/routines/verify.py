@@ -24,13 +24,18 @@ from cellctl.services import Services
 
 
 class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Parameters of ``verify`` (all optional)."""
 
-    camera_id: str | None = None
-    robot_id: str | None = None
-    target: str | None = None
-    tolerance_px: float | None = Field(None, gt=0)
-    tolerance_mm: float | None = Field(None, gt=0)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, title="VerifyParams")
+
+    camera_id: str | None = Field(None, description="camera to calibrate (default: the config's calibration.camera)")
+    robot_id: str | None = Field(None, description="robot to use (default: the config's calibration.robot)")
+    target: str | None = Field(None, description="name of a target in the config's targets "
+                                                 "(default: calibration.target)")
+    tolerance_px: float | None = Field(None, gt=0, description="largest drift in the image, px RMS "
+                                                               "(default: calibration.verify_tolerance_px)")
+    tolerance_mm: float | None = Field(None, gt=0, description="largest drift of the plate's points, mm RMS "
+                                                               "(default: calibration.verify_tolerance_mm)")
 
 
 def run(services: Services, ctx: JobContext) -> dict[str, Any]:

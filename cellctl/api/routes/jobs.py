@@ -45,17 +45,36 @@ class RecordInput(BaseModel):
     y_mm: float | None = Field(None, description="robot y of the mark, mm (default: read from the robot)")
 
 
-@router.get("/routines")
+class RoutinePublic(BaseModel):
+    name: str
+    description: str
+    moves_robot: bool
+    role: str
+    """The least role that may start it (operator mode of intrinsics-capture needs only operator)."""
+    params_schema: dict[str, Any]
+    """JSON schema of the routine's parameters (units in names and descriptions, defaults)."""
+
+
+def _describe(name: str) -> dict[str, Any]:
+    module = routine(name)
+    doc = (module.__doc__ or "").strip().split("\n\n")[0].replace("``", "")
+    return {"name": name, "description": " ".join(doc.split()), "moves_robot": name in MOVES_ROBOT,
+            "role": "engineer" if name in MOVES_ROBOT else "operator",
+            "params_schema": module.Params.model_json_schema()}
+
+
+@router.get("/routines", response_model=list[RoutinePublic])
 def list_routines(_: Viewer) -> list[dict[str, Any]]:
-    return [{"name": n, "moves_robot": n in MOVES_ROBOT, "role": "engineer" if n in MOVES_ROBOT else "operator"}
-            for n in sorted(ROUTINE_MODULES)]
+    """Each routine with the JSON schema of its parameters (``POST /routines/{name}`` takes them)."""
+    return [_describe(n) for n in sorted(ROUTINE_MODULES)]
 
 
-@router.post("/routines/{name}", status_code=202, response_model=JobPublic)
-def start_routine(name: str, services: ServicesDep, who: Operator,
-                  params: dict[str, Any] | None = Body(None)) -> dict[str, Any]:  # noqa: B008
+def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, Any] | None) -> dict[str, Any]:
     if name not in ROUTINE_MODULES:
         raise ApiError(404, "unknown_routine", f"no routine {name!r}; routines: {', '.join(sorted(ROUTINE_MODULES))}")
+    if params is not None and not isinstance(params, dict):
+        raise ApiError(422, "invalid_params", f"routine {name}: the body must be a JSON object of parameters "
+                                              "(GET /routines lists them)")
     # Routines that move the robot need the engineer role (an operator may present the plate by hand).
     moves = name in MOVES_ROBOT and (params or {}).get("mode", "robot") == "robot"
     if not who.has("engineer") and moves:
@@ -65,7 +84,7 @@ def start_routine(name: str, services: ServicesDep, who: Operator,
         module.Params.model_validate(params or {})
     except ValidationError as exc:
         msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ApiError(422, "invalid_params", f"routine {name}: {msg}") from None
+        raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
     motion = None
     if moves:
         # The routine owns the robot's motion from now to its end: a second mover gets 409.
@@ -79,7 +98,42 @@ def start_routine(name: str, services: ServicesDep, who: Operator,
             motion[0].motion.end(motion[1])
         raise ApiError(429, "too_many_jobs", str(exc)) from None
     services.store.audit(who.name, "routine.start", name, {"job_id": job.id, "params": params or {}}, "started")
-    return job.public()
+    public: dict[str, Any] = job.public()
+    return public
+
+
+def _add_routine_route(name: str) -> None:
+    """``POST /routines/<name>``, its body documented in OpenAPI by the routine's ``Params`` model.
+
+    The body is validated in the handler (not by FastAPI), so the role check comes before the
+    parameter check and errors keep the ``invalid_params`` code.
+    """
+    info = _describe(name)
+
+    async def start(request: Request, services: ServicesDep, who: Operator) -> dict[str, Any]:
+        raw = await request.body()
+        try:
+            params = json.loads(raw) if raw.strip() else None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ApiError(422, "invalid_params", f"routine {name}: the body is not JSON ({exc})") from None
+        return await run_in_threadpool(_start, name, services, who, params)
+
+    router.add_api_route(
+        f"/routines/{name}", start, methods=["POST"], status_code=202, response_model=JobPublic,
+        name=f"start_{name.replace('-', '_')}", summary=f"Start {name}",
+        description=f"{info['description']} Needs the {info['role']} role.",
+        openapi_extra={"requestBody": {"required": False, "content": {
+            "application/json": {"schema": info["params_schema"]}}}})
+
+
+for _name in sorted(ROUTINE_MODULES):
+    _add_routine_route(_name)
+
+
+@router.post("/routines/{name}", status_code=202, response_model=JobPublic, include_in_schema=False)
+def start_routine(name: str, services: ServicesDep, who: Operator,
+                  params: dict[str, Any] | None = Body(None)) -> dict[str, Any]:  # noqa: B008
+    return _start(name, services, who, params)
 
 
 @router.get("/jobs", response_model=list[JobPublic])
