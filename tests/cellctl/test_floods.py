@@ -1,0 +1,234 @@
+"""Floods against a served cell: huge bodies without a token, and event streams opened by the hundred.
+
+A ``cellctl serve`` of the virtual cell with three tokens and small stream limits
+(``http.max_event_streams: 6``, ``http.max_event_streams_per_token: 4``), called over loopback
+with httpx and raw sockets. Bounds are on counts and on ``/health`` staying under 2 s (the idle
+latency and the latencies under flood are in ``bench/results/safety.md``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import statistics
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+
+from cellctl.cli import main
+from cellctl.config import default_config_text
+from tests.conftest import Served, start_served, stop_served
+
+MAX_STREAMS, MAX_STREAMS_PER_TOKEN = 6, 4
+BODY_MB = 40
+HEALTH_BOUND_S = 2.0
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dict[str, str]]]:
+    tmp = tmp_path_factory.mktemp("floods")
+    data = yaml.safe_load(default_config_text())
+    data["http"].update({"max_event_streams": MAX_STREAMS, "max_event_streams_per_token": MAX_STREAMS_PER_TOKEN})
+    data["store"] = {"path": str(tmp / "cell.db")}
+    cfg = tmp / "cell.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    tokens: dict[str, str] = {}
+    for role in ("viewer", "operator", "engineer"):
+        out = tmp / f"{role}.json"
+        assert main(["token", "add", "--config", str(cfg), "--name", f"{role}-1", "--role", role,
+                     "--out", str(out)]) == 0
+        tokens[role] = json.loads(out.read_text())["token"]
+    served = start_served(tmp, config=cfg, token=tokens["engineer"], timeout_s=120.0)
+    try:
+        yield served, tokens
+    finally:
+        stop_served(served)
+
+
+class HealthProbe:
+    """Calls ``/health`` every 20 ms from its own thread and keeps the latencies (s)."""
+
+    def __init__(self, base_url: str) -> None:
+        self.base_url = base_url
+        self.latencies_s: list[float] = []
+        self.failures: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        with httpx.Client(base_url=self.base_url, timeout=30.0) as http:
+            while not self._stop.is_set():
+                t0 = time.perf_counter()
+                try:
+                    ok = http.get("/health").status_code == 200
+                except httpx.HTTPError as exc:
+                    ok = False
+                    self.failures.append(repr(exc))
+                self.latencies_s.append(time.perf_counter() - t0)
+                if not ok:
+                    self.failures.append("not 200")
+                self._stop.wait(0.02)
+
+    def __enter__(self) -> HealthProbe:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._stop.set()
+        self._thread.join(35.0)
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_an_oversized_body_is_refused_from_its_headers_alone(cell: tuple[Served, dict[str, str]]) -> None:
+    served, _ = cell
+    host, port = served.base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as s:
+        s.sendall(b"POST /recipes HTTP/1.1\r\nHost: cell\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 40000000\r\n\r\n")  # and not one byte of the body
+        answer = b""
+        while b"\r\n\r\n" not in answer or not answer.rstrip().endswith(b"}"):
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            answer += chunk
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 413"), head
+    assert json.loads(body)["error"]["code"] == "body_too_large"
+    assert b"8 MB" in body
+
+
+def test_four_parallel_40_mb_bodies_without_a_token(cell: tuple[Served, dict[str, str]]) -> None:
+    served, _ = cell
+    rss_before = rss_mb(served.process.pid)
+    results: list[tuple[str, int | str, float]] = []
+    payload = b"x" * (BODY_MB * 1_000_000)
+
+    def chunks() -> Iterator[bytes]:
+        for _ in range(BODY_MB * 10):
+            yield payload[:100_000]
+
+    def post(kind: str) -> None:
+        t0 = time.perf_counter()
+        try:
+            content = payload if kind == "declared" else chunks()  # chunked: no Content-Length
+            r = httpx.post(served.base_url + "/recipes", content=content, timeout=60.0,
+                           headers={"Content-Type": "application/json"})
+            results.append((kind, r.status_code, time.perf_counter() - t0))
+            assert r.json()["error"]["code"] == "body_too_large"
+        except (httpx.HTTPError, AssertionError) as exc:
+            results.append((kind, repr(exc), time.perf_counter() - t0))
+
+    with HealthProbe(served.base_url) as probe:
+        time.sleep(0.2)
+        for kind in ("declared", "chunked"):
+            threads = [threading.Thread(target=post, args=(kind,)) for _ in range(4)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(90.0)
+        time.sleep(0.2)
+    assert [r[1] for r in results] == [413] * 8, results
+    assert max(r[2] for r in results) < 30.0, results  # loose: the client writes 40 MB on a shared machine
+    assert not probe.failures and len(probe.latencies_s) >= 5
+    assert max(probe.latencies_s) < HEALTH_BOUND_S, (max(probe.latencies_s), statistics.median(probe.latencies_s))
+    # Nothing of the bodies is kept: the server's memory does not grow by their size (4 x 40 MB).
+    assert rss_mb(served.process.pid) - rss_before < 100.0
+
+
+def test_a_body_under_the_limit_is_served(cell: tuple[Served, dict[str, str]]) -> None:
+    served, tokens = cell
+    big = {"recipe_id": 5, "recipe": {"name": "x" * 3_000_000, "models": [{}]}}  # 3 MB: under 8 MB
+    r = httpx.post(served.base_url + "/recipes", json=big, timeout=60.0,
+                   headers={"Authorization": f"Bearer {tokens['engineer']}"})
+    assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_model", r.text[:300]
+
+
+class Streams:
+    """Event streams opened at once by one token; the open ones (200) stay open until ``close``."""
+
+    def __init__(self, base_url: str, token: str) -> None:
+        self.client = httpx.AsyncClient(base_url=base_url, headers={"Authorization": f"Bearer {token}"},
+                                        timeout=60.0, limits=httpx.Limits(max_connections=None,
+                                                                          max_keepalive_connections=0))
+        self.opened: list[httpx.Response] = []
+
+    async def open(self, path: str, n: int) -> list[int]:
+        async def one() -> httpx.Response:
+            r = await self.client.send(self.client.build_request("GET", path), stream=True)
+            if r.status_code != 200:
+                await r.aread()
+                await r.aclose()
+            return r
+
+        done = await asyncio.gather(*(one() for _ in range(n)))
+        for r in done:
+            if r.status_code == 429:
+                assert json.loads(r.content)["error"]["code"] == "too_many_streams", r.content
+        self.opened += [r for r in done if r.status_code == 200]
+        return [r.status_code for r in done]
+
+    async def close(self) -> None:
+        for r in self.opened:
+            await r.aclose()
+        await self.client.aclose()
+
+
+def test_150_event_streams_from_one_viewer(cell: tuple[Served, dict[str, str]]) -> None:
+    served, tokens = cell
+    with served.client(tokens["operator"]) as http:
+        r = http.post("/routines/jog-to-mark", json={"step_timeout_s": 300})
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        deadline = time.monotonic() + 60
+        while http.get(f"/jobs/{job_id}").json()["state"] == "running" and \
+                http.get(f"/jobs/{job_id}").json()["waiting_for"] is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert http.get(f"/jobs/{job_id}").json()["state"] == "running"  # waits for the operator: streams stay open
+    path = f"/jobs/{job_id}/events"
+
+    async def scenario() -> None:
+        with HealthProbe(served.base_url) as probe:
+            viewer, operator = Streams(served.base_url, tokens["viewer"]), Streams(served.base_url, tokens["operator"])
+            viewer_status = await viewer.open(path, 150)
+            assert viewer_status.count(200) == MAX_STREAMS_PER_TOKEN, viewer_status
+            assert viewer_status.count(429) == 150 - MAX_STREAMS_PER_TOKEN
+            # The cell-wide cap: another token gets what is left of MAX_STREAMS.
+            op_status = await operator.open(path, 3)
+            assert sorted(op_status) == [200] * (MAX_STREAMS - MAX_STREAMS_PER_TOKEN) + [429], op_status
+            # The open streams are live: each has its first event.
+            for r in viewer.opened[:1] + operator.opened[:1]:
+                first = await asyncio.wait_for(r.aiter_text().__anext__(), 10.0)
+                assert "event:" in first or "keep-alive" in first
+            await asyncio.sleep(1.0)
+            await viewer.close()
+            await operator.close()
+        assert not probe.failures
+        assert max(probe.latencies_s) < HEALTH_BOUND_S, (max(probe.latencies_s), statistics.median(probe.latencies_s))
+        # Closed streams give their slots back (the server notices within its 1 s event wait).
+        deadline = time.monotonic() + 15
+        while True:
+            again = Streams(served.base_url, tokens["viewer"])
+            status = await again.open(path, MAX_STREAMS_PER_TOKEN)
+            await again.close()
+            if status == [200] * MAX_STREAMS_PER_TOKEN or time.monotonic() > deadline:
+                break
+            await asyncio.sleep(1.0)
+        assert status == [200] * MAX_STREAMS_PER_TOKEN, status
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        with served.client(tokens["operator"]) as http:
+            http.delete(f"/jobs/{job_id}")
