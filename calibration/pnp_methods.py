@@ -87,13 +87,27 @@ def _prepare(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) -> tupl
     return X, uv, xy, bool(sv[2] < 1e-6 * sv[0])
 
 
+def _plane_mirror(X: F64, R: F64, t: F64) -> tuple[F64, F64]:
+    """The other pose a plane can take for nearly the same image: tilted the other way about the
+    line of sight through its centroid (the two-fold ambiguity IPPE returns as its second
+    solution). Half-turn about the plane's normal, then about the line of sight; exact for a
+    frontal plane (the two half-turns cancel), a start for the refinement otherwise."""
+    centre = X.mean(axis=0)
+    n_obj = np.linalg.svd(X - centre)[2][2]
+    c_cam = R @ centre + t
+    v = c_cam / np.linalg.norm(c_cam)
+    Rm = _rot(np.pi * v) @ R @ _rot(np.pi * n_obj)
+    return Rm, c_cam - Rm @ centre
+
+
 def candidates(method: str, X: F64, xy: F64, planar: bool) -> list[tuple[F64, F64]]:
     """Initial poses ``(R, t)`` of one solver on ideal normalized coordinates."""
     if method == "rpnp":
         try:
-            return [(R, t) for R, t, _ in rpnp(X, xy)]
+            found = [(R, t) for R, t, _ in rpnp(X, xy)]
         except RPnPError as exc:
             raise PoseEstimationError(str(exc)) from exc
+        return found + [_plane_mirror(X, R, t) for R, t in found] if planar else found
     if method not in _OPENCV_FLAGS:
         raise PoseEstimationError(f"unknown pose method {method!r}; use one of {', '.join(METHODS)}")
     if method == "ippe" and not planar:
