@@ -6,6 +6,10 @@ detects the target in each listed image, and prints ``he.json`` (shared/INTERFAC
 (eye-to-hand), residuals, the 1-σ uncertainty and leave-one-out prediction. Warnings (views left
 out, pairs dropped, mis-paired images) go to stderr; a convention mistake or degenerate motion
 stops it with one clear line.
+
+Beyond 6-DOF AX=XB: ``--dof 4 --target-z-mm Z`` for robots that turn the tool only about the base
+z axis (``calibration.handeye_dof4``), and ``--T-base-target F.json`` / ``--T-tool-target F.json``
+when the target's frame was measured by other means (``calibration.handeye_measured``).
 """
 
 from __future__ import annotations
@@ -39,6 +43,14 @@ def register(sub: Any) -> None:
     p.add_argument("--estimate-robot-noise", action="store_true",
                    help="estimate the robot's noise from the data (real robots: absolute error is often mm)")
     p.add_argument("--no-loo", action="store_true", help="skip the leave-one-out validation (faster)")
+    p.add_argument("--dof", type=int, choices=[4, 6], default=6,
+                   help="6 (default): full AX=XB; 4: the tool only turns about the base z axis (SCARA, delta, "
+                        "top-down picking) - needs --target-z-mm")
+    p.add_argument("--target-z-mm", type=float,
+                   help="--dof 4: height of the target origin in the base frame, mm (eye-to-hand: at the first "
+                        "pose of poses.csv); it fixes the part of the hand-eye such motion cannot see")
+    p.add_argument("--target-z-sigma-mm", type=float, default=0.1,
+                   help="--dof 4: 1-sigma of --target-z-mm, mm (default 0.1)")
     p.add_argument("--out", dest="out_json", help="write he.json here too")
     p.set_defaults(func=run)
 
@@ -58,8 +70,8 @@ def _camera(path: str) -> Any:
     return read_camera(path)[0]
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration.handeye import RobotNoise, calibrate_handeye
+def _load(args: argparse.Namespace) -> tuple[Any, Any, Any, list[Any]]:
+    """(target, camera, poses, detections) of the data set; detections in poses.csv order."""
     from calibration.observations import Detection
     from calibration.robot_poses import read_poses_csv
     from calibration.targets import load_target
@@ -94,14 +106,46 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             det = detect_file(folder / name, target)
             det.image = name
             detections.append(det)
+    return target, camera, poses, detections
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye
+
+    if args.dof != 4 and (args.target_z_mm is not None):
+        raise CommandError("--target-z-mm belongs to --dof 4 (a robot that turns only about base z); add --dof 4 "
+                           "or leave it out")
+    if args.dof == 4 and args.target_z_mm is None:
+        raise CommandError("--dof 4 needs --target-z-mm Z: the target origin's height in the base frame (mm); "
+                           "4-DOF motion cannot see it")
+    target, camera, poses, detections = _load(args)
     try:
         noise = RobotNoise(args.robot_sigma_mm, args.robot_sigma_deg)
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
-    result = calibrate_handeye(args.setup, poses.T_base_tool, detections, camera, target, noise,
-                               raw_ur_poses=poses.ur_poses, leave_one_out=not args.no_loo,
-                               estimate_robot_noise=args.estimate_robot_noise)
+    if args.dof == 4:
+        from calibration.handeye_dof4 import calibrate_handeye_dof4
+
+        out = calibrate_handeye_dof4(args.setup, poses.T_base_tool, detections, camera, target, args.target_z_mm,
+                                     noise, target_z_sigma_mm=args.target_z_sigma_mm).to_json()
+        _warn(out)
+        return out
+    try:
+        result = calibrate_handeye(args.setup, poses.T_base_tool, detections, camera, target, noise,
+                                   raw_ur_poses=poses.ur_poses, leave_one_out=not args.no_loo,
+                                   estimate_robot_noise=args.estimate_robot_noise)
+    except HandEyeError as exc:
+        from calibration.handeye_dof4_checks import is_dof4
+
+        if "--dof 4" not in str(exc) and is_dof4(list(poses.T_base_tool)):
+            raise CommandError(f"{exc} — these poses turn the tool only about the base z axis: calibrate them "
+                               "with --dof 4 --target-z-mm Z (Z: the target origin's height, base frame, mm)") from exc
+        raise
     out = result.to_json()
+    _warn(out)
+    return out
+
+
+def _warn(out: dict[str, Any]) -> None:
     for prob in out["verdict"]["problems"]:
         print(f"cellctl: {prob['severity']}: {prob['message']}", file=sys.stderr)
-    return out
