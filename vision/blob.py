@@ -247,6 +247,6 @@ def find(model: BlobModel, image: NDArray[Any], search: SearchParams | None = No
             continue
         matches.append(Match(u, v, ang, score))
     matches.sort(key=lambda m: -m.score)
-    if sp.max_count > 0:
+    if sp.max_count is not None:
         matches = matches[:sp.max_count]
     return FindResult(matches, timed_out, time.perf_counter() - t0)

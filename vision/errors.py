@@ -17,3 +17,7 @@ class SettingsError(VisionError):
 
 class TeachError(VisionError):
     """A model cannot be taught from this image region (no usable edges, region too small...)."""
+
+
+class ImageError(VisionError):
+    """An array that is not an image the matchers read (wrong shape or channel count)."""

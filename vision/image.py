@@ -13,13 +13,22 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from vision.errors import ImageError
+
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 U8 = NDArray[np.uint8]
 
 
 def as_gray(image: NDArray[Any]) -> U8:
-    """A single-channel uint8 view of ``image`` (BGR is converted)."""
+    """A single-channel uint8 view of ``image`` (BGR is converted; an empty image stays empty)."""
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        raise ImageError(f"an image must be H x W grey or H x W x 3 BGR, got an array of shape {image.shape}")
+    if image.size == 0:
+        return np.zeros((0, 0), np.uint8)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if image.dtype != np.uint8:

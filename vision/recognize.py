@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import SettingsError
-from vision.types import FindResult, SearchParams
+from vision.types import MIN_SCORE_FLOOR, FindResult, SearchParams
 
 
 class PartLike(Protocol):
@@ -74,7 +74,7 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
     if len(set(names)) != len(names):
         raise SettingsError(f"part model names must differ to tell the parts apart (got {names})")
     t0 = time.perf_counter()
-    low = replace(sp, min_score=sp.min_score * RUNNER_UP_FACTOR, max_count=0)
+    low = replace(sp, min_score=max(sp.min_score * RUNNER_UP_FACTOR, MIN_SCORE_FLOOR), max_count=None)
     allm: list[tuple[float, str, float, float, float, float]] = []  # score, name, u, v, angle, radius
     timed_out = False
     for m in models:
@@ -106,6 +106,6 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
         ru_score = ru[0] if ru else 0.0
         out.append(Recognition(win[1], win[2], win[3], win[4], win[0], win[0] - ru_score,
                                ru[1] if ru else None, ru_score))
-    if sp.max_count > 0:
+    if sp.max_count is not None:
         out = out[:sp.max_count]
     return RecognitionResult(out, timed_out, time.perf_counter() - t0)

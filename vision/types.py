@@ -2,25 +2,42 @@
 
 Shared by the shape and blob matchers. Positions are pixels (centre of the top-left pixel =
 ``(0, 0)``); ``angle_deg`` is the rotation relative to the teach image, counter-clockwise on
-screen (``cv2.getRotationMatrix2D`` sense), in (-180, 180].
+screen (``cv2.getRotationMatrix2D`` sense), in (-180, 180]. ``SearchParams`` checks itself when
+it is made: settings that cannot work raise ``SettingsError`` naming the field and the fix.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from vision.errors import SettingsError
 
 PERSPECTIVE_DEFAULT = True
+POLARITIES = ("use_polarity", "ignore_global_polarity", "ignore_local_polarity")
+Polarity = Literal["use_polarity", "ignore_global_polarity", "ignore_local_polarity"]
+MIN_SCORE_FLOOR = 0.1
+"""Below this a score no longer tells a part from texture: every edge pixel would be a candidate."""
+
+
+def _finite(name: str, x: float) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise SettingsError(f"{name} must be a finite number, got {x!r}")
+    return float(x)
 
 
 @dataclass(frozen=True)
 class SearchParams:
-    """Bounds of one search."""
+    """Bounds of one search (HALCON ``find_shape_model``'s parameters, in our words)."""
 
     min_score: float = 0.5
-    max_count: int = 0
-    """Most matches to return (0: all)."""
+    """Least score of a match, in [0.1, 1]."""
+    max_count: int | None = None
+    """Most matches to return (``None``: all)."""
     angle_start_deg: float = -180.0
     angle_extent_deg: float = 360.0
+    """Angles searched: ``angle_start_deg`` .. ``+ angle_extent_deg`` (0 < extent <= 360)."""
     roi: tuple[float, float, float, float] | None = None
     """Search region ``(U, V, W, H)`` for the reference point; ``None``: the whole image."""
     timeout_s: float | None = None
@@ -33,6 +50,59 @@ class SearchParams:
     perspective: bool = PERSPECTIVE_DEFAULT
     """Finish with a plane-homography fit (a tilted camera): the reference point and angle are then
     those of the part's plane seen in perspective."""
+    polarity: Polarity = "ignore_global_polarity"
+    """``use_polarity``: edges must have the teach image's contrast direction; ``ignore_global_polarity``:
+    or all of them reversed (an inverted image); ``ignore_local_polarity``: each edge either way."""
+    greediness: float = 0.9
+    """0: safe (every candidate is scored in full); 1: fast (a candidate is dropped as soon as it can
+    no longer reach ``min_score``, assuming the unseen points match)."""
+    scale_min: float = 1.0
+    scale_max: float = 1.0
+    """Isotropic scale range searched (e.g. 0.9..1.1); 1..1 (the default): no scale search."""
+    mirrored: bool = False
+    """Also search the mirror image of the model (a flat part lying face down)."""
+    min_visible: float = 0.5
+    """A pose whose model lies more than this fraction inside the image is scored on its visible points."""
+
+    def __post_init__(self) -> None:
+        ms = _finite("min_score", self.min_score)
+        if not MIN_SCORE_FLOOR <= ms <= 1.0:
+            raise SettingsError(f"min_score {self.min_score:g} is out of range: use {MIN_SCORE_FLOOR:g}..1 "
+                                "(below it every textured patch would be a match)")
+        if self.max_count is not None and (isinstance(self.max_count, bool) or not isinstance(self.max_count, int)
+                                           or self.max_count < 1):
+            raise SettingsError(f"max_count {self.max_count!r} asks for no match: give at least 1, or leave it "
+                                "unset for all matches")
+        _finite("angle_start_deg", self.angle_start_deg)
+        ext = _finite("angle_extent_deg", self.angle_extent_deg)
+        if not 0.0 < ext <= 360.0:
+            raise SettingsError(f"angle_extent_deg {ext:g} is out of range: use 0 < extent <= 360 "
+                                "(the range of angles searched, from angle_start_deg)")
+        if self.roi is not None:
+            if len(self.roi) != 4:
+                raise SettingsError(f"roi must be (U, V, W, H), got {self.roi!r}")
+            for k, x in zip("UVWH", self.roi, strict=True):
+                _finite(f"roi {k}", x)
+            if self.roi[2] <= 0 or self.roi[3] <= 0:
+                raise SettingsError(f"roi {self.roi} is empty: width and height must be positive")
+        if self.timeout_s is not None and not _finite("timeout_s", self.timeout_s) >= 0:
+            raise SettingsError(f"timeout_s {self.timeout_s:g} must be >= 0 (0: answer at once; None: no limit)")
+        if self.min_distance_px is not None and not _finite("min_distance_px", self.min_distance_px) >= 0:
+            raise SettingsError(f"min_distance_px {self.min_distance_px:g} must be >= 0")
+        if not 0.0 <= _finite("max_overlap", self.max_overlap) <= 1.0:
+            raise SettingsError(f"max_overlap {self.max_overlap:g} must be a fraction 0..1")
+        if not 0.0 <= _finite("max_scale_dev", self.max_scale_dev) <= 0.5:
+            raise SettingsError(f"max_scale_dev {self.max_scale_dev:g} must be 0..0.5")
+        if self.polarity not in POLARITIES:
+            raise SettingsError(f"polarity {self.polarity!r} is unknown: use one of {', '.join(POLARITIES)}")
+        if not 0.0 <= _finite("greediness", self.greediness) <= 1.0:
+            raise SettingsError(f"greediness {self.greediness:g} must be 0..1 (0: safe, 1: fast)")
+        lo, hi = _finite("scale_min", self.scale_min), _finite("scale_max", self.scale_max)
+        if not 0.5 <= lo <= 1.0 <= hi <= 2.0:
+            raise SettingsError(f"scale range {lo:g}..{hi:g} must lie in 0.5..2 and include 1 "
+                                "(e.g. 0.9..1.1)")
+        if not 0.1 <= _finite("min_visible", self.min_visible) <= 1.0:
+            raise SettingsError(f"min_visible {self.min_visible:g} must be a fraction 0.1..1")
 
 
 @dataclass
@@ -45,10 +115,27 @@ class Match:
     """RMS normal distance of the inlier model edge points after refinement."""
     scale: float = 1.0
     """Apparent size relative to the teach image (a tilted view), from the final fit."""
+    mirrored: bool = False
+    """The mirror image of the model matched (the part lies face down)."""
+    n_points: int = 0
+    """Model points that agreed with an image edge at the final pose (direction and position)."""
+    n_visible: int = 0
+    """Model points inside the image at the final pose (the score is over these)."""
 
-    def as_dict(self) -> dict[str, float]:
+    def as_dict(self) -> dict[str, Any]:
         return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
-                "scale": self.scale}
+                "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
+                "n_visible": self.n_visible}
+
+
+@dataclass
+class Candidate:
+    """The best pose a search saw, whether or not it passed ``min_score`` (to say why nothing was found)."""
+
+    u_px: float
+    v_px: float
+    angle_deg: float
+    score: float
 
 
 @dataclass
@@ -57,4 +144,18 @@ class FindResult:
     timed_out: bool = False
     elapsed_s: float = 0.0
     stats: dict[str, float] = field(default_factory=dict)
+    best_rejected: Candidate | None = None
+    """The best candidate below ``min_score`` (``None`` if there was none)."""
+    min_score: float = 0.5
 
+    def reason(self) -> str | None:
+        """Why nothing was found, in one line (``None`` when something was)."""
+        if self.matches:
+            return None
+        if self.timed_out:
+            return "the search timed out before any candidate was scored: raise timeout_s or narrow the search"
+        c = self.best_rejected
+        if c is None:
+            return "no candidate: no part-like edges in the searched region"
+        return (f"best candidate scored {c.score:.2f} < min_score {self.min_score:g} "
+                f"at ({c.u_px:.1f}, {c.v_px:.1f}), angle {c.angle_deg:.1f} deg")

@@ -62,11 +62,9 @@ def _teach(args: argparse.Namespace) -> dict[str, Any]:
 
 def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
     models = [PartModel.load(p) for p in args.model]
-    if args.max is not None and args.max < 0:
-        raise CommandError("--max must be >= 0 (0: all matches)")
-    if not 0.0 <= args.min_score <= 1.0:
-        raise CommandError("--min-score must be between 0 and 1")
-    sp = SearchParams(min_score=args.min_score, max_count=args.max or 0,
+    if args.max is not None and args.max < 1:
+        raise CommandError("--max must be >= 1 (leave it out for all matches)")
+    sp = SearchParams(min_score=args.min_score, max_count=args.max,
                       angle_start_deg=args.angle_start, angle_extent_deg=args.angle_extent,
                       roi=_roi(args.search_roi, "--search-roi"),
                       timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0)

@@ -26,6 +26,14 @@ MAX_TOP_FEATURES = 24  # 4 * 63 < 256: uint8 accumulators cannot overflow (keep 
 MAX_TRACK_FEATURES = 64
 MAX_FINE_POINTS = 240
 GRAD_PER_CONTRAST = 0.25  # peak gradient (grey/px) of a blurred step of unit contrast, roughly
+AUTO_CONTRAST_FRACTION = 0.3
+"""Automatic contrast: a model edge must be at least this fraction of the ROI's strong edges."""
+IMAGE_BORDER_PX = 2.0
+"""Edges this close to the image border (level pixels) are dropped: the pyramid and the gradients
+there are made of reflected pixels."""
+ROI_BORDER_PX = 2.0
+"""Edges this close to the ROI's border (level-0 pixels) are dropped: the border cuts them, and a
+part of another object reaching into the ROI shows there."""
 
 
 @dataclass(frozen=True)
@@ -38,15 +46,35 @@ class TeachParams:
     """Pyramid levels (0 = automatic from the ROI size)."""
     edge_sigma_px: float = 1.0
     """Gaussian smoothing before the level-0 gradients."""
+    auto_contrast: bool = True
+    """Choose the model's edges by contrast relative to the ROI's strongest edges (HALCON's ``auto``):
+    edges weaker than ``AUTO_CONTRAST_FRACTION`` of the ROI's 90th-percentile edge are texture, not
+    the part's outline. ``min_contrast`` stays the floor, and the contrast asked of image edges at find."""
+    min_component_px: int = 0
+    """Least length (level-0 pixels) of a connected model edge; shorter ones (texture, specks) are
+    dropped. 0: automatic (a tenth of the ROI's smaller side, at least 6 px)."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.min_contrast) and 1.0 <= self.min_contrast <= 255.0):
+            raise TeachError(f"min_contrast {self.min_contrast!r} must be 1..255 grey levels")
+        if not 0 <= self.num_levels <= 8:
+            raise TeachError(f"num_levels {self.num_levels} must be 0 (automatic) .. 8")
+        if not (math.isfinite(self.edge_sigma_px) and 0.0 <= self.edge_sigma_px <= 5.0):
+            raise TeachError(f"edge_sigma_px {self.edge_sigma_px!r} must be 0..5 px")
+        if self.min_component_px < 0:
+            raise TeachError(f"min_component_px {self.min_component_px} must be >= 0 (0: automatic)")
 
     def to_dict(self) -> dict[str, Any]:
         return {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
-                "edge_sigma_px": self.edge_sigma_px}
+                "edge_sigma_px": self.edge_sigma_px, "auto_contrast": self.auto_contrast,
+                "min_component_px": self.min_component_px}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TeachParams:
+        # files taught before auto contrast keep their edges as they were chosen then
         return cls(float(d.get("min_contrast", 12.0)), int(d.get("num_levels", 0)),
-                   float(d.get("edge_sigma_px", 1.0)))
+                   float(d.get("edge_sigma_px", 1.0)), bool(d.get("auto_contrast", False)),
+                   int(d.get("min_component_px", 0)))
 
 
 @dataclass
@@ -57,7 +85,7 @@ class LevelModel:
     points: F64
     """(N, 2) sub-pixel edge points."""
     normals: F64
-    """(N, 2) unit gradient directions (sign irrelevant)."""
+    """(N, 2) unit gradient directions, dark to bright (the sign is the edge's polarity)."""
     features: NDArray[np.int64]
     """Indices of the points used for the discrete search on this level."""
 
@@ -80,6 +108,11 @@ class LevelModel:
                 "points": [[round(float(x), 4), round(float(y), 4), round(float(a), 3)]
                            for (x, y), a in zip(self.points, phi, strict=True)],
                 "features": [int(i) for i in self.features]}
+
+    def mirrored(self) -> LevelModel:
+        """The mirror image about the reference point's vertical axis (x -> -x)."""
+        flip = np.array([-1.0, 1.0])
+        return LevelModel(self.level, self.points * flip, self.normals * flip, self.features.copy())
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> LevelModel:
@@ -106,6 +139,10 @@ class ShapeModel:
 
     def to_dict(self) -> dict[str, Any]:
         return {"levels": [lv.to_dict() for lv in self.levels]}
+
+    def mirrored(self) -> ShapeModel:
+        """The model of the part's mirror image (a flat part lying face down)."""
+        return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
@@ -143,6 +180,31 @@ def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, flo
     inside = is_max & (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
     return (np.stack([px[inside], py[inside]], axis=1), np.stack([nx[inside], ny[inside]], axis=1),
             g0[inside])
+
+
+def _select_edges(pts: F64, nrm: F64, mag: F64, box: tuple[float, float, float, float], thr: float,
+                  min_len: float, border: float, size: tuple[int, int]) -> tuple[F64, F64, F64]:
+    """Keep the part's edges: ``border`` px inside the ROI, ``IMAGE_BORDER_PX`` inside the image
+    (``size`` = (W, H) of this level), in connected runs of at least ``min_len`` pixels that reach
+    ``thr`` somewhere (hysteresis from ``thr / 2``; texture and specks drop out)."""
+    b, e = border, IMAGE_BORDER_PX
+    x0, y0 = max(box[0] + b, e), max(box[1] + b, e)
+    x1, y1 = min(box[2] - b, size[0] - 1 - e), min(box[3] - b, size[1] - 1 - e)
+    inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
+    pts, nrm, mag = pts[inside], nrm[inside], mag[inside]
+    if len(pts) == 0:
+        return pts, nrm, mag
+    ix = np.rint(pts[:, 0] - x0).astype(np.int64) + 1
+    iy = np.rint(pts[:, 1] - y0).astype(np.int64) + 1
+    mask = np.zeros((int(iy.max()) + 2, int(ix.max()) + 2), np.uint8)
+    mask[iy, ix] = 1
+    # sub-pixel positions round to chains with one-pixel gaps: bridge them before labelling
+    n, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
+    lab = labels[iy, ix]
+    strong = np.zeros(n, bool)
+    np.logical_or.at(strong, lab, mag >= thr)
+    keep = strong[lab] & (np.bincount(lab, minlength=n)[lab] >= min_len)
+    return pts[keep], nrm[keep], mag[keep]
 
 
 def _centroid_refine(img: U8, pts: F64, nrm: F64, mag: F64, min_contrast: float
@@ -206,11 +268,19 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
     n_levels = p.num_levels if p.num_levels > 0 else auto_levels(w, h)
     pyr = pyramid(img, n_levels)
     levels: list[LevelModel] = []
+    min_len = p.min_component_px if p.min_component_px > 0 else max(6, int(round(0.1 * min(w, h))))
+    thr = p.min_contrast * GRAD_PER_CONTRAST
+    if p.auto_contrast:
+        _, _, mag0 = _edge_points(img, p.edge_sigma_px, thr, (u, v, u + w, v + h))
+        if len(mag0):
+            thr = max(thr, AUTO_CONTRAST_FRACTION * float(np.percentile(mag0, 90)))
     for lv, im in enumerate(pyr):
         s = 2.0 ** lv
         sigma = p.edge_sigma_px if lv == 0 else 0.0
-        pts, nrm, mag = _edge_points(im, sigma, p.min_contrast * GRAD_PER_CONTRAST,
-                                     (u / s, v / s, (u + w) / s, (v + h) / s))
+        box = (u / s, v / s, (u + w) / s, (v + h) / s)
+        pts, nrm, mag = _edge_points(im, sigma, 0.5 * thr, box)
+        pts, nrm, mag = _select_edges(pts, nrm, mag, box, thr, max(3.0, min_len / s), ROI_BORDER_PX / s,
+                                      (im.shape[1], im.shape[0]))
         if len(pts) < 8:
             if lv == 0:
                 raise TeachError(

@@ -22,6 +22,9 @@ from numpy.typing import NDArray
 from vision.image import F32, F64, U8, bilinear2, gauss_peak, gradients, profile_ok, rot
 from vision.shape.model import LevelModel
 
+PERSPECTIVE_MIN_INLIERS = 0.8
+"""The plane-homography fit runs only when this fraction of the visible model points has its edge."""
+
 
 @dataclass
 class Pose:
@@ -43,11 +46,13 @@ def _gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, fit_
     return np.asarray(delta if fit_scale else np.append(delta, 0.0), dtype=np.float64)
 
 
-def _associate(G: F32, q: F64, n: F64, reach: float, thr: float) -> tuple[F64, NDArray[np.bool_], F64]:
+def _associate(G: F32, q: F64, n: F64, reach: float, thr: float
+               ) -> tuple[F64, NDArray[np.bool_], F64, F64]:
     """Nearest image edge of matching orientation along each normal within ``reach`` px.
 
     Returns the signed distances (sub-pixel, Gaussian fit of the gradient component along the
-    normal), whether an edge was found, and ``|cos|`` of the orientation difference there.
+    normal), whether an edge was found, ``|cos|`` of the orientation difference there, and the
+    sign of the image gradient along the model's normal (+1: the teach image's polarity).
     """
     npts = len(q)
     rows = np.arange(npts)
@@ -56,7 +61,8 @@ def _associate(G: F32, q: F64, n: F64, reach: float, thr: float) -> tuple[F64, N
     sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
     sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
     gxy = bilinear2(G, sx.ravel(), sy.ravel()).reshape(npts, k, 2)
-    gn = np.abs(gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2])
+    gs = gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2]
+    gn = np.abs(gs)
     gm2 = gxy[..., 0] ** 2 + gxy[..., 1] ** 2
     good = (gn >= thr) & (gn * gn >= 0.81 * gm2)
     g = np.where(good, gn, 0.0)
@@ -69,18 +75,58 @@ def _associate(G: F32, q: F64, n: F64, reach: float, thr: float) -> tuple[F64, N
     off = gauss_peak(g[rows, jj - 1], g[rows, jj], g[rows, jj + 1])
     d = np.where(found, ts[jj] + off, 0.0)
     cosd = np.where(found, gn[rows, jj] / np.sqrt(np.maximum(gm2[rows, jj], 1e-12)), 0.0)
-    return d, found, cosd
+    return d, found, cosd, np.where(gs[rows, jj] >= 0, 1.0, -1.0)
+
+
+@dataclass
+class Refined:
+    """A refined pose with its score over the visible model points."""
+
+    pose: Pose
+    score: float
+    rms_px: float
+    n_points: int = 0
+    """Model points that agree (an edge within 1 px, direction and polarity as asked)."""
+    n_visible: int = 0
+
+
+def polarity_score(found: NDArray[np.bool_], d: F64, cosd: F64, sign: F64, visible: NDArray[np.bool_],
+                   polarity: str, min_visible: float) -> tuple[float, int, int]:
+    """Edge-direction agreement over the visible model points: (score, agreeing, visible).
+
+    Each point contributes ``cos`` of the angle between its normal and the image gradient at the
+    nearest edge, times a distance weight; with ``use_polarity`` only edges of the teach image's
+    contrast direction count, with ``ignore_global_polarity`` the better of the two directions
+    taken over all points (an inverted image), with ``ignore_local_polarity`` each point either
+    way (HALCON's three ``Metric`` options).
+    """
+    n_vis = int(np.count_nonzero(visible))
+    if n_vis == 0 or n_vis < min_visible * len(visible):
+        return 0.0, 0, n_vis
+    ok = found & visible
+    c = np.where(ok, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
+    near = ok & (np.abs(d) < 1.0)
+    pos, neg = sign > 0, sign < 0
+    if polarity == "ignore_local_polarity":
+        return float(c.sum()) / n_vis, int(np.count_nonzero(near)), n_vis
+    s_pos = float(c[pos].sum())
+    s_neg = float(c[neg].sum())
+    if polarity == "use_polarity" or s_pos >= s_neg:
+        return s_pos / n_vis, int(np.count_nonzero(near & pos)), n_vis
+    return s_neg / n_vis, int(np.count_nonzero(near & neg)), n_vis
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
                 search_px: float, iterations: int, fine: U8 | None = None,
                 min_contrast: float = 0.0, subset: NDArray[np.int64] | None = None,
                 reject_below: float = 0.0, fit_scale: bool = False,
-                max_scale_dev: float = 0.1, perspective: bool = False) -> tuple[Pose, float, float]:
-    """Gauss-Newton fit of the model edge points to the image edges; returns (pose, score, rms).
+                max_scale_dev: float = 0.1, perspective: bool = False,
+                polarity: str = "ignore_local_polarity", min_visible: float = 0.5) -> Refined:
+    """Gauss-Newton fit of the model edge points to the image edges, scored at the final pose.
 
     With ``fit_scale`` the fit is a similarity (a slightly tilted view makes the part look a few
-    per cent larger or smaller; a rigid fit would turn that into a position error).
+    per cent larger or smaller; a rigid fit would turn that into a position error). Model points
+    outside the image (a part at the border) take no part in the fit or the score.
     """
     m = lm.points if subset is None else lm.points[subset]
     nrm_m = lm.normals if subset is None else lm.normals[subset]
@@ -91,7 +137,14 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     x0, y0 = max(int(pose.x - reach), 0), max(int(pose.y - reach), 0)
     x1, y1 = min(int(pose.x + reach) + 1, w - 1), min(int(pose.y + reach) + 1, h - 1)
     if x1 - x0 < 8 or y1 - y0 < 8:
-        return pose, 0.0, float("nan")
+        return Refined(pose, 0.0, float("nan"))
+    s0 = pose.scale
+    vis_margin = 2.0 + 3 * sigma
+
+    def visible(q: F64) -> NDArray[np.bool_]:
+        return np.asarray((q[:, 0] >= vis_margin) & (q[:, 1] >= vis_margin) & (q[:, 0] <= x1 - x0 - vis_margin)
+                          & (q[:, 1] <= y1 - y0 - vis_margin))
+
     gx, gy = gradients(img_level[y0:y1 + 1, x0:x1 + 1], sigma)
     G = cv2.merge([gx, gy])
     x, y, th, sc = pose.x - x0, pose.y - y0, pose.theta, pose.scale
@@ -105,7 +158,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         x += float(delta[0])
         y += float(delta[1])
         th += float(delta[2])
-        sc = float(np.clip(sc + float(delta[3]), 1 - max_scale_dev, 1 + max_scale_dev))
+        sc = float(np.clip(sc + float(delta[3]), s0 * (1 - max_scale_dev), s0 * (1 + max_scale_dev)))
         return abs(float(delta[0])) + abs(float(delta[1])) + (abs(float(delta[2])) + abs(float(delta[3]))) \
             * lm.radius
 
@@ -114,12 +167,13 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         Rm = m @ R.T
         q = sc * Rm + np.array([x, y])
         n = nrm_m @ R.T
-        d, found, cosd = _associate(G, q, n, rng, thr)
+        d, found, cosd, sign = _associate(G, q, n, rng, thr)
+        found &= visible(q)
         # Tukey weights on the normal distances
         c = max(rng * 0.75, 1.0)
         wgt = np.where(found & (np.abs(d) < c), (1 - (d / c) ** 2) ** 2, 0.0)
         if wgt.sum() < 6 or (it == 0 and np.count_nonzero(found) < reject_below * npts):
-            return Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan")
+            return Refined(Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan"))
         moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and (it > 0 or iterations == 1)))
         rng = max(rng * 0.6, 1.5)
         if moved < 0.02:
@@ -128,30 +182,34 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         sel = found & (np.abs(d) < 1.0)
+        # a homography needs the outline all round: on a partly seen part it trades position for shape
+        n_vis = max(int(np.count_nonzero(visible(q))), 1)
+        persp = perspective and int(np.count_nonzero(sel)) >= PERSPECTIVE_MIN_INLIERS * n_vis
         ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
-        for _ in range(1 if perspective else 3):
+        for _ in range(1 if persp else 3):
             R = rot(th)
             Rm = ms @ R.T
             q = sc * Rm + np.array([x, y])
             n = ns @ R.T
             off, S, clean = profile_ok(img_f, q, n)
-            ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast)
+            ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
             wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
             if wgt.sum() < 6:
                 break
             if update(_gn_step(n, Rm, dms @ R.T, sc, wgt, off, fit_scale)) < 1e-3:
                 break
-        if perspective:
+        if persp:
             x, y, th, sc = _perspective_fit(img_f, ms, ns, x, y, th, sc, min_contrast)
         # the score is taken at the final pose
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
-        d, found, cosd = _associate(G, q, n, 2.0, thr)
-    s_i = np.where(found, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
-    inl = found & (np.abs(d) < 1.0)
+        d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
+    vis = visible(q)
+    score, n_agree, n_vis = polarity_score(found, d, cosd, sign, vis, polarity, min_visible)
+    inl = found & vis & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
-    return Pose(x + x0, y + y0, th, float(s_i.mean()), sc), float(s_i.mean()), rms
+    return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,

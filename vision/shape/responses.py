@@ -67,12 +67,13 @@ def spread_max(resp: U8, size: int) -> U8:
     return np.ascontiguousarray(flat.reshape(nb, h + size // 2, w)[:, :h])
 
 
-def rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], NDArray[np.int64],
-                                                            NDArray[np.int64]]:
-    """Rounded feature offsets (A, F) dx, dy and orientation bins for each angle."""
+def rotated_features(lm: LevelModel, thetas: F64, scales: F64 | None = None
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Rounded feature offsets (A, F) dx, dy and orientation bins for each angle (and scale)."""
     m = lm.points[lm.features]
     n = lm.normals[lm.features]
-    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    k = np.ones(len(thetas)) if scales is None else scales
+    c, s = (k * np.cos(thetas))[:, None], (k * np.sin(thetas))[:, None]
     dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)
     dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
     phi = np.arctan2(n[:, 1], n[:, 0])[None, :] - thetas[:, None]
@@ -81,24 +82,30 @@ def rotated_features(lm: LevelModel, thetas: F64) -> tuple[NDArray[np.int64], ND
 
 
 def track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64,
-           n_steps: int = 1, reach: int = 1) -> tuple[F64, F64, F64, F64]:
+          n_steps: int = 1, reach: int = 1, scale: F64 | None = None) -> tuple[F64, F64, F64, F64]:
     """Best pose of each candidate over +-reach px and +-n_steps angle steps: (x, y, theta, score).
 
     With the responses spread over 3x3, reach 1 covers a candidate that is up to 2 px off.
+    ``scale`` (one per candidate) sizes the model; candidates outside the image are clamped to it.
     """
+    if len(cx) == 0:
+        e = np.zeros(0)
+        return e, e.copy(), e.copy(), e.copy()
+    k_s = np.ones(len(cx)) if scale is None else np.asarray(scale, dtype=np.float64)
     da = lm.angle_step
     m = lm.points[lm.features]
     n = lm.normals[lm.features]
     nf = len(m)
     na = 2 * n_steps + 1
     thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * da  # (C, na)
-    c, s = np.cos(thetas)[..., None], np.sin(thetas)[..., None]
+    c = (k_s[:, None] * np.cos(thetas))[..., None]
+    s = (k_s[:, None] * np.sin(thetas))[..., None]
     dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int32)  # (C, A, F)
     dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int32)
     phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
     b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int32)) % N_BINS
     _, h, w = resp.shape
-    P = int(math.ceil(lm.radius)) + reach + 2  # zero border: no bounds checks in the gather
+    P = int(math.ceil(lm.radius * float(k_s.max()))) + reach + 2  # zero border: no bounds checks in the gather
     padded = np.zeros((N_BINS, h + 2 * P, w + 2 * P), np.uint8)
     padded[:, P:P + h, P:P + w] = resp
     hp, wp = h + 2 * P, w + 2 * P

@@ -31,14 +31,15 @@ from numpy.typing import NDArray
 
 from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
-from vision.shape.refine import Pose, refine_lsq
+from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features, spread_max, track
-from vision.types import FindResult, Match, SearchParams
+from vision.types import Candidate, FindResult, Match, SearchParams
 
 TOP_STEP_FACTOR = 1.8
 """Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
 MAX_TOP_CANDIDATES = 64
 HYPOTHESES_PER_POSITION = 3
+MIRROR_MARGIN = 0.02
 TOP_STRIDE = 1
 """Top-level positions are scored on a grid of this stride (responses spread to match)."""
 
@@ -96,22 +97,44 @@ def _angles(start: float, extent: float, step: float) -> F64:
     return np.linspace(start, start + extent, max(n, 1))
 
 
+def _scales(sp: SearchParams, radius: float) -> list[float]:
+    """Scales searched on the top level: steps that move the outermost feature about one pixel."""
+    if sp.scale_max - sp.scale_min < 1e-9:
+        return [1.0]
+    n = max(int(math.ceil((sp.scale_max - sp.scale_min) * radius)), 1)
+    return [float(x) for x in np.linspace(sp.scale_min, sp.scale_max, n + 1)]
+
+
 def _top_search(model: ShapeModel, level_img: U8, thr_grad: float, search_box: Box, a0: float,
-                ext: float, coarse_min: float, clock: _Clock) -> tuple[list[Pose], bool]:
-    """Exhaustive search of the top level: candidate poses (top-level pixels) and whether time ran out."""
+                ext: float, thr_frac: float, scales: list[float], clock: _Clock) -> tuple[list[Pose], bool]:
+    """Exhaustive search of the top level over angles and ``scales``: candidate poses (top-level
+    pixels), best first, and whether time ran out."""
+    resp = response_maps(level_img, thr_grad, spread=2 * TOP_STRIDE + 1)
+    out: list[Pose] = []
+    timed_out = False
+    for scale in scales:
+        cands, timed_out = _top_one_scale(model, resp, search_box, a0, ext, thr_frac, scale, clock)
+        out += cands
+        if timed_out:
+            break
+    out.sort(key=lambda c: -c.score)
+    return out[:MAX_TOP_CANDIDATES], timed_out
+
+
+def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext: float, thr_frac: float,
+                   scale: float, clock: _Clock) -> tuple[list[Pose], bool]:
     L = model.top_level
     top = model.levels[L]
     s = 2.0 ** L
     su, sv, sw, sh = search_box
-    resp = response_maps(level_img, thr_grad, spread=2 * TOP_STRIDE + 1)
     _, hL, wL = resp.shape
     rx0, ry0 = max(int(math.ceil(su / s)), 0), max(int(math.ceil(sv / s)), 0)
     rx1, ry1 = min(int(math.floor((su + sw) / s)), wL - 1), min(int(math.floor((sv + sh) / s)), hL - 1)
     if rx1 < rx0 or ry1 < ry0:
         return [], False
     timed_out = False
-    thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step)
-    dx, dy, b = rotated_features(top, thetas)
+    thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step / scale)
+    dx, dy, b = rotated_features(top, thetas, np.full(len(thetas), scale))
     T = TOP_STRIDE
     P = int(max(np.abs(dx).max(), np.abs(dy).max())) + T + 1
     pad = np.zeros((N_BINS, hL + 2 * P + T, wL + 2 * P + T), np.uint8)
@@ -138,7 +161,7 @@ def _top_search(model: ShapeModel, level_img: U8, thr_grad: float, search_box: B
             timed_out = True
             done = ai + 1
             break
-    thr_top = int(math.floor(4 * nf * coarse_min * 0.7))
+    thr_top = int(math.floor(4 * nf * thr_frac))
     # local maxima over position and angle (circular when the range is the full turn),
     # checked only where the score passes the threshold
     sub = allacc[:done]
@@ -165,7 +188,7 @@ def _top_search(model: ShapeModel, level_img: U8, thr_grad: float, search_box: B
     sc = flat[idx]
     order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
     cands = [Pose(float(T * xs[i] + rx0), float(T * ys[i] + ry0), float(thetas[ai_[i]]),
-                  sc[i] / (4.0 * nf)) for i in order]
+                  sc[i] / (4.0 * nf), scale) for i in order]
     return cands, timed_out
 
 
@@ -185,21 +208,23 @@ def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[P
         cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
         cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)  # plateau centres: *2, rounded
         th = np.array([c.theta for c in cands])
+        ks = np.array([c.scale for c in cands])
         nxt: list[Pose] = []
         for start in range(0, len(cands), 32):
             sl = slice(start, start + 32)
+            k_ = ks[sl]
             # below the top level the angle and position are still coarse: +-2 steps and +-2 px
             # (+-3 with the spread) there, +-1 further down
             xs_, ys_, ts_, sc_ = track(spread_, lm, cx[sl], cy[sl], th[sl], 2 if first else 1,
-                                       2 if first else 1)
+                                       2 if first else 1, k_)
             if last:
                 # the spread responses leave +-1 px plateaus: settle on the unspread ones
                 keep = sc_ >= coarse_min * 0.7
-                xs_, ys_, ts_ = xs_[keep], ys_[keep], ts_[keep]
+                xs_, ys_, ts_, k_ = xs_[keep], ys_[keep], ts_[keep], k_[keep]
                 xs_, ys_, ts_, sc_ = track(raw, lm, np.rint(xs_).astype(np.int64),
-                                           np.rint(ys_).astype(np.int64), ts_, 1, 1)
-            nxt += [Pose(float(a), float(b_), float(t_), float(c_))
-                    for a, b_, t_, c_ in zip(xs_, ys_, ts_, sc_, strict=True)
+                                           np.rint(ys_).astype(np.int64), ts_, 1, 1, k_)
+            nxt += [Pose(float(a), float(b_), float(t_), float(c_), float(kk))
+                    for a, b_, t_, c_, kk in zip(xs_, ys_, ts_, sc_, k_, strict=True)
                     if c_ >= coarse_min * (0.6 if last else 0.8)]
             if clock.expired():
                 timed_out = True
@@ -226,37 +251,44 @@ def _few_per_position(cands: list[Pose], radius: float) -> list[Pose]:
     return [c for grp in per_pos for c in grp]
 
 
+Hypothesis = tuple[Pose, int, Refined]
+
+
 def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Pose],
                  lowest_discrete: int, sp: SearchParams, coarse_min: float, min_dist: float,
-                 clock: _Clock) -> tuple[list[tuple[Pose, int, float, float]], bool]:
-    """Least-squares refinement on the remaining levels down to 0: (pose, level, score, rms).
+                 clock: _Clock) -> tuple[list[Hypothesis], Refined | None, bool]:
+    """Least-squares refinement on the remaining levels down to 0: (pose, level, refined) each,
+    the best level-0 result below ``min_score`` (to say why nothing was found), and time-out.
 
     After the first refined level, hypotheses at one position (e.g. other angles of a nearly
     symmetric part) compete.
     """
     timed_out = False
-    poses: list[tuple[Pose, int, float, float]] = [(c, lowest_discrete, c.score, float("nan"))
-                                                  for c in cands]
+    best_low: Refined | None = None
+    poses: list[Hypothesis] = [(c, lowest_discrete, Refined(c, c.score, float("nan"))) for c in cands]
     for step, lv2 in enumerate(range(max(lowest_discrete - 1, 0), -1, -1)):
-        nxt2: list[tuple[Pose, int, float, float]] = []
-        for pose, lv, _, _ in poses:
+        nxt2: list[Hypothesis] = []
+        for pose, lv, _ in poses:
             if clock.expired():
                 timed_out = True
                 break
             f = 2.0 ** (lv - lv2)
             pose = Pose(pose.x * f, pose.y * f, pose.theta, pose.score, pose.scale)
             sigma = model.params.edge_sigma_px if lv2 == 0 else 0.0
-            pose, score, rms = refine_lsq(
+            r = refine_lsq(
                 pyr[lv2], model.levels[lv2], pose, sigma, thr_grad,
                 search_px=4.5 if step == 0 else 2.0, iterations=5 if step == 0 else 1,
                 fine=pyr[0] if lv2 == 0 else None, min_contrast=model.params.min_contrast,
                 subset=model.levels[lv2].features if lv2 > 0 else None,
                 reject_below=0.7 * coarse_min, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
-                max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective)
-            if score >= (coarse_min * 0.8 if lv2 > 0 else sp.min_score):
-                nxt2.append((Pose(pose.x, pose.y, pose.theta, score, pose.scale), lv2, score, rms))
-        nxt2.sort(key=lambda t: -t[2])
-        kept: list[tuple[Pose, int, float, float]] = []
+                max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective,
+                polarity=sp.polarity, min_visible=sp.min_visible)
+            if r.score >= (coarse_min * 0.8 if lv2 > 0 else sp.min_score):
+                nxt2.append((r.pose, lv2, r))
+            elif lv2 == 0 and (best_low is None or r.score > best_low.score):
+                best_low = r
+        nxt2.sort(key=lambda t: -t[2].score)
+        kept: list[Hypothesis] = []
         r2 = (min_dist / 2.0 ** lv2) ** 2
         for t in nxt2:
             if all((t[0].x - o[0].x) ** 2 + (t[0].y - o[0].y) ** 2 >= r2 for o in kept):
@@ -264,57 +296,84 @@ def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[
         poses = kept
         if timed_out:
             break
-    return poses, timed_out
+    return poses, best_low, timed_out
 
 
-def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
-    """Every instance of ``model`` in ``image`` with score >= ``min_score``, best first."""
-    sp = search or SearchParams()
-    clock = _Clock(sp.timeout_s)
-    img = as_gray(image)
-    H0, W0 = img.shape
+def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bool, clock: _Clock,
+                stats: dict[str, float]) -> tuple[list[Match], Candidate | None, bool]:
+    """Level-0 matches of one model (the taught one or its mirror image), not yet suppressed."""
+    H0, W0 = pyr[0].shape
     L = model.top_level
-    pyr = pyramid(img, L + 1)
     thr_grad = model.params.min_contrast * GRAD_PER_CONTRAST
     u, v, w, h = model.roi
     min_dist = sp.min_distance_px if sp.min_distance_px is not None else min(w, h) / 3.0
     box: Box = sp.roi if sp.roi is not None else (-0.5, -0.5, W0, H0)
     su, sv, sw, sh = box
     a0 = math.radians(sp.angle_start_deg)
-    ext = math.radians(max(min(sp.angle_extent_deg, 360.0), 0.0))
-    stats: dict[str, float] = {}
+    ext = math.radians(sp.angle_extent_deg)
     # coarse levels score lower than level 0 (blur, fewer features): their thresholds stop at the
-    # default's, only the final level-0 score is held to a higher minimum
+    # default's, only the final level-0 score is held to a higher minimum. Greediness sets how far
+    # below it a top-level candidate may start (0.4 .. 0.73 of it; 0.7 at the default 0.9).
     coarse_min = min(sp.min_score, 0.5)
-
-    cands, timed_out = _top_search(model, pyr[L], thr_grad, box, a0, ext, coarse_min, clock)
+    thr_frac = coarse_min * (0.4 + sp.greediness / 3.0)
+    cands, timed_out = _top_search(model, pyr[L], thr_grad, box, a0, ext, thr_frac,
+                                   _scales(sp, model.levels[L].radius), clock)
     stats["t_top_s"] = clock.elapsed()
     stats["cpu_top_s"] = clock.cpu()
-    stats["n_top_candidates"] = float(len(cands))
-
+    stats["n_top_candidates"] = stats.get("n_top_candidates", 0.0) + len(cands)
     lowest_discrete = min(2, L) if L >= 2 else L
     if not timed_out:
         cands, timed_out = _track_down(model, pyr, thr_grad, cands, lowest_discrete, coarse_min, clock)
     stats["t_track_s"] = clock.elapsed()
     stats["cpu_track_s"] = clock.cpu()
-
     cands = _few_per_position(cands, min_dist / 2.0 ** lowest_discrete)
-    stats["n_tracked"] = float(len(cands))
-    poses, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist, clock)
-    timed_out |= t_out
+    stats["n_tracked"] = stats.get("n_tracked", 0.0) + len(cands)
+    poses, low, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist,
+                                     clock)
+    found = [Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
+                   r.n_points, r.n_visible)
+             for p, lv, r in poses if lv == 0 and su <= p.x <= su + sw and sv <= p.y <= sv + sh]
+    best = None if low is None else Candidate(low.pose.x, low.pose.y, wrap_deg(math.degrees(low.pose.theta)),
+                                              low.score)
+    return found, best, timed_out or t_out
+
+
+def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
+    """Every instance of ``model`` in ``image`` with score >= ``min_score``, best first.
+
+    Never raises on an image: an empty, constant or too small image answers no match (with the
+    reason in ``FindResult.reason()``); a part partly outside the image is scored on its visible
+    model points (``SearchParams.min_visible``).
+    """
+    sp = search or SearchParams()
+    clock = _Clock(sp.timeout_s)
+    img = as_gray(image)
+    stats: dict[str, float] = {}
+    if img.size == 0 or min(img.shape) < 8:
+        return FindResult([], False, clock.elapsed(), stats, None, sp.min_score)
+    pyr = pyramid(img, model.top_level + 1)
     found: list[Match] = []
-    for pose, lv, score, rms in poses:
-        if lv == 0 and su <= pose.x <= su + sw and sv <= pose.y <= sv + sh:
-            found.append(Match(pose.x, pose.y, wrap_deg(math.degrees(pose.theta)), score, rms, pose.scale))
-    # final non-maximum suppression on level 0
-    found.sort(key=lambda m: -m.score)
+    best: Candidate | None = None
+    timed_out = False
+    for mirrored in (False, True) if sp.mirrored else (False,):
+        m = model.mirrored() if mirrored else model
+        f, b, t_out = _search_one(m, pyr, sp, mirrored, clock, stats)
+        found += f
+        timed_out |= t_out
+        if b is not None and (best is None or b.score > best.score):
+            best = b
+    u, v, w, h = model.roi
+    min_dist = sp.min_distance_px if sp.min_distance_px is not None else min(w, h) / 3.0
+    # final non-maximum suppression on level 0; a part and its mirror image compete too, and the
+    # mirror image must win by a margin (a mirror-symmetric part matches both ways)
+    found.sort(key=lambda m: -m.score + (MIRROR_MARGIN if m.mirrored else 0.0))
     final: list[Match] = []
     for mt in found:
         if all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2
                and overlap(model.roi, mt, o) <= sp.max_overlap for o in final):
             final.append(mt)
-    if sp.max_count > 0:
+    if sp.max_count is not None:
         final = final[:sp.max_count]
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()
-    return FindResult(final, timed_out, clock.elapsed(), stats)
+    return FindResult(final, timed_out, clock.elapsed(), stats, best, sp.min_score)
