@@ -1,0 +1,200 @@
+"""The shape matcher on real photographs (``tests/data/pick_real``) and on hard variants of them.
+
+Every dev case at the default settings: the instance count and the pose against the corpus's
+``measured_estimate`` (``bench/pick_cases.py`` carries a match to the estimate's reference point).
+Then parts cut by each image border, inverted contrast under each polarity option, a textured
+background, mirror images, a scale range, degenerate images and settings that cannot work.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from bench.pick_cases import Case, Found, TestImage, load_cases, read_grey, score, texture
+from vision import shape
+from vision.errors import SettingsError
+from vision.types import SearchParams
+
+CASES = {c.id: c for c in load_cases()}
+DEV = [(c, t) for c in CASES.values() for t in c.tests]
+
+# Known misses (bench/results/pick_real.md): strict xfails, so a fix shows up as a pass to claim.
+KNOWN_MISSES = {
+    "robertson_screw_heads": "screw heads on wood grain: the taught head's edges are mostly specular socket "
+                             "and grain texture; heads score 0.1-0.3 at their true pose",
+}
+
+
+def _model(case_id: str) -> shape.ShapeModel:
+    case = CASES[case_id]
+    return shape.teach(case.teach_image(), case.roi)
+
+
+_MODELS: dict[str, shape.ShapeModel] = {}
+
+
+def model_of(case: Case) -> shape.ShapeModel:
+    if case.id not in _MODELS:
+        _MODELS[case.id] = _model(case.id)
+    return _MODELS[case.id]
+
+
+def _found(res: object) -> list[Found]:
+    return [Found(m.u_px, m.v_px, m.angle_deg, m.score, m.mirrored) for m in res.matches]  # type: ignore[attr-defined]
+
+
+def _params(case: Case, test: TestImage) -> list[object]:
+    marks = []
+    if case.id in KNOWN_MISSES and test.expected_count > 0:
+        marks.append(pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[case.id]))
+    return [pytest.param(case, test, id=f"{case.id}-{test.path.name}", marks=marks)]
+
+
+@pytest.mark.parametrize(("case", "test"), [p for c, t in DEV for p in _params(c, t)])
+def test_dev_case_default_settings(case: Case, test: TestImage) -> None:
+    res = shape.find(model_of(case), read_grey(test.path))
+    s = score(case, test, _found(res))
+    assert s.false == 0
+    # the reverse-side key is found only with mirrored search (next test); every other instance here
+    expected = test.expected_count - sum(1 for i in test.instances if i.mirrored)
+    assert s.found == expected, res.reason()
+    # within the 1 px / 1 deg target plus the estimate's own stated accuracy (it is no ground truth)
+    assert s.out_of_tolerance == 0, (s.pos_err, s.ang_err)
+
+
+@pytest.mark.xfail(strict=True, reason="the reverse-side key scores 0.24 mirrored (0.30 ignoring local polarity): "
+                                       "only 45 % of its model edges lie within 2 px of an image edge")
+def test_mirrored_key_found_with_mirrored_search() -> None:
+    case = CASES["generalized_hough_keys"]
+    test = case.tests[0]
+    res = shape.find(model_of(case), read_grey(test.path), SearchParams(mirrored=True))
+    s = score(case, test, _found(res))
+    assert s.found == 2 and s.false == 0
+    assert any(m.mirrored for m in res.matches)
+
+
+def _plate() -> tuple[shape.ShapeModel, np.ndarray, tuple[float, float, float]]:
+    """The back-lit plate's model and its teach image, with its pose found there."""
+    case = CASES["sick_edgematcher_single"]
+    img = case.teach_image()
+    model = model_of(case)
+    m = shape.find(model, img).matches[0]
+    return model, img, (m.u_px, m.v_px, m.angle_deg)
+
+
+def _shift(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    bg = float(np.median(img))
+    M = np.array([[1, 0, dx], [0, 1, dy]], dtype=np.float32)
+    return cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR, borderValue=bg)
+
+
+@pytest.mark.parametrize(("dx", "dy"), [(-200, 0), (200, 0), (0, -150), (0, 150)],
+                         ids=["left", "right", "top", "bottom"])
+def test_part_cut_by_each_border_is_found(dx: float, dy: float) -> None:
+    model, img, (u, v, a) = _plate()
+    res = shape.find(model, _shift(img, dx, dy))
+    assert len(res.matches) == 1, res.reason()
+    m = res.matches[0]
+    assert math.hypot(m.u_px - (u + dx), m.v_px - (v + dy)) < 1.0
+    assert abs(m.angle_deg - a) < 0.5
+    assert m.n_visible < len(model.levels[0].points)  # scored on the visible points only
+
+
+@pytest.mark.parametrize(("dx", "dy"), [(-520, 0), (0, 420), (-480, -380)])
+def test_part_mostly_outside_never_crashes(dx: float, dy: float) -> None:
+    """A sliver of the part at the border: found at the right place, or skipped."""
+    model, img, (u, v, _) = _plate()
+    res = shape.find(model, _shift(img, dx, dy))
+    for m in res.matches:
+        assert math.hypot(m.u_px - (u + dx), m.v_px - (v + dy)) < 2.0
+
+
+@pytest.fixture(scope="module")
+def multi() -> tuple[Case, TestImage, np.ndarray]:
+    case = CASES["sick_edgematcher_multi"]
+    return case, case.tests[0], read_grey(case.tests[0].path)
+
+
+@pytest.mark.parametrize(("polarity", "expect_inverted"), [("use_polarity", 0), ("ignore_global_polarity", 7),
+                                                          ("ignore_local_polarity", 7)])
+def test_inverted_contrast_per_polarity_option(multi: tuple[Case, TestImage, np.ndarray], polarity: str,
+                                               expect_inverted: int) -> None:
+    case, test, img = multi
+    sp = SearchParams(polarity=polarity)  # type: ignore[arg-type]
+    direct = score(case, test, _found(shape.find(model_of(case), img, sp)))
+    assert direct.found == 7 and direct.false == 0
+    inv = score(case, test, _found(shape.find(model_of(case), 255 - img, sp)))
+    assert inv.found == expect_inverted and inv.false == 0
+
+
+def test_texture_heavy_background(multi: tuple[Case, TestImage, np.ndarray]) -> None:
+    case, test, img = multi
+    s = score(case, test, _found(shape.find(model_of(case), texture(img))))
+    assert s.found == 7 and s.false == 0 and s.out_of_tolerance == 0
+
+
+def test_mirror_image_of_an_asymmetric_part() -> None:
+    case = CASES["sick_edgematcher_single"]
+    test = case.tests[0]
+    img = read_grey(test.path)
+    flipped = np.ascontiguousarray(img[:, ::-1])
+    model = model_of(case)
+    unmirrored = shape.find(model, flipped).matches  # the outline alone fits a turned plate, partly
+    res = shape.find(model, flipped, SearchParams(mirrored=True))
+    assert len(res.matches) == 1 and res.matches[0].mirrored
+    assert all(m.score < res.matches[0].score - 0.2 for m in unmirrored)
+    direct = shape.find(model, img).matches[0]
+    m = res.matches[0]
+    assert m.u_px == pytest.approx(img.shape[1] - 1 - direct.u_px, abs=1.0)
+    assert m.v_px == pytest.approx(direct.v_px, abs=1.0)
+
+
+def test_scale_range_finds_a_larger_part() -> None:
+    model, img, (u, v, _) = _plate()
+    c = (float(u), float(v))
+    M = cv2.getRotationMatrix2D(c, 20.0, 1.18)
+    big = cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                         borderValue=float(np.median(img)))
+    res = shape.find(model, big, SearchParams(scale_min=0.9, scale_max=1.25))
+    assert len(res.matches) == 1, res.reason()
+    m = res.matches[0]
+    assert m.scale == pytest.approx(1.18, abs=0.01)
+    assert m.angle_deg == pytest.approx(20.0, abs=0.3)
+    assert math.hypot(m.u_px - u, m.v_px - v) < 1.0
+
+
+def test_matches_report_agreeing_model_points() -> None:
+    case = CASES["sick_edgematcher_single"]
+    res = shape.find(model_of(case), read_grey(case.tests[0].path))
+    m = res.matches[0]
+    n = len(model_of(case).levels[0].points)
+    assert m.n_visible == n
+    assert 0.8 * n <= m.n_points <= n
+
+
+@pytest.mark.parametrize("img", [np.zeros((0, 0), np.uint8), np.zeros((480, 640), np.uint8),
+                                 np.full((480, 640), 200, np.uint8), np.full((5, 7), 9, np.uint8),
+                                 np.zeros((480, 640, 3), np.uint8)],
+                         ids=["empty", "black", "constant", "tiny", "colour-black"])
+def test_empty_and_constant_images_answer_no_match(img: np.ndarray) -> None:
+    res = shape.find(model_of(CASES["sick_edgematcher_multi"]), img, SearchParams(mirrored=True))
+    assert res.matches == []
+    assert res.reason()
+
+
+@pytest.mark.parametrize(("kw", "says"), [
+    ({"min_score": 1e-9}, "min_score"), ({"min_score": float("nan")}, "min_score"), ({"min_score": 1.5}, "min_score"),
+    ({"max_count": 0}, "max_count"), ({"max_count": -3}, "max_count"),
+    ({"angle_extent_deg": 0.0}, "angle_extent_deg"), ({"angle_extent_deg": 720.0}, "angle_extent_deg"),
+    ({"angle_start_deg": float("inf")}, "angle_start_deg"), ({"roi": (0, 0, 0, 10)}, "roi"),
+    ({"polarity": "both"}, "polarity"), ({"greediness": 2.0}, "greediness"),
+    ({"scale_min": 1.1, "scale_max": 1.2}, "scale"), ({"max_overlap": -0.1}, "max_overlap"),
+    ({"timeout_s": -1.0}, "timeout_s"),
+])
+def test_absurd_settings_are_refused_by_the_matcher(kw: dict[str, object], says: str) -> None:
+    with pytest.raises(SettingsError, match=says):
+        SearchParams(**kw)  # type: ignore[arg-type]
