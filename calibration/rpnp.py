@@ -67,8 +67,8 @@ def _axis_pair(xy: F64) -> tuple[int, int]:
     return first, int(np.argmax(np.sum((xy - xy[first]) ** 2, axis=1)))
 
 
-def _quartic(c_ab: float, c_aj: float, c_bj: float, k1: float, k2: float) -> F64:
-    """Coefficients (highest power first) of the P3P quartic in ``u = t_b / t_a``.
+def _quartics(c_ab: float, c_aj: F64, c_bj: F64, k1: F64, k2: F64) -> F64:
+    """Coefficients (lowest power first, one row per subset) of the P3P quartic in ``u = t_b / t_a``.
 
     With unit rays and ``t_b = u t_a``, ``t_j = w t_a`` the law of cosines reads
     ``t_a² q(u) = d_ab²``, ``1 + w² - 2 w c_aj = k1 q(u)`` and ``u² + w² - 2 u w c_bj = k2 q(u)``
@@ -77,15 +77,16 @@ def _quartic(c_ab: float, c_aj: float, c_bj: float, k1: float, k2: float) -> F64
     ``M = 2 (u c_bj - c_aj)``. Substituting into the second gives
     ``f(u) = N² - 2 c_aj N M + M² (1 - k1 q) = 0``, of degree four.
     """
-    P = np.polynomial.polynomial
-    q = np.array([1.0, -2.0 * c_ab, 1.0])  # lowest power first
-    N = P.polyadd((k1 - k2) * q, np.array([-1.0, 0.0, 1.0]))
-    M = np.array([-2.0 * c_aj, 2.0 * c_bj])
-    f = P.polyadd(P.polysub(P.polymul(N, N), 2.0 * c_aj * P.polymul(N, M)),
-                  P.polymul(P.polymul(M, M), P.polysub(np.array([1.0]), k1 * q)))
-    out = np.zeros(5)
-    out[: len(f)] = f
-    return np.asarray(out[::-1], dtype=np.float64)
+    d = k1 - k2
+    n0, n1, n2 = d - 1.0, -2.0 * c_ab * d, d + 1.0
+    m0, m1 = -2.0 * c_aj, 2.0 * c_bj
+    p0, p1, p2 = 1.0 - k1, 2.0 * c_ab * k1, -k1
+    nn = [n0 * n0, 2 * n0 * n1, n1 * n1 + 2 * n0 * n2, 2 * n1 * n2, n2 * n2]
+    nm = [n0 * m0, n0 * m1 + n1 * m0, n1 * m1 + n2 * m0, n2 * m1, np.zeros_like(m0)]
+    mm = [m0 * m0, 2 * m0 * m1, m1 * m1]
+    mp = [mm[0] * p0, mm[0] * p1 + mm[1] * p0, mm[0] * p2 + mm[1] * p1 + mm[2] * p0, mm[1] * p2 + mm[2] * p1,
+          mm[2] * p2]
+    return np.column_stack([nn[k] - 2.0 * c_aj * nm[k] + mp[k] for k in range(5)])
 
 
 def _basis(z: F64) -> F64:
@@ -165,22 +166,18 @@ def rpnp(points_m: ArrayLike, xy_normalized: ArrayLike) -> list[tuple[F64, F64, 
     z_obj = (Xs[b] - Xs[a]) / np.sqrt(d_ab2)
     c_ab = float(rays[a] @ rays[b])
     P = np.polynomial.polynomial
-    F = np.zeros(9)  # Σ f_j², lowest power first
-    used = 0
-    for j in range(len(X)):
-        if j in (a, b):
-            continue
-        off_axis = np.linalg.norm(np.cross(Xs[j] - Xs[a], z_obj))
-        if off_axis < 1e-6:  # on the axis: its subset carries no information about u
-            continue
-        f = _quartic(c_ab, float(rays[a] @ rays[j]), float(rays[b] @ rays[j]),
-                     float(np.sum((Xs[j] - Xs[a]) ** 2)) / d_ab2, float(np.sum((Xs[j] - Xs[b]) ** 2)) / d_ab2)
-        f = f[::-1] / max(float(np.max(np.abs(f))), 1e-300)  # lowest first, each subset on one scale
-        sq = P.polymul(f, f)
-        F[: len(sq)] += sq
-        used += 1
-    if used == 0:
+    others = np.array([j for j in range(len(X)) if j not in (a, b)])
+    off_axis = np.linalg.norm(np.cross(Xs[others] - Xs[a], z_obj), axis=1)
+    others = others[off_axis >= 1e-6]  # on the axis: a subset without information about u
+    if others.size == 0:
         raise RPnPError("all other target points lie on the line through the axis pair; the points are collinear")
+    f = _quartics(c_ab, rays[others] @ rays[a], rays[others] @ rays[b],
+                  np.sum((Xs[others] - Xs[a]) ** 2, axis=1) / d_ab2, np.sum((Xs[others] - Xs[b]) ** 2, axis=1) / d_ab2)
+    f /= np.maximum(np.max(np.abs(f), axis=1, keepdims=True), 1e-300)  # every subset on one scale
+    F = np.zeros(9)  # sum of f_j^2, lowest power first
+    for i in range(5):
+        for k in range(5):
+            F[i + k] += float(f[:, i] @ f[:, k])
     dF = P.polyder(F)
     roots = np.roots(dF[::-1]) if np.any(dF) else np.array([1.0])
     real = roots[np.abs(roots.imag) <= 1e-6 * np.maximum(1.0, np.abs(roots.real))].real
