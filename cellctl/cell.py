@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from cellctl.config import CellConfig
+from drivers.backoff import Backoff
 from drivers.base import CameraBase, DeviceUnavailable, DigitalIOBase, DriverError, RobotBase
 from drivers.registry import Category, adapter_class
 
@@ -40,8 +40,7 @@ class DeviceSlot(Generic[D]):
     is_open: bool = False
     reason: str = "not opened yet"
     outages: int = 0
-    _next_retry_s: float = 0.0
-    _retry_delay_s: float = RETRY_INITIAL_S
+    _backoff: Backoff = field(default_factory=lambda: Backoff(RETRY_INITIAL_S, RETRY_MAX_S))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def ensure_open(self) -> D:
@@ -49,10 +48,9 @@ class DeviceSlot(Generic[D]):
         with self._lock:
             if self.is_open:
                 return self.device
-            now = time.monotonic()
-            if now < self._next_retry_s:
+            if not self._backoff.due():
                 raise DeviceUnavailable(f"{self.category} {self.device_id} is unavailable: {self.reason} "
-                                        f"(retrying in {self._next_retry_s - now:.1f} s)")
+                                        f"(retrying in {self._backoff.remaining_s():.1f} s)")
             try:
                 if isinstance(self.device, RobotBase):
                     self.device.connect()
@@ -66,7 +64,7 @@ class DeviceSlot(Generic[D]):
                 raise DeviceUnavailable(f"{self.category} {self.device_id} is unavailable: {exc}") from exc
             self.is_open = True
             self.reason = ""
-            self._retry_delay_s = RETRY_INITIAL_S
+            self._backoff.reset()
             return self.device
 
     def report_failure(self, exc: BaseException) -> None:
@@ -84,8 +82,7 @@ class DeviceSlot(Generic[D]):
 
     def _mark_failed(self, reason: str) -> None:
         self.reason = reason
-        self._next_retry_s = time.monotonic() + self._retry_delay_s
-        self._retry_delay_s = min(self._retry_delay_s * 2, RETRY_MAX_S)
+        self._backoff.schedule()
 
     def close(self) -> None:
         with self._lock:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
@@ -38,6 +38,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from cellctl import __version__
+from drivers.health import DeviceHealth, Monitored
 
 if TYPE_CHECKING:
     from cellctl.cell import Cell, DeviceSlot
@@ -124,19 +125,19 @@ class DeviceCollector(Collector):
             for category, slots in (("camera", cell.cameras), ("robot", cell.robots), ("io", cell.io)):
                 for device_id, slot in slots.items():
                     health = _health(slot)
-                    up = bool(slot.is_open and health.get("available", True))
+                    up = bool(slot.is_open and (health is None or health.available))
                     available.add_metric([category, device_id, slot.kind], 1.0 if up else 0.0)
                     outages.add_metric([category, device_id], float(max(slot.outages,
-                                                                        _number(health.get("outages")) or 0)))
+                                                                        health.outages if health else 0)))
                     if category == "robot":
                         connected.add_metric([device_id], 1.0 if up else 0.0)
                     if category != "camera":
                         continue
-                    for family, keys in ((frames, ("completed", "frames_read")), (lost, ("lost",)),
-                                         (incomplete, ("incomplete",))):
-                        value = _first_number(health, keys)
-                        if value is not None:
-                            family.add_metric([device_id], value)
+                    for family, count in ((frames, health.frames_received if health else None),
+                                          (lost, health.frames_lost if health else None),
+                                          (incomplete, health.frames_incomplete if health else None)):
+                        if count is not None:
+                            family.add_metric([device_id], float(count))
                     fps = _number(self._settings(device_id, slot).get("frame_rate_hz")) if slot.is_open else None
                     if fps is not None:
                         rate.add_metric([device_id], fps)
@@ -171,30 +172,21 @@ class DeviceCollector(Collector):
         return result if isinstance(result, dict) else {}
 
 
-def _health(slot: DeviceSlot[Any]) -> dict[str, Any]:
-    fn = getattr(slot.device, "health", None)
-    if fn is None:
-        return {}
+def _health(slot: DeviceSlot[Any]) -> DeviceHealth | None:
+    """The adapter's ``health()``, None for adapters that do not report it."""
+    if not isinstance(slot.device, Monitored):
+        return None
     try:
-        h = fn()
+        return slot.device.health()
     except Exception:  # noqa: BLE001 - a scrape reports what it can
         log.debug("%s health() failed", slot.device_id, exc_info=True)
-        return {"available": False}
-    return h if isinstance(h, dict) else {}
+        return DeviceHealth(available=False, reason="health() failed")
 
 
 def _number(v: Any) -> float | None:
     if isinstance(v, bool) or not isinstance(v, int | float):
         return None
     return float(v)
-
-
-def _first_number(d: dict[str, Any], keys: Sequence[str]) -> float | None:
-    for k in keys:
-        v = _number(d.get(k))
-        if v is not None:
-            return v
-    return None
 
 
 # -- the function API other modules call -------------------------------------------------------------

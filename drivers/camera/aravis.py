@@ -30,7 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from drivers.backoff import Backoff, Outages
 from drivers.base import CameraBase, DeviceInitError, DeviceOperationError, DeviceTimeout, DeviceUnavailable, Frame
+from drivers.health import DeviceHealth
 
 PixelFormat = Literal["Mono8", "Mono12", "Mono16", "BayerRG8", "BayerBG8", "BayerGR8", "BayerGB8", "RGB8"]
 TriggerMode = Literal["free_run", "software", "hardware"]
@@ -124,12 +126,11 @@ class AravisCamera(CameraBase):
         self._reader: threading.Thread | None = None
         self._closing = threading.Event()
         self._control_lost = threading.Event()
-        self._reason = "not opened"
+        self._outages = Outages()
+        self._outages.reason = "not opened"
         self._pixel_format = ""
         self._last_frame_id: int | None = None
         self.counters = {"completed": 0, "incomplete": 0, "lost": 0, "underruns": 0}
-        self.outages = 0
-        self.reconnects = 0
         self._frames = 0
         self._trigger = self.config.trigger
 
@@ -251,7 +252,7 @@ class AravisCamera(CameraBase):
         if self._reader is not None:
             return
         self._connect_camera()
-        self._reason = ""
+        self._outages.up()
         self._closing.clear()
         self._reader = threading.Thread(target=self._read, name=f"aravis-{self.camera_id}", daemon=True)
         self._reader.start()
@@ -264,22 +265,21 @@ class AravisCamera(CameraBase):
 
     # -- reading ---------------------------------------------------------------------------------------
     def _read(self) -> None:
-        backoff = self.config.reconnect_initial_s
+        backoff = Backoff(self.config.reconnect_initial_s, self.config.reconnect_max_s)
         last_frame = time.monotonic()
         while not self._closing.is_set():
             stream = self._stream
             if stream is None:
-                if self._closing.wait(backoff):
+                if self._closing.wait(backoff.next_wait_s()):
                     return
-                backoff = min(backoff * 2, self.config.reconnect_max_s)
-                self.reconnects += 1
+                self._outages.reconnected()
                 try:
                     self._connect_camera()
-                    self._reason = ""
-                    backoff = self.config.reconnect_initial_s
+                    self._outages.up()
+                    backoff.reset()
                     last_frame = time.monotonic()
                 except (DeviceUnavailable, DeviceInitError) as exc:
-                    self._reason = str(exc)
+                    self._outages.down(str(exc))
                 continue
             buf = stream.timeout_pop_buffer(100_000)  # us; the GIL is released while Aravis waits
             if buf is not None:
@@ -295,8 +295,7 @@ class AravisCamera(CameraBase):
             if not lost and self._camera_answers():
                 last_frame = time.monotonic()
                 continue
-            self.outages += 1
-            self._reason = (
+            self._outages.down(
                 f"camera {self.camera_id} ({self.config.device_id}) stopped answering; reconnecting "
                 f"(attempt every {self.config.reconnect_initial_s}-{self.config.reconnect_max_s} s)"
             )
@@ -354,7 +353,7 @@ class AravisCamera(CameraBase):
         if self._trigger == "software":
             cam = self._cam
             if cam is None:
-                raise DeviceUnavailable(f"camera {self.camera_id}: {self._reason}")
+                raise DeviceUnavailable(f"camera {self.camera_id}: {self._outages.reason}")
             try:
                 cam.execute_command("TriggerSoftware")
             except Exception as exc:
@@ -365,7 +364,7 @@ class AravisCamera(CameraBase):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     if self._cam is None:
-                        raise DeviceUnavailable(f"camera {self.camera_id}: {self._reason}")
+                        raise DeviceUnavailable(f"camera {self.camera_id}: {self._outages.reason}")
                     raise DeviceTimeout(
                         f"camera {self.camera_id}: no complete frame within {timeout_s} s"
                         + (" (waiting for the hardware trigger)" if self._trigger == "hardware" else "")
@@ -383,7 +382,7 @@ class AravisCamera(CameraBase):
 
     def _require_cam(self) -> Any:
         if self._cam is None:
-            raise DeviceUnavailable(f"camera {self.camera_id}: {self._reason or 'not open'}")
+            raise DeviceUnavailable(f"camera {self.camera_id}: {self._outages.reason or 'not open'}")
         return self._cam
 
     def set_exposure_us(self, exposure_us: float) -> None:
@@ -412,15 +411,10 @@ class AravisCamera(CameraBase):
         self._apply_trigger(cam, mode)  # type: ignore[arg-type]
         self._trigger = mode  # type: ignore[assignment]
 
-    def health(self) -> dict[str, Any]:
-        available = self._cam is not None
-        return {
-            "available": available,
-            "reason": "" if available else self._reason,
-            "outages": self.outages,
-            "reconnects": self.reconnects,
-            **self.counters,
-        }
+    def health(self) -> DeviceHealth:
+        c = self.counters
+        return self._outages.health(self._cam is not None, frames_received=c["completed"],
+                                    frames_incomplete=c["incomplete"], frames_lost=c["lost"])
 
     def settings(self) -> dict[str, Any]:
         cam = self._require_cam()

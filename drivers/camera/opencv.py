@@ -25,6 +25,7 @@ import cv2
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from drivers.backoff import Backoff, Outages
 from drivers.base import (
     CameraBase,
     DeviceInitError,
@@ -33,6 +34,7 @@ from drivers.base import (
     DeviceUnavailable,
     Frame,
 )
+from drivers.health import DeviceHealth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 SourceType = Literal["auto", "device", "file", "folder", "stream"]
@@ -96,9 +98,8 @@ class OpenCVCamera(CameraBase):
         self._reader: threading.Thread | None = None
         self._closing = threading.Event()
         self._opened = False
-        self._reason = "not opened"
-        self.outages = 0
-        self.reconnects = 0
+        self._outages = Outages()
+        self._outages.reason = "not opened"
         self.frames_read = 0
 
     # -- opening ---------------------------------------------------------------------------------------
@@ -128,7 +129,8 @@ class OpenCVCamera(CameraBase):
             self._reader = threading.Thread(target=self._read_live, name=f"cam-{self.camera_id}", daemon=True)
             self._reader.start()
         self._opened = True
-        self._reason = ""
+        if self._reader is None:
+            self._outages.up()  # a live source's reader says so itself
 
     def _open_capture(self) -> cv2.VideoCapture:
         src = self.config.source
@@ -184,38 +186,34 @@ class OpenCVCamera(CameraBase):
 
     # -- live reading -------------------------------------------------------------------------------
     def _read_live(self) -> None:
-        backoff = self.config.reconnect_initial_s
+        backoff = Backoff(self.config.reconnect_initial_s, self.config.reconnect_max_s)
         last_frame = time.monotonic()
-        in_outage = False
+        self._outages.up()
         while not self._closing.is_set():
             cap = self._cap
             ok, img = cap.read() if cap is not None else (False, None)
             now = time.monotonic()
             if ok and img is not None:
                 last_frame = now
-                backoff = self.config.reconnect_initial_s
-                in_outage = False
+                backoff.reset()
+                self._outages.up()
                 self._publish(img, {"source": str(self.config.source)})
                 continue
             if now - last_frame < self.config.stall_timeout_s and cap is not None:
                 time.sleep(0.01)
                 continue
-            if not in_outage:
-                in_outage = True
-                self.outages += 1
-            self._reason = f"{self.source_type} {self.config.source!r} delivers no frames; reopening"
+            self._outages.down(f"{self.source_type} {self.config.source!r} delivers no frames; reopening")
             if cap is not None:
                 cap.release()
                 self._cap = None
-            if self._closing.wait(backoff):
+            if self._closing.wait(backoff.next_wait_s()):
                 return
-            backoff = min(backoff * 2, self.config.reconnect_max_s)
-            self.reconnects += 1
+            self._outages.reconnected()
             try:
                 self._cap = self._open_capture()
                 last_frame = time.monotonic()
             except (DeviceUnavailable, DeviceInitError) as exc:
-                self._reason = str(exc)
+                self._outages.down(str(exc))
 
     def _convert(self, img: NDArray[Any]) -> NDArray[Any]:
         if self.config.grey and img.ndim == 3:
@@ -254,7 +252,7 @@ class OpenCVCamera(CameraBase):
                 if remaining <= 0:
                     raise DeviceTimeout(
                         f"camera {self.camera_id}: no frame within {timeout_s} s "
-                        f"({self._reason or 'the source is silent'})"
+                        f"({self._outages.reason or 'the source is silent'})"
                     )
                 self._new_frame.wait(remaining)
             return self._newest
@@ -278,7 +276,8 @@ class OpenCVCamera(CameraBase):
 
     def _grab_file(self) -> Frame:
         cap = self._cap
-        assert cap is not None
+        if cap is None:
+            raise DeviceUnavailable(f"camera {self.camera_id}: the video file is not open; open() the camera first")
         pos_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC))
         ok, img = cap.read()
         if not ok and self.config.loop:
@@ -311,16 +310,10 @@ class OpenCVCamera(CameraBase):
         if not self._cap.set(cv2.CAP_PROP_EXPOSURE, exposure_us / 100.0):
             raise DeviceOperationError(f"camera {self.camera_id}: the device refused exposure {exposure_us} us")
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> DeviceHealth:
         live = self.source_type in ("device", "stream")
         available = self._opened and (not live or self._cap is not None)
-        return {
-            "available": available,
-            "reason": "" if available else self._reason,
-            "outages": self.outages,
-            "reconnects": self.reconnects,
-            "frames_read": self.frames_read,
-        }
+        return self._outages.health(available, frames_received=self.frames_read)
 
     def settings(self) -> dict[str, Any]:
         out: dict[str, Any] = {"source": self.config.source, "source_type": self.source_type}

@@ -7,14 +7,15 @@ on the next call, at most once per ``reconnect_interval_s``, and the outages are
 from __future__ import annotations
 
 import threading
-import time
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
+from drivers.backoff import Backoff, Outages
 from drivers.base import DeviceOperationError, DeviceUnavailable, DigitalIOBase
+from drivers.health import DeviceHealth
 
 
 class ModbusIOSettings(BaseModel):
@@ -46,9 +47,9 @@ class ModbusDigitalIO(DigitalIOBase):
             c.host, port=c.port, timeout=c.timeout_s, retries=0, reconnect_delay=0, reconnect_delay_max=0
         )
         self._lock = threading.Lock()
-        self._last_attempt = 0.0
-        self._was_connected = False
-        self.outages = 0
+        # a fixed interval: Backoff with the same start and cap
+        self._backoff = Backoff(c.reconnect_interval_s, c.reconnect_interval_s)
+        self._outages = Outages()
 
     def open(self) -> None:
         with self._lock:
@@ -57,18 +58,18 @@ class ModbusDigitalIO(DigitalIOBase):
     def _ensure_connected(self, force: bool = False) -> None:
         if self._client.connected:
             return
-        now = time.monotonic()
-        if not force and now - self._last_attempt < self.config.reconnect_interval_s:
+        if not force and not self._backoff.due():
             raise DeviceUnavailable(
                 f"io {self.io_id}: Modbus TCP {self.config.host}:{self.config.port} is not reachable; retrying shortly"
             )
-        self._last_attempt = now
+        self._backoff.schedule()
         if not self._client.connect():
+            self._outages.down(f"cannot connect to {self.config.host}:{self.config.port}")
             raise DeviceUnavailable(
                 f"io {self.io_id}: cannot connect to Modbus TCP {self.config.host}:"
                 f"{self.config.port}; check address, port and cabling"
             )
-        self._was_connected = True
+        self._outages.up()
 
     def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         with self._lock:
@@ -77,9 +78,7 @@ class ModbusDigitalIO(DigitalIOBase):
                 rr = fn(*args, device_id=self.config.device_id, **kwargs)
             except (ModbusException, OSError) as exc:
                 self._client.close()
-                if self._was_connected:
-                    self.outages += 1
-                    self._was_connected = False
+                self._outages.down(f"Modbus {what} failed: {exc}")
                 raise DeviceUnavailable(
                     f"io {self.io_id}: Modbus {what} on {self.config.host}:{self.config.port} failed: {exc}"
                 ) from exc
@@ -109,3 +108,6 @@ class ModbusDigitalIO(DigitalIOBase):
     def close(self) -> None:
         with self._lock:
             self._client.close()
+
+    def health(self) -> DeviceHealth:
+        return self._outages.health(self._client.connected and self._outages.is_up)

@@ -22,7 +22,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ModbusException
 
+from drivers.backoff import Backoff, Outages
 from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable, DigitalIOBase
+from drivers.health import DeviceHealth
 
 OUT_BASE = 1000
 IN_BASE = 2000
@@ -79,39 +81,32 @@ class RobotiqGripper(DigitalIOBase):
             c.port, baudrate=c.baudrate, timeout=c.timeout_s, retries=0, reconnect_delay=0, reconnect_delay_max=0
         )
         self._lock = threading.Lock()
-        self._ok = False
-        self._reason = "not opened"
-        self._next_open = 0.0
-        self._backoff = c.reconnect_initial_s
-        self.outages = 0
-        self.reconnects = 0
+        self._outages = Outages()
+        self._outages.reason = "not opened"
+        self._backoff = Backoff(c.reconnect_initial_s, c.reconnect_max_s)
 
     # -- Modbus ---------------------------------------------------------------------------------------
     def _fail(self, reason: str) -> None:
-        if self._ok:
-            self.outages += 1
-        self._ok, self._reason = False, reason
+        self._outages.down(reason)
 
     def _connect(self, force: bool = False) -> None:
         if self._client.connected:
             return
-        now = time.monotonic()
-        if not force and now < self._next_open:
+        if not force and not self._backoff.due():
             raise DeviceUnavailable(
                 f"io {self.io_id}: gripper port {self.config.port} is unavailable "
-                f"({self._reason}); next attempt in {self._next_open - now:.1f} s"
+                f"({self._outages.reason}); next attempt in {self._backoff.remaining_s():.1f} s"
             )
         if not self._client.connect():
-            self._next_open = now + self._backoff
-            self._backoff = min(self._backoff * 2, self.config.reconnect_max_s)
+            self._backoff.schedule()
             self._fail(f"cannot open {self.config.port}")
             raise DeviceUnavailable(
                 f"io {self.io_id}: cannot open serial port {self.config.port}; check the cable, "
                 "the USB adapter and the permissions (group dialout)"
             )
         if not force:
-            self.reconnects += 1
-        self._backoff = self.config.reconnect_initial_s
+            self._outages.reconnected()
+        self._backoff.reset()
 
     def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         with self._lock:
@@ -129,9 +124,9 @@ class RobotiqGripper(DigitalIOBase):
                     ) from exc
                 raise DeviceUnavailable(f"io {self.io_id}: {what} on {self.config.port} failed: {exc}") from exc
             if rr.isError():
-                self._ok, self._reason = True, ""
+                self._outages.up()
                 raise DeviceOperationError(f"io {self.io_id}: the gripper refused {what}: {rr}")
-            self._ok, self._reason = True, ""
+            self._outages.up()
             return rr
 
     def _write(self, action: int, position: int, speed: int, force: int) -> None:
@@ -244,5 +239,5 @@ class RobotiqGripper(DigitalIOBase):
         with self._lock:
             self._client.close()
 
-    def health(self) -> dict[str, Any]:
-        return {"available": self._ok, "reason": self._reason, "outages": self.outages, "reconnects": self.reconnects}
+    def health(self) -> DeviceHealth:
+        return self._outages.health(self._outages.is_up)

@@ -16,13 +16,14 @@ from __future__ import annotations
 import re
 import termios
 import threading
-import time
 from typing import Any
 
 import serial
 from pydantic import BaseModel, ConfigDict, Field
 
+from drivers.backoff import Backoff, Outages
 from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable, DigitalIOBase
+from drivers.health import DeviceHealth
 
 
 class SerialLightSettings(BaseModel):
@@ -59,13 +60,10 @@ class SerialLightController(DigitalIOBase):
         )
         self._ser: serial.Serial | None = None
         self._lock = threading.Lock()
-        self._ok = False
-        self._reason = "not opened"
-        self._next_open = 0.0
-        self._backoff = self.config.reconnect_initial_s
+        self._outages = Outages()
+        self._outages.reason = "not opened"
+        self._backoff = Backoff(self.config.reconnect_initial_s, self.config.reconnect_max_s)
         self._get_re = re.compile(self.config.get_reply)
-        self.outages = 0
-        self.reconnects = 0
 
     # -- port -----------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -75,11 +73,10 @@ class SerialLightController(DigitalIOBase):
     def _open_port(self, force: bool = False) -> serial.Serial:
         if self._ser is not None:
             return self._ser
-        now = time.monotonic()
-        if not force and now < self._next_open:
+        if not force and not self._backoff.due():
             raise DeviceUnavailable(
-                f"io {self.io_id}: serial port {self.config.port} is gone ({self._reason}); "
-                f"next attempt in {self._next_open - now:.1f} s"
+                f"io {self.io_id}: serial port {self.config.port} is gone ({self._outages.reason}); "
+                f"next attempt in {self._backoff.remaining_s():.1f} s"
             )
         try:
             self._ser = serial.Serial(
@@ -89,23 +86,19 @@ class SerialLightController(DigitalIOBase):
                 write_timeout=self.config.timeout_s,
             )
         except (serial.SerialException, OSError) as exc:
-            self._next_open = now + self._backoff
-            self._backoff = min(self._backoff * 2, self.config.reconnect_max_s)
+            self._backoff.schedule()
             self._fail(f"cannot open {self.config.port}: {exc}")
             raise DeviceUnavailable(
                 f"io {self.io_id}: cannot open serial port {self.config.port}: {exc}; check the "
                 "cable/adapter and the permissions (group dialout)"
             ) from exc
         if not force:
-            self.reconnects += 1
-        self._backoff = self.config.reconnect_initial_s
+            self._outages.reconnected()
+        self._backoff.reset()
         return self._ser
 
     def _fail(self, reason: str) -> None:
-        if self._ok:
-            self.outages += 1
-        self._ok = False
-        self._reason = reason
+        self._outages.down(reason)
 
     def close(self) -> None:
         with self._lock:
@@ -145,9 +138,9 @@ class SerialLightController(DigitalIOBase):
                     "rate and that the device speaks this protocol"
                 ) from None
             if reply.startswith(self.config.error_prefix):
-                self._ok, self._reason = True, ""
+                self._outages.up()
                 raise DeviceOperationError(f"io {self.io_id}: the controller rejected {text!r}: {reply}")
-            self._ok, self._reason = True, ""
+            self._outages.up()
             return reply
 
     def _expect_ok(self, text: str) -> None:
@@ -191,5 +184,5 @@ class SerialLightController(DigitalIOBase):
     def read_input(self, channel: int) -> bool:
         return self.intensity_percent(channel) > 0
 
-    def health(self) -> dict[str, Any]:
-        return {"available": self._ok, "reason": self._reason, "outages": self.outages, "reconnects": self.reconnects}
+    def health(self) -> DeviceHealth:
+        return self._outages.health(self._outages.is_up)

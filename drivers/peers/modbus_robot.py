@@ -37,16 +37,15 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pymodbus.client import ModbusTcpClient
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from scipy.spatial.transform import Rotation, Slerp
 
-WordOrder = Literal["big", "little"]
+from drivers import modbus_codec
+from drivers.modbus_codec import WordOrder
 
 ACTUAL_POSE = 0
 TARGET_POSE = 20
@@ -66,20 +65,11 @@ HOME_POSE = (400.0, 0.0, 300.0, 180.0, 0.0, 0.0)
 
 
 def encode_float32(value: float, word_order: WordOrder) -> list[int]:
-    regs: list[int] = ModbusTcpClient.convert_to_registers(
-        float(value), ModbusTcpClient.DATATYPE.FLOAT32, word_order=word_order
-    )
-    return regs
+    return modbus_codec.encode(float(value), "float32", word_order)
 
 
 def decode_float32(regs: list[int], word_order: WordOrder) -> float:
-    return float(
-        ModbusTcpClient.convert_from_registers(
-            regs,
-            ModbusTcpClient.DATATYPE.FLOAT32,  # type: ignore[arg-type]
-            word_order=word_order,
-        )
-    )
+    return modbus_codec.decode(regs, "float32", word_order)
 
 
 def _pose_to_T(pose: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -109,9 +99,10 @@ class _Robot:
     outputs: list[bool] = field(default_factory=lambda: [False] * N_DIGITAL)
     moves_completed: int = 0
 
-    def _pose_at(self, t: float) -> NDArray[np.float64]:
-        assert self.motion is not None
-        t_start, duration, T_a, T_b = self.motion
+    @staticmethod
+    def _pose_at(motion: tuple[float, float, NDArray[np.float64], NDArray[np.float64]], t: float
+                 ) -> NDArray[np.float64]:
+        t_start, duration, T_a, T_b = motion
         s = 1.0 if duration <= 0 else min(1.0, max(0.0, (t - t_start) / duration))
         T = np.eye(4)
         T[:3, 3] = T_a[:3, 3] + s * (T_b[:3, 3] - T_a[:3, 3])
@@ -125,7 +116,7 @@ class _Robot:
         t_start, duration, _, T_b = self.motion
         deadline = self.heartbeat_changed + self.watchdog_s
         if now > deadline and deadline < t_start + duration:
-            self.T = self._pose_at(deadline)
+            self.T = self._pose_at(self.motion, deadline)
             self.motion = None
             self.status, self.error = ST_ERROR, ERR_WATCHDOG
             return
@@ -135,7 +126,7 @@ class _Robot:
             self.moves_completed += 1
             self.status = ST_DONE
         else:
-            self.T = self._pose_at(now)
+            self.T = self._pose_at(self.motion, now)
 
     def command(self, value: int, target: NDArray[np.float64], speed_mm_s: float, now: float) -> None:
         if value == self.last_command:
@@ -147,7 +138,7 @@ class _Robot:
             return
         if value == CMD_STOP:
             if self.motion is not None:
-                self.T = self._pose_at(now)
+                self.T = self._pose_at(self.motion, now)
                 self.motion = None
             self.status, self.error = ST_DONE, ERR_NONE
             return

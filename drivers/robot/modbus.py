@@ -1,8 +1,6 @@
 """Robots (or the PLCs in front of them) over Modbus TCP, with a register map in the config (``kind: modbus``).
 
-The map names, for each value, its register address, data type (``int16``, ``uint16``,
-``int32``, ``uint32``, ``float32``; 32-bit values in the configured word order) and scale
-(engineering value = raw value x scale, in the unit the map states). It covers:
+The register map (``modbus_map.py``) covers:
 
 - pose readback (``actual_pose``: x, y, z, rx, ry, rz, in ``position_unit`` / ``rotation_unit``,
   rotation as fixed-axis XYZ roll-pitch-yaw or as a rotation vector);
@@ -22,19 +20,18 @@ defaults match the simulator in ``drivers/peers/modbus_robot.py``.
 from __future__ import annotations
 
 import contextlib
-import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
-from scipy.spatial.transform import Rotation
 
+from drivers import modbus_codec
+from drivers.backoff import Backoff, Outages
 from drivers.base import (
     DeviceOperationError,
     DeviceTimeout,
@@ -43,112 +40,10 @@ from drivers.base import (
     RobotBase,
     RobotState,
 )
+from drivers.health import DeviceHealth
+from drivers.robot.modbus_map import ModbusRobotSettings, RegisterSpec, T_to_registers, registers_to_T
 
-DataTypeName = Literal["int16", "uint16", "int32", "uint32", "float32"]
-WordOrder = Literal["big", "little"]
-_WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
-_DT = ModbusTcpClient.DATATYPE
-_PYMODBUS_TYPE = {
-    "int16": _DT.INT16,
-    "uint16": _DT.UINT16,
-    "int32": _DT.INT32,
-    "uint32": _DT.UINT32,
-    "float32": _DT.FLOAT32,
-}
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class RegisterSpec(_Strict):
-    """One value in holding registers."""
-
-    address: int = Field(ge=0, le=65535)
-    data_type: DataTypeName = "float32"
-    scale: float = Field(1.0, description="engineering value = raw register value x scale")
-
-    @property
-    def width(self) -> int:
-        return _WIDTH[self.data_type]
-
-
-def _f(address: int) -> RegisterSpec:
-    return RegisterSpec(address=address)
-
-
-class PoseRegisters(_Strict):
-    x: RegisterSpec
-    y: RegisterSpec
-    z: RegisterSpec
-    rx: RegisterSpec
-    ry: RegisterSpec
-    rz: RegisterSpec
-
-    def fields(self) -> list[RegisterSpec]:
-        return [self.x, self.y, self.z, self.rx, self.ry, self.rz]
-
-
-def _pose_map(start: int) -> PoseRegisters:
-    return PoseRegisters(
-        x=_f(start), y=_f(start + 2), z=_f(start + 4), rx=_f(start + 6), ry=_f(start + 8), rz=_f(start + 10)
-    )
-
-
-class ModbusRobotSettings(_Strict):
-    """Connection, register map and handshake of a Modbus TCP robot."""
-
-    host: str = Field(min_length=1)
-    port: int = Field(502, ge=1, le=65535)
-    device_id: int = Field(1, ge=0, le=247)
-    word_order: WordOrder = Field("big", description="order of the two 16-bit words of 32-bit values")
-    timeout_s: float = Field(1.0, gt=0, le=60, description="deadline of one Modbus request")
-    poll_hz: float = Field(50.0, gt=0, le=1000)
-    state_max_age_s: float = Field(0.5, gt=0, le=60)
-    reconnect_initial_s: float = Field(0.25, gt=0, le=60)
-    reconnect_max_s: float = Field(5.0, gt=0, le=600)
-    position_unit: Literal["mm", "m"] = "mm"
-    rotation_unit: Literal["deg", "rad"] = "deg"
-    rotation_form: Literal["rpy_xyz", "rotvec"] = Field(
-        "rpy_xyz", description="fixed-axis XYZ roll/pitch/yaw or rotation vector"
-    )
-    actual_pose: PoseRegisters = Field(default_factory=lambda: _pose_map(0))
-    target_pose: PoseRegisters = Field(default_factory=lambda: _pose_map(20))
-    speed: RegisterSpec = Field(default_factory=lambda: _f(32))
-    speed_unit: Literal["mm/s", "m/s"] = "mm/s"
-    command_address: int = Field(40, ge=0, le=65535)
-    move_value: int = 1
-    stop_value: int = 2
-    clear_value: int = 0
-    status_address: int = Field(41, ge=0, le=65535)
-    status_ready: int = 0
-    status_busy: int = 1
-    status_done: int = 2
-    status_error: int = 3
-    error_code_address: int | None = Field(42, ge=0, le=65535)
-    error_messages: dict[int, str] = Field(
-        default_factory=lambda: {
-            1: "target out of reach",
-            2: "watchdog expired (heartbeat lost)",
-            3: "unknown command",
-            4: "bad speed",
-        }
-    )
-    heartbeat_out_address: int | None = Field(50, ge=0, le=65535)
-    heartbeat_period_s: float = Field(0.2, gt=0, le=60)
-    heartbeat_in_address: int | None = Field(51, ge=0, le=65535)
-    heartbeat_timeout_s: float = Field(1.0, gt=0, le=60, description="PLC counter unchanged this long: dead")
-    digital_out_coil_start: int | None = Field(0, ge=0, le=65535)
-    digital_in_start: int | None = Field(0, ge=0, le=65535)
-    digital_count: int = Field(8, ge=0, le=64)
-    move_timeout_margin_s: float = Field(5.0, gt=0, le=600, description="added to distance/speed")
-
-    @model_validator(mode="after")
-    def _heartbeat(self) -> ModbusRobotSettings:
-        if self.heartbeat_timeout_s <= 1.0 / self.poll_hz:
-            raise ValueError("heartbeat_timeout_s must be longer than one poll period (1 / poll_hz)")
-        return self
-
+__all__ = ["ModbusRobot", "ModbusRobotSettings", "RegisterSpec"]
 
 @dataclass(frozen=True)
 class _Sample:
@@ -181,52 +76,26 @@ class ModbusRobot(RobotBase):
         self._closing = threading.Event()
         self._poller: threading.Thread | None = None
         self._connected = False
-        self._reason = "not connected"
         self._heartbeat_value = 0
         self._heartbeat_sent = 0.0
         self._hb_in_last: int | None = None
         self._hb_in_changed = 0.0
         self._stop_requested = threading.Event()
-        self.outages = 0
-        self.reconnects = 0
-        self.last_outage_s = 0.0
-        self._outage_since: float | None = None
-        self._outage_lock = threading.Lock()
+        self._outages = Outages()
         self._seq = 0
 
     # -- register codec ------------------------------------------------------------------------------
     def _decode(self, spec: RegisterSpec, regs: list[int]) -> float:
-        value = ModbusTcpClient.convert_from_registers(
-            regs, _PYMODBUS_TYPE[spec.data_type], word_order=self.config.word_order
-        )
-        return float(value) * spec.scale  # type: ignore[arg-type]
+        return modbus_codec.decode(regs, spec.data_type, self.config.word_order, spec.scale)
 
     def _encode(self, spec: RegisterSpec, value: float) -> list[int]:
-        raw = value / spec.scale
-        if spec.data_type != "float32":
-            raw = int(round(raw))
-        regs: list[int] = ModbusTcpClient.convert_to_registers(
-            raw, _PYMODBUS_TYPE[spec.data_type], word_order=self.config.word_order
-        )
-        return regs
+        return modbus_codec.encode(value, spec.data_type, self.config.word_order, spec.scale)
 
     def _pose_to_T(self, v: list[float]) -> NDArray[np.float64]:
-        c = self.config
-        p = np.array(v[:3]) * (1e-3 if c.position_unit == "mm" else 1.0)
-        ang = np.array(v[3:]) * (math.pi / 180.0 if c.rotation_unit == "deg" else 1.0)
-        R = Rotation.from_euler("xyz", ang) if c.rotation_form == "rpy_xyz" else Rotation.from_rotvec(ang)
-        T = np.eye(4)
-        T[:3, :3] = R.as_matrix()
-        T[:3, 3] = p
-        return T
+        return registers_to_T(v, self.config)
 
     def _T_to_pose(self, T: NDArray[np.float64]) -> list[float]:
-        c = self.config
-        R = Rotation.from_matrix(T[:3, :3])
-        ang = R.as_euler("xyz") if c.rotation_form == "rpy_xyz" else R.as_rotvec()
-        ang = ang * (180.0 / math.pi if c.rotation_unit == "deg" else 1.0)
-        p = T[:3, 3] * (1e3 if c.position_unit == "mm" else 1.0)
-        return [float(x) for x in (*p, *ang)]
+        return T_to_registers(T, self.config)
 
     # -- Modbus IO (always under _io_lock) -----------------------------------------------------------
     def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
@@ -312,40 +181,28 @@ class ModbusRobot(RobotBase):
     def _poll(self) -> None:
         c = self.config
         period = 1.0 / c.poll_hz
-        backoff = c.reconnect_initial_s
+        backoff = Backoff(c.reconnect_initial_s, c.reconnect_max_s)
         while not self._closing.is_set():
             t0 = time.monotonic()
             try:
                 self._poll_once()
                 self._connected = True
-                with self._outage_lock:
-                    if self._outage_since is not None:
-                        self.last_outage_s = time.monotonic() - self._outage_since
-                        self._outage_since = None
-                backoff = c.reconnect_initial_s
-                self._reason = ""
+                self._outages.up()
+                backoff.reset()
                 self._closing.wait(max(0.0, period - (time.monotonic() - t0)))
             except Exception as exc:  # a poll thread that dies would serve nothing: every failure is an outage
-                self._reason = (
+                self._connected = False
+                # an outage counts once, from the first failed poll or stale read until the next good poll
+                self._outages.down(
                     str(exc)
                     if isinstance(exc, (DeviceUnavailable, DeviceOperationError))
                     else (f"robot {self.robot_id}: unexpected {type(exc).__name__} while polling: {exc}")
                 )
-                self._connected = False
-                self._open_outage()
                 with self._io_lock:
                     self._client.close()
-                if self._closing.wait(backoff):
+                if self._closing.wait(backoff.next_wait_s()):
                     return
-                backoff = min(backoff * 2.0, c.reconnect_max_s)
-                self.reconnects += 1
-
-    def _open_outage(self) -> None:
-        """Count an outage once, from the first failed poll or stale read until the next good poll."""
-        with self._outage_lock:
-            if self._outage_since is None and self._sample is not None:
-                self._outage_since = time.monotonic()
-                self.outages += 1
+                self._outages.reconnected()
 
     # -- contract ------------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -361,7 +218,7 @@ class ModbusRobot(RobotBase):
                 if remaining <= 0:
                     raise DeviceUnavailable(
                         f"robot {self.robot_id}: no answer from Modbus TCP {self.config.host}:"
-                        f"{self.config.port} ({self._reason}); it keeps retrying in the background"
+                        f"{self.config.port} ({self._outages.reason}); it keeps retrying in the background"
                     )
                 self._sample_cv.wait(remaining)
 
@@ -381,14 +238,15 @@ class ModbusRobot(RobotBase):
         now = time.time()
         if s is None:
             raise DeviceUnavailable(
-                f"robot {self.robot_id}: no state yet from {self.config.host}:{self.config.port} ({self._reason})"
+                f"robot {self.robot_id}: no state yet from {self.config.host}:{self.config.port} "
+                f"({self._outages.reason})"
             )
         age = now - s.host_time_s
         if age > self.config.state_max_age_s:
-            self._open_outage()
+            self._outages.down(self._outages.reason or f"state older than {self.config.state_max_age_s} s")
             raise DeviceUnavailable(
                 f"robot {self.robot_id}: newest state is {age:.2f} s old (limit "
-                f"{self.config.state_max_age_s} s): {self._reason or 'no answer'}; reconnecting"
+                f"{self.config.state_max_age_s} s): {self._outages.reason or 'no answer'}; reconnecting"
             )
         if s.heartbeat_in is not None and now - self._hb_in_changed > self.config.heartbeat_timeout_s:
             raise DeviceUnavailable(
@@ -421,19 +279,13 @@ class ModbusRobot(RobotBase):
             },
         )
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> DeviceHealth:
         try:
             self._fresh()
             available, reason = True, ""
         except DeviceUnavailable as exc:
             available, reason = False, str(exc)
-        return {
-            "available": available,
-            "reason": reason,
-            "outages": self.outages,
-            "reconnects": self.reconnects,
-            "last_outage_s": self.last_outage_s,
-        }
+        return self._outages.health(available, reason=reason, last_outage_s=self._outages.last_outage_s)
 
     def _next_sample(self, after_seq: int, timeout_s: float) -> _Sample:
         deadline = time.monotonic() + timeout_s

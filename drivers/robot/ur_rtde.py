@@ -1,7 +1,8 @@
 """Universal Robots arms over RTDE, through SDU Robotics' ``ur_rtde`` (``kind: ur_rtde``).
 
 ``ur_rtde`` holds the GIL while it blocks and may hang on a frozen peer, so this adapter never
-calls it in the caller's process. Two child processes do:
+calls it in the caller's process. Two child processes do (``ur_rtde_worker.py``), reached
+through their links (``ur_rtde_link.py``):
 
 - the **state worker** runs ``RTDEReceiveInterface`` and copies every new sample (TCP pose,
   joints, robot/safety mode, digital IO) into shared memory together with the host time it
@@ -12,20 +13,21 @@ calls it in the caller's process. Two child processes do:
 
 A supervisor thread restarts a dead or silent state worker with exponential backoff
 (``reconnect_initial_s`` doubling to ``reconnect_max_s``) and counts the outages (``health()``).
+While the controller is unreachable the adapter fails fast: ``connect()`` returns as soon as the
+worker is refused, and control requests are refused at once with ``DeviceUnavailable`` (a Stop is
+still tried, within ``stop_timeout_s``). The workers die with the process that owns the adapter.
 Moves are sent asynchronously (``moveL``/``moveJ`` with ``async=True``) and their completion is
 observed in the state stream, so ``stop()`` can interrupt them.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import logging
 import math
 import multiprocessing as mp
 import threading
 import time
-from multiprocessing.connection import Connection
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -43,23 +45,8 @@ from drivers.base import (
     RobotBase,
     RobotState,
 )
-from drivers.robot._ur_rtde_worker import (
-    _DIN,
-    _DOUT,
-    _HOST_T,
-    _POSE,
-    _Q,
-    _QD,
-    _ROBOT_MODE,
-    _ROBOT_T,
-    _RUNTIME,
-    _SAFETY_MODE,
-    _SEQ,
-    _SHM_SIZE,
-    _TCP_SPEED,
-    _control_worker,
-    _state_worker,
-)
+from drivers.health import DeviceHealth
+from drivers.robot.ur_rtde_link import ControlLink, StateLink
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +92,9 @@ class URRTDESettings(BaseModel):
     command_timeout_s: float = Field(
         10.0, gt=0, le=600, description="deadline of a control request, added to a move's duration"
     )
+    stop_timeout_s: float = Field(
+        2.0, gt=0, le=60, description="deadline of a stop request (also while the controller is unreachable)"
+    )
     reconnect_initial_s: float = Field(0.25, gt=0, le=60)
     reconnect_max_s: float = Field(5.0, gt=0, le=600)
     acceleration_m_s2: float = Field(1.2, gt=0, le=10)
@@ -114,6 +104,8 @@ class URRTDESettings(BaseModel):
 
 
 # -- the adapter ---------------------------------------------------------------------------------------
+
+STOP_OPS = ("stopL", "stopJ")
 
 
 class URRTDERobot(RobotBase):
@@ -128,175 +120,53 @@ class URRTDERobot(RobotBase):
         self.config = (
             settings if isinstance(settings, URRTDESettings) else URRTDESettings.model_validate(settings)
         )
-        self._ctx = mp.get_context("spawn")
-        self._shm: Any = self._ctx.Array(ctypes.c_double, _SHM_SIZE)
-        self._error = self._ctx.Array(ctypes.c_char, 256)
-        self._stop_worker = self._ctx.Event()
-        self._state_proc: Any = None
-        self._supervisor: threading.Thread | None = None
-        self._closing = threading.Event()
-        self._lock = threading.RLock()
-        self._control_lock = threading.Lock()
-        self._control_proc: Any = None
-        self._control_conn: Connection | None = None
+        ctx = mp.get_context("spawn")
+        self._link = StateLink(robot_id, self.config, ctx)
+        self._control = ControlLink(robot_id, self.config.host, self.config.frequency_hz, ctx,
+                                    self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
-        self._next_attempt_s = 0.0
-        self._backoff_s = self.config.reconnect_initial_s
-        self._reason = "not connected"
-        self.outages = 0
-        self.reconnects = 0
-        self.last_outage_s = 0.0
-        self._outage_since: float | None = None
-        self._outage_lock = threading.Lock()
-        self._last_seq = 0.0
-        self._last_seq_change = 0.0
-        self._worker_streaming = False
 
-    # -- connection and supervision -----------------------------------------------------------------
+    # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
-        """Start the state worker and wait for the first fresh sample (``connect_timeout_s``)."""
-        with self._lock:
-            if self._supervisor is None:
-                self._closing.clear()
-                self._start_state_worker()
-                self._supervisor = threading.Thread(
-                    target=self._supervise, name=f"ur-{self.robot_id}", daemon=True
-                )
-                self._supervisor.start()
+        """Start the state worker; wait for the first fresh sample (``connect_timeout_s``) or its refusal."""
+        self._link.start()
         deadline = time.monotonic() + self.config.connect_timeout_s
         while time.monotonic() < deadline:
-            if self._fresh_age() is not None:
+            if self._link.fresh_age() is not None:
                 return
+            failure = self._link.failure
+            if failure:  # refused or lost: the peer is down now, do not make the caller wait
+                raise DeviceUnavailable(
+                    f"robot {self.robot_id}: {failure}; check that the controller at {self.config.host} is on "
+                    "and that port 30004 is open. The adapter keeps retrying in the background.")
             time.sleep(0.01)
         raise DeviceUnavailable(
             f"robot {self.robot_id}: no RTDE state from {self.config.host} within "
-            f"{self.config.connect_timeout_s} s ({self._reason}); check that the controller is on, reachable "
+            f"{self.config.connect_timeout_s} s ({self._link.reason}); check that the controller is on, reachable "
             "and that port 30004 is open. The adapter keeps retrying in the background."
         )
 
-    def _start_state_worker(self) -> None:
-        self._error.value = b""
-        self._stop_worker.clear()
-        proc = self._ctx.Process(
-            target=_state_worker,
-            name=f"ur-state-{self.robot_id}",
-            daemon=True,
-            args=(self.config.host, self.config.frequency_hz, self._shm, self._error, self._stop_worker),
-        )
-        proc.start()
-        self._state_proc = proc
-        self._worker_streaming = False
-        self._last_seq_change = time.monotonic()
-
-    def _kill_state_worker(self) -> None:
-        proc = self._state_proc
-        self._state_proc = None
-        if proc is None:
-            return
-        self._stop_worker.set()
-        proc.join(timeout=0.3)
-        if proc.is_alive():
-            proc.kill()
-            proc.join(timeout=2.0)
-
-    def _supervise(self) -> None:
-        while not self._closing.wait(0.02):
-            with self._lock:
-                now = time.monotonic()
-                seq = self._shm[_SEQ]
-                self._note_staleness()
-                if seq != self._last_seq:
-                    self._last_seq = seq
-                    self._last_seq_change = now
-                    self._worker_streaming = True
-                    self._backoff_s = self.config.reconnect_initial_s
-                    with self._outage_lock:
-                        if self._outage_since is not None:
-                            self.last_outage_s = now - self._outage_since
-                            self._outage_since = None
-                    self._reason = ""
-                    continue
-                proc = self._state_proc
-                if proc is not None and proc.is_alive():
-                    silent_s = now - self._last_seq_change
-                    # a new worker gets the connect timeout to produce its first sample
-                    allowed_s = (
-                        self.config.stall_timeout_s
-                        if self._worker_streaming
-                        else self.config.connect_timeout_s
-                    )
-                    if silent_s < allowed_s:
-                        continue
-                    self._reason = (
-                        f"no RTDE data from {self.config.host} for {silent_s:.1f} s "
-                        "(controller frozen or network down)"
-                    )
-                    self._kill_state_worker()
-                elif proc is not None:
-                    message = self._error.value.decode(errors="replace")
-                    self._reason = message or f"RTDE worker for {self.config.host} exited"
-                    self._kill_state_worker()
-                if self._state_proc is None:
-                    if self._next_attempt_s == 0.0:
-                        self._next_attempt_s = now + self._backoff_s
-                    if now >= self._next_attempt_s:
-                        self._next_attempt_s = 0.0
-                        self._backoff_s = min(self._backoff_s * 2.0, self.config.reconnect_max_s)
-                        self.reconnects += 1
-                        self._start_state_worker()
-
     def close(self) -> None:
         """Stop the workers and the supervisor; safe to call twice."""
-        self._closing.set()
-        sup = self._supervisor
-        if sup is not None and sup is not threading.current_thread():
-            sup.join(timeout=2.0)
-        self._supervisor = None
-        with self._lock:
-            self._kill_state_worker()
-        self._kill_control_worker(graceful=True)
+        if self._link.running:
+            # the control worker disconnects cleanly first (it was started by the supervisor thread)
+            self._control.close(graceful=True)
+        self._link.stop()
+        self._control.close()
 
-    def _note_staleness(self) -> None:
-        """Open an outage (counted once) when the newest sample is too old; the supervisor closes it."""
-        age = self._sample_age()
-        if age is not None and age > self.config.state_max_age_s:
-            with self._outage_lock:
-                if self._outage_since is None:
-                    self._outage_since = time.monotonic() - (age - self.config.state_max_age_s)
-                    self.outages += 1
-
-    def health(self) -> dict[str, Any]:
-        """``available``, ``reason``, outage and reconnect counts, the newest sample's age."""
-        age = self._sample_age()
+    def health(self) -> DeviceHealth:
+        """Availability, outage and reconnect counts, the last outage's duration, the newest sample's age."""
+        age = self._link.buffer.age_s()
         available = age is not None and age <= self.config.state_max_age_s
         if not available:
-            self._note_staleness()
-        return {
-            "available": available,
-            "reason": "" if available else self._unavailable_reason(age),
-            "outages": self.outages,
-            "reconnects": self.reconnects,
-            "last_outage_s": self.last_outage_s,
-            "state_age_s": age,
-        }
-
-    # -- state ------------------------------------------------------------------------------------------
-    def _snapshot(self) -> list[float]:
-        with self._shm.get_lock():
-            return list(self._shm[:])
-
-    def _sample_age(self) -> float | None:
-        host_t = self._shm[_HOST_T]
-        return None if host_t == 0.0 else time.time() - host_t
-
-    def _fresh_age(self) -> float | None:
-        age = self._sample_age()
-        return age if age is not None and age <= self.config.state_max_age_s else None
+            self._link.note_staleness()
+        return self._link.outages.health(available, reason=self._unavailable_reason(age),
+                                         last_outage_s=self._link.outages.last_outage_s, state_age_s=age)
 
     def _unavailable_reason(self, age: float | None) -> str:
-        if self._supervisor is None:
+        if not self._link.running:
             return "not connected (call connect())"
-        why = self._reason or "waiting for data"
+        why = self._link.reason or self._link.failure or "waiting for data"
         if age is None:
             return f"no RTDE state received yet from {self.config.host}: {why}"
         return (
@@ -304,96 +174,49 @@ class URRTDERobot(RobotBase):
             "reconnecting by itself"
         )
 
+    # -- state ------------------------------------------------------------------------------------------
     def state(self) -> RobotState:
         """The newest sample; ``DeviceUnavailable`` when it is older than ``state_max_age_s``."""
-        s = self._snapshot()
-        age = None if s[_HOST_T] == 0.0 else time.time() - s[_HOST_T]
-        if self._supervisor is None:
+        if not self._link.running:
             raise DeviceUnavailable(f"robot {self.robot_id}: not connected (call connect())")
-        if age is None or age > self.config.state_max_age_s:
-            self._note_staleness()
+        s = self._link.buffer.snapshot()
+        age = None if s is None else time.time() - s.host_time_s
+        if s is None or age is None or age > self.config.state_max_age_s:
+            self._link.note_staleness()
             raise DeviceUnavailable(f"robot {self.robot_id}: {self._unavailable_reason(age)}")
-        pose = np.array(s[_POSE : _POSE + 6])
-        qd = np.array(s[_QD : _QD + 6])
-        tcp_speed = np.array(s[_TCP_SPEED : _TCP_SPEED + 6])
+        pose = np.array(s.pose)
+        qd = np.array(s.qd)
+        tcp_speed = np.array(s.tcp_speed)
         moving = bool(np.max(np.abs(qd)) > 1e-4 or np.linalg.norm(tcp_speed[:3]) > 1e-5)
-        robot_mode = ROBOT_MODES.get(int(s[_ROBOT_MODE]), f"mode_{int(s[_ROBOT_MODE])}")
-        safety_mode = SAFETY_MODES.get(int(s[_SAFETY_MODE]), f"safety_{int(s[_SAFETY_MODE])}")
-        din, dout = int(s[_DIN]), int(s[_DOUT])
+        robot_mode = ROBOT_MODES.get(s.robot_mode, f"mode_{s.robot_mode}")
+        safety_mode = SAFETY_MODES.get(s.safety_mode, f"safety_{s.safety_mode}")
         return RobotState(
             T_base_tool=ur_pose_to_transform(pose),
-            joints_rad=np.array(s[_Q : _Q + 6]),
-            timestamp_s=s[_HOST_T],
+            joints_rad=np.array(s.q),
+            timestamp_s=s.host_time_s,
             moving=moving,
             mode=robot_mode if safety_mode == "normal" else safety_mode,
             metadata={
                 "robot_mode": robot_mode,
                 "safety_mode": safety_mode,
-                "program_running": int(s[_RUNTIME]) == 2,
-                "controller_time_s": s[_ROBOT_T],
-                "digital_in": [bool(din >> i & 1) for i in range(8)],
-                "digital_out": [bool(dout >> i & 1) for i in range(8)],
+                "program_running": s.runtime_state == 2,
+                "controller_time_s": s.controller_time_s,
+                "digital_in": [bool(s.digital_in >> i & 1) for i in range(8)],
+                "digital_out": [bool(s.digital_out >> i & 1) for i in range(8)],
                 "ur_pose": pose.tolist(),
                 "tcp_speed_m_s": float(np.linalg.norm(tcp_speed[:3])),
             },
         )
 
     # -- control worker ------------------------------------------------------------------------------
-    def _kill_control_worker(self, graceful: bool = False) -> None:
-        proc, conn = self._control_proc, self._control_conn
-        self._control_proc = None
-        self._control_conn = None
-        if conn is not None:
-            if graceful and proc is not None and proc.is_alive():
-                with contextlib.suppress(OSError, ValueError):
-                    conn.send(("close", ()))
-                    if conn.poll(1.5):
-                        conn.recv()
-            with contextlib.suppress(OSError):
-                conn.close()
-        if proc is not None:
-            proc.join(timeout=0.5 if graceful else 0.0)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout=2.0)
-
     def _request(self, op: str, args: tuple[Any, ...], timeout_s: float) -> Any:
-        """Run one ur_rtde control/dashboard call in the control worker with a deadline."""
-        with self._control_lock:
-            if self._control_proc is None or not self._control_proc.is_alive():
-                self._kill_control_worker()
-                parent, child = self._ctx.Pipe()
-                proc = self._ctx.Process(
-                    target=_control_worker,
-                    name=f"ur-control-{self.robot_id}",
-                    args=(self.config.host, self.config.frequency_hz, child),
-                    daemon=True,
-                )
-                proc.start()
-                child.close()
-                self._control_proc, self._control_conn = proc, parent
-            conn = self._control_conn
-            assert conn is not None
-            try:
-                conn.send((op, args))
-                ready = conn.poll(timeout_s)
-                reply = conn.recv() if ready else None
-            except (OSError, EOFError) as exc:
-                self._kill_control_worker()
-                raise DeviceUnavailable(
-                    f"robot {self.robot_id}: control connection to {self.config.host} "
-                    f"died during {op}; it is restarted on the next command"
-                ) from exc
-            if reply is None:
-                self._kill_control_worker()
-                raise DeviceTimeout(
-                    f"robot {self.robot_id}: {op} got no answer from {self.config.host} within "
-                    f"{timeout_s:.1f} s; the control connection was reset, check the controller"
-                )
-        status, value = reply
-        if status == "error":
-            raise DeviceOperationError(f"robot {self.robot_id}: {op} failed on {self.config.host}: {value}")
-        return value
+        """One control/dashboard call; refused at once while the controller is unreachable (no waits)."""
+        if not self._link.running:
+            raise DeviceUnavailable(f"robot {self.robot_id}: not connected (call connect())")
+        if op not in STOP_OPS and self._link.fresh_age() is None:
+            raise DeviceUnavailable(
+                f"robot {self.robot_id}: {op} refused: {self._unavailable_reason(self._link.buffer.age_s())}")
+        return self._control.request(op, args, timeout_s)
 
     # -- motion ------------------------------------------------------------------------------------------
     def forward_kinematics(self, joints_rad: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -468,7 +291,7 @@ class URRTDERobot(RobotBase):
             why = str(exc)
         return f"robot {self.robot_id}: the controller refused {op} ({why}); check the pendant for errors"
 
-    def _wait_arrival(self, arrived: Any, timeout_s: float) -> None:
+    def _wait_arrival(self, arrived: Callable[[RobotState], bool], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             s = self.state()
@@ -504,14 +327,13 @@ class URRTDERobot(RobotBase):
             time.sleep(0.002)
 
     def _stop(self) -> None:
-        """Decelerate any motion this adapter commanded (stopL, then stopJ)."""
+        """Decelerate any motion this adapter commanded (stopL, then stopJ), within ``stop_timeout_s`` each."""
         self._stop_requested.set()
-        if self._control_proc is None:
-            return
-        self._request("stopL", (self.config.acceleration_m_s2 * 5, False), self.config.command_timeout_s)
-        self._request(
-            "stopJ", (self.config.joint_acceleration_rad_s2 * 5, False), self.config.command_timeout_s
-        )
+        if not self._control.started:
+            return  # no move was ever sent through this adapter
+        timeout_s = min(self.config.stop_timeout_s, self.config.command_timeout_s)
+        self._request("stopL", (self.config.acceleration_m_s2 * 5, False), timeout_s)
+        self._request("stopJ", (self.config.joint_acceleration_rad_s2 * 5, False), timeout_s)
 
     # -- IO and dashboard ----------------------------------------------------------------------------
     def set_digital_out(self, channel: int, value: bool) -> None:

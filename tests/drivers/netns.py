@@ -123,13 +123,13 @@ def scenario_gige() -> dict[str, Any]:
             "dtype": str(frames[-1].pixels.dtype),
             "settings": s,
             "ids": [f.frame_id for f in frames],
-            "health": cam.health(),
+            "health": cam.health().as_dict(),
         }
         cam.set_trigger("software")
         time.sleep(0.3)
-        before = cam.health()["completed"]
+        before = cam.health().frames_received
         time.sleep(0.5)
-        idle = cam.health()["completed"] - before
+        idle = cam.health().frames_received - before
         f, dt, err = _timed(lambda: cam.grab(3.0))
         out["software_trigger"] = {"frames_without_trigger": idle, "grab_s": dt, "error": err}
         _, _, err = _timed(lambda: cam.set_trigger("hardware"))
@@ -185,14 +185,14 @@ def scenario_faults() -> dict[str, Any]:
         t0 = time.monotonic()
         _, dt, err = _timed(lambda: cam.grab(1.0))
         out["grab_after_kill"] = {"s": dt, "error": err}
-        while cam.health()["available"] and time.monotonic() - t0 < 10:
+        while cam.health().available and time.monotonic() - t0 < 10:
             time.sleep(0.05)
         out["unavailable_after_s"] = time.monotonic() - t0
-        out["health_down"] = cam.health()
+        out["health_down"] = cam.health().as_dict()
         peer = FakeCamera().start()
         t1 = time.monotonic()
         f, dt, err = _timed(lambda: cam.grab(15.0))
-        out["recovered"] = {"s": time.monotonic() - t1, "error": err, "health": cam.health()}
+        out["recovered"] = {"s": time.monotonic() - t1, "error": err, "health": cam.health().as_dict()}
     finally:
         cam.close()
         peer.kill()
@@ -254,7 +254,7 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
         )
         cam.open()
         cam.grab(5.0)
-        h0 = dict(cam.health())
+        h0 = cam.health().as_dict()
         n = 0
         cpu0 = time.process_time()
         t0 = time.monotonic()
@@ -267,13 +267,13 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
             latencies.append(time.time() - f.timestamp_s)
         elapsed = time.monotonic() - t0
         cpu = time.process_time() - cpu0
-        h1 = cam.health()
+        h1 = cam.health().as_dict()
         cam.close()
         return {
-            "frames": h1["completed"] - h0["completed"],
+            "frames": h1["frames_received"] - h0["frames_received"],
             "grabbed": n,
-            "incomplete": h1["incomplete"] - h0["incomplete"],
-            "lost": h1["lost"] - h0["lost"],
+            "incomplete": h1["frames_incomplete"] - h0["frames_incomplete"],
+            "lost": h1["frames_lost"] - h0["frames_lost"],
             "elapsed_s": elapsed,
             "cpu_s": cpu,
         }

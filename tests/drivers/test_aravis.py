@@ -46,7 +46,7 @@ def test_fake_camera_frames_formats_and_roi() -> None:
         cam.set_gain_db(6)
         s = cam.settings()
         assert s["exposure_us"] == pytest.approx(2000) and s["gain_db"] == pytest.approx(6)
-        assert cam.health()["completed"] >= 2 and cam.health()["lost"] == 0
+        assert cam.health().frames_received >= 2 and cam.health().frames_lost == 0
     roi = {"x_px": 32, "y_px": 16, "width_px": 200, "height_px": 100}
     for fmt, shape, dtype in (("Mono16", (100, 200), np.uint16), ("BayerRG8", (100, 200, 3), np.uint8),
                               ("RGB8", (100, 200, 3), np.uint8)):
@@ -83,7 +83,7 @@ def test_gige_fake_camera_in_loopback_namespace() -> None:
     assert s["roi"] == {"x_px": 16, "y_px": 8, "width_px": 256, "height_px": 128}
     assert s["exposure_us"] == pytest.approx(5000) and s["gain_db"] == pytest.approx(3)
     assert s["frame_rate_hz"] == pytest.approx(30, rel=1e-3)
-    assert c["ids"] == sorted(c["ids"]) and c["health"]["lost"] == 0 and c["health"]["incomplete"] == 0
+    assert c["ids"] == sorted(c["ids"]) and c["health"]["frames_lost"] == 0 and c["health"]["frames_incomplete"] == 0
     assert r["software_trigger"]["frames_without_trigger"] == 0 and r["software_trigger"]["error"] == ""
     assert "TriggerSource 'Line1' is not accepted" in r["hardware_trigger_error"]
 

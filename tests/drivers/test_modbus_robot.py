@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable, MotionLimits
+from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable, MotionLimits, RobotStopped
 from drivers.io.modbus import ModbusDigitalIO
 from drivers.registry import adapter_class
 from drivers.robot.modbus import ModbusRobot
@@ -140,7 +140,8 @@ class TestAgainstOneSimulator:
         time.sleep(0.3)
         robot.stop()
         th.join(timeout=5)
-        assert errors and isinstance(errors[0], DeviceOperationError)
+        assert errors and isinstance(errors[0], RobotStopped)
+        assert robot.resume()
         travelled = robot.state().T_base_tool[1, 3] - start[1, 3]
         assert 0.02 < travelled < 0.1
 
@@ -186,7 +187,7 @@ def test_connect_timeout() -> None:
     with pytest.raises(DeviceUnavailable, match="no answer from Modbus TCP"):
         r.connect()
     assert time.monotonic() - t0 < 2.0
-    assert r.health()["available"] is False
+    assert r.health().available is False
     r.close()
     r.close()
     with pytest.raises(DeviceUnavailable, match="cannot connect"):
@@ -195,21 +196,21 @@ def test_connect_timeout() -> None:
 
 def test_peer_killed_and_restarted(robot: ModbusRobot, sim: PeerProcess) -> None:
     sim.kill()
-    wait_for(lambda: not robot.health()["available"], 1.0)
+    wait_for(lambda: not robot.health().available, 1.0)
     with pytest.raises(DeviceUnavailable, match="reconnecting"):
         robot.state()
     sim.start()
     recovered = wait_for(lambda: robot.state().age_s() < 0.3, 5.0)  # stated: within 5 s (backoff <= 0.5 s)
     assert recovered < 5.0
     h = robot.health()
-    assert h["outages"] == 1 and h["reconnects"] >= 1 and h["last_outage_s"] > 0
+    assert h.outages == 1 and h.reconnects >= 1 and h.last_outage_s > 0
     robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
 
 
 def test_frozen_peer_read_timeout(robot: ModbusRobot, sim: PeerProcess) -> None:
     sim.freeze()
     try:
-        wait_for(lambda: not robot.health()["available"], 1.5)
+        wait_for(lambda: not robot.health().available, 1.5)
         t0 = time.monotonic()
         with pytest.raises(DeviceUnavailable):
             robot.state()
@@ -219,7 +220,7 @@ def test_frozen_peer_read_timeout(robot: ModbusRobot, sim: PeerProcess) -> None:
     finally:
         sim.thaw()
     wait_for(lambda: robot.state().age_s() < 0.3, 5.0)
-    assert robot.health()["outages"] == 1
+    assert robot.health().outages == 1
 
 
 def test_malformed_replies() -> None:
@@ -230,7 +231,7 @@ def test_malformed_replies() -> None:
         with pytest.raises(DeviceUnavailable):
             r.connect()
         assert time.monotonic() - t0 < 2.0
-        assert "Modbus" in r.health()["reason"]
+        assert "Modbus" in r.health().reason
     finally:
         r.close()
         peer.stop()
@@ -238,7 +239,7 @@ def test_malformed_replies() -> None:
 
 def test_register_codec_types_word_order_and_scale() -> None:
     """int16/uint16/int32/uint32/float32 with scale, both word orders: what a PLC map may use."""
-    from drivers.robot.modbus import RegisterSpec
+    from drivers.robot.modbus_map import RegisterSpec
 
     for order in ("big", "little"):
         r = ModbusRobot("plc0", {"host": "127.0.0.1", "word_order": order}, LIMITS)

@@ -109,7 +109,7 @@ def test_stream_newest_frame_and_recovery_after_the_peer_restarts() -> None:
         cam.grab(timeout_s=8)  # recovers by itself: stall 0.5 s + backoff <= 0.5 s + reopen
         assert time.monotonic() - t0 < 8
         h = cam.health()
-        assert h["available"] and h["outages"] == 1 and h["reconnects"] >= 1
+        assert h.available and h.outages == 1 and h.reconnects >= 1
     finally:
         cam.close()
         peer.stop()

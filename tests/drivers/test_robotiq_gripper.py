@@ -99,7 +99,7 @@ def test_read_timeout_peer_killed_and_restarted(
     with pytest.raises(DeviceTimeout, match="did not answer the status read within 0.3 s"):
         g.status()
     assert time.monotonic() - t0 < 3.0
-    assert g.health()["available"] is False and g.health()["outages"] == 1
+    assert g.health().available is False and g.health().outages == 1
     peer = start_sim(pty_pair)
     try:
         deadline = time.monotonic() + 3.0
@@ -111,7 +111,7 @@ def test_read_timeout_peer_killed_and_restarted(
                 assert time.monotonic() < deadline
                 time.sleep(0.05)
         assert g.close_gripper()["object_detected"]
-        assert g.health()["available"] and g.health()["outages"] == 1
+        assert g.health().available and g.health().outages == 1
     finally:
         peer.stop()
 
@@ -135,7 +135,7 @@ def test_port_disappears(gripper: tuple[RobotiqGripper, PeerProcess], pty_pair: 
             except (DeviceUnavailable, DeviceTimeout):
                 assert time.monotonic() < deadline
                 time.sleep(0.05)
-        assert g.health()["reconnects"] >= 1 and g.health()["outages"] == 1
+        assert g.health().reconnects >= 1 and g.health().outages == 1
     finally:
         peer.stop()
 
@@ -158,7 +158,7 @@ def test_malformed_replies(pty_pair: SocatPair) -> None:
         with pytest.raises((DeviceTimeout, DeviceOperationError, DeviceUnavailable)):
             g.status()
         assert time.monotonic() - t0 < 3.0
-        assert g.health()["available"] is False
+        assert g.health().available is False
     finally:
         g.close()
         stop.set()

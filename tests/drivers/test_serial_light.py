@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable
+from drivers.health import DeviceHealth
 from drivers.io.serial_light import SerialLightController
 from drivers.registry import adapter_class
 from tests.drivers.peers import PeerProcess, SocatPair
@@ -65,7 +66,7 @@ def test_intensity_strobe_and_digital_io(light: tuple[SerialLightController, Pee
         ctl.set_intensity_percent(4, 10)
     with pytest.raises(DeviceOperationError, match="rejected 'SET 1 999': ERR 3"):
         ctl.command("SET 1 999")
-    assert ctl.health()["available"]
+    assert ctl.health().available
 
 
 def test_read_timeout_peer_killed_and_restarted(
@@ -78,12 +79,12 @@ def test_read_timeout_peer_killed_and_restarted(
     with pytest.raises(DeviceTimeout, match="no reply to 'GET 0' within 0.3 s"):
         ctl.intensity_percent(0)
     assert time.monotonic() - t0 < 2.0
-    assert ctl.health() == {"available": False, "reason": "no reply to 'GET 0'", "outages": 1, "reconnects": 0}
+    assert ctl.health() == DeviceHealth(available=False, reason="no reply to 'GET 0'", outages=1, reconnects=0)
     peer = start_sim(pty_pair)
     try:
         ctl.set_intensity_percent(0, 30)  # recovers with the next command
         assert ctl.intensity_percent(0) == pytest.approx(100 * 76 / 255)
-        assert ctl.health()["available"] and ctl.health()["outages"] == 1
+        assert ctl.health().available and ctl.health().outages == 1
     finally:
         peer.stop()
 
@@ -110,7 +111,7 @@ def test_port_disappears_and_returns(light: tuple[SerialLightController, PeerPro
                 time.sleep(0.05)
         assert ctl.read_input(1)
         h = ctl.health()
-        assert h["available"] and h["outages"] == 1 and h["reconnects"] >= 1
+        assert h.available and h.outages == 1 and h.reconnects >= 1
     finally:
         peer.stop()
 

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected
+from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected, RobotStopped
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
 from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
@@ -64,7 +64,7 @@ def test_registry_and_settings_validation() -> None:
 
 
 @pytest.fixture(scope="class")
-def shared_robot() -> Iterator[URRTDERobot]:
+def class_robot() -> Iterator[URRTDERobot]:
     """One emulator and one connected adapter for the tests that do not break the peer."""
     with fixed_port_lock():
         peer = PeerProcess("drivers.peers.ur_emulator", ready_port=30003).start()
@@ -75,6 +75,24 @@ def shared_robot() -> Iterator[URRTDERobot]:
         finally:
             r.close()
             peer.stop()
+
+
+@pytest.fixture
+def shared_robot(class_robot: URRTDERobot) -> URRTDERobot:
+    """The class's adapter, put back in a known state before each test (so their order does not matter):
+    connected, not latched, powered, brakes released, no protective stop, at the home joints."""
+    r = class_robot
+    r.connect()  # a no-op unless a test closed it
+    r.resume()
+    if r.state().metadata["safety_mode"] != "normal":
+        r.unlock_protective_stop()
+    if r.state().metadata["robot_mode"] != "running":
+        r.power_on()
+        r.brake_release()
+    wait_for(lambda: r.state().metadata["robot_mode"] == "running" and r.state().metadata["safety_mode"] == "normal",
+             5.0)
+    r.move_joint(np.array(HOME_Q), speed_rad_s=1.0)
+    return r
 
 
 PROTECTIVE_STOP = """
@@ -155,7 +173,7 @@ class TestAgainstOneEmulator:
         robot.stop()
         th.join(timeout=5)
         assert not th.is_alive()
-        assert errors and isinstance(errors[0], DeviceOperationError)
+        assert errors and isinstance(errors[0], RobotStopped)
         time.sleep(0.05)
         travelled = robot.state().T_base_tool[0, 3] - start[0, 3]
         assert 0.02 < travelled < 0.15
@@ -211,15 +229,17 @@ class TestAgainstOneEmulator:
         robot.move_linear(target, speed_m_s=0.1)
 
 
-def test_connect_timeout_without_a_controller(ur_ports: None) -> None:
-    r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 1.0}, LIMITS)
+def test_connect_fails_fast_without_a_controller(ur_ports: None) -> None:
+    """A refused connection is reported at once, not after the connect timeout (the service must not hang)."""
+    r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 30.0}, LIMITS)
     t0 = time.monotonic()
-    with pytest.raises(DeviceUnavailable, match="no RTDE state from 127.0.0.1"):
+    with pytest.raises(DeviceUnavailable, match="cannot connect RTDE to 127.0.0.1:30004"):
         r.connect()
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < 10.0  # far below the 30 s connect timeout: the refusal ended the wait
     with pytest.raises(DeviceUnavailable, match="no RTDE state received yet"):
         r.state()
-    assert r.health()["available"] is False
+    h = r.health()
+    assert h.available is False and "no RTDE state received yet" in h.reason
     r.close()
     r.close()  # idempotent
 
@@ -228,15 +248,15 @@ def test_peer_killed_mid_stream_and_restarted(robot: URRTDERobot, ur_emulator: P
     robot.state()
     ur_emulator.kill()
     # never a stale pose: unavailable within the max age (plus polling)
-    t_unavailable = wait_for(lambda: not robot.health()["available"], 1.0)
+    t_unavailable = wait_for(lambda: not robot.health().available, 1.0)
     assert t_unavailable < 1.0
     with pytest.raises(DeviceUnavailable, match="reconnecting by itself"):
         robot.state()
     ur_emulator.start()
     # the adapter recovers by itself within 5 s (backoff capped at 1 s here) and counts the outage
-    wait_for(lambda: robot.state().age_s() < 0.1 and robot.health()["last_outage_s"] > 0, 5.0)
+    wait_for(lambda: robot.state().age_s() < 0.1 and robot.health().last_outage_s > 0, 5.0)
     h = robot.health()
-    assert h["available"] and h["outages"] == 1 and h["reconnects"] >= 1 and h["last_outage_s"] > 0
+    assert h.available and h.outages == 1 and h.reconnects >= 1 and h.last_outage_s > 0
     target = robot.state().T_base_tool.copy()
     target[1, 3] += 0.01
     robot.move_linear(target, speed_m_s=0.1)  # the control connection is rebuilt too
@@ -245,7 +265,7 @@ def test_peer_killed_mid_stream_and_restarted(robot: URRTDERobot, ur_emulator: P
 def test_frozen_peer_read_timeout(robot: URRTDERobot, ur_emulator: PeerProcess) -> None:
     ur_emulator.freeze()
     try:
-        wait_for(lambda: not robot.health()["available"], 1.0)
+        wait_for(lambda: not robot.health().available, 1.0)
         t0 = time.monotonic()
         with pytest.raises(DeviceUnavailable):
             robot.state()
@@ -253,7 +273,7 @@ def test_frozen_peer_read_timeout(robot: URRTDERobot, ur_emulator: PeerProcess) 
     finally:
         ur_emulator.thaw()
     wait_for(lambda: robot.state().age_s() < 0.1, 6.0)
-    assert robot.health()["outages"] == 1
+    assert robot.health().outages == 1
 
 
 def test_malformed_replies(ur_ports: None) -> None:
@@ -286,7 +306,7 @@ def test_malformed_replies(ur_ports: None) -> None:
         with pytest.raises(DeviceUnavailable):
             r.connect()
         assert time.monotonic() - t0 < 3.0
-        assert r.health()["available"] is False
+        assert r.health().available is False
     finally:
         r.close()
         stop.set()
