@@ -1,4 +1,11 @@
-"""Fixtures shared by the whole suite: repo paths, free ports, a served cellctl process."""
+"""Fixtures shared by the whole suite: repo paths, test data, free ports, a served cellctl process.
+
+It also marks every test by what it needs (``pytest -m "not slow"`` is the fast loop; see
+docs/testing.md): ``unit`` (in-process, no peer), ``peer`` (a protocol peer on loopback: an
+emulator, a fake camera, socat, PostgreSQL), ``e2e`` (a served ``cellctl`` process), ``browser``
+(headless Chromium), and ``slow`` (over about 3 s on the 2-core reference machine: the measured
+list in ``tests/slow.txt``, plus every browser test).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +14,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +22,8 @@ import httpx
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+DATA = REPO / "tests" / "data"
+"""Real images and measurements copied into the repository, each folder with SOURCE.txt and LICENSE.txt."""
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 
 
@@ -85,3 +93,46 @@ def served_virtual_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Se
         yield served
     finally:
         stop_served(served)
+
+
+# -- markers ----------------------------------------------------------------------------------------
+
+SLOW_LIST = Path(__file__).with_name("slow.txt")
+E2E_HINTS = ("start_served(", "served_virtual_cell", "start_plc_cell(", "plc_cell", "uvicorn")
+PEER_HINTS = ("PeerProcess", "netns", "postgres", "socat", "arv-fake", "ur_emulator", "Aravis")
+_module_text: dict[Path, str] = {}
+
+
+def slow_tests(lines: Iterable[str]) -> set[str]:
+    """Node ids of ``tests/slow.txt`` (one per line; ``#`` starts a comment)."""
+    return {ln.split("#", 1)[0].strip() for ln in lines} - {""}
+
+
+def kinds_of(rel_path: str, fixturenames: Iterable[str], module_text: str) -> set[str]:
+    """The kind markers of a test from its path (relative to tests/), its fixtures and its module."""
+    fixtures = set(fixturenames)
+    if rel_path.startswith("ui/"):
+        return {"browser", "e2e"}
+    kinds = set()
+    if rel_path == "test_readme.py" or any(h in module_text for h in E2E_HINTS) \
+            or any(f.startswith(("served", "plc_cell")) for f in fixtures):
+        kinds.add("e2e")
+    if any(h in module_text for h in PEER_HINTS) or fixtures & {"ur_emulator", "postgres", "postgres_url"}:
+        kinds.add("peer")
+    return kinds or {"unit"}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    slow = slow_tests(SLOW_LIST.read_text().splitlines()) if SLOW_LIST.exists() else set()
+    root = Path(__file__).parent
+    for item in items:
+        path = Path(str(item.path))
+        if path not in _module_text:
+            _module_text[path] = path.read_text() if path.suffix == ".py" else ""
+        rel = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        kinds = kinds_of(rel, getattr(item, "fixturenames", ()), _module_text[path])
+        for kind in sorted(kinds):
+            item.add_marker(kind)
+        base_id = item.nodeid.split("[", 1)[0]
+        if "browser" in kinds or item.nodeid in slow or base_id in slow or rel in slow:
+            item.add_marker("slow")
