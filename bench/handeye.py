@@ -13,7 +13,7 @@ its whole pipeline (checks, closed form, joint ML refinement with the stated rob
 covariance). Times: cellctl includes the per-station
 PnP and the checks; OpenCV's exclude PnP.
 
-Real data: ETH ASL's robot arm + SR300 pose streams (shared/data/handeye_ethz_robot_arm_sr300):
+Real data: ETH ASL's robot arm + SR300 pose streams (tests/data/handeye_ethz_robot_arm_sr300):
 no images, so each station's measured camera pose is turned into virtual detections of a 6x6
 grid (pitch 40 mm) through the SR300 IR model; no truth, so methods are compared by leave-one-out
 prediction of the target position (mm).
@@ -67,7 +67,7 @@ CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 958.3], [0, 1900.
                   np.array([-0.12, 0.08, 0.0002, -0.0001, 0.0]))
 BOARD = Chessboard(11, 8, 25.0)
 NOISES = [RobotNoise(0.02, 0.005), RobotNoise(0.05, 0.01), RobotNoise(0.1, 0.02)]
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "handeye_ethz_robot_arm_sr300"
+DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "handeye_ethz_robot_arm_sr300"
 
 
 def robot_world(setup: str, G: list[np.ndarray], C: list[np.ndarray], method: int) -> np.ndarray:
@@ -291,7 +291,7 @@ def eth_real(quick: bool) -> dict[str, Any] | None:
 
 def eth_table(r: dict[str, Any] | None) -> str:
     if r is None:
-        return "ETH data set not found under shared/data: skipped.\n"
+        return "ETH data set not found under tests/data: skipped.\n"
     lines = ["| method | LOO target position miss mm: mean / RMS / max | t_hinge_cam mm |", "|---|---|---|"]
     c = r["cellctl_loo"]
     nz = r["noise"]

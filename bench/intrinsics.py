@@ -7,7 +7,7 @@ over the region the views covered (RMS / max px, best rotation between the camer
 compensated), focal and principal point errors, cellctl's reported 1-sigma projection
 uncertainty next to its actual error, and time.
 
-Real sets (shared/data): udacity 9x6 and GoPro 8x6 photos (detected here), mrcal's fisheye
+Real sets (tests/data): udacity 9x6 and GoPro 8x6 photos (detected here), mrcal's fisheye
 corners (given). No truth: 2-fold cross-validation (views alternately split; each fold
 calibrated alone, same folds for both solvers), the projection difference between the two fold
 solutions over the covered region.
@@ -42,7 +42,7 @@ from calibration.observations import Detection  # noqa: E402
 from calibration.render import Imaging, PlanarObject, render  # noqa: E402
 from calibration.targets import Chessboard  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
+DATA = ROOT / "tests" / "data"
 W, H = 960, 720
 K_TRUE = np.array([[800.0, 0.0, 483.0], [0.0, 798.0, 356.0], [0.0, 0.0, 1.0]])
 TRUTHS = {

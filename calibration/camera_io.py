@@ -1,4 +1,4 @@
-"""Read and write the camera result file ``cam.json`` and pose files (shared/INTERFACES.md §4).
+"""Read and write the camera result file ``cam.json`` and pose files (docs/cli.md).
 
 Errors name the file and what is wrong with it, so the CLI can print them as one line.
 """

@@ -1,6 +1,6 @@
 """Camera models: pinhole intrinsics with OpenCV or division-model lens distortion.
 
-Frames and units (shared/INTERFACES.md §1): points in the camera frame are metres, x right,
+Frames and units (docs/conventions.md): points in the camera frame are metres, x right,
 y down, z forward; pixels are ``(u, v)`` with ``(0, 0)`` the centre of the top-left pixel.
 
 Models:
@@ -143,7 +143,7 @@ class CameraModel:
 
     # -- files --------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """The ``cam.json`` core keys (shared/INTERFACES.md §4)."""
+        """The ``cam.json`` core keys (docs/cli.md)."""
         return {
             "model": self.model,
             "width": int(self.width),

@@ -1,6 +1,6 @@
 """Rigid transforms and rotation forms.
 
-Conventions (shared/INTERFACES.md §1): ``T_a_b`` is a 4x4 homogeneous matrix that maps
+Conventions (docs/conventions.md): ``T_a_b`` is a 4x4 homogeneous matrix that maps
 coordinates in frame ``b`` into frame ``a``; compose left to right
 (``T_base_cam = T_base_tool @ T_tool_cam``). Translations are metres, angles radians.
 

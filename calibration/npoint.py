@@ -6,7 +6,7 @@ scale):
 
 - ``similarity``: rotation, uniform scale, translation **and, when the data need it, a
   reflection** (a camera looking down at the robot's table usually sees the robot's XY plane
-  mirrored; OpenCV's ``estimateAffinePartial2D`` cannot represent that — shared/FIELD_NOTES.md).
+  mirrored; OpenCV's ``estimateAffinePartial2D`` cannot represent that — docs/field-notes.md).
   Fitted in closed form (Umeyama) with and without a reflection; the better one is kept and
   ``reflection`` says which.
 - ``affine``: HALCON's ``vector_to_hom_mat2d``: linear least squares.
@@ -236,7 +236,7 @@ class NPointResult:
         return np.asarray(cov)
 
     def to_json(self) -> dict[str, Any]:
-        """``np.json`` (shared/INTERFACES.md §4) plus diagnostics."""
+        """``np.json`` (docs/cli.md) plus diagnostics."""
         out: dict[str, Any] = {
             "model": self.model,
             "H": self.H.tolist(),

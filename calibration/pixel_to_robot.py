@@ -1,6 +1,6 @@
 """Pixel → robot-frame point (mm) with its propagated 1-σ uncertainty.
 
-Two kinds of calibration (the JSON files of shared/INTERFACES.md §4):
+Two kinds of calibration (the JSON files of docs/cli.md):
 
 - **n-point** (``np.json``): ``(x, y) = H · (u, v)`` on the plane the marks were taught on
   (lens distortion removed first when the calibration carries a camera). Uncertainty from the

@@ -1,6 +1,6 @@
 """Reading robot pose files (``poses.csv``) and N-point pair files (``pairs.csv``).
 
-Formats (shared/INTERFACES.md §3):
+Formats (docs/datasets.md):
 
 - ``poses.csv``: header ``image,x,y,z,rx,ry,rz``; one row per image; the pose is ``T_base_tool``
   in Universal Robots' TCP-pose form (metres, rotation vector in radians).

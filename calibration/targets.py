@@ -1,6 +1,6 @@
 """Calibration target descriptions: strict YAML parsing, point sets and the printed pattern.
 
-Target frame (shared/INTERFACES.md §1): origin at the centre of point ``(row 0, col 0)``, x
+Target frame (docs/conventions.md): origin at the centre of point ``(row 0, col 0)``, x
 along increasing column, y along increasing row, z into the target. Internally metres; the
 YAML fields are millimetres and say so (``square_mm``, ``pitch_mm``...).
 
@@ -162,7 +162,7 @@ class Charuco:
 class CirclePlate:
     """HALCON-style plate: black marks, a surrounding frame and an orientation triangle.
 
-    Geometry exactly as shared/INTERFACES.md §2: mark (r, c) at ``(c*pitch, r*pitch)``; the
+    Geometry exactly as docs/targets.md: mark (r, c) at ``(c*pitch, r*pitch)``; the
     frame's inner edge one pitch outside the outer mark centres, ``pitch/2`` wide; a right
     triangle with legs ``pitch/2`` in the frame's inner corner nearest mark (0, 0).
     """
@@ -290,7 +290,7 @@ _OPTIONAL: Final[dict[str, set[str]]] = {"circle_grid": {"asymmetric"}}
 
 
 def target_from_dict(d: Any, source: str = "target") -> Target:
-    """Parse a target description (the YAML of shared/INTERFACES.md §2), strictly."""
+    """Parse a target description (the YAML of docs/targets.md), strictly."""
     if not isinstance(d, dict):
         raise TargetError(f"{source}: a target file must be a mapping with a 'type' key")
     kind = d.get("type")

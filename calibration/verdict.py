@@ -6,7 +6,7 @@ operator can argue with them):
 - ``too_few_views``: fewer than ``MIN_GOOD_VIEWS`` views used.
 - ``not_enough_tilt``: no view tilts the target more than ``MIN_TILT_DEG`` about an axis (the
   camera's x axis = the image's horizontal, or its y axis = the vertical). Without tilt the
-  focal length and the target distance cannot be told apart (shared/FIELD_NOTES.md).
+  focal length and the target distance cannot be told apart (docs/field-notes.md).
 - ``corners_not_covered``: an image corner region (the outer ``CORNER_FRACTION`` of width and
   height) holds no observed point; distortion there is extrapolated. The message names them.
 - ``focal_poorly_determined``: 1-sigma of fx or fy above ``MAX_FOCAL_REL_SIGMA`` of its value.

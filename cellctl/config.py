@@ -196,7 +196,7 @@ class CellConfig(_Strict):
     robots: dict[str, RobotConfig] = {}
     io: dict[str, IOConfig] = {}
     targets: dict[str, dict[str, Any]] = {}
-    """Named calibration targets (the YAML of shared/INTERFACES.md §2)."""
+    """Named calibration targets (the YAML of docs/targets.md)."""
     calibration: CalibrationDefaults = CalibrationDefaults()
     plc: PlcConfig = PlcConfig()
     """PLC-native front ends (Modbus TCP, OPC UA); both off unless enabled."""

@@ -28,7 +28,7 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
    jackknife (up to 10 groups, each replicate warm-started) estimates the projection
    uncertainty empirically too, and when it is larger the analytic covariance is scaled up to
    match (``uncertainty.inflation``; both estimates are reported).
-5. **Projection uncertainty** (mrcal's idea, shared/INTERFACES.md ``uncertainty.projection_rms_px``):
+5. **Projection uncertainty** (mrcal's idea, docs/cli.md ``uncertainty.projection_rms_px``):
    rays through a grid of pixels are projected with perturbed intrinsics; a small rotation of the
    camera frame cannot be told from some intrinsics changes (principal point vs. pan/tilt), so the
    best rotation (fitted over the covered region) is compensated. The 2x2 covariance of each grid

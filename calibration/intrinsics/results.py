@@ -89,7 +89,7 @@ class IntrinsicsResult:
         return {n: float(np.sqrt(max(self.covariance[i, i], 0.0))) for i, n in enumerate(self.param_names)}
 
     def to_json(self) -> dict[str, Any]:
-        """The camera result file (shared/INTERFACES.md §4 ``cam.json``)."""
+        """The camera result file (docs/cli.md ``cam.json``)."""
         out = self.camera.to_dict()
         out["rms_px"] = fin(self.rms_px)
         out["views"] = [v.to_json() for v in self.views]

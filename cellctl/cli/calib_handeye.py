@@ -1,7 +1,7 @@
 """``cellctl calib handeye``: hand-eye calibration from a folder of images and its ``poses.csv``.
 
-Reads ``DIR/poses.csv`` (shared/INTERFACES.md §3: ``image,x,y,z,rx,ry,rz``, UR TCP-pose form),
-detects the target in each listed image, and prints ``he.json`` (shared/INTERFACES.md §4):
+Reads ``DIR/poses.csv`` (docs/datasets.md: ``image,x,y,z,rx,ry,rz``, UR TCP-pose form),
+detects the target in each listed image, and prints ``he.json`` (docs/cli.md):
 ``T_tool_cam`` + ``T_base_target`` (eye-in-hand) or ``T_base_cam`` + ``T_tool_target``
 (eye-to-hand), residuals, the 1-σ uncertainty and leave-one-out prediction. Warnings (views left
 out, pairs dropped, mis-paired images) go to stderr; a convention mistake or degenerate motion

@@ -1,7 +1,7 @@
 """``cellctl calib npoint``: the jog-to-mark image→robot mapping from ``pairs.csv``.
 
-``pairs.csv`` (shared/INTERFACES.md §3): header ``u_px,v_px,x_mm,y_mm``. Prints ``np.json``
-(shared/INTERFACES.md §4): the model, ``H`` mapping ``[u, v, 1]`` to ``[x_mm, y_mm, 1]``, the RMS,
+``pairs.csv`` (docs/datasets.md): header ``u_px,v_px,x_mm,y_mm``. Prints ``np.json``
+(docs/cli.md): the model, ``H`` mapping ``[u, v, 1]`` to ``[x_mm, y_mm, 1]``, the RMS,
 HALCON's affine parameters, each model's leave-one-out error and the predicted error over the
 field. With ``--camera`` the pixels are undistorted first (and the camera is stored in np.json so
 that ``cellctl map`` undistorts the same way).

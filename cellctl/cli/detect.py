@@ -1,7 +1,7 @@
 """``cellctl detect --target T.yaml IMAGE... [--out F.json]``: target points per image.
 
 Prints ``[{"image", "found", "points": [{"id", "u_px", "v_px"[, "u_ellipse_px", "v_ellipse_px"]}],
-"reason"?, "width", "height", "quality"?}]`` (shared/INTERFACES.md §4). A corrupt or unreadable
+"reason"?, "width", "height", "quality"?}]`` (docs/cli.md). A corrupt or unreadable
 image or a bad target file is an error (one line, exit code 2); an image in which the target is
 not found is a result with ``"found": false`` and the reason.
 """
@@ -24,7 +24,7 @@ def register(sub: Any) -> None:
     parser: argparse.ArgumentParser = sub.add_parser(
         "detect", help="detect calibration target points in images",
         description="Detect a calibration target's points (ids, sub-pixel u_px/v_px) in each image.")
-    parser.add_argument("--target", required=True, help="target description YAML (shared/INTERFACES.md §2)")
+    parser.add_argument("--target", required=True, help="target description YAML (docs/targets.md)")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (png, jpg, bmp, tif)")
     parser.add_argument("--out", dest="out_json", help="also write the JSON result to this file")
     parser.set_defaults(func=run)

@@ -18,7 +18,7 @@ def register(sub: Any) -> None:
     parser: argparse.ArgumentParser = sub.add_parser("target", help="calibration target files")
     tsub = parser.add_subparsers(dest="target_command", metavar="ACTION", required=True)
     render = tsub.add_parser("render", help="write a printable target at true scale (svg, pdf, png)")
-    render.add_argument("--target", required=True, help="target description YAML (shared/INTERFACES.md §2)")
+    render.add_argument("--target", required=True, help="target description YAML (docs/targets.md)")
     render.add_argument("--out", required=True, help="output file: .svg, .pdf or .png")
     render.add_argument("--dpi", type=float, default=300.0, help="PNG resolution in dots per inch (default 300)")
     render.set_defaults(func=run_render)

@@ -6,7 +6,7 @@
 
 The image search itself is the ``vision`` package (shape and blob matching, recognition).
 
-Conventions (shared/INTERFACES.md §4): pixel centres at integers; the ROI ``(U, V, W, H)`` spans
+Conventions (docs/cli.md): pixel centres at integers; the ROI ``(U, V, W, H)`` spans
 ``(U, V)``..``(U+W, V+H)`` and its centre is the reference point; a match's ``angle_deg`` is the
 rotation relative to the teach image, counter-clockwise on screen (``cv2.getRotationMatrix2D``
 sense), in (-180, 180].

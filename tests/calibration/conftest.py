@@ -13,7 +13,7 @@ from calibration.geometry import make_transform, rotvec_to_matrix, transform_poi
 from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import PlanarTarget
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 def plate_pose(target: PlanarTarget, distance_m: float, tilt_deg: float = 0.0, tilt_dir_deg: float = 0.0,

@@ -208,14 +208,14 @@ def test_robot_noise_estimated_from_data() -> None:
 
 
 def test_real_robot_arm_data_no_false_alarms() -> None:
-    """ETH ASL robot arm + SR300 (real, shared/data): the measured camera poses become virtual
+    """ETH ASL robot arm + SR300 (real, tests/data): the measured camera poses become virtual
     detections of a grid; the real data must pass the checks and agree with OpenCV's closed form."""
     from pathlib import Path
 
     from calibration.geometry import quaternion_to_matrix
     from calibration.handeye import opencv_handeye
 
-    data = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "handeye_ethz_robot_arm_sr300"
+    data = Path(__file__).resolve().parents[1] / "data" / "handeye_ethz_robot_arm_sr300"
     rob = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv", delimiter=",")
     cam = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_target_ir.csv", delimiter=",")[::100]
     cam = cam[(cam[:, 0] - 0.02 > rob[0, 0]) & (cam[:, 0] - 0.02 < rob[-1, 0])]

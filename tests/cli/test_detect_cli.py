@@ -16,7 +16,7 @@ from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import CirclePlate
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2] / "tests" / "data"
 PLATE_YAML = "type: circle_plate\ncols: 7\nrows: 7\npitch_mm: 12.5\ndiameter_mm: 6.25\n"
 
 
