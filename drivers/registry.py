@@ -23,7 +23,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
         "aravis": ("drivers.camera.aravis", "AravisCamera"),
     },
     "robot": {
-        "sim": ("drivers.sim.robot", "SimRobot"),
+        "sim": ("drivers.robot.sim", "SimRobot"),
         "replay": ("drivers.replay", "ReplayRobot"),
         "ur_rtde": ("drivers.robot.ur_rtde", "URRTDERobot"),
         "modbus": ("drivers.robot.modbus", "ModbusRobot"),

@@ -27,6 +27,7 @@ from drivers.base import (
     RobotBase,
     RobotState,
 )
+from drivers.health import DeviceHealth
 from drivers.recording import Recording, RecordingError
 
 
@@ -87,6 +88,13 @@ class ReplayCamera(CameraBase):
     def close(self) -> None:
         self._clock = None
 
+    def health(self) -> DeviceHealth:
+        if self._clock is None:
+            return DeviceHealth(available=False, reason="not open")
+        if self._index >= len(self._frames) and not self._settings.loop:
+            return DeviceHealth(available=False, reason="the recording has ended")
+        return DeviceHealth(available=True)
+
     def grab(self, timeout_s: float = 2.0) -> Frame:
         if self._clock is None:
             raise DeviceUnavailable(f"camera {self.camera_id}: not open")
@@ -133,6 +141,11 @@ class ReplayRobot(RobotBase):
 
     def close(self) -> None:
         self._clock = None
+
+    def health(self) -> DeviceHealth:
+        if self._clock is None:
+            return DeviceHealth(available=False, reason="not connected")
+        return DeviceHealth(available=True)
 
     def state(self) -> RobotState:
         if self._clock is None:

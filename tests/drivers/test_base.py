@@ -8,7 +8,7 @@ import pytest
 from calibration.geometry import ur_pose_to_transform
 from drivers.base import MotionLimits, MotionRejected, RobotBase, RobotState
 from drivers.registry import UnknownAdapter, adapter_class, kinds
-from drivers.sim.robot import SimRobot, SimRobotSettings
+from drivers.robot.sim import SimRobot, SimRobotSettings
 
 LIMITS = MotionLimits((100.0, 800.0), (-400.0, 400.0), (50.0, 800.0), max_linear_speed_m_s=0.25)
 

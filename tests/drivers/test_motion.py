@@ -28,7 +28,7 @@ from drivers.base import (
     RobotState,
     RobotStopped,
 )
-from drivers.sim.robot import SimRobot, SimRobotSettings
+from drivers.robot.sim import SimRobot, SimRobotSettings
 from drivers.sim.scene import BUILTIN_SCENE
 from drivers.sim.world import forget_worlds
 

@@ -1,4 +1,4 @@
-"""Simulated robot (``kind: sim``): a virtual arm as strict as a real controller.
+"""Simulated robot (``kind: sim``): an arm of the virtual cell (``drivers/sim/``), as strict as a real one.
 
 - Moves take real time (distance / speed times the scene's ``motion_time_scale``, 1 by default):
   the tool travels the straight line (position linear, orientation by slerp) and the camera sees
@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected, RobotBase, RobotState
+from drivers.health import DeviceHealth
 from drivers.sim.kinematics import OutOfReach
 from drivers.sim.world import SimWorld, world_for
 
@@ -78,6 +79,13 @@ class SimRobot(RobotBase):
     def close(self) -> None:
         self._halt.set()
         self._world = None
+
+    def health(self) -> DeviceHealth:
+        if self._world is None:
+            return DeviceHealth(available=False, reason="not connected")
+        if self._dropped:
+            return DeviceHealth(available=False, reason="the controller does not answer (simulated drop-off)")
+        return DeviceHealth(available=True)
 
     def state(self) -> RobotState:
         world = self.world
