@@ -25,7 +25,7 @@ from calibration.targets import Target, target_from_dict
 from cellctl.jobs import JobContext
 from cellctl.motion import audited_move
 from cellctl.services import Services
-from drivers.base import CameraBase, Frame, MotionRejected, RobotBase
+from drivers.base import Camera, CameraBase, Frame, MotionRejected, Robot, RobotBase
 
 Mat4 = NDArray[np.float64]
 
@@ -55,7 +55,7 @@ def devices(services: Services, camera_id: str, robot_id: str | None) -> tuple[C
     return cam, robot
 
 
-def capture(cam: CameraBase, robot: RobotBase | None, target: Target, name: str) -> Capture:
+def capture(cam: Camera, robot: Robot | None, target: Target, name: str) -> Capture:
     """One frame, the robot pose at the time of it, and the target detected in it."""
     T = robot.state().T_base_tool if robot is not None else None
     frame = cam.grab(timeout_s=5.0)
@@ -140,7 +140,7 @@ def corner_shifts_m(camera: CameraModel, distance_m: float, target: Target, det:
     return out
 
 
-def reachable(robot: RobotBase, poses: list[Mat4]) -> tuple[list[Mat4], int]:
+def reachable(robot: Robot, poses: list[Mat4]) -> tuple[list[Mat4], int]:
     ok = []
     for T in poses:
         try:

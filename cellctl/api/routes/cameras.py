@@ -10,7 +10,7 @@ from fastapi.responses import Response
 
 from cellctl.api.deps import CellDep, Viewer, device_call, slot_or_404
 from cellctl.api.errors import ApiError
-from drivers.base import CameraBase, Frame
+from drivers.base import Camera, Frame
 
 router = APIRouter(prefix="/cameras", tags=["cameras"])
 
@@ -43,7 +43,7 @@ async def camera_image(
     slot = _slot(cell, camera_id)
     fmt = format or ("jpeg" if "image/jpeg" in request.headers.get("accept", "") else "png")
 
-    def grab(cam: CameraBase) -> Frame:
+    def grab(cam: Camera) -> Frame:
         return cam.grab(timeout_s=2.5)
 
     frame: Frame = await device_call(slot, grab, timeout_s=CAMERA_TIMEOUT_S)

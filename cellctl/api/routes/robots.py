@@ -14,7 +14,7 @@ from cellctl.api.errors import ApiError
 from cellctl.api.numbers import pose_ur_problem, transform_problem
 from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
-from drivers.base import DeviceUnavailable, MotionSession, RobotBase, RobotState
+from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 
 router = APIRouter(prefix="/robots", tags=["robots"])
 
@@ -58,7 +58,7 @@ def list_robots(cell: CellDep, _: Viewer) -> list[dict[str, Any]]:
 async def robot_state(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
     slot = _slot(cell, robot_id)
 
-    def read(robot: RobotBase) -> RobotState:
+    def read(robot: Robot) -> RobotState:
         return robot.state()
 
     state: RobotState = await device_call(slot, read)
@@ -147,7 +147,7 @@ async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operato
 @router.post("/{robot_id}/resume")
 def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
     """Clear the Stop latch (engineer): the robot may be moved again."""
-    robot: RobotBase = _slot(cell, robot_id).device
+    robot: Robot = _slot(cell, robot_id).device
     was = robot.resume()
     services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
     return {"robot_id": robot_id, "resumed": was, **robot.motion.status()}
@@ -156,7 +156,7 @@ def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -
 @router.get("/{robot_id}/motion")
 def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
     """Whether the robot is latched by a Stop, and who owns its motion now."""
-    robot: RobotBase = _slot(cell, robot_id).device
+    robot: Robot = _slot(cell, robot_id).device
     return {"robot_id": robot_id, **robot.motion.status()}
 
 
