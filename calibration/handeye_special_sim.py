@@ -104,3 +104,48 @@ def simulate_scara(setup: str, n_stations: int, rng: np.random.Generator, *, cam
         T_base_target = Z if setup == "eye-in-hand" else G @ Z
         pts.append(tp.xyz_m @ T_base_target[:3, :3].T + T_base_target[:3, 3])
     return ScaraSet(setup, camera, target, X, Z, z_mm, G_true, G_rec, dets, pts)
+
+
+@dataclass
+class ToolCentreSet:
+    offset_mm: NDArray[np.float64]
+    uv_px: NDArray[np.float64]
+    flange_mm: NDArray[np.float64]
+    rz_deg: NDArray[np.float64]
+    npoint_uv_px: NDArray[np.float64]
+    npoint_xy_mm: NDArray[np.float64]
+
+
+def simulate_tool_centre(rng: np.random.Generator, camera: CameraModel, *, n_angles: int = 7,
+                         flange_mm: tuple[tuple[float, float], ...] = ((450.0, 50.0), (490.0, 20.0)),
+                         arc_deg: float = 180.0, pixel_sigma_px: float = 0.05,
+                         offset_mm: tuple[float, float] = (32.5, -18.0)) -> ToolCentreSet:
+    """A fixed camera 0.5 m above the table (``calibration.npoint.simulate_npoint``'s cell, whose
+    noisy jog-to-mark pairs come with it) sees a feature ``offset_mm`` from the flange axis while the
+    tool turns to ``n_angles`` angles over ``arc_deg`` at each flange position."""
+    from calibration.npoint import simulate_npoint
+
+    seed = int(rng.integers(1 << 31))
+    np_uv, np_xy, _ = simulate_npoint(np.random.default_rng(seed), camera)
+    # the same camera pose again (same seed), to project the feature through it
+    sub = np.random.default_rng(seed)
+    a = sub.uniform(0, 2 * np.pi)
+    tilt = _exp(np.radians(1.5) * np.array([np.cos(a), np.sin(a), 0.0]))
+    yaw = _exp([0.0, 0.0, sub.uniform(-0.3, 0.3)])
+    R_base_cam = yaw @ tilt @ np.diag([1.0, -1.0, -1.0])
+    centre = np.array([0.45, 0.05, 0.0])
+    T_base_cam = make_transform(R_base_cam, centre - R_base_cam @ np.array([0.0, 0.0, 0.5]))
+    T_cam_base = invert(T_base_cam)
+    o = np.array(offset_mm)
+    uv, fl, rz = [], [], []
+    for f in flange_mm:
+        start = rng.uniform(-180.0, 180.0)
+        for ang in start + np.linspace(0.0, arc_deg, n_angles):
+            c, s = np.cos(np.radians(ang)), np.sin(np.radians(ang))
+            p = np.array(f) + np.array([c * o[0] - s * o[1], s * o[0] + c * o[1]])
+            P = np.array([p[0] * 1e-3, p[1] * 1e-3, 0.0])
+            uv.append(camera.project((T_cam_base[:3, :3] @ P + T_cam_base[:3, 3])[None])[0])
+            fl.append(f)
+            rz.append((ang + 180.0) % 360.0 - 180.0)
+    uv_arr = np.array(uv) + rng.normal(0.0, pixel_sigma_px, (len(uv), 2))
+    return ToolCentreSet(o, uv_arr, np.array(fl, dtype=np.float64), np.array(rz), np_uv, np_xy)

@@ -11,7 +11,7 @@ import importlib
 from typing import Any, Final
 
 CALIB_MODULES: Final[tuple[str, ...]] = ("calib_intrinsics", "calib_dlt", "calib_export", "calib_handeye",
-                                          "calib_npoint")
+                                          "calib_npoint", "calib_tcp")
 
 
 def register(sub: Any) -> None:
