@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import SettingsError
-from vision.types import MIN_SCORE_FLOOR, FindResult, SearchParams
+from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, SearchParams
 
 
 class PartLike(Protocol):
@@ -45,11 +45,16 @@ class Recognition:
     margin: float
     runner_up: str | None
     runner_up_score: float
+    scale: float = 1.0
+    mirrored: bool = False
+    n_points: int = 0
+    """Model points that agreed with an image edge (0 for a blob model)."""
 
     def as_dict(self) -> dict[str, object]:
         return {"part": self.part, "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg,
                 "score": self.score, "margin": self.margin, "runner_up": self.runner_up,
-                "runner_up_score": self.runner_up_score}
+                "runner_up_score": self.runner_up_score, "scale": self.scale, "mirrored": self.mirrored,
+                "n_points": self.n_points}
 
 
 @dataclass
@@ -57,11 +62,22 @@ class RecognitionResult:
     matches: list[Recognition]
     timed_out: bool
     elapsed_s: float
+    best_rejected: Candidate | None = None
+    """The best candidate of any model that stayed below ``min_score``."""
+    min_score: float = 0.5
+
+    def reason(self) -> str | None:
+        """Why nothing was found, in one line (``None`` when something was)."""
+        return FindResult([], self.timed_out, self.elapsed_s, {}, self.best_rejected, self.min_score).reason() \
+            if not self.matches else None
 
 
 def _same_place_px(m: PartLike) -> float:
     u, v, w, h = m.roi
     return min(w, h) / 3.0
+
+
+_Hit = tuple[float, str, Match, float]  # score, part name, match, same-place radius
 
 
 def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
@@ -75,37 +91,45 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
         raise SettingsError(f"part model names must differ to tell the parts apart (got {names})")
     t0 = time.perf_counter()
     low = replace(sp, min_score=max(sp.min_score * RUNNER_UP_FACTOR, MIN_SCORE_FLOOR), max_count=None)
-    allm: list[tuple[float, str, float, float, float, float]] = []  # score, name, u, v, angle, radius
+    allm: list[_Hit] = []
     timed_out = False
+    best: Candidate | None = None
     for m in models:
-        left = None if sp.timeout_s is None else sp.timeout_s - (time.perf_counter() - t0)
+        left = None if sp.timeout_s is None else max(sp.timeout_s - (time.perf_counter() - t0), 0.0)
         if left is not None and left <= 0:
             timed_out = True
             break
         res = m.find(image, replace(low, timeout_s=left))
         timed_out |= res.timed_out
         r = _same_place_px(m)
-        allm += [(mt.score, m.name, mt.u_px, mt.v_px, mt.angle_deg, r) for mt in res.matches]
+        allm += [(mt.score, m.name, mt, r) for mt in res.matches]
+        below = [Candidate(mt.u_px, mt.v_px, mt.angle_deg, mt.score) for mt in res.matches
+                 if mt.score < sp.min_score]
+        if res.best_rejected is not None:
+            below.append(res.best_rejected)
+        for c in below:
+            if best is None or c.score > best.score:
+                best = c
     allm.sort(key=lambda t: -t[0])
-    groups: list[list[tuple[float, str, float, float, float, float]]] = []
+    groups: list[list[_Hit]] = []
     for t in allm:
         for g in groups:
             lead = g[0]
-            if (t[2] - lead[2]) ** 2 + (t[3] - lead[3]) ** 2 < max(t[5], lead[5]) ** 2:
+            if (t[2].u_px - lead[2].u_px) ** 2 + (t[2].v_px - lead[2].v_px) ** 2 < max(t[3], lead[3]) ** 2:
                 g.append(t)
                 break
         else:
             groups.append([t])
     out: list[Recognition] = []
     for g in groups:
-        win = g[0]
-        if win[0] < sp.min_score:
+        score, name, mt, _ = g[0]
+        if score < sp.min_score:
             continue
-        others = [t for t in g if t[1] != win[1]]
+        others = [t for t in g if t[1] != name]
         ru = others[0] if others else None
         ru_score = ru[0] if ru else 0.0
-        out.append(Recognition(win[1], win[2], win[3], win[4], win[0], win[0] - ru_score,
-                               ru[1] if ru else None, ru_score))
+        out.append(Recognition(name, mt.u_px, mt.v_px, mt.angle_deg, score, score - ru_score,
+                               ru[1] if ru else None, ru_score, mt.scale, mt.mirrored, mt.n_points))
     if sp.max_count is not None:
         out = out[:sp.max_count]
-    return RecognitionResult(out, timed_out, time.perf_counter() - t0)
+    return RecognitionResult(out, timed_out, time.perf_counter() - t0, best, sp.min_score)

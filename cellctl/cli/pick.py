@@ -20,7 +20,7 @@ from cellctl.cli.output import CommandError
 from cellctl.pick.model import PartModel, teach
 from vision import blob, shape
 from vision.recognize import recognize
-from vision.types import SearchParams
+from vision.types import POLARITIES, SearchParams
 
 
 def _roi(text: str | None, option: str) -> tuple[float, float, float, float] | None:
@@ -64,10 +64,19 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
     models = [PartModel.load(p) for p in args.model]
     if args.max is not None and args.max < 1:
         raise CommandError("--max must be >= 1 (leave it out for all matches)")
+    scale = (1.0, 1.0)
+    if args.scale_range is not None:
+        lo, _, hi = args.scale_range.partition(",")
+        try:
+            scale = (float(lo), float(hi))
+        except ValueError:
+            raise CommandError(f"--scale-range must be MIN,MAX (e.g. 0.9,1.1), got {args.scale_range!r}") from None
     sp = SearchParams(min_score=args.min_score, max_count=args.max,
                       angle_start_deg=args.angle_start, angle_extent_deg=args.angle_extent,
                       roi=_roi(args.search_roi, "--search-roi"),
-                      timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0)
+                      timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0,
+                      polarity=args.polarity, greediness=args.greediness, mirrored=args.mirrored,
+                      scale_min=scale[0], scale_max=scale[1])
     out: list[dict[str, Any]] = []
     for path in args.images:
         img = read_image(path)
@@ -78,13 +87,16 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
         if len(models) == 1:
             res = models[0].find(img, sp)
             matches: list[dict[str, Any]] = [mt.as_dict() for mt in res.matches]
-            timed_out, elapsed = res.timed_out, res.elapsed_s
+            timed_out, elapsed, reason = res.timed_out, res.elapsed_s, res.reason()
         else:
             rr = recognize(models, img, sp)
             matches = [r.as_dict() for r in rr.matches]
-            timed_out, elapsed = rr.timed_out, rr.elapsed_s
-        out.append({"image": path, "matches": matches, "timed_out": timed_out,
-                    "time_ms": round(elapsed * 1000.0, 2)})
+            timed_out, elapsed, reason = rr.timed_out, rr.elapsed_s, rr.reason()
+        item: dict[str, Any] = {"image": path, "matches": matches, "timed_out": timed_out,
+                                "time_ms": round(elapsed * 1000.0, 2)}
+        if reason is not None:
+            item["reason"] = reason
+        out.append(item)
     return out
 
 
@@ -115,6 +127,14 @@ def register(sub: Any) -> None:
     f.add_argument("--angle-extent", type=float, default=360.0, help="degrees (default 360)")
     f.add_argument("--search-roi", default=None, metavar="U,V,W,H",
                    help="where the reference point may lie (default: the whole image)")
+    f.add_argument("--polarity", choices=POLARITIES, default="ignore_global_polarity",
+                   help="shape: use_polarity (edges as taught), ignore_global_polarity (or all reversed: "
+                        "an inverted image; default), ignore_local_polarity (each edge either way)")
+    f.add_argument("--mirrored", action="store_true", help="shape: also find the part's mirror image (face down)")
+    f.add_argument("--scale-range", default=None, metavar="MIN,MAX",
+                   help="shape: also search sizes MIN..MAX of the taught one (e.g. 0.9,1.1; default: 1,1)")
+    f.add_argument("--greediness", type=float, default=0.9,
+                   help="shape: 0 (safe, slower) .. 1 (fast, may miss weak parts); default 0.9")
     f.add_argument("--timeout-ms", type=float, default=None, help="answer with what was found so far")
     f.add_argument("--strict-size", action="store_true",
                    help="refuse images of another size than the teach image")

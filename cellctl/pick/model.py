@@ -63,6 +63,15 @@ class PartModel:
             raise ModelFileError(f"part model {self.name} holds neither a shape nor a blob model")
         return blob.find(self.blob, image, search)
 
+    def contour(self, u_px: float, v_px: float, angle_deg: float, scale: float = 1.0,
+                mirrored: bool = False) -> NDArray[np.float64]:
+        """Short edge segments ``(N, 2, 2)`` of the model drawn at a match's pose (image pixels);
+        empty for a blob model, which has no edges."""
+        if self.shape is None:
+            return np.zeros((0, 2, 2))
+        pts, tan = self.shape.contour(u_px, v_px, angle_deg, scale, mirrored)
+        return np.stack([pts - 1.5 * tan, pts + 1.5 * tan], axis=1)
+
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name, "mode": self.mode, "roi": list(self.roi),
                                "reference_px": list(self.reference_px)}

@@ -140,6 +140,16 @@ class ShapeModel:
     def to_dict(self) -> dict[str, Any]:
         return {"levels": [lv.to_dict() for lv in self.levels]}
 
+    def contour(self, u_px: float, v_px: float, angle_deg: float, scale: float = 1.0,
+                mirrored: bool = False) -> tuple[F64, F64]:
+        """The level-0 model edge points and their unit tangents at a pose, in image pixels."""
+        lv = self.levels[0].mirrored() if mirrored else self.levels[0]
+        a = math.radians(angle_deg)
+        R = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # CCW on screen
+        pts = scale * lv.points @ R.T + np.array([u_px, v_px])
+        n = lv.normals @ R.T
+        return pts, np.stack([-n[:, 1], n[:, 0]], axis=1)
+
     def mirrored(self) -> ShapeModel:
         """The model of the part's mirror image (a flat part lying face down)."""
         return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size)
