@@ -51,6 +51,17 @@ def register(sub: Any) -> None:
                         "pose of poses.csv); it fixes the part of the hand-eye such motion cannot see")
     p.add_argument("--target-z-sigma-mm", type=float, default=0.1,
                    help="--dof 4: 1-sigma of --target-z-mm, mm (default 0.1)")
+    p.add_argument("--T-base-target", dest="T_base_target", metavar="F.json",
+                   help="eye-in-hand with a measured target frame (laser tracker): F.json holds "
+                        '{"T_base_target": 4x4, metres}; works from one station')
+    p.add_argument("--T-tool-target", dest="T_tool_target", metavar="F.json",
+                   help='eye-to-hand with a measured target frame: F.json holds {"T_tool_target": 4x4, metres}')
+    p.add_argument("--tracker-sigma-mm", type=float, default=0.03,
+                   help="measured frame's position noise, 1-sigma per axis, mm (default 0.03)")
+    p.add_argument("--tracker-sigma-deg", type=float, default=0.005,
+                   help="measured frame's orientation noise, 1-sigma per axis, deg (default 0.005)")
+    p.add_argument("--check", metavar="he.json",
+                   help="with a measured frame: also report how far this AX=XB result lies from the measured-frame one")
     p.add_argument("--out", dest="out_json", help="write he.json here too")
     p.set_defaults(func=run)
 
@@ -118,11 +129,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.dof == 4 and args.target_z_mm is None:
         raise CommandError("--dof 4 needs --target-z-mm Z: the target origin's height in the base frame (mm); "
                            "4-DOF motion cannot see it")
+    measured = _measured_frame(args)
+    if args.check and measured is None:
+        raise CommandError("--check he.json compares against a measured-frame solution: give --T-base-target "
+                           "(eye-in-hand) or --T-tool-target (eye-to-hand) too")
+    if measured is not None and args.dof == 4:
+        raise CommandError("--dof 4 and a measured target frame exclude each other: the measured frame alone fixes "
+                           "every part of the hand-eye")
     target, camera, poses, detections = _load(args)
     try:
         noise = RobotNoise(args.robot_sigma_mm, args.robot_sigma_deg)
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
+    if measured is not None:
+        return _run_measured(args, measured, target, camera, poses, detections, noise)
     if args.dof == 4:
         from calibration.handeye_dof4 import calibrate_handeye_dof4
 
@@ -142,6 +162,64 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                "with --dof 4 --target-z-mm Z (Z: the target origin's height, base frame, mm)") from exc
         raise
     out = result.to_json()
+    _warn(out)
+    return out
+
+
+def _measured_frame(args: argparse.Namespace) -> Any:
+    """The measured frame's 4x4 (metres) from --T-base-target / --T-tool-target, or None."""
+    import numpy as np
+
+    from calibration.geometry import PoseError, as_transform
+
+    given = [(k, getattr(args, k)) for k in ("T_base_target", "T_tool_target") if getattr(args, k)]
+    if not given:
+        return None
+    if len(given) > 1:
+        raise CommandError("give --T-base-target (eye-in-hand) or --T-tool-target (eye-to-hand), not both")
+    key, path = given[0]
+    want = "T_base_target" if args.setup == "eye-in-hand" else "T_tool_target"
+    if key != want:
+        flag = "--T-base-target" if want == "T_base_target" else "--T-tool-target"
+        raise CommandError(f"--setup {args.setup} takes the measured frame as {flag} ({want}); the other frame "
+                           "belongs to the other setup")
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise CommandError(f"{path}: cannot read the measured frame ({exc.strerror})") from exc
+    except json.JSONDecodeError as exc:
+        raise CommandError(f"{path}: not valid JSON ({exc.msg})") from exc
+    if not isinstance(data, dict) or key not in data:
+        raise CommandError(f'{path}: needs {{"{key}": 4x4 matrix in metres}}')
+    try:
+        T = as_transform(np.asarray(data[key], dtype=np.float64), key)
+    except (PoseError, ValueError, TypeError) as exc:
+        raise CommandError(f"{path}: {exc}") from exc
+    if np.linalg.norm(T[:3, 3]) > 20.0:
+        raise CommandError(f"{path}: {key} translation is {np.linalg.norm(T[:3, 3]):.0f} m away; it must be in "
+                           "metres (divide millimetres by 1000)")
+    return T
+
+
+def _run_measured(args: argparse.Namespace, T: Any, target: Any, camera: Any, poses: Any, detections: list[Any],
+                  noise: Any) -> dict[str, Any]:
+    from calibration.handeye import RobotNoise
+    from calibration.handeye_measured import calibrate_handeye_measured, compare_handeye
+
+    try:
+        tracker = RobotNoise(args.tracker_sigma_mm, args.tracker_sigma_deg)
+    except ValueError as exc:
+        raise CommandError(f"tracker noise: {exc}") from exc
+    res = calibrate_handeye_measured(args.setup, poses.T_base_tool, detections, camera, target, T, noise, tracker)
+    out = res.to_json()
+    if args.check:
+        try:
+            he = json.loads(Path(args.check).read_text())
+        except OSError as exc:
+            raise CommandError(f"{args.check}: cannot read the hand-eye to check ({exc.strerror})") from exc
+        except json.JSONDecodeError as exc:
+            raise CommandError(f"{args.check}: not valid JSON ({exc.msg})") from exc
+        out["check"] = {"he_json": args.check, **compare_handeye(he, res)}
     _warn(out)
     return out
 
