@@ -9,6 +9,10 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 
+class LoopNotRunning(RuntimeError):
+    """A coroutine was sent to a loop thread that has not been started."""
+
+
 class LoopThread:
     """Runs ``serve()`` (which returns once listening) then the loop until ``stop(shutdown)``."""
 
@@ -54,7 +58,8 @@ class LoopThread:
 
     def call(self, fn: Callable[[], Awaitable[Any]], timeout_s: float = 10.0) -> Any:
         """Run a coroutine on the loop from another thread and wait for its result."""
-        assert self.loop is not None
+        if self.loop is None:
+            raise LoopNotRunning(f"{self.name} is not running: start() it first")
         return asyncio.run_coroutine_threadsafe(fn(), self.loop).result(timeout_s)  # type: ignore[arg-type]
 
     def stop(self, shutdown: Callable[[], Awaitable[None]] | None = None, timeout_s: float = 10.0) -> None:

@@ -7,20 +7,24 @@ are protocol addresses, 0-based (the "4x" reference is 40001 + address). Unmappe
 writes to the read-only block answer exception 02 (illegal data address); other unit ids
 exception 0B.
 
-Register map (version 1; full description with the handshake in docs/plc-modbus.md)::
+Register map (version 2; full description with the handshake in docs/plc-modbus.md)::
 
     address  dir  meaning
-    0        W    COMMAND: 0 idle (no-op, answered at once), 1 pick (recipe in 1), 2 verify calibration
+    0        W    COMMAND: 0 idle (no-op, answered at once), 1 pick (recipe in 1), 2 verify calibration,
+                  3 pick with robot motion (recipe in 1; only with plc.allow_motion: true)
     1        W    RECIPE: recipe number 0..65535
     2        W    SEQUENCE: request counter 1..65535 written by the PLC (0 = no request). A write that
                   changes it to a new non-zero value starts the request latched from 0..2 (write 0..2
                   in one FC16). While BUSY such a write is refused with exception 06 (device busy),
                   not applied, and flagged with REFUSED / REFUSED_SEQ; the running request goes on.
     10       R    STATUS bits: bit0 BUSY, bit1 DONE (answer ok), bit2 ERROR (answer failed),
-                  bit3 REFUSED (the last sequence write was refused: busy)
+                  bit3 REFUSED (the last sequence write was refused: busy), live on every read:
+                  bit4 ROBOT_LATCHED (the cell's robot is stopped until an engineer resumes it),
+                  bit5 ROBOT_OWNED (a move, pick or routine owns the robot's motion now)
     11       R    ECHO_SEQ: the sequence of the request the answer (10, 13..173) belongs to; 0 = none yet
     12       R    ACTIVE_SEQ: the sequence of the running request (the last accepted one when idle)
-    13       R    ERROR_CODE: error class (0 none, 1 request, 2 busy, 3 setup, 4 runtime, 5 drift, 9 internal)
+    13       R    ERROR_CODE: error class (0 none, 1 request, 2 busy, 3 setup, 4 runtime, 5 drift,
+                  6 robot stopped, 9 internal)
     14       R    ERROR_TEXT: error-text index (table in docs/plc-modbus.md, cellctl.plc.requests.ERROR_TEXTS)
     15       R    RESULT_COMMAND: the command the answer is for
     16       R    PICKS_REPORTED: picks in 30..109 (at most MAX_PICKS)
@@ -32,7 +36,8 @@ Register map (version 1; full description with the handshake in docs/plc-modbus.
     24-25    R    LATENCY in 0.1 ms, int32: request accepted -> answer posted
     26       R    HEARTBEAT: counts up every 100 ms while the server runs (wraps at 65536)
     27       R    MAX_PICKS (8)
-    28       R    MAP_VERSION (1)
+    28       R    MAP_VERSION (2)
+    29       R    PICKED: command 3 only: k + 1 when the robot picked pick k; 0 when it did not move
     30+10k   R    pick k (k = 0..7, best first):
                     +0..1 X, +2..3 Y, +4..5 Z of the gripper pick pose in the robot base frame, int32 in 0.01 mm
                     +6..7 ROTATION: gripper yaw about base z, int32 in 0.001 degree
@@ -76,16 +81,17 @@ from cellctl.plc.requests import (
     execute_pick,
     execute_verify,
     failure,
+    robot_motion_status,
 )
 from cellctl.services import Services
 
 log = logging.getLogger(__name__)
 
-MAP_VERSION = 1
+MAP_VERSION = 2
 COMMAND, RECIPE, SEQUENCE = 0, 1, 2
 STATUS, ECHO_SEQ, ACTIVE_SEQ, ERROR_CODE, ERROR_TEXT = 10, 11, 12, 13, 14
 RESULT_COMMAND, PICKS_REPORTED, PICKS_FOUND, VERIFY_PASSED, REFUSED_SEQ = 15, 16, 17, 18, 19
-DRIFT_PX, DRIFT_MM, LATENCY, HEARTBEAT, MAX_PICKS_REG, MAP_VERSION_REG = 20, 22, 24, 26, 27, 28
+DRIFT_PX, DRIFT_MM, LATENCY, HEARTBEAT, MAX_PICKS_REG, MAP_VERSION_REG, PICKED = 20, 22, 24, 26, 27, 28, 29
 PICKS = 30
 PICK_STRIDE = 10
 MAX_PICKS = 8
@@ -94,8 +100,9 @@ MESSAGE_REGS = 64
 END = MESSAGE + MESSAGE_REGS  # 174: first address after the map
 READ_ONLY = STATUS
 
-BUSY, DONE, ERROR, REFUSED = 0x1, 0x2, 0x4, 0x8
-CMD_IDLE, CMD_PICK, CMD_VERIFY = 0, 1, 2
+BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
+LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED
+CMD_IDLE, CMD_PICK, CMD_VERIFY, CMD_PICK_MOVE = 0, 1, 2, 3
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
 
 
@@ -171,6 +178,9 @@ class ModbusPlcServer:
         if not is_loopback(self.host):
             log.warning("PLC Modbus TCP server on %s: Modbus has no authentication; keep this address on the "
                         "PLC's network only", self.host)
+        if self.services.config.plc.allow_motion:
+            log.warning("plc.allow_motion is on: any Modbus client that reaches %s:%d may make the robot pick "
+                        "(command 3)", self.host, self.port)
         return self
 
     def stop(self) -> None:
@@ -224,7 +234,17 @@ class ModbusPlcServer:
 
     def _publish(self, registers: list[int], start_address: int) -> None:
         self._image[HEARTBEAT] = int(time.monotonic() * 10) & 0xFFFF
+        self._image[STATUS] = (self._image[STATUS] & ~LIVE_BITS) | self._robot_bits()
         registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
+
+    def _robot_bits(self) -> int:
+        """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot now (a lock, no I/O: fine on the loop)."""
+        try:
+            status = robot_motion_status(self.services)
+        except Exception:  # noqa: BLE001 - the register map is served whatever the robot's state
+            log.exception("reading the robot's motion status failed")
+            return 0
+        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0)
 
     def _accept(self, command: int, recipe: int, seq: int) -> None:
         self.requests += 1
@@ -240,9 +260,11 @@ class ModbusPlcServer:
             self._run(seq, command, lambda: execute_pick(self.services, recipe, "plc:modbus"))
         elif command == CMD_VERIFY:
             self._run(seq, command, lambda: execute_verify(self.services, "plc:modbus"))
+        elif command == CMD_PICK_MOVE:
+            self._run(seq, command, lambda: execute_pick(self.services, recipe, "plc:modbus", move=True))
         else:
             self._post(seq, command, failure(TEXT_UNKNOWN_COMMAND, f"unknown command code {command}: "
-                                                                   "use 0 idle, 1 pick, 2 verify"))
+                                                                   "use 0 idle, 1 pick, 2 verify, 3 pick with motion"))
 
     def _run(self, seq: int, command: int, work: Any) -> None:
         future = asyncio.get_running_loop().run_in_executor(self._executor, work)
@@ -277,6 +299,7 @@ class ModbusPlcServer:
         img[DRIFT_PX : DRIFT_PX + 2] = int32_words(drift_px * 1000 if drift_px is not None else -1)
         img[DRIFT_MM : DRIFT_MM + 2] = int32_words(drift_mm * 1000 if drift_mm is not None else -1)
         img[VERIFY_PASSED] = 1 if v.get("passed") else 0
+        img[PICKED] = 0 if out.picked_index is None else out.picked_index + 1
         img[PICKS_REPORTED] = len(picks)
         img[PICKS_FOUND] = min(len(out.picks), 0xFFFF)
         img[RESULT_COMMAND] = command & 0xFFFF
@@ -285,7 +308,7 @@ class ModbusPlcServer:
         img[MESSAGE:END] = ascii_words("" if out.ok else out.message)
         img[LATENCY : LATENCY + 2] = int32_words((time.perf_counter() - self._accepted_at) * 1e4)
         img[ECHO_SEQ] = seq
-        img[STATUS] = (img[STATUS] & REFUSED) | (DONE if out.ok else ERROR)
+        img[STATUS] = (img[STATUS] & REFUSED) | (DONE if out.ok else ERROR) | self._robot_bits()
         self._busy = False
         if out.ok:
             log.info("PLC Modbus request %d (command %d) done: %d picks", seq, command, len(out.picks))

@@ -10,23 +10,32 @@ Variables (read-only, refreshed every second and after every call)
     ``Busy`` Boolean, ``LastPickCount`` Int32, ``LastPickLatencyMs`` Double,
     ``LastErrorCode`` Int32 (the error-text index of cellctl.plc.requests.ERROR_TEXTS, 0 = none),
     ``LastError`` String (the one-line message, empty when the last call succeeded).
+    Live (checked every 0.1 s): ``RobotLatched`` Boolean (the cell's robot is stopped until an
+    engineer resumes it), ``RobotMotionOwner`` String (who owns the robot's motion; empty: free).
 
 Methods
     ``Pick(RecipeId: Int32) -> (Count: Int32, Poses: Double[], Reachable: Boolean[])``: grab,
     locate, convert (the robot does not move). ``Poses`` is flat, ``POSE_STRIDE`` = 8 doubles per
     pick, best first: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad (UR rotation vector of T_base_tool),
     gripper_yaw_deg, score. ``Reachable[k]`` says whether pick k is inside the robot's envelope.
+    ``PickAndMove(RecipeId: Int32) -> (Count, Poses, Reachable, PickedIndex: Int32)``: the same,
+    then the robot picks the best reachable part (approach, pick, retreat) and ``PickedIndex`` says
+    which; only with ``plc.allow_motion: true`` (else BadNotExecutable). It obeys the motion owner
+    (another mover: BadLocked) and the Stop latch (latched or stopped during the pick:
+    BadRequestNotAllowed, "robot stopped: an engineer must resume it").
     ``VerifyCalibration() -> (Passed: Boolean, DriftPx: Double, DriftMm: Double)`` (DriftMm is NaN
     with no active hand-eye calibration). A drifted calibration is ``Passed = false``, not an error.
 
 Failures are OPC UA status codes (the message in ``LastError``): unknown recipe BadNotFound,
 recipe number outside 0..65535 BadOutOfRange, a wrong argument type BadInvalidArgument, no
 calibration or a recipe that cannot be used BadInvalidState, camera/robot unavailable
-BadResourceUnavailable, timeout BadTimeout, anything else BadInternalError.
+BadResourceUnavailable, timeout BadTimeout, robot latched/stopped BadRequestNotAllowed, robot busy
+BadLocked, motion off BadNotExecutable, anything else BadInternalError.
 
 Security (``plc.opcua.security``): ``none`` — the lab, one endpoint without security;
 ``basic256sha256`` — one Basic256Sha256 SignAndEncrypt endpoint with the server certificate and key
-from the config; client certificates are checked against ``trusted_client_certs`` when given.
+from the config; only clients whose certificate is in ``trusted_client_certs`` may connect (the
+server refuses to start without that directory or with an empty one).
 Both run anonymous sessions: the secure channel authenticates the client application.
 """
 
@@ -42,21 +51,25 @@ from typing import Any
 
 from asyncua import Node, Server, ua
 
-from cellctl.config import OpcUaServerConfig
+from cellctl.config import TRUST_HINT, OpcUaServerConfig
 from cellctl.plc.loop_thread import LoopThread
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
     TEXT_CANNOT_PICK,
     TEXT_DEVICE,
+    TEXT_MOTION_OFF,
     TEXT_NO_CALIBRATION,
     TEXT_RECIPE_RANGE,
+    TEXT_ROBOT_BUSY,
+    TEXT_ROBOT_STOPPED,
     TEXT_TIMEOUT,
     TEXT_UNKNOWN_RECIPE,
     TEXT_VERIFY_FAILED_TO_RUN,
     Outcome,
     execute_pick,
     execute_verify,
+    robot_motion_status,
 )
 from cellctl.services import Services
 
@@ -65,6 +78,7 @@ log = logging.getLogger(__name__)
 NAMESPACE = "urn:cellctl"
 POSE_STRIDE = 8
 REFRESH_S = 1.0
+MOTION_POLL_S = 0.1
 STATUS_OF_TEXT: dict[int, int] = {
     TEXT_UNKNOWN_RECIPE: ua.StatusCodes.BadNotFound,
     TEXT_RECIPE_RANGE: ua.StatusCodes.BadOutOfRange,
@@ -74,6 +88,9 @@ STATUS_OF_TEXT: dict[int, int] = {
     TEXT_DEVICE: ua.StatusCodes.BadResourceUnavailable,
     TEXT_VERIFY_FAILED_TO_RUN: ua.StatusCodes.BadResourceUnavailable,
     TEXT_TIMEOUT: ua.StatusCodes.BadTimeout,
+    TEXT_ROBOT_STOPPED: ua.StatusCodes.BadRequestNotAllowed,
+    TEXT_ROBOT_BUSY: ua.StatusCodes.BadLocked,
+    TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable,
 }
 
 _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
@@ -86,6 +103,8 @@ _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("LastPickLatencyMs", 0.0, ua.VariantType.Double),
     ("LastErrorCode", 0, ua.VariantType.Int32),
     ("LastError", "", ua.VariantType.String),
+    ("RobotLatched", False, ua.VariantType.Boolean),
+    ("RobotMotionOwner", "", ua.VariantType.String),
 )
 
 
@@ -101,6 +120,33 @@ def _arg(name: str, vtype: ua.VariantType, description: str, array: bool = False
 
 def _status_code(code: int) -> ua.StatusCode:
     return ua.StatusCode(ua.UInt32(code))
+
+
+CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")
+
+
+async def trusted_clients_validator(folder: str | None) -> Any:
+    """A validator that lets only the client certificates in ``folder`` connect (asyncua's TrustStore)."""
+    from asyncua.crypto.truststore import TrustStore
+    from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+
+    if folder is None:
+        raise OSError(f"plc.opcua: {TRUST_HINT}")
+    trusted = Path(folder)
+    if not trusted.is_dir():
+        raise OSError(f"plc.opcua.trusted_client_certs {trusted} is not a directory; {TRUST_HINT}")
+    if not any(f.suffix.lower() in CERT_SUFFIXES for f in trusted.iterdir() if f.is_file()):
+        raise OSError(f"plc.opcua.trusted_client_certs {trusted} holds no certificate, so no client could connect; "
+                      f"{TRUST_HINT}")
+    store = TrustStore([trusted], [])
+    try:
+        await store.load()
+    except ValueError as exc:
+        raise OSError(f"plc.opcua.trusted_client_certs {trusted}: a file there is not a certificate "
+                      f"({exc}); keep only client certificates (.der/.pem) there") from None
+    opts = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.TRUSTED
+            | CertificateValidatorOptions.PEER_CLIENT)
+    return CertificateValidator(opts, store)
 
 
 def endpoint_url(host: str, port: int) -> str:
@@ -119,7 +165,8 @@ class OpcUaPlcServer:
         self._server: Server | None = None
         self._vars: dict[str, Node] = {}
         self._refresher: asyncio.Task[None] | None = None
-        self._call_lock: asyncio.Lock | None = None
+        self._motion_watch: asyncio.Task[None] | None = None
+        self._call_lock = asyncio.Lock()
         self._pending_refresh: asyncio.Task[None] | None = None
 
     # -- life cycle ---------------------------------------------------------------------------------
@@ -128,6 +175,8 @@ class OpcUaPlcServer:
         logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
         self._thread.start(self._serve, timeout_s=60.0)
         log.info("PLC OPC UA server at %s (security %s)", self.url, self.config.security)
+        if self.services.config.plc.allow_motion:
+            log.warning("plc.allow_motion is on: an OPC UA client at %s may move the robot (PickAndMove)", self.url)
         if self.config.security == "none" and not is_loopback(self.config.host):
             log.warning("PLC OPC UA server on %s without security: anyone on that network can call Pick; "
                         "use security basic256sha256 (docs/plc-opcua.md)", self.config.host)
@@ -135,8 +184,9 @@ class OpcUaPlcServer:
 
     def stop(self) -> None:
         async def shutdown() -> None:
-            if self._refresher is not None:
-                self._refresher.cancel()
+            for task in (self._refresher, self._motion_watch):
+                if task is not None:
+                    task.cancel()
             if self._server is not None:
                 await self._server.stop()
 
@@ -161,19 +211,24 @@ class OpcUaPlcServer:
                                                        ua.VariantType.String)
         for name, value, vtype in _VARIABLES:
             self._vars[name] = await cell.add_variable(idx, name, value, vtype)
+        pick_outputs = [
+            _arg("Count", ua.VariantType.Int32, "number of picks, best first"),
+            _arg("Poses", ua.VariantType.Double, "8 per pick: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad, "
+                                                 "gripper_yaw_deg, score", array=True),
+            _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)]
         await cell.add_method(
-            idx, "Pick", self._pick,
+            idx, "Pick", self._pick, [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
+            pick_outputs)
+        await cell.add_method(
+            idx, "PickAndMove", self._pick_and_move,
             [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
-            [_arg("Count", ua.VariantType.Int32, "number of picks, best first"),
-             _arg("Poses", ua.VariantType.Double, "8 per pick: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad, "
-                                                  "gripper_yaw_deg, score", array=True),
-             _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)])
+            [*pick_outputs,
+             _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
         await cell.add_method(
             idx, "VerifyCalibration", self._verify, [],
             [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
              _arg("DriftPx", ua.VariantType.Double, "RMS drift of the plate's points, pixels"),
              _arg("DriftMm", ua.VariantType.Double, "RMS drift in 3D, mm (NaN: no hand-eye calibration)")])
-        self._call_lock = asyncio.Lock()
         try:
             await server.start()
         except OSError as exc:
@@ -182,32 +237,24 @@ class OpcUaPlcServer:
         self._server = server
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
+        self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
 
     async def _secure(self, server: Server) -> None:
+        """Basic256Sha256 SignAndEncrypt, and only clients whose certificate is in the trusted directory.
+
+        Refuses to start (``OSError`` with how to fix it) without a trusted directory or with one
+        that holds no certificate: without a trust list asyncua accepts any self-signed client.
+        """
         cfg = self.config
-        assert cfg.cert is not None and cfg.key is not None
+        if cfg.cert is None or cfg.key is None:
+            raise OSError("plc.opcua: security basic256sha256 needs the server certificate and key: set cert and key")
         for what, path in (("certificate", cfg.cert), ("key", cfg.key)):
             if not Path(path).is_file():
                 raise OSError(f"plc.opcua: the server {what} {path} is missing; create it (docs/plc-opcua.md)")
         await server.load_certificate(cfg.cert)
         await server.load_private_key(cfg.key)
         server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-        if cfg.trusted_client_certs is not None:
-            from asyncua.crypto.truststore import TrustStore
-            from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
-
-            trusted = Path(cfg.trusted_client_certs)
-            if not trusted.is_dir():
-                raise OSError(f"plc.opcua.trusted_client_certs {trusted} is not a directory of client certificates")
-            store = TrustStore([trusted], [])
-            try:
-                await store.load()
-            except ValueError as exc:
-                raise OSError(f"plc.opcua.trusted_client_certs {trusted}: a file there is not a certificate "
-                              f"({exc}); keep only client certificates (.der/.pem) there") from None
-            opts = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.TRUSTED
-                    | CertificateValidatorOptions.PEER_CLIENT)
-            server.set_certificate_validator(CertificateValidator(opts, store))
+        server.set_certificate_validator(await trusted_clients_validator(cfg.trusted_client_certs))
 
     # -- status -------------------------------------------------------------------------------------
     def _status(self) -> dict[str, Any]:
@@ -242,9 +289,24 @@ class OpcUaPlcServer:
             await asyncio.sleep(REFRESH_S)
             await self._refresh()
 
+    async def _watch_motion(self) -> None:
+        """Keep RobotLatched / RobotMotionOwner live: a Stop shows within MOTION_POLL_S."""
+        shown: tuple[bool, str] | None = None
+        while True:
+            try:
+                status = robot_motion_status(self.services)
+                owner = status["owner"]
+                now = (bool(status["latched"]), "" if not owner else f"{owner['what']} (by {owner['who']})")
+                if now != shown:
+                    await self._set("RobotLatched", now[0])
+                    await self._set("RobotMotionOwner", now[1])
+                    shown = now
+            except Exception:  # noqa: BLE001 - the watch keeps running; the variables stay as they were
+                log.exception("OPC UA robot motion status failed")
+            await asyncio.sleep(MOTION_POLL_S)
+
     # -- methods ------------------------------------------------------------------------------------
     async def _call(self, work: Callable[[], Outcome]) -> Outcome:
-        assert self._call_lock is not None
         async with self._call_lock:
             await self._set("Busy", True)
             try:
@@ -258,12 +320,19 @@ class OpcUaPlcServer:
         return out
 
     async def _pick(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
+        return await self._pick_request(recipe, move=False)
+
+    async def _pick_and_move(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
+        return await self._pick_request(recipe, move=True)
+
+    async def _pick_request(self, recipe: ua.Variant | None, move: bool) -> Any:
         value = recipe.Value if isinstance(recipe, ua.Variant) else None
+        method = "PickAndMove" if move else "Pick"
         if not isinstance(value, int) or isinstance(value, bool):
             await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
-            await self._set("LastError", f"Pick needs one Int32 recipe number, got {value!r}")
+            await self._set("LastError", f"{method} needs one Int32 recipe number, got {value!r}")
             return _status_code(ua.StatusCodes.BadInvalidArgument)
-        out = await self._call(lambda: execute_pick(self.services, value, "plc:opcua"))
+        out = await self._call(lambda: execute_pick(self.services, value, "plc:opcua", move=move))
         if not out.ok:
             return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
         poses: list[float] = []
@@ -275,9 +344,13 @@ class OpcUaPlcServer:
             reachable.append(bool(p["reachable"]))
         await self._set("LastPickCount", len(out.picks))
         await self._set("LastPickLatencyMs", out.latency_ms)
-        return [ua.Variant(len(out.picks), ua.VariantType.Int32),
-                ua.Variant([float(x) for x in poses], ua.VariantType.Double),
-                ua.Variant(reachable, ua.VariantType.Boolean)]
+        answer = [ua.Variant(len(out.picks), ua.VariantType.Int32),
+                  ua.Variant([float(x) for x in poses], ua.VariantType.Double),
+                  ua.Variant(reachable, ua.VariantType.Boolean)]
+        if move:
+            picked = -1 if out.picked_index is None else out.picked_index
+            answer.append(ua.Variant(picked, ua.VariantType.Int32))
+        return answer
 
     async def _verify(self, parent: ua.NodeId) -> Any:
         out = await self._call(lambda: execute_verify(self.services, "plc:opcua"))

@@ -1,4 +1,4 @@
-"""What a PLC may ask of the cell (pick, verify), run the same way for every PLC front end.
+"""What a PLC may ask of the cell (pick, pick with robot motion, verify), the same for every PLC front end.
 
 Both front ends (Modbus TCP, OPC UA) turn a PLC request into :func:`execute_pick` or
 :func:`execute_verify`, which never raise: every failure becomes an :class:`Outcome` with an error
@@ -8,6 +8,11 @@ the one-line message. The tables below are the documented ones (docs/plc-modbus.
 One PLC request runs at a time per process (:data:`PLC_LOCK`): a PLC pick and a PLC verify never
 fight over the camera. They run in the calling thread — front ends call them from an executor,
 never on their event loop.
+
+A pick with robot motion (``move=True``) is an engineer-level act, refused unless the config says
+``plc.allow_motion: true``; it runs ``run_pick(..., move=True)`` and so obeys the robot's motion
+owner (another mover: ``TEXT_ROBOT_BUSY``) and its Stop latch (``TEXT_ROBOT_STOPPED``), exactly
+as ``POST /pick {"move": true}`` does.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from cellctl.pick.flow import PickError, run_pick
 from cellctl.pick.model import ModelFileError
 from cellctl.services import Services
 from cellctl.store import NotFound
-from drivers.base import DriverError
+from drivers.base import DriverError, MotionRejected, RobotBusy, RobotStopped
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +50,8 @@ CLASS_RUNTIME = 4
 """A device or vision failure at run time: retry, then call maintenance."""
 CLASS_DRIFT = 5
 """Verify measured a drifted calibration: stop picking, recalibrate."""
+CLASS_STOPPED = 6
+"""The robot is latched by a Stop: an engineer must resume it (POST /robots/{id}/resume), then send again."""
 CLASS_INTERNAL = 9
 """A bug: report it with the service log."""
 
@@ -61,6 +68,9 @@ TEXT_VERIFY_FAILED_TO_RUN = 8
 TEXT_DRIFTED = 9
 TEXT_TIMEOUT = 10
 TEXT_RECIPE_RANGE = 11
+TEXT_ROBOT_STOPPED = 12
+TEXT_ROBOT_BUSY = 13
+TEXT_MOTION_OFF = 14
 TEXT_INTERNAL = 99
 
 ERROR_TEXTS: dict[int, tuple[int, str]] = {
@@ -76,6 +86,9 @@ ERROR_TEXTS: dict[int, tuple[int, str]] = {
     TEXT_DRIFTED: (CLASS_DRIFT, "calibration drifted beyond tolerance"),
     TEXT_TIMEOUT: (CLASS_RUNTIME, "the request timed out"),
     TEXT_RECIPE_RANGE: (CLASS_REQUEST, "recipe number out of range (0..65535)"),
+    TEXT_ROBOT_STOPPED: (CLASS_STOPPED, "robot stopped: an engineer must resume it"),
+    TEXT_ROBOT_BUSY: (CLASS_BUSY, "refused: the robot is moved by another caller (a move, pick or routine)"),
+    TEXT_MOTION_OFF: (CLASS_SETUP, "robot motion from the PLC is off (plc.allow_motion in cell.yaml)"),
     TEXT_INTERNAL: (CLASS_INTERNAL, "internal error (see the service log)"),
 }
 
@@ -91,6 +104,8 @@ class Outcome:
     """``run_pick``'s picks, best first."""
     verify: dict[str, Any] | None = None
     """``verify``'s result (passed, drift_px, drift_mm...)."""
+    picked_index: int | None = None
+    """With robot motion: the index in ``picks`` of the pick the robot made (None: the robot did not move)."""
     latency_ms: float = 0.0
 
     @property
@@ -102,16 +117,31 @@ def failure(text_index: int, message: str | None = None) -> Outcome:
     return Outcome(False, text_index, message or ERROR_TEXTS[text_index][1])
 
 
-def execute_pick(services: Services, recipe_id: int, who: str) -> Outcome:
-    """Run a pick (no robot motion: the PLC moves the robot) and classify any failure."""
+def execute_pick(services: Services, recipe_id: int, who: str, move: bool = False) -> Outcome:
+    """Run a pick and classify any failure; with ``move`` the robot picks the best reachable part.
+
+    Without ``move`` the robot does not move (the PLC moves it with the answer's poses).
+    """
     t0 = time.perf_counter()
     if not 0 <= recipe_id <= 65535:
         out = failure(TEXT_RECIPE_RANGE, f"recipe number {recipe_id} is out of range (0..65535)")
+    elif move and not services.config.plc.allow_motion:
+        out = failure(TEXT_MOTION_OFF, "a PLC pick with robot motion is off: an engineer sets plc.allow_motion: "
+                                       "true in cell.yaml to allow it (or the PLC moves the robot itself)")
     else:
         with PLC_LOCK:
             try:
-                answer = run_pick(services, recipe_id, None, False, who)
-                out = Outcome(True, picks=list(answer["picks"]))
+                answer = run_pick(services, recipe_id, None, move, who)
+                picks = list(answer["picks"])
+                picked = answer.get("picked")
+                index = next((k for k, p in enumerate(picks) if p is picked), None) if move else None
+                out = Outcome(True, picks=picks, picked_index=index)
+            except RobotStopped as exc:
+                out = failure(TEXT_ROBOT_STOPPED, f"robot stopped: an engineer must resume it ({_first_line(exc)})")
+            except RobotBusy as exc:
+                out = failure(TEXT_ROBOT_BUSY, _first_line(exc))
+            except MotionRejected as exc:
+                out = failure(TEXT_CANNOT_PICK, f"the robot refused the pick: {_first_line(exc)}")
             except NotFound as exc:
                 out = failure(TEXT_UNKNOWN_RECIPE, str(exc))
             except NoCalibration as exc:
@@ -127,8 +157,18 @@ def execute_pick(services: Services, recipe_id: int, who: str) -> Outcome:
                 out = failure(TEXT_INTERNAL, f"internal error: {_first_line(exc)}")
     out.latency_ms = (time.perf_counter() - t0) * 1e3
     if not out.ok:
-        log.warning("PLC pick of recipe %d refused/failed: %s", recipe_id, out.message)
+        log.warning("PLC pick%s of recipe %d refused/failed: %s", " with motion" if move else "", recipe_id,
+                    out.message)
     return out
+
+
+def robot_motion_status(services: Services) -> dict[str, Any]:
+    """The motion status of the cell's robot (``calibration.robot``): latched, owner (cheap: no I/O)."""
+    slot = services.cell.robots.get(services.config.calibration.robot)
+    if slot is None:
+        return {"latched": False, "owner": None}
+    status: dict[str, Any] = slot.device.motion.status()
+    return status
 
 
 def execute_verify(services: Services, who: str, timeout_s: float = VERIFY_TIMEOUT_S) -> Outcome:
