@@ -200,16 +200,16 @@ def _nearer(a: _Plane, b: _Plane) -> int:
     return -1 if diff < 0 else 1 if diff > 0 else a.index - b.index
 
 
-def _shade(p: _Plane, refl_n: int, hits: tuple[NDArray[np.float64], ...], flat: NDArray[np.int64],
-           value: NDArray[np.float64], depth: NDArray[np.float64], which: NDArray[np.int32]) -> None:
-    """Evaluate ``p``'s reflectance at its ``refl_n`` compacted hits and store the defined ones."""
-    if refl_n == 0:
+def _shade(p: _Plane, n: int, scratch: _Scratch, value: NDArray[np.float64], depth: NDArray[np.float64],
+           which: NDArray[np.int32]) -> None:
+    """Evaluate ``p``'s reflectance at its ``n`` compacted hits and store the defined ones."""
+    if n == 0:
         return
-    ox, oy, lam = (h[:refl_n] for h in hits)
+    ox, oy, lam, flat = (h[:n] for h in scratch.hits)
     refl = np.ascontiguousarray(p.obj.reflectance(ox, oy), dtype=np.float64).reshape(-1)
-    if refl.size != refl_n:
-        raise RenderError(f"object {p.index}: its reflectance returned {refl.size} values for {refl_n} points")
-    k.take_hits(refl_n, refl, lam, flat, p.index, value, depth, which)
+    if refl.size != n:
+        raise RenderError(f"object {p.index}: its reflectance returned {refl.size} values for {n} points")
+    k.take_hits(n, refl, lam, flat, p.index, value, depth, which)
 
 
 # -- rendering -------------------------------------------------------------------------------------
@@ -223,18 +223,20 @@ def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], backgroun
     depth = np.full(h * w, np.inf)
     which = np.full(h * w, -1, dtype=np.int32)
     planes = _planes(objects, field)
+    # Rays go through in chunks of ~128k: scratch that stays in cache and is allocated once.
+    rows_per_chunk = max(_CHUNK_RAYS // w, 1)
+    scratch = _Scratch(rows_per_chunk * w)
     for p in planes:
         r0, r1, c0, c1 = p.window
-        size = (r1 - r0) * (c1 - c0)
-        hits = (np.empty(size), np.empty(size), np.empty(size))
-        flat = np.empty(size, dtype=np.int64)
-        n = k.hit_pixels(field, r0, r1, c0, c1, p.H, p.d, p.index, depth, which, *hits, flat)
-        _shade(p, n, hits, flat, value, depth, which)
+        for ra in range(r0, r1, rows_per_chunk):
+            rb = min(ra + rows_per_chunk, r1)
+            n = k.hit_pixels(field, ra, rb, c0, c1, p.H, p.d, p.index, depth, which, *scratch.hits)
+            _shade(p, n, scratch, value, depth, which)
     value2, which2 = value.reshape(h, w), which.reshape(h, w)
     if supersample > 1 and planes:
         rows, cols, only = k.edge_pixels(value2, which2)
         if rows.size:
-            value2[rows, cols] = _supersample(field, rows, cols, only, planes, background, supersample)
+            value2[rows, cols] = _supersample(field, rows, cols, only, planes, background, supersample, scratch)
     return value2, depth.reshape(h, w)
 
 
@@ -244,26 +246,49 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
     return render_scene(camera, objects, background, supersample)[0]
 
 
+_CHUNK_RAYS = 1 << 17
+
+
+class _Scratch:
+    """Compacted hits of one chunk: object x, y (m), depth (m) and the flat ray index."""
+
+    def __init__(self, size: int) -> None:
+        self.hits = (np.empty(size), np.empty(size), np.empty(size), np.empty(size, dtype=np.int64))
+
+    def ensure(self, size: int) -> None:
+        if self.hits[0].size < size:
+            self.__init__(size)  # type: ignore[misc]
+
+
 def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
-                 only: NDArray[np.int64], planes: Sequence[_Plane], background: float, n: int
-                 ) -> NDArray[np.float64]:
+                 only: NDArray[np.int64], planes: Sequence[_Plane], background: float, n: int,
+                 scratch: _Scratch) -> NDArray[np.float64]:
     """Box-filtered reflectance of the given pixels from ``n x n`` sub-pixel rays each.
 
     A pixel whose 3x3 neighbourhood sees one object (``only``) is shaded against that object
     alone: another object inside the pixel would have shown at a neighbour's centre (the same
     sub-pixel limit as the choice of edge pixels itself).
     """
-    size = rows.size * n * n
-    value = np.full(size, float(background))
-    depth = np.full(size, np.inf)
-    which = np.full(size, -1, dtype=np.int32)
-    hits = (np.empty(size), np.empty(size), np.empty(size))
-    flat = np.empty(size, dtype=np.int64)
-    for p in planes:
-        r0, r1, c0, c1 = p.window
-        m = k.hit_subrays(field, rows, cols, only, n, r0, r1, c0, c1, p.H, p.d, p.index, depth, which, *hits, flat)
-        _shade(p, m, hits, flat, value, depth, which)
-    out: NDArray[np.float64] = value.reshape(rows.size, n * n).mean(axis=1)
+    n2 = n * n
+    chunk = max(_CHUNK_RAYS // n2, 1)
+    scratch.ensure(chunk * n2)
+    value = np.empty(chunk * n2)
+    depth = np.empty(chunk * n2)
+    which = np.empty(chunk * n2, dtype=np.int32)
+    out = np.empty(rows.size)
+    for e0 in range(0, rows.size, chunk):
+        e1 = min(e0 + chunk, rows.size)
+        m = (e1 - e0) * n2
+        v, dp, wh = value[:m], depth[:m], which[:m]
+        v.fill(background)
+        dp.fill(np.inf)
+        wh.fill(-1)
+        r, c, o = rows[e0:e1], cols[e0:e1], only[e0:e1]
+        for p in planes:
+            r0, r1, c0, c1 = p.window
+            hits = k.hit_subrays(field, r, c, o, n, r0, r1, c0, c1, p.H, p.d, p.index, dp, wh, *scratch.hits)
+            _shade(p, hits, scratch, v, dp, wh)
+        out[e0:e1] = v.reshape(e1 - e0, n2).mean(axis=1)
     return out
 
 
