@@ -149,3 +149,60 @@ def simulate_tool_centre(rng: np.random.Generator, camera: CameraModel, *, n_ang
             rz.append((ang + 180.0) % 360.0 - 180.0)
     uv_arr = np.array(uv) + rng.normal(0.0, pixel_sigma_px, (len(uv), 2))
     return ToolCentreSet(o, uv_arr, np.array(fl, dtype=np.float64), np.array(rz), np_uv, np_xy)
+
+
+def write_example(kind: str, folder: str, seed: int = 0) -> dict[str, str]:
+    """Write a virtual data set for the command line into ``folder`` and return its files.
+
+    ``scara``: an eye-in-hand SCARA-style cell, 14 stations (``poses.csv``, ``detections.json``,
+    ``cam.json``, ``board.yaml``; the target origin is 12 mm above the base). ``tcp``: a fixed
+    camera's jog-to-mark pairs (``pairs.csv``) and the tool turned to 7 angles at 2 flange
+    positions (``rot.csv``); the true offset is (32.5, -18.0) mm.
+    """
+    import json
+    from pathlib import Path
+
+    from calibration.geometry import transform_to_ur_pose
+    from calibration.robot_poses import write_pairs_csv, write_poses_csv
+    from calibration.targets import Chessboard
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    cam = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 958.0], [0, 1900.0, 603.0], [0, 0, 1]]),
+                      np.array([-0.1, 0.05, 0.0, 0.0, 0.0]))
+    rng = np.random.default_rng(seed)
+    if kind == "scara":
+        board = Chessboard(8, 6, 25.0)
+        s = simulate_scara("eye-in-hand", 14, rng, camera=cam, target=board)
+        names = [d.image for d in s.detections]
+        write_poses_csv(out / "poses.csv", names, np.array([transform_to_ur_pose(g) for g in s.G_recorded]))
+        (out / "detections.json").write_text(json.dumps([d.to_json() for d in s.detections]))
+        (out / "cam.json").write_text(json.dumps(cam.to_dict()))
+        (out / "board.yaml").write_text("type: chessboard\ncols: 8\nrows: 6\nsquare_mm: 25.0\n")
+        (out / "truth.json").write_text(json.dumps({"T_tool_cam": s.X_true.tolist(), "T_base_target":
+                                                    s.Z_true.tolist(), "target_z_mm": s.target_z_mm}))
+        return {k: str(out / k) for k in ("poses.csv", "detections.json", "cam.json", "board.yaml", "truth.json")}
+    if kind == "tcp":
+        t = simulate_tool_centre(rng, cam)
+        write_pairs_csv(out / "pairs.csv", t.npoint_uv_px, t.npoint_xy_mm)
+        rows = ["u_px,v_px,x_mm,y_mm,rz_deg"] + [
+            f"{u:.4f},{v:.4f},{x:.3f},{y:.3f},{r:.3f}"
+            for (u, v), (x, y), r in zip(t.uv_px, t.flange_mm, t.rz_deg, strict=True)]
+        (out / "rot.csv").write_text("\n".join(rows) + "\n")
+        (out / "cam.json").write_text(json.dumps(cam.to_dict()))
+        return {k: str(out / k) for k in ("pairs.csv", "rot.csv", "cam.json")}
+    raise ValueError(f"unknown example {kind!r}: scara or tcp")
+
+
+if __name__ == "__main__":
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m calibration.handeye_special_sim",
+                                 description="Write a virtual SCARA hand-eye or tool-centre data set.")
+    ap.add_argument("kind", choices=["scara", "tcp"])
+    ap.add_argument("folder")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args()
+    for name, path in write_example(a.kind, a.folder, a.seed).items():
+        print(f"{name}: {path}", file=sys.stderr)
