@@ -24,18 +24,19 @@ geometry is known to better than 0.02 px. Grey levels and camera defects: ``cali
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cmp_to_key, lru_cache
+from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration import render_kernels as k
 from calibration.camera_model import CameraModel
 from calibration.sensor import Imaging, to_grey
 
-__all__ = ["Imaging", "PlanarObject", "ray_field", "render", "render_reflectance", "render_scene", "to_grey"]
+__all__ = ["Imaging", "PlanarObject", "prepare", "ray_field", "render", "render_reflectance", "render_scene", "to_grey"]
 
 Reflectance = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
@@ -79,7 +80,29 @@ class PlanarObject:
 # -- the ray field ---------------------------------------------------------------------------------
 def ray_field(camera: CameraModel) -> NDArray[np.float64]:
     """(H, W, 2) normalized ideal ray coordinates ``(x, y)`` (ray ``[x, y, 1]``) per pixel centre."""
-    return _field_cached(camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    with _FIELD_LOCK:  # one inversion per camera even when several threads ask at once
+        return _field_cached(camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+
+
+_FIELD_LOCK = threading.Lock()
+
+
+def _kernels() -> ModuleType:
+    """The compiled loops, imported on first use (numba's import and start-up take a while)."""
+    from calibration import render_kernels
+
+    return render_kernels
+
+
+def prepare(camera: CameraModel) -> None:
+    """Do the one-off work of a camera's first frame now: invert its lens and load the compiled
+    loops (from numba's disk cache; compiled there on the very first run). Thread-safe; a device
+    calls it in the background when it opens, so that its first frame costs what the others do."""
+    tiny = CameraModel("opencv5", 16, 12, np.array([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]]))
+    T = np.eye(4)
+    T[2, 3] = 1.0
+    render_scene(tiny, [PlanarObject(T, lambda x, y: (x > 0).astype(np.float64))], supersample=2)
+    ray_field(camera)
 
 
 @lru_cache(maxsize=8)
@@ -103,6 +126,8 @@ def _spline_field(cam: CameraModel) -> NDArray[np.float64] | None:
     s = _COARSE_PX
     us = np.arange(-2 * s, cam.width + 2 * s, s, dtype=np.float64)
     vs = np.arange(-2 * s, cam.height + 2 * s, s, dtype=np.float64)
+    if min(us.size, vs.size) < 8:  # too small an image for the spline: invert every pixel
+        return None
     cu, cv = np.meshgrid(us, vs)
     coarse = cam.unproject(np.column_stack([cu.ravel(), cv.ravel()]))[:, :2].reshape(len(vs), len(us), 2)
     if not np.all(np.isfinite(coarse)):
@@ -205,11 +230,11 @@ def _shade(p: _Plane, n: int, scratch: _Scratch, value: NDArray[np.float64], dep
     """Evaluate ``p``'s reflectance at its ``n`` compacted hits and store the defined ones."""
     if n == 0:
         return
-    ox, oy, lam, flat = (h[:n] for h in scratch.hits)
+    ox, oy, lam, flat = scratch.ox[:n], scratch.oy[:n], scratch.lam[:n], scratch.flat[:n]
     refl = np.ascontiguousarray(p.obj.reflectance(ox, oy), dtype=np.float64).reshape(-1)
     if refl.size != n:
         raise RenderError(f"object {p.index}: its reflectance returned {refl.size} values for {n} points")
-    k.take_hits(n, refl, lam, flat, p.index, value, depth, which)
+    _kernels().take_hits(n, refl, lam, flat, p.index, value, depth, which)
 
 
 # -- rendering -------------------------------------------------------------------------------------
@@ -217,6 +242,7 @@ def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], backgroun
                  supersample: int = 8) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(H, W) mean reflectance over each pixel's area (box filter, in [0, 1]) and the depth
     (camera z, metres; +inf for background) of what the pixel's centre sees."""
+    k = _kernels()
     field = ray_field(camera)
     h, w = field.shape[:2]
     value = np.full(h * w, float(background))
@@ -253,11 +279,19 @@ class _Scratch:
     """Compacted hits of one chunk: object x, y (m), depth (m) and the flat ray index."""
 
     def __init__(self, size: int) -> None:
-        self.hits = (np.empty(size), np.empty(size), np.empty(size), np.empty(size, dtype=np.int64))
+        self._alloc(size)
+
+    def _alloc(self, size: int) -> None:
+        self.ox, self.oy, self.lam = np.empty(size), np.empty(size), np.empty(size)
+        self.flat = np.empty(size, dtype=np.int64)
+
+    @property
+    def hits(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        return self.ox, self.oy, self.lam, self.flat
 
     def ensure(self, size: int) -> None:
-        if self.hits[0].size < size:
-            self.__init__(size)  # type: ignore[misc]
+        if self.ox.size < size:
+            self._alloc(size)
 
 
 def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
@@ -269,6 +303,7 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
     alone: another object inside the pixel would have shown at a neighbour's centre (the same
     sub-pixel limit as the choice of edge pixels itself).
     """
+    k = _kernels()
     n2 = n * n
     chunk = max(_CHUNK_RAYS // n2, 1)
     scratch.ensure(chunk * n2)

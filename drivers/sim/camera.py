@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from calibration.render import prepare
 from drivers.base import CameraBase, DeviceUnavailable, Frame
 from drivers.sim.world import SimWorld, world_for
 
@@ -43,6 +45,10 @@ class SimCamera(CameraBase):
 
     def open(self) -> None:
         self._world = world_for(self._settings.scene, self._settings.seed)
+        # The first frame's one-off work (lens inversion, loading the renderer's compiled loops)
+        # starts now, so that a grab soon after open does not pay it all; a grab meanwhile waits.
+        threading.Thread(target=prepare, args=(self._world.camera_model,), name=f"{self.camera_id}-prepare",
+                         daemon=True).start()
 
     def close(self) -> None:
         self._world = None
