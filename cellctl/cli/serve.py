@@ -38,10 +38,31 @@ def session_token_file(config: CellConfig) -> Path:
     return data_dir() / f"{config.cell_id}.session-token"
 
 
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable and writable by this user only (mode 600).
+
+    Written to a new file and renamed over ``path``: an old file keeps neither its mode (a 644
+    token file becomes 600) nor its contents, and a symlink at ``path`` is replaced, not followed.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def run(args: argparse.Namespace) -> None:
     import uvicorn
 
     from cellctl.api.app import create_app
+    from cellctl.plc import preflight as plc_preflight
 
     config = load_config(args.config)
     http = config.http.model_copy(update={k: v for k, v in (("host", args.host), ("port", args.port),
@@ -50,6 +71,7 @@ def run(args: argparse.Namespace) -> None:
     _check_tls(http.tls_cert, http.tls_key)
     config = config.model_copy(update={"http": http})
     _check_ports(config)  # before the session-token file: a serve that cannot start must not replace it
+    plc_preflight(config)  # OPC UA certificates and the trusted clients: one line, not a start-up traceback
     session: list[tuple[str, Any, str]] = []
     if not config.auth.tokens:
         if not http.is_loopback():
@@ -58,10 +80,7 @@ def run(args: argparse.Namespace) -> None:
         # Lab mode on loopback: a one-run engineer token, shown once and kept in a private file.
         token = new_token()
         path = session_token_file(config)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(token + "\n")
+        write_private(path, token + "\n")
         session.append(("session", "engineer", hash_token(token)))
         print(f"cellctl: no tokens in the config; this run's engineer token (also in {path}):\n{token}",
               file=sys.stderr, flush=True)

@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from cellctl.config import CellConfig
 from cellctl.services import Services
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,16 @@ class PlcServers:
                 server.stop()
             except Exception:  # noqa: BLE001 - stop every server even when one fails
                 log.exception("stopping a PLC server failed")
+
+
+def preflight(config: CellConfig) -> None:
+    """Refuse, with one line (``OSError``), a PLC setup that could not start: run before serving."""
+    if config.plc.opcua.enabled:
+        from cellctl.plc.opcua_server import security_problem
+
+        problem = security_problem(config.plc.opcua)
+        if problem:
+            raise OSError(problem)
 
 
 def start_plc_servers(services: Services) -> PlcServers:

@@ -125,19 +125,38 @@ def _status_code(code: int) -> ua.StatusCode:
 CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")
 
 
+def trusted_dir_problem(folder: str | None) -> str | None:
+    """Why ``folder`` cannot serve as the trust list of client certificates (None: it can)."""
+    if folder is None:
+        return f"plc.opcua: {TRUST_HINT}"
+    trusted = Path(folder)
+    if not trusted.is_dir():
+        return f"plc.opcua.trusted_client_certs {trusted} is not a directory; {TRUST_HINT}"
+    if not any(f.suffix.lower() in CERT_SUFFIXES for f in trusted.iterdir() if f.is_file()):
+        return (f"plc.opcua.trusted_client_certs {trusted} holds no certificate, so no client could connect; "
+                f"{TRUST_HINT}")
+    return None
+
+
+def security_problem(config: OpcUaServerConfig) -> str | None:
+    """What keeps the configured OPC UA security from starting (files missing, nobody trusted); None: fine."""
+    if config.security == "none":
+        return None
+    for what, path in (("certificate", config.cert), ("key", config.key)):
+        if path is None or not Path(path).is_file():
+            return f"plc.opcua: the server {what} {path} is missing; create it (docs/plc-opcua.md)"
+    return trusted_dir_problem(config.trusted_client_certs)
+
+
 async def trusted_clients_validator(folder: str | None) -> Any:
     """A validator that lets only the client certificates in ``folder`` connect (asyncua's TrustStore)."""
     from asyncua.crypto.truststore import TrustStore
     from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 
-    if folder is None:
-        raise OSError(f"plc.opcua: {TRUST_HINT}")
+    problem = trusted_dir_problem(folder)
+    if problem or folder is None:
+        raise OSError(problem)
     trusted = Path(folder)
-    if not trusted.is_dir():
-        raise OSError(f"plc.opcua.trusted_client_certs {trusted} is not a directory; {TRUST_HINT}")
-    if not any(f.suffix.lower() in CERT_SUFFIXES for f in trusted.iterdir() if f.is_file()):
-        raise OSError(f"plc.opcua.trusted_client_certs {trusted} holds no certificate, so no client could connect; "
-                      f"{TRUST_HINT}")
     store = TrustStore([trusted], [])
     try:
         await store.load()
@@ -246,11 +265,9 @@ class OpcUaPlcServer:
         that holds no certificate: without a trust list asyncua accepts any self-signed client.
         """
         cfg = self.config
-        if cfg.cert is None or cfg.key is None:
-            raise OSError("plc.opcua: security basic256sha256 needs the server certificate and key: set cert and key")
-        for what, path in (("certificate", cfg.cert), ("key", cfg.key)):
-            if not Path(path).is_file():
-                raise OSError(f"plc.opcua: the server {what} {path} is missing; create it (docs/plc-opcua.md)")
+        problem = security_problem(cfg)
+        if problem or cfg.cert is None or cfg.key is None:
+            raise OSError(problem or "plc.opcua: security basic256sha256 needs the server certificate and key")
         await server.load_certificate(cfg.cert)
         await server.load_private_key(cfg.key)
         server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
