@@ -93,3 +93,16 @@ def test_refusals_say_why() -> None:
     same = [make_transform(s.G_recorded[0][:3, :3], g[:3, 3]) for g in s.G_recorded]
     with pytest.raises(HandEyeError, match="turns only 0.0 deg"):
         calibrate_handeye_dof4("eye-in-hand", same, s.detections, CAM, BOARD, s.target_z_mm, NOISE)
+
+
+@pytest.mark.parametrize("setup", ["eye-in-hand", "eye-to-hand"])
+def test_tool_pointing_up_like_a_scara(setup: str) -> None:
+    """The tool z axis may point up (a SCARA's) as well as down (a UR picking top-down)."""
+    s = simulate_scara(setup, 10, np.random.default_rng(7), camera=CAM, target=BOARD, robot_noise=NOISE,
+                       tool_down=False)
+    out = _solve(s)
+    X = _x(out, setup)
+    rot = np.degrees(np.linalg.norm(Rotation.from_matrix(s.X_true[:3, :3] @ X[:3, :3].T).as_rotvec()))
+    assert rot <= 3.0 * out["uncertainty"]["rot_deg"]
+    assert 1e3 * np.linalg.norm(X[:3, 3] - s.X_true[:3, 3]) <= 3.0 * out["uncertainty"]["trans_mm"]
+    assert out["motion"]["tool_z_axis_base"][2] == pytest.approx(1.0, abs=1e-3)
