@@ -51,9 +51,16 @@ def read_yaml(path: str | Path, what: str, error: type[Exception]) -> Any:
 
 
 def yaml_error_text(exc: yaml.YAMLError) -> str:
-    """A YAML error as ``line L, column C: problem`` (1-based), or its text when it has no position."""
+    """A YAML error in one line that names where it is: ``line L, column C: what`` (1-based).
+
+    When the problem's context starts elsewhere (an unclosed bracket), that line is named too.
+    """
     mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    what = str(getattr(exc, "problem", None) or str(exc).splitlines()[0])
+    context = getattr(exc, "context", None)
+    context_mark = getattr(exc, "context_mark", None)
+    if context and context_mark is not None and context_mark is not mark:
+        what = f"{what} ({context} that starts on line {context_mark.line + 1})"
     if mark is None:
-        return str(problem)
-    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+        return what
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}"

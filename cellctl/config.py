@@ -16,6 +16,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
+from calibration.files import read_text, yaml_error_text
+from cellctl.errors_format import format_validation_errors
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class
 
@@ -246,7 +248,7 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
     try:
         cfg = CellConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{source}: {_format_errors(exc)}") from None
+        raise ConfigError(f"{source}: {format_validation_errors(exc)}") from None
     for section, category in _SECTIONS.items():
         for device_id in getattr(cfg, section):
             path = f"{section}.{device_id}"
@@ -257,7 +259,7 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
             except ImportError as exc:
                 raise ConfigError(f"{source}: {path}.kind: the adapter cannot be loaded ({exc})") from None
             except ValidationError as exc:
-                raise ConfigError(f"{source}: {_format_errors(exc, prefix=path + '.settings')}") from None
+                raise ConfigError(f"{source}: {format_validation_errors(exc, prefix=path + '.settings')}") from None
     return cfg
 
 
@@ -266,10 +268,7 @@ def load_config(path: str | Path | None) -> CellConfig:
     if path is None:
         return parse_config(yaml.safe_load(default_config_text()), "built-in virtual cell")
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read the config file ({exc.strerror})") from None
+    text = read_text(p, "the config file", ConfigError)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -279,31 +278,6 @@ def load_config(path: str | Path | None) -> CellConfig:
     return cfg
 
 
-def yaml_error_text(exc: yaml.YAMLError) -> str:
-    """A YAML error in one line that names where it is: ``line L, column C: what``."""
-    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-    what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    context = getattr(exc, "context", None)
-    if context and getattr(exc, "context_mark", None) is not None and exc.context_mark is not mark:  # type: ignore[attr-defined]
-        what = f"{what} ({context} that starts on line {exc.context_mark.line + 1})"  # type: ignore[attr-defined]
-    if mark is None:
-        return what
-    return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
-
-
 def default_config_text() -> str:
     """The built-in virtual cell's ``cell.yaml`` (what ``cellctl config default`` prints)."""
     return resources.files("cellctl").joinpath("data/virtual-cell.yaml").read_text()
-
-
-def _format_errors(exc: ValidationError, prefix: str = "") -> str:
-    parts = []
-    for err in exc.errors():
-        loc = ".".join(str(x) for x in err["loc"])
-        if prefix:
-            loc = f"{prefix}.{loc}" if loc else prefix
-        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
-        if err["type"] not in ("extra_forbidden", "missing") and "input" in err:
-            msg += f" (got {err['input']!r})"
-        parts.append(f"{loc or '(top level)'}: {msg}")
-    return "; ".join(parts)

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from cellctl.errors_format import format_validation_errors
 from cellctl.logging_setup import request_id_var
 from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected, RobotBusy, RobotStopped
 
@@ -86,11 +87,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
-        parts = []
-        for err in exc.errors():
-            loc = ".".join(str(x) for x in err.get("loc", ()))
-            parts.append(f"{loc}: {err.get('msg', 'invalid')}")
-        return JSONResponse(status_code=422, content=error_body("invalid_request", "; ".join(parts)))
+        message = format_validation_errors(exc.errors(), with_input=False)
+        return JSONResponse(status_code=422, content=error_body("invalid_request", message))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.files import read_text
 from cellctl.cli.output import CommandError
 
 log = logging.getLogger("cellctl.calib.dlt")
@@ -32,10 +33,7 @@ def register(sub: Any) -> None:
 
 def read_observations(path: str) -> tuple[np.ndarray, np.ndarray]:
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise CommandError(f"{p}: cannot read observations ({exc.strerror})") from exc
+    text = read_text(p, "observations", CommandError)
     rows = list(csv.DictReader(text.splitlines()))
     if not rows or not {"id", "u_px", "v_px"} <= set(rows[0]):
         raise CommandError(f"{p}: needs the header id,u_px,v_px and one row per observed point")

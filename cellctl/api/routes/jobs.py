@@ -15,6 +15,7 @@ from starlette.concurrency import run_in_threadpool
 from cellctl.api.deps import Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import JobInputError, TooManyJobs
 from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
 
@@ -83,7 +84,7 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
     try:
         module.Params.model_validate(params or {})
     except ValidationError as exc:
-        msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
+        msg = format_validation_errors(exc, with_input=False)
         raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
     motion = None
     if moves:
