@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from vision.image import F32, F64, U8, bilinear2, gauss_peak, gradients, profile_ok, rot
+from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
+from vision.shape import kernels
 from vision.shape.model import LevelModel
 
 PERSPECTIVE_MIN_INLIERS = 0.8
@@ -37,12 +38,11 @@ class Pose:
 
 def _gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, fit_scale: bool) -> F64:
     """One weighted Gauss-Newton step for (x, y, theta[, scale]) on normal distances."""
-    cols = [n[:, 0], n[:, 1], scale * np.sum(n * Rdm, axis=1)]
-    if fit_scale:
-        cols.append(np.sum(n * Rm, axis=1))
-    J = np.stack(cols, axis=1)
-    A = J.T @ (J * wgt[:, None]) + np.eye(J.shape[1]) * 1e-9
-    delta = np.linalg.solve(A, J.T @ (wgt * resid))
+    A, b = kernels.gn_normal_equations(np.ascontiguousarray(n), np.ascontiguousarray(Rm),
+                                       np.ascontiguousarray(Rdm), float(scale), np.ascontiguousarray(wgt),
+                                       np.ascontiguousarray(resid))
+    k = 4 if fit_scale else 3
+    delta = np.linalg.solve(A[:k, :k] + np.eye(k) * 1e-9, b[:k])
     return np.asarray(delta if fit_scale else np.append(delta, 0.0), dtype=np.float64)
 
 
@@ -54,28 +54,13 @@ def _associate(G: F32, q: F64, n: F64, reach: float, thr: float
     normal), whether an edge was found, ``|cos|`` of the orientation difference there, and the
     sign of the image gradient along the model's normal (+1: the teach image's polarity).
     """
-    npts = len(q)
-    rows = np.arange(npts)
-    ts = np.arange(-math.ceil(reach), math.ceil(reach) + 1, dtype=np.float64)
-    k = len(ts)
-    sx = q[:, 0:1] + ts[None, :] * n[:, 0:1]
-    sy = q[:, 1:2] + ts[None, :] * n[:, 1:2]
-    gxy = bilinear2(G, sx.ravel(), sy.ravel()).reshape(npts, k, 2)
-    gs = gxy[..., 0] * n[:, 0:1] + gxy[..., 1] * n[:, 1:2]
-    gn = np.abs(gs)
-    gm2 = gxy[..., 0] ** 2 + gxy[..., 1] ** 2
-    good = (gn >= thr) & (gn * gn >= 0.81 * gm2)
-    g = np.where(good, gn, 0.0)
-    locmax = np.zeros_like(good)
-    locmax[:, 1:-1] = good[:, 1:-1] & (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
-    cost = np.where(locmax, np.abs(ts)[None, :], np.inf)
-    j = np.argmin(cost, axis=1)
-    found = locmax[rows, j]
-    jj = np.minimum(np.maximum(j, 1), k - 2)
-    off = gauss_peak(g[rows, jj - 1], g[rows, jj], g[rows, jj + 1])
-    d = np.where(found, ts[jj] + off, 0.0)
-    cosd = np.where(found, gn[rows, jj] / np.sqrt(np.maximum(gm2[rows, jj], 1e-12)), 0.0)
-    return d, found, cosd, np.where(gs[rows, jj] >= 0, 1.0, -1.0)
+    return kernels.associate(G, np.ascontiguousarray(q), np.ascontiguousarray(n), int(math.ceil(reach)),
+                             float(thr))
+
+
+def _profile(img_f: F32, q: F64, n: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+    return kernels.profile_centroids(img_f, np.ascontiguousarray(q), np.ascontiguousarray(n),
+                                     CENTROID_HALF_WIDTH)
 
 
 @dataclass
@@ -191,7 +176,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
             Rm = ms @ R.T
             q = sc * Rm + np.array([x, y])
             n = ns @ R.T
-            off, S, clean = profile_ok(img_f, q, n)
+            off, S, clean = _profile(img_f, q, n)
             ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
             wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
             if wgt.sum() < 6:
@@ -230,7 +215,7 @@ def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float
         J_lin = A - np.outer(c, pv)
         n = nrm @ J_lin.T
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        off, S, clean = profile_ok(img_f, q, n)
+        off, S, clean = _profile(img_f, q, n)
         ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast)
         wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
         if np.count_nonzero(wgt) < 20:

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.image import F64, U8, gradients
+from vision.shape import kernels
 from vision.shape.model import LevelModel
 
 N_BINS = 8
@@ -105,21 +106,15 @@ def track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64]
     phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
     b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int32)) % N_BINS
     _, h, w = resp.shape
-    P = int(math.ceil(lm.radius * float(k_s.max()))) + reach + 2  # zero border: no bounds checks in the gather
-    padded = np.zeros((N_BINS, h + 2 * P, w + 2 * P), np.uint8)
-    padded[:, P:P + h, P:P + w] = resp
-    hp, wp = h + 2 * P, w + 2 * P
-    cx = np.clip(cx, 0, w - 1)
-    cy = np.clip(cy, 0, h - 1)
-    offs = np.arange(-reach, reach + 1)
+    cx = np.clip(cx, 0, w - 1).astype(np.int64)
+    cy = np.clip(cy, 0, h - 1).astype(np.int64)
+    offs = np.arange(-reach, reach + 1, dtype=np.int64)
     npos = len(offs) ** 2
     ox = np.tile(offs, len(offs))
     oy = np.repeat(offs, len(offs))
-    base = ((cy + P) * wp + cx + P).astype(np.int32)
-    pos = (oy * wp + ox).astype(np.int32)
-    feat = b * (hp * wp) + dy * wp + dx  # (C, A, F)
-    idx = base[:, None, None, None] + pos[None, None, :, None] + feat[:, :, None, :]  # (C, A, P, F)
-    sc = padded.ravel()[idx].sum(axis=3, dtype=np.int32).reshape(len(cx), -1)
+    # features outside the image score 0 (a part at the border is scored on what is visible)
+    sc = kernels.track_scores(np.ascontiguousarray(resp), cx, cy, ox, oy, np.ascontiguousarray(dx),
+                              np.ascontiguousarray(dy), np.ascontiguousarray(b))
     # ties (the spread responses make plateaus) go to the angle nearest the prediction, and the
     # position is the plateau's centre rather than its first pixel
     tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
