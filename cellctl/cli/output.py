@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from calibration import jsonable
 
 
 class CommandError(Exception):
@@ -18,23 +17,9 @@ class CommandError(Exception):
         self.exit_code = exit_code
 
 
-def to_jsonable(obj: Any) -> Any:
-    """Convert numpy scalars/arrays (recursively) to plain Python for ``json``."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
 def dumps(result: Any) -> str:
-    return json.dumps(to_jsonable(result), indent=2)
+    """The command's JSON: numpy values as plain numbers; a NaN/infinity is an error naming its key."""
+    return jsonable.dumps(result, indent=2)
 
 
 def emit(result: Any, out: str | Path | None = None) -> None:

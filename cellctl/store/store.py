@@ -18,6 +18,7 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
+from calibration import jsonable
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -41,15 +42,9 @@ MAX_AUDIT_LIMIT = 10_000
 
 
 def to_json_text(value: Any, what: str) -> str:
-    """``value`` as JSON text; numpy arrays/scalars become lists/numbers; NaN/inf are kept."""
-
-    def default(obj: Any) -> Any:
-        if hasattr(obj, "tolist"):  # numpy arrays and scalars
-            return obj.tolist()
-        raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
-
+    """``value`` as canonical JSON text; numpy arrays/scalars become lists/numbers; NaN/inf are refused."""
     try:
-        return json.dumps(value, default=default, separators=(",", ":"), sort_keys=True)
+        return jsonable.dumps(value, separators=(",", ":"), sort_keys=True)
     except (TypeError, ValueError) as exc:
         raise InvalidInput(f"{what} cannot be stored as JSON: {exc}") from None
 
