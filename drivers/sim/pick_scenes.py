@@ -22,6 +22,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from vision.image import wrap_deg
+
 SUPERSAMPLE = 16
 _JITTERS = 1
 _SHIFT = 8  # fixed-point bits for cv2.fillPoly vertices on the supersampled canvas
@@ -136,16 +138,6 @@ def truth_of(inst: Instance, H: FloatArray | None) -> Truth:
     d = inst.image_points(np.array([[eps, 0.0]]), H)[0] - c
     angle = math.degrees(math.atan2(-d[1], d[0]))
     return Truth(inst.part.name, float(c[0]), float(c[1]), wrap_deg(angle), inst.occlusion)
-
-
-def wrap_deg(a: float) -> float:
-    """Angle in degrees wrapped to (-180, 180]."""
-    a = math.fmod(a, 360.0)
-    if a <= -180.0:
-        a += 360.0
-    elif a > 180.0:
-        a -= 360.0
-    return a
 
 
 def coverage(polys_outer: list[FloatArray], polys_holes: list[FloatArray],
