@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,3 +37,26 @@ def test_what_json_cannot_hold_is_a_type_error() -> None:
     with pytest.raises(TypeError, match=r"\$\.when: object"):
         to_jsonable({"when": object()})
     assert issubclass(NonFiniteError, ValueError)
+
+
+def test_the_cli_refuses_to_print_a_non_finite_result(capsys: pytest.CaptureFixture[str]) -> None:
+    from cellctl.cli.output import emit
+
+    emit({"rms_px": np.float64(0.5)})
+    assert json.loads(capsys.readouterr().out) == {"rms_px": 0.5}
+    with pytest.raises(NonFiniteError, match=r"\$\.uncertainty\.rot_deg"):
+        emit({"uncertainty": {"rot_deg": float("nan")}})
+    assert capsys.readouterr().out == ""  # nothing half-printed
+
+
+def test_the_store_refuses_a_non_finite_result(tmp_path: Path) -> None:
+    from cellctl.store.errors import InvalidInput
+    from cellctl.store.store import Store
+
+    with Store(f"sqlite:///{tmp_path}/cell.db", "cell-a") as store:
+        rec = store.save_calibration("camera", "cam0", None, {"rms_px": np.float32(0.25), "K": np.eye(3)}, {},
+                                     "tester")
+        assert store.get_calibration(rec.id).result == {"rms_px": 0.25, "K": np.eye(3).tolist()}
+        with pytest.raises(InvalidInput, match=r"cannot be stored as JSON: \$\.views\[0\]\.rms_px is nan"):
+            store.save_calibration("camera", "cam0", None, {"views": [{"rms_px": np.nan}]}, {}, "tester")
+        assert len(store.list_calibrations()) == 1
