@@ -9,6 +9,7 @@ command line); the caller chooses the exception class, so each package keeps its
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,23 +32,22 @@ def read_text(path: str | Path, what: str, error: type[Exception]) -> str:
 
 def read_json(path: str | Path, what: str, error: type[Exception]) -> Any:
     """The parsed JSON of ``path``; ``error`` naming the file and the line when it is not JSON."""
-    p = Path(path)
-    text = read_text(p, what, error)
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise error(f"{p}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); "
-                    f"expected {what}") from exc
+    return _parse(path, what, error, "JSON", json.loads, json.JSONDecodeError,
+                  lambda e: f"line {e.lineno}, column {e.colno}: {e.msg}")
 
 
 def read_yaml(path: str | Path, what: str, error: type[Exception]) -> Any:
     """The parsed YAML of ``path`` (safe loader); ``error`` naming the file and the line when it is not YAML."""
-    p = Path(path)
-    text = read_text(p, what, error)
+    return _parse(path, what, error, "YAML", yaml.safe_load, yaml.YAMLError, yaml_error_text)
+
+
+def _parse(path: str | Path, what: str, error: type[Exception], language: str, parse: Callable[[str], Any],
+           parse_error: type[Exception], where: Callable[[Any], str]) -> Any:
+    text = read_text(path, what, error)
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise error(f"{p}: not valid YAML ({yaml_error_text(exc)}); expected {what}") from exc
+        return parse(text)
+    except parse_error as exc:
+        raise error(f"{Path(path)}: not valid {language} ({where(exc)}); expected {what}") from exc
 
 
 def yaml_error_text(exc: yaml.YAMLError) -> str:
