@@ -128,17 +128,17 @@ def timings() -> dict[str, dict[str, float]]:
     return {m: {k: float(np.median(v)) for k, v in d.items()} for m, d in res.items()}
 
 
-def seed_experiment(seeds: list[int], trials: int) -> dict[str, Any]:
+def seed_experiment(seeds: list[int], trials: int, sigma_px: float = 0.2) -> dict[str, Any]:
     errs: dict[str, list[tuple[float, float]]] = defaultdict(list)
     for seed in seeds:
-        rng = np.random.default_rng([seed, 2012])
+        rng = np.random.default_rng([seed, 2012, int(sigma_px * 10)])
         done = 0
         while done < trials:
             drawn = _draw(rng, SEED_CAM, 20, False, rng.uniform(0.5, 2.0), (0.4, 0.4, 0.2))
             if drawn is None:
                 continue
             X, T = drawn
-            uv = SEED_CAM.project(X @ T[:3, :3].T + T[:3, 3]) + rng.normal(0, 0.2, (20, 2))
+            uv = SEED_CAM.project(X @ T[:3, :3].T + T[:3, 3]) + rng.normal(0, sigma_px, (20, 2))
             done += 1
             for m, raw in (("rpnp", True), ("rpnp", False), ("sqpnp", False)):
                 res = estimate_pose_by(SEED_CAM, X, uv, m, raw=raw)
@@ -151,7 +151,7 @@ def _med(v: list[tuple[float, float]], k: int) -> float:
 
 
 def report(grid: dict[tuple[Any, ...], dict[str, list[tuple[float, float]]]], times: dict[str, dict[str, float]],
-           seed: dict[str, Any], seeds: list[int], trials: int) -> str:
+           seed: dict[str, Any], seeds: list[int], trials: int, seed_1px: dict[str, Any] | None = None) -> str:
     lines = ["# PnP benchmark (issue 16): RPnP (ours) vs OpenCV's SQPnP, EPnP, IPPE", "",
              (__doc__ or "").split("\n\n")[1].replace("\n", " "), "",
              f"Seeds {seeds}, {trials} draws per seed and row. A failure is an error > 5° (or no pose).", ""]
@@ -178,6 +178,14 @@ def report(grid: dict[tuple[Any, ...], dict[str, list[tuple[float, float]]]], ti
         lines.append(f"| {m} | {len(e)} | {np.mean(e[:, 1]):.3f} | {np.median(e[:, 1]):.3f} | {np.max(e[:, 1]):.3f} | "
                      f"{np.mean(e[:, 0]):.4f} | {np.median(e[:, 0]):.4f} | {np.max(e[:, 0]):.4f} |")
     lines.append(f"| paper (RPnP, its own set-up) | | {PAPER_MM} | | | {PAPER_DEG} | | |")
+    if seed_1px is not None:
+        for m, e in seed_1px.items():
+            lines.append(f"| {m}, 1 px noise (context) | {len(e)} | {np.mean(e[:, 1]):.3f} | "
+                         f"{np.median(e[:, 1]):.3f} | {np.max(e[:, 1]):.3f} | {np.mean(e[:, 0]):.4f} | "
+                         f"{np.median(e[:, 0]):.4f} | "
+                         f"{np.max(e[:, 0]):.4f} |")
+        lines.append("\nThe paper does not state its camera, target or noise; the target is judged at our stated "
+                     "0.2 px. At 1 px (a poor detector) the errors grow about fivefold, as the rows above show.")
     lines += ["", "## Summary over all rows, per target type", "",
               "| target | method | median rot ° | median trans mm | 95 % trans mm | failures |",
               "|---|---|---|---|---|---|"]
@@ -223,7 +231,8 @@ def main() -> None:
     grid = run_grid(seeds, trials)
     times = timings()
     seed = seed_experiment(seeds if not args.quick else [0], 10 if args.quick else 60)
-    text = report(grid, times, seed, seeds, trials)
+    seed_1px = seed_experiment(seeds if not args.quick else [0], 10 if args.quick else 60, sigma_px=1.0)
+    text = report(grid, times, seed, seeds, trials, seed_1px)
     Path(args.out).write_text(text)
     print(text)
     print(f"bench/pnp.py: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
