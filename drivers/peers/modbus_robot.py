@@ -88,6 +88,8 @@ class _Robot:
     """The robot and its PLC program; all times from ``time.monotonic``."""
 
     watchdog_s: float
+    speed_override: float = 1.0
+    """The controller's speed slider: moves run at this fraction of the commanded speed."""
     t0: float = field(default_factory=time.monotonic)
     T: NDArray[np.float64] = field(default_factory=lambda: _pose_to_T(np.array(HOME_POSE)))
     motion: tuple[float, float, NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -154,7 +156,7 @@ class _Robot:
             self.status, self.error = ST_ERROR, ERR_REACH
             return
         T_b = _pose_to_T(target)
-        duration = float(np.linalg.norm(T_b[:3, 3] - self.T[:3, 3])) / speed_mm_s
+        duration = float(np.linalg.norm(T_b[:3, 3] - self.T[:3, 3])) / (speed_mm_s * self.speed_override)
         self.heartbeat_changed = now
         self.motion = (now, duration, self.T.copy(), T_b)
         self.status, self.error = ST_BUSY, ERR_NONE
@@ -170,9 +172,10 @@ class ModbusRobotSim:
         device_id: int = 1,
         word_order: WordOrder = "big",
         watchdog_s: float = 1.0,
+        speed_override: float = 1.0,
     ) -> None:
         self.host, self.port, self.device_id, self.word_order = host, port, device_id, word_order
-        self.robot = _Robot(watchdog_s=watchdog_s)
+        self.robot = _Robot(watchdog_s=watchdog_s, speed_override=speed_override)
         self._lock = threading.Lock()
         self._hr: list[int] = [0] * 64  # the client-visible copy of what the client wrote
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -292,9 +295,10 @@ def run(
     device_id: int = 1,
     word_order: WordOrder = "big",
     watchdog_s: float = 1.0,
+    speed_override: float = 1.0,
 ) -> None:
     """Serve until SIGINT or SIGTERM."""
-    sim = ModbusRobotSim(host, port, device_id, word_order, watchdog_s).start()
+    sim = ModbusRobotSim(host, port, device_id, word_order, watchdog_s, speed_override).start()
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
@@ -311,8 +315,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device-id", type=int, default=1)
     p.add_argument("--word-order", choices=("big", "little"), default="big")
     p.add_argument("--watchdog-s", type=float, default=1.0)
+    p.add_argument("--speed-override", type=float, default=1.0,
+                   help="fraction of the commanded speed the robot really moves at (the speed slider, 0-1]")
     a = p.parse_args(argv)
-    run(a.host, a.port, a.device_id, a.word_order, a.watchdog_s)
+    if not 0 < a.speed_override <= 1:
+        p.error("--speed-override must be in (0, 1]")
+    run(a.host, a.port, a.device_id, a.word_order, a.watchdog_s, a.speed_override)
 
 
 if __name__ == "__main__":

@@ -296,6 +296,7 @@ class ModbusRobot(RobotBase):
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    self._fresh()  # a controller that is gone is DeviceUnavailable, not a slow answer
                     raise DeviceTimeout(f"robot {self.robot_id}: no new state from the controller in {timeout_s} s")
                 self._sample_cv.wait(remaining)
         return self._fresh()

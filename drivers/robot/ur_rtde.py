@@ -332,6 +332,7 @@ class URRTDERobot(RobotBase):
         if not self._control.started:
             return  # no move was ever sent through this adapter
         timeout_s = min(self.config.stop_timeout_s, self.config.command_timeout_s)
+        # stopL first; if the controller cannot be told that, stopJ would not get through either
         self._request("stopL", (self.config.acceleration_m_s2 * 5, False), timeout_s)
         self._request("stopJ", (self.config.joint_acceleration_rad_s2 * 5, False), timeout_s)
 

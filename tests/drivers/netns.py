@@ -127,9 +127,9 @@ def scenario_gige() -> dict[str, Any]:
         }
         cam.set_trigger("software")
         time.sleep(0.3)
-        before = cam.health().frames_received
+        before = cam.health().frames_received or 0
         time.sleep(0.5)
-        idle = cam.health().frames_received - before
+        idle = (cam.health().frames_received or 0) - before
         f, dt, err = _timed(lambda: cam.grab(3.0))
         out["software_trigger"] = {"frames_without_trigger": idle, "grab_s": dt, "error": err}
         _, _, err = _timed(lambda: cam.set_trigger("hardware"))

@@ -59,6 +59,8 @@ class PeerProcess:
             threading.Thread(target=watch, daemon=True).start()
             if not found.wait(timeout_s):
                 raise TimeoutError(f"{self.module} did not print {self.ready_text!r} within {timeout_s} s")
+        if self.proc.poll() is not None:  # the port answered, but not ours: another peer holds it
+            raise RuntimeError(f"{self.module} exited ({self.proc.returncode}); is another one using its port?")
         return self
 
     @property

@@ -2,20 +2,31 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected, RobotStopped
+from drivers.base import (
+    DeviceOperationError,
+    DeviceUnavailable,
+    DriverError,
+    MotionLimits,
+    MotionRejected,
+    RobotStopped,
+)
+from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
-from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from tests.drivers.peers import PeerProcess, wait_port
 
 LIMITS = MotionLimits(
@@ -24,7 +35,7 @@ LIMITS = MotionLimits(
 SETTINGS = {
     "host": "127.0.0.1",
     "connect_timeout_s": 5.0,
-    "state_max_age_s": 0.1,
+    "state_max_age_s": 0.2,  # the default 0.1 s, widened for a loaded 2-core test machine
     "stall_timeout_s": 0.5,
     "command_timeout_s": 5.0,
     "reconnect_initial_s": 0.2,
@@ -52,6 +63,24 @@ def wait_for(predicate, timeout_s: float) -> float:  # type: ignore[no-untyped-d
             pass
         time.sleep(0.01)
     raise AssertionError(f"condition not met within {timeout_s} s")
+
+
+def _answers_within(fn: Callable[[], object], timeout_s: float) -> BaseException | None:
+    """Run ``fn`` in a thread; fail the test if it has not returned or raised within ``timeout_s``."""
+    done = threading.Event()
+    box: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            box.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    assert done.wait(timeout_s), f"no answer within {timeout_s} s"
+    return box[0] if box else None
 
 
 def test_registry_and_settings_validation() -> None:
@@ -107,15 +136,13 @@ class TestAgainstOneEmulator:
     def test_state_is_fresh_and_matches_the_controller(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot
         st = robot.state()
-        assert st.age_s() < 0.1
+        assert st.age_s() < 0.2
         np.testing.assert_allclose(st.T_base_tool, forward_kinematics(np.array(HOME_Q)), atol=1e-6)
         np.testing.assert_allclose(st.joints_rad, HOME_Q, atol=1e-9)
         assert st.mode == "running" and not st.moving
         # the stream is live: successive samples advance at the controller's rate
         t1 = robot.state().metadata["controller_time_s"]
-        time.sleep(0.05)
-        t2 = robot.state().metadata["controller_time_s"]
-        assert 0.0 < t2 - t1 < 0.5  # the controller clock advances (loosely: the machine is shared)
+        wait_for(lambda: robot.state().metadata["controller_time_s"] > t1, 2.0)  # the controller clock advances
 
     def test_move_linear_arrives_at_the_commanded_pose_and_speed(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot
@@ -123,15 +150,19 @@ class TestAgainstOneEmulator:
         target = start.copy()
         target[:3, 3] += [0.03, -0.02, 0.05]  # metres
         dist = float(np.linalg.norm([0.03, -0.02, 0.05]))
-        robot.move_linear(start, speed_m_s=0.2)  # starts the control connection (not timed)
-        t0 = time.monotonic()
-        robot.move_linear(target, speed_m_s=0.2)
-        elapsed = time.monotonic() - t0
+        speeds: list[float] = []
+        mover = threading.Thread(target=lambda: robot.move_linear(target, speed_m_s=0.2))
+        mover.start()
+        # the controller reports the TCP speed it moves at: 0.2 m/s, never the mm/s reading or a jump
+        wait_for(lambda: robot.state().moving, 5.0)
+        while robot.state().moving:
+            speeds.append(robot.state().metadata["tcp_speed_m_s"])
+        mover.join(timeout=10)
         st = robot.state()
         assert np.linalg.norm(st.T_base_tool[:3, 3] - target[:3, 3]) < 0.2e-3
         np.testing.assert_allclose(st.T_base_tool[:3, :3], target[:3, :3], atol=1e-6)
-        # moved at 0.2 m/s: dist / speed = 0.31 s (plus handshake), never the mm/s or instant
-        assert dist / 0.2 * 0.9 < elapsed < dist / 0.2 + 1.0
+        assert speeds and float(np.median(speeds)) == pytest.approx(0.2, rel=0.02)
+        assert dist > 0.05
 
     def test_move_joint_and_envelope(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot
@@ -168,13 +199,12 @@ class TestAgainstOneEmulator:
 
         th = threading.Thread(target=move)
         th.start()
-        wait_for(lambda: robot.state().moving, 5.0)
-        time.sleep(0.3)
+        wait_for(lambda: robot.state().T_base_tool[0, 3] - start[0, 3] > 0.02, 5.0)
         robot.stop()
         th.join(timeout=5)
         assert not th.is_alive()
         assert errors and isinstance(errors[0], RobotStopped)
-        time.sleep(0.05)
+        wait_for(lambda: not robot.state().moving, 2.0)
         travelled = robot.state().T_base_tool[0, 3] - start[0, 3]
         assert 0.02 < travelled < 0.15
 
@@ -223,7 +253,7 @@ class TestAgainstOneEmulator:
         with pytest.raises(DeviceUnavailable, match="not connected"):
             robot.state()
         robot.connect()
-        assert robot.state().age_s() < 0.1
+        assert robot.state().age_s() < 0.2
         target = robot.state().T_base_tool.copy()
         target[0, 3] += 0.005
         robot.move_linear(target, speed_m_s=0.1)
@@ -232,10 +262,8 @@ class TestAgainstOneEmulator:
 def test_connect_fails_fast_without_a_controller(ur_ports: None) -> None:
     """A refused connection is reported at once, not after the connect timeout (the service must not hang)."""
     r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 30.0}, LIMITS)
-    t0 = time.monotonic()
-    with pytest.raises(DeviceUnavailable, match="cannot connect RTDE to 127.0.0.1:30004"):
-        r.connect()
-    assert time.monotonic() - t0 < 10.0  # far below the 30 s connect timeout: the refusal ended the wait
+    err = _answers_within(r.connect, 10.0)  # far below the 30 s connect timeout: the refusal ended the wait
+    assert isinstance(err, DeviceUnavailable) and "cannot connect RTDE to 127.0.0.1:30004" in str(err)
     with pytest.raises(DeviceUnavailable, match="no RTDE state received yet"):
         r.state()
     h = r.health()
@@ -248,15 +276,14 @@ def test_peer_killed_mid_stream_and_restarted(robot: URRTDERobot, ur_emulator: P
     robot.state()
     ur_emulator.kill()
     # never a stale pose: unavailable within the max age (plus polling)
-    t_unavailable = wait_for(lambda: not robot.health().available, 1.0)
-    assert t_unavailable < 1.0
+    wait_for(lambda: not robot.health().available, 1.0)
     with pytest.raises(DeviceUnavailable, match="reconnecting by itself"):
         robot.state()
     ur_emulator.start()
     # the adapter recovers by itself within 5 s (backoff capped at 1 s here) and counts the outage
-    wait_for(lambda: robot.state().age_s() < 0.1 and robot.health().last_outage_s > 0, 5.0)
+    wait_for(lambda: robot.state().age_s() < 0.2 and (robot.health().last_outage_s or 0) > 0, 5.0)
     h = robot.health()
-    assert h.available and h.outages == 1 and h.reconnects >= 1 and h.last_outage_s > 0
+    assert h.available and h.outages == 1 and h.reconnects >= 1 and (h.last_outage_s or 0) > 0
     target = robot.state().T_base_tool.copy()
     target[1, 3] += 0.01
     robot.move_linear(target, speed_m_s=0.1)  # the control connection is rebuilt too
@@ -266,13 +293,10 @@ def test_frozen_peer_read_timeout(robot: URRTDERobot, ur_emulator: PeerProcess) 
     ur_emulator.freeze()
     try:
         wait_for(lambda: not robot.health().available, 1.0)
-        t0 = time.monotonic()
-        with pytest.raises(DeviceUnavailable):
-            robot.state()
-        assert time.monotonic() - t0 < 0.5  # state() never blocks on the peer
+        assert isinstance(_answers_within(robot.state, 0.5), DeviceUnavailable)  # never blocks on the peer
     finally:
         ur_emulator.thaw()
-    wait_for(lambda: robot.state().age_s() < 0.1, 6.0)
+    wait_for(lambda: robot.state().age_s() < 0.2, 6.0)
     assert robot.health().outages == 1
 
 
@@ -302,13 +326,93 @@ def test_malformed_replies(ur_ports: None) -> None:
     wait_port(30004)
     r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 1.5}, LIMITS)
     try:
-        t0 = time.monotonic()
-        with pytest.raises(DeviceUnavailable):
-            r.connect()
-        assert time.monotonic() - t0 < 3.0
+        assert isinstance(_answers_within(r.connect, 3.0), DeviceUnavailable)
         assert r.health().available is False
     finally:
         r.close()
         stop.set()
         th.join(timeout=2)
         srv.close()
+
+
+# -- faults: the service's own deadlines hold while the controller is gone ---------------------------
+
+SERVICE_DEADLINE_S = 3.0
+"""The service's device-call deadline (cellctl.api.deps.DEVICE_CALL_TIMEOUT_S): no request may wait longer."""
+
+
+def test_requests_fail_fast_during_an_outage(robot: URRTDERobot, ur_emulator: PeerProcess) -> None:
+    target = robot.state().T_base_tool.copy()
+    target[2, 3] += 0.01
+    robot.move_linear(target, speed_m_s=0.1)  # the control worker is up and connected
+    ur_emulator.kill()
+    wait_for(lambda: not robot.health().available, 2.0)
+    calls: dict[str, Callable[[], object]] = {
+        "move": lambda: robot.move_linear(target, speed_m_s=0.1),
+        "dashboard": lambda: robot.dashboard("robotmode"),
+        "digital_out": lambda: robot.set_digital_out(1, True),
+        "state": robot.state,
+    }
+    for name, call in calls.items():
+        err = _answers_within(call, SERVICE_DEADLINE_S)
+        assert isinstance(err, DeviceUnavailable), f"{name}: {err!r}"
+    err = _answers_within(lambda: robot.stop(by="test"), SERVICE_DEADLINE_S)  # tried, typed, latched
+    assert err is None or isinstance(err, DriverError), repr(err)
+    assert robot.motion.latched
+    # the cell closes a failed device and opens it again after its back-off: that connect fails fast too
+    robot.close()
+    err = _answers_within(robot.connect, SERVICE_DEADLINE_S)
+    assert isinstance(err, DeviceUnavailable), repr(err)
+
+
+OWNER = """
+import sys, time
+from drivers.base import MotionLimits
+from drivers.robot.ur_rtde import URRTDERobot
+r = URRTDERobot("ur0", {"host": "127.0.0.1", "connect_timeout_s": 20.0},
+                MotionLimits(x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5))
+r.connect()
+r.dashboard("robotmode")  # the control worker too
+print("ready", flush=True)
+time.sleep(600)
+"""
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[1]) == pid:
+                out.append(int(stat.parent.name))
+    return out
+
+
+def _gone(pid: int) -> bool:
+    """True when ``pid`` has exited (a zombie waiting for its new parent to reap it counts as exited)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_kill_9_of_the_owner_takes_its_workers_with_it(ur_emulator: PeerProcess) -> None:
+    """The service is killed with SIGKILL: its UR worker processes must not stay alive and connected."""
+    owner = subprocess.Popen([sys.executable, "-c", OWNER], cwd=Path(__file__).resolve().parents[2],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        assert owner.stdout is not None
+        assert owner.stdout.readline().strip() == b"ready"
+        workers = _children(owner.pid)
+        names = [Path(f"/proc/{p}/cmdline").read_bytes() for p in workers]
+        assert len(workers) >= 2, names  # the state and the control worker (and multiprocessing's tracker)
+        owner.kill()
+        owner.wait(timeout=10)
+        wait_for(lambda: all(_gone(p) for p in workers), 10.0)
+    finally:
+        if owner.poll() is None:
+            owner.kill()
+            owner.wait(timeout=10)
+        for p in _children(owner.pid):
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)

@@ -32,12 +32,13 @@ class UrEmulator:
 
     def __init__(self, host: str = "127.0.0.1", rtde_port: int = RTDE_PORT,
                  dashboard_port: int = DASHBOARD_PORT, script_ports: tuple[int, ...] = SCRIPT_PORTS,
-                 frequency_hz: float = 500.0) -> None:
+                 frequency_hz: float = 500.0, speed_slider: float = 1.0) -> None:
         self.host = host
         self.ports = {"rtde": rtde_port, "dashboard": dashboard_port}
         self.script_ports = script_ports
         self.frequency_hz = frequency_hz
         self.controller = Controller()
+        self.controller.arm.speed_slider = speed_slider  # the pendant's speed slider (fraction, 0-1]
         self.stopping = threading.Event()
         self._servers: list[socket.socket] = []
         self._threads: list[threading.Thread] = []
@@ -170,9 +171,9 @@ def fixed_port_lock(timeout_s: float = 120.0) -> Iterator[None]:
 
 
 def run(host: str = "127.0.0.1", rtde_port: int = RTDE_PORT, dashboard_port: int = DASHBOARD_PORT,
-        script_ports: tuple[int, ...] = SCRIPT_PORTS, frequency_hz: float = 500.0) -> None:
+        script_ports: tuple[int, ...] = SCRIPT_PORTS, frequency_hz: float = 500.0, speed_slider: float = 1.0) -> None:
     """Run the emulator until SIGINT or SIGTERM (the entry point of ``cellctl sim ur``)."""
-    emulator = UrEmulator(host, rtde_port, dashboard_port, script_ports, frequency_hz)
+    emulator = UrEmulator(host, rtde_port, dashboard_port, script_ports, frequency_hz, speed_slider)
     done = threading.Event()
 
     def _on_signal(signum: int, frame: Any) -> None:
@@ -195,6 +196,10 @@ def main(argv: list[str] | None = None) -> None:
         description="Universal Robots RTDE/dashboard emulator for ur_rtde clients")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--frequency-hz", type=float, default=500.0)
+    parser.add_argument("--speed-slider", type=float, default=1.0,
+                        help="the pendant's speed slider: moves run at this fraction of the commanded speed (0-1]")
     args = parser.parse_args(argv)
+    if not 0 < args.speed_slider <= 1:
+        parser.error("--speed-slider must be in (0, 1]")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    run(host=args.host, frequency_hz=args.frequency_hz)
+    run(host=args.host, frequency_hz=args.frequency_hz, speed_slider=args.speed_slider)
