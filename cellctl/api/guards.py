@@ -185,17 +185,27 @@ class StreamLimiter:
     def acquire(self, key: str, limits: EdgeLimits) -> str | None:
         """Take a slot for ``key``; None when taken, else the reason it is refused."""
         with self._lock:
-            mine = self._per_key.get(key, 0)
-            if mine >= limits.max_event_streams_per_token:
-                return (f"this token has {mine} event streams open, the limit per token is "
-                        f"{limits.max_event_streams_per_token}: close one (each followed job holds one) "
-                        "and retry, or raise http.max_event_streams_per_token in cell.yaml")
-            if self._total >= limits.max_event_streams:
-                return (f"{self._total} event streams are open, the cell's limit is {limits.max_event_streams}: "
-                        "retry later, or raise http.max_event_streams in cell.yaml")
-            self._per_key[key] = mine + 1
-            self._total += 1
-            return None
+            refusal = self._refusal(key, limits)
+            if refusal is None:
+                self._per_key[key] = self._per_key.get(key, 0) + 1
+                self._total += 1
+            return refusal
+
+    def would_refuse(self, key: str, limits: EdgeLimits) -> str | None:
+        """The reason ``acquire`` would refuse ``key`` now (None: it would not); takes nothing."""
+        with self._lock:
+            return self._refusal(key, limits)
+
+    def _refusal(self, key: str, limits: EdgeLimits) -> str | None:
+        mine = self._per_key.get(key, 0)
+        if mine >= limits.max_event_streams_per_token:
+            return (f"this token has {mine} event streams open, the limit per token is "
+                    f"{limits.max_event_streams_per_token}: close one (each followed job holds one) "
+                    "and retry, or raise http.max_event_streams_per_token in cell.yaml")
+        if self._total >= limits.max_event_streams:
+            return (f"{self._total} event streams are open, the cell's limit is {limits.max_event_streams}: "
+                    "retry later, or raise http.max_event_streams in cell.yaml")
+        return None
 
     def release(self, key: str) -> None:
         with self._lock:

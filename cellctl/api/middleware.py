@@ -163,6 +163,13 @@ class RequestMiddleware:
             receive = replaying(body, receive)
 
         held: str | None = None
+        if scope.get("method") == "GET" and str(scope.get("path", "")).endswith("/events"):
+            # Fast path for a flood: a token at its limit is refused before routing and auth (the
+            # authoritative count is taken below, when the app starts its event stream).
+            refusal = self.streams.would_refuse(stream_key(scope), limits)
+            if refusal is not None:
+                await _answer(send, TOO_MANY, "too_many_streams", refusal, [(b"retry-after", b"5")])
+                return
 
         async def send_counted(message: Message) -> None:
             nonlocal held
