@@ -175,7 +175,7 @@ def bench_frames(n: int) -> dict[str, float]:
 _FIRST_FRAME = """
 import threading, time
 t0 = time.perf_counter()
-from drivers.sim.camera import SimCamera, SimCameraSettings
+from drivers.camera.sim import SimCamera, SimCameraSettings
 t1 = time.perf_counter()
 cam = SimCamera("cam0", SimCameraSettings())
 cam.open()

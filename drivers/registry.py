@@ -17,7 +17,7 @@ Category = Literal["camera", "robot", "io"]
 
 ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
     "camera": {
-        "sim": ("drivers.sim.camera", "SimCamera"),
+        "sim": ("drivers.camera.sim", "SimCamera"),
         "replay": ("drivers.replay", "ReplayCamera"),
         "opencv": ("drivers.camera.opencv", "OpenCVCamera"),
         "aravis": ("drivers.camera.aravis", "AravisCamera"),

@@ -27,7 +27,7 @@ from cellctl.cell import Cell
 from cellctl.config import default_config_text, parse_config
 from cellctl.jobs import JobCancelled, JobContext, JobManager
 from cellctl.services import Services
-from drivers.sim.camera import SimCamera, SimCameraSettings
+from drivers.camera.sim import SimCamera, SimCameraSettings
 from tests.conftest import Served, start_served, stop_served
 
 VIEWER = "cct_test-viewer-token-0123456789"

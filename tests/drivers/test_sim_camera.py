@@ -12,7 +12,7 @@ import yaml
 from calibration import geometry as g
 from calibration.detect import detect
 from calibration.sensor import Imaging, vignetting_factor
-from drivers.sim.camera import SimCamera, SimCameraSettings
+from drivers.camera.sim import SimCamera, SimCameraSettings
 from drivers.sim.scene import BUILTIN_SCENE, ImagingSpec, SceneError, load_scene, scene_from_dict
 from drivers.sim.world import SimWorld, forget_worlds
 
