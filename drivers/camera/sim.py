@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.render import prepare
-from drivers.base import CameraBase, DeviceUnavailable, Frame
+from drivers.base import CameraBase, DeviceInitError, DeviceUnavailable, Frame
 from drivers.sim.world import SimWorld, world_for
 
 
@@ -73,7 +73,7 @@ class SimCamera(CameraBase):
 
     def set_trigger(self, mode: str) -> None:
         if mode not in ("software", "free_run"):
-            raise ValueError(f"camera {self.camera_id}: trigger mode {mode!r} unknown; use software or free_run")
+            raise DeviceInitError(f"camera {self.camera_id}: trigger mode {mode!r} unknown; use software or free_run")
         self._trigger = mode
 
     def settings(self) -> dict[str, Any]:

@@ -321,8 +321,22 @@ def scenario_bench(seconds: str = "10", rates: str = "100,300", rounds: str = "2
     return out
 
 
+def scenario_contract() -> dict[str, Any]:
+    """The camera contract checks (``camera_contract.py``) over GigE Vision against the fake camera."""
+    from drivers.camera.aravis import AravisCamera
+    from tests.drivers.camera_contract import run_all
+
+    peer = FakeCamera().start()
+    try:
+        return run_all(lambda: AravisCamera("cam0", {"device_id": "127.0.0.1", "interfaces": ["GigEVision"],
+                                                    "frame_rate_hz": 20}))
+    finally:
+        peer.kill()
+
+
 SCENARIOS: dict[str, Callable[..., dict[str, Any]]] = {
     "gige": scenario_gige,
+    "contract": scenario_contract,
     "faults": scenario_faults,
     "bench": scenario_bench,
 }
