@@ -102,6 +102,8 @@ def run(with_baseline: bool) -> str:
     per_variant: dict[str, tuple[Tally, Tally]] = {k: (Tally(), Tally()) for k in VARIANTS}
     mirror_rows: list[str] = []
     mirror_tally = Tally()
+    warm = shape.teach(cases[0].teach_image(), cases[0].roi)
+    shape.find(warm, cases[0].teach_image(), SearchParams(mirrored=True))  # compiled kernels load once
     for case in cases:
         model = shape.teach(case.teach_image(), case.roi)
         ncc = Ncc(case) if with_baseline else None

@@ -54,8 +54,10 @@ class SearchParams:
     """``use_polarity``: edges must have the teach image's contrast direction; ``ignore_global_polarity``:
     or all of them reversed (an inverted image); ``ignore_local_polarity``: each edge either way."""
     greediness: float = 0.9
-    """0: safe (every candidate is scored in full); 1: fast (a candidate is dropped as soon as it can
-    no longer reach ``min_score``, assuming the unseen points match)."""
+    """0: safe, slower; 1: fast, may miss weak parts. A top-level candidate must reach
+    ``(0.4 + greediness / 3) * min(min_score, 0.5)`` of the top-level response (0.7x at 0.9): lower
+    lets weaker candidates through to the finer levels (HALCON's greediness in spirit; our exhaustive
+    top level scores every position in full, so the knob is where candidates are cut)."""
     scale_min: float = 1.0
     scale_max: float = 1.0
     """Isotropic scale range searched (e.g. 0.9..1.1); 1..1 (the default): no scale search."""

@@ -162,8 +162,9 @@ class ShapeModel:
 
 
 def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, float, float]
-                 ) -> tuple[F64, F64, F64]:
-    """Sub-pixel edge points (x, y), unit normals and magnitudes inside ``box`` (x0, y0, x1, y1)."""
+                 ) -> tuple[F64, F64, F64, NDArray[np.int64]]:
+    """Sub-pixel edge points (x, y), unit normals, magnitudes and the integer pixel of each
+    (where the gradient peaks: 8-connected along an edge) inside ``box`` (x0, y0, x1, y1)."""
     h, w = img.shape
     x0, y0, x1, y1 = box
     m = 4 + int(math.ceil(3 * sigma))
@@ -188,12 +189,13 @@ def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, flo
     px = xs + off * nx + cx0
     py = ys + off * ny + cy0
     inside = is_max & (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
+    ipx = np.stack([xs[inside] + cx0, ys[inside] + cy0], axis=1).astype(np.int64)
     return (np.stack([px[inside], py[inside]], axis=1), np.stack([nx[inside], ny[inside]], axis=1),
-            g0[inside])
+            g0[inside], ipx)
 
 
-def _select_edges(pts: F64, nrm: F64, mag: F64, box: tuple[float, float, float, float], thr: float,
-                  min_len: float, border: float, size: tuple[int, int]) -> tuple[F64, F64, F64]:
+def _select_edges(pts: F64, nrm: F64, mag: F64, ipx: NDArray[np.int64], box: tuple[float, float, float, float],
+                  thr: float, min_len: float, border: float, size: tuple[int, int]) -> tuple[F64, F64, F64]:
     """Keep the part's edges: ``border`` px inside the ROI, ``IMAGE_BORDER_PX`` inside the image
     (``size`` = (W, H) of this level), in connected runs of at least ``min_len`` pixels that reach
     ``thr`` somewhere (hysteresis from ``thr / 2``; texture and specks drop out)."""
@@ -201,15 +203,15 @@ def _select_edges(pts: F64, nrm: F64, mag: F64, box: tuple[float, float, float, 
     x0, y0 = max(box[0] + b, e), max(box[1] + b, e)
     x1, y1 = min(box[2] - b, size[0] - 1 - e), min(box[3] - b, size[1] - 1 - e)
     inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
-    pts, nrm, mag = pts[inside], nrm[inside], mag[inside]
+    pts, nrm, mag, ipx = pts[inside], nrm[inside], mag[inside], ipx[inside]
     if len(pts) == 0:
         return pts, nrm, mag
-    ix = np.rint(pts[:, 0] - x0).astype(np.int64) + 1
-    iy = np.rint(pts[:, 1] - y0).astype(np.int64) + 1
+    ix = ipx[:, 0] - int(ipx[:, 0].min()) + 1
+    iy = ipx[:, 1] - int(ipx[:, 1].min()) + 1
     mask = np.zeros((int(iy.max()) + 2, int(ix.max()) + 2), np.uint8)
     mask[iy, ix] = 1
-    # sub-pixel positions round to chains with one-pixel gaps: bridge them before labelling
-    n, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
+    # the gradient maxima's own pixels form 8-connected chains along an edge (as in Canny)
+    n, labels = cv2.connectedComponents(mask, connectivity=8)
     lab = labels[iy, ix]
     strong = np.zeros(n, bool)
     np.logical_or.at(strong, lab, mag >= thr)
@@ -281,15 +283,15 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
     min_len = p.min_component_px if p.min_component_px > 0 else max(6, int(round(0.1 * min(w, h))))
     thr = p.min_contrast * GRAD_PER_CONTRAST
     if p.auto_contrast:
-        _, _, mag0 = _edge_points(img, p.edge_sigma_px, thr, (u, v, u + w, v + h))
+        _, _, mag0, _ = _edge_points(img, p.edge_sigma_px, thr, (u, v, u + w, v + h))
         if len(mag0):
             thr = max(thr, AUTO_CONTRAST_FRACTION * float(np.percentile(mag0, 90)))
     for lv, im in enumerate(pyr):
         s = 2.0 ** lv
         sigma = p.edge_sigma_px if lv == 0 else 0.0
         box = (u / s, v / s, (u + w) / s, (v + h) / s)
-        pts, nrm, mag = _edge_points(im, sigma, 0.5 * thr, box)
-        pts, nrm, mag = _select_edges(pts, nrm, mag, box, thr, max(3.0, min_len / s), ROI_BORDER_PX / s,
+        pts, nrm, mag, ipx = _edge_points(im, sigma, 0.5 * thr, box)
+        pts, nrm, mag = _select_edges(pts, nrm, mag, ipx, box, thr, max(3.0, min_len / s), ROI_BORDER_PX / s,
                                       (im.shape[1], im.shape[0]))
         if len(pts) < 8:
             if lv == 0:

@@ -10,10 +10,17 @@
    discrete level a second pass on unspread responses settles the +-1 px plateaus.
 3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
 
-The score is the mean over model points of ``|cos|`` of the orientation difference times a
-distance weight at the final pose — the fraction of the model's edges that are seen where they
-should be, so it falls smoothly with occlusion. Matches closer than a third of the ROI's smaller
-side, or whose model rectangles overlap a better match by more than ``max_overlap``, are dropped.
+The score (``refine.polarity_score``, HALCON's metric in our words) is the edge-direction
+agreement at the final pose averaged over the model points that lie inside the image: each point
+contributes ``cos`` of the angle between its normal and the nearest image edge's gradient times a
+distance weight, with the polarity rule asked (``use_polarity``, ``ignore_global_polarity``,
+``ignore_local_polarity``). It is the fraction of the visible model edges seen where they should
+be, so it falls smoothly with occlusion, and a part running off the image is scored on what is
+seen (down to ``min_visible`` of its points). With ``mirrored`` the model's mirror image is searched
+too; with a scale range, the top level searches scales as well as angles. Greediness sets how far
+below ``min_score`` a top-level candidate may start. Matches closer than a third of the ROI's
+smaller side, or whose model rectangles overlap a better match by more than ``max_overlap``, are
+dropped. Each match reports the model points that agreed (``n_points``) and were visible.
 
 Own code over OpenCV primitives: OpenCV has no rotation-invariant shape matcher with sub-pixel
 refinement (``matchTemplate`` is translation-only, ``matchShapes`` gives no pose).
