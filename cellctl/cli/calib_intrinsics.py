@@ -123,7 +123,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from calibration.report import write_report
 
         cv = out.get("cross_validation")
-        write_report(res, args.report, cross_validation=cv if cv and "error" not in cv else None)
+        write_report(res, args.report, cross_validation=cv if cv and "error" not in cv else None,
+                     image_files=_image_files(args.images) if args.images else None)
         log.info("report written to %s", args.report)
     for prob in res.verdict["problems"]:
         print(f"cellctl: verdict: {prob['code']}: {prob['message']}", file=sys.stderr)

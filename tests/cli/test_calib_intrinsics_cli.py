@@ -52,7 +52,8 @@ def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> No
     est = CameraModel.from_dict(cam)
     assert projection_difference(est, TRUTH)["rms_px"] < 0.5
     html = rep.read_text()
-    assert html.count("<svg") == 5 and "Projection uncertainty" in html
+    assert html.count('<svg class="plot') == 6 and "Projection uncertainty" in html
+    assert html.count("<figure class='thumb") == 8 and html.count("data:image/jpeg;base64,") == 8
     from calibration.export import read_opencv_yaml
 
     assert np.allclose(read_opencv_yaml(yml).K, est.K)

@@ -8,7 +8,7 @@ from pathlib import Path as FilePath
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, Path, Query
-from fastapi.responses import HTMLResponse, PlainTextResponse
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.api.deps import Engineer, Viewer
@@ -126,7 +126,9 @@ def rollback(body: RollbackInput, services: ServicesDep, who: Engineer) -> dict[
 @router.get("/{cal_id}/export", response_class=PlainTextResponse)
 def export(cal_id: CalId, services: ServicesDep, _: Viewer,
            format: Literal["opencv", "ros", "halcon", "json"] = "opencv",
-           pixel_pitch_um: Annotated[float, Query(gt=0, description="sensor cell size for HALCON")] = 3.45
+           pixel_pitch_um: Annotated[float | None, Query(gt=0, le=100, allow_inf_nan=False,
+                                                         description="sensor cell width in micrometres "
+                                                                     "(required for format=halcon, e.g. 3.45)")] = None
            ) -> PlainTextResponse:
     import json
 
@@ -142,6 +144,11 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
     camera = camera_from_json(rec.result, f"calibration {cal_id}")
     try:
         if format == "halcon":
+            if pixel_pitch_um is None:
+                raise ApiError(422, "pixel_pitch_required",
+                               "HALCON camera parameters are in metres on the sensor: give the sensor cell width "
+                               "as pixel_pitch_um (micrometres, from the camera's data sheet, e.g. "
+                               "?format=halcon&pixel_pitch_um=3.45)")
             return PlainTextResponse(ex.halcon_cam_par(camera, pixel_pitch_um * 1e-6))
         with tempfile.TemporaryDirectory() as tmp:
             path = FilePath(tmp) / "camera.yaml"
@@ -154,27 +161,35 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
         raise ApiError(422, "export_unsupported", str(exc)) from None
 
 
-@router.get("/{cal_id}/report", response_class=HTMLResponse)
-def report(cal_id: CalId, services: ServicesDep, _: Viewer) -> HTMLResponse:
+@router.get("/{cal_id}/report", response_class=HTMLResponse,
+            responses={200: {"content": {"text/html": {}, "application/json": {}}}})
+def report(cal_id: CalId, services: ServicesDep, _: Viewer,
+           format: Annotated[Literal["html", "json"], Query(description="html: the report page (inline SVG "
+                                                                         "plots, no external files); json: its "
+                                                                         "figures")] = "html") -> Response:
+    """The calibration's report: the same page ``cellctl calib intrinsics --report`` writes.
+
+    Built from what the store keeps for the calibration (its result and inputs, both immutable),
+    so it is the same every time it is asked for; the page is kept in memory once built.
+    """
+    from calibration.report_html import ReportError, calibration_report, report_json
+
     rec = _get(services, cal_id)
-    rows = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in _headline(rec.kind, rec.result).items())
-    verdict = rec.result.get("verdict")
-    if verdict is None:
-        verdict_text = "none given for this kind of calibration"
-    else:
-        verdict_text = "ok" if verdict.get("ok", False) else "NOT OK"
-    problems = "".join(f"<li><b>{p.get('code')}</b>: {p.get('message')}</li>"
-                       for p in (verdict or {}).get("problems", []))
-    html = (f"<!doctype html><html><head><meta charset='utf-8'><title>calibration {cal_id}</title></head><body>"
-            f"<h1>{rec.kind} calibration {cal_id} (v{rec.version}) of {rec.camera_id}"
-            f"{' / ' + rec.robot_id if rec.robot_id else ''}</h1>"
-            f"<p>verdict: <b>{verdict_text}</b></p><ul>{problems}</ul>"
-            f"<table>{rows}</table></body></html>")
-    return HTMLResponse(html)
+    try:
+        if format == "json":
+            return JSONResponse(report_json(rec.kind, rec.result, rec.inputs))
+        cached = _REPORTS.get((rec.id, rec.sha256))
+        if cached is None:
+            title = (f"{rec.kind} calibration {cal_id} (v{rec.version}) of {rec.camera_id}"
+                     f"{' / ' + rec.robot_id if rec.robot_id else ''}")
+            cached = calibration_report(rec.kind, rec.result, rec.inputs, title)
+            if len(_REPORTS) >= _MAX_CACHED_REPORTS:
+                _REPORTS.pop(next(iter(_REPORTS)))
+            _REPORTS[(rec.id, rec.sha256)] = cached
+    except ReportError as exc:
+        raise ApiError(409, "no_report", f"calibration {cal_id}: {exc}") from None
+    return HTMLResponse(cached)
 
 
-def _headline(kind: str, result: dict[str, Any]) -> dict[str, Any]:
-    keys = {"camera": ["model", "width", "height", "K", "dist", "rms_px", "uncertainty"],
-            "handeye": ["setup", "T_tool_cam", "T_base_cam", "rms_px", "uncertainty"],
-            "npoint": ["model", "H", "rms_mm", "affine"]}[kind]
-    return {k: result[k] for k in keys if k in result}
+_REPORTS: dict[tuple[int, str], str] = {}
+_MAX_CACHED_REPORTS = 32

@@ -27,9 +27,10 @@ STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
           ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png"}
-# The page must never be served stale after an upgrade, and must not load anything from elsewhere.
+# The page must never be served stale after an upgrade, and must not load anything from elsewhere
+# (inline styles: the calibration report it shows in a srcdoc frame carries its own <style>).
 _HEADERS = {"Cache-Control": "no-cache",
-            "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; "
+            "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; style-src 'self' 'unsafe-inline'; "
                                        "script-src 'self'; frame-src 'self' blob:; object-src 'none'",
             "X-Content-Type-Options": "nosniff"}
 

@@ -1,0 +1,207 @@
+"""The calibration report, from the CLI and the service, rendered in headless Chromium.
+
+A camera calibration from real photographs (tests/data/udacity_camera_cal_9x6), a hand-eye and an
+n-point calibration are stored in a real store, served by ``cellctl serve``; the CLI writes the
+same camera's report with thumbnails. Chromium opens each report with every outside request
+blocked and checks its plots (axes with ticks, colour bars, the valid-region contour, thumbnails,
+the rejected views) and that no raw dump (Python lists, dicts, covariance, 16-digit floats) is
+shown. Screenshots go to ``test-artifacts/screenshots/report-*.png``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from playwright.sync_api import Browser, Page, sync_playwright
+
+from calibration.camera_model import CameraModel
+from calibration.detect import detect_file
+from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
+from calibration.intrinsics import calibrate
+from calibration.npoint import fit_npoint
+from calibration.report import write_report
+from calibration.targets import Chessboard, target_from_dict
+from cellctl.config import default_config_text
+from cellctl.store import Store, sqlite_url
+from tests.conftest import REPO, Served, start_served, stop_served
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+SHOTS = REPO / "test-artifacts" / "screenshots"
+IMAGES = REPO / "tests" / "data" / "udacity_camera_cal_9x6"
+TARGET = {"type": "chessboard", "cols": 9, "rows": 6, "square_mm": 25.0}
+RAW_DUMP = re.compile(r"\[\[|\{'|covariance|\d\.\d{7,}")
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    tmp = tmp_path_factory.mktemp("report")
+    target = target_from_dict(TARGET, "test target")
+    files = sorted(IMAGES.glob("*.jpg"))
+    dets = [detect_file(f, target) for f in files]
+    res = calibrate(dets, target, "opencv5")
+    cli_report = tmp / "cli-report.html"
+    write_report(res, cli_report, image_files=files)
+
+    he_cam = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
+                         np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
+    board, noise = Chessboard(8, 6, 30.0), RobotNoise(sigma_mm=0.05, sigma_deg=0.01)
+    sim = simulate_handeye("eye-in-hand", 10, np.random.default_rng(3), camera=he_cam, target=board,
+                           robot_noise=noise, pixel_sigma_px=0.05)
+    he = calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, he_cam, board, noise)
+
+    rng = np.random.default_rng(7)
+    uv = np.array([[u, v] for v in (200.0, 480.0, 760.0) for u in (300.0, 640.0, 980.0)])
+    xy = np.column_stack([400 + 0.25 * uv[:, 0], 100 - 0.25 * uv[:, 1]]) + rng.normal(0, 0.05, (9, 2))
+    npr = fit_npoint(uv, xy, "affine")
+    pairs = [{"mark_id": k, "u_px": float(a), "v_px": float(b), "x_mm": float(x), "y_mm": float(y)}
+             for k, ((a, b), (x, y)) in enumerate(zip(uv, xy, strict=True))]
+
+    db = tmp / "store.db"
+    with Store(sqlite_url(db), "virtual-cell") as store:
+        ids = {
+            "camera": store.save_calibration("camera", "cam0", None, res.to_json(),
+                                             {"target": TARGET, "views": [d.to_json() for d in dets]}, "test").id,
+            "handeye": store.save_calibration("handeye", "cam0", "robot0", he.to_json(), {}, "test").id,
+            "npoint": store.save_calibration("npoint", "cam0", "robot0", npr.to_json(), {"pairs": pairs}, "test").id,
+        }
+    cfg = tmp / "cell.yaml"
+    cfg.write_text(default_config_text().replace("path: null ", f"path: {db} "))
+    served = start_served(tmp, config=cfg)
+    try:
+        yield {"served": served, "ids": ids, "result": res, "cli_report": cli_report}
+    finally:
+        stop_served(served)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def _open(browser: Browser, url: str, token: str | None, local: str) -> tuple[Page, list[str], Any]:
+    context = browser.new_context(viewport={"width": 1100, "height": 900},
+                                  extra_http_headers={"Authorization": f"Bearer {token}"} if token else {})
+    outside: list[str] = []
+
+    def route(r: Any) -> None:
+        if r.request.url.startswith(local) or r.request.url.startswith("data:"):
+            r.continue_()
+        else:
+            outside.append(r.request.url)
+            r.abort()
+
+    context.route("**/*", route)
+    page = context.new_page()
+    page.goto(url)
+    return page, outside, context
+
+
+def _check_plots(page: Page, min_plots: int) -> None:
+    plots = page.locator("svg.plot")
+    assert plots.count() >= min_plots
+    for k in range(plots.count()):
+        svg = plots.nth(k)
+        assert svg.locator("text.tick").count() >= 4, f"plot {k} has no tick labels"
+        box = svg.bounding_box()
+        assert box is not None and box["width"] > 200 and box["height"] > 150
+    text = page.inner_text("body")
+    assert not RAW_DUMP.search(text), RAW_DUMP.search(text)
+
+
+def test_service_camera_report_in_chromium(cell: dict[str, Any], browser: Browser) -> None:
+    s: Served = cell["served"]
+    res = cell["result"]
+    page, outside, context = _open(browser, f"{s.base_url}/calibrations/{cell['ids']['camera']}/report", s.token,
+                                   s.base_url)
+    try:
+        _check_plots(page, 6)
+        assert page.locator("svg.plot rect.colourbar").count() >= 1
+        assert page.locator("svg.uncertainty text", has_text="limit").count() == 1
+        assert page.locator("svg.coverage path.contour").count() == 1
+        assert page.locator("svg.histogram").count() == 1
+        rejected = [v for v in res.views if not v.used]
+        assert rejected, "the test set has views of another size and without a board"
+        table = page.locator("table.rejected")
+        for v in rejected:
+            assert table.locator("tr", has_text=v.image).count() == 1
+        # Every used view, and each rejected one whose points were detected (another image size), has a thumbnail.
+        for v in res.views:
+            if v.used:
+                assert page.locator("figure.thumb:not(.rejected)", has_text=v.image).count() == 1, v.image
+        assert page.locator("figure.thumb.rejected").count() >= 1
+        verdict = page.locator(".verdict").inner_text()
+        assert ("NOT OK" in verdict) == (not res.verdict["ok"])
+        page.screenshot(path=str(SHOTS / "report-camera-service.png"), full_page=True)
+    finally:
+        context.close()
+    assert outside == []
+
+
+def test_cli_report_is_the_service_report_with_photos(cell: dict[str, Any], browser: Browser) -> None:
+    s: Served = cell["served"]
+    served_html = httpx.get(f"{s.base_url}/calibrations/{cell['ids']['camera']}/report",
+                            headers={"Authorization": f"Bearer {s.token}"}).text
+    cli_html = cell["cli_report"].read_text()
+    for section in ("summary", "params", "rejected"):
+        pattern = re.compile(f"<table class='{section}'>.*?</table>", re.S)
+        a, b = pattern.search(cli_html), pattern.search(served_html)
+        assert a is not None and b is not None and a.group(0) == b.group(0), section
+    page, outside, context = _open(browser, cell["cli_report"].as_uri(), None, "file://")
+    try:
+        _check_plots(page, 6)
+        thumbs = page.locator("figure.thumb image")
+        assert thumbs.count() == sum(1 for v in cell["result"].views if len(v.uv))
+        page.screenshot(path=str(SHOTS / "report-camera-cli.png"), full_page=True)
+    finally:
+        context.close()
+    assert outside == []
+
+
+def test_summary_agrees_with_the_plots(cell: dict[str, Any]) -> None:
+    s: Served = cell["served"]
+    with s.client() as http:
+        data = http.get(f"/calibrations/{cell['ids']['camera']}/report", params={"format": "json"}).json()
+        html = http.get(f"/calibrations/{cell['ids']['camera']}/report").text
+    res = cell["result"]
+    assert [v["rms_px"] for v in data["views"] if v["used"]] == pytest.approx(
+        [v.rms_px for v in res.views if v.used], rel=1e-3)
+    umap = np.array([[np.nan if x is None else x for x in row] for row in data["uncertainty_map_px"]])
+    assert umap == pytest.approx(res.uncertainty_map_px, rel=1e-3, nan_ok=True)
+    corners = [umap[0, 0], umap[0, -1], umap[-1, 0], umap[-1, -1]]
+    from calibration.report_svg import fmt
+
+    assert f"<td class='num'>{fmt(max(corners))} px</td>" in html  # the summary's corner figure is the map's
+    assert data["uncertainty_limit_px"] == 0.5
+
+
+@pytest.mark.parametrize(("kind", "min_plots"), [("handeye", 3), ("npoint", 2)])
+def test_handeye_and_npoint_reports_have_their_own_plots(cell: dict[str, Any], browser: Browser, kind: str,
+                                                         min_plots: int) -> None:
+    s: Served = cell["served"]
+    page, outside, context = _open(browser, f"{s.base_url}/calibrations/{cell['ids'][kind]}/report", s.token,
+                                   s.base_url)
+    try:
+        _check_plots(page, min_plots)
+        if kind == "handeye":
+            assert "held-out prediction" in page.inner_text("body")
+            assert page.locator("table.matrix").count() == 2
+        else:
+            assert page.locator("svg.bubbles circle").count() >= 9 + 2  # marks and the scale legend
+            assert "mm" in (page.locator("svg.bubbles").text_content() or "")
+        page.screenshot(path=str(SHOTS / f"report-{kind}.png"), full_page=True)
+    finally:
+        context.close()
+    assert outside == []
