@@ -75,7 +75,8 @@ def dof4_rows() -> list[dict[str, Any]]:
         for seed in SEEDS:
             s = simulate_scara(setup, 14, np.random.default_rng(seed), camera=CAM, target=BOARD, robot_noise=noise)
             t0 = time.perf_counter()
-            res = calibrate_handeye_dof4(setup, s.G_recorded, s.detections, CAM, BOARD, s.target_z_mm, noise)
+            res = calibrate_handeye_dof4(setup, s.G_recorded, s.detections, CAM, BOARD, s.target_z_mm, noise,
+                                         leave_one_out=False)
             dt = time.perf_counter() - t0
             he = res.to_json()
             truth = dict(he)
@@ -173,11 +174,19 @@ def report(d4: list[dict[str, Any]], tc: list[dict[str, Any]], me: list[dict[str
     L.append(f"- measured frame, 3 stations (0.03 mm / 0.005° robot and tracker), worst of {len(m3)} runs (both "
              f"setups): {wr:.4f}° (≤ 0.03), {wt:.3f} mm (≤ 0.2): "
              f"**{'met' if wr <= 0.03 and wt <= 0.2 else 'MISSED'}**.")
-    miss = [x for x in d4 if x["map"] / x["map_true"] > 1.5]
-    if miss:
-        L.append(f"- mapped-point misses ({len(miss)}): eye-to-hand mapping uses no robot pose, so the true "
-                 "calibration's error there is the pixel noise alone (a few µm); any hand-eye error shows as a "
-                 "ratio, while eye-in-hand both carry the robot's pose noise.")
+    for setup in ("eye-in-hand", "eye-to-hand"):
+        miss = [x for x in d4 if x["setup"] == setup and x["map"] / x["map_true"] > 1.5]
+        if not miss:
+            continue
+        r = [x for x in d4 if x["setup"] == setup]
+        L.append(f"- why the {setup} mapping ratio misses on {len(miss)} of {len(r)} seeds (median ratio "
+                 f"{np.median([x['map'] / x['map_true'] for x in r]):.2f}x): "
+                 + ("a fixed camera maps without any robot pose, so the true calibration's error is the pixel noise "
+                    f"alone ({np.median([x['map_true'] for x in r]) * 1e3:.0f} µm RMS); the estimate's own error "
+                    f"(x/y up to {max(x['err'][1] for x in r):.3f} mm, within its reported 1σ of "
+                    f"{np.median([x['sig_trans'] for x in r]):.2f} mm) adds to it 1:1. Eye-in-hand both carry the "
+                    "robot's pose noise, which hides the estimate's error. More stations lower it (σ ~ 1/√n)."
+                    if setup == "eye-to-hand" else "see the per-seed rows."))
     L += ["", "## 4-DOF hand-eye (per seed)", "",
           "| setup | seed | rot ° | x/y mm | z mm | reported 1σ ° / mm | map mm | true calib map mm | ratio | "
           "OpenCV TSAI ° / x/y mm / z mm | OpenCV PARK ° / x/y mm / z mm | s |",

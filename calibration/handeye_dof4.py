@@ -249,7 +249,8 @@ class HandEyeDof4Result:
 def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detections: Sequence[Detection],
                            camera: CameraModel, target: Target, target_z_mm: float,
                            robot_noise: RobotNoise | None = None, target_z_sigma_mm: float = DEFAULT_TARGET_Z_SIGMA_MM,
-                           sigma_px: float | None = None, max_tilt_deg: float = 1.0) -> HandEyeDof4Result:
+                           sigma_px: float | None = None, max_tilt_deg: float = 1.0,
+                           leave_one_out: bool = True) -> HandEyeDof4Result:
     """4-DOF hand-eye of ``setup`` (module docstring); ``target_z_mm`` in the base frame (mm).
 
     Raises HandEyeError with the reason and the fix: fewer than 3 stations, poses that are not
@@ -357,11 +358,32 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
                         "model": "per axis, base frame: position N(0, sigma_mm^2), orientation Exp(w) with "
                                  "w ~ N(0, sigma_deg^2)"},
         "motion": motion, "poses": poses,
+        "leave_one_out": (_leave_one_out(setup, stations, camera, sigma_px, noise, X, Z, gauge_Z)
+                          if leave_one_out and len(stations) > MIN_STATIONS else {}),
         "init": {"closed_form_diff_to_refined_deg": init_rot, "closed_form_diff_to_refined_mm": init_mm},
         "time_s": time.perf_counter() - t_start, "camera": camera.to_dict(),
         "verdict": {"ok": not errors, "problems": problems},
     }
     return HandEyeDof4Result(setup, X, Z, cov_X, cov_Z, out)
+
+
+def _leave_one_out(setup: str, stations: Sequence[Station4], camera: CameraModel, sigma_px: float,
+                   noise: RobotNoise, X: Mat4, Z: Mat4, gauge_Z: F64) -> dict[str, Any]:
+    """Refit without station i (warm start), predict what its recorded pose shows, compare with its
+    image: target origin distance (mm), rotation (deg) and reprojection RMS (px) of the prediction."""
+    per = []
+    for i, s in enumerate(stations):
+        job = _Joint4(setup, [t for k, t in enumerate(stations) if k != i], camera, sigma_px, noise, X, Z, gauge_Z)
+        sol = least_squares(job.residuals, np.zeros(11 + 6 * job.n), jac=job.jacobian, method="lm",
+                            x_scale="jac", max_nfev=20)
+        Xi, Zi, _ = job.poses(sol.x)
+        Cp = invert(Xi) @ (invert(s.G) if setup == "eye-in-hand" else s.G) @ Zi
+        e = camera.project(s.obj @ Cp[:3, :3].T + Cp[:3, 3]) - s.uv
+        per.append({"image": s.image, "position_mm": float(1e3 * np.linalg.norm(Cp[:3, 3] - s.C[:3, 3])),
+                    "rotation_deg": float(np.degrees(rotation_angle(Cp[:3, :3].T @ s.C[:3, :3]))),
+                    "rms_px": float(np.sqrt(np.mean(np.sum(e * e, axis=1))))})
+    return {"per_pose": per, "position_mm": _stats(np.array([p["position_mm"] for p in per])),
+            "rms_px": _stats(np.array([p["rms_px"] for p in per]))}
 
 
 def _stats(x: F64) -> dict[str, float]:

@@ -43,6 +43,9 @@ def register(sub: Any) -> None:
     p.add_argument("--estimate-robot-noise", action="store_true",
                    help="estimate the robot's noise from the data (real robots: absolute error is often mm)")
     p.add_argument("--no-loo", action="store_true", help="skip the leave-one-out validation (faster)")
+    p.add_argument("--pixel-sigma-px", type=float,
+                   help="image point noise, 1-sigma per coordinate, px (default: estimated from the per-view "
+                        "pose residuals)")
     p.add_argument("--dof", type=int, choices=[4, 6], default=6,
                    help="6 (default): full AX=XB; 4: the tool only turns about the base z axis (SCARA, delta, "
                         "top-down picking) - needs --target-z-mm")
@@ -147,12 +150,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from calibration.handeye_dof4 import calibrate_handeye_dof4
 
         out = calibrate_handeye_dof4(args.setup, poses.T_base_tool, detections, camera, target, args.target_z_mm,
-                                     noise, target_z_sigma_mm=args.target_z_sigma_mm).to_json()
+                                     noise, target_z_sigma_mm=args.target_z_sigma_mm, sigma_px=_pixel_sigma(args),
+                                     leave_one_out=not args.no_loo).to_json()
         _warn(out)
         return out
     try:
         result = calibrate_handeye(args.setup, poses.T_base_tool, detections, camera, target, noise,
-                                   raw_ur_poses=poses.ur_poses, leave_one_out=not args.no_loo,
+                                   raw_ur_poses=poses.ur_poses, sigma_px=_pixel_sigma(args),
+                                   leave_one_out=not args.no_loo,
                                    estimate_robot_noise=args.estimate_robot_noise)
     except HandEyeError as exc:
         from calibration.handeye_dof4_checks import is_dof4
@@ -164,6 +169,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = result.to_json()
     _warn(out)
     return out
+
+
+def _pixel_sigma(args: argparse.Namespace) -> float | None:
+    s = args.pixel_sigma_px
+    if s is not None and not (s > 0 and s < 100):
+        raise CommandError(f"--pixel-sigma-px must be a positive number of pixels (e.g. 0.1), got {s}")
+    return None if s is None else float(s)
 
 
 def _measured_frame(args: argparse.Namespace) -> Any:
@@ -210,7 +222,8 @@ def _run_measured(args: argparse.Namespace, T: Any, target: Any, camera: Any, po
         tracker = RobotNoise(args.tracker_sigma_mm, args.tracker_sigma_deg)
     except ValueError as exc:
         raise CommandError(f"tracker noise: {exc}") from exc
-    res = calibrate_handeye_measured(args.setup, poses.T_base_tool, detections, camera, target, T, noise, tracker)
+    res = calibrate_handeye_measured(args.setup, poses.T_base_tool, detections, camera, target, T, noise, tracker,
+                                     sigma_px=_pixel_sigma(args))
     out = res.to_json()
     if args.check:
         try:

@@ -23,7 +23,7 @@ NOISE = RobotNoise(0.02, 0.01)
 
 def _solve(s: ScaraSet, z_mm: float | None = None) -> dict:
     return calibrate_handeye_dof4(s.setup, s.G_recorded, s.detections, CAM, BOARD,
-                                  s.target_z_mm if z_mm is None else z_mm, NOISE).to_json()
+                                  s.target_z_mm if z_mm is None else z_mm, NOISE, leave_one_out=False).to_json()
 
 
 def _x(out: dict, setup: str) -> np.ndarray:

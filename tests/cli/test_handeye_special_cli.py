@@ -47,6 +47,7 @@ def test_dof4_command_recovers_the_truth(tmp_path: Path, capsys: pytest.CaptureF
     assert code == 0, err
     assert he is not None and he["dof"] == 4 and json.loads(out_file.read_text()) == he
     assert "tool z axis" in he["fixed_by_constraint"]["fixed"][0]
+    assert len(he["leave_one_out"]["per_pose"]) == 14 and he["leave_one_out"]["rms_px"]["rms"] < 1.0
     rot, trans = transform_error(he["T_tool_cam"], truth["T_tool_cam"])
     assert np.degrees(rot) <= 3 * he["uncertainty"]["rot_deg"] and trans * 1e3 <= 3 * he["uncertainty"]["trans_mm"]
     # cellctl map takes the 4-DOF result as it takes a 6-DOF one
@@ -62,6 +63,8 @@ def test_dof4_options_checked(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert code == 2 and "--dof 4 needs --target-z-mm" in err
     code, _, err = _he([*_scara_args(d), "--target-z-mm", "12"], capsys)
     assert code == 2 and "--target-z-mm belongs to --dof 4" in err
+    code, _, err = _he([*_scara_args(d), "--dof", "4", "--target-z-mm", "12", "--pixel-sigma-px", "-1"], capsys)
+    assert code == 2 and "--pixel-sigma-px must be a positive number" in err
 
 
 def test_6dof_solver_refuses_4dof_data_pointing_to_dof4(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
