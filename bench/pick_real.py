@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -33,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.pick import Baseline  # noqa: E402
+from bench.ncc_baseline import Baseline, cpu_model  # noqa: E402
 from bench.pick_cases import DATA, VARIANTS, Case, Found, Scored, load_cases, read_grey, score  # noqa: E402
 from vision import shape  # noqa: E402
 from vision.types import SearchParams  # noqa: E402
@@ -159,7 +158,7 @@ def _report(rows: list[str], mirror_rows: list[str], per_variant: dict[str, tupl
         "from the estimate, and farther than the target plus the estimate's own stated accuracy "
         "(+-0.5-1 px, +-0.5-1 deg; the screws +-4 px; the reverse-side key +-3 px, +-2 deg).",
         "",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores shared with "
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores shared with "
         f"other jobs; load average at start {load0[0]:.2f}, at end {load1[0]:.2f}. Times are "
         "in-process wall time per image (`FindResult.elapsed_s`; the NCC peer timed around its call).",
         "",
