@@ -85,7 +85,7 @@ def _target(robot: ModbusRobot, dx_m: float, dy_m: float, dz_m: float, yaw_deg: 
 
 
 @pytest.fixture(scope="class")
-def shared() -> Iterator[tuple[ModbusRobot, PeerProcess]]:
+def class_peer() -> Iterator[tuple[ModbusRobot, PeerProcess]]:
     """One simulator and one connected adapter for the tests that do not break the peer."""
     port = free_port()
     peer = start_sim(port)
@@ -96,6 +96,25 @@ def shared() -> Iterator[tuple[ModbusRobot, PeerProcess]]:
     finally:
         r.close()
         peer.stop()
+
+
+HOME = np.eye(4)
+HOME[:3, :3] = Rotation.from_euler("xyz", [180, 0, 0], degrees=True).as_matrix()
+HOME[:3, 3] = [0.4, 0.0, 0.3]  # the simulator's start pose (400, 0, 300 mm)
+
+
+@pytest.fixture
+def shared(class_peer: tuple[ModbusRobot, PeerProcess]) -> tuple[ModbusRobot, PeerProcess]:
+    """The class's adapter put back before each test (not latched, outputs off, at the start pose),
+    so the tests do not depend on their order."""
+    robot, _ = class_peer
+    robot.resume()
+    for ch in range(8):
+        robot.set_digital_out(ch, False)
+    if np.linalg.norm(robot.state().T_base_tool[:3, 3] - HOME[:3, 3]) > 1e-6 or not np.allclose(
+            robot.state().T_base_tool[:3, :3], HOME[:3, :3], atol=1e-6):
+        robot.move_linear(HOME, speed_m_s=0.5)
+    return class_peer
 
 
 class TestAgainstOneSimulator:
