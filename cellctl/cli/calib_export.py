@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,18 @@ def run_import(args: argparse.Namespace) -> dict[str, Any]:
     from calibration import export
 
     if args.format == "opencv":
-        camera = export.read_opencv_yaml(args.file)
+        import cv2
+
+        try:
+            camera = export.read_opencv_yaml(args.file)
+        except (cv2.error, SystemError) as exc:
+            # OpenCV's parser fails on anything that is not FileStorage YAML/XML (a SystemError from its binding).
+            cause = getattr(exc, "__cause__", None) or exc
+            detail = str(cause).strip().splitlines()[-1] if str(cause).strip() else type(cause).__name__
+            detail = re.sub(r"^OpenCV\(.*?\) \S+: error: \(-?\d+:[^)]*\) ", "", detail)
+            raise CommandError(f"{args.file}: OpenCV cannot parse it as a FileStorage YAML/XML camera file "
+                               f"({detail[:160]}); give a file written by cv2.FileStorage (or --format ros for "
+                               "a ROS camera_info YAML)") from None
     elif args.format == "ros":
         camera = export.read_ros_yaml(args.file)
     else:

@@ -25,7 +25,8 @@ def register(sub: Any) -> None:
         "detect", help="detect calibration target points in images",
         description="Detect a calibration target's points (ids, sub-pixel u_px/v_px) in each image.")
     parser.add_argument("--target", required=True, help="target description YAML (docs/targets.md)")
-    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files (png, jpg, bmp, tif)")
+    parser.add_argument("images", nargs="+", metavar="IMAGE",
+                        help="image files (png, jpg, bmp, tif) or folders of them (read in sorted name order)")
     parser.add_argument("--out", dest="out_json", help="also write the JSON result to this file")
     parser.set_defaults(func=run)
 
@@ -35,8 +36,10 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     if target.type == "points3d":
         raise CommandError(f"{args.target}: points3d targets have no printed pattern to detect; "
                            "give their image points as obs.csv (id,u_px,v_px) instead")
+    from cellctl.cli.calib_intrinsics import _image_files  # the same folder rule as calib intrinsics
+
     results = []
-    for image in args.images:
+    for image in _image_files(args.images):
         det = detect_file(Path(image), target)
         det.image = str(image)
         log.info("%s: %s", image, f"{len(det.ids)} points" if det.found else f"not found ({det.reason})")

@@ -1,5 +1,9 @@
 """``cellctl map``: a pixel to a robot-frame point in mm with its 1-σ uncertainty.
 
+The answer has ``sigma_mm: [x, y, z]`` like ``POST /map`` (and the ``sigma`` object with
+``total_mm`` too). A robot pose whose translation looks like millimetres and a pixel outside the
+calibrated image are refused.
+
 Works with an N-point map (``np.json``) or a hand-eye calibration (``he.json``; needs the working
 plane's height ``--plane-z-mm`` in the base frame and, eye-in-hand, ``--robot-pose`` at capture
 in UR's form ``x,y,z,rx,ry,rz`` (metres, rotation vector in radians)).
@@ -8,10 +12,10 @@ in UR's form ``x,y,z,rx,ry,rz`` (metres, rotation vector in radians)).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
+from cellctl.api.numbers import pixel_problem, pose_ur_problem
 from cellctl.cli.output import CommandError
 
 
@@ -31,15 +35,11 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.files import read_json
     from calibration.pixel_to_robot import pixel_to_robot
 
     path = Path(args.calib)
-    try:
-        calib = json.loads(path.read_text())
-    except OSError as exc:
-        raise CommandError(f"{path}: cannot read calibration ({exc.strerror})") from exc
-    except json.JSONDecodeError as exc:
-        raise CommandError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+    calib = read_json(path, "a calibration file (np.json or he.json)", CommandError)
     camera = None
     if args.camera:
         from calibration.camera_io import read_camera
@@ -53,7 +53,30 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             raise CommandError(f"--robot-pose must be six numbers x,y,z,rx,ry,rz, got {args.robot_pose!r}") from None
         if len(pose) != 6:
             raise CommandError(f"--robot-pose must be six numbers x,y,z,rx,ry,rz (m, rad), got {len(pose)}")
+        problem = pose_ur_problem(pose, "--robot-pose")
+        if problem:
+            raise CommandError(problem + "; e.g. --robot-pose 0.4,0,0.55,3.1416,0,0")
+    size = _image_size(calib, camera)
+    problem = pixel_problem(args.u, args.v, size, "the calibrated camera")
+    if problem:
+        raise CommandError(problem.replace("u_px", "U").replace("v_px", "V"))
     out = pixel_to_robot(calib, [args.u, args.v], camera=camera, plane_z_mm=args.plane_z_mm, robot_pose=pose,
                          pixel_sigma_px=args.pixel_sigma_px).to_json()
     out["u_px"], out["v_px"] = args.u, args.v
+    # The same key and shape as the REST answer of POST /map: [x, y, z] in mm (z absent for a 2-D map).
+    sig = out.get("sigma", {})
+    out["sigma_mm"] = [sig[k] for k in ("x_mm", "y_mm", "z_mm") if k in sig]
     return out
+
+
+def _image_size(calib: dict[str, Any], camera: Any) -> tuple[int, int] | None:
+    """The image size the pixel must lie in: the camera's, else what the calibration file says."""
+    if camera is not None:
+        return tuple(camera.size)  # type: ignore[return-value]
+    for holder in (calib.get("camera"), calib):
+        if isinstance(holder, dict) and isinstance(holder.get("width"), int) and isinstance(holder.get("height"), int):
+            return holder["width"], holder["height"]
+    size = calib.get("image_size")
+    if isinstance(size, list) and len(size) == 2 and all(isinstance(x, int) for x in size):
+        return size[0], size[1]
+    return None

@@ -25,7 +25,9 @@ class MapInput(BaseModel):
     v_px: float = Field(ge=-1e6, le=1e6)
     camera_id: str | None = None
     robot_id: str | None = None
-    plane_z_mm: float | None = Field(None, ge=-1e5, le=1e5, description="working plane height, base frame")
+    plane_z_mm: float | None = Field(None, ge=-1e5, le=1e5, description="working plane height in the robot base "
+                                                                        "frame, mm (needed with a hand-eye "
+                                                                        "calibration)")
     robot_pose_ur: list[float] | None = Field(None, min_length=6, max_length=6,
                                               description="T_base_tool at capture (m, rad); default: now")
     calibration: Literal["auto", "handeye", "npoint"] = "auto"
@@ -43,7 +45,8 @@ class MapOutput(BaseModel):
     x_mm: float
     y_mm: float
     z_mm: float | None
-    sigma_mm: list[float]
+    sigma_mm: list[float] = Field(description="1-sigma uncertainty [x, y, z] in mm (the CLI's `cellctl map` "
+                                              "answers the same key)")
     calibration_kind: str
     calibration_id: int
     robot_pose_source: str | None
@@ -59,6 +62,13 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
     try:
         mapping = active_mapping(services, camera_id, robot_id, body.calibration, body.plane_z_mm is not None)
     except NoCalibration as exc:
+        store = services.store
+        if (body.plane_z_mm is None and store.active("handeye", camera_id, robot_id) is not None
+                and store.active("camera", camera_id, None) is not None):
+            raise ApiError(422, "plane_z_mm_required",
+                           f"the active hand-eye calibration of {camera_id}/{robot_id} maps a pixel to a ray; "
+                           "give plane_z_mm, the height of the working plane in the robot base frame (mm), "
+                           'e.g. {"u_px": 640, "v_px": 480, "plane_z_mm": 0}') from None
         raise ApiError(409, "no_active_calibration", str(exc)) from None
     source = None
     T = None

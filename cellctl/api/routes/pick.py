@@ -45,6 +45,12 @@ class TeachInput(BaseModel):
     name: str = Field("part", min_length=1, max_length=64)
 
 
+def _no_recipe(services: ServicesDep, recipe_id: int) -> str:
+    stored = sorted({r.recipe_id for r in services.store.list_recipes()})
+    return (f"no recipe {recipe_id} in cell {services.config.cell_id!r}; stored: "
+            f"{', '.join(map(str, stored)) or 'none'} (GET /recipes lists them; POST /recipes stores one)")
+
+
 @router.get("/recipes")
 def list_recipes(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
     return [{"recipe_id": r.recipe_id, "version": r.version, "name": r.name, "creator": r.creator,
@@ -55,8 +61,8 @@ def list_recipes(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
 def get_recipe(recipe_id: Annotated[int, Path(ge=0, le=65535)], services: ServicesDep, _: Viewer) -> dict[str, Any]:
     try:
         r = services.store.get_recipe(recipe_id)
-    except NotFound as exc:
-        raise ApiError(404, "unknown_recipe", str(exc)) from None
+    except NotFound:
+        raise ApiError(404, "unknown_recipe", _no_recipe(services, recipe_id)) from None
     out: dict[str, Any] = r.to_dict()
     return out
 
@@ -98,8 +104,8 @@ async def pick(body: PickInput, services: ServicesDep, who: Operator) -> dict[st
     try:
         answer: dict[str, Any] = await run_in_threadpool(run_pick, services, body.recipe_id, body.camera_id,
                                                          body.move, who.name)
-    except NotFound as exc:
-        raise ApiError(404, "unknown_recipe", str(exc)) from None
+    except NotFound:
+        raise ApiError(404, "unknown_recipe", _no_recipe(services, body.recipe_id)) from None
     except NoCalibration as exc:
         raise ApiError(409, "no_active_calibration", str(exc)) from None
     except (PickError, ModelFileError, ValidationError) as exc:

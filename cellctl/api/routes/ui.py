@@ -30,7 +30,8 @@ _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=
 # The page must never be served stale after an upgrade, and must not load anything from elsewhere
 # (inline styles: the calibration report it shows in a srcdoc frame carries its own <style>).
 _HEADERS = {"Cache-Control": "no-cache",
-            "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; style-src 'self' 'unsafe-inline'; "
+            "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; "
+                                       "style-src 'self' 'unsafe-inline'; "
                                        "script-src 'self'; frame-src 'self' blob:; object-src 'none'",
             "X-Content-Type-Options": "nosniff"}
 

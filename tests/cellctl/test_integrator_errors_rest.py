@@ -1,0 +1,76 @@
+"""REST messages an integrator meets on day one: the right code, the field and the fix, no
+internal function names. A served cell whose store holds an active camera + hand-eye calibration."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from calibration.camera_model import CameraModel
+from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
+from calibration.targets import Chessboard
+from cellctl.config import default_config_text
+from cellctl.store import Store, sqlite_url
+from tests.conftest import Served, start_served, stop_served
+
+CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
+                  np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, int]]:
+    tmp = tmp_path_factory.mktemp("errors")
+    board = Chessboard(8, 6, 30.0)
+    sim = simulate_handeye("eye-in-hand", 10, np.random.default_rng(5), camera=CAM, target=board,
+                           robot_noise=RobotNoise(0.05, 0.01))
+    he = calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, CAM, board, leave_one_out=False)
+    db = tmp / "store.db"
+    with Store(sqlite_url(db), "virtual-cell") as store:
+        cam = store.save_calibration("camera", "cam0", None, {**CAM.to_dict(), "verdict": {"ok": True, "problems": []}},
+                                     {}, "test")
+        store.activate(cam.id, "test")
+        store.activate(store.save_calibration("handeye", "cam0", "robot0", he.to_json(), {}, "test").id, "test")
+    cfg = tmp / "cell.yaml"
+    cfg.write_text(default_config_text().replace("path: null ", f"path: {db} "))
+    s = start_served(tmp, config=cfg)
+    try:
+        yield s, cam.id
+    finally:
+        stop_served(s)
+
+
+def test_map_without_plane_height_with_an_active_handeye(served: tuple[Served, int]) -> None:
+    s, _ = served
+    with s.client() as http:
+        r = http.post("/map", json={"u_px": 800, "v_px": 600})
+        assert r.status_code == 422, r.text
+        err = r.json()["error"]
+        assert err["code"] == "plane_z_mm_required" and "plane_z_mm" in err["message"]
+        assert "run" not in err["message"].split("plane_z_mm")[0]  # does not ask for calibrations we have
+        r = http.post("/map", json={"u_px": 800, "v_px": 600, "plane_z_mm": 0})
+        assert r.status_code == 200, r.text
+        assert len(r.json()["sigma_mm"]) == 3
+
+
+def test_halcon_export_needs_the_pixel_pitch(served: tuple[Served, int]) -> None:
+    s, cam_id = served
+    with s.client() as http:
+        r = http.get(f"/calibrations/{cam_id}/export", params={"format": "halcon"})
+        assert r.status_code == 422
+        err = r.json()["error"]
+        assert err["code"] == "pixel_pitch_required" and "pixel_pitch_um" in err["message"]
+        r = http.get(f"/calibrations/{cam_id}/export", params={"format": "halcon", "pixel_pitch_um": 3.45})
+        assert r.status_code in (200, 422)  # 422 only for a model HALCON cannot take (export_unsupported)
+        if r.status_code == 422:
+            assert r.json()["error"]["code"] == "export_unsupported"
+
+
+def test_unknown_recipe_names_the_route_not_a_function(served: tuple[Served, int]) -> None:
+    s, _ = served
+    with s.client() as http:
+        for r in (http.get("/recipes/77"), http.post("/pick", json={"recipe_id": 77})):
+            assert r.status_code == 404
+            msg = r.json()["error"]["message"]
+            assert "GET /recipes" in msg and "list_recipes" not in msg and "stored: none" in msg
