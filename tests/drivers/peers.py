@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -228,3 +229,23 @@ class SocatPair:
         deadline = time.monotonic() + 2
         while (self.a.exists() or self.b.exists()) and time.monotonic() < deadline:
             time.sleep(0.02)
+
+
+def answers_within(fn: Callable[[], object], timeout_s: float) -> BaseException | None:
+    """Run ``fn`` in a thread and wait for it (an event, not a stopwatch): fail the test if it has
+    neither returned nor raised within ``timeout_s``; return what it raised (None if it returned)."""
+    done = threading.Event()
+    box: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            box.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    if not done.wait(timeout_s):
+        raise AssertionError(f"no answer within {timeout_s} s")
+    return box[0] if box else None

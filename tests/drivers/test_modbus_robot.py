@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -14,7 +15,7 @@ from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable,
 from drivers.io.modbus import ModbusDigitalIO
 from drivers.registry import adapter_class
 from drivers.robot.modbus import ModbusRobot
-from tests.drivers.peers import GarbageServer, PeerProcess, free_port
+from tests.drivers.peers import GarbageServer, PeerProcess, answers_within, free_port
 
 LIMITS = MotionLimits(x_mm=(-900, 900), y_mm=(-900, 900), z_mm=(0, 900), max_linear_speed_m_s=1.0)
 
@@ -131,10 +132,19 @@ class TestAgainstOneSimulator:
         robot, _ = shared
         # 0.25 m at 0.2 m/s = 1.25 s: longer than the PLC's 1 s watchdog, so our heartbeat must run
         target = _target(robot, 0.15, -0.2, 0.0, yaw_deg=30)
-        t0 = time.monotonic()
-        robot.move_linear(target, speed_m_s=0.2)
-        elapsed = time.monotonic() - t0
-        assert 1.2 < elapsed < 3.0
+        start = robot.state().T_base_tool
+        samples: list[tuple[float, float]] = []  # (sample host time s, distance from start m) while moving
+        mover = threading.Thread(target=lambda: robot.move_linear(target, speed_m_s=0.2))
+        mover.start()
+        while mover.is_alive():
+            with contextlib.suppress(DeviceUnavailable):
+                s = robot.state()
+                if s.moving:
+                    samples.append((s.timestamp_s, float(np.linalg.norm(s.T_base_tool[:3, 3] - start[:3, 3]))))
+            time.sleep(0.01)
+        # moved at 0.2 m/s (the m/s -> mm/s register unit), by the controller's own samples
+        t, d = np.array(samples).T
+        assert len(samples) > 10 and np.polyfit(t - t[0], d, 1)[0] == pytest.approx(0.2, rel=0.1)
         st = robot.state()
         np.testing.assert_allclose(st.T_base_tool, target, atol=1e-5)
         assert st.metadata["status"] == "ready"  # the command was cleared
@@ -202,10 +212,8 @@ def test_little_word_order() -> None:
 def test_connect_timeout() -> None:
     port = free_port()  # nothing listens
     r = ModbusRobot("plc0", _settings(port), LIMITS)
-    t0 = time.monotonic()
-    with pytest.raises(DeviceUnavailable, match="no answer from Modbus TCP"):
-        r.connect()
-    assert time.monotonic() - t0 < 2.0
+    err = answers_within(r.connect, 2.0)
+    assert isinstance(err, DeviceUnavailable) and "no answer from Modbus TCP" in str(err)
     assert r.health().available is False
     r.close()
     r.close()
@@ -219,8 +227,7 @@ def test_peer_killed_and_restarted(robot: ModbusRobot, sim: PeerProcess) -> None
     with pytest.raises(DeviceUnavailable, match="reconnecting"):
         robot.state()
     sim.start()
-    recovered = wait_for(lambda: robot.state().age_s() < 0.3, 5.0)  # stated: within 5 s (backoff <= 0.5 s)
-    assert recovered < 5.0
+    wait_for(lambda: robot.state().age_s() < 0.3, 5.0)  # stated: within 5 s (backoff <= 0.5 s)
     h = robot.health()
     assert h.outages == 1 and h.reconnects >= 1 and (h.last_outage_s or 0) > 0
     robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
@@ -230,12 +237,11 @@ def test_frozen_peer_read_timeout(robot: ModbusRobot, sim: PeerProcess) -> None:
     sim.freeze()
     try:
         wait_for(lambda: not robot.health().available, 1.5)
-        t0 = time.monotonic()
-        with pytest.raises(DeviceUnavailable):
-            robot.state()
-        with pytest.raises((DeviceTimeout, DeviceUnavailable)):
-            robot.move_linear(_target(robot, 0.0, 0.0, 0.01), speed_m_s=0.5)
-        assert time.monotonic() - t0 < 2.0
+        assert isinstance(answers_within(robot.state, 2.0), DeviceUnavailable)
+        up = HOME.copy()
+        up[2, 3] += 0.01  # a valid target: the move itself must refuse at once, not wait on the frozen peer
+        err = answers_within(lambda: robot.move_linear(up, speed_m_s=0.5), 2.0)
+        assert isinstance(err, (DeviceTimeout, DeviceUnavailable)), repr(err)
     finally:
         sim.thaw()
     wait_for(lambda: robot.state().age_s() < 0.3, 5.0)
@@ -246,10 +252,7 @@ def test_malformed_replies() -> None:
     peer = GarbageServer().start()
     r = ModbusRobot("plc0", _settings(peer.port), LIMITS)
     try:
-        t0 = time.monotonic()
-        with pytest.raises(DeviceUnavailable):
-            r.connect()
-        assert time.monotonic() - t0 < 2.0
+        assert isinstance(answers_within(r.connect, 2.0), DeviceUnavailable)
         assert "Modbus" in r.health().reason
     finally:
         r.close()

@@ -27,7 +27,7 @@ from drivers.base import (
 from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
-from tests.drivers.peers import PeerProcess, wait_port
+from tests.drivers.peers import PeerProcess, answers_within, wait_port
 
 LIMITS = MotionLimits(
     x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5, max_joint_speed_rad_s=1.0
@@ -63,24 +63,6 @@ def wait_for(predicate, timeout_s: float) -> float:  # type: ignore[no-untyped-d
             pass
         time.sleep(0.01)
     raise AssertionError(f"condition not met within {timeout_s} s")
-
-
-def _answers_within(fn: Callable[[], object], timeout_s: float) -> BaseException | None:
-    """Run ``fn`` in a thread; fail the test if it has not returned or raised within ``timeout_s``."""
-    done = threading.Event()
-    box: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            fn()
-        except BaseException as exc:  # noqa: BLE001 - handed to the test
-            box.append(exc)
-        finally:
-            done.set()
-
-    threading.Thread(target=run, daemon=True).start()
-    assert done.wait(timeout_s), f"no answer within {timeout_s} s"
-    return box[0] if box else None
 
 
 def test_registry_and_settings_validation() -> None:
@@ -262,7 +244,7 @@ class TestAgainstOneEmulator:
 def test_connect_fails_fast_without_a_controller(ur_ports: None) -> None:
     """A refused connection is reported at once, not after the connect timeout (the service must not hang)."""
     r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 30.0}, LIMITS)
-    err = _answers_within(r.connect, 10.0)  # far below the 30 s connect timeout: the refusal ended the wait
+    err = answers_within(r.connect, 10.0)  # far below the 30 s connect timeout: the refusal ended the wait
     assert isinstance(err, DeviceUnavailable) and "cannot connect RTDE to 127.0.0.1:30004" in str(err)
     with pytest.raises(DeviceUnavailable, match="no RTDE state received yet"):
         r.state()
@@ -293,7 +275,7 @@ def test_frozen_peer_read_timeout(robot: URRTDERobot, ur_emulator: PeerProcess) 
     ur_emulator.freeze()
     try:
         wait_for(lambda: not robot.health().available, 1.0)
-        assert isinstance(_answers_within(robot.state, 0.5), DeviceUnavailable)  # never blocks on the peer
+        assert isinstance(answers_within(robot.state, 0.5), DeviceUnavailable)  # never blocks on the peer
     finally:
         ur_emulator.thaw()
     wait_for(lambda: robot.state().age_s() < 0.2, 6.0)
@@ -326,7 +308,7 @@ def test_malformed_replies(ur_ports: None) -> None:
     wait_port(30004)
     r = URRTDERobot("ur0", {**SETTINGS, "connect_timeout_s": 1.5}, LIMITS)
     try:
-        assert isinstance(_answers_within(r.connect, 3.0), DeviceUnavailable)
+        assert isinstance(answers_within(r.connect, 3.0), DeviceUnavailable)
         assert r.health().available is False
     finally:
         r.close()
@@ -354,14 +336,14 @@ def test_requests_fail_fast_during_an_outage(robot: URRTDERobot, ur_emulator: Pe
         "state": robot.state,
     }
     for name, call in calls.items():
-        err = _answers_within(call, SERVICE_DEADLINE_S)
+        err = answers_within(call, SERVICE_DEADLINE_S)
         assert isinstance(err, DeviceUnavailable), f"{name}: {err!r}"
-    err = _answers_within(lambda: robot.stop(by="test"), SERVICE_DEADLINE_S)  # tried, typed, latched
+    err = answers_within(lambda: robot.stop(by="test"), SERVICE_DEADLINE_S)  # tried, typed, latched
     assert err is None or isinstance(err, DriverError), repr(err)
     assert robot.motion.latched
     # the cell closes a failed device and opens it again after its back-off: that connect fails fast too
     robot.close()
-    err = _answers_within(robot.connect, SERVICE_DEADLINE_S)
+    err = answers_within(robot.connect, SERVICE_DEADLINE_S)
     assert isinstance(err, DeviceUnavailable), repr(err)
 
 
