@@ -1,8 +1,10 @@
 """``cellctl pick teach|find``: teach a part model from an image ROI, find it in images.
 
 ``find`` with one ``--model`` answers ``[{"image", "matches": [{"u_px", "v_px", "angle_deg",
-"score"}]}]`` (INTERFACES.md §4); with several it recognises which part each match is and adds
-``part``, ``margin`` and ``runner_up`` to each match.
+"score", ...}], "time_ms", "timed_out"[, "reason"]}]`` (docs/cli.md); with several it recognises
+which part each match is and adds ``part``, ``margin`` and ``runner_up`` to each match. ``time_ms``
+is the in-process search time of that image (the compiled kernels are loaded once before the
+first); ``reason`` says why nothing was found.
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
                       polarity=args.polarity, greediness=args.greediness, mirrored=args.mirrored,
                       scale_min=scale[0], scale_max=scale[1])
     out: list[dict[str, Any]] = []
+    if any(m.shape is not None for m in models):
+        shape.warm_up()  # once per process, so each image's time_ms is its own search
     for path in args.images:
         img = read_image(path)
         for m in models:

@@ -4,9 +4,11 @@
 - ``responses``: quantized orientation response maps and the discrete pose search on them.
 - ``search``: ``find(model, image, SearchParams)`` -> ``FindResult``, coarse to fine.
 - ``refine``: least-squares sub-pixel refinement (similarity, then plane homography).
+- ``kernels``: the compiled inner loops (numba); ``warm_up()`` loads them before a timed search.
 """
 
+from vision.shape.kernels import warm_up
 from vision.shape.model import LevelModel, ShapeModel, TeachParams, auto_levels, teach
 from vision.shape.search import find
 
-__all__ = ["LevelModel", "ShapeModel", "TeachParams", "auto_levels", "find", "teach"]
+__all__ = ["LevelModel", "ShapeModel", "TeachParams", "auto_levels", "find", "teach", "warm_up"]

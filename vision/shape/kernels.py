@@ -177,3 +177,16 @@ def track_scores(resp: NDArray[np.uint8], cx: NDArray[np.int64], cy: NDArray[np.
                 out[c, a * npos + p] = s
     return out
 
+
+
+def warm_up() -> None:
+    """Load (or compile) every kernel now, on tiny inputs: the first search then costs what the
+    next ones cost (loading the compiled code takes ~1 s the first time in a process)."""
+    z2 = np.zeros((2, 2))
+    z1 = np.zeros(2)
+    associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)
+    gn_normal_equations(z2, z2, z2, 1.0, z1, z1)
+    profile_centroids(np.zeros((4, 4), np.float32), z2, z2, 1)
+    zi = np.zeros(1, np.int64)
+    z3 = np.zeros((1, 1, 1), np.int32)
+    track_scores(np.zeros((1, 2, 2), np.uint8), zi, zi, zi, zi, z3, z3, z3)
