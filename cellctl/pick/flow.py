@@ -12,10 +12,13 @@ import time
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from calibration import geometry as g
 from cellctl import metrics
 from cellctl.mapping import active_mapping, npoint_pose_check
 from cellctl.motion import audited_move, halt_after_failure
+from cellctl.pick.frames import match_contours
 from cellctl.pick.pose import fold_yaw, pick_pose, pose_json
 from cellctl.pick.recipe import PickError, Recipe, SearchSettings
 from cellctl.services import Services
@@ -38,8 +41,17 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
     robot_id = recipe.robot_id or services.config.calibration.robot
     robot: RobotBase = services.cell.robot(robot_id).ensure_open()
     if not move:
+        T_capture = _capture_pose(recipe)
+        off = None if T_capture is None else _off_pose(robot, T_capture)
+        if off is not None:
+            raise PickError(f"the robot is {off} from recipe {recipe_id}'s capture pose: the parts would be "
+                            "seen from the wrong place; move it there, or pick with move: true (which goes there "
+                            "first)")
         return _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
     with robot.motion_session(who, f"pick of recipe {recipe_id}") as session:
+        T_capture = _capture_pose(recipe)
+        if T_capture is not None and _off_pose(robot, T_capture) is not None:
+            audited_move(services.store, who, robot, T_capture, recipe.speed_m_s, "pick: to the capture pose", session)
         answer = _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
         session.check()  # a Stop during the grab or the search ends the pick here
         best = next((p for p in answer["picks"] if p["reachable"]), None)
@@ -58,6 +70,24 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
     answer["moved"] = True
     answer["picked"] = best
     return answer
+
+
+CAPTURE_TOLERANCE_MM = 1.0
+CAPTURE_TOLERANCE_DEG = 0.2
+
+
+def _capture_pose(recipe: Recipe) -> NDArray[np.float64] | None:
+    return None if recipe.capture_pose_ur is None else g.ur_pose_to_transform(list(recipe.capture_pose_ur))
+
+
+def _off_pose(robot: RobotBase, T_capture: NDArray[np.float64]) -> str | None:
+    """How far the robot is from ``T_capture`` ("12.3 mm, 0.5 deg"), or None when it is there."""
+    T = robot.state().T_base_tool
+    d_mm = float(np.linalg.norm(T[:3, 3] - T_capture[:3, 3])) * 1e3
+    a_deg = math.degrees(g.rotation_angle(T[:3, :3].T @ T_capture[:3, :3]))
+    if d_mm <= CAPTURE_TOLERANCE_MM and a_deg <= CAPTURE_TOLERANCE_DEG:
+        return None
+    return f"{d_mm:.1f} mm, {a_deg:.2f} deg"
 
 
 def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str | None,
@@ -99,14 +129,15 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
                       "part_yaw_deg": pp["part_yaw_deg"], "gripper_yaw_deg": pp["gripper_yaw_deg"],
                       "uncertainty": {"sigma_mm": pp["sigma_mm"], "sigma_yaw_deg": pp["sigma_yaw_deg"]},
                       "reachable": reason is None, "not_reachable_reason": reason})
-    frame_id = services.frames.add(frame.pixels, [{**p, "part": p["part"]} for p in picks])
+    reason = found.reason()
+    frame_id = services.frames.add(frame.pixels, picks, match_contours(models, picks), reason)
     t_done = time.perf_counter()
     metrics.observe_pick(t_done - t0, [p["score"] for p in picks], source=services)
     answer: dict[str, Any] = {
         "recipe_id": recipe_id, "recipe_version": version, "camera_id": cam_id, "robot_id": robot_id,
         "frame_id": frame_id, "image_url": f"/frames/{frame_id}.png", "timed_out": found.timed_out,
         "calibration": {"kind": mapping.kind, "id": mapping.calibration_id},
-        "capture_pose": pose_json(T_capture), "picks": picks,
+        "capture_pose": pose_json(T_capture), "picks": picks, "reason": reason,
         "latency_ms": {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3,
                        "total": (t_done - t0) * 1e3},
         "moved": False,

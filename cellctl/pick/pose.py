@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
+from calibration.tcp import flange_pose_for_feature, tool_offset_vector
 from cellctl.mapping import ActiveMapping
 from cellctl.pick.recipe import Recipe
 
@@ -48,8 +49,12 @@ def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_
     z0 = z_plane if z_plane is not None else 0.0
     yaw = fold_yaw(part_yaw + math.radians(recipe.grasp_yaw_deg), math.radians(recipe.gripper_symmetry_deg),
                    current_yaw)
-    R = g.rotvec_to_matrix([0.0, 0.0, yaw]) @ g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    R0 = g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    R = g.rotvec_to_matrix([0.0, 0.0, yaw]) @ R0
     T_pick = g.make_transform(R, [x_mm * 1e-3, y_mm * 1e-3, (z0 + recipe.grasp_z_mm) * 1e-3])
+    if recipe.tool_centre_offset_mm is not None:
+        # The pose found is where the gripper's centre must be; the robot is commanded by its flange.
+        T_pick = flange_pose_for_feature(T_pick, tool_offset_vector(recipe.tool_centre_offset_mm, R0))
     T_approach = T_pick.copy()
     T_approach[2, 3] += recipe.approach_height_mm * 1e-3
     sig0 = p0.sigma_mm

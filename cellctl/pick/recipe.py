@@ -1,7 +1,9 @@
 """A pick recipe: which part models to find, how to search, and how the gripper takes the part.
 
 Stored versioned in the store under a PLC recipe number. Lengths are millimetres (``*_mm``),
-angles degrees (``*_deg``) or radians (``*_rad``), speeds m/s.
+angles degrees (``*_deg``) or radians (``*_rad``), speeds m/s; the capture pose is in UR form
+(metres and a rotation vector in radians). A part's yaw in a pick answer is relative to the teach
+image: 0 means the part lies as it did when taught, positive counter-clockwise on screen.
 """
 
 from __future__ import annotations
@@ -50,6 +52,18 @@ class SearchSettings(BaseModel):
         return v
 
 
+class GripperSettings(BaseModel):
+    """How the gripper takes the part (read by the pick motion; None: the cell's default)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    open_width_mm: float | None = Field(None, ge=0, le=1000, description="opening before the approach, mm")
+    grip_width_mm: float | None = Field(None, ge=0, le=1000, description="closing width at the grasp, mm")
+    force_n: float | None = Field(None, ge=0, le=1000, description="grip force, N")
+    settle_s: float = Field(0.2, ge=0, le=10, description="wait after closing before lifting, s")
+    io_output: str | None = Field(None, max_length=64, description="digital output that closes the gripper "
+                                                                    "(a configured io device's channel name)")
+
+
 class Recipe(BaseModel):
     """What to pick and how (stored versioned in the store under a PLC recipe number)."""
 
@@ -71,6 +85,22 @@ class Recipe(BaseModel):
     """Tool orientation at gripper yaw 0 (default: pointing down, tool x along base x)."""
     speed_m_s: float = Field(0.1, ge=MIN_SPEED_M_S, le=2)
     search: SearchSettings = SearchSettings()
+    capture_pose_ur: tuple[Mm, Mm, Mm, Rad, Rad, Rad] | None = Field(
+        None, description="robot pose to take the picture from, UR form [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad] "
+                          "(metres, rotation vector in radians); taught with the part, usually read from the robot")
+    gripper: GripperSettings = GripperSettings()
+    tool_centre_offset_mm: tuple[Mm, Mm] | None = Field(
+        None, description="the gripper's centre from the flange axis, as `cellctl calib tcp` reports it "
+                          "(offset_mm: tool x/y along base x/y at tool rz = 0), mm; the pick poses then put "
+                          "the gripper's centre, not the flange, on the part")
+
+    @field_validator("capture_pose_ur")
+    @classmethod
+    def _capture_pose_in_metres(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and any(abs(x) > 20.0 for x in v[:3]):
+            raise ValueError(f"capture_pose_ur translation {list(v[:3])} looks like millimetres: the UR form is in "
+                             "metres (e.g. [0.4, 0.0, 0.55, 3.1416, 0, 0])")
+        return v
 
     def part_models(self) -> list[PartModel]:
         return [PartModel.from_dict(m, f"recipe {self.name} model {k}") for k, m in enumerate(self.models)]

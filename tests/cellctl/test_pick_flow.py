@@ -34,6 +34,7 @@ def services(tmp_path: Path) -> Iterator[Services]:
     data["store"] = {"path": str(tmp_path / "cell.db")}
     data["cameras"]["cam0"]["settings"]["seed"] = SEED
     data["robots"]["robot0"]["settings"]["seed"] = SEED
+    data["robots"]["robot0"]["settings"]["motion_time_scale"] = 0.0  # the pick itself, not the travel, is tested
     config = parse_config(data)
     from drivers.sim import world as world_module
 
@@ -134,3 +135,40 @@ def test_fold_yaw_respects_gripper_symmetry() -> None:
     assert fold_yaw(math.radians(100), 2 * math.pi, 0.0) == pytest.approx(math.radians(100))
     assert fold_yaw(math.radians(44), math.pi / 2, 0.0) == pytest.approx(math.radians(44))
     assert fold_yaw(math.radians(46), math.pi / 2, 0.0) == pytest.approx(math.radians(-44))
+
+
+def test_a_recipe_with_a_capture_pose_is_seen_from_there(services: Services) -> None:
+    recipe = teach_bracket(services)
+    world = world_for(None, SEED)
+    home = g.transform_to_ur_pose(world.T_base_tool_true)
+    with_pose = recipe.model_copy(update={"capture_pose_ur": tuple(float(v) for v in home)})
+    services.store.save_recipe(3, "bracket from home", with_pose.model_dump(mode="json"), "test")
+    robot = services.cell.robot("robot0").ensure_open()
+    away = world.T_base_tool_true.copy()
+    away[0, 3] += 0.03
+    robot.move_linear(away, 0.25)
+    with pytest.raises(PickError, match=r"30\.0 mm, 0\.00 deg from recipe 3's capture pose"):
+        run_pick(services, 3)
+    answer = run_pick(services, 3, move=True, who="engineer")  # goes back to the capture pose first
+    assert answer["moved"] and answer["picks"][0]["part"] == "bracket"
+    assert np.allclose(answer["capture_pose"]["x_mm"], home[0] * 1e3, atol=0.2)
+    whys = [m.detail["why"] for m in services.store.audit_log(10, "robot.move")]
+    assert whys[:4] == ["pick retreat", "pick pick", "pick approach", "pick: to the capture pose"]
+
+
+def test_the_tool_centre_offset_puts_the_gripper_centre_on_the_part(services: Services) -> None:
+    recipe = teach_bracket(services)
+    part = world_for(None, SEED).scene.parts[0]
+    plain = run_pick(services, 1)["picks"][0]
+    offset = recipe.model_copy(update={"tool_centre_offset_mm": (12.0, -7.0)})
+    services.store.save_recipe(4, "bracket, offset gripper", offset.model_dump(mode="json"), "test")
+    best = run_pick(services, 4)["picks"][0]
+    T_flange = np.array(best["T_base_tool"])
+    # The feature sits at the flange plus the offset turned with the tool (tool x/y along base x/y at rz = 0).
+    yaw = math.radians(best["gripper_yaw_deg"])
+    c, s = math.cos(yaw), math.sin(yaw)
+    feature_mm = T_flange[:2, 3] * 1e3 + np.array([c * 12.0 + s * 7.0, s * 12.0 - c * 7.0])
+    assert math.hypot(feature_mm[0] - part.x_mm, feature_mm[1] - part.y_mm) < 0.3
+    assert math.hypot(best["pick_pose"]["x_mm"] - plain["pick_pose"]["x_mm"],
+                      best["pick_pose"]["y_mm"] - plain["pick_pose"]["y_mm"]) == pytest.approx(math.hypot(12, 7),
+                                                                                                abs=0.05)
