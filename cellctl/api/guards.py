@@ -6,10 +6,11 @@
 - **Non-finite numbers**: Python's ``json`` accepts ``NaN``, ``Infinity`` and ``1e999`` (which
   becomes infinity); no cellctl route wants them. A body that parses as JSON and holds one is
   refused with 422 naming the field (``body.recipe.plane_z_mm``), whatever the route.
-- **Event streams**: responses of type ``text/event-stream`` are counted per token and over all
-  callers while they are open; one over ``http.max_event_streams_per_token`` /
-  ``http.max_event_streams`` is refused with 429 before its first byte. (Each open stream holds a
-  worker thread while it waits for events, so an unbounded number starves every other route.)
+- **Event streams**: requests for an event-stream route (``GET .../events``) and any response of
+  type ``text/event-stream`` are counted per token and over all callers while they are open; one
+  over ``http.max_event_streams_per_token`` / ``http.max_event_streams`` is refused with 429 —
+  for the routes, before routing and auth, so a burst costs no worker threads. (Each open stream
+  holds a worker thread while it waits for events: an unbounded number starves every other route.)
 
 Pure ASGI, used by ``cellctl.api.middleware.RequestMiddleware``.
 """
@@ -190,11 +191,6 @@ class StreamLimiter:
                 self._per_key[key] = self._per_key.get(key, 0) + 1
                 self._total += 1
             return refusal
-
-    def would_refuse(self, key: str, limits: EdgeLimits) -> str | None:
-        """The reason ``acquire`` would refuse ``key`` now (None: it would not); takes nothing."""
-        with self._lock:
-            return self._refusal(key, limits)
 
     def _refusal(self, key: str, limits: EdgeLimits) -> str | None:
         mine = self._per_key.get(key, 0)

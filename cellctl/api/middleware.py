@@ -52,6 +52,8 @@ access_log = logging.getLogger("cellctl.access")
 REQUEST_ID_HEADER = "X-Request-Id"
 _SANE_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 UNMATCHED = "unmatched"
+EDGE = "edge"
+"""The route label of a request the edge guards answered (never routed)."""
 
 
 def incoming_request_id(scope: Scope) -> str | None:
@@ -117,14 +119,15 @@ class RequestMiddleware:
             await send(message)
 
         failed = False
+        at_edge = False
         try:
-            await self._guarded(scope, receive, send_with_id)
+            at_edge = await self._guarded(scope, receive, send_with_id)
         except BaseException:
             failed = True
             raise
         finally:
             duration_s = time.perf_counter() - start
-            route = route_template(scope)
+            route = EDGE if at_edge else route_template(scope)
             method = str(scope.get("method", "?"))
             try:
                 self.metrics.observe_request(method, route, status, duration_s)
@@ -139,41 +142,44 @@ class RequestMiddleware:
                 # On failure the id stays set so the outer error handler's log line still carries it.
                 request_id_var.reset(token)
 
-    async def _guarded(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """Refuse oversized bodies, non-finite JSON numbers and surplus event streams; else run the app."""
+    async def _guarded(self, scope: Scope, receive: Receive, send: Send) -> bool:
+        """Refuse oversized bodies, non-finite JSON numbers and surplus event streams (True), else run the app."""
         limits = self.limits(scope)
         if has_body(scope):
             length = declared_length(scope)
             if length is not None and length > limits.max_body_bytes:
                 await _answer(send, BODY_TOO_LARGE, "body_too_large",
                               too_large_text(limits.max_body_bytes, f"of {length / 1e6:.1f} MB is over"), CLOSE)
-                return
+                return True
             try:
                 body = await read_body(receive, limits.max_body_bytes)
             except BodyTooLarge:
                 await _answer(send, BODY_TOO_LARGE, "body_too_large", too_large_text(limits.max_body_bytes, "passed"),
                               CLOSE)
-                return
+                return True
             except ClientGone:
-                return  # nobody to answer
+                return True  # nobody to answer
             bad = non_finite_field(body)
             if bad is not None:
                 await _answer(send, UNPROCESSABLE, "invalid_request", non_finite_text(*bad))
-                return
+                return True
             receive = replaying(body, receive)
 
         held: str | None = None
         if scope.get("method") == "GET" and str(scope.get("path", "")).endswith("/events"):
-            # Fast path for a flood: a token at its limit is refused before routing and auth (the
-            # authoritative count is taken below, when the app starts its event stream).
-            refusal = self.streams.would_refuse(stream_key(scope), limits)
+            # An event-stream route: the slot is taken before routing and auth, so a burst of
+            # requests is refused here without costing a worker thread each (an answer that is
+            # not a stream, e.g. 401 or 404, gives the slot back as soon as it is sent).
+            key = stream_key(scope)
+            refusal = self.streams.acquire(key, limits)
             if refusal is not None:
                 await _answer(send, TOO_MANY, "too_many_streams", refusal, [(b"retry-after", b"5")])
-                return
+                return True
+            held = key
 
         async def send_counted(message: Message) -> None:
             nonlocal held
-            if message["type"] == "http.response.start" and is_event_stream(message):
+            if message["type"] == "http.response.start" and held is None and is_event_stream(message):
                 key = stream_key(scope)
                 refusal = self.streams.acquire(key, limits)
                 if refusal is not None:
@@ -189,6 +195,7 @@ class RequestMiddleware:
         finally:
             if held is not None:
                 self.streams.release(held)
+        return False
 
 
 # The server closes the connection after a refused body instead of reading the rest of it.

@@ -232,3 +232,12 @@ def test_150_event_streams_from_one_viewer(cell: tuple[Served, dict[str, str]]) 
     finally:
         with served.client(tokens["operator"]) as http:
             http.delete(f"/jobs/{job_id}")
+
+
+def test_answers_that_are_not_streams_give_their_slot_back(cell: tuple[Served, dict[str, str]]) -> None:
+    served, tokens = cell
+    with httpx.Client(base_url=served.base_url, timeout=20.0) as http:
+        for _ in range(3 * MAX_STREAMS):  # more than any limit: each slot must have come back
+            r = http.get("/jobs/nosuchjob/events", headers={"Authorization": f"Bearer {tokens['viewer']}"})
+            assert r.status_code == 404, r.text
+            assert http.get("/jobs/nosuchjob/events").status_code == 401  # no token: refused, slot returned
