@@ -1,6 +1,6 @@
 """``cellctl calib intrinsics``: camera calibration from images (or detections) of a planar target.
 
-Prints the camera result (shared/INTERFACES.md §4 ``cam.json``) on stdout, writes it with
+Prints the camera result (docs/cli.md ``cam.json``) on stdout, writes it with
 ``--out``, and prints each rejected view (with its reason), each verdict problem and a
 cross-validation that cannot run (k too large for the usable views) on stderr. Exits 0 when the calibration itself
 succeeded, even if the verdict says the data cannot support the model (``verdict.ok`` false);
