@@ -4,12 +4,16 @@ Pixels are ``(u, v)``, (0, 0) the centre of the top-left pixel. For circle marks
 image of each mark's *centre* (perspective bias corrected as well as the detector could without
 a calibrated camera) and ``uv_ellipse`` the raw fitted-ellipse centre, which solvers that know
 the camera use with ``calibration.conic.circle_centre_bias_px`` inside their loop.
+
+``uv_sigma_px`` is each point's own 1-sigma position uncertainty (px, per axis) from its local
+fit (``calibration.detect.precision``); solvers weight by it through ``point_weights``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +32,8 @@ class Detection:
     image_size: tuple[int, int] = (0, 0)
     """(width, height) of the image in pixels."""
     quality: dict[str, float] = field(default_factory=dict)
+    uv_sigma_px: NDArray[np.float64] | None = None
+    """(N,) 1-sigma position uncertainty of each point (px, per axis) from its local fit, or None."""
 
     def to_json(self) -> dict[str, Any]:
         """The ``cellctl detect`` JSON of one image (shared/INTERFACES.md §4)."""
@@ -37,6 +43,9 @@ class Detection:
             if self.uv_ellipse is not None:
                 p["u_ellipse_px"] = float(self.uv_ellipse[k, 0])
                 p["v_ellipse_px"] = float(self.uv_ellipse[k, 1])
+            if self.uv_sigma_px is not None:
+                sk = float(self.uv_sigma_px[k])
+                p["sigma_px"] = round(sk, 5) if np.isfinite(sk) else None
             points.append(p)
         out: dict[str, Any] = {"image": self.image, "found": self.found, "points": points}
         if self.reason:
@@ -55,6 +64,37 @@ class Detection:
         ell = None
         if pts and "u_ellipse_px" in pts[0]:
             ell = np.array([[p["u_ellipse_px"], p["v_ellipse_px"]] for p in pts], dtype=np.float64)
-        return cls(image=d["image"], found=bool(d["found"]), ids=ids, uv=uv, uv_ellipse=ell,
+        sig = None
+        if pts and "sigma_px" in pts[0]:
+            sig = np.array([np.inf if p.get("sigma_px") is None else p["sigma_px"] for p in pts], dtype=np.float64)
+        return cls(image=d["image"], found=bool(d["found"]), ids=ids, uv=uv, uv_ellipse=ell, uv_sigma_px=sig,
                    reason=d.get("reason", ""), image_size=(int(d.get("width", 0)), int(d.get("height", 0))),
                    quality=dict(d.get("quality", {})))
+
+
+SYSTEMATIC_FLOOR: Final = 0.5
+"""Part of the typical point's error that no local fit sees (lens model, bias residue), as a
+fraction of the median point uncertainty: it caps any point's weight at ~2.2x the typical one."""
+
+
+def point_weights(sigmas: Sequence[NDArray[np.float64] | None], counts: Sequence[int]) -> list[NDArray[np.float64]]:
+    """Relative residual weights ``1 / s_i`` of the points of several detections (or views).
+
+    ``s_i = sqrt(r_i² + f²) / sqrt(1 + f²)`` with ``r_i`` the point's uncertainty over the median of
+    all points given and ``f`` = ``SYSTEMATIC_FLOOR``, so the median point weighs about 1 and the
+    solvers' residual scale stays in pixels. Views without uncertainties (``None``) weigh 1.
+    """
+    finite = [s[np.isfinite(s) & (s > 0)] for s in sigmas if s is not None]
+    allv = np.concatenate(finite) if finite else np.zeros(0)
+    if allv.size == 0:
+        return [np.ones(n) for n in counts]
+    med = float(np.median(allv))
+    f2 = SYSTEMATIC_FLOOR**2
+    out = []
+    for s, n in zip(sigmas, counts, strict=True):
+        if s is None:
+            out.append(np.ones(n))
+            continue
+        r = np.where(np.isfinite(s), np.asarray(s, dtype=np.float64) / med, 1e3)
+        out.append(np.sqrt(1.0 + f2) / np.sqrt(r * r + f2))
+    return out

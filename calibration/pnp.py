@@ -57,16 +57,25 @@ def _rot(w: F64) -> F64:
     return exp_so3(np.asarray(w, dtype=np.float64).reshape(3))
 
 
-def _residuals(camera: CameraModel, X: F64, uv: F64, R0: F64, x: F64) -> F64:
+def _residuals(camera: CameraModel, X: F64, uv: F64, R0: F64, x: F64, w: F64 | None = None) -> F64:
     R = _rot(x[:3]) @ R0
     P = X @ R.T + x[3:]
-    return np.nan_to_num((camera.project(P) - uv).reshape(-1), nan=1e6)
+    r = camera.project(P) - uv
+    return np.nan_to_num((r if w is None else r * w[:, None]).reshape(-1), nan=1e6)
 
 
-def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) -> PoseResult:
-    """Pose of a target whose points ``points_m`` (N, 3, target frame) are seen at ``uv_px``."""
+def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike,
+                  weights: ArrayLike | None = None) -> PoseResult:
+    """Pose of a target whose points ``points_m`` (N, 3, target frame) are seen at ``uv_px``.
+
+    ``weights``: (N,) relative weights of the points' pixel residuals (``1 / sigma``, e.g. from
+    ``calibration.observations.point_weights``); the refinement and the covariance use them,
+    ``rms_px`` and ``residuals_px`` stay unweighted pixels."""
     X = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w is not None and (len(w) != len(uv) or not np.all(np.isfinite(w) & (w > 0))):
+        raise PoseEstimationError(f"weights must be {len(uv)} positive finite numbers, one per point")
     if len(X) != len(uv):
         raise PoseEstimationError(f"{len(X)} target points but {len(uv)} image points")
     if len(X) < 4:
@@ -104,7 +113,7 @@ def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) ->
     if best is None:  # cands is not empty, so only a bug gets here
         raise PoseEstimationError("internal error: no candidate pose was scored")
     _, name, R0, t0 = best
-    sol = least_squares(lambda x: _residuals(camera, X, uv, R0, x), np.concatenate([np.zeros(3), t0]),
+    sol = least_squares(lambda x: _residuals(camera, X, uv, R0, x, w), np.concatenate([np.zeros(3), t0]),
                         method="lm", x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3]))
     x = sol.x
     R = _rot(x[:3]) @ R0
@@ -116,10 +125,10 @@ def estimate_pose(camera: CameraModel, points_m: ArrayLike, uv_px: ArrayLike) ->
         e = np.zeros(6)
         e[k] = h
         base = np.concatenate([np.zeros(3), x[3:]])
-        J[:, k] = (_residuals(camera, X, uv, R, base + e) - _residuals(camera, X, uv, R, base - e)) / (2 * h)
+        J[:, k] = (_residuals(camera, X, uv, R, base + e, w) - _residuals(camera, X, uv, R, base - e, w)) / (2 * h)
     dof = max(len(r) - 6, 1)
     sigma2 = float(np.sum(r * r)) / dof
     cov = np.asarray(sigma2 * np.linalg.pinv(J.T @ J), dtype=np.float64)
-    res = r.reshape(-1, 2)
+    res = r.reshape(-1, 2) if w is None else r.reshape(-1, 2) / w[:, None]
     rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
     return PoseResult(make_transform(R, x[3:]), rms, cov, res, name)

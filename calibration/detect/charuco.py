@@ -2,7 +2,8 @@
 
 Ids are OpenCV's ChArUco corner ids, which are the ids of ``calibration.targets.Charuco.points()``.
 A detection needs at least ``MIN_CORNERS`` interpolated corners (enough for a homography);
-fewer is reported not found with the number seen.
+fewer is reported not found with the number seen. Each corner carries its 1-sigma uncertainty
+(``calibration.detect.precision``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.detect.precision import CORNER_WINDOW_SIGMA_PX, gradient_sigma_px
 from calibration.observations import Detection
 from calibration.targets import Charuco
 
@@ -42,4 +44,6 @@ def detect_charuco(grey: NDArray[np.uint8], target: Charuco, image_name: str = "
     ids_a = np.asarray(ids, dtype=np.int64).reshape(-1)
     uv = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     order = np.argsort(ids_a)
-    return Detection(image_name, True, ids=ids_a[order], uv=uv[order])
+    uv = uv[order]
+    return Detection(image_name, True, ids=ids_a[order], uv=uv,
+                     uv_sigma_px=gradient_sigma_px(grey, uv, CORNER_WINDOW_SIGMA_PX))

@@ -25,7 +25,8 @@ halves the RMS error of ``findChessboardCornersSB`` even with ``CALIB_CB_ACCURAC
 therefore leave off: it costs four times the time and adds nothing after our refinement) and
 beats ``findChessboardCorners`` + ``cornerSubPix`` (numbers in bench/results/detection.md). It
 is skipped where squares are too small for its window, and a corner it would move by more than
-0.75 px keeps OpenCV's position.
+0.75 px keeps OpenCV's position. Each corner carries its 1-sigma uncertainty from the image
+structure and noise in its window (``calibration.detect.precision``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.detect.precision import CORNER_WINDOW_SIGMA_PX, gradient_sigma_px
 from calibration.observations import Detection
 from calibration.targets import Chessboard
 
@@ -184,4 +186,6 @@ def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: s
             moved = np.hypot(*(refined - uv).T)
             uv = np.where((moved < 0.75)[:, None], refined, uv)
     ids = target.points().ids
-    return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64))
+    sigma = gradient_sigma_px(grey, uv, CORNER_WINDOW_SIGMA_PX)
+    return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64),
+                     uv_sigma_px=sigma)

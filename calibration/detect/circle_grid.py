@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from calibration.detect.chessboard import canonical_order
 from calibration.detect.mark_grid import consistent_marks, perspective_bias
+from calibration.detect.precision import gradient_sigma_px
 from calibration.observations import Detection
 from calibration.targets import CircleGrid
 
@@ -97,4 +98,7 @@ def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: 
     keep = consistent_marks(grid, raw)
     ids, raw, grid = pts.ids[keep], raw[keep], grid[keep]
     corrected = raw - perspective_bias(grid, raw, target.diameter_mm / 2 / target.pitch_mm)
-    return Detection(image_name, True, ids=ids.copy(), uv=corrected, uv_ellipse=raw)
+    radius_px = 0.5 * target.diameter_mm / target.pitch_mm * float(np.median(np.hypot(*np.diff(G, axis=1)
+                                                                                       .reshape(-1, 2).T)))
+    sigma = gradient_sigma_px(grey, raw, window_sigma_px=max(radius_px, 1.5))
+    return Detection(image_name, True, ids=ids.copy(), uv=corrected, uv_ellipse=raw, uv_sigma_px=sigma)

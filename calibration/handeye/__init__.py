@@ -38,12 +38,15 @@ translation distance sqrt(trace Σ_v), 1-σ.
 
 Modules: ``model`` (types, limits, errors), ``frames`` (frame algebra, station poses),
 ``closed_form`` (AX = XB closed forms), ``checks`` (conventions, motion, outliers), ``joint``
-(the joint refinement), ``solve`` (``calibrate_handeye``), ``simulate`` (virtual-cell data).
+(the joint refinement, optionally with the intrinsics and a systematic robot error),
+``error_model`` (the robot error model chosen by leave-one-out prediction), ``solve``
+(``calibrate_handeye``), ``simulate`` (virtual-cell data).
 Everything public is re-exported here: ``from calibration.handeye import X`` is the interface.
 """
 
 from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
 from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, relative_motions, solve_pairs, stats
+from calibration.handeye.error_model import ERROR_MODELS, choose_model, fit_model, leave_one_out_prediction
 from calibration.handeye.frames import (
     hand_pose,
     make_stations,
@@ -54,7 +57,7 @@ from calibration.handeye.frames import (
     target_from_station,
     transform_error_deg_mm,
 )
-from calibration.handeye.joint import JointProblem, LMResult, refine, vce_robot_noise
+from calibration.handeye.joint import JointOptions, JointProblem, LMResult, refine, vce_robot_noise
 from calibration.handeye.model import (
     MAX_PAIR_ANGLE_DEG,
     MIN_AXIS_SPREAD_DEG,
@@ -76,7 +79,7 @@ from calibration.handeye.model import (
     Station,
 )
 from calibration.handeye.simulate import SimulatedHandEye, simulate_handeye
-from calibration.handeye.solve import calibrate_handeye, leave_one_out_prediction
+from calibration.handeye.solve import calibrate_handeye
 
 # The names these helpers had when hand-eye was one module (kept for code written against it).
 _mean_pose = mean_pose
@@ -87,6 +90,7 @@ _solve_pairs = solve_pairs
 _Joint = JointProblem
 
 __all__ = [
+    "ERROR_MODELS", "JointOptions", "choose_model", "fit_model",
     "MAX_PAIR_ANGLE_DEG", "MIN_AXIS_SPREAD_DEG", "MIN_PAIR_ANGLE_DEG", "MIN_STATIONS", "OPENCV_METHODS",
     "OUTLIER_FACTOR", "OUTLIER_FLOOR", "RECOMMENDED_STATIONS", "SETUPS", "WARN_AXIS_SPREAD_DEG",
     "ConventionError", "HandEyeError", "HandEyeResult", "JointProblem", "LMResult", "Mat4", "Problem",

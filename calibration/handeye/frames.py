@@ -22,7 +22,7 @@ from calibration.handeye.model import (
     Problem,
     Station,
 )
-from calibration.observations import Detection
+from calibration.observations import Detection, point_weights
 from calibration.pnp import PoseEstimationError, estimate_pose
 from calibration.targets import Target
 
@@ -58,11 +58,13 @@ def target_from_station(setup: str, X: Mat4, G: Mat4, C: Mat4) -> Mat4:
 # --------------------------------------------------------------------------------------------
 # per-station target pose
 # --------------------------------------------------------------------------------------------
-def station_pose(camera: CameraModel, obj: NDArray[np.float64], uv: NDArray[np.float64]) -> tuple[Mat4, float]:
+def station_pose(camera: CameraModel, obj: NDArray[np.float64], uv: NDArray[np.float64],
+                 weights: NDArray[np.float64] | None = None) -> tuple[Mat4, float]:
     """``T_cam_target`` of one view (``calibration.pnp.estimate_pose``: OpenCV's PnP on undistorted
-    points, then a refinement on pixels through the full camera model). Returns (T, rms_px)."""
+    points, then a refinement on pixels through the full camera model, weighted by ``weights``).
+    Returns (T, unweighted rms_px)."""
     try:
-        pose = estimate_pose(camera, obj, uv)
+        pose = estimate_pose(camera, obj, uv, weights)
     except PoseEstimationError as exc:
         raise HandEyeError(f"target pose of a station failed: {exc}") from exc
     return pose.T_cam_target, pose.rms_px
@@ -73,7 +75,8 @@ def make_stations(T_base_tool: Sequence[ArrayLike], detections: Sequence[Detecti
     """Pair robot poses with detections, compute each station's ``T_cam_target``.
 
     Views where the target was not found (or with fewer than ``min_points`` points) are left out
-    and reported as warnings.
+    and reported as warnings. Points carry relative weights from their detection uncertainty
+    (``Detection.uv_sigma_px``, normalised over all stations by ``point_weights``).
     """
     if len(T_base_tool) != len(detections):
         raise HandEyeError(f"{len(T_base_tool)} robot poses but {len(detections)} images: each image needs "
@@ -82,6 +85,7 @@ def make_stations(T_base_tool: Sequence[ArrayLike], detections: Sequence[Detecti
     lookup = {int(i): k for k, i in enumerate(tp.ids)}
     stations: list[Station] = []
     problems: list[Problem] = []
+    sigmas: list[NDArray[np.float64] | None] = []
     for k, (G_raw, det) in enumerate(zip(T_base_tool, detections, strict=True)):
         G = as_transform(G_raw, f"robot pose {k} ({det.image})")
         if not det.found or len(det.ids) < min_points:
@@ -92,11 +96,15 @@ def make_stations(T_base_tool: Sequence[ArrayLike], detections: Sequence[Detecti
         if unknown:
             raise HandEyeError(f"{det.image}: point ids {unknown[:5]} are not on the target; wrong target file?")
         idx = np.array([lookup[int(i)] for i in det.ids])
-        obj = tp.xyz_m[idx]
         uv = np.asarray(det.uv, dtype=np.float64).reshape(-1, 2)
-        st = Station(det.image, G, np.asarray(det.ids, dtype=np.int64), obj, uv)
-        st.C, st.pnp_rms_px = station_pose(camera, obj, uv)
-        stations.append(st)
+        stations.append(Station(det.image, G, np.asarray(det.ids, dtype=np.int64), tp.xyz_m[idx], uv))
+        sigmas.append(None if det.uv_sigma_px is None else np.asarray(det.uv_sigma_px, dtype=np.float64))
+    for st, w in zip(stations, point_weights(sigmas, [len(s.obj) for s in stations]), strict=True):
+        st.w = w
+        st.C, st.pnp_rms_px = station_pose(camera, st.obj, st.uv, w)
+        Cp = st.C
+        e = (camera.project(st.obj @ Cp[:3, :3].T + Cp[:3, 3]) - st.uv) * w[:, None]
+        st.pnp_ssr_w = float(np.sum(e * e))
     return stations, problems
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.camera_model import CameraModel
+from calibration.geometry import invert
 
 Setup = Literal["eye-in-hand", "eye-to-hand"]
 SETUPS: Final[tuple[str, ...]] = ("eye-in-hand", "eye-to-hand")
@@ -78,6 +79,10 @@ class Station:
     C: Mat4 = field(default_factory=lambda: np.eye(4))
     """``T_cam_target`` from PnP."""
     pnp_rms_px: float = 0.0
+    w: NDArray[np.float64] | None = None
+    """(n,) relative weights of the points (1 / their relative detection uncertainty), or None (all 1)."""
+    pnp_ssr_w: float = 0.0
+    """Weighted sum of squared PnP residuals (px²): the pixel noise estimate's raw material."""
 
 
 @dataclass
@@ -103,6 +108,27 @@ class HandEyeResult:
     loo: dict[str, Any] = field(default_factory=dict)
     time_s: float = 0.0
     camera: CameraModel | None = None
+    """The camera used: the given one, or the jointly refined one (``intrinsics_refined``)."""
+    error_model: dict[str, Any] = field(default_factory=dict)
+    """Which robot error model was used and how each candidate predicted held-out stations."""
+    intrinsics_refined: bool = False
+
+    def predict_cam_target(self, T_base_tool: Mat4) -> Mat4:
+        """Predicted ``T_cam_target`` of a new station with recorded robot pose ``T_base_tool``,
+        through the chosen error model (its systematic correction, if any)."""
+        G = np.asarray(T_base_tool, dtype=np.float64).copy()
+        A = self.error_model.get("systematic_A")
+        if A is not None:
+            G[:3, 3] = G[:3, 3] + np.asarray(A) @ (G[:3, 3] - np.asarray(self.error_model["t_mean_m"]))
+        H = G if self.setup == "eye-in-hand" else invert(G)
+        return np.asarray(invert(self.X) @ invert(H) @ self.Z, dtype=np.float64)
+
+    def predict_pixels(self, T_base_tool: Mat4, points_m: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(N, 2) predicted pixels of target points ``points_m`` (target frame, m) at a new station."""
+        if self.camera is None:
+            raise HandEyeError("this result carries no camera model; pixels cannot be predicted")
+        C = self.predict_cam_target(T_base_tool)
+        return self.camera.project(np.asarray(points_m, dtype=np.float64) @ C[:3, :3].T + C[:3, 3])
 
     @property
     def uncertainty_rot_deg(self) -> float:
@@ -145,6 +171,13 @@ class HandEyeResult:
             "pairs": self.pairs,
             "init": self.init,
             "leave_one_out": self.loo,
+            "quality": {
+                "loo_prediction_rms_px": self.loo.get("prediction_rms_px"),
+                "primary": "loo_prediction_rms_px: each station's target points predicted from its recorded "
+                           "robot pose by a calibration without it (pixel RMS over all held-out points)",
+            },
+            "error_model": self.error_model,
+            "intrinsics_refined": self.intrinsics_refined,
             "time_s": self.time_s,
             **({"camera": self.camera.to_dict()} if self.camera is not None else {}),
             "verdict": {"ok": not errors, "problems": [p.to_json() for p in self.problems]},

@@ -1,4 +1,4 @@
-"""``calibrate_handeye``: checks, closed forms, joint refinement, covariance, leave-one-out."""
+"""``calibrate_handeye``: checks, closed forms, the error model chosen by leave-one-out, covariance."""
 
 from __future__ import annotations
 
@@ -8,11 +8,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from calibration.camera_model import CameraModel
 from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
 from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, solve_pairs, stats
+from calibration.handeye.error_model import ERROR_MODELS, choose_model
 from calibration.handeye.frames import (
     make_stations,
     mean_pose,
@@ -20,7 +21,7 @@ from calibration.handeye.frames import (
     target_from_station,
     transform_error_deg_mm,
 )
-from calibration.handeye.joint import JointProblem, refine, vce_robot_noise
+from calibration.handeye.joint import JointOptions, JointProblem, LMResult
 from calibration.handeye.model import (
     MIN_STATIONS,
     OPENCV_METHODS,
@@ -49,23 +50,88 @@ def calibrate_handeye(
     leave_one_out: bool = True,
     drop_outliers: bool = True,
     estimate_robot_noise: bool = False,
+    *,
+    error_model: str = "auto",
+    refine_intrinsics: bool | None = None,
+    camera_verdict_ok: bool | None = None,
+    camera_covariance: ArrayLike | None = None,
 ) -> HandEyeResult:
     """Hand-eye calibration of ``setup`` from robot poses and per-image target detections.
 
     Runs the checks (pose count, robot-pose conventions, degenerate motion, mis-paired images),
-    the closed forms, the joint maximum-likelihood refinement, the covariance and (optionally)
-    leave-one-out prediction. With ``estimate_robot_noise`` the robot's position and orientation
-    sigmas are estimated from the data (variance-component estimation, starting from
-    ``robot_noise``) — for real robots whose absolute error is unknown. Raises
-    HandEyeError/ConventionError with an actionable message when the data cannot give a
-    trustworthy result.
+    the closed forms, the joint maximum-likelihood refinement, the covariance and leave-one-out
+    prediction — the primary quality figure (``quality.loo_prediction_rms_px``).
+
+    ``error_model``: ``"auto"`` fits every model of ``calibration.handeye.error_model`` and keeps
+    the one that predicts held-out stations best (needs ``leave_one_out``; without it the fixed
+    prior is used), or one of ``ERROR_MODELS`` by name. ``estimate_robot_noise`` (older flag) asks
+    for ``"estimated_iid"``. ``refine_intrinsics``: refine the camera jointly (prior from
+    ``camera_covariance`` if given); default on when ``camera_verdict_ok`` is False (the
+    intrinsics' own verdict said uncertain), else off. Raises HandEyeError/ConventionError with an
+    actionable message when the data cannot give a trustworthy result.
     """
     t_start = time.perf_counter()
+    models = _models(error_model, estimate_robot_noise, leave_one_out)
+    noise = robot_noise or RobotNoise()
+    stations, problems, kept, pair_info = _checked_stations(setup, T_base_tool, detections, camera, target,
+                                                            raw_ur_poses, drop_outliers)
+    candidates, init_info, X0, Z0 = _closed_forms(setup, stations, camera, kept)
+    if sigma_px is None:
+        sigma_px = _pixel_sigma(stations)
+    intr = camera_verdict_ok is False if refine_intrinsics is None else refine_intrinsics
+    cov_c = None if camera_covariance is None else np.asarray(camera_covariance, dtype=np.float64)
+    options = JointOptions(intrinsics=intr, camera_covariance=cov_c)
+    with_loo = leave_one_out and len(stations) > MIN_STATIONS
+    fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
+    job, res, noise = fit.job, fit.res, fit.noise
+    if fit.name == "estimated_iid":
+        problems.append(Problem("robot_noise_estimated",
+                                f"robot noise estimated from the data: {noise.sigma_mm:.3g} mm / "
+                                f"{noise.sigma_deg:.3g} deg (1-sigma per axis)"))
+    X, Z, _ = job.poses(res.x)
+    for name, Xc in candidates.items():
+        r, t = transform_error_deg_mm(Xc, X)
+        init_info[name].update({"diff_to_refined_deg": r, "diff_to_refined_mm": t})
+    cov_X, cov_Z, chi2 = _covariance(res, problems, sigma_px, noise)
+    cam = job.camera_at(res.x)
+    station_json, rms_px, d = _station_report(job, res, stations, sigma_px)
+    rot, tr = axxb_residuals(kept, X)
+    result = HandEyeResult(
+        setup=setup,  # type: ignore[arg-type]
+        X=X, Z=Z, cov_X=cov_X, cov_Z=cov_Z, rms_px=rms_px, sigma_px=sigma_px, chi2_reduced=chi2,
+        robot_noise=noise, stations=station_json, consistency={"rot_deg": stats(rot), "trans_mm": stats(tr)},
+        init=init_info, problems=problems, pairs=pair_info, corrections=d, camera=cam,
+        error_model=model_info, intrinsics_refined=intr,
+    )
+    if with_loo:
+        result.loo = fit.loo
+        for k, e in enumerate(result.loo["per_pose"]):
+            station_json[k]["loo_mm"] = e["position_mm"]
+            station_json[k]["loo_deg"] = e["rotation_deg"]
+            station_json[k]["loo_rms_px"] = e["rms_px"]
+    result.time_s = time.perf_counter() - t_start
+    return result
+
+
+def _models(error_model: str, estimate_robot_noise: bool, leave_one_out: bool) -> list[str]:
+    if error_model != "auto" and error_model not in ERROR_MODELS:
+        raise HandEyeError(f"error_model must be 'auto' or one of {ERROR_MODELS}, got {error_model!r}")
+    if estimate_robot_noise:
+        return ["estimated_iid"]
+    if error_model != "auto":
+        return [error_model]
+    return list(ERROR_MODELS) if leave_one_out else ["fixed_prior"]
+
+
+def _checked_stations(setup: str, T_base_tool: Sequence[ArrayLike], detections: Sequence[Detection],
+                      camera: CameraModel, target: Target, raw_ur_poses: ArrayLike | None, drop_outliers: bool
+                      ) -> tuple[list[Station], list[Problem], list[Any], dict[str, Any]]:
+    """Stations that pass the checks (count, outliers, conventions, motion), the problems found,
+    the AX = XB pairs kept and the pair statistics."""
     if setup not in SETUPS:
         raise HandEyeError(f"setup must be one of {SETUPS}, got {setup!r}")
     if isinstance(target, Points3D) and len(target.points().ids) < 4:
         raise HandEyeError("the target needs at least 4 points")
-    noise = robot_noise or RobotNoise()
     raw = None if raw_ur_poses is None else np.asarray(raw_ur_poses, dtype=np.float64).reshape(-1, 6)
     stations, problems = make_stations(T_base_tool, detections, camera, target)
     if raw is not None:
@@ -95,12 +161,17 @@ def calibrate_handeye(
             "camera's (rotation angle / shift along the axis) far more than the others'; left out of the "
             "solution. Check those rows of poses.csv (shifted or swapped rows are typical)."))
         stations = [stations[k] for k in inl]
-        G = [s.G for s in stations]
-        C = [s.C for s in stations]
-    kept, pair_info, motion_problems = check_motion(setup, G, C)
-    problems += motion_problems
+    kept, pair_info, motion_problems = check_motion(setup, [s.G for s in stations], [s.C for s in stations])
+    pair_info["conventions"] = conventions
+    return stations, problems + motion_problems, kept, pair_info
 
-    # closed forms
+
+def _closed_forms(setup: str, stations: Sequence[Station], camera: CameraModel, kept: list[Any]
+                  ) -> tuple[dict[str, Mat4], dict[str, Any], Mat4, Mat4]:
+    """Every closed form (ours and OpenCV's five), scored by reprojection; the best starts the
+    refinement. Returns (candidates, init info, X0, Z0)."""
+    G = [s.G for s in stations]
+    C = [s.C for s in stations]
     candidates: dict[str, Mat4] = {"PAIRS_LSQ": solve_pairs(kept)}
     for name in OPENCV_METHODS:
         try:
@@ -109,54 +180,36 @@ def calibrate_handeye(
                 candidates[name] = Xc
         except cv2.error:
             continue
-
-    if sigma_px is None:
-        ssr = sum(s.pnp_rms_px**2 * len(s.obj) for s in stations)  # sum of squared residual norms
-        dof = sum(2 * len(s.obj) for s in stations) - 6 * len(stations)
-        sigma_px = float(max(np.sqrt(ssr / max(dof, 1)), 1e-3))
-
-    def reproj(Xc: Mat4) -> tuple[float, Mat4]:
+    init_info: dict[str, Any] = {}
+    best_name, best_rms, best_X, best_Z = "", np.inf, np.eye(4), np.eye(4)
+    for name, Xc in candidates.items():
         Zc = mean_pose([target_from_station(setup, Xc, g, c) for g, c in zip(G, C, strict=True)])
         err = []
         for s in stations:
             Cp = predict_cam_target(setup, Xc, Zc, s.G)
             err.append(camera.project(s.obj @ Cp[:3, :3].T + Cp[:3, 3]) - s.uv)
         e = np.vstack(err)
-        return float(np.sqrt(np.nanmean(np.sum(e * e, axis=1)))), Zc
-
-    init_info: dict[str, Any] = {}
-    best_name, best_rms, best_X, best_Z = "", np.inf, np.eye(4), np.eye(4)
-    for name, Xc in candidates.items():
-        rms, Zc = reproj(Xc)
+        rms = float(np.sqrt(np.nanmean(np.sum(e * e, axis=1))))
         init_info[name] = {"reprojection_rms_px": rms}
         if rms < best_rms:
             best_name, best_rms, best_X, best_Z = name, rms, Xc, Zc
-
-    job, res = refine(setup, stations, camera, sigma_px, noise, best_X, best_Z)
-    if estimate_robot_noise:
-        for _ in range(8):
-            new = vce_robot_noise(job, res, noise)
-            done = (abs(np.log(new.sigma_mm / noise.sigma_mm)) < 0.02
-                    and abs(np.log(new.sigma_deg / noise.sigma_deg)) < 0.02)
-            noise = new
-            X1, Z1, _ = job.poses(res.x)
-            job = JointProblem(setup, stations, camera, sigma_px, noise, X1, Z1)
-            x1 = res.x.copy()
-            x1[:12] = 0.0
-            res = job.solve(x1)
-            if done:
-                break
-        problems.append(Problem("robot_noise_estimated",
-                                f"robot noise estimated from the data: {noise.sigma_mm:.3g} mm / "
-                                f"{noise.sigma_deg:.3g} deg (1-sigma per axis)"))
-    X, Z, Gc = job.poses(res.x)
-    for name, Xc in candidates.items():
-        r, t = transform_error_deg_mm(Xc, X)
-        init_info[name].update({"diff_to_refined_deg": r, "diff_to_refined_mm": t})
     init_info["chosen"] = best_name
+    return candidates, init_info, best_X, best_Z
 
-    # covariance
-    J = res.jac.toarray() if hasattr(res.jac, "toarray") else np.asarray(res.jac)
+
+def _pixel_sigma(stations: Sequence[Station]) -> float:
+    """Pixel noise (px, per axis, of a point of weight 1) from the weighted per-station PnP residuals,
+    which carry no robot noise."""
+    ssr = sum(s.pnp_ssr_w for s in stations)
+    dof = sum(2 * len(s.obj) for s in stations) - 6 * len(stations)
+    return float(max(np.sqrt(ssr / max(dof, 1)), 1e-3))
+
+
+def _covariance(res: LMResult, problems: list[Problem], sigma_px: float, noise: RobotNoise
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """Covariances of X and Z from the whitened normal matrix, scaled up by the reduced chi² when
+    the data are noisier than stated (with a problem saying so)."""
+    J = np.asarray(res.jac)
     m, npar = J.shape
     chi2 = float(2 * res.cost / max(m - npar, 1))
     try:
@@ -165,64 +218,29 @@ def calibrate_handeye(
         raise HandEyeError("the joint refinement is singular: the poses do not determine the hand-eye "
                            "transform; add poses rotated about different axes") from exc
     scale = max(1.0, chi2)
-    cov_X = cov[:6, :6] * scale
-    cov_Z = cov[6:12, 6:12] * scale
     if chi2 > 4.0:
         problems.append(Problem(
             "noise_model", f"the residuals are {np.sqrt(chi2):.1f}x larger than the stated noise "
             f"(pixel {sigma_px:.3g} px, robot {noise.sigma_mm:g} mm / {noise.sigma_deg:g} deg): the robot is "
-            "less accurate than stated (absolute kinematic error?); the uncertainty was scaled up accordingly"))
+            "less accurate than stated (absolute kinematic error?); the uncertainty was scaled up accordingly. "
+            "Judge the result by its leave-one-out prediction (quality.loo_prediction_rms_px)"))
+    return cov[:6, :6] * scale, cov[6:12, 6:12] * scale, chi2
 
-    # residuals per station
-    r_px = res.fun[: 2 * job.n_obs].reshape(-1, 2) * sigma_px
+
+def _station_report(job: JointProblem, res: LMResult, stations: Sequence[Station], sigma_px: float
+                    ) -> tuple[list[dict[str, Any]], float, NDArray[np.float64]]:
+    """Per-station residuals (unweighted px) and robot corrections; overall RMS; (N, 6) corrections."""
+    r_px = res.fun[: 2 * job.n_obs].reshape(-1, 2) * sigma_px / job.w[:, None]
     rms_px = float(np.sqrt(np.mean(np.sum(r_px * r_px, axis=1))))
-    d = res.x[12:].reshape(job.n, 6)
-    station_json: list[dict[str, Any]] = []
+    d = res.x[job.k0:].reshape(job.n, 6)
+    out: list[dict[str, Any]] = []
     for k, s in enumerate(stations):
         rk = r_px[job.sid == k]
-        station_json.append({
+        out.append({
             "image": s.image, "used": True, "points": len(s.obj),
             "rms_px": float(np.sqrt(np.mean(np.sum(rk * rk, axis=1)))),
             "pnp_rms_px": s.pnp_rms_px,
             "robot_correction_mm": float(1e3 * np.linalg.norm(d[k, 3:])),
             "robot_correction_deg": float(np.degrees(np.linalg.norm(d[k, :3]))),
         })
-    rot, tr = axxb_residuals(kept, X)
-    consistency = {"rot_deg": stats(rot), "trans_mm": stats(tr)}
-    pair_info["conventions"] = conventions
-
-    result = HandEyeResult(
-        setup=setup,  # type: ignore[arg-type]
-        X=X, Z=Z, cov_X=cov_X, cov_Z=cov_Z, rms_px=rms_px, sigma_px=sigma_px, chi2_reduced=chi2,
-        robot_noise=noise, stations=station_json, consistency=consistency, init=init_info,
-        problems=problems, pairs=pair_info, corrections=d, camera=camera,
-    )
-    if leave_one_out and len(stations) > MIN_STATIONS:
-        result.loo = leave_one_out_prediction(setup, stations, camera, sigma_px, noise, X, Z)
-        for k, e in enumerate(result.loo["per_pose"]):
-            station_json[k]["loo_mm"] = e["position_mm"]
-            station_json[k]["loo_deg"] = e["rotation_deg"]
-            station_json[k]["loo_rms_px"] = e["rms_px"]
-    result.time_s = time.perf_counter() - t_start
-    return result
-
-
-def leave_one_out_prediction(setup: str, stations: Sequence[Station], camera: CameraModel, sigma_px: float,
-                   noise: RobotNoise, X: Mat4, Z: Mat4) -> dict[str, Any]:
-    """Refine without station i (warm start), predict its ``T_cam_target`` from its recorded robot
-    pose, and compare with what its image shows: target origin distance (mm), rotation (deg) and
-    reprojection RMS (px) of the prediction."""
-    per: list[dict[str, Any]] = []
-    for i, s in enumerate(stations):
-        rest = [t for k, t in enumerate(stations) if k != i]
-        job = JointProblem(setup, rest, camera, sigma_px, noise, X, Z)
-        res = job.solve()
-        Xi, Zi, _ = job.poses(res.x)
-        Cp = predict_cam_target(setup, Xi, Zi, s.G)
-        rdeg, tmm = transform_error_deg_mm(Cp, s.C)
-        e = camera.project(s.obj @ Cp[:3, :3].T + Cp[:3, 3]) - s.uv
-        per.append({"image": s.image, "position_mm": tmm, "rotation_deg": rdeg,
-                    "rms_px": float(np.sqrt(np.mean(np.sum(e * e, axis=1))))})
-    pos = np.array([p["position_mm"] for p in per])
-    px = np.array([p["rms_px"] for p in per])
-    return {"per_pose": per, "position_mm": stats(pos), "rms_px": stats(px)}
+    return out, rms_px, d

@@ -26,8 +26,13 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
    That formula assumes independent pixel noise. Real detectors (and our rendered benchmark)
    make errors that are correlated within a view, which it cannot see; so a grouped view-level
    jackknife (up to 10 groups, each replicate warm-started) estimates the projection
-   uncertainty empirically too, and when it is larger the analytic covariance is scaled up to
-   match (``uncertainty.inflation``; both estimates are reported).
+   uncertainty empirically too, on the cells at least 3 views saw (elsewhere a replicate
+   without the one view that covered a cell extrapolates, which over-reported small targets),
+   and when it is *significantly* larger than the analytic value on the same cells (beyond the
+   jackknife's own sampling noise, ``1 + 2 / sqrt(2 (G - 1))``) the analytic covariance is scaled
+   up to match (``uncertainty.inflation``; both estimates are reported). Residuals are weighted
+   by each point's own detection uncertainty (``Detection.uv_sigma_px``); ``sigma^2`` is then the
+   scale of a point of weight 1.
 5. **Projection uncertainty** (mrcal's idea, docs/cli.md ``uncertainty.projection_rms_px``):
    rays through a grid of pixels are projected with perturbed intrinsics; a small rotation of the
    camera frame cannot be told from some intrinsics changes (principal point vs. pan/tilt), so the

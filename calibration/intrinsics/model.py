@@ -51,6 +51,8 @@ class BundleProblem:
     obs: F64        # (M, 2) observed pixels (bias-corrected for circle marks)
     view: NDArray[np.int64]
     starts: NDArray[np.int64]
+    w: F64 | None = None
+    """(M,) relative weight of each point (``calibration.observations.point_weights``), or None."""
 
     @property
     def n_views(self) -> int:
@@ -64,7 +66,11 @@ class BundleProblem:
         return project_normalized(self.model, c, xy)
 
     def residuals(self, c: F64, R: F64, t: F64) -> F64:
-        return (self.project(c, R, t) - self.obs).reshape(-1)
+        """Weighted pixel residuals (the solver's cost): ``w_i (projected - observed)``, flattened."""
+        r = self.project(c, R, t) - self.obs
+        if self.w is not None:
+            r = r * self.w[:, None]
+        return r.reshape(-1)
 
 
 def intrinsic_steps(c: F64) -> F64:

@@ -19,6 +19,8 @@ POINT_OUTLIER_SIGMAS: Final = 5.0
 VIEW_OUTLIER_FACTOR: Final = 3.0
 JACKKNIFE_GROUPS: Final = 10
 JACKKNIFE_MIN_VIEWS: Final = 5
+JACKKNIFE_MIN_COVER: Final = 3
+"""The jackknife is compared with the analytic covariance on cells at least this many views saw."""
 
 
 class CalibrationError(ValueError):

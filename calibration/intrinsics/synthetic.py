@@ -20,14 +20,18 @@ from calibration.targets import Target
 
 
 def plan_views(camera: CameraModel, target: Target, n_views: int, rng: np.random.Generator,
-               fill: float = 0.5, max_tilt_deg: float = 40.0, margin_px: float = 3.0) -> list[F64]:
+               fill: float = 0.5, max_tilt_deg: float = 40.0, margin_px: float = 3.0,
+               whole_outline: bool = False) -> list[F64]:
     """``T_cam_target`` poses of a varied capture: the target tilted up to ``max_tilt_deg`` about
     both axes, placed so that it covers about ``fill`` of the image width, moved around so that
     the set covers the image corners. Every pose keeps all target points ``margin_px`` inside
-    the image."""
+    the image — or, with ``whole_outline``, the target's whole printed outline (``extent_m``: a
+    circle plate's frame must be seen to be detected)."""
     xyz = target.points().xyz_m
     x0, y0 = xyz[:, :2].min(axis=0)
     x1, y1 = xyz[:, :2].max(axis=0)
+    if whole_outline and hasattr(target, "extent_m"):
+        x0, y0, x1, y1 = target.extent_m()
     corners = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]])
     centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
     size_m = max(x1 - x0, y1 - y0)

@@ -25,7 +25,7 @@ from calibration.intrinsics.results import (
     CalibrationError,
     ViewResult,
 )
-from calibration.observations import Detection
+from calibration.observations import Detection, point_weights
 from calibration.targets import CirclePlate, Points3D, Target
 
 # --------------------------------------------------------------------------------------------
@@ -40,6 +40,8 @@ class ViewData:
     X: F64
     uv: F64
     ellipse: bool
+    w: F64 | None = None
+    """(n,) relative weights of the points from their detection uncertainty, or None (all 1)."""
 
 
 def collect_views(detections: Sequence[Detection], target: Target,
@@ -63,6 +65,7 @@ def collect_views(detections: Sequence[Detection], target: Target,
         # The most common size wins; views of another size are reported as not used.
         image_size = max(set(sizes), key=sizes.count)
     views: list[ViewData] = []
+    sigmas: list[F64 | None] = []
     results: list[ViewResult] = []
     for k, d in enumerate(detections):
         vr = ViewResult(image=d.image, used=False)
@@ -88,7 +91,10 @@ def collect_views(detections: Sequence[Detection], target: Target,
             continue
         X = tp.xyz_m[[where[int(i)] for i in ids[ok]]]
         views.append(ViewData(k, d.image, ids[ok], X, uv[ok], use_ell))
+        sigmas.append(None if d.uv_sigma_px is None else np.asarray(d.uv_sigma_px, dtype=np.float64)[ok])
         vr.n_points = int(ok.sum())
+    for v, w in zip(views, point_weights(sigmas, [len(v.X) for v in views]), strict=True):
+        v.w = w
     return views, results, image_size
 
 
@@ -120,9 +126,10 @@ def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64,
 
 def build_problem(model: str, size: tuple[int, int], views: list[ViewData]) -> BundleProblem:
     counts = np.array([len(v.X) for v in views])
+    w = np.concatenate([np.ones(len(v.X)) if v.w is None else v.w for v in views])
     return BundleProblem(model, size, np.vstack([v.X for v in views]), np.vstack([v.uv for v in views]),
-                    np.repeat(np.arange(len(views)), counts).astype(np.int64),
-                    np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+                         np.repeat(np.arange(len(views)), counts).astype(np.int64),
+                         np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), w)
 
 
 def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64, radius_m: float) -> F64:
@@ -168,11 +175,13 @@ def solve_views(model: str, size: tuple[int, int], views: list[ViewData], target
 
 
 def flag_outliers(p: BundleProblem, res: F64) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Flag points (|e| > 5 robust sigma) and views (RMS > 3x median view RMS)."""
-    comp = np.abs(res.reshape(-1))
+    """Flag points (|e| > 5 robust sigma, residuals weighted by the points' own precision) and
+    views (RMS > 3x median view RMS)."""
+    res_w = res if p.w is None else res * p.w[:, None]
+    comp = np.abs(res_w.reshape(-1))
     sigma_r = 1.4826 * float(np.median(comp)) if comp.size else 0.0
+    pt = np.linalg.norm(res_w, axis=1) > POINT_OUTLIER_SIGMAS * max(sigma_r, 1e-9)
     mag = np.linalg.norm(res, axis=1)
-    pt = mag > POINT_OUTLIER_SIGMAS * max(sigma_r, 1e-9)
     vr = np.array([np.sqrt(np.mean(mag[p.starts[k]:p.starts[k + 1]] ** 2)) for k in range(p.n_views)])
     med = float(np.median(vr))
     vw = vr > VIEW_OUTLIER_FACTOR * max(med, 1e-9)

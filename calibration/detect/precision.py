@@ -1,0 +1,88 @@
+"""Per-point precision of a detection: a 1-sigma position uncertainty (px) for every point.
+
+Two estimators, each from the point's own local fit:
+
+- **corners** (chessboard, ChArUco) and **blobs** (circle grid): the Cramér-Rao-type bound of
+  locating a known local pattern in noise, ``cov = s_n² (Σ w g gᵀ)⁻¹ (Σ w² g gᵀ) (Σ w g gᵀ)⁻¹``
+  over the point's window (Gaussian weights ``w``), with ``g`` the image gradient of the lightly
+  smoothed image and ``s_n`` the image noise. Low contrast (small ``g``), blur (gradient energy
+  spread thin), foreshortening and acute corners (an ill-conditioned tensor) all raise it.
+- **ellipse centres** (circle plate): the spread of the edge points about the fitted ellipse
+  (robust radial residual ``s_e``) over ``n`` edge points gives ``s_e · sqrt(2 / n)`` per axis;
+  noise, blur, low contrast and a partly disturbed rim all raise it (``calibration.detect.ellipse``).
+
+The image noise ``s_n`` is Immerkær's estimator (the response to a 3x3 Laplacian-difference
+kernel that cancels planes and edges to first order), made robust with the median, over the
+detection's bounding box, floored at the 8-bit quantisation (1/sqrt(12) grey).
+
+The numbers are estimates of the random part only; the solvers use them as *relative* weights
+(``calibration.observations.point_weights``) and estimate the overall scale from the residuals.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+QUANTISATION_GREY = 1.0 / np.sqrt(12.0)
+MAX_SIGMA_PX = 10.0
+"""Cap of a reported point uncertainty (a point whose window carries no structure)."""
+CORNER_WINDOW_SIGMA_PX = 2.1
+"""Gaussian window of the corner estimate: the saddle refinement's (half window 3 px, sigma 0.7 x 3)."""
+_IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], dtype=np.float32)
+
+
+def image_noise_grey(grey: NDArray[np.uint8], uv: FloatArray, pad_px: int = 10) -> float:
+    """Robust 1-sigma pixel noise (grey levels) in the bounding box of ``uv`` (Immerkær 1996)."""
+    h, w = grey.shape[:2]
+    pts = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) == 0:
+        return float("nan")
+    x0, y0 = np.maximum(np.floor(pts.min(axis=0)).astype(int) - pad_px, 0)
+    x1, y1 = np.minimum(np.ceil(pts.max(axis=0)).astype(int) + pad_px, [w - 1, h - 1])
+    roi = grey[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
+    if min(roi.shape) < 3:
+        return QUANTISATION_GREY
+    resp = np.abs(cv2.filter2D(roi, cv2.CV_32F, _IMMERKAER)[1:-1, 1:-1])
+    # sum of squares of the kernel is 36; the median of |N(0, s)| is 0.6745 s
+    sigma = float(np.median(resp)) / 0.6745 / 6.0
+    return max(sigma, QUANTISATION_GREY)
+
+
+def gradient_sigma_px(grey: NDArray[np.uint8], uv: FloatArray, window_sigma_px: float,
+                      smooth_sigma_px: float = 1.0) -> FloatArray:
+    """(N,) 1-sigma position uncertainty (px, per axis, RMS of the two) of points ``uv`` located
+    from the image structure in a Gaussian window of ``window_sigma_px`` around each."""
+    pts = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros(0)
+    noise = image_noise_grey(grey, pts)
+    img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), smooth_sigma_px)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    # Large windows (big blobs) are sampled on a coarser lattice; each sample then stands for
+    # step² pixels (and keeps cv2.remap's maps under its 32767-column limit).
+    step = max(1.0, window_sigma_px / 3.0)
+    half = max(2, int(np.ceil(2.5 * window_sigma_px / step)))
+    r = np.arange(-half, half + 1, dtype=np.float64) * step
+    du, dv = (a.ravel() for a in np.meshgrid(r, r))
+    wts = np.exp(-(du**2 + dv**2) / (2 * window_sigma_px**2))
+    mu = (pts[:, 0:1] + du[None, :]).astype(np.float32)
+    mv = (pts[:, 1:2] + dv[None, :]).astype(np.float32)
+    sx = cv2.remap(gx, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    sy = cv2.remap(gy, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    g = np.stack([sx, sy], axis=2)                                   # (N, k, 2)
+    M = step**2 * np.einsum("k,nka,nkb->nab", wts, g, g)
+    M2 = step**2 * np.einsum("k,nka,nkb->nab", wts**2, g, g)
+    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] ** 2
+    ok = det > 1e-12 * np.maximum(np.einsum("naa->n", M) ** 2, 1e-300)
+    M[~ok] = np.eye(2)
+    Minv = np.linalg.inv(M)
+    cov = noise**2 * Minv @ M2 @ Minv
+    out = np.sqrt(np.maximum(np.einsum("naa->n", cov) / 2.0, 0.0))
+    out[~ok] = np.inf
+    return np.minimum(out, MAX_SIGMA_PX)
