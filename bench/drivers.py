@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.base import MotionLimits  # noqa: E402
-from drivers.robot.ur_rtde import URRTDERobot  # noqa: E402
 from drivers.peers.ur_emulator import fixed_port_lock  # noqa: E402
+from drivers.robot.ur_rtde import URRTDERobot  # noqa: E402
 from tests.drivers.netns import run_scenario  # noqa: E402
 from tests.drivers.peers import wait_port  # noqa: E402
 

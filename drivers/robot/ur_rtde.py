@@ -85,7 +85,11 @@ class URRTDESettings(BaseModel):
     host: str = Field(min_length=1, description="controller IP address or host name")
     frequency_hz: float = Field(500.0, gt=0, le=500, description="RTDE rate: 500 e-Series, 125 CB3")
     state_max_age_s: float = Field(0.1, gt=0, le=10, description="older samples are never served as current")
-    connect_timeout_s: float = Field(5.0, gt=0, le=120)
+    connect_timeout_s: float = Field(5.0, gt=0, le=120, description="first connection: wait for the first sample")
+    reconnect_wait_s: float = Field(
+        1.0, gt=0, le=120,
+        description="a later connect() (after an outage) waits at most this; the adapter keeps retrying anyway",
+    )
     stall_timeout_s: float = Field(
         1.0, gt=0, le=60, description="no new sample for this long: the connection is restarted"
     )
@@ -125,14 +129,24 @@ class URRTDERobot(RobotBase):
         self._control = ControlLink(robot_id, self.config.host, self.config.frequency_hz, ctx,
                                     self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
+        self._ever_connected = False
 
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
-        """Start the state worker; wait for the first fresh sample (``connect_timeout_s``) or its refusal."""
+        """Start the state worker; wait for the first fresh sample or its refusal.
+
+        The first connection waits up to ``connect_timeout_s``; a later one (the cell re-opening the
+        robot after an outage) at most ``reconnect_wait_s``, so a caller never waits on a controller
+        that is gone (unreachable hosts included) longer than the service's own deadline.
+        """
         self._link.start()
-        deadline = time.monotonic() + self.config.connect_timeout_s
+        wait_s = self.config.connect_timeout_s
+        if self._ever_connected:
+            wait_s = min(wait_s, self.config.reconnect_wait_s)
+        deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
             if self._link.fresh_age() is not None:
+                self._ever_connected = True
                 return
             failure = self._link.failure
             if failure:  # refused or lost: the peer is down now, do not make the caller wait
@@ -142,7 +156,7 @@ class URRTDERobot(RobotBase):
             time.sleep(0.01)
         raise DeviceUnavailable(
             f"robot {self.robot_id}: no RTDE state from {self.config.host} within "
-            f"{self.config.connect_timeout_s} s ({self._link.reason}); check that the controller is on, reachable "
+            f"{wait_s:g} s ({self._link.reason}); check that the controller is on, reachable "
             "and that port 30004 is open. The adapter keeps retrying in the background."
         )
 

@@ -276,6 +276,11 @@ def test_frozen_peer_read_timeout(robot: URRTDERobot, ur_emulator: PeerProcess) 
     try:
         wait_for(lambda: not robot.health().available, 1.0)
         assert isinstance(answers_within(robot.state, 0.5), DeviceUnavailable)  # never blocks on the peer
+        # the cell closes the lost robot and opens it again: a frozen (or unreachable) controller
+        # refuses no connection, yet connect() answers within the reconnect wait, not connect_timeout_s
+        robot.close()
+        err = answers_within(robot.connect, 3.0)
+        assert isinstance(err, DeviceUnavailable) and "within 1 s" in str(err), repr(err)
     finally:
         ur_emulator.thaw()
     wait_for(lambda: robot.state().age_s() < 0.2, 6.0)
