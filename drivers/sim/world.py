@@ -8,6 +8,7 @@ the true pose — as on a real cell, where the encoders' pose and the physical p
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from pathlib import Path
@@ -19,7 +20,7 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from calibration.render import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
-from drivers.sim.scene import SceneSpec, load_scene
+from drivers.sim.scene import PartSpec, SceneSpec, load_scene
 
 
 class SimWorld:
@@ -120,13 +121,24 @@ class SimWorld:
         raise KeyError(f"no target named {name!r} in the scene")
 
     def planar_objects(self) -> list[PlanarObject]:
-        """Everything visible, as planes in the camera frame: targets first, then the table."""
+        """Everything visible, as planes in the camera frame: targets, then the parts, the table.
+
+        The parts lie in the table's own frame, so they tie with it in depth and win (the renderer
+        gives a tie to the object listed first; where parts overlap, the scene's last part wins,
+        as it is listed first here). Each part is bounded by its outline's circle, so only the
+        pixels near it are tested against it.
+        """
         T_cam_base = g.invert(self.T_base_cam())
         objs = [PlanarObject(T_cam_base @ self.T_base_target(spec.name), target.reflectance)
                 for spec, target in self._targets]
         table = self.scene.table
-        T_base_table = g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
-        objs.append(PlanarObject(T_cam_base @ T_base_table, self._table_reflectance))
+        T_cam_table = T_cam_base @ g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
+        for part in reversed(self.scene.parts):
+            r_m = float(np.max(np.linalg.norm(np.asarray(part.outline_mm, dtype=np.float64), axis=1))) / 1000.0
+            x_m, y_m = part.x_mm / 1000.0, part.y_mm / 1000.0
+            objs.append(PlanarObject(T_cam_table, functools.partial(self._part_reflectance, part),
+                                     (x_m - r_m, y_m - r_m, x_m + r_m, y_m + r_m)))
+        objs.append(PlanarObject(T_cam_table, self._table_reflectance))
         return objs
 
     def render(self) -> NDArray[np.uint8]:
@@ -159,9 +171,16 @@ class SimWorld:
         out = np.full(x.shape, table.reflectance)
         sx, sy = table.size_m
         out[(np.abs(x) > sx / 2) | (np.abs(y) > sy / 2)] = np.nan
-        for part in self.scene.parts:
-            inside = part_mask(part.outline_mm, part.holes_mm, part.x_mm, part.y_mm, part.angle_deg, x, y)
-            out[inside] = part.reflectance
+        return out
+
+    def _part_reflectance(self, part: PartSpec, x: NDArray[np.float64], y: NDArray[np.float64]
+                          ) -> NDArray[np.float64]:
+        """The part where it lies (and the table is), NaN elsewhere (table frame, metres)."""
+        sx, sy = self.scene.table.size_m
+        inside = part_mask(part.outline_mm, part.holes_mm, part.x_mm, part.y_mm, part.angle_deg, x, y)
+        inside &= (np.abs(x) <= sx / 2) & (np.abs(y) <= sy / 2)
+        out = np.full(x.shape, np.nan)
+        out[inside] = part.reflectance
         return out
 
     # -- truth ------------------------------------------------------------------------------------
