@@ -94,8 +94,9 @@ def test_page_and_static_files_are_open_and_the_api_is_not(cell: tuple[Served, d
     with httpx.Client(base_url=served.base_url, timeout=10) as http:
         r = http.get("/")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
-        assert "/ui/app.js" in r.text
-        for name, kind in (("app.js", "text/javascript"), ("style.css", "text/css")):
+        assert '<script type="module" src="/ui/main.js">' in r.text
+        modules = ("main.js", "core.js", "live.js", "calib.js", "wizard.js", "routines.js", "pick.js")
+        for name, kind in (*((m, "text/javascript") for m in modules), ("style.css", "text/css")):
             r = http.get(f"/ui/{name}")
             assert r.status_code == 200 and r.headers["content-type"].startswith(kind), name
         for bad in ("/ui/..%2Fapi%2Fapp.py", "/ui/.hidden", "/ui/nosuch.js", "/ui/ui.py"):
@@ -218,7 +219,7 @@ def test_engineer_runs_the_wizard_to_completion_and_activates(
     assert r.status_code == 201, r.text
     page.click("#tabs button[data-tab=pick]")
     expect(page.locator("#pick-recipes")).to_contain_text("7 bracket")
-    page.fill("#pick-recipe", "7")
+    page.select_option("#pick-recipe", "7")
     page.click("#pick-button")
     expect(page.locator("#pick-table")).to_be_visible()
     expect(page.locator("#pick-image")).to_be_visible()
@@ -244,7 +245,8 @@ def test_engineer_follows_a_capture_routine_over_sse(cell: tuple[Served, dict[st
     log_in(page, tokens["engineer"])
     page.click("#tabs button[data-tab=routines]")
     card = page.locator(".routine[data-routine=intrinsics-capture]")
-    card.locator("input[name=views]").fill("6")
+    card.locator("input[name=views]").fill("6")  # the form is generated from the routine's parameter schema
+    card.locator("input[name=max_views]").fill("6")
     card.locator("button.start").click()
     expect(card.locator(".log li").nth(2)).to_contain_text("view ", timeout=90_000)
     page.screenshot(path=str(SHOTS / "routine-progress.png"), full_page=True)

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import logging
+import math
 from typing import Annotated, Any, Literal
 
 import cv2
-from fastapi import APIRouter, Path
+from fastapi import APIRouter, Path, Query
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
@@ -79,7 +80,13 @@ def save_recipe(body: RecipeInput, services: ServicesDep, who: Engineer) -> dict
 
 
 @router.post("/pick/teach")
-async def teach(body: TeachInput, services: ServicesDep, _: Engineer) -> dict[str, Any]:
+async def teach(body: TeachInput, services: ServicesDep, _: Engineer,
+                preview: Annotated[bool, Query(description="also answer 'preview': the model's edge segments "
+                                                            "at the teach pose (image px) to draw on the frame, "
+                                                            "and its summary")] = False) -> dict[str, Any]:
+    """Teach a part model from the region ``roi`` of a live frame; the answer is the model (a
+    recipe's ``models`` entry). The ROI's centre is the reference point; picks report the part's
+    yaw relative to this frame (counter-clockwise on screen)."""
     from cellctl.pick.model import check_roi
     from cellctl.pick.model import teach as teach_model
 
@@ -93,6 +100,11 @@ async def teach(body: TeachInput, services: ServicesDep, _: Engineer) -> dict[st
     except ValueError as exc:
         raise ApiError(422, "cannot_teach", str(exc)) from None
     out: dict[str, Any] = model.to_dict()
+    if preview:
+        u, v = model.reference_px
+        segments = model.contour(u, v, 0.0)
+        out["preview"] = {"summary": model.summary(), "frame_size": list(frame.size),
+                          "edges_px": [[[round(float(a), 1), round(float(b), 1)] for a, b in seg] for seg in segments]}
     return out
 
 
@@ -112,7 +124,34 @@ async def pick(body: PickInput, services: ServicesDep, who: Operator) -> dict[st
         raise ApiError(422, "cannot_pick", str(exc)) from None
     log.info("pick recipe %d: %d picks, trigger-to-answer %.1f ms", body.recipe_id, len(answer["picks"]),
              answer["latency_ms"]["total"])
+    answer.setdefault("reason", await run_in_threadpool(_why_nothing, services, body.recipe_id, answer))
     return answer
+
+
+def _why_nothing(services: ServicesDep, recipe_id: int, answer: dict[str, Any]) -> str | None:
+    """Why the answer holds no (reachable) pick, in words an operator can act on; None when it has one."""
+    picks = answer.get("picks") or []
+    if any(p.get("reachable") for p in picks):
+        return None
+    if picks:
+        return (f"{len(picks)} part(s) found, none reachable: {picks[0].get('not_reachable_reason')}; check the "
+                "recipe's grasp_z_mm / approach_height_mm and the robot's envelope")
+    recipe = Recipe.model_validate(services.store.get_recipe(recipe_id, answer.get("recipe_version")).data)
+    sp = recipe.search
+    if answer.get("timed_out"):
+        return (f"the search stopped at its time limit (search.timeout_s = {sp.timeout_s} s) before finding a part; "
+                "raise timeout_s, narrow search.roi or the angle range")
+    where = ": check that the part is in view and lit as when taught, or lower min_score"
+    pose = recipe.capture_pose_ur
+    now = answer.get("capture_pose")
+    if pose is not None and isinstance(now, dict):
+        d_mm = 1e3 * math.dist(pose[:3], [now.get("x_mm", 0.0) / 1e3, now.get("y_mm", 0.0) / 1e3,
+                                          now.get("z_mm", 0.0) / 1e3])
+        if d_mm > 1.0:
+            where = (f"; the robot is {d_mm:.0f} mm from the recipe's capture pose: move it back there "
+                     f"(capture_pose_ur {[round(x, 4) for x in pose]}) and pick again")
+    return (f"no part scored at least search.min_score = {sp.min_score:g} in camera {answer.get('camera_id')}'s "
+            f"frame (see {answer.get('image_url')}){where}")
 
 
 @router.get("/frames/{frame_id}.png", response_class=Response, responses={200: {"content": {"image/png": {}}}})

@@ -1,0 +1,95 @@
+// Live tab: the camera view with the last pick's matches, the robot's state, Stop.
+import { $, LIVE_PAUSE_MS, ROBOT_PERIOD_MS, api, deg, fmt, grabBitmap, sleep, state } from "./core.js";
+
+
+export function drawPicks(ctx, pick) {
+  ctx.lineWidth = 3;
+  ctx.font = "bold 22px sans-serif";
+  pick.picks.forEach((p, k) => {
+    const color = p.reachable ? "#22c55e" : "#ef4444";
+    ctx.strokeStyle = color;
+    ctx.fillStyle = color;
+    ctx.beginPath();
+    ctx.arc(p.u_px, p.v_px, 24, 0, 2 * Math.PI);
+    ctx.stroke();
+    const a = (p.angle_deg || 0) * Math.PI / 180;
+    ctx.beginPath();
+    ctx.moveTo(p.u_px, p.v_px);
+    ctx.lineTo(p.u_px + 60 * Math.cos(a), p.v_px - 60 * Math.sin(a));
+    ctx.stroke();
+    ctx.fillText(`${k + 1} ${p.part} ${fmt(p.score, 2)}`, p.u_px + 28, p.v_px - 28);
+  });
+}
+
+export async function liveLoop(session) {
+  const canvas = $("#live-canvas");
+  while (session === state.session) {
+    if (state.tab !== "live" || !$("#live-on").checked || document.hidden || !state.cameraId) {
+      await sleep(300);
+      continue;
+    }
+    const t0 = performance.now();
+    try {
+      const { bitmap, frameId } = await grabBitmap("jpeg");
+      if (session !== state.session) return;
+      canvas.width = bitmap.width;
+      canvas.height = bitmap.height;
+      const ctx = canvas.getContext("2d");
+      ctx.drawImage(bitmap, 0, 0);
+      const pick = state.lastPick;
+      if (pick && $("#overlay-on").checked && pick.camera_id === state.cameraId) drawPicks(ctx, pick);
+      canvas.dataset.frameId = frameId || "";
+      $("#live-status").textContent = `${state.cameraId} frame ${frameId} · ${bitmap.width}×${bitmap.height} · `
+        + `${fmt(performance.now() - t0, 0)} ms` + (pick ? ` · last pick: ${pick.picks.length} match(es), recipe ${pick.recipe_id}` : "");
+      $("#live-status").className = "muted";
+    } catch (e) {
+      $("#live-status").textContent = `camera ${state.cameraId} unavailable: ${e.message}`;
+      $("#live-status").className = "error";
+      await sleep(1500);
+    }
+    await sleep(LIVE_PAUSE_MS);
+  }
+}
+
+// ---------------------------------------------------------------- robot state
+
+export async function robotLoop(session) {
+  while (session === state.session) {
+    if (state.robotId && !document.hidden) {
+      try {
+        const s = await api("GET", `/robots/${encodeURIComponent(state.robotId)}/state`);
+        if (session !== state.session) return;
+        const p = s.pose_ur;
+        $("#rs-x").textContent = fmt(p.x_m * 1e3, 2);
+        $("#rs-y").textContent = fmt(p.y_m * 1e3, 2);
+        $("#rs-z").textContent = fmt(p.z_m * 1e3, 2);
+        $("#rs-rx").textContent = fmt(deg(p.rx_rad), 2);
+        $("#rs-ry").textContent = fmt(deg(p.ry_rad), 2);
+        $("#rs-rz").textContent = fmt(deg(p.rz_rad), 2);
+        $("#rs-mode").textContent = s.mode;
+        $("#rs-moving").textContent = s.moving ? "yes" : "no";
+        $("#rs-age").textContent = `${fmt(s.age_s * 1e3, 0)} ms`;
+        $("#robot-state").dataset.xMm = String(p.x_m * 1e3);
+        $("#robot-status").textContent = "";
+        setBadge(`${state.robotId} ${s.moving ? "moving" : s.mode}`, true);
+      } catch (e) {
+        $("#robot-status").textContent = `robot ${state.robotId} unavailable: ${e.message}`;
+        setBadge(`${state.robotId} unavailable`, false);
+      }
+    }
+    await sleep(ROBOT_PERIOD_MS);
+  }
+}
+
+function setBadge(text, ok) {
+  const b = $("#robot-badge");
+  b.textContent = text;
+  b.className = `badge ${ok ? "ok" : "bad"}`;
+}
+
+$("#robot-stop").addEventListener("click", async () => {
+  try {
+    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/stop`);
+    $("#robot-status").textContent = "stop sent";
+  } catch (e) { $("#robot-status").textContent = `stop failed: ${e.message}`; }
+});

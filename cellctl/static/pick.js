@@ -1,0 +1,203 @@
+// Pick tab: teach a part on a live picture (draw its region, preview the model's edges), store it
+// as a named recipe with its capture pose (read from the robot) and gripper settings, test a pick.
+import { $, api, fmt, grabBitmap, has, state } from "./core.js";
+
+const teach = { image: null, roi: null, drag: null, model: null, preview: null, pose: null };
+
+// ---------------------------------------------------------------- teach: picture and region
+
+function teachDraw() {
+  const c = $("#teach-canvas");
+  const ctx = c.getContext("2d");
+  if (teach.image) {
+    c.width = teach.image.width; c.height = teach.image.height;
+    ctx.drawImage(teach.image, 0, 0);
+  } else {
+    ctx.fillStyle = "#111"; ctx.fillRect(0, 0, c.width, c.height);
+  }
+  const r = teach.drag || teach.roi;
+  if (r) {
+    // The ROI spans pixel coordinates (U, V) to (U + W, V + H); pixel (0, 0)'s centre is at canvas (0.5, 0.5).
+    ctx.strokeStyle = "#f59e0b"; ctx.lineWidth = 3; ctx.setLineDash([10, 6]);
+    ctx.strokeRect(r[0] + 0.5, r[1] + 0.5, r[2], r[3]);
+    ctx.setLineDash([]);
+    const cx = r[0] + r[2] / 2 + 0.5, cy = r[1] + r[3] / 2 + 0.5;
+    ctx.beginPath(); ctx.moveTo(cx - 12, cy); ctx.lineTo(cx + 12, cy); ctx.moveTo(cx, cy - 12); ctx.lineTo(cx, cy + 12);
+    ctx.stroke();
+  }
+  if (teach.preview && !teach.drag) {
+    ctx.strokeStyle = "#22c55e"; ctx.lineWidth = 2;
+    ctx.beginPath();
+    for (const [[u0, v0], [u1, v1]] of teach.preview.edges_px) { ctx.moveTo(u0 + 0.5, v0 + 0.5); ctx.lineTo(u1 + 0.5, v1 + 0.5); }
+    ctx.stroke();
+  }
+}
+
+function imagePoint(ev) {
+  const c = $("#teach-canvas");
+  const rect = c.getBoundingClientRect();
+  const x = (ev.clientX - rect.left) * c.width / rect.width, y = (ev.clientY - rect.top) * c.height / rect.height;
+  return [Math.max(-0.5, Math.min(c.width - 0.5, x - 0.5)), Math.max(-0.5, Math.min(c.height - 0.5, y - 0.5))];
+}
+
+function setRoi(roi) {
+  teach.roi = roi;
+  teach.model = null; teach.preview = null;
+  $("#recipe-form").hidden = true;
+  $("#teach-button").disabled = !roi;
+  $("#teach-roi").textContent = roi ? `region U ${fmt(roi[0], 0)}, V ${fmt(roi[1], 0)}, W ${fmt(roi[2], 0)}, H ${fmt(roi[3], 0)} px`
+    : "no region drawn";
+  $("#teach-canvas").dataset.roi = roi ? roi.map((x) => x.toFixed(1)).join(",") : "";
+  teachDraw();
+}
+
+$("#teach-canvas").addEventListener("pointerdown", (ev) => {
+  if (!teach.image) return;
+  const [u, v] = imagePoint(ev);
+  teach.drag = [u, v, 0, 0];
+  teach.start = [u, v];
+  $("#teach-canvas").setPointerCapture(ev.pointerId);
+});
+$("#teach-canvas").addEventListener("pointermove", (ev) => {
+  if (!teach.drag) return;
+  const [u, v] = imagePoint(ev);
+  const [u0, v0] = teach.start;
+  teach.drag = [Math.min(u, u0), Math.min(v, v0), Math.abs(u - u0), Math.abs(v - v0)];
+  teachDraw();
+});
+$("#teach-canvas").addEventListener("pointerup", () => {
+  if (!teach.drag) return;
+  const r = teach.drag;
+  teach.drag = null;
+  setRoi(r[2] >= 8 && r[3] >= 8 ? r : null);
+});
+
+$("#teach-grab").addEventListener("click", async () => {
+  $("#teach-error").textContent = "";
+  try {
+    teach.image = (await grabBitmap("png")).bitmap;
+    $("#teach-canvas").dataset.size = `${teach.image.width}x${teach.image.height}`;
+    setRoi(null);
+    $("#teach-status").textContent = "drag a rectangle around the part";
+  } catch (e) { $("#teach-error").textContent = `picture: ${e.message}`; }
+});
+
+$("#teach-button").addEventListener("click", async () => {
+  if (!teach.roi) return;
+  $("#teach-error").textContent = "";
+  $("#teach-button").disabled = true;
+  $("#teach-status").textContent = "teaching…";
+  try {
+    const body = { camera_id: state.cameraId, roi: teach.roi.map((x) => Math.round(x * 10) / 10),
+      mode: $("#teach-mode").value, name: $("#recipe-name").value || "part" };
+    const model = await api("POST", "/pick/teach?preview=true", body);
+    teach.preview = model.preview;
+    delete model.preview;
+    teach.model = model;
+    const s = teach.preview.summary;
+    $("#teach-status").textContent = `taught ${s.name} (${s.mode}): `
+      + (s.edge_points !== undefined ? `${s.edge_points} edge points` : `blob of ${fmt(s.area_px, 0)} px`)
+      + `; reference point (${fmt(s.reference_px[0], 1)}, ${fmt(s.reference_px[1], 1)}) px`;
+    $("#teach-canvas").dataset.edges = String(teach.preview.edges_px.length);
+    $("#recipe-form").hidden = false;
+    teachDraw();
+  } catch (e) {
+    $("#teach-error").textContent = `teach: ${e.message}`;
+  } finally {
+    $("#teach-button").disabled = !teach.roi;
+  }
+});
+
+// ---------------------------------------------------------------- recipe: pose, gripper, save
+
+$("#recipe-pose-button").addEventListener("click", async () => {
+  try {
+    const s = await api("GET", `/robots/${encodeURIComponent(state.robotId)}/state`);
+    const p = s.pose_ur;
+    teach.pose = [p.x_m, p.y_m, p.z_m, p.rx_rad, p.ry_rad, p.rz_rad];
+    $("#recipe-pose").textContent = `x ${fmt(p.x_m * 1e3, 1)}, y ${fmt(p.y_m * 1e3, 1)}, z ${fmt(p.z_m * 1e3, 1)} mm · `
+      + `rotation vector ${fmt(p.rx_rad, 3)}, ${fmt(p.ry_rad, 3)}, ${fmt(p.rz_rad, 3)} rad (${state.robotId})`;
+  } catch (e) { $("#teach-error").textContent = `robot pose: ${e.message}`; }
+});
+
+const num = (sel) => ($(sel).value === "" ? null : Number($(sel).value));
+
+$("#recipe-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  if (!teach.model) return;
+  $("#teach-error").textContent = "";
+  const recipeId = Number($("#recipe-id").value);
+  const recipe = {
+    name: $("#recipe-name").value, models: [teach.model], camera_id: state.cameraId, robot_id: state.robotId,
+    plane_z_mm: num("#recipe-plane-z"), grasp_z_mm: num("#recipe-grasp-z") ?? 0,
+    approach_height_mm: num("#recipe-approach") ?? 50, capture_pose_ur: teach.pose,
+    gripper: { open_width_mm: num("#grip-open"), grip_width_mm: num("#grip-close"), force_n: num("#grip-force") },
+  };
+  try {
+    const r = await api("POST", "/recipes", { recipe_id: recipeId, recipe });
+    $("#recipe-status").textContent = `recipe ${r.recipe_id} "${r.name}" saved as version ${r.version}`
+      + (teach.pose ? " with its capture pose" : " (no capture pose: picks are taken from wherever the robot is)");
+    await refreshRecipes(r.recipe_id);
+  } catch (e) { $("#teach-error").textContent = `save: ${e.message}`; }
+});
+
+// ---------------------------------------------------------------- pick test
+
+export async function refreshRecipes(select) {
+  if (!state.token) return;
+  try {
+    const recipes = await api("GET", "/recipes");
+    const sel = $("#pick-recipe");
+    const keep = select ?? (sel.value === "" ? null : Number(sel.value));
+    sel.replaceChildren(...recipes.map((r) => new Option(`${r.recipe_id} ${r.name} (v${r.version})`, String(r.recipe_id))));
+    if (keep !== null && recipes.some((r) => r.recipe_id === keep)) sel.value = String(keep);
+    $("#pick-recipes").textContent = recipes.length
+      ? `recipes: ${recipes.map((r) => `${r.recipe_id} ${r.name} (v${r.version})`).join(", ")}`
+      : "no recipes stored yet: teach a part above";
+    $("#pick-button").disabled = !recipes.length;
+  } catch (e) { $("#pick-recipes").textContent = e.message; }
+}
+
+$("#pick-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const button = $("#pick-button");
+  button.disabled = true;
+  $("#pick-error").textContent = "";
+  $("#pick-reason").textContent = "";
+  $("#pick-status").textContent = "picking…";
+  try {
+    const body = { recipe_id: Number($("#pick-recipe").value), move: has("engineer") && $("#pick-move").checked };
+    const answer = await api("POST", "/pick", body);
+    state.lastPick = answer;
+    $("#pick-status").textContent = `${answer.picks.length} pick(s) · frame ${answer.frame_id} · calibration `
+      + `${answer.calibration.kind} #${answer.calibration.id} · ${fmt(answer.latency_ms.total, 0)} ms`
+      + (answer.moved ? " · robot moved to the best pick" : "");
+    $("#pick-reason").textContent = answer.reason || "";
+    const tbody = $("#pick-table tbody");
+    tbody.replaceChildren();
+    answer.picks.forEach((p, k) => {
+      const tr = document.createElement("tr");
+      const pp = p.pick_pose || {};
+      const sig = (p.uncertainty && p.uncertainty.sigma_mm) || [];
+      const cells = [k + 1, p.part, fmt(p.u_px, 1), fmt(p.v_px, 1), fmt(p.score, 3), fmt(pp.x_mm, 2), fmt(pp.y_mm, 2),
+        fmt(pp.z_mm, 2), fmt(p.part_yaw_deg, 2), sig.length ? fmt(Math.max(sig[0], sig[1]), 3) : "–",
+        p.reachable ? "yes" : `no: ${p.not_reachable_reason}`];
+      for (const x of cells) { const td = document.createElement("td"); td.textContent = x; tr.append(td); }
+      tr.lastChild.className = p.reachable ? "reach-yes" : "reach-no";
+      tbody.append(tr);
+    });
+    $("#pick-table").hidden = false;
+    const r = await api("GET", answer.image_url, undefined, { raw: true });
+    if (state.pickUrl) URL.revokeObjectURL(state.pickUrl);
+    state.pickUrl = URL.createObjectURL(await r.blob());
+    $("#pick-image").src = state.pickUrl;
+    $("#pick-image").hidden = false;
+  } catch (e) {
+    $("#pick-error").textContent = e.message;
+    $("#pick-status").textContent = "";
+  } finally {
+    button.disabled = false;
+  }
+});
+
+document.addEventListener("cellctl:tab", (e) => { if (e.detail === "pick") refreshRecipes(); });

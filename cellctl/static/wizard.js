@@ -1,0 +1,227 @@
+// Jog-to-mark tab: the wizard that walks the operator from mark to mark, then shows the fit.
+import { $, api, fmt, grabBitmap, sleep, startRoutine, followJob, waitCameraAvailable } from "./core.js";
+import { activate } from "./calib.js";
+
+// ---------------------------------------------------------------- jog-to-mark wizard
+
+const wiz = { run: 0, job: null, marks: [], recorded: new Map(), current: null, image: null, result: null };
+
+function wizReset() {
+  wiz.run += 1;
+  wiz.job = null; wiz.marks = []; wiz.recorded = new Map(); wiz.current = null; wiz.result = null; wiz.image = null;
+  $("#wiz-start").hidden = false;
+  $("#wiz-run").hidden = true;
+  $("#wiz-result").hidden = true;
+  $("#wiz-error").textContent = "";
+  $("#wiz-activated").textContent = "";
+  $("#wiz-start-button").disabled = false;
+  delete $("#wiz-run").dataset.step;
+  delete $("#wiz-run").dataset.markId;
+}
+
+function wizDraw() {
+  const canvas = $("#wiz-canvas");
+  const ctx = canvas.getContext("2d");
+  if (wiz.image) {
+    canvas.width = wiz.image.width; canvas.height = wiz.image.height;
+    ctx.drawImage(wiz.image, 0, 0);
+  } else {
+    canvas.width = 1280; canvas.height = 960;
+    ctx.fillStyle = "#111"; ctx.fillRect(0, 0, canvas.width, canvas.height);
+  }
+  ctx.font = "bold 26px sans-serif";
+  ctx.textBaseline = "middle";
+  for (const m of wiz.marks) {
+    const isCurrent = wiz.current && wiz.current.mark_id === m.mark_id;
+    const done = wiz.recorded.has(m.step);
+    const color = isCurrent ? "#f59e0b" : done ? "#22c55e" : "#38bdf8";
+    ctx.strokeStyle = color; ctx.fillStyle = color;
+    ctx.lineWidth = isCurrent ? 6 : 3;
+    ctx.beginPath(); ctx.arc(m.u_px, m.v_px, isCurrent ? 34 : 22, 0, 2 * Math.PI); ctx.stroke();
+    if (isCurrent) {
+      ctx.beginPath();
+      ctx.moveTo(m.u_px - 52, m.v_px); ctx.lineTo(m.u_px - 38, m.v_px);
+      ctx.moveTo(m.u_px + 38, m.v_px); ctx.lineTo(m.u_px + 52, m.v_px);
+      ctx.moveTo(m.u_px, m.v_px - 52); ctx.lineTo(m.u_px, m.v_px - 38);
+      ctx.moveTo(m.u_px, m.v_px + 38); ctx.lineTo(m.u_px, m.v_px + 52);
+      ctx.stroke();
+    }
+    ctx.fillText(String(m.step), m.u_px + (isCurrent ? 42 : 28), m.v_px - (isCurrent ? 30 : 22));
+  }
+}
+
+function wizTable() {
+  const body = $("#wiz-marks-table tbody");
+  body.replaceChildren();
+  for (const m of wiz.marks) {
+    const tr = document.createElement("tr");
+    const rec = wiz.recorded.get(m.step);
+    if (wiz.current && wiz.current.step === m.step) tr.className = "current"; else if (rec) tr.className = "done";
+    for (const x of [m.step, m.mark_id, `${m.row},${m.col}`, rec ? fmt(rec.x_mm, 2) : "", rec ? fmt(rec.y_mm, 2) : ""]) {
+      const td = document.createElement("td"); td.textContent = x; tr.append(td);
+    }
+    body.append(tr);
+  }
+}
+
+function wizEvent(kind, data) {
+  if (kind === "progress") {
+    $("#wiz-bar").style.width = `${Math.round(data.progress * 100)}%`;
+    if (data.marks) wiz.marks = data.marks;
+    if (data.recorded) {
+      const m = wiz.marks[data.recorded - 1];
+      if (m) wiz.recorded.set(m.step, { x_mm: data.x_mm, y_mm: data.y_mm });
+      if (data.recorded === wiz.marks.length) {
+        wiz.current = null;
+        $("#wiz-step").textContent = `All ${wiz.marks.length} marks recorded`;
+        $("#wiz-instruction").textContent = "Calibrating…";
+      }
+    }
+    if (!data.recorded && !wiz.current) $("#wiz-instruction").textContent = data.message;
+  } else if (kind === "input_needed") {
+    wiz.current = data;
+    if (data.marks) wiz.marks = data.marks;
+    $("#wiz-step").textContent = `Mark ${data.step} of ${data.of}`;
+    $("#wiz-instruction").textContent = `Jog the tool to mark ${data.step} (plate mark ${data.mark_id}: row ${data.row}, col ${data.col}) `
+      + "and press Record.";
+    $("#wiz-run").dataset.step = String(data.step);
+    $("#wiz-run").dataset.markId = String(data.mark_id);
+    $("#wiz-record").disabled = false;
+  } else if (kind === "state") {
+    $("#wiz-record").disabled = true;
+  }
+  wizDraw();
+  wizTable();
+}
+
+async function wizStart() {
+  wizReset();
+  const run = wiz.run;
+  $("#wiz-start-button").disabled = true;
+  $("#wiz-error").textContent = "";
+  try {
+    // The routine takes its own shot from this pose; this one is for showing the marks on.
+    $("#wiz-start-button").textContent = "Taking a picture…";
+    for (let attempt = 0; attempt < 2 && !wiz.image; attempt += 1) {
+      try { wiz.image = (await grabBitmap("png")).bitmap; } catch (_) { await sleep(1000); }
+    }
+    await waitCameraAvailable(15000);
+    if (run !== wiz.run) return;
+    $("#wiz-start-button").textContent = "Start";
+    const job = await startRoutine("jog-to-mark", { marks: Number($("#wiz-marks").value) });
+    wiz.job = job;
+    $("#wiz-run").dataset.jobId = job.id;
+    $("#wiz-start").hidden = true;
+    $("#wiz-run").hidden = false;
+    $("#wiz-step").textContent = "Looking for the marks…";
+    $("#wiz-instruction").textContent = "";
+    $("#wiz-record").disabled = true;
+    wizDraw();
+    const done = await followJob(job, wizEvent, () => run === wiz.run);
+    if (run !== wiz.run) return;
+    if (done.state === "succeeded") wizResult(done.result);
+    else {
+      $("#wiz-error").textContent = done.state === "failed" ? `The routine failed: ${done.error}` : done.message;
+      $("#wiz-run").hidden = true;
+      $("#wiz-start").hidden = false;
+      $("#wiz-start-button").disabled = false;
+    }
+  } catch (e) {
+    if (run !== wiz.run) return;
+    $("#wiz-error").textContent = e.message;
+    $("#wiz-start-button").disabled = false;
+    $("#wiz-start-button").textContent = "Start";
+  }
+}
+
+function wizResult(res) {
+  wiz.result = res;
+  $("#wiz-run").hidden = true;
+  $("#wiz-result").hidden = false;
+  $("#wiz-result").dataset.calibrationId = String(res.calibration_id);
+  const rows = [["calibration", `#${res.calibration_id} v${res.version} (${res.kind})`], ["model", res.model],
+    ["marks", res.pairs.length], ["RMS residual", `${fmt(res.rms_mm, 4)} mm`],
+    ["leave-one-out RMS", Object.entries(res.loo_rms_mm || {}).map(([m, v]) => `${m} ${fmt(v, 4)}`).join(" · ") + " mm"],
+    ["map σ over the marks", res.field_sigma_mm ? `rms ${fmt(res.field_sigma_mm.rms, 4)} mm, max `
+      + `${fmt(res.field_sigma_mm.max, 4)} mm` : "–"]];
+  const kv = $("#wiz-summary");
+  kv.replaceChildren();
+  for (const [k, v] of rows) {
+    const tr = document.createElement("tr");
+    const th = document.createElement("th"); th.textContent = k;
+    const td = document.createElement("td"); td.textContent = v;
+    tr.append(th, td);
+    kv.append(tr);
+  }
+  $("#wiz-summary").dataset.rmsMm = String(res.rms_mm);
+  const body = $("#wiz-residuals tbody");
+  body.replaceChildren();
+  res.pairs.forEach((p, k) => {
+    const tr = document.createElement("tr");
+    for (const x of [p.step, p.mark_id, fmt(p.u_px, 1), fmt(p.v_px, 1), fmt(p.x_mm, 2), fmt(p.y_mm, 2),
+      fmt(res.residuals_mm[k], 4)]) {
+      const td = document.createElement("td"); td.textContent = x; tr.append(td);
+    }
+    body.append(tr);
+  });
+  plotResiduals(res);
+  $("#wiz-activate").disabled = false;
+}
+
+// Residual size at each mark's robot position: a circle whose radius grows with the residual.
+function plotResiduals(res) {
+  const c = $("#wiz-residual-plot");
+  const ctx = c.getContext("2d");
+  ctx.fillStyle = "#fff"; ctx.fillRect(0, 0, c.width, c.height);
+  const xs = res.pairs.map((p) => p.x_mm), ys = res.pairs.map((p) => p.y_mm);
+  const minX = Math.min(...xs), maxX = Math.max(...xs), minY = Math.min(...ys), maxY = Math.max(...ys);
+  const pad = 50, span = Math.max(maxX - minX, maxY - minY, 1);
+  const s = Math.min((c.width - 2 * pad) / span, (c.height - 2 * pad - 20) / span);
+  const X = (x) => pad + (x - minX) * s, Y = (y) => c.height - pad - (y - minY) * s;
+  const rmax = Math.max(...res.residuals_mm, 1e-9);
+  const radius = (r) => 4 + 26 * r / rmax;
+  ctx.fillStyle = "#1f2933"; ctx.font = "13px sans-serif";
+  ctx.fillText(`residual per mark over robot x/y (largest ${fmt(rmax, 4)} mm)`, 8, 16);
+  ctx.strokeStyle = "#9ca3af"; ctx.lineWidth = 1;
+  ctx.strokeRect(pad - 30, 30, c.width - 2 * pad + 60, c.height - pad - 10);
+  res.pairs.forEach((p, k) => {
+    const r = res.residuals_mm[k];
+    ctx.fillStyle = "rgba(185, 28, 28, 0.25)"; ctx.strokeStyle = "#b91c1c"; ctx.lineWidth = 2;
+    ctx.beginPath(); ctx.arc(X(p.x_mm), Y(p.y_mm), radius(r), 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+    ctx.fillStyle = "#1f2933";
+    ctx.fillText(`${p.step}: ${fmt(r, 3)}`, X(p.x_mm) + 6, Y(p.y_mm) + 4);
+  });
+}
+
+$("#wiz-start-button").addEventListener("click", wizStart);
+$("#wiz-record").addEventListener("click", async () => {
+  if (!wiz.job) return;
+  $("#wiz-record").disabled = true;
+  const step = wiz.current ? wiz.current.step : null;
+  try {
+    await api("POST", `/jobs/${encodeURIComponent(wiz.job.id)}/record`);
+    if (wiz.current && wiz.current.step === step) {
+      wiz.current = null;
+      $("#wiz-instruction").textContent = `Mark ${step} recorded.`;
+    }
+  } catch (e) {
+    $("#wiz-error").textContent = `Record: ${e.message}`;
+    $("#wiz-record").disabled = false;
+  }
+});
+$("#wiz-cancel").addEventListener("click", async () => {
+  if (!wiz.job) return;
+  try { await api("DELETE", `/jobs/${encodeURIComponent(wiz.job.id)}`); } catch (e) { $("#wiz-error").textContent = e.message; }
+});
+$("#wiz-activate").addEventListener("click", async () => {
+  if (!wiz.result) return;
+  $("#wiz-activate").disabled = true;
+  try {
+    await activate(wiz.result.calibration_id);
+    $("#wiz-activated").textContent = `Calibration #${wiz.result.calibration_id} is now active.`;
+  } catch (e) {
+    $("#wiz-error").textContent = `Activate: ${e.message}`;
+    $("#wiz-activate").disabled = false;
+  }
+});
+$("#wiz-again").addEventListener("click", wizReset);
