@@ -252,3 +252,16 @@ def test_pick_with_motion_is_off_unless_the_config_allows_it(plc_cell: PlcCell) 
             assert e.value.code == ua.StatusCodes.BadNotExecutable
 
     asyncio.run(opcua())
+
+
+def test_the_documented_error_texts_are_the_served_ones() -> None:
+    from cellctl.plc.requests import ERROR_TEXTS
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "plc-modbus.md").read_text()
+    table = doc.split("## Error texts (ERROR_TEXT)", 1)[1].split("\n## ", 1)[0]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()
+            if line.startswith("| ") and line[2].isdigit()]
+    documented = {int(index): (int(cls), text) for index, cls, text in rows}
+    assert documented.keys() == ERROR_TEXTS.keys()
+    for index, (cls, text) in ERROR_TEXTS.items():
+        assert documented[index][0] == cls and documented[index][1].startswith(text), (index, documented[index])
