@@ -259,7 +259,7 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
         f"| {stg[0]:.1f} | {stg[1]:.1f} | {stg[2]:.1f} |",
         "",
         "Notes. The matcher is `vision.shape` at its default settings (polarity "
-        "`ignore_global_polarity`, no scale range, no mirror). The refinement's and the tracking's "
+        "`ignore_local_polarity`, no scale range, no mirror). The refinement's and the tracking's "
         "inner loops are compiled (numba, `vision/shape/kernels.py`); the exhaustive top-level "
         "search stays numpy's vectorised uint8 adds (a compiled loop measured 2x slower there). "
         f"Wall time is {med / max(med_cpu, 1e-9):.1f}x the CPU time in this run: the other jobs on "

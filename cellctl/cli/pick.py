@@ -131,9 +131,9 @@ def register(sub: Any) -> None:
     f.add_argument("--angle-extent", type=float, default=360.0, help="degrees (default 360)")
     f.add_argument("--search-roi", default=None, metavar="U,V,W,H",
                    help="where the reference point may lie (default: the whole image)")
-    f.add_argument("--polarity", choices=POLARITIES, default="ignore_global_polarity",
+    f.add_argument("--polarity", choices=POLARITIES, default="ignore_local_polarity",
                    help="shape: use_polarity (edges as taught), ignore_global_polarity (or all reversed: "
-                        "an inverted image; default), ignore_local_polarity (each edge either way)")
+                        "an inverted image), ignore_local_polarity (each edge either way; default)")
     f.add_argument("--mirrored", action="store_true", help="shape: also find the part's mirror image (face down)")
     f.add_argument("--scale-range", default=None, metavar="MIN,MAX",
                    help="shape: also search sizes MIN..MAX of the taught one (e.g. 0.9,1.1; default: 1,1)")

@@ -23,9 +23,6 @@ from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
 
-PERSPECTIVE_MIN_INLIERS = 0.8
-"""The plane-homography fit runs only when this fraction of the visible model points has its edge."""
-
 
 @dataclass
 class Pose:
@@ -167,9 +164,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         sel = found & (np.abs(d) < 1.0)
-        # a homography needs the outline all round: on a partly seen part it trades position for shape
-        n_vis = max(int(np.count_nonzero(visible(q))), 1)
-        persp = perspective and int(np.count_nonzero(sel)) >= PERSPECTIVE_MIN_INLIERS * n_vis
+        persp = perspective
         ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
         for _ in range(1 if persp else 3):
             R = rot(th)
