@@ -147,6 +147,8 @@ class URRTDERobot(RobotBase):
         while time.monotonic() < deadline:
             if self._link.fresh_age() is not None:
                 self._ever_connected = True
+                # the control worker boots in the background, so the first move's deadline does not pay for it
+                self._control.prestart()
                 return
             failure = self._link.failure
             if failure:  # refused or lost: the peer is down now, do not make the caller wait

@@ -235,6 +235,11 @@ class ControlLink:
         self._conn = parent
         return parent
 
+    def prestart(self) -> None:
+        """Start the worker process now (its interpreter boots while nothing waits on it)."""
+        with self._lock:
+            self._ensure_worker()
+
     def request(self, op: str, args: tuple[Any, ...], timeout_s: float) -> Any:
         """Run one ur_rtde control/dashboard call in the worker; typed errors on failure or deadline."""
         with self._lock:
