@@ -157,24 +157,30 @@ class _Plane:
     obj: PlanarObject
 
 
-def _plane(index: int, obj: PlanarObject, field: NDArray[np.float64]) -> _Plane | None:
+_Coarse = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_],
+                NDArray[np.float64]]
+"""A frame's hits on the window grid: depth, object x, y, in front of the camera, footprint."""
+
+
+def _plane(index: int, obj: PlanarObject, field: NDArray[np.float64],
+           memo: dict[bytes, _Coarse]) -> _Plane | None:
     T = np.asarray(obj.T_cam_obj, dtype=np.float64)
     R, t = T[:3, :3], T[:3, 3]
     n = R[:, 2]
     d = float(n @ t)
     H = np.stack([d * R[:, 0] - float(R[:, 0] @ t) * n, d * R[:, 1] - float(R[:, 1] @ t) * n, n])
     s = _WINDOW_PX
-    rows, cols = np.arange(0, field.shape[0], s), np.arange(0, field.shape[1], s)
-    rows = np.append(rows, field.shape[0] - 1) if rows[-1] != field.shape[0] - 1 else rows
-    cols = np.append(cols, field.shape[1] - 1) if cols[-1] != field.shape[1] - 1 else cols
-    c = field[np.ix_(rows, cols)]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = c[..., 0] * n[0] + c[..., 1] * n[1] + n[2]
-        lam = d / w
-        ox = (c[..., 0] * H[0, 0] + c[..., 1] * H[0, 1] + H[0, 2]) / w
-        oy = (c[..., 0] * H[1, 0] + c[..., 1] * H[1, 1] + H[1, 2]) / w
-    front = np.isfinite(lam) & (lam > 0)
-    if not np.any(front):
+    rows, cols, c = _coarse_rays(field)
+    key = T.tobytes()
+    if key not in memo:  # objects that share a frame (parts on the table) share the coarse hits
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = c[..., 0] * n[0] + c[..., 1] * n[1] + n[2]
+            lam = d / w
+            ox = (c[..., 0] * H[0, 0] + c[..., 1] * H[0, 1] + H[0, 2]) / w
+            oy = (c[..., 0] * H[1, 0] + c[..., 1] * H[1, 1] + H[1, 2]) / w
+        memo[key] = (lam, ox, oy, np.isfinite(lam) & (lam > 0), _footprint(ox, oy))
+    lam, ox, oy, front, foot = memo[key]
+    if not front.any():
         return None
     if obj.extent_m is None:
         near = front
@@ -182,37 +188,59 @@ def _plane(index: int, obj: PlanarObject, field: NDArray[np.float64]) -> _Plane 
         # A coarse sample is near the extent when it lies within its own grid step's footprint
         # of the box: every pixel that sees the box is then within one step of such a sample.
         # Samples whose neighbour is behind the camera (or at the horizon) count as near.
-        foot = _footprint(ox, oy)
         x0, y0, x1, y1 = obj.extent_m
         m = 1.5 * foot
         near = front & (ox >= x0 - m) & (ox <= x1 + m) & (oy >= y0 - m) & (oy <= y1 + m)
-        if not np.any(near):
+        if not near.any():
             return None
-    ri, ci = np.nonzero(near)
-    r0 = max(int(rows[ri.min()]) - s, 0)
-    r1 = min(int(rows[ri.max()]) + s + 1, field.shape[0])
-    c0 = max(int(cols[ci.min()]) - s, 0)
-    c1 = min(int(cols[ci.max()]) + s + 1, field.shape[1])
+    ri = np.flatnonzero(near.any(axis=1))
+    ci = np.flatnonzero(near.any(axis=0))
+    r0 = max(int(rows[ri[0]]) - s, 0)
+    r1 = min(int(rows[ri[-1]]) + s + 1, field.shape[0])
+    c0 = max(int(cols[ci[0]]) - s, 0)
+    c1 = min(int(cols[ci[-1]]) + s + 1, field.shape[1])
     return _Plane(index, H, d, (r0, r1, c0, c1), np.where(near, lam, np.inf), obj)
+
+
+_COARSE: dict[int, tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]] = {}
+
+
+def _coarse_rays(field: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """Rows, columns and rays of the window grid (every ``_WINDOW_PX``, and the last row and column)."""
+    hit = _COARSE.get(id(field))
+    if hit is not None and hit[0] is field:
+        return hit[1], hit[2], hit[3]
+    s = _WINDOW_PX
+    rows, cols = np.arange(0, field.shape[0], s), np.arange(0, field.shape[1], s)
+    rows = np.append(rows, field.shape[0] - 1) if rows[-1] != field.shape[0] - 1 else rows
+    cols = np.append(cols, field.shape[1] - 1) if cols[-1] != field.shape[1] - 1 else cols
+    c = np.ascontiguousarray(field[np.ix_(rows, cols)])
+    if len(_COARSE) > 8:
+        _COARSE.clear()
+    _COARSE[id(field)] = (field, rows, cols, c)
+    return rows, cols, c
 
 
 def _footprint(ox: NDArray[np.float64], oy: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per coarse sample, the largest object-frame distance (m) to a 4-neighbour (inf if undefined)."""
-    o = np.stack([ox, oy], axis=-1)
     foot = np.zeros(ox.shape)
     for axis in (0, 1):
-        step = np.nan_to_num(np.abs(np.diff(o, axis=axis)).max(axis=-1), nan=np.inf)
-        before = [(0, 0), (0, 0)]
-        before[axis] = (1, 0)
-        after = [(0, 0), (0, 0)]
-        after[axis] = (0, 1)
-        foot = np.maximum(foot, np.maximum(np.pad(step, before), np.pad(step, after)))
+        with np.errstate(invalid="ignore"):
+            step = np.maximum(np.abs(np.diff(ox, axis=axis)), np.abs(np.diff(oy, axis=axis)))
+        step[~np.isfinite(step)] = np.inf
+        lo = [slice(None), slice(None)]
+        hi = [slice(None), slice(None)]
+        lo[axis] = slice(1, None)
+        hi[axis] = slice(None, -1)
+        np.maximum(foot[tuple(lo)], step, out=foot[tuple(lo)])
+        np.maximum(foot[tuple(hi)], step, out=foot[tuple(hi)])
     return foot
 
 
 def _planes(objects: Sequence[PlanarObject], field: NDArray[np.float64]) -> list[_Plane]:
     """The visible planes, nearest first (occluded reflectance is then never evaluated)."""
-    planes = [p for k, obj in enumerate(objects) if (p := _plane(k, obj, field)) is not None]
+    memo: dict[bytes, _Coarse] = {}
+    planes = [p for k, obj in enumerate(objects) if (p := _plane(k, obj, field, memo)) is not None]
     return sorted(planes, key=cmp_to_key(_nearer))
 
 
