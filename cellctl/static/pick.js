@@ -127,6 +127,7 @@ $("#recipe-form").addEventListener("submit", async (ev) => {
   if (!teach.model) return;
   $("#teach-error").textContent = "";
   const recipeId = Number($("#recipe-id").value);
+  teach.model.name = $("#recipe-name").value;  // the part is named after the recipe it is saved in
   const recipe = {
     name: $("#recipe-name").value, models: [teach.model], camera_id: state.cameraId, robot_id: state.robotId,
     plane_z_mm: num("#recipe-plane-z"), grasp_z_mm: num("#recipe-grasp-z") ?? 0,

@@ -124,7 +124,8 @@ async def pick(body: PickInput, services: ServicesDep, who: Operator) -> dict[st
         raise ApiError(422, "cannot_pick", str(exc)) from None
     log.info("pick recipe %d: %d picks, trigger-to-answer %.1f ms", body.recipe_id, len(answer["picks"]),
              answer["latency_ms"]["total"])
-    answer.setdefault("reason", await run_in_threadpool(_why_nothing, services, body.recipe_id, answer))
+    if not answer.get("reason"):  # the search's own reason first; else why no match is usable
+        answer["reason"] = await run_in_threadpool(_why_nothing, services, body.recipe_id, answer)
     return answer
 
 
