@@ -96,7 +96,8 @@ def test_auth_matrix(served_with_tokens: tuple[Served, dict[str, str]], method: 
 
 def test_open_routes_need_no_token(served_with_tokens: tuple[Served, dict[str, str]]) -> None:
     served, _ = served_with_tokens
-    for path in ("/health", "/openapi.json", "/docs", "/redoc", "/docs/assets/swagger-ui-bundle.js", "/", "/ui/main.js"):
+    for path in ("/health", "/openapi.json", "/docs", "/redoc", "/docs/assets/swagger-ui-bundle.js", "/",
+                 "/ui/main.js"):
         assert httpx.get(served.base_url + path, timeout=10).status_code == 200
 
 
