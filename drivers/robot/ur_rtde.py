@@ -87,8 +87,9 @@ class URRTDESettings(BaseModel):
     state_max_age_s: float = Field(0.1, gt=0, le=10, description="older samples are never served as current")
     connect_timeout_s: float = Field(5.0, gt=0, le=120, description="first connection: wait for the first sample")
     reconnect_wait_s: float = Field(
-        1.0, gt=0, le=120,
-        description="a later connect() (after an outage) waits at most this; the adapter keeps retrying anyway",
+        2.5, gt=0, le=120,
+        description="a later connect() (after an outage) waits at most this (under the service's 3 s device "
+        "deadline); the adapter keeps retrying in the background anyway",
     )
     stall_timeout_s: float = Field(
         1.0, gt=0, le=60, description="no new sample for this long: the connection is restarted"

@@ -10,6 +10,7 @@ thread: the workers' ``PR_SET_PDEATHSIG`` follows the thread that started them).
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import queue
 import threading
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from drivers.robot.ur_rtde import URRTDESettings
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 class StateLink:
@@ -140,14 +142,21 @@ class StateLink:
             proc.join(timeout=2.0)
 
     def _supervise(self) -> None:
-        self._start_worker()
+        # This thread must outlive every worker it starts (their PR_SET_PDEATHSIG follows it): it
+        # survives any error of one round and ends only with stop().
+        with contextlib.suppress(Exception):
+            self._start_worker()
         while not self._closing.is_set():
             try:
                 self._calls.get(timeout=0.02)()
                 continue
             except queue.Empty:
                 pass
-            self._check_worker()
+            try:
+                self._check_worker()
+            except Exception as exc:  # noqa: BLE001 - logged; the next round tries again
+                self.reason = f"supervisor error: {type(exc).__name__}: {exc}"
+                log.exception("robot %s: RTDE supervisor round failed", self.robot_id)
         self._kill_worker()
 
     def _check_worker(self) -> None:

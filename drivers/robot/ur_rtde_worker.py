@@ -10,7 +10,9 @@ supervisor thread) and exits at once if its parent is already gone. ``ur_rtde`` 
 the GIL held, so no Python-level watcher could be relied on.
 
 Kept free of numpy/scipy/pydantic imports so that a worker starts in well under a second: a
-reconnect after an outage is one new process.
+reconnect after an outage is one new process. (``spawn`` also imports the parent's main script in
+each worker, without running its ``if __name__ == "__main__"`` block: entry scripts that import
+heavy modules at their top slow every worker's start.)
 """
 
 from __future__ import annotations
