@@ -263,8 +263,7 @@ def eth_real(quick: bool) -> dict[str, Any] | None:
         dets.append(Detection(f"t{k:03d}", bool(np.all(np.isfinite(uv))), tp.ids.copy(), uv, image_size=(640, 480)))
     setup = "eye-in-hand"
     t0 = time.perf_counter()
-    res = calibrate_handeye(setup, G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3, leave_one_out=True,
-                            estimate_robot_noise=True)
+    res = calibrate_handeye(setup, G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3, leave_one_out=True)
     t_cellctl = time.perf_counter() - t0
     stations, _ = make_stations(G, dets, sr300, grid)
     used = {p["image"] for p in res.stations}
@@ -274,7 +273,8 @@ def eth_real(quick: bool) -> dict[str, Any] | None:
                            "cellctl_loo": res.loo["position_mm"], "sigma": (res.uncertainty_rot_deg,
                                                                             res.uncertainty_trans_mm),
                            "chi2": res.chi2_reduced, "problems": [p.code for p in res.problems],
-                           "noise": res.robot_noise}
+                           "noise": res.robot_noise, "loo_px": res.loo["prediction_rms_px"],
+                           "error_model": res.error_model}
     for m in PEERS:
         miss = []
         for i in range(len(st)):
@@ -295,8 +295,11 @@ def eth_table(r: dict[str, Any] | None) -> str:
     lines = ["| method | LOO target position miss mm: mean / RMS / max | t_hinge_cam mm |", "|---|---|---|"]
     c = r["cellctl_loo"]
     nz = r["noise"]
-    lines.append(f"| cellctl (joint ML, pixel σ 0.3 px stated, robot σ estimated: {nz.sigma_mm:.3g} mm / "
-                 f"{nz.sigma_deg:.3g}°) | {c['mean']:.2f} / {c['rms']:.2f} / {c['max']:.2f} | "
+    em = r["error_model"]
+    cand = ", ".join(f"{k} {v['loo_prediction_rms_px']:.2f} px" for k, v in em["candidates"].items())
+    lines.append(f"| cellctl (joint ML, pixel σ 0.3 px stated; error model chosen by LOO: {em['chosen']}, robot σ "
+                 f"{nz.sigma_mm:.3g} mm / {nz.sigma_deg:.3g}°; LOO pixel prediction {r['loo_px']:.2f} px — {cand}) | "
+                 f"{c['mean']:.2f} / {c['rms']:.2f} / {c['max']:.2f} | "
                  f"{np.round(r['cellctl_t_mm'], 1).tolist()} |")
     for m in PEERS:
         lines.append(f"| OpenCV {m} | {r[m]['mean']:.2f} / {r[m]['rms']:.2f} / {r[m]['max']:.2f} | "
@@ -309,6 +312,75 @@ def eth_table(r: dict[str, Any] | None) -> str:
                  f"({best}) = {c['rms'] / r[best]['rms']:.2f}. Reference (SOURCE.txt, DANIILIDIS on 169 pairs): "
                  "t ≈ [-5.1, -19.0, 2.6] mm, base→target consistency mean 3.8 mm.")
     return "\n".join(lines) + "\n"
+
+
+def kinematic(quick: bool) -> list[dict[str, Any]]:
+    """A UR5e-class arm with perturbed link lengths (1 mm) and joint zero offsets (0.05°)
+    (drivers.sim.kinematics): recorded = nominal pose, the camera sees the perturbed arm's. Leave-one-out
+    prediction (px) of each station's target points, per error model, next to OpenCV's closed forms
+    and next to what the true X, Z predict through the recorded poses."""
+    from drivers.sim.kinematics import KinematicError
+
+    rows = []
+    tp = BOARD.points()
+    for seed in range(2 if quick else 4):
+        rng = np.random.default_rng(500 + seed)
+        Z = make_transform(np.diag([1.0, -1.0, -1.0]), [0.30, -0.05, -0.15])  # within the arm's reach
+        sim = simulate_handeye("eye-in-hand", 12, rng, camera=CAM, target=BOARD,
+                               robot_noise=RobotNoise(0.02, 0.005), Z_true=Z)
+        arm = KinematicError(seed, link_sigma_mm=1.0, joint_offset_sigma_deg=0.05)
+        dets = []
+        for k, G in enumerate(sim.G_recorded):
+            _, Ga = arm.solve(G)
+            C = invert(sim.X_true) @ invert(Ga) @ sim.Z_true
+            uv = CAM.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3]) + rng.normal(0.0, 0.05, (len(tp.ids), 2))
+            dets.append(Detection(f"v{k:02d}.png", True, tp.ids.copy(), uv, image_size=CAM.size))
+        res = calibrate_handeye("eye-in-hand", sim.G_recorded, dets, CAM, BOARD, RobotNoise(0.05, 0.01))
+
+        def px(X: np.ndarray, Zm: np.ndarray, i: int, G: list[np.ndarray] = sim.G_recorded,
+               d: list[Detection] = dets) -> np.ndarray:
+            Cp = predict_cam_target("eye-in-hand", X, Zm, G[i])
+            return CAM.project(tp.xyz_m @ Cp[:3, :3].T + Cp[:3, 3]) - d[i].uv
+
+        truth_e = np.vstack([px(sim.X_true, sim.Z_true, i) for i in range(len(dets))])
+        row: dict[str, Any] = {"seed": seed, "chosen": res.error_model["chosen"],
+                               "cand": {k: v["loo_prediction_rms_px"]
+                                        for k, v in res.error_model["candidates"].items()},
+                               "loo": res.loo["prediction_rms_px"],
+                               "truth": float(np.sqrt(np.mean(np.sum(truth_e**2, axis=1)))),
+                               "err": transform_error_deg_mm(res.X, sim.X_true)}
+        stations, _ = make_stations(sim.G_recorded, dets, CAM, BOARD)
+        for m in PEERS:
+            e = []
+            for i in range(len(stations)):
+                rest = [s for k, s in enumerate(stations) if k != i]
+                try:
+                    Xm = PEERS[m]("eye-in-hand", [s.G for s in rest], [s.C for s in rest])
+                except cv2.error:
+                    e.append(np.full((len(tp.ids), 2), np.nan))
+                    continue
+                Zm = mean_pose([target_from_station("eye-in-hand", Xm, s.G, s.C) for s in rest])
+                e.append(px(Xm, Zm, i))
+            E = np.vstack(e)
+            row[m] = float(np.sqrt(np.nanmean(np.sum(E**2, axis=1))))
+        rows.append(row)
+        print(f"kinematic seed {seed}: done", file=sys.stderr)
+    return rows
+
+
+def kinematic_table(rows: list[dict[str, Any]]) -> str:
+    L = ["| seed | chosen model | LOO px: fixed prior / estimated i.i.d. / systematic | cellctl LOO px | truth X, Z "
+         "through recorded poses (px) | ratio to truth (target ≤ 1.2) | best OpenCV LOO px | error rot ° / trans mm |",
+         "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = r["cand"]
+        best = min(PEERS, key=lambda m: r[m])
+        ratio = r["loo"] / r["truth"]
+        L.append(f"| {r['seed']} | {r['chosen']} | {c.get('fixed_prior', float('nan')):.2f} / "
+                 f"{c.get('estimated_iid', float('nan')):.2f} / {c.get('systematic', float('nan')):.2f} | "
+                 f"{r['loo']:.2f} | {r['truth']:.2f} | {ratio:.2f} ({'met' if ratio <= 1.2 else 'MISSED'}) | "
+                 f"{best} {r[best]:.2f} | {r['err'][0]:.3f} / {r['err'][1]:.2f} |")
+    return "\n".join(L) + "\n"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -376,6 +448,8 @@ def main() -> None:
     eth = eth_real(a.quick)
     print(f"real done ({time.time() - t0:.0f} s)", file=sys.stderr)
     npt = npoint_bench(a.quick)
+    kin = kinematic(a.quick)
+    print(f"kinematic done ({time.time() - t0:.0f} s)", file=sys.stderr)
 
     overall = summarise(syn, ("setup",))
     per_group = summarise(syn, ("setup", "noise", "n"))
@@ -391,6 +465,13 @@ def main() -> None:
     tl.append(f"- reported 1σ vs actual error (RMS over 5 seeds, every row, rot and trans): actual/reported in "
               f"[{min(q):.2f}, {max(q):.2f}] (target within 0.5–2): "
               f"**{'met' if min(q) >= 0.5 and max(q) <= 2.0 else 'MISSED'}**.")
+    for o in overall:
+        med_t = float(np.median([o[m + "_trans"] for m in PEERS]))
+        med_r = float(np.median([o[m + "_rot"] for m in PEERS]))
+        rt, rr = o["cellctl_trans"] / med_t, o["cellctl_rot"] / med_r
+        tl.append(f"- issue 15, {o['setup']}: cellctl / OpenCV's median method: translation {rt:.2f} (target ≤ 0.8): "
+                  f"**{'met' if rt <= 0.8 else 'MISSED'}**; rotation {rr:.2f} (target ≤ 1.0): "
+                  f"**{'met' if rr <= 1.0 else 'MISSED'}**.")
     gains = []
     for o in overall:
         med5 = float(np.median([o[m + "_trans"] for m in PEERS]))
@@ -430,6 +511,12 @@ def main() -> None:
         kept_table(summarise(img, ("setup",))),
         "\n## Real data: ETH ASL robot arm + SR300 (no truth: leave-one-out prediction)\n",
         eth_table(eth),
+        "\n## Kinematic-error robot (UR5e model, links 1 mm / joint zeros 0.05°, 12 stations, eye-in-hand)\n",
+        "The recorded poses are the nominal arm's, the camera sees the perturbed arm's (millimetres, "
+        "pose-dependent). cellctl fits three robot error models and keeps the one with the best leave-one-out "
+        "prediction (calibration.handeye.error_model); 'truth' = the true X and Z predicting each station "
+        "through its recorded pose (the floor any calibration can reach without modelling the arm).\n",
+        kinematic_table(kin),
         "\n## N-point: 9 marks, camera tilted 1.5°, 0.1 px + 0.02 mm noise\n",
         npt,
         f"\nTotal run time {time.time() - t0:.0f} s (2-core machine shared with other jobs; "
