@@ -20,6 +20,7 @@ import time
 import uuid
 from typing import Any
 
+from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import MutableHeaders
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -159,7 +160,9 @@ class RequestMiddleware:
                 return True
             except ClientGone:
                 return True  # nobody to answer
-            bad = non_finite_field(body)
+            # A large suspicious body is parsed off the event loop (other requests go on meanwhile).
+            bad = (non_finite_field(body) if len(body) < OFF_LOOP_BYTES
+                   else await run_in_threadpool(non_finite_field, body))
             if bad is not None:
                 await _answer(send, UNPROCESSABLE, "invalid_request", non_finite_text(*bad))
                 return True
@@ -197,6 +200,9 @@ class RequestMiddleware:
                 self.streams.release(held)
         return False
 
+
+OFF_LOOP_BYTES = 256_000
+"""Bodies at least this large are checked for non-finite numbers in a worker thread."""
 
 # The server closes the connection after a refused body instead of reading the rest of it.
 CLOSE = [(b"connection", b"close")]

@@ -216,3 +216,14 @@ def test_a_deep_non_finite_number_is_named_by_its_path(cell: tuple[Served, dict[
     with served.client() as http:
         msg = refused(raw_post(http, "/recipes", text), "body.recipe.models.0.levels.0.points.1.1")
         assert "-Infinity" in msg
+
+
+def test_a_non_finite_number_deep_in_a_large_body_is_named(cell: tuple[Served, dict[str, Any]]) -> None:
+    served, _ = cell
+    points = [[float(i), float(i) + 0.5] for i in range(40_000)]  # ~1 MB of JSON: checked off the event loop
+    doc = {"recipe_id": 44, "recipe": {"name": "big", "models": [{"points": points + [[1.0, "@"]]}]}}
+    text = json.dumps(doc).replace('"@"', "NaN")
+    assert len(text) > 500_000
+    with served.client() as http:
+        refused(raw_post(http, "/recipes", text), f"body.recipe.models.0.points.{len(points)}.1")
+        assert http.get("/recipes/44").status_code == 404
