@@ -104,10 +104,8 @@ def test_stream_newest_frame_and_recovery_after_the_peer_restarts() -> None:
         time.sleep(0.2)
         with pytest.raises(DeviceTimeout, match="no frame within"):
             cam.grab(timeout_s=0.3)
-        t0 = time.monotonic()
         peer = MjpegServer(port=port).start()
         cam.grab(timeout_s=8)  # recovers by itself: stall 0.5 s + backoff <= 0.5 s + reopen
-        assert time.monotonic() - t0 < 8
         h = cam.health()
         assert h.available and h.outages == 1 and h.reconnects >= 1
     finally:

@@ -13,7 +13,7 @@ import serial
 from drivers.base import DeviceOperationError, DeviceTimeout, DeviceUnavailable
 from drivers.io.robotiq_gripper import RobotiqGripper
 from drivers.registry import adapter_class
-from tests.drivers.peers import PeerProcess, SocatPair
+from tests.drivers.peers import PeerProcess, SocatPair, answers_within
 
 
 @pytest.fixture
@@ -95,10 +95,8 @@ def test_read_timeout_peer_killed_and_restarted(
 ) -> None:
     g, peer = gripper
     peer.kill()
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeout, match="did not answer the status read within 0.3 s"):
-        g.status()
-    assert time.monotonic() - t0 < 3.0
+    err = answers_within(g.status, 3.0)
+    assert isinstance(err, DeviceTimeout) and "did not answer the status read within 0.3 s" in str(err)
     assert g.health().available is False and g.health().outages == 1
     peer = start_sim(pty_pair)
     try:
@@ -154,10 +152,8 @@ def test_malformed_replies(pty_pair: SocatPair) -> None:
     g = RobotiqGripper("grip0", settings(pty_pair, activate_on_open=False))
     try:
         g.open()
-        t0 = time.monotonic()
-        with pytest.raises((DeviceTimeout, DeviceOperationError, DeviceUnavailable)):
-            g.status()
-        assert time.monotonic() - t0 < 3.0
+        err = answers_within(g.status, 3.0)
+        assert isinstance(err, (DeviceTimeout, DeviceOperationError, DeviceUnavailable)), repr(err)
         assert g.health().available is False
     finally:
         g.close()
