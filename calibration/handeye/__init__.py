@@ -21,8 +21,14 @@ What is OpenCV's and what is ours:
   points, refined on pixels through our camera model; any lens model, division included);
 - the **joint refinement** is ours: a maximum-likelihood estimate over ``X``, ``Z`` and a small
   pose correction per station, minimising the reprojection error of every target point in every
-  image plus a Gaussian prior on the corrections (the stated robot noise model). Treating the
-  recorded robot poses as exact was 2–10x worse (shared/FIELD_NOTES.md).
+  image (each point weighted by its own detection uncertainty, ``Detection.uv_sigma_px``) plus a
+  Gaussian prior on the corrections (the stated robot noise model). Treating the recorded robot
+  poses as exact was 2–10x worse (shared/FIELD_NOTES.md). Optionally the camera intrinsics are
+  refined in the same problem (on by default when the intrinsics' own verdict was not ok);
+- the **robot error model** is chosen, not assumed (``error_model``): the fixed prior, i.i.d.
+  noise estimated from the data, or a systematic pose-dependent position correction — whichever
+  predicts held-out stations best in leave-one-out; that leave-one-out pixel prediction is the
+  primary quality figure (``quality.loo_prediction_rms_px``).
 
 Robot noise model (stated, used by the prior and by the benchmark's generator): the recorded
 flange pose ``G_i`` differs from the true one by an orientation error ``Exp(w_i)`` applied in the
