@@ -141,28 +141,32 @@ def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext:
     thetas = _angles(a0, ext, TOP_STEP_FACTOR * top.angle_step / scale)
     dx, dy, b = rotated_features(top, thetas, np.full(len(thetas), scale))
     P = int(max(np.abs(dx).max(), np.abs(dy).max())) + 2
-    pad = np.zeros((N_BINS, hL + 2 * P + 1, wL + 2 * P + 1), np.uint8)
+    Hp, Wp = hL + 2 * P + 2, wL + 2 * P + 1
+    pad = np.zeros((N_BINS, Hp, Wp), np.uint8)
     pad[:, P:P + hL, P:P + wL] = resp
+    padf = pad.reshape(N_BINS, Hp * Wp)
     nh, nw = ry1 - ry0 + 1, rx1 - rx0 + 1
     nf = dx.shape[1]
     na = len(thetas)
-    # one score map per angle, with a zero row below each so one max filter serves all
-    allacc = np.zeros((na, nh + 1, nw), np.uint8)
-    ay, ax = dy + P + ry0, dx + P + rx0  # padded row/column of each feature at position (0, 0)
-    # numpy's vectorised uint8 adds beat a compiled loop here (measured: 5-6 vs 11 ms for 42 angles
-    # x 22 features on 160x120): the Python overhead is ~1000 calls of a few microseconds
-    ayl, axl, bl = ay.tolist(), ax.tolist(), b.tolist()
+    # LINE-MOD's linearised memories: each feature's shifted response map is one contiguous run of
+    # the padded map (rows of width Wp), so one vectorised uint8 add per feature and angle covers all
+    # positions (3x faster than adding 2-D slices); columns >= nw of a row are wrapped garbage, cut below
+    lin = np.zeros((na, (nh + 1) * Wp), np.uint8)
+    start = ((dy + P + ry0) * Wp + dx + P + rx0).tolist()
+    bl = b.tolist()
+    run = nh * Wp
     done = na
     for ai in range(na):
-        acc = allacc[ai, :nh]
-        oy_, ox_, ba = ayl[ai], axl[ai], bl[ai]
+        acc = lin[ai, :run]
+        st, ba = start[ai], bl[ai]
         for k in range(nf):
-            y, x = oy_[k], ox_[k]
-            np.add(acc, pad[ba[k], y:y + nh, x:x + nw], out=acc)
+            np.add(acc, padf[ba[k], st[k]:st[k] + run], out=acc)
         if (ai & 7) == 7 and clock.expired():
             timed_out = True
             done = ai + 1
             break
+    # one score map per angle, with a zero row below each so one max filter serves all
+    allacc = np.ascontiguousarray(lin.reshape(na, nh + 1, Wp)[:, :, :nw])
     thr_top = int(math.floor(4 * nf * thr_frac))
     # local maxima over position and angle (circular when the range is the full turn),
     # checked only where the score passes the threshold
