@@ -1,5 +1,5 @@
 // Live tab: the camera view with the last pick's matches, the robot's state, Stop.
-import { $, LIVE_PAUSE_MS, ROBOT_PERIOD_MS, api, deg, fmt, grabBitmap, sleep, state } from "./core.js";
+import { $, LIVE_PAUSE_MS, ROBOT_PERIOD_MS, api, deg, fmt, grabBitmap, has, sleep, state } from "./core.js";
 
 
 export function drawPicks(ctx, pick) {
@@ -69,6 +69,10 @@ export async function robotLoop(session) {
         $("#rs-mode").textContent = s.mode;
         $("#rs-moving").textContent = s.moving ? "yes" : "no";
         $("#rs-age").textContent = `${fmt(s.age_s * 1e3, 0)} ms`;
+        // A Stop latches the robot: nothing moves it until an engineer resumes.
+        $("#rs-latched").textContent = s.latched ? "yes: latched by Stop, resume to move again" : "no";
+        $("#rs-latched").className = s.latched ? "error" : "";
+        $("#robot-resume").hidden = !s.latched || !has("engineer");
         $("#robot-state").dataset.xMm = String(p.x_m * 1e3);
         $("#robot-status").textContent = "";
         setBadge(`${state.robotId} ${s.moving ? "moving" : s.mode}`, true);
@@ -92,4 +96,11 @@ $("#robot-stop").addEventListener("click", async () => {
     await api("POST", `/robots/${encodeURIComponent(state.robotId)}/stop`);
     $("#robot-status").textContent = "stop sent";
   } catch (e) { $("#robot-status").textContent = `stop failed: ${e.message}`; }
+});
+
+$("#robot-resume").addEventListener("click", async () => {
+  try {
+    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/resume`);
+    $("#robot-status").textContent = "resumed: the robot may move again";
+  } catch (e) { $("#robot-status").textContent = `resume failed: ${e.message}`; }
 });

@@ -321,3 +321,25 @@ def test_operator_is_not_offered_engineer_controls(cell: tuple[Served, dict[str,
     expect(page.locator("#login-view")).to_be_visible()
     assert errors == []
     page.close()
+
+
+def test_stop_from_the_page_latches_and_only_an_engineer_resumes(cell: tuple[Served, dict[str, str]],
+                                                                 browser: Browser) -> None:
+    served, tokens = cell
+    page, errors = new_page(browser, served)
+    log_in(page, tokens["operator"])
+    page.click("#robot-stop")
+    expect(page.locator("#rs-latched")).to_contain_text("latched by Stop")
+    expect(page.locator("#robot-resume")).to_be_hidden()  # an operator may stop, not resume
+    page.screenshot(path=str(SHOTS / "operator-robot-latched.png"), full_page=True)
+    page.close()
+    page, errors2 = new_page(browser, served)
+    log_in(page, tokens["engineer"])
+    expect(page.locator("#robot-resume")).to_be_visible()
+    page.click("#robot-resume")
+    expect(page.locator("#rs-latched")).to_have_text("no")
+    expect(page.locator("#robot-resume")).to_be_hidden()
+    with served.client(tokens["engineer"]) as http:
+        assert http.get("/robots/robot0/motion").json()["latched"] is False
+    assert errors == [] and errors2 == []
+    page.close()
