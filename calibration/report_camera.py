@@ -88,12 +88,15 @@ def _round(x: Any, digits: int = 4) -> float | None:
     return float(f"{x:.{digits}g}")
 
 
-def build(result: dict[str, Any], detections: list[dict[str, Any]], target: Target,
+def build(result: dict[str, Any], detections: list[dict[str, Any]], target: Target | None,
           images: dict[str, bytes] | None = None) -> CameraReport:
-    """The report of ``result`` (``cam.json``), ``detections`` (``cellctl detect`` JSON per view)."""
+    """The report of ``result`` (``cam.json``), ``detections`` (``cellctl detect`` JSON per view).
+
+    Without a target (a camera stored without its detections) the views carry no points and the
+    uncertainty map treats the whole image as covered."""
     camera = CameraModel.from_dict(result)
-    pts = target.points()
-    lookup = {int(i): k for k, i in enumerate(pts.ids)}
+    pts = target.points() if target is not None else None
+    lookup = {int(i): k for k, i in enumerate(pts.ids)} if pts is not None else {}
     by_image = {str(d.get("image")): d for d in detections}
     views = []
     for v in result.get("views", []):
@@ -106,7 +109,7 @@ def build(result: dict[str, Any], detections: list[dict[str, Any]], target: Targ
             ids = [int(p["id"]) for p in det["points"] if int(p["id"]) in lookup]
             uv = np.array([[p["u_px"], p["v_px"]] for p in det["points"] if int(p["id"]) in lookup], dtype=np.float64)
             vd.uv = uv.reshape(-1, 2)
-            if T is not None and len(ids):
+            if T is not None and len(ids) and pts is not None:
                 xyz = g.transform_points(np.asarray(T, dtype=np.float64), pts.xyz_m[[lookup[i] for i in ids]])
                 vd.residuals_px = camera.project(xyz) - vd.uv  # the solver's sign: projection - observation
         views.append(vd)
@@ -115,7 +118,8 @@ def build(result: dict[str, Any], detections: list[dict[str, Any]], target: Targ
     coverage = coverage_counts(camera.size, used_uv, GRID_NX)
     cov = np.asarray((result.get("parameters") or {}).get("covariance") or [], dtype=np.float64)
     if cov.size:
-        _, umap = uncertainty_summary(camera, cov, coverage)
+        fit = coverage if coverage.sum() else np.ones_like(coverage)
+        _, umap = uncertainty_summary(camera, cov, fit)
     else:
         umap = np.full(coverage.shape, np.nan)
     return CameraReport(camera, result, views, coverage, umap)

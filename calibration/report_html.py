@@ -115,11 +115,23 @@ def camera_html(rep: rc.CameraReport, cross_validation: dict[str, Any] | None = 
             + "<h2>Views</h2>" + rc.thumbnails(rep))
 
 
-def _camera_inputs(inputs: dict[str, Any], result: dict[str, Any]) -> tuple[list[dict[str, Any]], Target]:
+def _camera_inputs(inputs: dict[str, Any], result: dict[str, Any]) -> tuple[list[dict[str, Any]], Target] | None:
+    """The stored detections and target, or None when the calibration was stored without them."""
     target_desc = inputs.get("target") or result.get("target_description")
-    if not isinstance(target_desc, dict):
-        raise ReportError("the stored inputs have no target description; the residual plots need it")
-    return list(inputs.get("views") or []), target_from_dict(target_desc, "stored target")
+    views = list(inputs.get("views") or [])
+    if not isinstance(target_desc, dict) or not views:
+        return None
+    return views, target_from_dict(target_desc, "stored target")
+
+
+def camera_html_without_detections(rep: rc.CameraReport) -> str:
+    """The report of a camera stored without its detections (imported): no residual plots."""
+    note = ("<p class='note'>This calibration was stored without its detections (e.g. imported), so residual, "
+            "coverage and per-view plots cannot be drawn; the uncertainty map treats the whole image as covered.</p>")
+    full = camera_html(rep)
+    keep = full[:full.index("<h2>Residuals</h2>")]
+    return (keep + note + "<h2>Projection uncertainty</h2>" + rc.uncertainty_figure(rep)
+            + "<h2>Lens distortion</h2>" + rc.distortion_figure(rep))
 
 
 # ---------------------------------------------------------------------------------------- hand-eye
@@ -206,8 +218,11 @@ def calibration_report(kind: str, result: dict[str, Any], inputs: dict[str, Any]
     """The HTML report of a stored calibration (``kind``: camera, handeye, npoint)."""
     inputs = inputs or {}
     if kind == "camera":
-        detections, target = _camera_inputs(inputs, result)
-        body = camera_html(rc.build(result, detections, target, images), cross_validation)
+        found = _camera_inputs(inputs, result)
+        if found is None:
+            body = camera_html_without_detections(rc.build(result, [], None, images))
+        else:
+            body = camera_html(rc.build(result, found[0], found[1], images), cross_validation)
     elif kind == "handeye":
         body = handeye_html(result)
     elif kind == "npoint":
@@ -220,8 +235,8 @@ def calibration_report(kind: str, result: dict[str, Any], inputs: dict[str, Any]
 def report_json(kind: str, result: dict[str, Any], inputs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The report's figures as JSON (camera: the plotted grids and per-view figures)."""
     if kind == "camera":
-        detections, target = _camera_inputs(inputs or {}, result)
-        return rc.build(result, detections, target).to_json()
+        found = _camera_inputs(inputs or {}, result)
+        return rc.build(result, *(found or ([], None))).to_json()
     keys = {"handeye": ("setup", "rms_px", "quality", "uncertainty", "poses", "verdict"),
             "npoint": ("model", "rms_mm", "loo_rms_mm", "residuals_mm", "verdict")}.get(kind, ())
     out = {k: result[k] for k in keys if k in result}

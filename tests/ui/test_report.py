@@ -70,6 +70,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                                              {"target": TARGET, "views": [d.to_json() for d in dets]}, "test").id,
             "handeye": store.save_calibration("handeye", "cam0", "robot0", he.to_json(), {}, "test").id,
             "npoint": store.save_calibration("npoint", "cam0", "robot0", npr.to_json(), {"pairs": pairs}, "test").id,
+            "imported": store.save_calibration("camera", "cam1", None, res.to_json(), {}, "test", "imported").id,
         }
     cfg = tmp / "cell.yaml"
     cfg.write_text(default_config_text().replace("path: null ", f"path: {db} "))
@@ -205,3 +206,15 @@ def test_handeye_and_npoint_reports_have_their_own_plots(cell: dict[str, Any], b
     finally:
         context.close()
     assert outside == []
+
+
+def test_a_camera_stored_without_detections_still_has_a_report(cell: dict[str, Any]) -> None:
+    s: Served = cell["served"]
+    with s.client() as http:
+        r = http.get(f"/calibrations/{cell['ids']['imported']}/report")
+        data = http.get(f"/calibrations/{cell['ids']['imported']}/report", params={"format": "json"}).json()
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert "stored without its detections" in r.text
+    assert r.text.count('<svg class="plot') == 2 and "class='params'" in r.text
+    assert not RAW_DUMP.search(re.sub(r"<[^>]+>", " ", r.text))
+    assert data["kind"] == "camera" and data["residual_px"]["n"] == 0
