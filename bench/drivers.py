@@ -2,7 +2,7 @@
 
 Camera (named peer: a bare Aravis loop — pop buffer, copy to numpy, push back): frames/s, lost
 and incomplete frames from ``arv-fake-gv-camera-0.8`` at 100 and 300 frames/s requested, inside
-a loopback-only network namespace (tests/drivers/netns.py; no packet leaves it), and the
+a loopback-only network namespace (drivers/peers/netns.py, bench/drivers_gige.py; no packet leaves it), and the
 grab-to-numpy latency (host time when ``grab()`` returns minus the buffer's host timestamp).
 Targets: adapter >= 95 % of the bare loop's rate; zero lost frames at 100 fps.
 
@@ -51,16 +51,30 @@ print(json.dumps(times))
 
 
 def camera(seconds: float) -> dict[str, Any]:
-    from tests.drivers.netns import run_scenario
+    from drivers.peers.netns import run_in_loopback_namespace
 
-    return run_scenario("bench", 120 + 6 * seconds, str(seconds), "100,300", "2")
+    return run_in_loopback_namespace(ROOT / "bench" / "drivers_gige.py", str(seconds), "100,300", "2",
+                                     timeout_s=120 + 6 * seconds)
+
+
+def wait_port(port: int, timeout_s: float = 10.0) -> None:
+    """Wait until something accepts TCP connections on 127.0.0.1:``port``."""
+    import socket
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
 
 
 def robot(n_moves: int, state_reads: int) -> dict[str, Any]:
     from drivers.base import MotionLimits
     from drivers.peers.ur_emulator import fixed_port_lock
     from drivers.robot.ur_rtde import URRTDERobot
-    from tests.drivers.peers import wait_port
 
     out: dict[str, Any] = {}
     with fixed_port_lock():

@@ -15,7 +15,7 @@ answering (the outages are counted).
 
 **Network safety**: opening a GigE camera makes Aravis search for it, which broadcasts on every
 network interface. ``interfaces`` limits Aravis to the transports listed; tests run GigE only in a
-loopback-only network namespace (``tests/drivers/netns.py``) or use the in-process ``Fake``.
+loopback-only network namespace (``drivers/peers/netns.py``) or use the in-process ``Fake``.
 """
 
 from __future__ import annotations
