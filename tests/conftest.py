@@ -133,6 +133,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         kinds = kinds_of(rel, getattr(item, "fixturenames", ()), _module_text[path])
         for kind in sorted(kinds):
             item.add_marker(kind)
-        base_id = item.nodeid.split("[", 1)[0]
-        if "browser" in kinds or item.nodeid in slow or base_id in slow or rel in slow:
+        base_id, file_id = item.nodeid.split("[", 1)[0], item.nodeid.split("::", 1)[0]
+        if "browser" in kinds or {item.nodeid, base_id, file_id} & slow:
             item.add_marker("slow")

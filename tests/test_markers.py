@@ -1,0 +1,45 @@
+"""The test-kind markers: registered in pyproject.toml and assigned by tests/conftest.py."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from tests.conftest import REPO, SLOW_LIST, kinds_of, slow_tests
+
+KINDS = {"unit", "peer", "e2e", "browser", "slow"}
+# Spelled in pieces: the module scan of tests/conftest.py must not take this file for a peer or e2e test.
+SERVED, START, PEER, PG = "served" + "_virtual_cell", "start" + "_served(tmp)", "Peer" + "Process", "post" + "gres"
+
+
+def test_the_markers_are_registered() -> None:
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    names = {m.split(":", 1)[0] for m in config["tool"]["pytest"]["ini_options"]["markers"]}
+    assert names >= KINDS
+
+
+def test_kinds_by_path_fixture_and_module() -> None:
+    assert kinds_of("ui/test_operator_page.py", ["page"], "") == {"browser", "e2e"}
+    assert kinds_of("cellctl/test_auth.py", [SERVED], "") == {"e2e"}
+    assert kinds_of("cellctl/test_tls.py", ["tmp_path"], "served = " + START) == {"e2e"}
+    assert kinds_of("drivers/test_ur_rtde.py", ["ur" + "_emulator"], "") == {"peer"}
+    assert kinds_of("drivers/test_serial_light.py", ["tmp_path"], "from tests.drivers.peers import " + PEER) \
+        == {"peer"}
+    assert kinds_of("store/test_store.py", ["store_url", PG], "") == {"peer"}
+    assert kinds_of("test_readme.py", ["tmp_path"], "") == {"e2e"}
+    assert kinds_of("calibration/test_pnp.py", ["tmp_path"], "import numpy as np") == {"unit"}
+
+
+def test_the_slow_list_parses_and_names_tests_that_exist() -> None:
+    assert slow_tests(["# a comment", "", "tests/a.py::test_x  # 20 s", "tests/b.py"]) == {"tests/a.py::test_x",
+                                                                                       "tests/b.py"}
+    listed = slow_tests(SLOW_LIST.read_text().splitlines())
+    assert listed
+    missing = [n for n in listed if not (REPO / n.split("::", 1)[0]).is_file()]
+    assert not missing, f"tests/slow.txt names files that are gone: {missing}"
+
+
+def test_this_test_got_its_marker(request: pytest.FixtureRequest) -> None:
+    assert request.node.get_closest_marker("unit") is not None
+    assert request.node.get_closest_marker("slow") is None
