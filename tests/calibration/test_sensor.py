@@ -152,3 +152,30 @@ def test_every_defect_is_deterministic_per_seed() -> None:
 def test_out_of_range_settings_are_refused_by_name(field: str, value: float) -> None:
     with pytest.raises(ImagingError, match=field):
         Imaging(**{field: value})  # type: ignore[arg-type]
+
+
+def test_defocus_follows_the_rendered_depth_of_a_tilted_plane() -> None:
+    """End to end: a striped plane tilted away from the camera, focused at its near (top) edge, is
+    sharp there and blurred where it is farther, by the sigma its rendered depth gives."""
+    from calibration import geometry as g
+    from calibration.camera_model import CameraModel
+    from calibration.render import PlanarObject, render_scene
+
+    cam = CameraModel("opencv5", W, H, np.array([[300.0, 0, W / 2], [0, 300.0, H / 2], [0, 0, 1]]), np.zeros(5))
+    T = g.make_transform(g.rotvec_to_matrix([0.9, 0.0, 0.0]), [0.0, 0.0, 0.6])
+    stripes = PlanarObject(T, lambda x, y: (np.floor(x / 0.08) % 2).astype(np.float64))
+    refl, depth = render_scene(cam, [stripes], supersample=6)
+    z_top, z_bottom = float(np.median(depth[10])), float(np.median(depth[-10]))
+    assert z_bottom > 1.5 * z_top  # the plane recedes downwards
+    im = Imaging(black_level=0.0, white_level=250.0, focus_distance_m=z_top, defocus_sigma_px_per_diopter=1.5)
+    img = to_grey(refl, im, depth_m=depth).astype(float)
+    sharp = to_grey(refl, Imaging(black_level=0.0, white_level=250.0)).astype(float)
+
+    def contrast(a: np.ndarray, row: int) -> float:
+        return float(np.abs(np.diff(a[row - 3 : row + 4], axis=1)).max())
+
+    assert contrast(img, 10) == pytest.approx(contrast(sharp, 10), rel=0.1)  # in focus: as sharp as no defocus
+    expected = 1.5 * abs(1 / z_bottom - 1 / z_top)
+    assert expected > 1.0
+    # A step blurred by sigma has a peak gradient of 250 / (sigma sqrt(2 pi)) per pixel.
+    assert contrast(img, H - 10) == pytest.approx(250 / (expected * np.sqrt(2 * np.pi)), rel=0.15)
