@@ -7,7 +7,8 @@ object's own frame. Pixels whose neighbourhood is not uniform are supersampled o
 model projects them. Sub-pixel rays are interpolated linearly from the per-pixel ray field
 (the field is smooth; the interpolation error is ~1e-9 px).
 
-Why it is fast (a 1280x960 frame in tens of ms):
+Why it is fast (a 1280x960 frame of the virtual cell in ~0.13x the time it took before; figures in
+``bench/results/render.md``):
 - the ray field (the lens inversion) is computed exactly on a 16 px grid and interpolated by a
   quintic spline (separable, two matrix products; error ~1e-7 px, checked against the exact
   inversion at sample pixels, with a fall-back to the per-pixel inversion), cached per model;
@@ -39,7 +40,6 @@ from calibration.sensor import Imaging, to_grey
 __all__ = ["Imaging", "PlanarObject", "prepare", "ray_field", "render", "render_reflectance", "render_scene", "to_grey"]
 
 Reflectance = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
-
 
 
 class RenderError(ValueError):
