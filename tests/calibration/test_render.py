@@ -120,3 +120,12 @@ def test_depth_is_the_camera_z_of_what_each_pixel_sees() -> None:
     hit = np.abs(g.transform_points(g.invert(T), rays * lam[:, None])[:, 0]) < 0.2
     assert np.allclose(got[hit], lam[hit], rtol=1e-12)
     assert np.all(np.isinf(got[~hit])) and np.all(refl[120, 160] == 0.5)
+
+
+def test_a_reflectance_of_the_wrong_size_is_a_clear_error() -> None:
+    from calibration.render import RenderError
+
+    cam = CameraModel("opencv5", 64, 48, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]))
+    bad = PlanarObject(g.make_transform(np.eye(3), [0, 0, 1.0]), lambda x, y: np.zeros(3))
+    with pytest.raises(RenderError, match="returned 3 values"):
+        render_scene(cam, [bad])
