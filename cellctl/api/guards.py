@@ -219,9 +219,14 @@ class StreamLimiter:
 
 
 def stream_key(scope: Scope) -> str:
-    """Who holds a stream: a hash of the request's bearer credentials ("-" without any)."""
+    """Who holds a stream: a hash of the request's bearer token ("-" without any).
+
+    Only the token counts (not the scheme's spelling or the spaces around it), so one token cannot
+    open more streams by writing its header differently.
+    """
     raw = _header(scope, b"authorization")
-    return hashlib.sha256(raw).hexdigest()[:16] if raw else "-"
+    parts = raw.split() if raw else []
+    return hashlib.sha256(parts[-1]).hexdigest()[:16] if parts else "-"
 
 
 def is_event_stream(message: Message) -> bool:

@@ -204,6 +204,11 @@ def test_150_event_streams_from_one_viewer(cell: tuple[Served, dict[str, str]]) 
             viewer_status = await viewer.open(path, 150)
             assert viewer_status.count(200) == MAX_STREAMS_PER_TOKEN, viewer_status
             assert viewer_status.count(429) == 150 - MAX_STREAMS_PER_TOKEN
+            # The same token spelled another way is the same token.
+            respelled = Streams(served.base_url, tokens["viewer"])
+            respelled.client.headers["Authorization"] = f"bearer   {tokens['viewer']}"
+            assert await respelled.open(path, 2) == [429, 429]
+            await respelled.close()
             # The cell-wide cap: another token gets what is left of MAX_STREAMS.
             op_status = await operator.open(path, 3)
             assert sorted(op_status) == [200] * (MAX_STREAMS - MAX_STREAMS_PER_TOKEN) + [429], op_status
