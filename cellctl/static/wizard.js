@@ -1,5 +1,5 @@
 // Jog-to-mark tab: the wizard that walks the operator from mark to mark, then shows the fit.
-import { $, api, fmt, grabBitmap, sleep, startRoutine, followJob, waitCameraAvailable } from "./core.js";
+import { $, $$, api, fmt, grabBitmap, sleep, startRoutine, followJob, state, waitCameraAvailable } from "./core.js";
 import { activate } from "./calib.js";
 
 // ---------------------------------------------------------------- jog-to-mark wizard
@@ -225,3 +225,25 @@ $("#wiz-activate").addEventListener("click", async () => {
   }
 });
 $("#wiz-again").addEventListener("click", wizReset);
+
+// Jog buttons (engineer): a checked linear move of the tool by one step along a base axis, keeping
+// its orientation; one at a time (a second click while moving is refused by the service: 409).
+const JOG_SPEED_M_S = 0.02;
+for (const b of $$("#wiz-jog button")) {
+  b.addEventListener("click", async () => {
+    const axis = Number(b.dataset.axis), step = Number(b.dataset.sign) * Number($("#jog-step").value) * 1e-3;
+    const buttons = $$("#wiz-jog button");
+    for (const x of buttons) x.disabled = true;
+    try {
+      const s = await api("GET", `/robots/${encodeURIComponent(state.robotId)}/state`);
+      const pose = { ...s.pose_ur };
+      pose[["x_m", "y_m", "z_m"][axis]] += step;
+      await api("POST", `/robots/${encodeURIComponent(state.robotId)}/move`, { pose_ur: pose, speed_m_s: JOG_SPEED_M_S });
+      $("#jog-status").textContent = `tool at x ${fmt(pose.x_m * 1e3, 1)}, y ${fmt(pose.y_m * 1e3, 1)}, z ${fmt(pose.z_m * 1e3, 1)} mm`;
+    } catch (e) {
+      $("#jog-status").textContent = `jog refused: ${e.message}`;
+    } finally {
+      for (const x of buttons) x.disabled = false;
+    }
+  });
+}
