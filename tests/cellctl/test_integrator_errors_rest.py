@@ -74,3 +74,14 @@ def test_unknown_recipe_names_the_route_not_a_function(served: tuple[Served, int
             assert r.status_code == 404
             msg = r.json()["error"]["message"]
             assert "GET /recipes" in msg and "list_recipes" not in msg and "stored: none" in msg
+        msg = http.get("/calibrations/999").json()["error"]["message"]
+        assert "GET /calibrations" in msg and "list_calibrations" not in msg
+
+
+def test_mapping_messages_name_body_fields_not_cli_flags() -> None:
+    from cellctl.api.routes.map import rest_words
+
+    msg = rest_words("hand-eye mapping needs the working plane's height: give --plane-z-mm Z (base frame, mm)")
+    assert "--" not in msg and "plane_z_mm" in msg
+    msg = rest_words("eye-in-hand: the robot pose at capture is needed (--robot-pose x,y,z,rx,ry,rz, m and rad)")
+    assert "--" not in msg and "robot_pose_ur [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]" in msg

@@ -53,8 +53,9 @@ class ActivateInput(BaseModel):
 def _get(services: ServicesDep, cal_id: int) -> Any:
     try:
         return services.store.get_calibration(cal_id)
-    except NotFound as exc:
-        raise ApiError(404, "unknown_calibration", str(exc)) from None
+    except NotFound:
+        raise ApiError(404, "unknown_calibration", f"no calibration {cal_id} in cell {services.config.cell_id!r}; "
+                                                   "GET /calibrations lists the stored ones") from None
 
 
 @router.get("", response_model=list[CalibrationSummaryPublic])
