@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 _DEFOCUS_STEP_PX = 0.25
+_MAX_SIGMA_PX = 20.0
 _DEFOCUS_UNIFORM_PX = 0.05
 """Below this spread of sigma over the image, one blur at the mean sigma (error < 0.025 px)."""
 _POISSON_BELOW_E = 30.0
@@ -96,11 +97,11 @@ def to_grey(reflectance: NDArray[np.float64], imaging: Imaging, rng: np.random.G
     im = imaging
     img = (im.black_level + (im.white_level - im.black_level) * reflectance).astype(np.float32)
     h, w = img.shape
-    if im.light_gradient:
+    if im.vignetting:
+        img *= _light_map(w, h, im.vignetting, im.light_gradient)
+    elif im.light_gradient:
         ramp = 1.0 + im.light_gradient * (np.arange(w, dtype=np.float32) / max(w - 1, 1) - 0.5)
         img *= ramp[None, :]
-    if im.vignetting:
-        img *= _vignetting_map(w, h, im.vignetting)
     img = _blur(img, im, depth_m)
     if im.motion_blur_px > 0:
         img = cv2.filter2D(img, -1, motion_kernel(im.motion_blur_px, im.motion_blur_angle_deg),
@@ -136,6 +137,15 @@ def _vignetting_map(width: int, height: int, vignetting: float) -> NDArray[np.fl
     return m
 
 
+@lru_cache(maxsize=4)
+def _light_map(width: int, height: int, vignetting: float, light_gradient: float) -> NDArray[np.float32]:
+    """Vignetting and the light gradient as one gain map (one multiply per frame)."""
+    ramp = 1.0 + light_gradient * (np.arange(width, dtype=np.float32) / max(width - 1, 1) - 0.5)
+    m = (_vignetting_map(width, height, vignetting) * ramp[None, :]).astype(np.float32)
+    m.setflags(write=False)
+    return m
+
+
 def vignetting_factor(width: int, height: int, vignetting: float) -> NDArray[np.float32]:
     """(H, W) relative brightness the vignetting leaves (1 at the centre, 1 - vignetting at corners)."""
     return _vignetting_map(width, height, float(vignetting))
@@ -162,11 +172,11 @@ def _blur(img: NDArray[np.float32], im: Imaging, depth_m: NDArray[np.floating] |
     if depth_m is None:
         raise ImagingError("imaging.focus_distance_m is set but no depth map was given; "
                            "render with calibration.render.render_scene to get one")
-    sigma = np.minimum(defocus_sigma_px(im, depth_m), np.float32(20.0))
-    lo, hi = float(sigma.min()), float(sigma.max())
+    lo, hi = _sigma_bounds(im, depth_m)
     if hi - lo < _DEFOCUS_UNIFORM_PX:
         mean = 0.5 * (lo + hi)
         return cv2.GaussianBlur(img, (0, 0), mean) if mean > 1e-3 else img
+    sigma = np.minimum(defocus_sigma_px(im, depth_m), np.float32(_MAX_SIGMA_PX))
     n = int(math.ceil((hi - lo) / _DEFOCUS_STEP_PX))
     pos = (sigma - np.float32(lo)) * np.float32(n / (hi - lo))  # 0..n: where between the levels
     out = np.zeros_like(img)
@@ -175,6 +185,22 @@ def _blur(img: NDArray[np.float32], im: Imaging, depth_m: NDArray[np.floating] |
         if np.any(weight):
             out += (cv2.GaussianBlur(img, (0, 0), s) if s > 1e-3 else img) * weight
     return out
+
+
+def _sigma_bounds(im: Imaging, depth_m: NDArray[np.floating]) -> tuple[float, float]:
+    """Bounds (px) on the blur sigma over the image from the depth's range alone (sigma is monotonic
+    in the distance from the focus plane in diopters), so the per-pixel map is built only when the
+    blur varies; exact for a uniform depth, and never narrower than the map's own range."""
+    if im.focus_distance_m is None:
+        raise ImagingError("imaging.focus_distance_m is not set: no defocus to bound")
+    depth = np.asarray(depth_m)
+    inv_lo = 1.0 / float(depth.max())  # 0 when something is at infinity
+    inv_hi = 1.0 / float(depth.min()) if float(depth.min()) > 0 else math.inf
+    inv_f = 1.0 / im.focus_distance_m
+    k, b2 = im.defocus_sigma_px_per_diopter, im.blur_sigma_px**2
+    far = max(abs(inv_lo - inv_f), abs(inv_hi - inv_f))
+    near = 0.0 if inv_lo <= inv_f <= inv_hi else min(abs(inv_lo - inv_f), abs(inv_hi - inv_f))
+    return (min(math.sqrt(b2 + (k * near) ** 2), _MAX_SIGMA_PX), min(math.sqrt(b2 + (k * far) ** 2), _MAX_SIGMA_PX))
 
 
 def motion_kernel(length_px: float, angle_deg: float) -> NDArray[np.float32]:

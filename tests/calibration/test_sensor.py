@@ -179,3 +179,19 @@ def test_defocus_follows_the_rendered_depth_of_a_tilted_plane() -> None:
     assert expected > 1.0
     # A step blurred by sigma has a peak gradient of 250 / (sigma sqrt(2 pi)) per pixel.
     assert contrast(img, H - 10) == pytest.approx(250 / (expected * np.sqrt(2 * np.pi)), rel=0.15)
+
+
+@pytest.mark.parametrize("focus_m", [0.3, 0.5, 2.0])
+def test_the_blur_range_from_the_depth_range_is_the_per_pixel_range(focus_m: float) -> None:
+    from calibration.sensor import _sigma_bounds
+
+    rng = np.random.default_rng(8)
+    im = Imaging(blur_sigma_px=0.4, focus_distance_m=focus_m, defocus_sigma_px_per_diopter=1.3)
+    for depth in (rng.uniform(0.35, 0.9, (40, 50)), np.full((40, 50), 0.6), np.where(rng.random((40, 50)) < 0.1,
+                                                                                          np.inf, 0.45)):
+        sigma = defocus_sigma_px(im, depth.astype(np.float32))
+        lo, hi = _sigma_bounds(im, depth)
+        assert lo <= float(sigma.min()) + 1e-5 and hi >= float(sigma.max()) - 1e-5
+    flat = np.full((40, 50), 0.6)
+    lo, hi = _sigma_bounds(im, flat)
+    assert lo == pytest.approx(hi) == pytest.approx(float(defocus_sigma_px(im, flat.astype(np.float32))[0, 0]))
