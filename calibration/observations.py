@@ -36,7 +36,7 @@ class Detection:
     """(N,) 1-sigma position uncertainty of each point (px, per axis) from its local fit, or None."""
 
     def to_json(self) -> dict[str, Any]:
-        """The ``cellctl detect`` JSON of one image (shared/INTERFACES.md §4)."""
+        """The ``cellctl detect`` JSON of one image (docs/cli.md)."""
         points = []
         for k, i in enumerate(self.ids):
             p: dict[str, Any] = {"id": int(i), "u_px": float(self.uv[k, 0]), "v_px": float(self.uv[k, 1])}

@@ -1,6 +1,6 @@
 """Chessboard inner corners: OpenCV's ``findChessboardCornersSB`` plus our id convention and checks.
 
-Ids are ``row * cols + col`` in the target frame (shared/INTERFACES.md §4). OpenCV returns the
+Ids are ``row * cols + col`` in the target frame (docs/cli.md). OpenCV returns the
 corners row by row but may start at any end of the board; we re-order them:
 
 1. the grid must be right-handed as seen by the camera (target x to y turns clockwise on

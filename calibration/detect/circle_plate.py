@@ -1,6 +1,6 @@
 """HALCON-style circle plate detection: our own (OpenCV has no detector for framed, oriented plates).
 
-Geometry (shared/INTERFACES.md §2, ``calibration.targets.CirclePlate``): black marks on white, a
+Geometry (docs/targets.md, ``calibration.targets.CirclePlate``): black marks on white, a
 black frame whose inner edge lies one pitch outside the outer mark centres, and a black right
 triangle in the frame's inner corner nearest mark (0, 0).
 

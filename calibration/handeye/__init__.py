@@ -1,6 +1,6 @@
 """Hand-eye calibration (eye-in-hand and eye-to-hand) with checks, joint refinement and uncertainty.
 
-Conventions (shared/INTERFACES.md §1): ``T_a_b`` maps frame ``b`` into frame ``a``; SI inside.
+Conventions (docs/conventions.md): ``T_a_b`` maps frame ``b`` into frame ``a``; SI inside.
 
 Model. With ``G_i = T_base_tool`` of station ``i`` and ``C_i = T_cam_target`` seen in its image:
 
@@ -23,7 +23,7 @@ What is OpenCV's and what is ours:
   pose correction per station, minimising the reprojection error of every target point in every
   image (each point weighted by its own detection uncertainty, ``Detection.uv_sigma_px``) plus a
   Gaussian prior on the corrections (the stated robot noise model). Treating the recorded robot
-  poses as exact was 2–10x worse (shared/FIELD_NOTES.md). Optionally the camera intrinsics are
+  poses as exact was 2–10x worse (docs/field-notes.md). Optionally the camera intrinsics are
   refined in the same problem (on by default when the intrinsics' own verdict was not ok);
 - the **robot error model** is chosen, not assumed (``error_model``): the fixed prior, i.i.d.
   noise estimated from the data, or a systematic pose-dependent position correction — whichever

@@ -139,7 +139,7 @@ class HandEyeResult:
         return float(1e3 * np.sqrt(np.trace(self.cov_X[3:, 3:])))
 
     def to_json(self) -> dict[str, Any]:
-        """``he.json`` (shared/INTERFACES.md §4) plus diagnostics."""
+        """``he.json`` (docs/cli.md) plus diagnostics."""
         names = ("T_tool_cam", "T_base_target") if self.setup == "eye-in-hand" else ("T_base_cam", "T_tool_target")
         errors = [p for p in self.problems if p.severity == "error"]
         return {
