@@ -5,6 +5,13 @@ ROI on every level of an image pyramid (``cv2.pyrDown``: level-``l`` pixel ``x``
 level-0 ``2**l * x``); the ROI centre is the reference point. Level-0 points are moved to the
 centroid edge position of their intensity profile (phase-exact for a step edge), every level
 keeps a spread-out subset, and the coarse levels name the features of the discrete search.
+
+Which edges make the model (HALCON's ``auto`` contrast and minimum component size, in our
+words): an edge must reach ``AUTO_CONTRAST_FRACTION`` of the ROI's strong edges somewhere along
+its connected run (hysteresis down to half of it), the run must be at least ``min_component_px``
+long, and edges within ``ROI_BORDER_PX`` of the ROI border or ``IMAGE_BORDER_PX`` of the image
+border are left out (the border cuts them, or the pyramid made them of reflected pixels).
+Normals keep their sign (dark to bright), so the search can hold edges to their polarity.
 """
 
 from __future__ import annotations
