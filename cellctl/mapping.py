@@ -37,7 +37,9 @@ class ActiveMapping:
     def map(self, uv_px: NDArray[np.float64], plane_z_mm: float | None,
             T_base_tool_capture: NDArray[np.float64] | None, with_uncertainty: bool = True) -> RobotPoint:
         if self.kind == "handeye":
-            assert self.camera is not None
+            if self.camera is None:
+                raise NoCalibration(f"hand-eye calibration {self.calibration_id} has no camera calibration to map "
+                                    "through: activate the camera's intrinsics")
             if plane_z_mm is None:
                 raise NoCalibration("hand-eye mapping needs the working plane height plane_z_mm (base frame)")
             pose = T_base_tool_capture if self.calib.get("setup") == "eye-in-hand" else None
@@ -63,8 +65,7 @@ def active_mapping(services: Services, camera_id: str, robot_id: str, prefer: st
     if prefer == "handeye" and not use_he:
         raise NoCalibration(f"no active hand-eye + camera calibration for {camera_id}/{robot_id}"
                             + ("" if plane_z_known else " (or no plane_z_mm given)"))
-    if use_he:
-        assert he is not None and cam_cal is not None
+    if use_he and he is not None and cam_cal is not None:
         return ActiveMapping("handeye", he.id, he.result, camera_from_json(cam_cal.result, f"calibration {cam_cal.id}"),
                              cam_cal.id)
     if npc is not None and prefer in ("auto", "npoint"):

@@ -158,8 +158,9 @@ class TargetSpec(_Strict):
 
     def parsed(self) -> PlanarTarget:
         t = target_from_dict(self.target, self.name)
-        assert not isinstance(t, dict)
-        return t  # type: ignore[return-value]
+        if not isinstance(t, PlanarTarget):
+            raise SceneError(f"target {self.name}: the virtual cell renders planar targets only")
+        return t
 
 
 class PartSpec(_Strict):

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from calibration.render import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
-from drivers.sim.scene import PartSpec, SceneSpec, load_scene
+from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene
 
 
 class SimWorld:
@@ -110,7 +110,8 @@ class SimWorld:
         if fixed is not None:
             return fixed
         T_tool_cam = self.scene.T_tool_cam()
-        assert T_tool_cam is not None
+        if T_tool_cam is None:
+            raise SceneError("the scene's camera has neither T_base_cam (mount: base) nor T_tool_cam (mount: tool)")
         return self.T_base_tool_true @ T_tool_cam
 
     def T_base_target(self, name: str) -> NDArray[np.float64]:
@@ -157,8 +158,7 @@ class SimWorld:
             objects = [] if hit else self.planar_objects()
             self.frame_counter += 1
             rng = np.random.default_rng(self._rng.integers(2**63))
-        if hit:
-            assert cached is not None
+        if hit and cached is not None:
             reflectance, depth_m = cached[1], cached[2]
         else:
             reflectance, depth_m = render_scene(self.camera_model, objects, im.background, im.supersample)
