@@ -137,6 +137,9 @@ def test_stop_during_a_move_halts_it_and_latches_until_an_engineer_resumes(
         cell: tuple[Served, dict[str, str]], http: httpx.Client) -> None:
     move = _Call(lambda: http.post("/robots/robot0/move", json={"pose_ur": LOW, "speed_m_s": 0.05}))  # 5 s
     _wait_moving(http)
+    deadline = time.monotonic() + 10
+    while _z_m(http) > 0.545 and time.monotonic() < deadline:  # well on its way
+        time.sleep(0.02)
     with _as(cell, "viewer") as viewer:
         assert viewer.post("/robots/robot0/stop").status_code == 403
     with _as(cell, "operator") as operator:
