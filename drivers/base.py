@@ -34,6 +34,7 @@ from drivers.errors import (  # re-exported: the errors are part of the contract
     DriverError,
     MotionRejected,
 )
+from drivers.health import DeviceHealth
 from drivers.motion import MotionOwner, MotionSession, RobotBusy, RobotStopped, move_deadline_s
 
 __all__ = [
@@ -199,6 +200,10 @@ class Robot(Protocol):
                    session: MotionSession | None = None) -> None: ...
     def stop(self, by: str = "") -> None: ...
     def resume(self) -> bool: ...
+    def halt(self) -> None: ...
+    def motion_session(self, who: str, what: str) -> contextlib.AbstractContextManager[MotionSession]: ...
+    def move_deadline_s(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> float: ...
+    def health(self) -> DeviceHealth: ...
 
 
 @runtime_checkable
@@ -218,6 +223,10 @@ class DigitalIO(Protocol):
 
 class DeviceBase(abc.ABC):
     """Context-manager plumbing shared by adapters: ``with`` opens, ``close()`` is idempotent."""
+
+    def health(self) -> DeviceHealth:
+        """The device's availability and outage counters; adapters that count outages override it."""
+        return DeviceHealth(available=True)
 
     def __enter__(self) -> Self:
         self._open_device()
