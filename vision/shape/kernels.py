@@ -190,3 +190,78 @@ def warm_up() -> None:
     zi = np.zeros(1, np.int64)
     z3 = np.zeros((1, 1, 1), np.int32)
     track_scores(np.zeros((1, 2, 2), np.uint8), zi, zi, zi, zi, z3, z3, z3)
+
+
+@njit(cache=True)
+def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, max_scale_dev: float,
+                search_px: float, iterations: int, thr: float, reject_below: float, fit_scale: bool,
+                radius: float, vis_margin: float, width: float, height: float
+                ) -> tuple[F64, bool, F64, F64, NDArray[np.bool_], F64, F64]:
+    """The Gauss-Newton loop of ``refine.refine_lsq`` on gradient peaks, in one call.
+
+    ``pose`` = (x, y, theta, scale) in crop pixels, updated; returns (pose, failed, q, d, found,
+    cosd, sign) of the last association (``q``: the model points at the pose they were associated
+    at). Points outside ``[vis_margin, size - 1 - vis_margin]`` take no part. Tukey weights with a
+    cut-off that shrinks with the search range; a step moving the outermost point < 0.02 px ends it.
+    """
+    npts = m.shape[0]
+    x, y, th, sc = pose[0], pose[1], pose[2], pose[3]
+    rng = search_px
+    q = np.zeros((npts, 2))
+    n = np.zeros((npts, 2))
+    Rm = np.zeros((npts, 2))
+    Rdm = np.zeros((npts, 2))
+    wgt = np.zeros(npts)
+    d = np.zeros(npts)
+    found = np.zeros(npts, np.bool_)
+    cosd = np.zeros(npts)
+    sign = np.ones(npts)
+    failed = False
+    for it in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        for i in range(npts):
+            mx, my = m[i, 0], m[i, 1]
+            Rm[i, 0] = c * mx + s * my
+            Rm[i, 1] = -s * mx + c * my
+            Rdm[i, 0] = c * my - s * mx  # R (m_y, -m_x)
+            Rdm[i, 1] = -s * my - c * mx
+            q[i, 0] = sc * Rm[i, 0] + x
+            q[i, 1] = sc * Rm[i, 1] + y
+            n[i, 0] = c * nrm[i, 0] + s * nrm[i, 1]
+            n[i, 1] = -s * nrm[i, 0] + c * nrm[i, 1]
+        d, found, cosd, sign = associate(G, q, n, int(math.ceil(rng)), thr)
+        cut = max(rng * 0.75, 1.0)
+        wsum = 0.0
+        nfound = 0
+        for i in range(npts):
+            if found[i] and not (vis_margin <= q[i, 0] <= width - vis_margin
+                                 and vis_margin <= q[i, 1] <= height - vis_margin):
+                found[i] = False
+            w = 0.0
+            if found[i]:
+                nfound += 1
+                if abs(d[i]) < cut:
+                    r = d[i] / cut
+                    w = (1 - r * r) ** 2
+            wgt[i] = w
+            wsum += w
+        if wsum < 6 or (it == 0 and nfound < reject_below * npts):
+            failed = True
+            break
+        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, d)
+        k = 4 if (fit_scale and (it > 0 or iterations == 1)) else 3
+        Ak = A[:k, :k].copy()
+        for j in range(k):
+            Ak[j, j] += 1e-9
+        delta = np.linalg.solve(Ak, b[:k].copy())
+        ds = delta[3] if k == 4 else 0.0
+        x += delta[0]
+        y += delta[1]
+        th += delta[2]
+        sc = min(max(sc + ds, s0 * (1 - max_scale_dev)), s0 * (1 + max_scale_dev))
+        moved = abs(delta[0]) + abs(delta[1]) + (abs(delta[2]) + abs(ds)) * radius
+        rng = max(rng * 0.6, 1.5)
+        if moved < 0.02:
+            break
+    out = np.array([x, y, th, sc])
+    return out, failed, q, d, found, cosd, sign

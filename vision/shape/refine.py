@@ -112,7 +112,6 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     """
     m = lm.points if subset is None else lm.points[subset]
     nrm_m = lm.normals if subset is None else lm.normals[subset]
-    npts = len(m)
     dm0 = np.stack([m[:, 1], -m[:, 0]], axis=1)  # d(R m)/d theta = R (m_y, -m_x)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
     h, w = img_level.shape
@@ -130,10 +129,13 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     gx, gy = gradients(img_level[y0:y1 + 1, x0:x1 + 1], sigma)
     G = cv2.merge([gx, gy])
     x, y, th, sc = pose.x - x0, pose.y - y0, pose.theta, pose.scale
-    rng = search_px
-    d = np.zeros(npts)
-    found = np.zeros(npts, bool)
-    cosd = np.zeros(npts)
+    p4, failed, q, d, found, cosd, sign = kernels.fit_stage_a(
+        G, np.ascontiguousarray(m), np.ascontiguousarray(nrm_m), np.array([x, y, th, sc]), s0, max_scale_dev,
+        float(search_px), int(iterations), float(thr), float(reject_below), bool(fit_scale), lm.radius,
+        vis_margin, float(x1 - x0), float(y1 - y0))
+    x, y, th, sc = (float(t) for t in p4)
+    if failed:
+        return Refined(Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan"))
 
     def update(delta: F64) -> float:
         nonlocal x, y, th, sc
@@ -144,22 +146,6 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         return abs(float(delta[0])) + abs(float(delta[1])) + (abs(float(delta[2])) + abs(float(delta[3]))) \
             * lm.radius
 
-    for it in range(iterations):
-        R = rot(th)
-        Rm = m @ R.T
-        q = sc * Rm + np.array([x, y])
-        n = nrm_m @ R.T
-        d, found, cosd, sign = _associate(G, q, n, rng, thr)
-        found &= visible(q)
-        # Tukey weights on the normal distances
-        c = max(rng * 0.75, 1.0)
-        wgt = np.where(found & (np.abs(d) < c), (1 - (d / c) ** 2) ** 2, 0.0)
-        if wgt.sum() < 6 or (it == 0 and np.count_nonzero(found) < reject_below * npts):
-            return Refined(Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan"))
-        moved = update(_gn_step(n, Rm, dm0 @ R.T, sc, wgt, d, fit_scale and (it > 0 or iterations == 1)))
-        rng = max(rng * 0.6, 1.5)
-        if moved < 0.02:
-            break
     if fine is not None:
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
