@@ -20,8 +20,9 @@ Steps:
    crossing of the half-way grey level between the local dark and light levels of each ray, so
    uneven light does not shift it); a direct least-squares ellipse (Fitzgibbon/Halir-Flusser)
    is fitted to those edge points, with outlier rejection (partly hidden marks are dropped).
-   Each centre's 1-sigma uncertainty (``Detection.uv_sigma_px``) follows from the edge points'
-   spread about the fit (``calibration.detect.precision``).
+   Each centre's 1-sigma uncertainty (``Detection.uv_sigma_px``) is the gradient-energy bound over
+   the mark (``calibration.detect.precision``); the edge points' spread about the fit
+   (``refine_marks_precise``) scattered too much from mark to mark to weight by (measured).
 5. Perspective bias (Heikkilä, PAMI 2000): the imaged ellipse's centre is not the image of the
    mark's centre. The plate-to-image mapping is modelled around each mark from its grid
    neighbours (Gaussian-weighted: a homography plus a quadratic correction, so that lens
@@ -38,10 +39,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.detect.ellipse import conic_centres, fit_ellipses_direct, refine_marks, refine_marks_precise
+from calibration.detect.ellipse import conic_centres, fit_ellipses_direct, refine_marks
 from calibration.detect.mark_grid import consistent_marks, local_homographies, perspective_bias
 from calibration.detect.plate_frame import assign_grid, binarizations, find_frames, grid_xy, read_orientation
-from calibration.detect.precision import MAX_SIGMA_PX
+from calibration.detect.precision import gradient_sigma_px
 from calibration.observations import Detection
 from calibration.targets import CirclePlate
 
@@ -126,8 +127,7 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
         c0 = np.array([e[0] for e in ells], dtype=np.float64)
         axes = np.array([e[1] for e in ells], dtype=np.float64) / 2
         angs = np.deg2rad(np.array([e[2] for e in ells], dtype=np.float64))
-        centres, ok, sig = refine_marks_precise(img, c0, axes, angs)
-        sig = sig[ok]
+        centres, ok = refine_marks(img, c0, axes, angs)
         uv_ell = centres[ok]
         new_ids = new_ids[ok]
         if len(new_ids) < n_expected - max_missing:
@@ -136,12 +136,12 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
             failure = failure if failure and failure.stage > f.stage else f
             continue
         order = np.argsort(new_ids)
-        new_ids, uv_ell, sig = new_ids[order], uv_ell[order], sig[order]
+        new_ids, uv_ell = new_ids[order], uv_ell[order]
         grid = grid_xy(new_ids, cols)
         radius_pitch = target.diameter_mm / 2 / target.pitch_mm
         # a mark that its neighbours do not predict is partly hidden or merged: leave it out
         keep = consistent_marks(grid, uv_ell)
-        new_ids, uv_ell, grid, sig = new_ids[keep], uv_ell[keep], grid[keep], sig[keep]
+        new_ids, uv_ell, grid = new_ids[keep], uv_ell[keep], grid[keep]
         if len(new_ids) < n_expected - max_missing:
             f = _Failure(1, f"mark count mismatch: only {len(new_ids)} of {n_expected} marks fit the plate "
                          "(occluded or damaged)")
@@ -151,7 +151,7 @@ def _attempt(grey: NDArray[np.uint8], img: NDArray[np.float32], binary: NDArray[
         for _ in range(2):
             uv = uv_ell - perspective_bias(grid, uv, radius_pitch)
         return Detection(image_name, True, ids=new_ids, uv=uv, uv_ellipse=uv_ell,
-                         uv_sigma_px=np.minimum(sig, MAX_SIGMA_PX))
+                         uv_sigma_px=gradient_sigma_px(grey, uv_ell, float(np.median(axes))))
     return failure or _Failure(0, "no frame with marks was usable")
 
 

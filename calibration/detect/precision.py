@@ -1,15 +1,17 @@
 """Per-point precision of a detection: a 1-sigma position uncertainty (px) for every point.
 
-Two estimators, each from the point's own local fit:
+The estimate, from each point's own local fit window:
 
-- **corners** (chessboard, ChArUco) and **blobs** (circle grid): the Cramér-Rao-type bound of
-  locating a known local pattern in noise, ``cov = s_n² (Σ w g gᵀ)⁻¹ (Σ w² g gᵀ) (Σ w g gᵀ)⁻¹``
-  over the point's window (Gaussian weights ``w``), with ``g`` the image gradient of the lightly
-  smoothed image and ``s_n`` the image noise. Low contrast (small ``g``), blur (gradient energy
-  spread thin), foreshortening and acute corners (an ill-conditioned tensor) all raise it.
-- **ellipse centres** (circle plate): the spread of the edge points about the fitted ellipse
-  (robust radial residual ``s_e``) over ``n`` edge points gives ``s_e · sqrt(2 / n)`` per axis;
-  noise, blur, low contrast and a partly disturbed rim all raise it (``calibration.detect.ellipse``).
+- **corners** (chessboard, ChArUco) and **circle marks** (circle grid, circle plate; window = the
+  mark's size): the Cramér-Rao-type bound of locating a known local pattern in noise,
+  ``cov = s_n² (Σ w g gᵀ)⁻¹ (Σ w² g gᵀ) (Σ w g gᵀ)⁻¹`` over the point's window (Gaussian weights
+  ``w``), with ``g`` the image gradient of the lightly smoothed image and ``s_n`` the image noise.
+  Low contrast (small ``g``), blur (gradient energy spread thin), foreshortening and acute
+  corners (an ill-conditioned tensor) all raise it.
+- the circle plate's ellipse fit also yields the edge points' spread about the fitted ellipse
+  (``calibration.detect.ellipse.refine_marks_precise``: ``s_e · sqrt(2 / n)``); it scatters too
+  much from mark to mark to weight by: on rendered plates it made calibrations worse than
+  unweighted, the gradient bound slightly better, so the detector reports the latter.
 
 The image noise ``s_n`` is Immerkær's estimator (the response to a 3x3 Laplacian-difference
 kernel that cancels planes and edges to first order), made robust with the median, over the

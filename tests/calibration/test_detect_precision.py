@@ -50,11 +50,14 @@ def test_sigma_serialised_and_read_back() -> None:
     assert "sigma_px" not in Detection("b.png", True, np.array([0]), np.array([[1.0, 2.0]])).to_json()["points"][0]
 
 
-def test_point_weights_normalised_and_capped() -> None:
-    w = point_weights([np.array([0.01, 0.01, 0.04]), None, np.array([0.0001])], [3, 2, 1])
-    assert np.allclose(w[0][:2], 1.0) and w[0][2] < 0.3
-    assert np.allclose(w[1], 1.0)
-    assert w[2][0] < 2.3  # a point claiming 100x better precision cannot outweigh the rest by more
+def test_point_weights_follow_the_view_and_are_capped() -> None:
+    w = point_weights([np.array([0.01, 0.01, 0.011]), np.array([0.04, 0.04, 0.04]), None,
+                       np.array([0.0001, 0.0001]), np.array([0.01, 0.01, 0.2])], [3, 3, 2, 2, 3])
+    assert np.allclose(w[0], 1.0, atol=0.01)  # the typical view weighs 1; small scatter inside a view is ignored
+    assert np.all(w[1] < 0.3)                 # a 4x noisier view weighs far less
+    assert np.allclose(w[2], 1.0)             # no uncertainties: weight 1
+    assert np.all(w[3] < 2.3)                 # a view claiming 100x better precision is capped
+    assert w[4][2] < 0.3 and np.allclose(w[4][:2], 1.0, atol=0.01)  # a point 20x its view is weighted down
 
 
 def test_blurred_views_stop_dominating_intrinsics() -> None:
