@@ -49,7 +49,8 @@ class Params(BaseModel):
     max_tilt_deg: float = Field(25.0, ge=5, le=45, description="largest tilt about the plate's centre, degrees "
                                                                "(the checks ask for 15-30)")
     max_spin_deg: float = Field(40.0, ge=0, le=90, description="largest spin about the view axis, degrees")
-    speed_m_s: float | None = Field(None, gt=0, description="tool speed, m/s (default: calibration.speed_m_s)")
+    speed_m_s: float | None = Field(None, ge=0.001, le=2.0, description="tool speed, m/s, 0.001-2 "
+                                                                    "(default: calibration.speed_m_s)")
     note: str = Field("", max_length=500, description="note stored with the calibration")
 
 
@@ -83,13 +84,15 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
                            "activate its result first")
     active, camera = found
     cam, robot = devices(services, camera_id, robot_id)
-    assert robot is not None
+    if robot is None:
+        raise RoutineError(f"routine needs robot {robot_id!r}; name a configured robot (robot_id)")
     stop_robot_on_end(ctx, robot)
     first = capture(cam, robot, target, "station01")
     if not first.detection.found:
         raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason}); move the "
                            "robot so the whole plate is in view, then start again")
-    assert first.T_base_tool is not None
+    if first.T_base_tool is None:
+        raise RoutineError("the start view has no robot pose; the robot must report its pose")
     T_cam_target = target_pose(camera, target, first.detection)
     plan = plan_pivot_stations(first.T_base_tool, pivot_point(first.T_base_tool, T_cam_target, target),
                                p.stations, p.max_tilt_deg, p.max_spin_deg, None)

@@ -51,7 +51,8 @@ class Params(BaseModel):
     max_tilt_deg: float = Field(32.0, ge=5, le=60, description="largest tilt of the view direction, degrees")
     min_point_fraction: float = Field(0.8, gt=0, le=1, description="a view counts when at least this fraction "
                                                                    "of the target's points is detected")
-    speed_m_s: float | None = Field(None, gt=0, description="tool speed, m/s (default: calibration.speed_m_s)")
+    speed_m_s: float | None = Field(None, ge=0.001, le=2.0, description="tool speed, m/s, 0.001-2 "
+                                                                    "(default: calibration.speed_m_s)")
     step_timeout_s: float = Field(600.0, gt=0, le=86400, description="operator mode: a view not recorded within "
                                                                      "this many seconds cancels the job")
     note: str = Field("", max_length=500, description="note stored with the calibration")

@@ -66,7 +66,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     camera_id, robot_id = p.camera_id or d.camera, p.robot_id or d.robot
     tname, target = routine_target(services, p.target)
     cam, robot = devices(services, camera_id, robot_id)
-    assert robot is not None
+    if robot is None:
+        raise RoutineError(f"routine needs robot {robot_id!r}; name a configured robot (robot_id)")
     shot = capture(cam, robot, target, "marks")
     if not shot.detection.found:
         raise RoutineError(f"the marks are not seen ({shot.detection.reason}); put the plate in view and start again")
@@ -97,7 +98,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     xy = np.array([[m["x_mm"], m["y_mm"]] for m in pairs])
     result = fit_npoint(uv, xy, p.model, camera)
     np_json = result.to_json()
-    assert shot.T_base_tool is not None
+    if shot.T_base_tool is None:
+        raise RoutineError("the capture has no robot pose; the robot must report its pose")
     np_json["capture_pose_ur"] = [float(v) for v in g.transform_to_ur_pose(shot.T_base_tool)]
     np_json["target"] = tname
     record = services.store.save_calibration(

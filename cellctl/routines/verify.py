@@ -32,9 +32,9 @@ class Params(BaseModel):
     robot_id: str | None = Field(None, description="robot to use (default: the config's calibration.robot)")
     target: str | None = Field(None, description="name of a target in the config's targets "
                                                  "(default: calibration.target)")
-    tolerance_px: float | None = Field(None, gt=0, description="largest drift in the image, px RMS "
+    tolerance_px: float | None = Field(None, gt=0, le=1000, description="largest drift in the image, px RMS "
                                                                "(default: calibration.verify_tolerance_px)")
-    tolerance_mm: float | None = Field(None, gt=0, description="largest drift of the plate's points, mm RMS "
+    tolerance_mm: float | None = Field(None, gt=0, le=1000, description="largest drift of the plate's points, mm RMS "
                                                                "(default: calibration.verify_tolerance_mm)")
 
 

@@ -42,8 +42,10 @@ class RecordInput(BaseModel):
     """Operator input for a waiting routine (jog-to-mark: the tool is at the mark)."""
 
     model_config = ConfigDict(extra="forbid")
-    x_mm: float | None = Field(None, description="robot x of the mark, mm (default: read from the robot)")
-    y_mm: float | None = Field(None, description="robot y of the mark, mm (default: read from the robot)")
+    x_mm: float | None = Field(None, ge=-1e5, le=1e5,
+                               description="robot x of the mark, mm (default: read from the robot)")
+    y_mm: float | None = Field(None, ge=-1e5, le=1e5,
+                               description="robot y of the mark, mm (default: read from the robot)")
 
 
 class RoutinePublic(BaseModel):
