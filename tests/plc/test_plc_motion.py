@@ -35,6 +35,17 @@ from tests.plc.conftest import RECIPE, PlcCell, prepare_cell
 from tests.plc.test_modbus_server import UNIT, Answer, message, next_seq, read_answer, request, wait_answer
 from tests.plc.test_opcua_server import CLIENT_OPTIONS, cell_node, read
 
+
+async def settled(node: Any, idx: int, name: str, expected: Any, timeout_s: float = 15.0) -> bool:
+    """Poll a live variable until it reads ``expected`` (it is refreshed every 0.1 s)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if await read(node, idx, name) == expected:
+            return True
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.05)
+
 STOPPED_TEXT = "robot stopped: an engineer must resume it"
 APPROACH_MM = 40.0 + 5.0  # the recipe's approach height above its grasp height (tests/plc/conftest.py)
 
@@ -199,7 +210,7 @@ def test_opcua_pick_and_move_obeys_owner_and_latch(at_home: MotionCell) -> None:
             node, idx = await cell_node(client)
             arg = ua.Variant(RECIPE, ua.VariantType.Int32)
             assert await read(node, idx, "RobotLatched") is False
-            assert await read(node, idx, "RobotMotionOwner") == ""
+            assert await settled(node, idx, "RobotMotionOwner", "")  # the last test's moves have ended
             count, poses, reachable, picked_index = await node.call_method(f"{idx}:PickAndMove", arg)
             assert count >= 1 and picked_index == 0 and reachable[0] is True
             assert math.hypot(poses[0] - cell.part_x_mm, poses[1] - cell.part_y_mm) < 0.5
@@ -207,8 +218,7 @@ def test_opcua_pick_and_move_obeys_owner_and_latch(at_home: MotionCell) -> None:
             await asyncio.to_thread(cell.go_home)
 
             await asyncio.to_thread(cell.stop)
-            await asyncio.sleep(0.5)  # the variable follows within 0.1 s
-            assert await read(node, idx, "RobotLatched") is True
+            assert await settled(node, idx, "RobotLatched", True)  # the variable follows within 0.1 s
             with pytest.raises(UaStatusCodeError) as e:
                 await node.call_method(f"{idx}:PickAndMove", arg)
             assert e.value.code == ua.StatusCodes.BadRequestNotAllowed
@@ -216,8 +226,7 @@ def test_opcua_pick_and_move_obeys_owner_and_latch(at_home: MotionCell) -> None:
             assert await read(node, idx, "LastErrorCode") == TEXT_ROBOT_STOPPED
 
             await asyncio.to_thread(cell.resume)
-            await asyncio.sleep(0.5)
-            assert await read(node, idx, "RobotLatched") is False
+            assert await settled(node, idx, "RobotLatched", False)
             slow = {"pose_ur": {**cell.home, "z_m": cell.home["z_m"] - 0.1}, "speed_m_s": 0.02}
             mover = asyncio.create_task(asyncio.to_thread(cell.http.post, "/robots/robot0/move", json=slow))
             await asyncio.sleep(1.0)
