@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -23,6 +24,15 @@ from cellctl.services import Services
 log = logging.getLogger(__name__)
 
 
+def _warm_up_matcher() -> None:
+    from vision.shape import warm_up
+
+    try:
+        warm_up()
+    except Exception:  # noqa: BLE001 - a failed warm-up only costs the first search its load time
+        log.warning("loading the matcher's compiled loops failed; the first search will load them", exc_info=True)
+
+
 def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] | None = None) -> FastAPI:
     """Build the service for a cell. ``session_tokens`` are (name, role, sha256) valid for this run."""
 
@@ -37,6 +47,8 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         app.state.services = services
         metrics.attach(app.state.metrics, services)
         await run_in_threadpool(cell.open_all)
+        # The matcher's compiled loops load in the background, so the first pick costs what the next ones do.
+        threading.Thread(target=_warm_up_matcher, name="matcher-warm-up", daemon=True).start()
         log.info("cell %s ready: cameras %s, robots %s; store %s", config.cell_id, sorted(cell.cameras),
                  sorted(cell.robots), store.describe())
         from cellctl.plc import start_plc_servers

@@ -42,6 +42,21 @@ class SearchSettings(BaseModel):
     angle_extent_deg: float = Field(360.0, gt=0, le=360)
     roi: tuple[Px, Px, Px, Px] | None = None
     timeout_s: float | None = Field(1.0, gt=0, le=60)
+    polarity: Literal["use_polarity", "ignore_global_polarity", "ignore_local_polarity"] = Field(
+        "ignore_local_polarity", description="use_polarity: edges keep the teach image's contrast; "
+        "ignore_global_polarity: or all reversed (an inverted image); ignore_local_polarity: each edge either way")
+    greediness: float = Field(0.9, ge=0, le=1, description="0: safe, slower; 1: fast, may miss weak parts")
+    scale_range: tuple[float, float] = Field((1.0, 1.0), description="isotropic scales searched, e.g. "
+                                             "[0.9, 1.1]; [1, 1]: none")
+    mirrored: bool = Field(False, description="also find the part face down (mirrored)")
+    max_overlap: float = Field(0.5, ge=0, le=1, description="largest overlap of two matches' boxes, 0..1")
+
+    @field_validator("scale_range")
+    @classmethod
+    def _scale_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0.5 <= v[0] <= v[1] <= 2.0):
+            raise ValueError(f"scale_range {list(v)} must be [low, high] with 0.5 <= low <= high <= 2")
+        return v
 
     @field_validator("min_score")
     @classmethod

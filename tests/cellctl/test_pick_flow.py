@@ -172,3 +172,16 @@ def test_the_tool_centre_offset_puts_the_gripper_centre_on_the_part(services: Se
     assert math.hypot(best["pick_pose"]["x_mm"] - plain["pick_pose"]["x_mm"],
                       best["pick_pose"]["y_mm"] - plain["pick_pose"]["y_mm"]) == pytest.approx(math.hypot(12, 7),
                                                                                                 abs=0.05)
+
+
+def test_the_recipe_carries_the_matchers_search_options(services: Services) -> None:
+    recipe = teach_bracket(services)
+    tuned = recipe.model_copy(update={"search": recipe.search.model_copy(update={
+        "polarity": "use_polarity", "scale_range": (0.95, 1.05), "mirrored": True, "greediness": 0.5})})
+    services.store.save_recipe(5, "bracket, tuned search", tuned.model_dump(mode="json"), "test")
+    best = run_pick(services, 5)["picks"][0]
+    assert best["part"] == "bracket" and not best["mirrored"] and abs(best["scale"] - 1.0) < 0.01
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="scale_range"):
+        Recipe.model_validate({**tuned.model_dump(mode="json"), "search": {"scale_range": [1.2, 0.9]}})
