@@ -65,9 +65,18 @@ def circles_beyond_border(grey: NDArray[np.uint8], G: NDArray[np.float64], asymm
     if not keypoints:
         return 0
     kp = np.array([k.pt for k in keypoints], dtype=np.float64)
+    size = np.array([k.size for k in keypoints], dtype=np.float64)
     step = float(np.median(np.hypot(*np.diff(G, axis=1).reshape(-1, 2).T)))
-    d = np.hypot(pts[:, None, 0] - kp[None, :, 0], pts[:, None, 1] - kp[None, :, 1]).min(axis=1)
-    return int((d < 0.25 * step).sum())
+    # The grid's own blobs give the size a printed circle has here; noise, vignetting and
+    # compression make smaller or larger dark specks beyond the border that are no circles.
+    dg = np.hypot(G.reshape(-1, 2)[:, None, 0] - kp[None, :, 0], G.reshape(-1, 2)[:, None, 1] - kp[None, :, 1])
+    own = size[np.argmin(dg, axis=1)[dg.min(axis=1) < 0.25 * step]]
+    d = np.hypot(pts[:, None, 0] - kp[None, :, 0], pts[:, None, 1] - kp[None, :, 1])
+    near = d.min(axis=1) < 0.25 * step
+    if own.size:
+        ratio = size[np.argmin(d, axis=1)] / float(np.median(own))
+        near &= (ratio > 0.7) & (ratio < 1.4)
+    return int(near.sum())
 
 
 def detect_circle_grid(grey: NDArray[np.uint8], target: CircleGrid, image_name: str = "") -> Detection:
