@@ -52,25 +52,30 @@ def _options(p: argparse.ArgumentParser) -> set[str]:
 
 
 def check_command(parser: argparse.ArgumentParser, command: str) -> list[str]:
-    """What in ``command`` the parser does not know (empty when all of it exists)."""
+    """What in ``command`` the parser does not know (empty when all of it exists).
+
+    ``a|b`` in a command's place shows two commands: each must exist, and an option shown after
+    them must belong to at least one (``cellctl token list|remove --config C [--name N]``).
+    """
     words = command.replace("[", " ").replace("]", " ").split()[1:]
-    p, path, problems = parser, ["cellctl"], []
+    parsers, path, problems = [parser], ["cellctl"], []
     for w in words:
         w = w.strip("'\"")
         if w.startswith("-"):
             for alt in w.split("/"):
                 opt = alt.split("=")[0]
-                if opt and opt not in _options(p):
+                if opt and not any(opt in _options(p) for p in parsers):
                     problems.append(f"{' '.join(path)}: no option {opt}")
             continue
-        subs = _subparsers(p)
+        subs = _subparsers(parsers[0])
         if subs:
-            if w not in subs:
+            names = w.split("|") if all(a in subs for a in w.split("|")) else [w]
+            if names[0] not in subs:
                 problems.append(f"{' '.join(path)}: no command {w!r} (has {sorted(subs)})")
                 break
-            p, path = subs[w], [*path, w]
-    if _subparsers(p) and words and not {"-h", "--help"} & set(words):
-        problems.append(f"{' '.join(path)}: incomplete, needs one of {sorted(_subparsers(p))}")
+            parsers, path = [subs[n] for n in names], [*path, w]
+    if _subparsers(parsers[0]) and words and not {"-h", "--help"} & set(words):
+        problems.append(f"{' '.join(path)}: incomplete, needs one of {sorted(_subparsers(parsers[0]))}")
     return problems
 
 
@@ -89,6 +94,8 @@ def test_the_command_check_catches_what_does_not_exist() -> None:
 
     parser = build_parser()
     assert check_command(parser, "cellctl detect --target T.yaml IMAGE") == []
+    assert check_command(parser, "cellctl token list|remove --config cell.yaml [--name N]") == []
+    assert check_command(parser, "cellctl token list|purge --config cell.yaml")
     assert check_command(parser, "cellctl detect --no-such-option 3")
     assert check_command(parser, "cellctl calib nonsense --out x")
     assert check_command(parser, "cellctl calib")  # a group without its command
