@@ -73,7 +73,6 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from cellctl.plc.loop_thread import LoopThread
 from cellctl.plc.requests import (
     ERROR_TEXTS,
     TEXT_UNKNOWN_COMMAND,
@@ -84,6 +83,7 @@ from cellctl.plc.requests import (
     robot_motion_status,
 )
 from cellctl.services import Services
+from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 

@@ -52,7 +52,6 @@ from typing import Any
 from asyncua import Node, Server, ua
 
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
-from cellctl.plc.loop_thread import LoopThread
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
@@ -72,6 +71,7 @@ from cellctl.plc.requests import (
     robot_motion_status,
 )
 from cellctl.services import Services
+from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 

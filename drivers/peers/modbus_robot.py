@@ -30,8 +30,6 @@ Run it with ``python -m drivers.peers.modbus_robot --port 5020`` (or in-process:
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
 import math
 import signal
 import threading
@@ -45,6 +43,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers import modbus_codec
+from drivers.loop_thread import LoopThread
 from drivers.modbus_codec import WordOrder
 
 ACTUAL_POSE = 0
@@ -178,11 +177,8 @@ class ModbusRobotSim:
         self.robot = _Robot(watchdog_s=watchdog_s, speed_override=speed_override)
         self._lock = threading.Lock()
         self._hr: list[int] = [0] * 64  # the client-visible copy of what the client wrote
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._server: ModbusTcpServer | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self._loop_thread = LoopThread("modbus-robot-sim")
 
     def _device(self) -> SimDevice:
         bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
@@ -253,40 +249,19 @@ class ModbusRobotSim:
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> ModbusRobotSim:
-        self._thread = threading.Thread(target=self._run, name="modbus-robot-sim", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(10.0) or self._error is not None:
-            raise OSError(f"Modbus robot simulator cannot listen on {self.host}:{self.port}: {self._error}")
-        return self
-
-    def _run(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-
         async def serve() -> None:
             self._server = ModbusTcpServer(self._device(), address=(self.host, self.port))
             await self._server.serve_forever(background=True)
-            self._ready.set()
-            await self._server.serving
 
         try:
-            loop.run_until_complete(serve())
-        except BaseException as exc:  # reported by start()
-            self._error = exc
-            self._ready.set()
-        finally:
-            with contextlib.suppress(Exception):
-                loop.run_until_complete(loop.shutdown_asyncgens())
-            loop.close()
+            self._loop_thread.start(serve, timeout_s=10.0)
+        except Exception as exc:  # noqa: BLE001 - one clear error for every way the server fails to start
+            raise OSError(f"Modbus robot simulator cannot listen on {self.host}:{self.port}: {exc}") from exc
+        return self
 
     def stop(self) -> None:
-        if self._loop is not None and self._server is not None and self._loop.is_running():
-            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
-            with contextlib.suppress(Exception):
-                fut.result(timeout=5.0)
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        server = self._server
+        self._loop_thread.stop(server.shutdown if server is not None else None, timeout_s=5.0)
 
 
 def run(

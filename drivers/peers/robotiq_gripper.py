@@ -20,8 +20,6 @@ Run it on one end of a pty pair: ``python -m drivers.peers.robotiq_gripper --por
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
 import signal
 import threading
 import time
@@ -29,6 +27,8 @@ from dataclasses import dataclass, field
 
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
+
+from drivers.loop_thread import LoopThread
 
 OUT_BASE = 1000
 IN_BASE = 2000
@@ -112,10 +112,8 @@ class GripperSim:
         self.port, self.device_id, self.baudrate = port, device_id, baudrate
         self.model = GripperModel(object_at=object_at)
         self._lock = threading.Lock()
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._server: ModbusSerialServer | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
+        self._loop_thread = LoopThread("gripper-sim")
 
     async def _action(
         self,
@@ -152,34 +150,19 @@ class GripperSim:
         )
 
     def start(self) -> GripperSim:
-        self._thread = threading.Thread(target=self._run, name="gripper-sim", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(10):
-            raise OSError(f"gripper simulator could not open {self.port}")
-        return self
-
-    def _run(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-
         async def serve() -> None:
             self._server = ModbusSerialServer(self._device(), port=self.port, baudrate=self.baudrate, timeout=0.5)
             await self._server.serve_forever(background=True)
-            self._ready.set()
-            await self._server.serving
 
         try:
-            loop.run_until_complete(serve())
-        finally:
-            loop.close()
+            self._loop_thread.start(serve, timeout_s=10.0)
+        except Exception as exc:  # noqa: BLE001 - one clear error for every way the server fails to start
+            raise OSError(f"gripper simulator could not open {self.port}: {exc}") from exc
+        return self
 
     def stop(self) -> None:
-        if self._loop is not None and self._server is not None and self._loop.is_running():
-            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
-            with contextlib.suppress(Exception):
-                fut.result(timeout=5)
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        server = self._server
+        self._loop_thread.stop(server.shutdown if server is not None else None, timeout_s=5.0)
 
 
 def main(argv: list[str] | None = None) -> None:
