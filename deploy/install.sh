@@ -91,11 +91,11 @@ own() {  # own USER|ROOTGROUP PATH...: chown to the service user, or root:servic
 
 # -- the project and its venv -------------------------------------------------------------------------
 say "copying $SRC to $DEST"
-for item in cellctl drivers calibration deploy; do
+for item in cellctl drivers calibration vision deploy; do
   rm -rf "${DEST:?}/$item"
 done
 (cd "$SRC" && tar -cf - --exclude='__pycache__' --exclude='*.pyc' pyproject.toml README.md \
-  cellctl drivers calibration deploy) | (cd "$DEST" && tar -xf - --no-same-owner)
+  cellctl drivers calibration vision deploy) | (cd "$DEST" && tar -xf - --no-same-owner)
 if [ ! -x "$DEST/.venv/bin/python" ]; then
   "$PY" -m venv "$DEST/.venv" ||
     die "cannot create the venv: on Debian install python3-venv (apt-get install -y python3-venv) and re-run"
