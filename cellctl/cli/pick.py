@@ -54,7 +54,8 @@ def _teach(args: argparse.Namespace) -> dict[str, Any]:
     img = read_image(args.image)
     name = args.name or Path(args.out_model).stem
     roi = _roi(args.roi, "--roi")
-    assert roi is not None
+    if roi is None:
+        raise CommandError("--roi U,V,W,H is required to teach a part (the part's box in pixels)")
     m = teach(img, roi, mode=args.mode, name=name, teach_image=str(args.image),
               shape_params=shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels),
               blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity))
