@@ -19,6 +19,7 @@ import pytest
 
 from calibration import geometry as g
 from calibration.targets import target_from_dict
+from cellctl.served import run_job
 from tests.conftest import CELLCTL, Served, start_served, stop_served
 
 
@@ -45,18 +46,6 @@ def go_home(http: httpx.Client) -> None:
     r = http.post("/robots/robot0/move", json={"pose_ur": HOME_POSE, "speed_m_s": 0.2})
     assert r.status_code == 200, r.text
 
-
-def run_job(http: httpx.Client, name: str, params: dict[str, Any], timeout_s: float = 240.0) -> dict[str, Any]:
-    r = http.post(f"/routines/{name}", json=params)
-    assert r.status_code == 202, r.text
-    job_id = r.json()["id"]
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = http.get(f"/jobs/{job_id}").json()
-        if job["state"] != "running":
-            return dict(job)
-        time.sleep(0.3)
-    raise AssertionError(f"{name} did not finish in {timeout_s} s")
 
 
 @pytest.fixture(scope="module")
