@@ -71,7 +71,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         title="cellctl",
         version=__version__,
         description="Robot work-cell controller: cameras, robots, calibration, pick guidance. "
-                    "Every route except /health, /docs and /openapi.json needs 'Authorization: Bearer <token>'.",
+                    "Every route except /health, /docs and /openapi.json needs 'Authorization: Bearer TOKEN'.",
         lifespan=lifespan,
         docs_url=None, redoc_url=None,  # served from local assets by routes/ui.py (no CDN)
     )
