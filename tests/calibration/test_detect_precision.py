@@ -67,7 +67,8 @@ def test_blurred_views_stop_dominating_intrinsics() -> None:
                       np.array([-0.25, 0.08, 0.001, -0.0005, -0.01]))
     board = Chessboard(9, 6, 30.0)
     tp = board.points()
-    errs_w, errs_u = [], []
+    errs_w: list[float] = []
+    errs_u: list[float] = []
     for seed in range(4):
         rng = np.random.default_rng(seed)
         dets_w, dets_u = [], []

@@ -23,8 +23,9 @@ TRUTHS = {
     "opencv8": np.array([0.15, -0.1, 0.0008, -0.0006, 0.01, 0.45, -0.05, 0.02]),
     "division": np.array([-0.3]),
 }
-TARGETS = {"chessboard": Chessboard(9, 6, 25.0), "charuco": Charuco(7, 5, 30.0, 22.0, "DICT_4X4_50"),
-           "circle_plate": CirclePlate(7, 7, 15.0, 7.5)}
+TARGETS: dict[str, Chessboard | Charuco | CirclePlate] = {
+    "chessboard": Chessboard(9, 6, 25.0), "charuco": Charuco(7, 5, 30.0, 22.0, "DICT_4X4_50"),
+    "circle_plate": CirclePlate(7, 7, 15.0, 7.5)}
 DEFECTS = Imaging(blur_sigma_px=0.7, gain_dn_per_e=0.5, read_noise_dn=1.5, vignetting=0.25, gamma=1.1,
                   jpeg_quality=92)
 RATIOS: dict[tuple[str, str], float] = {}
