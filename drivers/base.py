@@ -414,7 +414,9 @@ class RobotBase(DeviceBase):
         try:
             current = self.state().T_base_tool
         except DriverError:
-            return 0.0  # the hook will report the outage; the deadline then is the slack alone
+            # Where the tool is now is unknown: the longest move the envelope allows bounds the deadline.
+            lim = self.limits
+            return 1e-3 * math.dist((lim.x_mm[0], lim.y_mm[0], lim.z_mm[0]), (lim.x_mm[1], lim.y_mm[1], lim.z_mm[1]))
         return float(np.linalg.norm(target[:3, 3] - current[:3, 3]))
 
     def _joint_span_to(self, q: NDArray[np.float64]) -> float:
