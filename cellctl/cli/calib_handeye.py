@@ -123,6 +123,19 @@ def _load(args: argparse.Namespace) -> tuple[Any, Any, Any, list[Any]]:
     return target, camera, poses, detections
 
 
+def _camera_verdict_ok(path: str) -> bool | None:
+    """The camera calibration's own verdict (cam.json), or None when the file carries none.
+
+    An uncertain camera (verdict not ok) turns on the joint refinement of intrinsics with the hand-eye.
+    """
+    try:
+        verdict = json.loads(Path(path).read_text()).get("verdict")
+    except (OSError, ValueError, AttributeError):
+        return None  # an OpenCV YAML or a file without a verdict
+    ok = verdict.get("ok") if isinstance(verdict, dict) else None
+    return ok if isinstance(ok, bool) else None
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye
 
@@ -158,7 +171,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         result = calibrate_handeye(args.setup, poses.T_base_tool, detections, camera, target, noise,
                                    raw_ur_poses=poses.ur_poses, sigma_px=_pixel_sigma(args),
                                    leave_one_out=not args.no_loo,
-                                   estimate_robot_noise=args.estimate_robot_noise)
+                                   estimate_robot_noise=args.estimate_robot_noise,
+                                   camera_verdict_ok=_camera_verdict_ok(args.camera))
     except HandEyeError as exc:
         from calibration.handeye_dof4_checks import is_dof4
 
