@@ -20,19 +20,16 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import Browser, Page, expect, sync_playwright
+from playwright.sync_api import Browser, Page, expect
 
 from calibration import geometry as g
 from calibration.camera_io import camera_from_json
 from calibration.targets import target_from_dict
 from cellctl.cli import main
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
+from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.ui.conftest import SHOTS
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-SHOTS = REPO / "test-artifacts" / "screenshots"
 MARKS = 9
 WAIT_MS = 60_000
 expect.set_options(timeout=WAIT_MS)
@@ -54,17 +51,6 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dic
         yield served, tokens
     finally:
         stop_served(served)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 @pytest.fixture(scope="module")

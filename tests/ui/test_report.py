@@ -17,7 +17,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Browser, Page
 
 from calibration.camera_model import CameraModel
 from calibration.detect import detect_file
@@ -29,11 +29,8 @@ from calibration.targets import Chessboard, target_from_dict
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
 from tests.conftest import REPO, Served, start_served, stop_served
+from tests.ui.conftest import SHOTS
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-SHOTS = REPO / "test-artifacts" / "screenshots"
 IMAGES = REPO / "tests" / "data" / "udacity_camera_cal_9x6"
 TARGET = {"type": "chessboard", "cols": 9, "rows": 6, "square_mm": 25.0}
 RAW_DUMP = re.compile(r"\[\[|\{'|covariance|\d\.\d{7,}")
@@ -79,17 +76,6 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         yield {"served": served, "ids": ids, "result": res, "cli_report": cli_report}
     finally:
         stop_served(served)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 def _open(browser: Browser, url: str, token: str | None, local: str) -> tuple[Page, list[str], Any]:

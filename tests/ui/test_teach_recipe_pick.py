@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from playwright.sync_api import Browser, Page, expect, sync_playwright
+from playwright.sync_api import Browser, Page, expect
 
 from calibration import geometry as g
 from calibration.camera_io import camera_from_json
@@ -25,12 +25,9 @@ from calibration.npoint import fit_npoint
 from cellctl.cli import main
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
-from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
+from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.ui.conftest import SHOTS
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-SHOTS = REPO / "test-artifacts" / "screenshots"
 WAIT_MS = 60_000
 expect.set_options(timeout=WAIT_MS)
 
@@ -71,17 +68,6 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dic
         yield served, truth
     finally:
         stop_served(served)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 def _drag_roi(page: Page, u0: float, v0: float, u1: float, v1: float) -> None:
