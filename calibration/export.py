@@ -31,7 +31,7 @@ class ExportError(ValueError):
 def _opencv_only(camera: CameraModel, fmt: str) -> None:
     if camera.model == "division":
         raise ExportError(f"{fmt} cannot express the division model; export it for HALCON, or calibrate "
-                          "with --model opencv5/opencv8")
+                          "the camera with the opencv5 or opencv8 lens model")
 
 
 def write_opencv_yaml(camera: CameraModel, path: str | Path) -> None:
@@ -151,8 +151,8 @@ _HALCON_FIELDS = [
 def halcon_cam_par(camera: CameraModel, pixel_pitch_m: float) -> str:
     """HALCON camera parameter file text (``area_scan_division``) of a division-model camera."""
     if camera.model != "division":
-        raise ExportError("HALCON export supports the division model (area_scan_division); calibrate with "
-                          "--model division")
+        raise ExportError("HALCON export supports the division model (area_scan_division); calibrate the "
+                          "camera with the division lens model")
     if not pixel_pitch_m > 0:
         raise ExportError("HALCON needs the sensor cell width (pixel pitch) in metres, > 0")
     p = camera.to_halcon(pixel_pitch_m)

@@ -290,7 +290,8 @@ def fit_npoint(uv_px: ArrayLike, xy_mm: ArrayLike, model: str | None = None,
             loo[m] = float(np.sqrt(np.mean(_loo(m, uv, xy) ** 2)))
     if model is None:
         if not loo:
-            raise NPointError(f"{n} marks are too few to choose a model by leave-one-out; give --model or "
+            raise NPointError(f"{n} marks are too few to choose a model by leave-one-out; name the model "
+                              "(affine, similarity or homography) or "
                               "jog to more marks (9 are typical)")
         best = min(loo.values())
         model = next(m for m in MODELS if m in loo and loo[m] <= SELECTION_TOLERANCE * best)
