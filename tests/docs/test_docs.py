@@ -14,7 +14,7 @@ import yaml
 from tests.conftest import REPO
 
 DOCS = REPO / "docs"
-PAGES = sorted(DOCS.glob("*.md"))
+PAGES = sorted(DOCS.rglob("*.md"))  # docs/*.md and the per-type pages (docs/targets/*.md)
 README = REPO / "README.md"
 
 
@@ -182,9 +182,13 @@ def test_error_codes_in_rest_md_are_the_codes_the_code_sends() -> None:
 def test_target_examples_parse_and_their_geometry_is_as_written() -> None:
     from calibration.targets import Chessboard, CircleGrid, CirclePlate, target_from_dict
 
-    blocks = [yaml.safe_load(b) for b in _fenced(_page("targets.md"), "yaml")]
-    targets = [target_from_dict(b, "docs/targets.md") for b in blocks]
-    assert [t.type for t in targets] == ["chessboard", "charuco", "circle_plate", "circle_grid", "points3d"]
+    types = ["chessboard", "charuco", "circle_plate", "circle_grid", "points3d"]
+    targets = []
+    for kind in types:  # one page per type, each with its one file example
+        blocks = [yaml.safe_load(b) for b in _fenced(_page(f"targets/{kind}.md"), "yaml")]
+        assert len(blocks) == 1, f"docs/targets/{kind}.md shows {len(blocks)} target files"
+        targets.append(target_from_dict(blocks[0], f"docs/targets/{kind}.md"))
+    assert [t.type for t in targets] == types
     board, plate, grid = targets[0], targets[2], targets[3]
     assert isinstance(board, Chessboard) and isinstance(plate, CirclePlate)
     for t, step_mm in ((board, 25.0), (plate, 12.5)):  # id r*cols+c at (c*step, r*step, 0)
@@ -196,6 +200,17 @@ def test_target_examples_parse_and_their_geometry_is_as_written() -> None:
     r, c = np.divmod(pts.ids, grid.cols)
     assert np.allclose(pts.xyz_m[:, :2], np.column_stack([2 * c + r % 2, r]) * 0.020)
     assert np.allclose(plate.frame_inner_m(), (-0.0125, -0.0125, 7 * 0.0125, 7 * 0.0125))
+
+
+def test_each_target_page_names_a_shipped_example_of_its_type() -> None:
+    from calibration.targets import load_target
+
+    for kind in ["chessboard", "charuco", "circle_plate", "circle_grid", "points3d"]:
+        text = _page(f"targets/{kind}.md")
+        shipped = re.findall(r"`(deploy/examples/targets/[^`]+\.yaml)`", text)
+        assert len(shipped) == 1, f"docs/targets/{kind}.md names {shipped}"
+        assert load_target(REPO / shipped[0]).type == kind
+        assert f"(targets/{kind}.md)" in _page("targets.md"), f"docs/targets.md does not link {kind}"
 
 
 def test_json_examples_are_json() -> None:
@@ -238,5 +253,5 @@ def test_links_between_pages_resolve() -> None:
 def test_the_index_links_every_page() -> None:
     index = _page("README.md")
     for page in PAGES:
-        if page.name != "README.md":
+        if page.name != "README.md" and page.parent == DOCS:  # sub-pages are linked from their own index
             assert f"]({page.name}" in index, f"docs/README.md does not link {page.name}"
