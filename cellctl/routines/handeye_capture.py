@@ -1,20 +1,22 @@
-"""``handeye-capture``: planned, reachable robot stations around the plate, then hand-eye.
+"""``handeye-capture``: robot stations chosen from what was captured, until the hand-eye verdict is ok.
 
-Eye-in-hand: the tool pivots about the plate's centre with tilts in spread directions and spins
-about the view axis (rotation axes diverse, pairs well conditioned). Degeneracy is checked as
-stations come in (the spread of the relative rotation axes); the solver's own checks run at the
-end. Uses the active camera calibration of the camera; stores, does not activate.
+Each next station is the most informative reachable one (``station_plan.StationPlanner``:
+rotations about well-separated axes, the plate in view, distances varied). Every move goes through
+the robot's own checks (envelope, tool cone, speed) in the routine's motion session; a refused
+move is skipped with its reason. Once ``stations`` good stations cover the rotation and distance
+goals, the hand-eye is solved; while its verdict is not ok and the ``max_stations`` budget lasts,
+stations are added and it is solved again. The result says what coverage is still missing. Uses
+the active camera calibration of the camera; stores, does not activate.
 """
 
 from __future__ import annotations
 
+import re
 from typing import Any, Literal
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from calibration import geometry as g
-from calibration.handeye import calibrate_handeye
+from calibration.handeye import HandEyeError, HandEyeResult, calibrate_handeye
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
 from cellctl.routines.common import (
@@ -24,14 +26,16 @@ from cellctl.routines.common import (
     detection_inputs,
     devices,
     move,
-    pivot_point,
-    plan_pivot_stations,
-    reachable,
     routine_target,
     stop_robot_on_end,
     target_pose,
 )
+from cellctl.routines.station_plan import Coverage, StationPlanner
 from cellctl.services import Services
+from drivers.base import MotionRejected
+
+RESOLVE_EVERY = 2
+"""After a verdict that is not ok, solve again once this many more stations are in."""
 
 
 class Params(BaseModel):
@@ -44,87 +48,174 @@ class Params(BaseModel):
     target: str | None = Field(None, description="name of a target in the config's targets "
                                                  "(default: calibration.target)")
     setup: Literal["eye-in-hand", "eye-to-hand"] | None = Field(
-        None, description="where the camera is; default: the config's calibration.setup")
-    stations: int = Field(12, ge=4, le=40, description="number of robot stations, including the start pose")
+        None, description="where the camera is: eye-in-hand (on the tool, plate on the table) or eye-to-hand "
+                          "(fixed, plate held by the tool); default: the config's calibration.setup")
+    stations: int = Field(10, ge=4, le=40, description="good stations to collect before the first verdict, "
+                                                       "including the start pose")
+    max_stations: int = Field(24, ge=4, le=80, description="most stations to try, the start pose included "
+                                                           "(rejected shots and refused moves count); the routine "
+                                                           "adds stations until the hand-eye verdict is ok or this "
+                                                           "budget is spent")
     max_tilt_deg: float = Field(25.0, ge=5, le=45, description="largest tilt about the plate's centre, degrees "
-                                                               "(the checks ask for 15-30)")
-    max_spin_deg: float = Field(40.0, ge=0, le=90, description="largest spin about the view axis, degrees")
+                                                               "(the checks ask for relative rotations of 15-30)")
+    max_spin_deg: float = Field(40.0, ge=0, le=90, description="largest spin about the line of sight, degrees")
+    distance_range: float = Field(0.15, ge=0, le=0.4, description="stations at the start distance times 1 +/- "
+                                                                  "this fraction; the distances must span it")
+    min_point_fraction: float = Field(0.8, gt=0, le=1, description="a station counts when at least this "
+                                                                   "fraction of the target's points is detected")
     speed_m_s: float | None = Field(None, ge=0.001, le=2.0, description="tool speed, m/s, 0.001-2 "
                                                                     "(default: calibration.speed_m_s)")
     note: str = Field("", max_length=500, description="note stored with the calibration")
 
 
-def rotation_axis_spread_deg(poses: list[np.ndarray]) -> float:
-    """Largest angle between the rotation axes of the relative motions from the first pose."""
-    axes = []
-    for T in poses[1:]:
-        rv = g.matrix_to_rotvec(poses[0][:3, :3].T @ T[:3, :3])
-        if np.linalg.norm(rv) > np.radians(2):
-            axes.append(rv / np.linalg.norm(rv))
-    best = 0.0
-    for i in range(len(axes)):
-        for j in range(i + 1, len(axes)):
-            best = max(best, float(np.degrees(np.arccos(np.clip(abs(axes[i] @ axes[j]), -1, 1)))))
-    return best
-
-
 def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     p = Params.model_validate(ctx.params)
+    if p.stations > p.max_stations:
+        raise RoutineError(f"stations ({p.stations}) is more than the max_stations budget ({p.max_stations}); "
+                           "raise max_stations or lower stations")
     defaults = services.config.calibration
     camera_id = p.camera_id or defaults.camera
     robot_id = p.robot_id or defaults.robot
     setup = p.setup or defaults.setup
-    if setup != "eye-in-hand":
-        raise RoutineError("handeye-capture plans stations for eye-in-hand cells; for eye-to-hand, capture "
-                           "the stations yourself and run `cellctl calib handeye --setup eye-to-hand`")
     tname, target = routine_target(services, p.target)
+    n_points = len(target.points().ids)
     found = active_camera(services, camera_id)
     if found is None:
-        raise RoutineError(f"camera {camera_id} has no active calibration; run intrinsics-capture and "
-                           "activate its result first")
+        raise RoutineError(f"camera {camera_id} has no active calibration; run the intrinsics-capture routine "
+                           "(POST /routines/intrinsics-capture) and activate its result "
+                           "(POST /calibrations/{id}/activate) first")
     active, camera = found
     cam, robot = devices(services, camera_id, robot_id)
     if robot is None:
         raise RoutineError(f"routine needs robot {robot_id!r}; name a configured robot (robot_id)")
     stop_robot_on_end(ctx, robot)
+
+    def good(c: Capture) -> bool:
+        return c.detection.found and len(c.detection.ids) >= p.min_point_fraction * n_points
+
     first = capture(cam, robot, target, "station01")
-    if not first.detection.found:
-        raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason}); move the "
-                           "robot so the whole plate is in view, then start again")
+    if not good(first):
+        raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason or 'too few points'}"
+                           "); move the robot (POST /robots/{id}/move) so the whole plate is in view, then start "
+                           "again")
     if first.T_base_tool is None:
         raise RoutineError("the start view has no robot pose; the robot must report its pose")
-    T_cam_target = target_pose(camera, target, first.detection)
-    plan = plan_pivot_stations(first.T_base_tool, pivot_point(first.T_base_tool, T_cam_target, target),
-                               p.stations, p.max_tilt_deg, p.max_spin_deg, None)
-    stations, unreachable = reachable(robot, plan[1:])
+    planner = StationPlanner(setup, camera, target, first.T_base_tool, target_pose(camera, target, first.detection),
+                             robot.limits.check_pose, p.max_tilt_deg, p.max_spin_deg, p.distance_range)
     caps: list[Capture] = [first]
     speed = p.speed_m_s or defaults.speed_m_s
-    for k, T in enumerate(stations):
+    camera_ok = (active.result.get("verdict") or {}).get("ok")
+    tried, rejected = 1, 0
+    refused: list[dict[str, str]] = []
+    left_out: dict[str, int] = {}
+    result: HandEyeResult | None = None
+    failure = ""
+    solved_at = 0
+    ctx.report(0.02, "station 1: ok (start pose)")
+
+    def solve() -> None:
+        nonlocal result, failure, solved_at
         ctx.check_cancelled()
-        move(services, ctx, robot, T, speed, f"handeye-capture station {k + 2}")
-        c = capture(cam, robot, target, f"station{k + 2:02d}")
-        if c.detection.found:
+        ctx.report(min(0.9, tried / p.max_stations), f"solving hand-eye from {len(caps)} stations")
+        solved_at = len(caps)
+        try:
+            poses = [c.T_base_tool for c in caps if c.T_base_tool is not None]  # every station has one
+            result = calibrate_handeye(setup, poses, [c.detection for c in caps], camera, target,
+                                       camera_verdict_ok=camera_ok)
+            failure = ""
+        except HandEyeError as exc:
+            result, failure = None, rest_words(str(exc))
+
+    while True:
+        cov = planner.coverage(p.stations)
+        if not cov.missing and (solved_at == 0 or len(caps) - solved_at >= RESOLVE_EVERY):
+            solve()
+            if result is not None and _ok(result):
+                break
+        if tried >= p.max_stations:
+            break
+        cand, why = planner.next()
+        for k, n in why.items():
+            left_out[k] = max(left_out.get(k, 0), n)
+        if cand is None:
+            break
+        tried += 1
+        try:
+            move(services, ctx, robot, cand.T_base_tool, speed, f"handeye-capture {cand.purpose}")
+        except MotionRejected as exc:
+            refused.append({"station": cand.purpose, "reason": str(exc)})
+            ctx.report(min(0.9, tried / p.max_stations), f"station {tried} ({cand.purpose}): skipped, refused ({exc})")
+            continue
+        c = capture(cam, robot, target, f"station{tried:02d}")
+        ok = good(c) and c.T_base_tool is not None
+        if ok and c.T_base_tool is not None:
             caps.append(c)
-        spread = rotation_axis_spread_deg([c.T_base_tool for c in caps if c.T_base_tool is not None])
-        ctx.report((k + 2) / (len(stations) + 3),
-                   f"station {k + 2}/{len(stations) + 1}: " + ("ok" if c.detection.found else
-                                                                f"rejected ({c.detection.reason})"),
-                   rotation_axis_spread_deg=round(spread, 1))
-    move(services, ctx, robot, first.T_base_tool, speed, "handeye-capture: back to start")
+            planner.observe(c.T_base_tool, target_pose(camera, target, c.detection), cand.purpose)
+        else:
+            rejected += 1
+        cov = planner.coverage(p.stations)
+        ctx.report(min(0.9, tried / p.max_stations), f"station {tried} ({cand.purpose}): "
+                   + ("ok" if ok else f"rejected ({c.detection.reason or 'too few points'})"),
+                   rotation_axis_spread_deg=round(cov.axis_spread_deg, 1), coverage_missing=cov.missing)
+    returned = ""
+    try:
+        move(services, ctx, robot, first.T_base_tool, speed, "handeye-capture: back to start")
+    except MotionRejected as exc:  # the calibration does not depend on it: say so, keep the stations
+        returned = f"the move back to the start pose was refused ({exc}); the robot is at the last station"
+        ctx.report(0.9, returned)
+    cov = planner.coverage(p.stations)
+    if result is None or solved_at != len(caps):
+        solve()
+    if result is None:
+        raise RoutineError(f"hand-eye cannot be solved from the {len(caps)} stations captured ({failure}); "
+                           + _advice(cov, tried, p.max_stations))
+    return _store(services, ctx, p, result, caps, cov, tname, active.id, camera_id, robot_id,
+                  {"stations_tried": tried, "stations_rejected": rejected, "stations_refused": refused,
+                   "candidates_left_out": left_out, "returned_to_start": not returned,
+                   **({"warning": returned} if returned else {})})
+
+
+def _ok(result: HandEyeResult) -> bool:
+    """The verdict is ok and no problem asks for more or better stations."""
+    verdict = result.to_json()["verdict"]
+    return bool(verdict["ok"]) and not any(q["code"] in ("few_poses", "low_axis_spread") for q in verdict["problems"])
+
+
+def _advice(cov: Coverage, tried: int, budget: int) -> str:
+    missing = "; ".join(cov.missing) or "nothing in the coverage"
+    if tried >= budget:
+        return f"still missing: {missing}. Raise max_stations (spent {tried} of {budget})"
+    return (f"still missing: {missing}. No reachable station was left: widen max_tilt_deg, max_spin_deg or "
+            "distance_range, or start from a pose with more room in the robot's envelope")
+
+
+def rest_words(message: str) -> str:
+    """A solver message without the CLI options it names (a REST caller has no command line)."""
+    return re.sub(r",? or,? for [^.;]*`cellctl [^`]*`", "", message).strip()
+
+
+def _store(services: Services, ctx: JobContext, p: Params, result: HandEyeResult, caps: list[Capture],
+           cov: Coverage, tname: str, camera_calibration_id: int, camera_id: str, robot_id: str,
+           counts: dict[str, Any]) -> dict[str, Any]:
     ctx.check_cancelled()
-    ctx.report(0.95, f"solving hand-eye from {len(caps)} stations")
-    poses = [c.T_base_tool for c in caps if c.T_base_tool is not None]
-    result = calibrate_handeye(setup, poses, [c.detection for c in caps], camera, target)
     he = result.to_json()
-    he["camera_calibration_id"] = active.id
+    he["camera_calibration_id"] = camera_calibration_id
     he["target"] = tname
+    complete = _ok(result) and not cov.missing
+    he["verdict"]["coverage"] = cov.to_json()
+    he["verdict"]["coverage_missing"] = cov.missing
     record = services.store.save_calibration(
         "handeye", camera_id, robot_id, he,
-        {"target": services.config.targets[tname], "camera": active.result, "stations": detection_inputs(caps)},
+        {"target": services.config.targets[tname], "camera_calibration_id": camera_calibration_id,
+         "stations": detection_inputs(caps)},
         creator=ctx.started_by, note=p.note or f"handeye-capture, {len(caps)} stations")
-    name = "T_tool_cam" if setup == "eye-in-hand" else "T_base_cam"
-    return {"calibration_id": record.id, "version": record.version, "kind": "handeye", "setup": setup,
-            name: he[name], "rms_px": he["rms_px"], "uncertainty": {k: he["uncertainty"][k] for k in
-                                                                   ("rot_deg", "trans_mm")},
-            "stations_used": len(caps), "stations_unreachable": unreachable,
-            "verdict": he.get("verdict"), "activated": False}
+    name = "T_tool_cam" if result.setup == "eye-in-hand" else "T_base_cam"
+    ctx.report(1.0, "hand-eye verdict ok" if complete else
+               "budget spent: " + ("; ".join(cov.missing) or "verdict not ok"))
+    return {"calibration_id": record.id, "version": record.version, "kind": "handeye", "setup": result.setup,
+            name: he[name], "rms_px": he["rms_px"],
+            "loo_prediction_rms_px": he["quality"]["loo_prediction_rms_px"],
+            "uncertainty": {k: he["uncertainty"][k] for k in ("rot_deg", "trans_mm")},
+            "stations_used": len(caps), **counts, "stations_unreachable": len(counts["stations_refused"]),
+            "coverage": cov.to_json(), "complete": complete, "verdict": he["verdict"], "activated": False}
+
