@@ -8,7 +8,9 @@ the border). Compiled on first use and cached on disk (``cache=True``).
 - ``associate``: nearest image edge of matching orientation along each model normal.
 - ``gn_normal_equations``: the 4x4 normal equations of one weighted Gauss-Newton step.
 - ``profile_centroids``: the centroid edge offset, contrast and cleanliness of each normal profile.
-- ``track_scores``: the discrete neighbourhood scores of a batch of candidate poses.
+- ``fit_stage_a``: the Gauss-Newton loop of the refinement on gradient peaks.
+
+The discrete search's loops are in ``search_kernels``.
 """
 
 from __future__ import annotations
@@ -153,32 +155,6 @@ def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tu
     return off, S, clean
 
 
-@njit(cache=True)
-def track_scores(resp: NDArray[np.uint8], cx: NDArray[np.int64], cy: NDArray[np.int64],
-                 ox: NDArray[np.int64], oy: NDArray[np.int64], dx: NDArray[np.int32], dy: NDArray[np.int32],
-                 b: NDArray[np.int32]) -> NDArray[np.int64]:
-    """Scores ``(C, A * P)``: for candidate c, angle a and position offset p, the sum over
-    features f of ``resp[b, cy + oy[p] + dy, cx + ox[p] + dx]`` (0 outside the image)."""
-    nc, na, nf = dx.shape
-    npos = ox.shape[0]
-    h, w = resp.shape[1], resp.shape[2]
-    out = np.zeros((nc, na * npos), np.int64)
-    for c in range(nc):
-        for a in range(na):
-            for p in range(npos):
-                x0 = cx[c] + ox[p]
-                y0 = cy[c] + oy[p]
-                s = 0
-                for f in range(nf):
-                    x = x0 + dx[c, a, f]
-                    y = y0 + dy[c, a, f]
-                    if 0 <= x < w and 0 <= y < h:
-                        s += resp[b[c, a, f], y, x]
-                out[c, a * npos + p] = s
-    return out
-
-
-
 def warm_up() -> None:
     """Load (or compile) every kernel now, on tiny inputs: the first search then costs what the
     next ones cost (loading the compiled code takes ~1 s the first time in a process)."""
@@ -187,9 +163,10 @@ def warm_up() -> None:
     associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)
     gn_normal_equations(z2, z2, z2, 1.0, z1, z1)
     profile_centroids(np.zeros((4, 4), np.float32), z2, z2, 1)
-    zi = np.zeros(1, np.int64)
-    z3 = np.zeros((1, 1, 1), np.int32)
-    track_scores(np.zeros((1, 2, 2), np.uint8), zi, zi, zi, zi, z3, z3, z3)
+    fit_stage_a(np.zeros((4, 4, 2), np.float32), z2, z2, np.zeros(4), 1.0, 0.1, 1.0, 1, 1.0, 0.0, False, 1.0,
+                0.0, 4.0, 4.0)
+    from vision.shape import search_kernels
+    search_kernels.warm_up()
 
 
 @njit(cache=True)

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.image import F64, U8, gradients
-from vision.shape import kernels
+from vision.shape import search_kernels as sk
 from vision.shape.model import LevelModel
 
 N_BINS = 8
@@ -88,44 +88,29 @@ def track(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64]
 
     With the responses spread over 3x3, reach 1 covers a candidate that is up to 2 px off.
     ``scale`` (one per candidate) sizes the model; candidates outside the image are clamped to it.
+    Features outside the image score 0 (a part at the border is scored on what is visible); ties
+    (the spread responses make plateaus) go to the angle nearest the prediction, and the position
+    is the plateau's centre rather than its first pixel (``search_kernels.track_batch``).
     """
     if len(cx) == 0:
         e = np.zeros(0)
         return e, e.copy(), e.copy(), e.copy()
-    k_s = np.ones(len(cx)) if scale is None else np.asarray(scale, dtype=np.float64)
-    da = lm.angle_step
-    m = lm.points[lm.features]
-    n = lm.normals[lm.features]
-    nf = len(m)
-    na = 2 * n_steps + 1
-    thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * da  # (C, na)
-    c = (k_s[:, None] * np.cos(thetas))[..., None]
-    s = (k_s[:, None] * np.sin(thetas))[..., None]
-    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int32)  # (C, A, F)
-    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int32)
-    phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
-    b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int32)) % N_BINS
-    _, h, w = resp.shape
-    cx = np.clip(cx, 0, w - 1).astype(np.int64)
-    cy = np.clip(cy, 0, h - 1).astype(np.int64)
-    offs = np.arange(-reach, reach + 1, dtype=np.int64)
-    npos = len(offs) ** 2
-    ox = np.tile(offs, len(offs))
-    oy = np.repeat(offs, len(offs))
-    # features outside the image score 0 (a part at the border is scored on what is visible)
-    sc = kernels.track_scores(np.ascontiguousarray(resp), cx, cy, ox, oy, np.ascontiguousarray(dx),
-                              np.ascontiguousarray(dy), np.ascontiguousarray(b))
-    # ties (the spread responses make plateaus) go to the angle nearest the prediction, and the
-    # position is the plateau's centre rather than its first pixel
-    tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
-    k = np.argmax(sc - tie[None, :], axis=1)
-    ai = k // npos
-    rows = np.arange(len(cx))
-    best = sc[rows, k]
-    at_a = sc.reshape(len(cx), na, npos)[rows, ai]  # (C, npos)
-    plateau = at_a == best[:, None]
-    cnt = plateau.sum(axis=1)
-    px = (plateau * ox[None, :]).sum(axis=1) / cnt
-    py = (plateau * oy[None, :]).sum(axis=1) / cnt
-    return cx + px, cy + py, thetas[rows, ai], best / (4.0 * nf)
+    k_s = np.ones(len(cx)) if scale is None else np.ascontiguousarray(scale, dtype=np.float64)
+    m, phi0 = _feature_table(lm)
+    thetas = np.asarray(th, dtype=np.float64)[:, None] + (np.arange(2 * n_steps + 1) - n_steps)[None, :] \
+        * lm.angle_step  # (C, A)
+    return sk.track_batch(np.ascontiguousarray(resp), m, phi0, np.ascontiguousarray(cx, dtype=np.int64),
+                          np.ascontiguousarray(cy, dtype=np.int64), np.cos(thetas), np.sin(thetas), thetas, k_s,
+                          int(reach), BIN_W)
 
+
+def _feature_table(lm: LevelModel) -> tuple[F64, F64]:
+    """The level's feature offsets (F, 2) and their normals' angles (rad), computed once per model."""
+    key = (id(lm.points), id(lm.normals), id(lm.features))
+    cached = lm.__dict__.get("_feature_table")
+    if cached is None or cached[0] != key:
+        m = np.ascontiguousarray(lm.points[lm.features])
+        n = lm.normals[lm.features]
+        cached = (key, (m, np.ascontiguousarray(np.arctan2(n[:, 1], n[:, 0]))))
+        lm.__dict__["_feature_table"] = cached
+    return cached[1]

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.image import F64, U8, as_gray, pyramid, wrap_deg
+from vision.shape import search_kernels as sk
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features, spread_max, track
@@ -148,53 +149,30 @@ def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext:
     nh, nw = ry1 - ry0 + 1, rx1 - rx0 + 1
     nf = dx.shape[1]
     na = len(thetas)
-    # LINE-MOD's linearised memories: each feature's shifted response map is one contiguous run of
-    # the padded map (rows of width Wp), so one vectorised uint8 add per feature and angle covers all
-    # positions (3x faster than adding 2-D slices); columns >= nw of a row are wrapped garbage, cut below
+    # LINE-MOD's linearised memories (search_kernels.accumulate_top): columns >= nw of a row are
+    # wrapped garbage, and a zero row below each angle's plane keeps the planes apart
     lin = np.zeros((na, (nh + 1) * Wp), np.uint8)
-    start = ((dy + P + ry0) * Wp + dx + P + rx0).tolist()
-    bl = b.tolist()
+    start = np.ascontiguousarray((dy + P + ry0) * Wp + dx + P + rx0)
+    b = np.ascontiguousarray(b)
     run = nh * Wp
-    done = na
-    for ai in range(na):
-        acc = lin[ai, :run]
-        st, ba = start[ai], bl[ai]
-        for k in range(nf):
-            np.add(acc, padf[ba[k], st[k]:st[k] + run], out=acc)
-        if (ai & 7) == 7 and clock.expired():
+    done = 0
+    while done < na:
+        nxt = min(done + 8, na)
+        sk.accumulate_top(padf, b, start, run, lin, done, nxt)
+        done = nxt
+        if done < na and clock.expired():
             timed_out = True
-            done = ai + 1
             break
-    # one score map per angle, with a zero row below each so one max filter serves all
-    allacc = np.ascontiguousarray(lin.reshape(na, nh + 1, Wp)[:, :, :nw])
     thr_top = int(math.floor(4 * nf * thr_frac))
-    # local maxima over position and angle (circular when the range is the full turn),
-    # checked only where the score passes the threshold
-    sub = allacc[:done]
-    dil = cv2.dilate(sub.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).ravel()
-    flat = sub.ravel()
-    idx = np.flatnonzero(flat >= thr_top)
-    idx = idx[flat[idx] >= dil[idx]]
-    plane = (nh + 1) * nw
-    ai_ = idx // plane
-    if done > 1:
-        full = ext >= 2 * math.pi - 1e-9 and done == na
-        for step in (-1, 1):
-            nb = ai_ + step
-            wrap = (nb < 0) | (nb >= done)
-            nbi = idx + step * plane
-            if full:
-                nbi = np.where(wrap, idx + step * plane - np.sign(step) * done * plane, nbi)
-                ok = flat[idx] >= dil[nbi]
-            else:
-                ok = wrap | (flat[idx] >= dil[np.clip(nbi, 0, len(dil) - 1)])
-            idx, ai_ = idx[ok], ai_[ok]
-    rem = idx - ai_ * plane
-    ys, xs = rem // nw, rem % nw
-    sc = flat[idx]
+    # local maxima over position and angle (circular when the range is the full turn)
+    full = ext >= 2 * math.pi - 1e-9 and done == na
+    planes = np.ascontiguousarray(lin[:done].reshape(done, nh + 1, Wp)[:, :, :nw])
+    dil = cv2.dilate(planes.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).reshape(planes.shape)
+    ai_, ys, xs, sc = sk.top_maxima(planes, dil, nh, thr_top, full)
     order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
-    cands = [Pose(float(xs[i] + rx0), float(ys[i] + ry0), float(thetas[ai_[i]]),
-                  sc[i] / (4.0 * nf), scale) for i in order]
+    cands = [Pose(float(x + rx0), float(y + ry0), float(t), float(v) / (4.0 * nf), scale)
+             for x, y, t, v in zip(xs[order].tolist(), ys[order].tolist(), thetas[ai_[order]].tolist(),
+                                   sc[order].tolist(), strict=True)]
     return cands, timed_out
 
 
