@@ -25,11 +25,14 @@ geometry is known to better than 0.02 px. Grey levels and camera defects: ``cali
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cmp_to_key, lru_cache
 from types import ModuleType
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -269,28 +272,44 @@ def _shade(p: _Plane, n: int, scratch: _Scratch, value: NDArray[np.float64], dep
 def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], background: float = 0.45,
                  supersample: int = 8) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(H, W) mean reflectance over each pixel's area (box filter, in [0, 1]) and the depth
-    (camera z, metres; +inf for background) of what the pixel's centre sees."""
+    (camera z, metres; +inf for background) of what the pixel's centre sees.
+
+    The work is split into bands of rows (then into runs of edge pixels) shared by up to
+    ``RENDER_THREADS`` threads; every pixel's result is independent of the split, so the image is
+    the same for any thread count. Reflectance functions are called from those threads: they must
+    be pure functions of their arguments.
+    """
     k = _kernels()
     field = ray_field(camera)
     h, w = field.shape[:2]
-    value = np.full(h * w, float(background))
-    depth = np.full(h * w, np.inf)
-    which = np.full(h * w, -1, dtype=np.int32)
+    value = np.empty(h * w)
+    depth = np.empty(h * w)
+    which = np.empty(h * w, dtype=np.int32)
     planes = _planes(objects, field)
-    # Rays go through in chunks of ~128k: scratch that stays in cache and is allocated once.
-    rows_per_chunk = max(_CHUNK_RAYS // w, 1)
-    scratch = _Scratch(rows_per_chunk * w)
-    for p in planes:
-        r0, r1, c0, c1 = p.window
-        for ra in range(r0, r1, rows_per_chunk):
-            rb = min(ra + rows_per_chunk, r1)
-            n = k.hit_pixels(field, ra, rb, c0, c1, p.H, p.d, p.index, depth, which, *scratch.hits)
-            _shade(p, n, scratch, value, depth, which)
+    # Bands of ~128k rays: scratch that stays in cache, allocated once per thread.
+    band = max(_CHUNK_RAYS // w, 1)
+    bands = [(ra, min(ra + band, h)) for ra in range(0, h, band)]
+
+    def shade_band(rows: tuple[int, int]) -> None:
+        ra, rb = rows
+        value[ra * w : rb * w] = background
+        depth[ra * w : rb * w] = np.inf
+        which[ra * w : rb * w] = -1
+        scratch = _scratch(band * w)
+        for p in planes:  # nearest first, so an occluded plane's hits are never shaded
+            r0, r1, c0, c1 = p.window
+            if max(ra, r0) < min(rb, r1):
+                n = k.hit_pixels(field, max(ra, r0), min(rb, r1), c0, c1, p.H, p.d, p.index, depth, which,
+                                 *scratch.hits)
+                _shade(p, n, scratch, value, depth, which)
+
+    _parallel(shade_band, bands)
     value2, which2 = value.reshape(h, w), which.reshape(h, w)
     if supersample > 1 and planes:
-        rows, cols, only = k.edge_pixels(value2, which2)
+        edges = _parallel(lambda rows: k.edge_pixels(value2, which2, rows[0], rows[1]), bands)
+        rows, cols, only = (np.concatenate([e[i] for e in edges]) for i in range(3))
         if rows.size:
-            value2[rows, cols] = _supersample(field, rows, cols, only, planes, background, supersample, scratch)
+            value2[rows, cols] = _supersample(field, rows, cols, only, planes, background, supersample)
     return value2, depth.reshape(h, w)
 
 
@@ -301,17 +320,57 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
 
 
 _CHUNK_RAYS = 1 << 17
+RENDER_THREADS = max(1, min(4, os.cpu_count() or 1))
+"""Threads a frame is rendered on (the caller's and pool workers); set before the first frame."""
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+_LOCAL = threading.local()
+_T = TypeVar("_T")
+_I = TypeVar("_I")
+
+
+def _parallel(fn: Callable[[_I], _T], items: Sequence[_I]) -> list[_T]:
+    """``[fn(item) for item in items]``, the items handed out one by one to the calling thread and
+    up to ``RENDER_THREADS - 1`` pool workers (the compiled loops release the GIL, numpy mostly)."""
+    global _POOL
+    helpers = min(RENDER_THREADS, len(items)) - 1
+    if helpers <= 0:
+        return [fn(item) for item in items]
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max(RENDER_THREADS - 1, 1), thread_name_prefix="render")
+        pool = _POOL
+    todo = iter(range(len(items)))
+    take = threading.Lock()
+    out: list[_T | None] = [None] * len(items)
+
+    def work() -> None:
+        while True:
+            with take:
+                i = next(todo, None)
+            if i is None:
+                return
+            out[i] = fn(items[i])
+
+    futures = [pool.submit(work) for _ in range(helpers)]
+    try:
+        work()
+    finally:
+        for f in futures:
+            f.result()  # waits; re-raises a helper's error
+    return out  # type: ignore[return-value]
 
 
 class _Scratch:
-    """Compacted hits of one chunk: object x, y (m), depth (m) and the flat ray index."""
+    """Compacted hits of one chunk: object x, y (m), depth (m) and the flat ray index; and the
+    sub-ray buffers of supersampling (value, depth, object)."""
 
-    def __init__(self, size: int) -> None:
-        self._alloc(size)
-
-    def _alloc(self, size: int) -> None:
-        self.ox, self.oy, self.lam = np.empty(size), np.empty(size), np.empty(size)
-        self.flat = np.empty(size, dtype=np.int64)
+    def __init__(self) -> None:
+        self.ox = self.oy = self.lam = np.empty(0)
+        self.flat = np.empty(0, dtype=np.int64)
+        self.sub_value = self.sub_depth = np.empty(0)
+        self.sub_which = np.empty(0, dtype=np.int32)
 
     @property
     def hits(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
@@ -319,12 +378,27 @@ class _Scratch:
 
     def ensure(self, size: int) -> None:
         if self.ox.size < size:
-            self._alloc(size)
+            self.ox, self.oy, self.lam = np.empty(size), np.empty(size), np.empty(size)
+            self.flat = np.empty(size, dtype=np.int64)
+
+    def ensure_sub(self, size: int) -> None:
+        if self.sub_value.size < size:
+            self.sub_value, self.sub_depth = np.empty(size), np.empty(size)
+            self.sub_which = np.empty(size, dtype=np.int32)
+
+
+def _scratch(size: int) -> _Scratch:
+    """This thread's scratch, at least ``size`` rays long."""
+    scratch: _Scratch | None = getattr(_LOCAL, "scratch", None)
+    if scratch is None:
+        scratch = _LOCAL.scratch = _Scratch()
+    scratch.ensure(size)
+    return scratch
 
 
 def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
-                 only: NDArray[np.int64], planes: Sequence[_Plane], background: float, n: int,
-                 scratch: _Scratch) -> NDArray[np.float64]:
+                 only: NDArray[np.int64], planes: Sequence[_Plane], background: float,
+                 n: int) -> NDArray[np.float64]:
     """Box-filtered reflectance of the given pixels from ``n x n`` sub-pixel rays each.
 
     A pixel whose 3x3 neighbourhood sees one object (``only``) is shaded against that object
@@ -334,15 +408,14 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
     k = _kernels()
     n2 = n * n
     chunk = max(_CHUNK_RAYS // n2, 1)
-    scratch.ensure(chunk * n2)
-    value = np.empty(chunk * n2)
-    depth = np.empty(chunk * n2)
-    which = np.empty(chunk * n2, dtype=np.int32)
     out = np.empty(rows.size)
-    for e0 in range(0, rows.size, chunk):
+
+    def run(e0: int) -> None:
         e1 = min(e0 + chunk, rows.size)
         m = (e1 - e0) * n2
-        v, dp, wh = value[:m], depth[:m], which[:m]
+        scratch = _scratch(m)
+        scratch.ensure_sub(m)
+        v, dp, wh = scratch.sub_value[:m], scratch.sub_depth[:m], scratch.sub_which[:m]
         v.fill(background)
         dp.fill(np.inf)
         wh.fill(-1)
@@ -352,6 +425,8 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
             hits = k.hit_subrays(field, r, c, o, n, r0, r1, c0, c1, p.H, p.d, p.index, dp, wh, *scratch.hits)
             _shade(p, hits, scratch, v, dp, wh)
         out[e0:e1] = v.reshape(e1 - e0, n2).mean(axis=1)
+
+    _parallel(run, range(0, rows.size, chunk))
     return out
 
 

@@ -108,42 +108,55 @@ def take_hits(n: int, refl: NDArray[np.float64], lam: NDArray[np.float64], flat:
 
 
 @njit(cache=True, nogil=True)
-def edge_pixels(value: NDArray[np.float64], which: NDArray[np.int32]
+def edge_pixels(value: NDArray[np.float64], which: NDArray[np.int32], r0: int, r1: int
                 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover
-    """Pixels whose value or object differs from one of their 8 neighbours (inside the image),
-    and the one object their 3x3 neighbourhood sees (-1 background, -2 several).
+    """Pixels of rows ``r0:r1`` whose value or object differs from one of their 8 neighbours
+    (inside the image), and the one object their 3x3 neighbourhood sees (-1 background, -2 several).
 
-    Each neighbouring pair is compared once (right, down-left, down, down-right) and marks both.
+    Each neighbouring pair is compared once (right, down-left, down, down-right) and marks both;
+    the rows just outside the band are read, never written, so bands can run in parallel. The
+    comparisons go into a row buffer first, so that each loop is a plain vectorisable one.
     """
     h, w = value.shape
-    mark = np.zeros((h, w), np.uint8)  # bit 0: edge; bit 1: more than one object around
-    for r in range(h):
-        for c in range(w):
-            v = value[r, c]
-            k = which[r, c]
-            for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
-                rr = r + dr
-                cc = c + dc
-                if rr >= h or cc < 0 or cc >= w:
-                    continue
-                if which[rr, cc] != k:
-                    mark[r, c] |= 3
-                    mark[rr, cc] |= 3
-                elif value[rr, cc] != v:
-                    mark[r, c] |= 1
-                    mark[rr, cc] |= 1
+    lo_r = max(r0 - 1, 0)
+    hi_r = min(r1 + 1, h)
+    mark = np.zeros((hi_r - lo_r, w), np.uint8)  # bit 0: edge; bit 1: more than one object around
+    tmp = np.empty(w, np.uint8)
+    for r in range(lo_r, hi_r):
+        a = r - lo_r
+        vr = value[r]
+        wr = which[r]
+        for c in range(w - 1):
+            tmp[c] = np.uint8(3 if wr[c] != wr[c + 1] else (1 if vr[c] != vr[c + 1] else 0))
+        for c in range(w - 1):
+            mark[a, c] |= tmp[c]
+        for c in range(w - 1):
+            mark[a, c + 1] |= tmp[c]
+        if r + 1 >= hi_r:
+            continue
+        vd = value[r + 1]
+        wd = which[r + 1]
+        for dc in (-1, 0, 1):
+            lo = max(0, -dc)
+            hi = min(w, w - dc)
+            for c in range(lo, hi):
+                tmp[c] = np.uint8(3 if wr[c] != wd[c + dc] else (1 if vr[c] != vd[c + dc] else 0))
+            for c in range(lo, hi):
+                mark[a, c] |= tmp[c]
+            for c in range(lo, hi):
+                mark[a + 1, c + dc] |= tmp[c]
     n = 0
-    for r in range(h):
+    for r in range(r0, r1):
         for c in range(w):
-            if mark[r, c]:
+            if mark[r - lo_r, c]:
                 n += 1
     rows = np.empty(n, np.int64)
     cols = np.empty(n, np.int64)
     only = np.empty(n, np.int64)
     n = 0
-    for r in range(h):
+    for r in range(r0, r1):
         for c in range(w):
-            m = mark[r, c]
+            m = mark[r - lo_r, c]
             if m:
                 rows[n] = r
                 cols[n] = c
