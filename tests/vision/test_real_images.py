@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.pick_cases import Case, Found, TestImage, load_cases, read_grey, score, texture
+from bench.pick_cases import Case, Found, TestImage, load_cases, read_grey, score, texture, to_reference
 from vision import shape
 from vision.errors import SettingsError
 from vision.types import SearchParams
@@ -24,8 +24,9 @@ DEV = [(c, t) for c in CASES.values() for t in c.tests]
 
 # Known misses (bench/results/pick_real.md): strict xfails, so a fix shows up as a pass to claim.
 KNOWN_MISSES = {
-    "robertson_screw_heads": "screw heads on wood grain: the taught head's edges are mostly specular socket "
-                             "and grain texture; heads score 0.1-0.3 at their true pose",
+    "robertson_screw_heads": "screw heads on wood grain: the outline now leads the model, but the specular "
+                             "socket (another angle and highlight on each screw) is still a third of it; "
+                             "heads score 0.27-0.49 at their true pose, the empty holes up to 0.32",
 }
 
 
@@ -59,15 +60,25 @@ def test_dev_case_default_settings(case: Case, test: TestImage) -> None:
     res = shape.find(model_of(case), read_grey(test.path))
     s = score(case, test, _found(res))
     assert s.false == 0
-    # the reverse-side key is found only with mirrored search (next test); every other instance here
-    expected = test.expected_count - sum(1 for i in test.instances if i.mirrored)
-    assert s.found == expected, res.reason()
+    # the reverse-side key is a hard, optional instance (cases.yaml): it may be found by its outline,
+    # which is nearly mirror-symmetric; every other instance must be
+    optional = [i for i in test.instances if i.mirrored]
+    assert test.expected_count - len(optional) <= s.found <= test.expected_count, res.reason()
+    required = TestImage(test.path, test.expected_count - len(optional), [i for i in test.instances if not i.mirrored])
+    r = score(case, required, [f for f in _found(res) if _near_any(case, f, required)])
+    assert r.found == required.expected_count
     # within the 1 px / 1 deg target plus the estimate's own stated accuracy (it is no ground truth)
-    assert s.out_of_tolerance == 0, (s.pos_err, s.ang_err)
+    assert r.out_of_tolerance == 0, (r.pos_err, r.ang_err)
 
 
-@pytest.mark.xfail(strict=True, reason="the reverse-side key scores 0.24 mirrored (0.30 ignoring local polarity): "
-                                       "only 45 % of its model edges lie within 2 px of an image edge")
+def _near_any(case: Case, f: Found, test: TestImage) -> bool:
+    gate = 0.5 * min(case.roi[2], case.roi[3])
+    x, y = to_reference(case, f)
+    return any(math.hypot(x - i.x, y - i.y) <= gate for i in test.instances)
+
+
+@pytest.mark.xfail(strict=True, reason="the reverse-side key is another key of the same blank: its outline "
+                                       "matches the unmirrored model better (0.51) than the mirrored one (0.31)")
 def test_mirrored_key_found_with_mirrored_search() -> None:
     case = CASES["generalized_hough_keys"]
     test = case.tests[0]

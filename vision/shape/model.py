@@ -23,6 +23,8 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from vision.errors import TeachError
 from vision.image import F64, U8, as_gray, bilinear, gauss_peak, gradients, profile_ok, pyramid
@@ -38,6 +40,9 @@ AUTO_CONTRAST_FRACTION = 0.3
 IMAGE_BORDER_PX = 2.0
 """Edges this close to the image border (level pixels) are dropped: the pyramid and the gradients
 there are made of reflected pixels."""
+CHAIN_MAX_TURN_DEG = 40.0
+"""Two neighbouring edge pixels belong to one chain when their normals differ by less than this
+(a contour rounded by the smoothing turns by well under it per pixel; texture does not)."""
 ROI_BORDER_PX = 2.0
 """Edges this close to the ROI's border (level-0 pixels) are dropped: the border cuts them, and a
 part of another object reaching into the ROI shows there."""
@@ -202,7 +207,8 @@ def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, flo
 
 
 def _select_edges(pts: F64, nrm: F64, mag: F64, ipx: NDArray[np.int64], box: tuple[float, float, float, float],
-                  thr: float, min_len: float, border: float, size: tuple[int, int]) -> tuple[F64, F64, F64]:
+                  thr: float, min_len: float, border: float, size: tuple[int, int]
+                  ) -> tuple[F64, F64, F64, NDArray[np.int64]]:
     """Keep the part's edges: ``border`` px inside the ROI, ``IMAGE_BORDER_PX`` inside the image
     (``size`` = (W, H) of this level), in connected runs of at least ``min_len`` pixels that reach
     ``thr`` somewhere (hysteresis from ``thr / 2``; texture and specks drop out)."""
@@ -212,28 +218,69 @@ def _select_edges(pts: F64, nrm: F64, mag: F64, ipx: NDArray[np.int64], box: tup
     inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
     pts, nrm, mag, ipx = pts[inside], nrm[inside], mag[inside], ipx[inside]
     if len(pts) == 0:
-        return pts, nrm, mag
-    ix = ipx[:, 0] - int(ipx[:, 0].min()) + 1
-    iy = ipx[:, 1] - int(ipx[:, 1].min()) + 1
-    mask = np.zeros((int(iy.max()) + 2, int(ix.max()) + 2), np.uint8)
-    mask[iy, ix] = 1
-    # the gradient maxima's own pixels form 8-connected chains along an edge (as in Canny)
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    lab = labels[iy, ix]
+        return pts, nrm, mag, np.zeros(0, np.int64)
+    n, lab = coherent_chains(ipx, nrm)
     strong = np.zeros(n, bool)
     np.logical_or.at(strong, lab, mag >= thr)
-    keep = strong[lab] & (np.bincount(lab, minlength=n)[lab] >= min_len)
-    return pts[keep], nrm[keep], mag[keep]
+    length = np.bincount(lab, minlength=n)[lab]
+    keep = strong[lab] & (length >= min_len)
+    return pts[keep], nrm[keep], mag[keep], length[keep]
 
 
-def _centroid_refine(img: U8, pts: F64, nrm: F64, mag: F64, min_contrast: float
-                     ) -> tuple[F64, F64, F64]:
+def coherent_chains(ipx: NDArray[np.int64], nrm: F64) -> tuple[int, NDArray[np.int64]]:
+    """Label the edge points' pixels (``ipx``, one per point) by coherent chain: two 8-neighbours
+    link when their normals differ by less than ``CHAIN_MAX_TURN_DEG`` and the step between them
+    runs along the edge rather than across it. The gradient maxima of a textured surface touch each
+    other everywhere (a plain 8-connected labelling merges them into one network as long as the
+    part's outline); linked this way they fall apart into short pieces, while a part's outline,
+    however faint, stays one long chain."""
+    npts = len(ipx)
+    if npts == 0:
+        return 0, np.zeros(0, np.int64)
+    ix = ipx[:, 0] - int(ipx[:, 0].min()) + 1
+    iy = ipx[:, 1] - int(ipx[:, 1].min()) + 1
+    W = int(ix.max()) + 2
+    index = np.full((int(iy.max()) + 2) * W, -1, np.int64)
+    index[iy * W + ix] = np.arange(npts)
+    cos_turn = math.cos(math.radians(CHAIN_MAX_TURN_DEG))
+    rows: list[NDArray[np.int64]] = []
+    cols: list[NDArray[np.int64]] = []
+    for ox, oy in ((1, 0), (0, 1), (1, 1), (-1, 1)):
+        j = index[(iy + oy) * W + ix + ox]
+        i = np.flatnonzero(j >= 0)
+        j = j[i]
+        same = np.einsum("ij,ij->i", nrm[i], nrm[j]) >= cos_turn
+        # a step across the edge (along the normal) joins two parallel edges, not one chain
+        along = np.abs(nrm[i, 0] * ox + nrm[i, 1] * oy) <= 0.8 * math.hypot(ox, oy)
+        ok = same & along
+        rows.append(i[ok])
+        cols.append(j[ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(npts, npts))
+    n, lab = connected_components(g, directed=False)
+    return int(n), np.asarray(lab, dtype=np.int64)
+
+
+def _centroid_refine(img: U8, pts: F64, nrm: F64, mag: F64, length: NDArray[np.int64], min_contrast: float,
+                     long_len: float) -> tuple[F64, F64, F64, NDArray[np.int64]]:
     """Move level-0 edge points to the centroid edge position; drop corners and cramped edges."""
     f = img.astype(np.float32)
     off, S, clean = profile_ok(f, pts, nrm)
-    keep = clean & (np.abs(off) < 0.75) & (np.abs(S) >= 0.5 * min_contrast)
-    pts = pts + off[:, None] * nrm
-    return pts[keep], nrm[keep], mag[keep]
+    good = clean & (np.abs(off) < 0.75) & (np.abs(S) >= 0.5 * min_contrast)
+    # on a real part's outline the profile is rarely one clean step (texture, a bevel, a highlight
+    # beside it): points of long chains stay, at their gradient peak
+    keep = good | (length >= long_len)
+    pts = pts + np.where(good, off, 0.0)[:, None] * nrm
+    return pts[keep], nrm[keep], mag[keep], length[keep]
+
+
+def _priority(mag: F64, length: NDArray[np.int64], full_len: float) -> F64:
+    """Which edges the model keeps first when it has more than it can use: long coherent chains
+    of good contrast (a part's outline) before short ones (texture, scratches, highlights): the
+    contrast relative to the ROI's strong edges times the chain's length relative to ``full_len``,
+    each capped at 1."""
+    ref = max(float(np.percentile(mag, 90)), 1e-9) if len(mag) else 1.0
+    return np.minimum(mag / ref, 1.0) * np.minimum(length / max(full_len, 1.0), 1.0)
 
 
 def _spread_subset(pts: F64, strength: F64, target: int, min_spacing: float) -> NDArray[np.int64]:
@@ -298,8 +345,8 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
         sigma = p.edge_sigma_px if lv == 0 else 0.0
         box = (u / s, v / s, (u + w) / s, (v + h) / s)
         pts, nrm, mag, ipx = _edge_points(im, sigma, 0.5 * thr, box)
-        pts, nrm, mag = _select_edges(pts, nrm, mag, ipx, box, thr, max(3.0, min_len / s), ROI_BORDER_PX / s,
-                                      (im.shape[1], im.shape[0]))
+        pts, nrm, mag, length = _select_edges(pts, nrm, mag, ipx, box, thr, max(3.0, min_len / s),
+                                              ROI_BORDER_PX / s, (im.shape[1], im.shape[0]))
         if len(pts) < 8:
             if lv == 0:
                 raise TeachError(
@@ -307,24 +354,26 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
                     "shows the part, or lower the minimum contrast")
             break
         if lv == 0:
-            pts, nrm, mag = _centroid_refine(img, pts, nrm, mag, p.min_contrast)
+            pts, nrm, mag, length = _centroid_refine(img, pts, nrm, mag, length, p.min_contrast,
+                                                        0.5 * min(w, h))
             if len(pts) < 8:
                 raise TeachError("too few clean edges in the ROI: choose a region that shows the part")
         pts = pts - ref / s
+        prio = _priority(mag, length, 0.5 * min(w, h) / s)
         if lv == 0:
-            sel = _spread_subset(pts, mag, MAX_FINE_POINTS, 2.0)
-            pts, nrm, mag = pts[sel], nrm[sel], mag[sel]
+            sel = _spread_subset(pts, prio, MAX_FINE_POINTS, 2.0)
+            pts, nrm, prio = pts[sel], nrm[sel], prio[sel]
             feats = np.arange(len(pts), dtype=np.int64)
         else:
-            sel = _spread_subset(pts, mag, 4 * MAX_TRACK_FEATURES, 1.0)
-            pts, nrm, mag = pts[sel], nrm[sel], mag[sel]
-            feats = _spread_subset(pts, mag, MAX_TRACK_FEATURES, 1.5)
+            sel = _spread_subset(pts, prio, 4 * MAX_TRACK_FEATURES, 1.0)
+            pts, nrm, prio = pts[sel], nrm[sel], prio[sel]
+            feats = _spread_subset(pts, prio, MAX_TRACK_FEATURES, 1.5)
         levels.append(LevelModel(lv, pts, nrm, feats))
     # the top level is searched exhaustively: fewer, well spread features; drop levels that are too thin
     while len(levels) > 1 and (len(levels[-1].points) < 16 or levels[-1].radius < MIN_TOP_RADIUS_PX):
         levels.pop()
     top = levels[-1]
-    top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5) \
-        if top.level > 0 else top.features[:MAX_TOP_FEATURES]
+    # (on level 0 too: the first points in storage order would all lie along the part's top edge)
+    top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5)
     return ShapeModel(levels, p, (u, v, w, h), (img.shape[1], img.shape[0]))
 

@@ -7,7 +7,8 @@ Gauss-Newton on (u, v, angle, scale) minimises the squared normal distances with
 centroid of the intensity profile's differences along the normal — exact for a step edge
 whatever its sub-pixel phase, where a peak fit aliases by a few hundredths of a pixel — and the
 fit ends with a plane homography (a slightly tilted camera's perspective), whose local linear map
-at the reference point gives the angle and scale.
+at the reference point gives the angle and scale. The refined pose is then scored by
+``score.direction_score`` (edge-direction agreement over the visible model points).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from numpy.typing import NDArray
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
+from vision.shape.score import direction_score
 
 
 @dataclass
@@ -70,32 +72,6 @@ class Refined:
     n_points: int = 0
     """Model points that agree (an edge within 1 px, direction and polarity as asked)."""
     n_visible: int = 0
-
-
-def polarity_score(found: NDArray[np.bool_], d: F64, cosd: F64, sign: F64, visible: NDArray[np.bool_],
-                   polarity: str, min_visible: float) -> tuple[float, int, int]:
-    """Edge-direction agreement over the visible model points: (score, agreeing, visible).
-
-    Each point contributes ``cos`` of the angle between its normal and the image gradient at the
-    nearest edge, times a distance weight; with ``use_polarity`` only edges of the teach image's
-    contrast direction count, with ``ignore_global_polarity`` the better of the two directions
-    taken over all points (an inverted image), with ``ignore_local_polarity`` each point either
-    way (HALCON's three ``Metric`` options).
-    """
-    n_vis = int(np.count_nonzero(visible))
-    if n_vis == 0 or n_vis < min_visible * len(visible):
-        return 0.0, 0, n_vis
-    ok = found & visible
-    c = np.where(ok, cosd * np.clip(1.0 - (d / 1.5) ** 2, 0.0, 1.0), 0.0)
-    near = ok & (np.abs(d) < 1.0)
-    pos, neg = sign > 0, sign < 0
-    if polarity == "ignore_local_polarity":
-        return float(c.sum()) / n_vis, int(np.count_nonzero(near)), n_vis
-    s_pos = float(c[pos].sum())
-    s_neg = float(c[neg].sum())
-    if polarity == "use_polarity" or s_pos >= s_neg:
-        return s_pos / n_vis, int(np.count_nonzero(near & pos)), n_vis
-    return s_neg / n_vis, int(np.count_nonzero(near & neg)), n_vis
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -171,8 +147,12 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
+    else:
+        R = rot(th)
+        q = sc * (m @ R.T) + np.array([x, y])
+        n = nrm_m @ R.T
     vis = visible(q)
-    score, n_agree, n_vis = polarity_score(found, d, cosd, sign, vis, polarity, min_visible)
+    score, n_agree, n_vis = direction_score(G, q, n, vis, thr, polarity, min_visible)
     inl = found & vis & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
