@@ -11,9 +11,8 @@ from calibration.camera_model import MODEL_NAMES, N_DIST
 from calibration.geometry import make_transform
 from calibration.intrinsics.model import (
     camera_from_vector,
-    jacobians,
     marginals,
-    normal_equations,
+    normal_equations_at,
     param_names,
 )
 from calibration.intrinsics.results import (
@@ -100,9 +99,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             iters += it2
     # final Jacobian, covariance
     free = np.ones(n_par, dtype=bool)
-    r = p.residuals(c, R, t)
-    Jc, Jp = jacobians(p, c, R, t, free)
-    nrm = normal_equations(p, r, Jc, Jp)
+    nrm, r = normal_equations_at(p, c, R, t, free)
     dof = max(len(r) - n_par - 6 * p.n_views, 1)
     sigma2 = float(np.sum(r * r)) / dof
     S_inv, pose_cov = marginals(nrm)
@@ -132,7 +129,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     unc["inflation"] = 1.0
     if jackknife and len(views) >= JACKKNIFE_MIN_VIEWS:
         pts = _robustly_covered(size, views, coverage.shape[1])
-        j = jackknife_projection_rms(model, size, views, target, c, R, t, pts)
+        j = jackknife_projection_rms(camera, nrm, pts, JACKKNIFE_GROUPS)
         a_same = _rms(projection_uncertainty(camera, cov, pts, np.ones(len(pts), dtype=bool)))
         a = unc["projection_rms_px"]
         # The jackknife of G replicates is itself noisy (relative sd of its RMS ~ 1 / sqrt(2 (G - 1)))
