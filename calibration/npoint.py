@@ -179,7 +179,9 @@ def check_layout(uv: F64, xy: F64) -> None:
                               "use marks spread over the field in both directions, not along a line")
 
 
-def _loo(model: str, uv: F64, xy: F64) -> F64:
+def loo_errors_mm(model: str, uv: F64, xy: F64) -> F64:
+    """Leave-one-out error (mm) of each mark: the map fitted without it, evaluated at its pixel
+    (``uv`` as the map takes them: undistorted when the map has a camera)."""
     err = np.zeros(len(uv))
     for i in range(len(uv)):
         m = np.arange(len(uv)) != i
@@ -287,7 +289,7 @@ def fit_npoint(uv_px: ArrayLike, xy_mm: ArrayLike, model: str | None = None,
     loo: dict[str, float] = {}
     for m in MODELS:
         if n >= MIN_POINTS[m] + 1 and 2 * (n - 1) > N_PARAMS[m]:
-            loo[m] = float(np.sqrt(np.mean(_loo(m, uv, xy) ** 2)))
+            loo[m] = float(np.sqrt(np.mean(loo_errors_mm(m, uv, xy) ** 2)))
     if model is None:
         if not loo:
             raise NPointError(f"{n} marks are too few to choose a model by leave-one-out; name the model "

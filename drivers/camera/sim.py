@@ -6,10 +6,13 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from calibration import geometry as g
 from calibration.render import prepare
 from drivers.base import CameraBase, DeviceInitError, DeviceUnavailable, Frame
+from drivers.sim.tool_feature import draw_tool_feature
 from drivers.sim.world import SimWorld, world_for
 
 
@@ -24,7 +27,11 @@ class SimCameraSettings(BaseModel):
 
 
 class SimCamera(CameraBase):
-    """A camera that renders the virtual cell's scene as seen from its (possibly moving) mount."""
+    """A camera that renders the virtual cell's scene as seen from its (possibly moving) mount.
+
+    A scene's ``tool_feature`` (a bright disk on the tool) is drawn over each frame where the
+    camera sees it, from the tool's true pose at the time of the grab (``drivers.sim.tool_feature``).
+    """
 
     Settings = SimCameraSettings
 
@@ -36,6 +43,7 @@ class SimCamera(CameraBase):
         self._exposure_us = settings.exposure_us
         self._gain_db = settings.gain_db
         self._trigger = "software"
+        self._feature_rng = np.random.default_rng()
 
     @property
     def world(self) -> SimWorld:
@@ -45,6 +53,7 @@ class SimCamera(CameraBase):
 
     def open(self) -> None:
         self._world = world_for(self._settings.scene, self._settings.seed)
+        self._feature_rng = np.random.default_rng([self._world.scene.seed, 0x70_0F])
         # The first frame's one-off work (lens inversion, loading the renderer's compiled loops)
         # starts now, so that a grab soon after open does not pay it all; a grab meanwhile waits.
         threading.Thread(target=prepare, args=(self._world.camera_model,), name=f"{self.camera_id}-prepare",
@@ -55,7 +64,13 @@ class SimCamera(CameraBase):
 
     def grab(self, timeout_s: float = 2.0) -> Frame:
         world = self.world
+        T_base_tool = world.T_base_tool_true
         pixels = world.render()
+        feature = world.scene.tool_feature
+        if feature is not None:
+            T_cam_tool = g.invert(world.T_base_cam()) @ T_base_tool
+            pixels = draw_tool_feature(pixels, world.camera_model, T_cam_tool, feature, world.scene.camera.imaging,
+                                       self._feature_rng)
         self._frame_id += 1
         return Frame(
             pixels=pixels,

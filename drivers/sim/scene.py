@@ -180,6 +180,26 @@ class PartSpec(_Strict):
         return v
 
 
+class ToolFeatureSpec(_Strict):
+    """A feature the tool carries, seen by a fixed camera: a bright disk in a dark ring.
+
+    The gripper's centre mark of a jog-to-mark cell (a lit LED or a retro-reflective dot on a dark
+    gripper body): a disk of ``diameter_mm`` at ``offset_mm`` from the flange, in the flange (tool)
+    frame, lying in the tool's x/y plane, drawn at ``grey_dn`` (the sensor saturates on it by
+    default) inside a ring of ``ring_diameter_mm`` at ``ring_grey_dn``. The sim camera draws it over
+    the rendered frame, projected through the camera model from the tool's true pose
+    (``drivers/camera/sim.py``); the tool itself is not drawn.
+    """
+
+    offset_mm: tuple[float, float, float]
+    """The disk's centre in the flange frame, mm (x, y, z; z along the tool axis)."""
+    diameter_mm: float = Field(8.0, gt=0, le=200)
+    ring_diameter_mm: float = Field(16.0, ge=0, le=400)
+    """Outer diameter of the dark ring around the disk, mm (0: no ring)."""
+    grey_dn: float = Field(255.0, ge=0, le=255)
+    ring_grey_dn: float = Field(20.0, ge=0, le=255)
+
+
 class TableSpec(_Strict):
     z_m: float = 0.0
     reflectance: float = Field(0.35, ge=0, le=1)
@@ -195,6 +215,8 @@ class SceneSpec(_Strict):
     table: TableSpec = TableSpec()
     targets: list[TargetSpec] = []
     parts: list[PartSpec] = []
+    tool_feature: ToolFeatureSpec | None = None
+    """A feature on the tool for a fixed camera to see (the tool centre); none when absent."""
 
     def T_tool_cam(self) -> np.ndarray | None:
         c = self.camera

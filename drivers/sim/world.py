@@ -217,6 +217,11 @@ class SimWorld:
         T_tool_cam = self.scene.T_tool_cam()
         if T_tool_cam is not None:
             out["T_tool_cam"] = T_tool_cam.tolist()
+        feature = self.scene.tool_feature
+        if feature is not None:  # the tool centre's truth: the feature's offset from the flange, mm
+            T_tool_feature = g.make_transform(np.eye(3), np.asarray(feature.offset_mm) * 1e-3)
+            out["tool_feature"] = {**feature.model_dump(mode="json"),
+                                   "T_base_feature": (self.T_base_tool_true @ T_tool_feature).tolist()}
         return out
 
 

@@ -80,7 +80,10 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
                                               "(GET /routines lists them)")
     # Routines that move the robot need the engineer role (an operator may present the plate by hand).
     moves = name in MOVES_ROBOT and (params or {}).get("mode", "robot") == "robot"
-    if not who.has("engineer") and moves:
+    # jog-to-mark's tool-centre step moves the robot too, under a motion session of its own (the
+    # operator jogs freely before it), so it needs the role but not the motion from the start.
+    turns = name == "jog-to-mark" and (params or {}).get("tool_centre") is True
+    if not who.has("engineer") and (moves or turns):
         raise ApiError(403, "forbidden", f"routine {name} needs the engineer role; token {who.name!r} has {who.role}")
     module = routine(name)
     try:

@@ -1,0 +1,154 @@
+"""jog-to-mark's tool-centre step end to end on ``cellctl serve`` with a fixed camera.
+
+The scene (``drivers/sim/scenes/virtual-cell-fixed-camera.yaml``) has a camera fixed above a
+level circle plate and a bright disk on the gripper, 28 / -12 mm off the flange axis and 150 mm
+down the tool. The test plays the operator: it jogs the tool so that the disk sits on each mark
+(over the API, from the scene's truth) and presses record. The routine then turns the tool at one
+mark, sees the disk at each angle and fits the tool centre, which must match the scene's truth
+within the reported uncertainty. A Stop during the turn ends the job stopped, with nothing stored.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+import yaml
+
+from calibration import geometry as g
+from calibration.targets import target_from_dict
+from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
+
+SCENE = REPO / "drivers" / "sim" / "scenes" / "virtual-cell-fixed-camera.yaml"
+R_DOWN = g.rotvec_to_matrix([np.pi, 0.0, 0.0])
+
+
+def _config(tmp: Path) -> Path:
+    cfg = yaml.safe_load((REPO / "deploy" / "examples" / "virtual-cell.yaml").read_text())
+    cfg["cameras"]["cam0"]["settings"]["scene"] = str(SCENE)
+    cfg["robots"]["robot0"]["settings"]["scene"] = str(SCENE)
+    cfg["calibration"]["setup"] = "eye-to-hand"
+    path = tmp / "cell.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    tmp = tmp_path_factory.mktemp("tcp")
+    s = start_served(tmp, config=_config(tmp))
+    try:
+        yield s
+    finally:
+        stop_served(s)
+
+
+@pytest.fixture(scope="module")
+def truth(served: Served) -> dict[str, Any]:
+    out = subprocess.run([CELLCTL, "sim", "truth", "--config", str(served.data_dir.parent / "cell.yaml")],
+                         capture_output=True, check=True, text=True).stdout
+    return dict(json.loads(out))
+
+
+def _flange_for_mark(truth: dict[str, Any], mark_id: int) -> dict[str, float]:
+    """The tool pose (pointing down) that puts the disk on mark ``mark_id``."""
+    plate = truth["targets"]["plate"]
+    pts = target_from_dict(plate["target"]).points()
+    p = g.transform_points(np.array(plate["T_base_target"]), pts.xyz_m[list(pts.ids).index(mark_id)])[0]
+    f = p - R_DOWN @ (np.array(truth["tool_feature"]["offset_mm"]) * 1e-3)
+    return {"x_m": f[0], "y_m": f[1], "z_m": f[2], "rx_rad": np.pi, "ry_rad": 0.0, "rz_rad": 0.0}
+
+
+def _wait_input(http: httpx.Client, job_id: str, step: int) -> dict[str, Any]:
+    """The routine's request for mark ``step`` (the previous request may still show for a moment)."""
+    deadline = time.monotonic() + 60
+    while ((job := http.get(f"/jobs/{job_id}").json())["waiting_for"] or {}).get("step") != step:
+        assert job["state"] == "running", job["error"]
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    return dict(job["waiting_for"])
+
+
+def _wait_end(http: httpx.Client, job_id: str, timeout_s: float = 120) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    while (job := http.get(f"/jobs/{job_id}").json())["state"] == "running":
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    return dict(job)
+
+
+def _record_marks(http: httpx.Client, truth: dict[str, Any], job_id: str, n: int) -> None:
+    for step in range(1, n + 1):
+        mark = _wait_input(http, job_id, step)
+        pose = _flange_for_mark(truth, mark["mark_id"])
+        assert http.post("/robots/robot0/move", json={"pose_ur": pose, "speed_m_s": 0.25}).status_code == 200
+        assert http.post(f"/jobs/{job_id}/record").status_code == 200
+
+
+def _home(http: httpx.Client) -> None:
+    home = {"x_m": 0.40, "y_m": -0.30, "z_m": 0.30, "rx_rad": np.pi, "ry_rad": 0.0, "rz_rad": 0.0}
+    assert http.post("/robots/robot0/move", json={"pose_ur": home, "speed_m_s": 0.25}).status_code == 200
+
+
+def test_the_turn_recovers_the_tool_centre(served: Served, truth: dict[str, Any]) -> None:
+    with served.client(timeout_s=60) as http:
+        _home(http)
+        r = http.post("/routines/jog-to-mark", json={"marks": 9, "tool_centre": True})
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        _record_marks(http, truth, job_id, 9)
+        job = _wait_end(http, job_id)
+        assert job["state"] == "succeeded", job["error"]
+        res = job["result"]
+        assert res["verdict"]["ok"] is True, res["verdict"]
+        tc = res["tool_centre"]
+        assert len(tc["rotations"]) == 7 and tc["mark_step"] == 5  # the centre of the 3x3 marks
+        true_xy_mm = np.array(truth["tool_feature"]["offset_mm"][:2])
+        got_xy_mm = np.array(tc["offset_tool_m"][:2]) * 1e3
+        # offset_mm is base-aligned at the mark's orientation (tool pointing down: y flips)
+        assert np.allclose(R_DOWN[:2, :2] @ got_xy_mm, tc["offset_mm"], atol=0.01)  # reported pose: 0.005 deg noise
+        sigma = np.array(tc["uncertainty"]["offset_axes_mm"])
+        err = np.abs(got_xy_mm - true_xy_mm)
+        assert np.all(err <= np.maximum(3 * sigma, 0.01)), (err, sigma)
+        assert np.all(err < 0.1) and np.all(sigma < 0.1), (err, sigma)
+        assert tc["rms_mm"] < 0.05
+        # The arc's centre is the flange axis at the mark: close to the pose the robot reported there.
+        assert tc["positions"][0]["arc_deg"] == pytest.approx(180.0, abs=0.1)
+        # Stored with the N-point calibration, verdict and all.
+        stored = http.get(f"/calibrations/{res['calibration_id']}").json()
+        assert stored["result"]["tool_centre"]["offset_mm"] == tc["offset_mm"]
+        assert stored["result"]["verdict"]["ok"] is True
+        # The turn left the robot free again: the operator can jog.
+        _home(http)
+
+
+def test_a_stop_during_the_turn_ends_the_job_stopped(served: Served, truth: dict[str, Any]) -> None:
+    with served.client(timeout_s=60) as http:
+        _home(http)
+        before = len(http.get("/calibrations").json())
+        r = http.post("/routines/jog-to-mark", json={"marks": 4, "tool_centre": True, "speed_m_s": 0.05})
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        _record_marks(http, truth, job_id, 4)
+        deadline = time.monotonic() + 60
+        while "turning the tool" not in (job := http.get(f"/jobs/{job_id}").json())["message"]:
+            assert job["state"] == "running", job["error"]
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        # The routine owns the robot now: a jog is refused.
+        time.sleep(0.2)
+        pose = _flange_for_mark(truth, 0)
+        assert http.post("/robots/robot0/move", json={"pose_ur": pose, "speed_m_s": 0.1}).status_code == 409
+        assert http.post("/robots/robot0/stop").status_code == 200
+        job = _wait_end(http, job_id)
+        assert job["state"] == "stopped", job
+        assert len(http.get("/calibrations").json()) == before
+        assert http.post("/robots/robot0/resume").status_code == 200
+        _home(http)
