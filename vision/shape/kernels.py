@@ -9,6 +9,7 @@ the border). Compiled on first use and cached on disk (``cache=True``).
 - ``gn_normal_equations``: the 4x4 normal equations of one weighted Gauss-Newton step.
 - ``profile_centroids``: the centroid edge offset, contrast and cleanliness of each normal profile.
 - ``fit_stage_a``: the Gauss-Newton loop of the refinement on gradient peaks.
+- ``perspective_fit``: the final plane-homography fit on centroid edge positions.
 
 The discrete search's loops are in ``search_kernels``.
 """
@@ -165,6 +166,7 @@ def warm_up() -> None:
     profile_centroids(np.zeros((4, 4), np.float32), z2, z2, 1)
     fit_stage_a(np.zeros((4, 4, 2), np.float32), z2, z2, np.zeros(4), 1.0, 0.1, 1.0, 1, 1.0, 0.0, False, 1.0,
                 0.0, 4.0, 4.0)
+    perspective_fit(np.zeros((4, 4), np.float32), z2, z2, 0.0, 0.0, 0.0, 1.0, 1.0, 1)
     from vision.shape import search_kernels
     search_kernels.warm_up()
 
@@ -242,3 +244,82 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
             break
     out = np.array([x, y, th, sc])
     return out, failed, q, d, found, cosd, sign
+
+
+@njit(cache=True)
+def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
+                    min_contrast: float, half: int) -> tuple[float, float, float, float]:
+    """``refine._perspective_fit`` in one call (the same arithmetic, no numpy temporaries): a
+    similarity refined to a plane homography ``q = (A m + c) / (1 + p.m)`` by Gauss-Newton on the
+    centroid normal distances (``half``: the profile's half width). Returns the reference point
+    ``c`` (crop pixels) and the angle (rad) and scale of the local linear map ``A - c p^T``."""
+    npts = m.shape[0]
+    co, si = math.cos(th), math.sin(th)
+    a00, a01, a10, a11 = sc * co, sc * si, -sc * si, sc * co
+    c0, c1 = x, y
+    p0, p1 = 0.0, 0.0
+    q = np.empty((npts, 2))
+    n = np.empty((npts, 2))
+    w = np.empty(npts)
+    J = np.empty((npts, 8))
+    for _ in range(2):
+        l00, l01, l10, l11 = a00 - c0 * p0, a01 - c0 * p1, a10 - c1 * p0, a11 - c1 * p1
+        for i in range(npts):
+            mx, my = m[i, 0], m[i, 1]
+            wi = 1.0 + (mx * p0 + my * p1)
+            w[i] = wi
+            q[i, 0] = (mx * a00 + my * a01 + c0) / wi
+            q[i, 1] = (mx * a10 + my * a11 + c1) / wi
+            nx = nrm[i, 0] * l00 + nrm[i, 1] * l01
+            ny = nrm[i, 0] * l10 + nrm[i, 1] * l11
+            nn = max(math.sqrt(nx * nx + ny * ny), 1e-12)
+            n[i, 0] = nx / nn
+            n[i, 1] = ny / nn
+        off, S, clean = profile_centroids(img_f, q, n, half)
+        H = np.zeros((8, 8))
+        g = np.zeros(8)
+        nw = 0
+        jmax = 0.0
+        for i in range(npts):
+            ok = clean[i] and abs(off[i]) < 1.0 and abs(S[i]) >= 0.5 * min_contrast
+            wt = (1 - off[i] ** 2) ** 2 if ok else 0.0
+            mx, my = m[i, 0] / w[i], m[i, 1] / w[i]
+            inv = 1.0 / w[i]
+            nx, ny = n[i, 0], n[i, 1]
+            qn = nx * q[i, 0] + ny * q[i, 1]
+            J[i, 0] = nx * mx
+            J[i, 1] = nx * my
+            J[i, 2] = nx * inv
+            J[i, 3] = ny * mx
+            J[i, 4] = ny * my
+            J[i, 5] = ny * inv
+            J[i, 6] = -qn * mx
+            J[i, 7] = -qn * my
+            for k in range(8):
+                jmax = max(jmax, abs(J[i, k]))
+            if wt == 0.0:
+                continue
+            nw += 1
+            for r in range(8):
+                g[r] += J[i, r] * (wt * off[i])
+                for k in range(8):
+                    H[r, k] += J[i, r] * (J[i, k] * wt)
+        if nw < 20:
+            break
+        for k in range(8):
+            H[k, k] += 1e-9 * (1 + jmax)
+        delta = np.linalg.solve(H, g)
+        a00 += delta[0]
+        a01 += delta[1]
+        a10 += delta[3]
+        a11 += delta[4]
+        c0 += delta[2]
+        c1 += delta[5]
+        p0 += delta[6]
+        p1 += delta[7]
+        if abs(delta[2]) + abs(delta[5]) < 1e-4:
+            break
+    l00, l10, l11, l01 = a00 - c0 * p0, a10 - c1 * p0, a11 - c1 * p1, a01 - c0 * p1
+    theta = math.atan2(-l10, l00)
+    scale = math.sqrt(abs(l00 * l11 - l01 * l10))
+    return c0, c1, theta, scale

@@ -141,7 +141,8 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
             if update(_gn_step(n, Rm, dms @ R.T, sc, wgt, off, fit_scale)) < 1e-3:
                 break
         if persp:
-            x, y, th, sc = _perspective_fit(img_f, ms, ns, x, y, th, sc, min_contrast)
+            x, y, th, sc = kernels.perspective_fit(img_f, ms, ns, x, y, th, sc, float(min_contrast),
+                                                   CENTROID_HALF_WIDTH)  # _perspective_fit compiled
         # the score is taken at the final pose
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
