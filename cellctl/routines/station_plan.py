@@ -230,18 +230,21 @@ class StationPlanner:
         e1 = self.T0[:3, 0] - v * float(self.T0[:3, 0] @ v)
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(v, e1)
+        # Until the stations give an estimate, the plate's place is a guess: move by less.
+        tilts = TILT_FRACTIONS if self.estimated else TILT_FRACTIONS[:1]
+        spins = SPIN_FRACTIONS if self.estimated else tuple(f for f in SPIN_FRACTIONS if abs(f) <= 0.5)
         out: list[Candidate] = []
         for k_az in range(AZIMUTHS):
             phi = 2 * math.pi * k_az / AZIMUTHS
             axis = math.cos(phi) * e1 + math.sin(phi) * e2
-            for tf in TILT_FRACTIONS:
-                for sf in SPIN_FRACTIONS:
+            for tf in tilts:
+                for sf in spins:
                     R = g.rotvec_to_matrix(axis * math.radians(tf * self.max_tilt_deg)) @ \
                         g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
                     name = (f"tilt {tf * self.max_tilt_deg:.0f} deg towards {360 * k_az / AZIMUTHS:.0f} deg, "
                             f"spin {sf * self.max_spin_deg:+.0f} deg")
                     out += self._at_distances(name, R, P, v)
-        for sf in SPIN_FRACTIONS:
+        for sf in spins:
             if sf:
                 R = g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
                 out += self._at_distances(f"spin {sf * self.max_spin_deg:+.0f} deg", R, P, v)
@@ -253,7 +256,8 @@ class StationPlanner:
         rotated = np.eye(4)
         rotated[:3, :3] = R @ self.T0[:3, :3]
         rotated[:3, 3] = P + R @ (self.T0[:3, 3] - P)
-        for f in (1.0 - self.distance_range, 1.0, 1.0 + self.distance_range):
+        factors = (1.0 - self.distance_range, 1.0, 1.0 + self.distance_range) if self.estimated else (1.0,)
+        for f in factors:
             T = rotated.copy()
             # Along the line of sight: the camera backs away (eye-in-hand), the plate moves away (eye-to-hand).
             step = (f - 1.0) * self.d0_m
