@@ -153,6 +153,8 @@ class SimWorld:
         imaging = Imaging(**im.model_dump(exclude={"supersample"}))
         with self._lock:
             key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
+            if any(spec.attached_to == "tool" for spec, _ in self._targets):
+                key += self.T_base_tool_true.tobytes()  # a target on the tool moves with it
             cached = self._reflectance_cache
             hit = cached is not None and cached[0] == key
             objects = [] if hit else self.planar_objects()
