@@ -32,13 +32,16 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cmp_to_key, lru_cache
 from types import ModuleType
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.camera_model import CameraModel
 from calibration.sensor import Imaging, to_grey
+
+if TYPE_CHECKING:
+    from calibration.render_patterns import Shader
 
 __all__ = ["Imaging", "PlanarObject", "prepare", "ray_field", "render", "render_reflectance", "render_scene", "to_grey"]
 
@@ -90,8 +93,13 @@ def ray_field(camera: CameraModel) -> NDArray[np.float64]:
 _FIELD_LOCK = threading.Lock()
 
 
-def _kernels() -> ModuleType:
-    """The compiled loops, imported on first use (numba's import and start-up take a while)."""
+def _kernels(patterns: bool = False) -> ModuleType:
+    """The compiled loops (or the targets' compiled shaders), imported on first use (numba's
+    import and start-up take a while)."""
+    if patterns:
+        from calibration import render_patterns
+
+        return render_patterns
     from calibration import render_kernels
 
     return render_kernels
@@ -158,6 +166,8 @@ class _Plane:
     coarse_depth: NDArray[np.float64]
     """Depth (m) at the window grid's samples, inf where the plane is not near or behind."""
     obj: PlanarObject
+    shader: Shader | None
+    """The compiled shading of the object's pattern (``calibration.render_patterns``), if it has one."""
 
 
 _Coarse = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_],
@@ -202,7 +212,8 @@ def _plane(index: int, obj: PlanarObject, field: NDArray[np.float64],
     r1 = min(int(rows[ri[-1]]) + s + 1, field.shape[0])
     c0 = max(int(cols[ci[0]]) - s, 0)
     c1 = min(int(cols[ci[-1]]) + s + 1, field.shape[1])
-    return _Plane(index, H, d, (r0, r1, c0, c1), np.where(near, lam, np.inf), obj)
+    shader = _kernels(patterns=True).shader_for(obj.reflectance)
+    return _Plane(index, H, d, (r0, r1, c0, c1), np.where(near, lam, np.inf), obj, shader)
 
 
 _COARSE: dict[int, tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]] = {}
@@ -262,6 +273,9 @@ def _shade(p: _Plane, n: int, scratch: _Scratch, value: NDArray[np.float64], dep
     if n == 0:
         return
     ox, oy, lam, flat = scratch.ox[:n], scratch.oy[:n], scratch.lam[:n], scratch.flat[:n]
+    if p.shader is not None:
+        p.shader(n, ox, oy, lam, flat, p.index, value, depth, which)
+        return
     refl = np.ascontiguousarray(p.obj.reflectance(ox, oy), dtype=np.float64).reshape(-1)
     if refl.size != n:
         raise RenderError(f"object {p.index}: its reflectance returned {refl.size} values for {n} points")
@@ -403,31 +417,50 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
 
     A pixel whose 3x3 neighbourhood sees one object (``only``) is shaded against that object
     alone: another object inside the pixel would have shown at a neighbour's centre (the same
-    sub-pixel limit as the choice of edge pixels itself).
+    sub-pixel limit as the choice of edge pixels itself). When that object has a compiled
+    pattern, one compiled loop does the whole pixel; the others go through sub-ray buffers.
     """
     k = _kernels()
     n2 = n * n
-    chunk = max(_CHUNK_RAYS // n2, 1)
     out = np.empty(rows.size)
+    rest = np.ones(rows.size, dtype=bool)
+    tasks: list[tuple[_Plane | None, NDArray[np.intp]]] = []
+    for p in planes:
+        if p.shader is not None and n2 <= 128:
+            alone = np.flatnonzero(only == p.index)
+            rest[alone] = False
+            tasks += [(p, alone[i : i + _ALONE_PIXELS]) for i in range(0, alone.size, _ALONE_PIXELS)]
+    others = np.flatnonzero(rest)
+    chunk = max(_CHUNK_RAYS // n2, 1)
+    tasks += [(None, others[i : i + chunk]) for i in range(0, others.size, chunk)]
 
-    def run(e0: int) -> None:
-        e1 = min(e0 + chunk, rows.size)
-        m = (e1 - e0) * n2
+    def run(task: tuple[_Plane | None, NDArray[np.intp]]) -> None:
+        alone_in, sel = task
+        r, c, o = rows[sel], cols[sel], only[sel]
+        res = np.empty(sel.size)
+        if alone_in is not None and alone_in.shader is not None:
+            alone_in.shader.supersample_alone(field, r, c, n, alone_in.H, alone_in.d, background, res)
+            out[sel] = res
+            return
+        m = sel.size * n2
         scratch = _scratch(m)
         scratch.ensure_sub(m)
         v, dp, wh = scratch.sub_value[:m], scratch.sub_depth[:m], scratch.sub_which[:m]
         v.fill(background)
         dp.fill(np.inf)
         wh.fill(-1)
-        r, c, o = rows[e0:e1], cols[e0:e1], only[e0:e1]
         for p in planes:
             r0, r1, c0, c1 = p.window
             hits = k.hit_subrays(field, r, c, o, n, r0, r1, c0, c1, p.H, p.d, p.index, dp, wh, *scratch.hits)
             _shade(p, hits, scratch, v, dp, wh)
-        out[e0:e1] = v.reshape(e1 - e0, n2).mean(axis=1)
+        out[sel] = v.reshape(sel.size, n2).mean(axis=1)
 
-    _parallel(run, range(0, rows.size, chunk))
+    _parallel(run, tasks)
     return out
+
+
+_ALONE_PIXELS = 4096
+"""Pixels per task of the fused supersampling of one compiled pattern."""
 
 
 def render(camera: CameraModel, objects: Sequence[PlanarObject], imaging: Imaging | None = None,

@@ -1,0 +1,197 @@
+"""Compiled shading of the calibration targets' printed patterns (numba), for the renderer.
+
+``calibration.targets`` defines each pattern by its ``reflectance(x, y)`` (numpy, object frame,
+metres). On a frame of the virtual cell those numpy passes were the renderer's largest cost, so
+for the targets whose patterns are simple geometry (circle plate, chessboard, circle grid) this
+module evaluates the *same arithmetic* in one compiled loop that also stores the hits (reflectance
+and ``take_hits`` fused). The results are bit-identical to the numpy methods:
+``tests/calibration/test_render_patterns.py`` checks every pattern on random points and on points
+exactly on its edges, and whole frames against the numpy path. ChArUco (marker bitmaps) and any
+other reflectance stay on the numpy path.
+
+``shader_for(reflectance)`` returns a shader for a target's bound ``reflectance`` method (None for
+anything else, including subclasses that override it); ``shade(n, ox, oy, lam, flat, index,
+value, depth, which)`` stores the defined ones of ``n`` compacted hits, as
+``render_kernels.take_hits`` does after a numpy reflectance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from calibration.targets import MM, Chessboard, CircleGrid, CirclePlate
+
+F64 = NDArray[np.float64]
+
+
+CIRCLE_PLATE, CHESSBOARD, CIRCLE_GRID = 0, 1, 2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _value(kind: int, x: float, y: float, g: F64, centres: F64, cols: int, rows: int
+           ) -> float:  # pragma: no cover - compiled
+    """The pattern's reflectance at object point ``(x, y)`` (m), NaN off the plate: the same
+    arithmetic, in the same order, as the target's numpy ``reflectance``."""
+    if kind == CIRCLE_PLATE:
+        if not (x >= g[11] and x <= g[13] and y >= g[12] and y <= g[14]):  # _on_plate, extent_m
+            return np.nan
+        x0, y0, x1, y1 = g[4], g[5], g[6], g[7]  # inner edge of the frame
+        black = (x >= g[0] and x <= g[2] and y >= g[1] and y <= g[3]) and not (x > x0 and x < x1 and y > y0
+                                                                                and y < y1)
+        if not black:  # orientation triangle
+            black = x >= x0 and y >= y0 and (x - x0) + (y - y0) <= g[8]
+        if not black:  # nearest mark
+            p = g[9]
+            c = min(max(np.rint(x / p), 0.0), cols - 1.0)
+            r = min(max(np.rint(y / p), 0.0), rows - 1.0)
+            dx = x - c * p
+            dy = y - r * p
+            black = dx * dx + dy * dy <= g[10]
+        return 0.0 if black else 1.0
+    if not (x >= g[1] and x <= g[3] and y >= g[2] and y <= g[4]):
+        return np.nan
+    if kind == CHESSBOARD:
+        i = np.floor(x / g[0])
+        j = np.floor(y / g[0])
+        on = i >= -1 and i <= cols - 1 and j >= -1 and j <= rows - 1
+        return 0.0 if on and ((i + j) % 2) == 0 else 1.0
+    for m in range(centres.shape[0]):  # CIRCLE_GRID
+        dx = x - centres[m, 0]
+        dy = y - centres[m, 1]
+        if dx * dx + dy * dy <= g[0]:
+            return 0.0
+    return 1.0
+
+
+@njit(cache=True, nogil=True)
+def shade_hits(kind: int, g: F64, centres: F64, cols: int, rows: int, n: int, ox: F64, oy: F64, lam: F64,
+               flat: NDArray[np.int64], index: int, value: F64, depth: F64,
+               which: NDArray[np.int32]) -> None:  # pragma: no cover - compiled
+    """The pattern's reflectance at ``n`` compacted hits, stored where defined (``take_hits``)."""
+    for t in range(n):
+        v = _value(kind, ox[t], oy[t], g, centres, cols, rows)
+        if np.isfinite(v):
+            k = flat[t]
+            value[k] = v
+            depth[k] = lam[t]
+            which[k] = index
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mean(a: F64, n: int) -> float:  # pragma: no cover - compiled
+    """``numpy.mean`` of ``a[:n]`` bit for bit: numpy's pairwise sum (8 partial sums up to 128)."""
+    if n < 8:
+        s = 0.0
+        for i in range(n):
+            s += a[i]
+        return s / n
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    s = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        s += a[i]
+        i += 1
+    return s / n
+
+
+@njit(cache=True, nogil=True)
+def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, field: F64,
+                      pix_rows: NDArray[np.int64], pix_cols: NDArray[np.int64], nsub: int, H: F64, d: float,
+                      background: float, out: F64) -> None:  # pragma: no cover - compiled
+    """Box-filtered value of pixels that see this plane alone (nothing else in their 3x3
+    neighbourhood), from ``nsub x nsub`` sub-rays each: ray, hit, pattern and mean in one loop.
+
+    The same sub-rays (``render_kernels.hit_subrays``), the same hit test against an empty
+    pixel, and numpy's mean: bit-identical to the generic path, without its buffers.
+    """
+    h, w_img = field.shape[0], field.shape[1]
+    if nsub * nsub > 128:  # beyond numpy's pairwise block: _mean would differ from it
+        raise ValueError("supersample_alone: at most 11 x 11 sub-rays")
+    sub = np.empty(nsub * nsub)
+    for e in range(pix_rows.size):
+        r = pix_rows[e]
+        c = pix_cols[e]
+        cl, cr = max(c - 1, 0), min(c + 1, w_img - 1)
+        ru, rd = max(r - 1, 0), min(r + 1, h - 1)
+        dux = (field[r, cr, 0] - field[r, cl, 0]) / (cr - cl)
+        duy = (field[r, cr, 1] - field[r, cl, 1]) / (cr - cl)
+        dvx = (field[rd, c, 0] - field[ru, c, 0]) / (rd - ru)
+        dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
+        bx = field[r, c, 0]
+        by = field[r, c, 1]
+        for j in range(nsub):
+            ov = (j + 0.5) / nsub - 0.5
+            for i in range(nsub):
+                ou = (i + 0.5) / nsub - 0.5
+                x = bx + ou * dux + ov * dvx
+                y = by + ou * duy + ov * dvy
+                v = background
+                ww = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+                if ww != 0.0:
+                    lm = d / ww
+                    if lm > 0.0 and lm < np.inf:
+                        t = _value(kind, (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / ww,
+                                   (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / ww, g, centres, cols, rows)
+                        if np.isfinite(t):
+                            v = t
+                sub[j * nsub + i] = v
+        out[e] = _mean(sub, nsub * nsub)
+
+
+@dataclass(frozen=True)
+class Shader:
+    """A target pattern in compiled form: its kind and constants."""
+
+    kind: int
+    g: F64
+    centres: F64
+    cols: int
+    rows: int
+
+    def __call__(self, n: int, ox: F64, oy: F64, lam: F64, flat: NDArray[np.int64], index: int, value: F64,
+                 depth: F64, which: NDArray[np.int32]) -> None:
+        shade_hits(self.kind, self.g, self.centres, self.cols, self.rows, n, ox, oy, lam, flat, index, value,
+                   depth, which)
+
+    def supersample_alone(self, field: F64, rows: NDArray[np.int64], cols: NDArray[np.int64], nsub: int,
+                          H: F64, d: float, background: float, out: F64) -> None:
+        supersample_alone(self.kind, self.g, self.centres, self.cols, self.rows, field, rows, cols, nsub, H, d,
+                          background, out)
+
+
+def shader_for(reflectance: Callable[[F64, F64], F64]) -> Shader | None:
+    """The compiled shader of a target's own ``reflectance`` method, or None (numpy path)."""
+    target = getattr(reflectance, "__self__", None)
+    func = getattr(reflectance, "__func__", None)
+    none = np.zeros((0, 2))
+    if isinstance(target, CirclePlate) and func is CirclePlate.reflectance:
+        p = target.pitch_m
+        x0, y0, x1, y1 = target.frame_inner_m()
+        w = p / 2
+        # The constants exactly as the numpy method forms them (Python floats), so the bits agree.
+        g = np.array([x0 - w, y0 - w, x1 + w, y1 + w, x0, y0, x1, y1, p / 2, p, target.radius_m**2,
+                      *target.extent_m()], dtype=np.float64)
+        return Shader(CIRCLE_PLATE, g, none, int(target.cols), int(target.rows))
+    if isinstance(target, Chessboard) and func is Chessboard.reflectance:
+        g = np.array([target.square_m, *target.extent_m()], dtype=np.float64)
+        return Shader(CHESSBOARD, g, none, int(target.cols), int(target.rows))
+    if isinstance(target, CircleGrid) and func is CircleGrid.reflectance:
+        g = np.array([(target.diameter_mm * MM / 2) ** 2, *target.extent_m()], dtype=np.float64)
+        centres = np.ascontiguousarray(target.points().xyz_m[:, :2], dtype=np.float64)
+        return Shader(CIRCLE_GRID, g, centres, 0, 0)
+    return None
