@@ -25,7 +25,7 @@ from calibration.intrinsics.results import (
     CalibrationError,
     ViewResult,
 )
-from calibration.observations import Detection, point_weights
+from calibration.observations import Detection, effective_sigmas, point_weights
 from calibration.targets import CirclePlate, Points3D, Target
 
 # --------------------------------------------------------------------------------------------
@@ -42,6 +42,8 @@ class ViewData:
     ellipse: bool
     w: F64 | None = None
     """(n,) relative weights of the points from their detection uncertainty, or None (all 1)."""
+    sigma: F64 | None = None
+    """(n,) the points' own detection uncertainty (px, ``Detection.uv_sigma_px``), or None."""
 
 
 def collect_views(detections: Sequence[Detection], target: Target,
@@ -65,7 +67,6 @@ def collect_views(detections: Sequence[Detection], target: Target,
         # The most common size wins; views of another size are reported as not used.
         image_size = max(set(sizes), key=sizes.count)
     views: list[ViewData] = []
-    sigmas: list[F64 | None] = []
     results: list[ViewResult] = []
     for k, d in enumerate(detections):
         vr = ViewResult(image=d.image, used=False)
@@ -90,12 +91,28 @@ def collect_views(detections: Sequence[Detection], target: Target,
             vr.reason = f"only {int(ok.sum())} points (need {MIN_POINTS_PER_VIEW})"
             continue
         X = tp.xyz_m[[where[int(i)] for i in ids[ok]]]
-        views.append(ViewData(k, d.image, ids[ok], X, uv[ok], use_ell))
-        sigmas.append(None if d.uv_sigma_px is None else np.asarray(d.uv_sigma_px, dtype=np.float64)[ok])
+        sig = None if d.uv_sigma_px is None else np.asarray(d.uv_sigma_px, dtype=np.float64)[ok]
+        views.append(ViewData(k, d.image, ids[ok], X, uv[ok], use_ell, sigma=sig))
         vr.n_points = int(ok.sum())
-    for v, w in zip(views, point_weights(sigmas, [len(v.X) for v in views]), strict=True):
-        v.w = w
+    set_weights(views)
     return views, results, image_size
+
+
+def set_weights(views: list[ViewData], floor_px: float | None = None) -> None:
+    """Weight each view's points by their detection uncertainty (``point_weights``), with the
+    error no local fit sees taken as ``floor_px`` (default: ``point_weights``' own floor)."""
+    sigmas = [v.sigma for v in views]
+    for v, w in zip(views, point_weights(sigmas, [len(v.X) for v in views], floor_px=floor_px), strict=True):
+        v.w = w
+
+
+def weighting_sigmas(views: list[ViewData]) -> F64 | None:
+    """(M,) every point's uncertainty as the weights use it (``effective_sigmas``), or None when
+    some view has none."""
+    eff, _ = effective_sigmas([v.sigma for v in views], [len(v.X) for v in views])
+    if any(e is None for e in eff):
+        return None
+    return np.concatenate([e for e in eff if e is not None])
 
 
 def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64, F64, F64]:
