@@ -6,6 +6,17 @@ import { activate } from "./calib.js";
 
 const wiz = { run: 0, job: null, marks: [], recorded: new Map(), current: null, image: null, result: null };
 
+// Built here rather than in index.html: the tool-centre option (engineer: it moves the robot) and
+// the verdict block of the result.
+const tcpLabel = document.createElement("label");
+tcpLabel.dataset.minRole = "engineer";
+tcpLabel.title = "after the marks, the robot turns the tool at one mark so a fixed camera can find the tool centre";
+tcpLabel.innerHTML = '<input type="checkbox" id="wiz-tool-centre"> then turn the tool for the tool centre';
+$("#wiz-start-button").before(tcpLabel, " ");
+const verdictBox = document.createElement("div");
+verdictBox.id = "wiz-verdict";
+$("#wiz-summary").before(verdictBox);
+
 function wizReset() {
   wiz.run += 1;
   wiz.job = null; wiz.marks = []; wiz.recorded = new Map(); wiz.current = null; wiz.result = null; wiz.image = null;
@@ -14,6 +25,7 @@ function wizReset() {
   $("#wiz-result").hidden = true;
   $("#wiz-error").textContent = "";
   $("#wiz-activated").textContent = "";
+  showVerdict(null);
   $("#wiz-start-button").disabled = false;
   delete $("#wiz-run").dataset.step;
   delete $("#wiz-run").dataset.markId;
@@ -108,7 +120,9 @@ async function wizStart() {
     await waitCameraAvailable(15000);
     if (run !== wiz.run) return;
     $("#wiz-start-button").textContent = "Start";
-    const job = await startRoutine("jog-to-mark", { marks: Number($("#wiz-marks").value) });
+    const params = { marks: Number($("#wiz-marks").value) };
+    if ($("#wiz-tool-centre").checked) params.tool_centre = true;
+    const job = await startRoutine("jog-to-mark", params);
     wiz.job = job;
     $("#wiz-run").dataset.jobId = job.id;
     $("#wiz-start").hidden = true;
@@ -144,6 +158,14 @@ function wizResult(res) {
     ["leave-one-out RMS", Object.entries(res.loo_rms_mm || {}).map(([m, v]) => `${m} ${fmt(v, 4)}`).join(" · ") + " mm"],
     ["map σ over the marks", res.field_sigma_mm ? `rms ${fmt(res.field_sigma_mm.rms, 4)} mm, max `
       + `${fmt(res.field_sigma_mm.max, 4)} mm` : "–"]];
+  const tc = res.tool_centre;
+  if (tc) {
+    const ax = tc.uncertainty.offset_axes_mm;
+    rows.push(["tool centre offset", `dx ${fmt(tc.offset_mm[0], 3)} ± ${fmt(ax[0], 3)}, dy ${fmt(tc.offset_mm[1], 3)} `
+      + `± ${fmt(ax[1], 3)} mm (base-aligned at the mark's orientation)`],
+    ["tool centre fit", `${tc.rotations.length} angles over ${fmt(tc.positions[0].arc_deg, 0)}°, RMS ${fmt(tc.rms_mm, 4)} mm`]);
+  }
+  showVerdict(res.verdict);
   const kv = $("#wiz-summary");
   kv.replaceChildren();
   for (const [k, v] of rows) {
@@ -166,6 +188,30 @@ function wizResult(res) {
   });
   plotResiduals(res);
   $("#wiz-activate").disabled = false;
+}
+
+// The N-point verdict (calibration/npoint_verdict.py): OK, or NOT OK with each problem's advice.
+function showVerdict(v) {
+  verdictBox.replaceChildren();
+  if (!v) return;
+  verdictBox.dataset.ok = String(v.ok);
+  const head = document.createElement("p");
+  head.className = v.ok ? "verdict-ok" : "verdict-bad";
+  head.textContent = v.ok ? `Verdict: OK — leave-one-out RMS ${fmt(v.loo_rms_mm, 3)} mm (limit ${v.loo_limit_mm} mm), `
+    + `${v.marks} marks over ${fmt(100 * v.hull_fraction, 1)} % of the image`
+    : "Verdict: NOT OK — what to do:";
+  verdictBox.append(head);
+  const items = [...(v.problems || []).map((p) => [p, "problem"]), ...(v.advice || []).map((p) => [p, "advice"])];
+  if (!items.length) return;
+  const ul = document.createElement("ul");
+  for (const [p, kind] of items) {
+    const li = document.createElement("li");
+    li.className = kind;
+    const b = document.createElement("b"); b.textContent = kind === "advice" ? `${p.code} (advice)` : p.code;
+    li.append(b, `: ${p.message}`);
+    ul.append(li);
+  }
+  verdictBox.append(ul);
 }
 
 // Residual size at each mark's robot position: a circle whose radius grows with the residual.
