@@ -22,11 +22,19 @@ def conic_centres_normalized(T_cam_target: ArrayLike, centres_m: ArrayLike, radi
     H = np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]])
     Hinv = np.linalg.inv(H)
     P = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
-    conic_c = np.empty((len(P), 2))
-    for k, (cx, cy, _) in enumerate(P):
-        Ct = np.array([[1.0, 0.0, -cx], [0.0, 1.0, -cy], [-cx, -cy, cx * cx + cy * cy - radius_m**2]])
-        Ci = Hinv.T @ Ct @ Hinv
-        conic_c[k] = -np.linalg.solve(Ci[:2, :2], Ci[:2, 2])
+    cx, cy = P[:, 0], P[:, 1]
+    n = len(P)
+    # the circle (x - cx)^2 + (y - cy)^2 = r^2 as a conic matrix per mark, mapped by H^-1
+    Ct = np.zeros((n, 3, 3))
+    Ct[:, 0, 0] = Ct[:, 1, 1] = 1.0
+    Ct[:, 0, 2] = Ct[:, 2, 0] = -cx
+    Ct[:, 1, 2] = Ct[:, 2, 1] = -cy
+    Ct[:, 2, 2] = cx * cx + cy * cy - radius_m**2
+    Ci = np.einsum("ji,njk,kl->nil", Hinv, Ct, Hinv)
+    a, b, d = Ci[:, 0, 0], Ci[:, 0, 1], Ci[:, 1, 1]
+    det = a * d - b * b
+    e, f = Ci[:, 0, 2], Ci[:, 1, 2]
+    conic_c = -np.column_stack([(d * e - b * f) / det, (a * f - b * e) / det])
     proj = (H @ np.column_stack([P[:, :2], np.ones(len(P))]).T).T
     return conic_c, proj[:, :2] / proj[:, 2:3]
 
