@@ -312,9 +312,13 @@ def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], backgroun
         scratch = _scratch(band * w)
         for p in planes:  # nearest first, so an occluded plane's hits are never shaded
             r0, r1, c0, c1 = p.window
-            if max(ra, r0) < min(rb, r1):
-                n = k.hit_pixels(field, max(ra, r0), min(rb, r1), c0, c1, p.H, p.d, p.index, depth, which,
-                                 *scratch.hits)
+            a, b = max(ra, r0), min(rb, r1)
+            if a >= b:
+                continue
+            if p.shader is not None:
+                p.shader.shade_pixels(field, a, b, c0, c1, p.H, p.d, p.index, value, depth, which)
+            else:
+                n = k.hit_pixels(field, a, b, c0, c1, p.H, p.d, p.index, depth, which, *scratch.hits)
                 _shade(p, n, scratch, value, depth, which)
 
     _parallel(shade_band, bands)

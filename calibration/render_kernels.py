@@ -163,3 +163,28 @@ def edge_pixels(value: NDArray[np.float64], which: NDArray[np.int32], r0: int, r
                 only[n] = -2 if m & 2 else which[r, c]
                 n += 1
     return rows, cols, only
+
+
+@njit(cache=True, nogil=True)
+def levels(reflectance: NDArray[np.float64], black: float, scale: float, gain: NDArray[np.float32],
+           out: NDArray[np.float32]) -> None:  # pragma: no cover - compiled
+    """``out = float32(black + scale * reflectance) * gain`` (grey levels, DN); ``gain`` is a
+    light map (H, W), a row ramp (1, W), or empty (no gain). One pass instead of numpy's four."""
+    h, w = reflectance.shape
+    for r in range(h):
+        gr = min(r, gain.shape[0] - 1)
+        for c in range(w):
+            v = np.float32(black + scale * reflectance[r, c])
+            out[r, c] = v * gain[gr, c] if gain.shape[0] else v
+
+
+@njit(cache=True, nogil=True)
+def encode(img: NDArray[np.float32], noise: NDArray[np.float32],
+           out: NDArray[np.uint8]) -> None:  # pragma: no cover - compiled
+    """``out = uint8(clip(rint(img + noise), 0, 255))`` in float32 (``noise`` empty: none)."""
+    h, w = img.shape
+    for r in range(h):
+        for c in range(w):
+            v = img[r, c] + noise[r, c] if noise.shape[0] else img[r, c]
+            v = np.rint(v)
+            out[r, c] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))

@@ -82,6 +82,30 @@ def shade_hits(kind: int, g: F64, centres: F64, cols: int, rows: int, n: int, ox
             which[k] = index
 
 
+@njit(cache=True, nogil=True)
+def shade_pixels(kind: int, g: F64, centres: F64, cols: int, rows: int, field: F64, r0: int, r1: int, c0: int,
+                 c1: int, H: F64, d: float, index: int, value: F64, depth: F64,
+                 which: NDArray[np.int32]) -> None:  # pragma: no cover - compiled
+    """``render_kernels.hit_pixels`` and ``shade_hits`` in one loop (no compacted hits)."""
+    width = field.shape[1]
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            x = field[r, c, 0]
+            y = field[r, c, 1]
+            w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+            if w == 0.0:
+                continue
+            lm = d / w
+            k = r * width + c
+            if lm > 0.0 and (lm < depth[k] or (lm == depth[k] and which[k] > index)):
+                v = _value(kind, (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w,
+                           g, centres, cols, rows)
+                if np.isfinite(v):
+                    value[k] = v
+                    depth[k] = lm
+                    which[k] = index
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _mean(a: F64, n: int) -> float:  # pragma: no cover - compiled
     """``numpy.mean`` of ``a[:n]`` bit for bit: numpy's pairwise sum (8 partial sums up to 128)."""
@@ -167,6 +191,11 @@ class Shader:
                  depth: F64, which: NDArray[np.int32]) -> None:
         shade_hits(self.kind, self.g, self.centres, self.cols, self.rows, n, ox, oy, lam, flat, index, value,
                    depth, which)
+
+    def shade_pixels(self, field: F64, r0: int, r1: int, c0: int, c1: int, H: F64, d: float, index: int,
+                     value: F64, depth: F64, which: NDArray[np.int32]) -> None:
+        shade_pixels(self.kind, self.g, self.centres, self.cols, self.rows, field, r0, r1, c0, c1, H, d, index,
+                     value, depth, which)
 
     def supersample_alone(self, field: F64, rows: NDArray[np.int64], cols: NDArray[np.int64], nsub: int,
                           H: F64, d: float, background: float, out: F64) -> None:

@@ -94,35 +94,52 @@ def to_grey(reflectance: NDArray[np.float64], imaging: Imaging, rng: np.random.G
     ``depth_m`` (camera z per pixel, metres; inf for nothing) is needed for defocus only.
     Works in float32 (grey levels need no more).
     """
+    from calibration import render_kernels as k  # compiled loops, imported on first use
+
     im = imaging
-    img = (im.black_level + (im.white_level - im.black_level) * reflectance).astype(np.float32)
-    h, w = img.shape
+    refl = np.asarray(reflectance, dtype=np.float64)
+    if refl.ndim != 2:
+        raise ImagingError(f"reflectance must be an (H, W) array, got shape {refl.shape}")
+    h, w = refl.shape
+    gain = _NO_GAIN
     if im.vignetting:
-        img *= _light_map(w, h, im.vignetting, im.light_gradient)
+        gain = _light_map(w, h, im.vignetting, im.light_gradient)
     elif im.light_gradient:
         ramp = 1.0 + im.light_gradient * (np.arange(w, dtype=np.float32) / max(w - 1, 1) - 0.5)
-        img *= ramp[None, :]
+        gain = ramp[None, :]
+    img = np.empty((h, w), dtype=np.float32)
+    k.levels(np.ascontiguousarray(refl), float(im.black_level), float(im.white_level - im.black_level),
+             np.ascontiguousarray(gain), img)
     img = _blur(img, im, depth_m)
     if im.motion_blur_px > 0:
         img = cv2.filter2D(img, -1, motion_kernel(im.motion_blur_px, im.motion_blur_angle_deg),
                            borderType=cv2.BORDER_REFLECT)
+    extra = _NO_GAIN
     if im.noise_sigma > 0 or im.gain_dn_per_e > 0 or im.read_noise_dn > 0:
         rng = rng if rng is not None else np.random.default_rng()
         # OpenCV's generator, seeded from ``rng``: the same frames for the same seed, 5x faster than numpy's.
         cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
-        img = _add_noise(img, im, rng)
+        if im.gain_dn_per_e > 0 or im.read_noise_dn > 0:
+            img = _add_noise(img, im, rng)
+        else:  # Gaussian noise alone: added in the encoding pass below
+            extra = np.empty_like(img)
+            cv2.randn(extra, 0.0, float(im.noise_sigma))
     if im.gamma != 1.0:
+        if extra.size:
+            img, extra = img + extra, _NO_GAIN
         np.clip(img, 0, 255, out=img)
         img = cv2.pow(img * np.float32(1 / 255), 1.0 / im.gamma) * np.float32(255)
-    np.rint(img, out=img)
-    np.clip(img, 0, 255, out=img)
-    out = img.astype(np.uint8)
+    out = np.empty((h, w), dtype=np.uint8)
+    k.encode(np.ascontiguousarray(img), extra, out)
     if im.jpeg_quality is not None:
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(im.jpeg_quality)])
         if not ok:
             raise ImagingError("JPEG encoding failed (OpenCV built without JPEG support?)")
         out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     return out
+
+
+_NO_GAIN = np.empty((0, 0), dtype=np.float32)
 
 
 @lru_cache(maxsize=4)
