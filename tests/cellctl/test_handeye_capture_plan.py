@@ -60,7 +60,7 @@ targets:
 
 
 def make_services(tmp: Path, seed: int, scene: Path | None = None, setup: str = "eye-in-hand",
-                  robot: dict[str, Any] | None = None) -> Services:
+                  robot: dict[str, Any] | None = None, camera: bool = True) -> Services:
     data = yaml.safe_load(default_config_text())
     data["store"] = {"path": str(tmp / "cell.db")}
     for dev in (data["cameras"]["cam0"], data["robots"]["robot0"]):
@@ -73,9 +73,10 @@ def make_services(tmp: Path, seed: int, scene: Path | None = None, setup: str = 
     key = (str(scene.resolve()) if scene else "built-in", seed)
     world_module._WORLDS.pop(key, None)  # a fresh world: the robot starts at home
     svc = Services(config, Cell(config), open_store(config), JobManager())
-    truth = world_module.world_for(scene, seed).truth()
-    cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-    svc.store.activate(cam.id, "test")
+    if camera:
+        truth = world_module.world_for(scene, seed).truth()
+        cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
+        svc.store.activate(cam.id, "test")
     return svc
 
 
@@ -168,13 +169,14 @@ def test_a_spent_budget_says_what_is_missing(tmp_path: Path, tmp_services: list[
 
 def test_stations_over_the_budget_and_no_camera_are_clear_errors(tmp_path: Path,
                                                                    tmp_services: list[Services]) -> None:
-    svc = make_services(tmp_path, 25)
+    svc = make_services(tmp_path, 25, camera=False)
     tmp_services.append(svc)
     job = run_capture(svc, {"stations": 12, "max_stations": 8})
     assert job.state == "failed" and "raise max_stations or lower stations" in (job.error or "")
-    job = run_capture(svc, {"camera_id": "cam0", "target": "plate", "setup": "eye-in-hand", "stations": 4,
-                            "max_stations": 4, "max_tilt_deg": 45, "robot_id": "robot0"})
-    assert job.state == "succeeded", job.error
+    job = run_capture(svc, {})
+    assert job.state == "failed"
+    assert "no active calibration" in (job.error or "") and "POST /routines/intrinsics-capture" in (job.error or "")
+    assert svc.store.list_calibrations(kind="handeye") == []
 
 
 def test_no_message_names_a_cli_command() -> None:
