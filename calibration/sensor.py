@@ -135,7 +135,10 @@ def to_grey(reflectance: NDArray[np.float64], imaging: Imaging, rng: np.random.G
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(im.jpeg_quality)])
         if not ok:
             raise ImagingError("JPEG encoding failed (OpenCV built without JPEG support?)")
-        out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        decoded = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        if decoded is None:
+            raise ImagingError("JPEG decoding failed (OpenCV built without JPEG support?)")
+        out = np.asarray(decoded, dtype=np.uint8)
     return out
 
 
