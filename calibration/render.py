@@ -109,10 +109,18 @@ def prepare(camera: CameraModel) -> None:
     """Do the one-off work of a camera's first frame now: invert its lens and load the compiled
     loops (from numba's disk cache; compiled there on the very first run). Thread-safe; a device
     calls it in the background when it opens, so that its first frame costs what the others do."""
+    from calibration.targets import CirclePlate
+
     tiny = CameraModel("opencv5", 16, 12, np.array([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]]))
     T = np.eye(4)
     T[2, 3] = 1.0
-    render_scene(tiny, [PlanarObject(T, lambda x, y: (x > 0).astype(np.float64))], supersample=2)
+    near = T.copy()
+    near[:3, 3] = [-0.005, -0.005, 0.1]
+    # A compiled pattern in front of a numpy one, every pass of a frame, and the imaging stage.
+    objects = [PlanarObject(near, CirclePlate(2, 2, 10.0, 5.0).reflectance),
+               PlanarObject(T, lambda x, y: (x > 0).astype(np.float64))]
+    refl, depth = render_scene(tiny, objects, supersample=2)
+    to_grey(refl, Imaging(noise_sigma=1.0, light_gradient=0.1), np.random.default_rng(0), depth)
     ray_field(camera)
 
 
