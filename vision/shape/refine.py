@@ -20,10 +20,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
+from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, bilinear, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
-from vision.shape.score import direction_score
+from vision.shape.score import direction_score, find_threshold
 
 
 @dataclass
@@ -102,9 +102,13 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         return np.asarray((q[:, 0] >= vis_margin) & (q[:, 1] >= vis_margin) & (q[:, 0] <= x1 - x0 - vis_margin)
                           & (q[:, 1] <= y1 - y0 - vis_margin))
 
-    gx, gy = gradients(img_level[y0:y1 + 1, x0:x1 + 1], sigma)
+    crop = img_level[y0:y1 + 1, x0:x1 + 1]
+    gx, gy = gradients(crop, sigma)
     G = cv2.merge([gx, gy])
     x, y, th, sc = pose.x - x0, pose.y - y0, pose.theta, pose.scale
+    q0 = sc * (m @ rot(th).T) + np.array([x, y])
+    mag0 = np.hypot(bilinear(gx, q0[:, 0], q0[:, 1]), bilinear(gy, q0[:, 0], q0[:, 1]))
+    thr = find_threshold(crop, sigma, thr, float(np.percentile(mag0[visible(q0)], 75)) if visible(q0).any() else thr)
     p4, failed, q, d, found, cosd, sign = kernels.fit_stage_a(
         G, np.ascontiguousarray(m), np.ascontiguousarray(nrm_m), np.array([x, y, th, sc]), s0, max_scale_dev,
         float(search_px), int(iterations), float(thr), float(reject_below), bool(fit_scale), lm.radius,

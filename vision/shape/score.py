@@ -12,7 +12,8 @@ direction must agree within ``SCORE_MAX_ANGLE_DEG`` (beyond, the point counts 0)
 agreement is ``(cos - c0) / (1 - c0)``, 1 for a perfect match: random texture, whose gradients
 point anywhere, then scores low even where it is strong.
 
-Image gradients weaker than the contrast threshold count as no edge. The polarity rules are
+Image gradients weaker than the contrast threshold count as no edge; at find the threshold is the
+taught one, lowered where the image's own noise allows (``find_threshold``). The polarity rules are
 HALCON's: ``use_polarity`` counts only gradients of the teach image's sign, ``ignore_global_polarity``
 the better of all-one-sign and all-the-other, ``ignore_local_polarity`` each point either way.
 
@@ -23,9 +24,12 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+
+from vision.image import gradients
 
 F64 = NDArray[np.float64]
 
@@ -36,6 +40,47 @@ SCORE_FULL_PX = 0.5
 SCORE_MAX_ANGLE_DEG = 30.0
 """Image gradients farther than this from the model direction count as no agreement."""
 _STEP_PX = 0.25
+NOISE_FACTOR = 4.0
+"""At find, an image edge must be this many standard deviations of the gradient's noise strong
+(below the taught contrast, when the image is cleaner than that asks: a blurred or low-contrast
+part is still seen)."""
+PART_FRACTION = 0.25
+"""A faint part's edges count down to this fraction of their typical (75th percentile) strength."""
+THRESHOLD_FLOOR = 0.5
+"""Grey levels per pixel: the contrast threshold never drops below this (8-bit quantisation)."""
+_GRAD_NOISE: dict[float, float] = {}
+
+
+def noise_sigma(img: NDArray[np.uint8]) -> float:
+    """The image's noise standard deviation in grey levels (Immerkaer's fast estimate: the mean
+    absolute response of a mask that cancels locally linear intensity). Fine texture counts as noise
+    here, which is what a contrast threshold should ignore."""
+    h, w = img.shape
+    if h < 3 or w < 3:
+        return 0.0
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    r = cv2.filter2D(img.astype(np.float32), -1, k, borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    return float(math.sqrt(math.pi / 2.0) / 6.0 * np.mean(np.abs(r)))
+
+
+def _grad_noise_per_grey(sigma: float) -> float:
+    """Standard deviation of one component of ``image.gradients`` on unit white noise."""
+    key = round(sigma, 3)
+    if key not in _GRAD_NOISE:
+        z = np.random.default_rng(0).normal(0.0, 1.0, (256, 256)).astype(np.float32)
+        gx, _ = gradients(z, sigma)
+        _GRAD_NOISE[key] = float(np.std(gx[8:-8, 8:-8]))
+    return _GRAD_NOISE[key]
+
+
+def find_threshold(crop: NDArray[np.uint8], sigma: float, taught: float, part_grad: float) -> float:
+    """The gradient threshold (grey levels / px) for fitting and scoring in ``crop``: the taught one,
+    lowered for a faint part (``part_grad``: the gradient magnitude typical of the candidate's edges)
+    to ``PART_FRACTION`` of its edges, but never below ``NOISE_FACTOR`` noise deviations of this
+    image (nor the floor). A part of good contrast keeps the taught threshold: a lower one would let
+    weak texture beside its edges capture the fit."""
+    noise = NOISE_FACTOR * _grad_noise_per_grey(sigma) * noise_sigma(crop)
+    return float(min(taught, max(PART_FRACTION * part_grad, noise, THRESHOLD_FLOOR)))
 
 
 @njit(cache=True)
