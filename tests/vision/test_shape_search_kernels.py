@@ -1,0 +1,181 @@
+"""The matcher's compiled search loops against plain numpy versions of the same arithmetic.
+
+The compiled loops (``vision.shape.search_kernels``, ``kernels.perspective_fit``) replaced numpy
+code for speed; these tests hold them to the numpy results on rendered scenes and random maps,
+including the cases the fast paths treat apart: a part cut by the image border (bounds-checked
+gathers), plateaus of equal scores, a partial angle range (no wrap-around) and a scaled model.
+No timing here: speed lives in bench/pick.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.sim import pick_scenes as scenes
+from vision import shape
+from vision.image import CENTROID_HALF_WIDTH, pyramid
+from vision.shape import kernels, refine
+from vision.shape import search_kernels as sk
+from vision.shape.model import GRAD_PER_CONTRAST
+from vision.shape.responses import BIN_W, N_BINS, response_maps, spread_max, track
+
+SIZE = (640, 480)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[shape.ShapeModel, np.ndarray, list[scenes.Truth]]:
+    part = scenes.part_bracket()
+    style = scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=10)
+    img, roi = scenes.teach_scene(part, np.random.default_rng(3), centre=(320.4, 240.7),
+                                  style=scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
+    model = shape.teach(img, roi)
+    # one part well inside, one cut by the left border, one by the bottom border
+    inst = [scenes.Instance(part, 300.3, 200.6, 33.0), scenes.Instance(part, 25.0, 300.0, -70.0),
+            scenes.Instance(part, 500.0, 470.0, 120.0)]
+    test_img, truth = scenes.render(inst, style, np.random.default_rng(4))
+    return model, test_img, truth
+
+
+def _track_numpy(resp: np.ndarray, lm: shape.LevelModel, cx: np.ndarray, cy: np.ndarray, th: np.ndarray,
+                 n_steps: int, reach: int, k_s: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The vectorised numpy tracking the compiled ``track_batch`` replaced (same contract)."""
+    m = lm.points[lm.features]
+    n = lm.normals[lm.features]
+    nf = len(m)
+    na = 2 * n_steps + 1
+    thetas = th[:, None] + (np.arange(na) - n_steps)[None, :] * lm.angle_step
+    c = (k_s[:, None] * np.cos(thetas))[..., None]
+    s = (k_s[:, None] * np.sin(thetas))[..., None]
+    dx = np.rint(c * m[:, 0] + s * m[:, 1]).astype(np.int64)
+    dy = np.rint(-s * m[:, 0] + c * m[:, 1]).astype(np.int64)
+    phi = np.arctan2(n[:, 1], n[:, 0]) - thetas[..., None]
+    b = (np.floor(np.mod(phi, math.pi) / BIN_W).astype(np.int64)) % N_BINS
+    _, h, w = resp.shape
+    cx = np.clip(cx, 0, w - 1)
+    cy = np.clip(cy, 0, h - 1)
+    offs = np.arange(-reach, reach + 1)
+    ox, oy = np.tile(offs, len(offs)), np.repeat(offs, len(offs))
+    xs_ = cx[:, None, None, None] + ox[None, None, :, None] + dx[:, :, None, :]  # (C, A, P, F)
+    ys_ = cy[:, None, None, None] + oy[None, None, :, None] + dy[:, :, None, :]
+    inside = (xs_ >= 0) & (xs_ < w) & (ys_ >= 0) & (ys_ < h)
+    bins = np.broadcast_to(b[:, :, None, :], xs_.shape)
+    vals = np.where(inside, resp[bins, np.clip(ys_, 0, h - 1), np.clip(xs_, 0, w - 1)], 0)
+    sc = vals.sum(axis=3).reshape(len(cx), -1)
+    npos = len(ox)
+    tie = np.abs(np.arange(na) - n_steps).repeat(npos) * 0.01
+    k = np.argmax(sc - tie[None, :], axis=1)
+    ai = k // npos
+    rows = np.arange(len(cx))
+    best = sc[rows, k]
+    plateau = sc.reshape(len(cx), na, npos)[rows, ai] == best[:, None]
+    px = (plateau * ox).sum(axis=1) / plateau.sum(axis=1)
+    py = (plateau * oy).sum(axis=1) / plateau.sum(axis=1)
+    return cx + px, cy + py, thetas[rows, ai], best / (4.0 * nf)
+
+
+@pytest.mark.parametrize("spread", [1, 3, 0])
+def test_tracking_equals_numpy_inside_and_at_the_borders(scene: tuple[shape.ShapeModel, np.ndarray, list],
+                                                         spread: int) -> None:
+    """``spread`` 0: random responses, non-zero up to the outermost pixels (border off-by-ones show)."""
+    model, img, truth = scene
+    lv = 2
+    pyr = pyramid(img, lv + 1)
+    resp = spread_max(response_maps(pyr[lv], model.params.min_contrast * GRAD_PER_CONTRAST, spread=1),
+                      max(spread, 1))
+    if spread == 0:
+        resp = np.random.default_rng(2).integers(1, 5, resp.shape).astype(np.uint8)
+    lm = model.levels[lv]
+    rng = np.random.default_rng(7)
+    s = 2.0 ** lv
+    # near each true pose (two cut by the border) and at random places, some outside the image
+    cx = np.array([int(round(t.u_px / s)) + d for t in truth for d in (-1, 0, 2)]
+                  + list(rng.integers(-5, pyr[lv].shape[1] + 5, 20)), dtype=np.int64)
+    cy = np.array([int(round(t.v_px / s)) + d for t in truth for d in (0, 1, -2)]
+                  + list(rng.integers(-5, pyr[lv].shape[0] + 5, 20)), dtype=np.int64)
+    th = np.array([math.radians(t.angle_deg) + d for t in truth for d in (0.0, 0.03, -0.05)]
+                  + list(rng.uniform(-math.pi, math.pi, 20)))
+    k_s = rng.uniform(0.9, 1.1, len(cx))
+    for n_steps, reach in ((2, 2), (1, 1)):
+        got = track(resp, lm, cx, cy, th, n_steps, reach, k_s)
+        want = _track_numpy(resp, lm, cx, cy, th, n_steps, reach, k_s)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g, w, rtol=0, atol=1e-12)
+    # the parts cut by the border are tracked to a real score, not zero
+    assert got[3][3:9].min() > 0.3 or spread == 0
+
+
+def _top_maxima_numpy(planes: np.ndarray, nh: int, thr: int, circular: bool) -> tuple[np.ndarray, ...]:
+    """The dilate-and-gather local maxima of the numpy top level (planes: (A, nh + 1, nw), last row 0)."""
+    done, rows, nw = planes.shape
+    dil = cv2.dilate(planes.reshape(done * rows, nw), np.ones((3, 3), np.uint8)).ravel()
+    flat = planes.ravel()
+    idx = np.flatnonzero(flat >= thr)
+    idx = idx[flat[idx] >= dil[idx]]
+    plane = rows * nw
+    ai = idx // plane
+    if done > 1:
+        for step in (-1, 1):
+            nb = ai + step
+            wrap = (nb < 0) | (nb >= done)
+            nbi = idx + step * plane
+            if circular:
+                nbi = np.where(wrap, idx + step * plane - np.sign(step) * done * plane, nbi)
+                ok = flat[idx] >= dil[nbi]
+            else:
+                ok = wrap | (flat[idx] >= dil[np.clip(nbi, 0, len(dil) - 1)])
+            idx, ai = idx[ok], ai[ok]
+    rem = idx - ai * plane
+    return ai, rem // nw, rem % nw, flat[idx].astype(np.int64)
+
+
+@pytest.mark.parametrize("circular", [True, False])
+def test_top_level_maxima_equal_numpy_with_plateaus(circular: bool) -> None:
+    rng = np.random.default_rng(11)
+    na, nh, nw = 9, 30, 41
+    # coarse values: many equal neighbours (the spread responses make such plateaus)
+    planes = np.zeros((na, nh + 1, nw), np.uint8)
+    planes[:, :nh] = (rng.integers(0, 6, (na, nh, nw)) * 10).astype(np.uint8)
+    planes[3, 10:13, 20:23] = 90  # a 3x3 plateau: all its cells are maxima
+    dil = cv2.dilate(planes.reshape(na * (nh + 1), nw), np.ones((3, 3), np.uint8)).reshape(planes.shape)
+    got = sk.top_maxima(planes, dil, nh, 20, circular)
+    want = _top_maxima_numpy(planes, nh, 20, circular)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert len(got[0]) > 9 and np.count_nonzero(got[3] == 90) == 9
+
+
+def test_top_level_sums_equal_numpy_adds() -> None:
+    rng = np.random.default_rng(5)
+    nb, L, na, nf, run = N_BINS, 4000, 6, 24, 2500
+    padf = rng.integers(0, 5, (nb, L)).astype(np.uint8)
+    b = rng.integers(0, nb, (na, nf)).astype(np.int64)
+    start = rng.integers(0, L - run, (na, nf)).astype(np.int64)
+    lin = np.zeros((na, run + 100), np.uint8)
+    sk.accumulate_top(padf, b, start, run, lin, 1, na)  # angle 0 left out: stays zero
+    want = np.zeros_like(lin)
+    for a in range(1, na):
+        for k in range(nf):
+            want[a, :run] += padf[b[a, k], start[a, k]:start[a, k] + run]
+    np.testing.assert_array_equal(lin, want)
+    assert lin[1:, :run].max() > 4 * nf * 0.6  # sums of many features, no wrap-around (4 * 24 < 256)
+
+
+def test_perspective_fit_equals_numpy(scene: tuple[shape.ShapeModel, np.ndarray, list]) -> None:
+    model, img, truth = scene
+    lm = model.levels[0]
+    t = truth[0]
+    H = scenes.tilt_homography(SIZE, 4.0, 30.0)
+    warped = cv2.warpPerspective(img, H, SIZE, flags=cv2.INTER_LINEAR)
+    p = H @ np.array([t.u_px, t.v_px, 1.0])
+    x0, y0 = int(p[0] / p[2]) - 130, int(p[1] / p[2]) - 130
+    img_f = warped[y0:y0 + 261, x0:x0 + 261].astype(np.float32)
+    args = (img_f, np.ascontiguousarray(lm.points), np.ascontiguousarray(lm.normals), p[0] / p[2] - x0 + 0.3,
+            p[1] / p[2] - y0 - 0.2, math.radians(t.angle_deg) + 0.004, 1.0, model.params.min_contrast)
+    want = refine._perspective_fit(*args)
+    got = kernels.perspective_fit(*args, CENTROID_HALF_WIDTH)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert abs(got[0] - args[3]) + abs(got[1] - args[4]) > 0.05  # it moved: the test exercises the fit
