@@ -18,15 +18,25 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
    the current camera and poses and the solve repeated until the bias changes by < 1e-4 px
    (two or three rounds): the bias correction lives inside the estimation loop.
 3. **Outliers** (rule): a point is an outlier when its residual length exceeds
-   ``5 * sigma_r``, with ``sigma_r = 1.4826 * median(|residual component|)`` (a robust per-axis
-   standard deviation); a view is an outlier when its RMS exceeds ``3 *`` the median view RMS.
-   They are always flagged; with ``drop_outliers=True`` they are removed and the solve repeated once.
+   ``5 * sigma_r``, with ``sigma_r = 1.4826 * median(|residual component|)`` over the kept points
+   (a robust per-axis standard deviation, residuals weighted by the points' precision); a view is
+   an outlier when its RMS exceeds ``3 *`` the median view RMS. Outlier points are always
+   weighted out (weight 0, reported per view as ``n_outlier_points``) and the solve repeated until
+   the set is stable; outlier views are flagged, and with ``drop_outliers=True`` they (and the
+   outlier points) are removed and the solve repeated once.
+   **Weights**: each point is weighted by its view's detection precision (``Detection
+   .uv_sigma_px``, ``calibration.observations.point_weights``) with the error that the stated
+   precision does not explain added first (``systematic_floor_px``, estimated from the
+   residuals): where a lens or board does not fit to the detector's precision the weights come
+   back to nearly uniform.
 4. **Covariance**: ``sigma^2 (J^T J)^-1`` at the optimum with ``sigma^2 = sum(r^2) / (m - n)``;
    the intrinsics block is the inverse of the Schur complement, i.e. marginalised over the poses.
    That formula assumes independent pixel noise. Real detectors (and our rendered benchmark)
    make errors that are correlated within a view, which it cannot see; so a grouped view-level
-   jackknife (up to 10 groups, each replicate warm-started) estimates the projection
-   uncertainty empirically too, on the cells at least 3 views saw (elsewhere a replicate
+   jackknife (up to 10 groups; linearised: each replicate is one Gauss-Newton step from the
+   optimum with its group's normal-equation blocks removed, ``uncertainty
+   .jackknife_projection_rms``) estimates the projection uncertainty empirically too, on the
+   cells at least 3 views saw (elsewhere a replicate
    without the one view that covered a cell extrapolates, which over-reported small targets),
    and when it is *significantly* larger than the analytic value on the same cells (beyond the
    jackknife's own sampling noise, ``1 + 2 / sqrt(2 (G - 1))``) the analytic covariance is scaled
@@ -44,7 +54,8 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
 
 Modules: ``results`` (result types, limits, the error), ``model`` (the vectorised model and the
 bundle solver), ``views`` (collecting views, the start, the solve loop, outliers), ``uncertainty``
-(projection uncertainty, jackknife, comparing cameras), ``solver`` (``calibrate``), ``crossval``
+(projection uncertainty, jackknife, comparing cameras), ``kernels`` (the compiled projection with
+analytic derivatives and the Schur step, numba), ``solver`` (``calibrate``), ``crossval``
 (k-fold cross-validation), ``synthetic`` (planned views and synthetic detections). Everything
 public is re-exported here: ``from calibration.intrinsics import X`` is the interface.
 """

@@ -36,8 +36,10 @@ from calibration.intrinsics.uncertainty import (
 )
 from calibration.intrinsics.views import (
     ViewData,
+    base_weights,
     collect_views,
     flag_outliers,
+    reject_outlier_points,
     set_weights,
     solve_views,
     weighting_sigmas,
@@ -77,9 +79,10 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
         raise CalibrationError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
     p, c, R, t, iters = solve_views(model, size, views, target)
     floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
+    p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
     if drop_outliers:
         p0_res = (p.project(c, R, t) - p.obs)
-        pt_out, view_out = flag_outliers(p, p0_res)
+        pt_out, view_out = flag_outliers(p, p0_res, base_weights(views))
         if np.any(pt_out) or np.any(view_out):
             kept: list[ViewData] = []
             keep_R, keep_t = [], []
@@ -105,16 +108,18 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             p, c, R, t, it2 = solve_views(model, size, views, target, start=start)
             iters += it2
             floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
+            p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
     # final Jacobian, covariance
     free = np.ones(n_par, dtype=bool)
     nrm, r = normal_equations_at(p, c, R, t, free)
-    dof = max(len(r) - n_par - 6 * p.n_views, 1)
+    n_kept = 2 * int(np.sum(p.weights() > 0))
+    dof = max(n_kept - n_par - 6 * p.n_views, 1)
     sigma2 = float(np.sum(r * r)) / dof
     S_inv, pose_cov = marginals(nrm)
     cov = sigma2 * S_inv
     camera = camera_from_vector(model, size, c)
     res = (p.project(c, R, t) - p.obs)
-    pt_out, view_out = flag_outliers(p, res)
+    pt_out, view_out = flag_outliers(p, res, base_weights(views))
     all_uv = []
     for k, v in enumerate(views):
         sl = slice(p.starts[k], p.starts[k + 1])
@@ -135,8 +140,6 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     unc, umap = uncertainty_summary(camera, cov, coverage)
     unc["projection_rms_analytic_px"] = unc["projection_rms_px"]
     unc["inflation"] = 1.0
-    if floor is not None:
-        unc["systematic_floor_px"] = floor
     if jackknife and len(views) >= JACKKNIFE_MIN_VIEWS:
         pts = _robustly_covered(size, views, coverage.shape[1])
         j = jackknife_projection_rms(camera, nrm, pts, JACKKNIFE_GROUPS)
@@ -158,6 +161,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
         unc["projection_rms_analytic_px"] = a
         unc["projection_rms_jackknife_px"] = fin(j)
         unc["jackknife_cells"] = int(len(pts))
+    if floor is not None:
+        unc["systematic_floor_px"] = floor
     names = param_names(model)
     sig = {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     normals = R[:, :, 2]
@@ -199,6 +204,19 @@ def _reweight(model: str, size: tuple[int, int], views: list[ViewData], target: 
     set_weights(views, floor_px=tau)
     p, c, R, t, it2 = solve_views(model, size, views, target, start=(c, R, t))
     return tau, (p, c, R, t, iters + it2)
+
+
+def _without_outlier_points(model: str, size: tuple[int, int], views: list[ViewData], target: Target,
+                            solved: Solved) -> Solved:
+    """Weight out outlier points (``reject_outlier_points``) and re-solve, until the set is
+    stable (at most three rounds)."""
+    p, c, R, t, iters = solved
+    for _ in range(3):
+        if not reject_outlier_points(views, p, c, R, t):
+            break
+        p, c, R, t, it = solve_views(model, size, views, target, start=(c, R, t))
+        iters += it
+    return p, c, R, t, iters
 
 
 def _robustly_covered(size: tuple[int, int], views: list[ViewData], nx: int) -> F64:

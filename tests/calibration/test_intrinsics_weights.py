@@ -73,3 +73,19 @@ def test_honest_precision_still_weights_the_views() -> None:
         ratios.append(projection_difference(res_w.camera, CAM, pts)["rms_px"]
                       / projection_difference(res_u.camera, CAM, pts)["rms_px"])
     assert float(np.median(ratios)) < 0.85, ratios
+
+
+def test_gross_point_outliers_are_weighted_out() -> None:
+    """A few corners 1 px off (as a defocused view's outer corners come out) neither pull the
+    estimate nor inflate the reported uncertainty: they get weight 0 and are reported."""
+    stated = [0.05] * 10
+    clean = _views(stated, stated, seed=41)
+    bad = [copy.deepcopy(d) for d in clean]
+    bad[3].uv[[0, 8, 45]] += np.array([[0.8, -0.6], [-1.0, 0.3], [0.5, 0.9]])
+    res_c = calibrate(clean, BOARD, "opencv5", jackknife=False)
+    res_b = calibrate(bad, BOARD, "opencv5", jackknife=False)
+    assert res_b.views[3].n_outlier_points == 3 and sum(v.n_outlier_points for v in res_b.views) == 3
+    pts = covered_points(res_c)
+    shift = projection_difference(res_b.camera, res_c.camera, pts)["rms_px"]
+    assert shift < 0.2 * res_c.uncertainty["projection_rms_px"], shift
+    assert res_b.uncertainty["projection_rms_px"] < 1.1 * res_c.uncertainty["projection_rms_px"]
