@@ -8,7 +8,8 @@ centre ``(u + w/2, v + h/2)``: ``REFERENCE`` below lists it per case, and a matc
 that point with its own angle (and mirror) before it is compared.
 
 Hard variants are reproducible transforms of the test images (the teach image stays as it is):
-inverted contrast, blur, gamma, JPEG quality 30, added texture (seeded).
+inverted contrast, blur, gamma, JPEG quality 30, added texture, a faint blurred noisy view (seeded);
+and the whole case resized to a half and a quarter (teach and test images alike: small parts).
 """
 
 from __future__ import annotations
@@ -83,9 +84,38 @@ class Case:
     roi: tuple[float, float, float, float]
     info: CaseInfo
     tests: list[TestImage] = field(default_factory=list)
+    scale: float = 1.0
+    """Teach and test images are resized by this (``scaled``: the same parts, smaller)."""
 
     def teach_image(self) -> U8:
-        return read_grey(self.teach_path)
+        return resize(read_grey(self.teach_path), self.scale)
+
+    def test_image(self, test: TestImage) -> U8:
+        return resize(read_grey(test.path), self.scale)
+
+
+def resize(img: U8, k: float) -> U8:
+    """``img`` resized by ``k`` (area averaging, as a camera farther away would see it)."""
+    if k == 1.0:
+        return img
+    return np.asarray(cv2.resize(img, None, fx=k, fy=k, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+
+def _px(x: float, k: float) -> float:
+    # pixel centres at integers: the edge of pixel 0 is at -0.5 in both images
+    return (x + 0.5) * k - 0.5
+
+
+def scaled(case: Case, k: float) -> Case:
+    """The case with teach and test images resized by ``k``: ROI, reference point, estimates and
+    their stated accuracy in the resized images' pixels (angles unchanged)."""
+    u, v, w, h = case.roi
+    info = CaseInfo((_px(case.info.reference_px[0], k), _px(case.info.reference_px[1], k)), case.info.symmetry_deg,
+                    (case.info.accuracy[0] * k, case.info.accuracy[1]))
+    tests = [TestImage(t.path, t.expected_count, [Instance(_px(i.x, k), _px(i.y, k), i.angle_deg, i.mirrored)
+                                                  for i in t.instances]) for t in case.tests]
+    return Case(case.id, case.source, case.teach_path, (_px(u, k), _px(v, k), w * k, h * k),
+                info, tests, case.scale * k)
 
 
 def read_grey(path: Path) -> U8:
@@ -150,6 +180,16 @@ def texture(img: U8, seed: int = 14) -> U8:
     return np.asarray(np.clip(img.astype(np.float32) + coarse + fine, 0, 255), dtype=np.uint8)
 
 
+def faint(img: U8, seed: int = 15) -> U8:
+    """A faint, blurred view: contrast to a quarter about the mean, blur sigma 2.5 px, noise sigma 2
+    grey levels (seeded): a part under poor light and out of focus."""
+    rng = np.random.default_rng(seed)
+    x = img.astype(np.float32)
+    m = float(x.mean())
+    x = cv2.GaussianBlur(m + 0.25 * (x - m), (0, 0), 2.5) + rng.normal(0.0, 2.0, x.shape).astype(np.float32)
+    return np.asarray(np.clip(np.rint(x), 0, 255), dtype=np.uint8)
+
+
 VARIANTS: dict[str, Callable[[U8], U8]] = {
     "original": lambda img: img,
     "inverted": _inverted,
@@ -157,7 +197,11 @@ VARIANTS: dict[str, Callable[[U8], U8]] = {
     "gamma 2.2": _gamma,
     "JPEG q30": _jpeg30,
     "texture": texture,
+    "faint: contrast x0.25, blur 2.5 px, noise 2": faint,
 }
+SIZES: dict[str, float] = {"half size": 0.5, "quarter size": 0.25}
+"""Variants that resize teach and test images alike: the same parts, small (a few dozen pixels, as
+the parts of a PCB or a tray seen whole)."""
 
 
 # ----------------------------------------------------------------------------- scoring

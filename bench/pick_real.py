@@ -6,12 +6,13 @@ in each test image at the default settings. Columns: instances found / expected,
 position and angle error against the corpus's ``measured_estimate`` (carried to the estimate's
 own reference point, see ``bench/pick_cases.py``), and the in-process time per image.
 
-The peer (``bench.pick.Baseline``, the same as in ``bench/pick.py``): ``cv2.matchTemplate``
+The peer (``bench.ncc_baseline.Baseline``, the same as in ``bench/pick.py``): ``cv2.matchTemplate``
 (TM_CCOEFF_NORMED, absolute value) over templates rotated about the ROI centre, 4 deg steps at
 1/4 scale then 0.25 deg steps at full scale, parabolic sub-pixel peaks; teach and test images
 are padded (border replicate) so templates and parts at the border fit. Same minimum score.
 
-Hard variants of every test image (``pick_cases.VARIANTS``) are summed per variant.
+Hard variants of every test image (``pick_cases.VARIANTS``) and of whole cases resized to a half
+and a quarter (``pick_cases.SIZES``: small parts) are summed per variant.
 
 Run: ``.venv/bin/python bench/pick_real.py [--out bench/results/pick_real.md] [--no-baseline]``.
 """
@@ -33,7 +34,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.ncc_baseline import Baseline, cpu_model  # noqa: E402
-from bench.pick_cases import DATA, VARIANTS, Case, Found, Scored, load_cases, read_grey, score  # noqa: E402
+from bench.pick_cases import (  # noqa: E402
+    DATA,
+    SIZES,
+    TARGET,
+    VARIANTS,
+    Case,
+    Found,
+    Scored,
+    TestImage,
+    load_cases,
+    scaled,
+    score,
+    to_reference,
+)
 from vision import shape  # noqa: E402
 from vision.types import SearchParams  # noqa: E402
 
@@ -50,8 +64,9 @@ class Tally:
     pos: list[float] = field(default_factory=list)
     ang: list[float] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
+    cpu_ms: list[float] = field(default_factory=list)
 
-    def add(self, s: Scored, ms: float) -> None:
+    def add(self, s: Scored, ms: float, cpu_ms: float) -> None:
         self.found += s.found
         self.expected += s.expected
         self.false += s.false
@@ -60,10 +75,15 @@ class Tally:
         self.pos += s.pos_err
         self.ang += s.ang_err
         self.ms.append(ms)
+        self.cpu_ms.append(cpu_ms)
 
 
 def _max(xs: list[float]) -> str:
     return f"{max(abs(x) for x in xs):.2f}" if xs else "-"
+
+
+def _med(xs: list[float]) -> float:
+    return statistics.median(xs) if xs else float("nan")
 
 
 class Ncc:
@@ -76,76 +96,143 @@ class Ncc:
         teach = cv2.copyMakeBorder(case.teach_image(), p, p, p, p, cv2.BORDER_REPLICATE)
         self.base = Baseline.build(teach, (u + p, v + p, w, h))
 
-    def find(self, img: np.ndarray) -> list[Found]:
+    def find(self, img: np.ndarray) -> tuple[list[Found], float, float]:
+        """Matches, wall ms, CPU ms."""
+        t0, c0 = time.perf_counter(), time.process_time()
         p = self.pad
         big = cv2.copyMakeBorder(img, p, p, p, p, cv2.BORDER_REPLICATE)
-        return [Found(f.u_px - p, f.v_px - p, f.angle_deg, f.score) for f in self.base.find(big, MIN_SCORE)]
+        out = [Found(f.u_px - p, f.v_px - p, f.angle_deg, f.score) for f in self.base.find(big, MIN_SCORE)]
+        return out, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
-def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool) -> tuple[list[Found], float]:
+def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool) -> tuple[list[Found], float, float]:
+    """Matches, wall ms (``FindResult.elapsed_s``), CPU ms (the search's own process time)."""
     res = shape.find(model, img, SearchParams(mirrored=mirrored))
     return ([Found(m.u_px, m.v_px, m.angle_deg, m.score, m.mirrored) for m in res.matches],
-            res.elapsed_s * 1e3)
+            res.elapsed_s * 1e3, res.stats.get("cpu_total_s", float("nan")) * 1e3)
 
 
-def _timed(ncc: Ncc, img: np.ndarray) -> tuple[list[Found], float]:
-    t0 = time.perf_counter()
-    out = ncc.find(img)
-    return out, (time.perf_counter() - t0) * 1e3
+def _mirrored_found(case: Case, test: TestImage, found: list[Found]) -> tuple[int, int, int]:
+    """Reverse-side instances: (how many, found by any match, found by a mirrored match)."""
+    gate = 0.5 * min(case.roi[2], case.roi[3])
+    n = hit = hit_m = 0
+    for i in test.instances:
+        if not i.mirrored:
+            continue
+        n += 1
+        near = [f for f in found if math.hypot(*(np.subtract(to_reference(case, f), (i.x, i.y)))) <= gate]
+        hit += bool(near)
+        hit_m += any(f.mirrored for f in near)
+    return n, hit, hit_m
+
+
+@dataclass
+class Run:
+    rows: list[str] = field(default_factory=list)
+    mirror_rows: list[str] = field(default_factory=list)
+    variants: dict[str, tuple[Tally, Tally]] = field(default_factory=dict)
+    mirror: Tally = field(default_factory=Tally)
+    mirrored_instances: list[int] = field(default_factory=lambda: [0, 0, 0])
+    false_where: list[str] = field(default_factory=list)
+
+
+def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float) -> str:
+    return (f"| {name} | {test.expected_count} | {so.found} | {so.false} | {_max(so.pos_err)} | "
+            f"{_max(so.ang_err)} | {so.over_target} / {so.out_of_tolerance} | {ms:.1f} | {cpu:.1f} |")
+
+
+def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: bool, label: str | None) -> None:
+    """Search every test image of ``case`` under ``variants`` (``label``: the size variant's name)."""
+    model = shape.teach(case.teach_image(), case.roi)
+    ncc = Ncc(case) if with_baseline else None
+    for test in case.tests:
+        base_img = case.test_image(test)
+        for vname, fn in variants.items():
+            key = label or vname
+            img = fn(base_img)  # type: ignore[operator]
+            ours, ms, cpu = _ours(model, img, False)
+            so = score(case, test, ours)
+            run.variants.setdefault(key, (Tally(), Tally()))[0].add(so, ms, cpu)
+            if so.false:
+                run.false_where.append(f"{key}: {test.path.name} ({so.false})")
+            st = None
+            if ncc is not None:
+                theirs, ms_b, cpu_b = ncc.find(img)
+                st = score(case, test, theirs)
+                run.variants[key][1].add(st, ms_b, cpu_b)
+            if vname != "original" or label is not None:
+                continue
+            name = str(test.path.relative_to(DATA))
+            r = _row(name, test, so, ms, cpu)
+            if st is not None:
+                r += (f" {st.found} | {st.false} | {_max(st.pos_err)} | {_max(st.ang_err)} | "
+                      f"{st.over_target} / {st.out_of_tolerance} | {ms_b:.0f} | {cpu_b:.0f} |")
+            run.rows.append(r)
+            mo, ms_m, cpu_m = _ours(model, img, True)
+            sm = score(case, test, mo)
+            run.mirror.add(sm, ms_m, cpu_m)
+            run.mirror_rows.append(_row(name, test, sm, ms_m, cpu_m))
+            n, hit, hit_m = _mirrored_found(case, test, mo)
+            for j, x in enumerate((n, hit, hit_m)):
+                run.mirrored_instances[j] += x
+        print(f"  {label or ''} {case.id} {test.path.name}", file=sys.stderr, flush=True)
 
 
 def run(with_baseline: bool) -> str:
     load0 = os.getloadavg()
     cases = load_cases()
-    rows: list[str] = []
-    per_variant: dict[str, tuple[Tally, Tally]] = {k: (Tally(), Tally()) for k in VARIANTS}
-    mirror_rows: list[str] = []
-    mirror_tally = Tally()
+    out = Run()
     warm = shape.teach(cases[0].teach_image(), cases[0].roi)
     shape.find(warm, cases[0].teach_image(), SearchParams(mirrored=True))  # compiled kernels load once
     for case in cases:
-        model = shape.teach(case.teach_image(), case.roi)
-        ncc = Ncc(case) if with_baseline else None
-        for test in case.tests:
-            base_img = read_grey(test.path)
-            for vname, fn in VARIANTS.items():
-                img = fn(base_img)
-                ours, ms = _ours(model, img, False)
-                so = score(case, test, ours)
-                per_variant[vname][0].add(so, ms)
-                st = None
-                if ncc is not None:
-                    theirs, ms_b = _timed(ncc, img)
-                    st = score(case, test, theirs)
-                    per_variant[vname][1].add(st, ms_b)
-                if vname == "original":
-                    name = str(test.path.relative_to(DATA))
-                    r = (f"| {name} | {test.expected_count} | {so.found} | {so.false} | {_max(so.pos_err)} | "
-                         f"{_max(so.ang_err)} | {so.over_target} / {so.out_of_tolerance} | {ms:.1f} |")
-                    if st is not None:
-                        r += (f" {st.found} | {st.false} | {_max(st.pos_err)} | {_max(st.ang_err)} | "
-                              f"{st.over_target} / {st.out_of_tolerance} | {ms_b:.0f} |")
-                    rows.append(r)
-                    mo, ms_m = _ours(model, img, True)
-                    sm = score(case, test, mo)
-                    mirror_tally.add(sm, ms_m)
-                    mirror_rows.append(f"| {name} | {test.expected_count} | {sm.found} | {sm.false} | "
-                                       f"{_max(sm.pos_err)} | {_max(sm.ang_err)} | {sm.over_target} / "
-                                       f"{sm.out_of_tolerance} | {ms_m:.1f} |")
-            print(f"  {case.id} {test.path.name}", file=sys.stderr, flush=True)
+        _one_case(case, out, dict(VARIANTS), with_baseline, None)
+    for label, k in SIZES.items():
+        for case in cases:
+            _one_case(scaled(case, k), out, {"original": VARIANTS["original"]}, with_baseline, label)
     load1 = os.getloadavg()
-    return _report(rows, mirror_rows, per_variant, mirror_tally, with_baseline, load0, load1)
+    return _report(out, with_baseline, load0, load1)
 
 
-def _report(rows: list[str], mirror_rows: list[str], per_variant: dict[str, tuple[Tally, Tally]],
-            mirror: Tally, with_baseline: bool, load0: tuple[float, float, float],
+def _targets(r: Run, with_baseline: bool) -> list[str]:
+    o, t = r.variants["original"]
+    n_m, hit_m, hit_mm = r.mirrored_instances
+    n_all = sum(v[0].false for v in r.variants.values())
+    pos_ok = o.found - o.over
+    ncc = f" (NCC: {t.found} of {t.expected}, {t.false} false)" if with_baseline else ""
+    ratio = _med(t.ms) / _med(o.ms) if with_baseline else float("nan")
+    cpu_ratio = _med(t.cpu_ms) / _med(o.cpu_ms) if with_baseline else float("nan")
+    return [
+        "## Against the targets (issue 14)",
+        "",
+        "| target | result | verdict |",
+        "| --- | --- | --- |",
+        f"| every dev-corpus instance found at the default settings | {o.found} of {o.expected}{ncc} | "
+        f"{'met' if o.found == o.expected else '**missed**'} |",
+        f"| 0 false matches (originals, every hard variant and size) | {n_all}"
+        + (f" ({'; '.join(r.false_where)})" if r.false_where else "")
+        + (f"; NCC on the originals: {t.false}" if with_baseline else "")
+        + f" | {'met' if n_all == 0 else '**missed**'} |",
+        f"| the reverse-side key found with mirrored search on | {hit_m} of {n_m} found, {hit_mm} of them by the "
+        f"mirrored model | {'met' if hit_mm == n_m else ('found, not as mirrored' if hit_m == n_m else '**missed**')}"
+        " |",
+        f"| position within {TARGET[0]:g} px, angle within {TARGET[1]:g} deg of `measured_estimate` | "
+        f"{pos_ok} of {o.found} found instances (over target: {o.over}; beyond target + the estimate's own "
+        f"accuracy: {o.bad}) | {'met' if o.over == 0 else '**missed**'} |",
+        f"| (speed, no target here) median per image, NCC / ours | {ratio:.1f}x wall, {cpu_ratio:.1f}x CPU | - |",
+    ]
+
+
+def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
             load1: tuple[float, float, float]) -> str:
-    head = "| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol | ms |"
-    sep = "| --- | --- | --- | --- | --- | --- | --- | --- |"
+    head = ("| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol "
+            "| ms | CPU ms |")
+    sep = "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     if with_baseline:
-        head += " NCC found | NCC false | NCC pos err | NCC angle err | NCC over target / beyond tol | NCC ms |"
-        sep += " --- | --- | --- | --- | --- | --- |"
+        head += (" NCC found | NCC false | NCC pos err | NCC angle err | NCC over target / beyond tol | NCC ms "
+                 "| NCC CPU ms |")
+        sep += " --- | --- | --- | --- | --- | --- | --- |"
     cmd = ".venv/bin/python bench/pick_real.py" + ("" if with_baseline else " --no-baseline")
+    m = r.mirror
     lines = [
         "# Real-image pick benchmark (issue 14): shape matcher vs OpenCV NCC rotation sweep",
         "",
@@ -160,43 +247,58 @@ def _report(rows: list[str], mirror_rows: list[str], per_variant: dict[str, tupl
         "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores shared with "
         f"other jobs; load average at start {load0[0]:.2f}, at end {load1[0]:.2f}. Times are "
-        "in-process wall time per image (`FindResult.elapsed_s`; the NCC peer timed around its call).",
+        "in-process per image: wall (`FindResult.elapsed_s`) and this process's CPU time "
+        "(`time.process_time`, steadier on a busy machine); the NCC peer timed around its call.",
         "",
         "## Default settings (mirrored search off)",
         "",
-        head, sep, *rows,
+        head, sep, *r.rows,
         "",
         "## Mirrored search on (`SearchParams(mirrored=True)`)",
         "",
-        "| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol | ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
-        *mirror_rows,
-        f"| **all** | {mirror.expected} | {mirror.found} | {mirror.false} | {_max(mirror.pos)} | "
-        f"{_max(mirror.ang)} | {mirror.over} / {mirror.bad} | {statistics.median(mirror.ms):.1f} (median) |",
+        "| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol | ms "
+        "| CPU ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        *r.mirror_rows,
+        f"| **all** | {m.expected} | {m.found} | {m.false} | {_max(m.pos)} | {_max(m.ang)} | {m.over} / {m.bad} | "
+        f"{_med(m.ms):.1f} (median) | {_med(m.cpu_ms):.1f} (median) |",
         "",
-        "## Hard variants of the test images (sums over the 12 images; default settings)",
+        "## Hard variants (sums over the 12 images; default settings)",
         "",
-        "| variant | expected | found | false | over target / beyond tol | median ms |"
-        + (" NCC found | NCC false | NCC over target / beyond tol | NCC median ms |" if with_baseline else ""),
-        "| --- | --- | --- | --- | --- | --- |" + (" --- | --- | --- | --- |" if with_baseline else ""),
+        "The size rows resize teach and test images alike (area averaging): the parts are then a half "
+        "or a quarter as large (the SICK double cross 43 x 26 px, then 21 x 13 px).",
+        "",
+        "| variant | expected | found | false | over target / beyond tol | median ms | median CPU ms |"
+        + (" NCC found | NCC false | NCC over target / beyond tol | NCC median ms | NCC median CPU ms |"
+           if with_baseline else ""),
+        "| --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- | --- | --- | --- |" if with_baseline else ""),
     ]
-    for vname, (o, t) in per_variant.items():
-        r = f"| {vname} | {o.expected} | {o.found} | {o.false} | {o.over} / {o.bad} | {statistics.median(o.ms):.1f} |"
+    for vname, (o, t) in r.variants.items():
+        row = (f"| {vname} | {o.expected} | {o.found} | {o.false} | {o.over} / {o.bad} | {_med(o.ms):.1f} | "
+               f"{_med(o.cpu_ms):.1f} |")
         if with_baseline:
-            r += f" {t.found} | {t.false} | {t.over} / {t.bad} | {statistics.median(t.ms):.0f} |"
-        lines.append(r)
+            row += f" {t.found} | {t.false} | {t.over} / {t.bad} | {_med(t.ms):.0f} | {_med(t.cpu_ms):.0f} |"
+        lines.append(row)
+    lines += ["", *_targets(r, with_baseline)]
     return "\n".join(lines) + "\n"
+
+
+NOTES_MARK = "## Notes"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--no-baseline", action="store_true", help="skip the (slow) OpenCV NCC peer")
-    ap.add_argument("--out", default=None, help="also write the markdown here")
+    ap.add_argument("--out", default=None, help="also write the markdown here (a '## Notes' section "
+                                                "already in that file is kept below the new tables)")
     args = ap.parse_args()
     text = run(not args.no_baseline)
     print(text)
     if args.out:
-        Path(args.out).write_text(text)
+        out = Path(args.out)
+        old = out.read_text() if out.exists() else ""
+        notes = old[old.index(NOTES_MARK):] if NOTES_MARK in old else ""
+        out.write_text(text + ("\n" + notes if notes else ""))
 
 
 if __name__ == "__main__":
