@@ -44,6 +44,7 @@ from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform, invert, make_transform, rotation_angle
 from calibration.handeye import HandEyeError, RobotNoise
 from calibration.handeye_dof4_checks import check_dof4_motion, pair_residuals
+from calibration.handeye_stations import StationProblem
 from calibration.observations import Detection
 from calibration.pnp import PoseEstimationError, estimate_pose
 from calibration.targets import Target
@@ -174,63 +175,24 @@ def closed_form_dof4(setup: str, G: Sequence[Mat4], C: Sequence[Mat4], target_z_
     return X_star, invert(T0) @ Z_star
 
 
-class _Joint4:
-    """Reprojection of every point with X (6), Z (5) and per-station robot corrections (6 each)."""
+class _Joint4(StationProblem):
+    """Reprojection with X (6), Z (5: its translation moves only across the unseen direction) and
+    the per-station robot corrections (``calibration.handeye_stations``)."""
+
+    n_lead = 11
 
     def __init__(self, setup: str, st: Sequence[Station4], camera: CameraModel, sigma_px: float,
                  noise: RobotNoise, X0: Mat4, Z0: Mat4, gauge_Z: F64) -> None:
-        self.setup, self.camera, self.sigma_px = setup, camera, sigma_px
-        self.sig_r, self.sig_t = np.radians(noise.sigma_deg), noise.sigma_mm * 1e-3
+        super().__init__(setup, st, camera, sigma_px, noise)
         self.X0, self.Z0 = X0, Z0
         u1 = np.cross(gauge_Z, [1.0, 0.0, 0.0] if abs(gauge_Z[0]) < 0.9 else [0.0, 1.0, 0.0])
         u1 /= np.linalg.norm(u1)
         self.U = np.column_stack([u1, np.cross(gauge_Z, u1)])  # Z's translation moves in this plane only
-        self.G = np.array([s.G for s in st])
-        self.n = len(st)
-        self.obj = np.vstack([s.obj for s in st])
-        self.uv = np.vstack([s.uv for s in st])
-        self.sid = np.concatenate([np.full(len(s.obj), k) for k, s in enumerate(st)])
 
-    def poses(self, x: F64) -> tuple[Mat4, Mat4, F64]:
+    def lead(self, x: F64) -> tuple[Mat4, Mat4]:
         X = make_transform(_exp(x[0:3]) @ self.X0[:3, :3], self.X0[:3, 3] + x[3:6])
         Z = make_transform(_exp(x[6:9]) @ self.Z0[:3, :3], self.Z0[:3, 3] + self.U @ x[9:11])
-        d = x[11:].reshape(self.n, 6)
-        Gc = self.G.copy()
-        Gc[:, :3, :3] = Rotation.from_rotvec(d[:, :3]).as_matrix() @ self.G[:, :3, :3]
-        Gc[:, :3, 3] = self.G[:, :3, 3] + d[:, 3:]
-        return X, Z, Gc
-
-    def residuals(self, x: F64) -> F64:
-        X, Z, Gc = self.poses(x)
-        Hinv = Gc if self.setup == "eye-to-hand" else np.array([invert(g) for g in Gc])
-        C = np.einsum("ij,njk,kl->nil", invert(X), Hinv, Z)[self.sid]
-        P = np.einsum("nij,nj->ni", C[:, :3, :3], self.obj) + C[:, :3, 3]
-        r = np.nan_to_num((self.camera.project(P) - self.uv).ravel() / self.sigma_px, nan=1e6)
-        d = x[11:].reshape(self.n, 6)
-        return np.concatenate([r, d[:, :3].ravel() / self.sig_r, d[:, 3:].ravel() / self.sig_t])
-
-    def jacobian(self, x: F64) -> F64:
-        """Forward differences with the problem's structure: 11 evaluations for X and Z, 6 for all
-        station corrections at once (station k's pixels depend only on its own correction); the
-        prior rows are diagonal and exact."""
-        h = 1e-7
-        r0 = self.residuals(x)
-        n_px = 2 * len(self.obj)
-        J = np.zeros((len(r0), len(x)))
-        for a in range(11):
-            xp = x.copy()
-            xp[a] += h
-            J[:n_px, a] = (self.residuals(xp)[:n_px] - r0[:n_px]) / h
-        rows = np.repeat(self.sid, 2)
-        for a in range(6):
-            xp = x.copy()
-            xp[11 + a:: 6] += h
-            col = (self.residuals(xp)[:n_px] - r0[:n_px]) / h
-            J[np.arange(n_px), 11 + 6 * rows + a] = col
-        k = np.arange(self.n)
-        J[n_px + 3 * k[:, None] + np.arange(3), 11 + 6 * k[:, None] + np.arange(3)] = 1.0 / self.sig_r
-        J[n_px + 3 * self.n + 3 * k[:, None] + np.arange(3), 14 + 6 * k[:, None] + np.arange(3)] = 1.0 / self.sig_t
-        return J
+        return X, Z
 
 
 @dataclass

@@ -33,6 +33,7 @@ from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform, invert, make_transform, rotation_angle
 from calibration.handeye import HandEyeError, RobotNoise
 from calibration.handeye_dof4 import Station4, make_stations4
+from calibration.handeye_stations import StationProblem
 from calibration.observations import Detection
 from calibration.targets import Target
 
@@ -55,54 +56,27 @@ def x_from_station(setup: str, G: Mat4, Z: Mat4, C: Mat4) -> Mat4:
     return (invert(G) if setup == "eye-in-hand" else G) @ Z @ invert(C)
 
 
-class _JointMeasured:
+class _JointMeasured(StationProblem):
+    """Reprojection with X (6), a correction of the measured frame with the tracker's prior (6) and
+    the per-station robot corrections (``calibration.handeye_stations``)."""
+
+    n_lead = 12
+
     def __init__(self, setup: str, st: Sequence[Station4], camera: CameraModel, sigma_px: float,
                  robot: RobotNoise, tracker: RobotNoise, X0: Mat4, Z_meas: Mat4) -> None:
-        self.setup, self.camera, self.sigma_px = setup, camera, sigma_px
+        super().__init__(setup, st, camera, sigma_px, robot)
         self.sig = np.array([np.radians(tracker.sigma_deg)] * 3 + [tracker.sigma_mm * 1e-3] * 3)
-        self.sig_r, self.sig_t = np.radians(robot.sigma_deg), robot.sigma_mm * 1e-3
         self.X0, self.Z0 = X0, Z_meas
-        self.G = [s.G for s in st]
-        self.n = len(st)
-        self.obj = [s.obj for s in st]
-        self.uv = np.vstack([s.uv for s in st])
-        self.sid = np.concatenate([np.full(len(s.obj), k) for k, s in enumerate(st)])
 
-    def poses(self, x: F64) -> tuple[Mat4, Mat4, list[Mat4]]:
-        d = x[12:].reshape(self.n, 6)
-        return _perturb(self.X0, x[:6]), _perturb(self.Z0, x[6:12]), [_perturb(g, d[k]) for k, g in enumerate(self.G)]
+    def lead(self, x: F64) -> tuple[Mat4, Mat4]:
+        return _perturb(self.X0, x[:6]), _perturb(self.Z0, x[6:12])
 
-    def residuals(self, x: F64) -> F64:
-        X, Z, Gc = self.poses(x)
-        Xi = invert(X)
-        uv = []
-        for g, obj in zip(Gc, self.obj, strict=True):
-            C = Xi @ (invert(g) if self.setup == "eye-in-hand" else g) @ Z
-            uv.append(self.camera.project(obj @ C[:3, :3].T + C[:3, 3]))
-        r = np.nan_to_num((np.vstack(uv) - self.uv).ravel() / self.sigma_px, nan=1e6)
-        d = x[12:].reshape(self.n, 6)
-        return np.concatenate([r, x[6:12] / self.sig, d[:, :3].ravel() / self.sig_r, d[:, 3:].ravel() / self.sig_t])
+    def lead_prior(self, x: F64) -> F64:
+        return np.asarray(x[6:12] / self.sig, dtype=np.float64)
 
-    def jacobian(self, x: F64) -> F64:
-        """Forward differences: 12 evaluations for X and the frame, 6 for all stations at once."""
-        h = 1e-7
-        r0 = self.residuals(x)
-        n_px = len(self.uv) * 2
-        J = np.zeros((len(r0), len(x)))
-        for a in range(12):
-            xp = x.copy()
-            xp[a] += h
-            J[:n_px, a] = (self.residuals(xp)[:n_px] - r0[:n_px]) / h
-        rows = np.repeat(self.sid, 2)
-        for a in range(6):
-            xp = x.copy()
-            xp[12 + a:: 6] += h
-            J[np.arange(n_px), 12 + 6 * rows + a] = (self.residuals(xp)[:n_px] - r0[:n_px]) / h
-        J[n_px + np.arange(6), 6 + np.arange(6)] = 1.0 / self.sig
-        k = np.arange(self.n)
-        base = n_px + 6
-        J[base + 3 * k[:, None] + np.arange(3), 12 + 6 * k[:, None] + np.arange(3)] = 1.0 / self.sig_r
-        J[base + 3 * self.n + 3 * k[:, None] + np.arange(3), 15 + 6 * k[:, None] + np.arange(3)] = 1.0 / self.sig_t
+    def lead_prior_jacobian(self) -> F64:
+        J = np.zeros((6, self.n_lead))
+        J[np.arange(6), 6 + np.arange(6)] = 1.0 / self.sig
         return J
 
 
