@@ -30,33 +30,10 @@ from cellctl.routines.station_plan import pair_information
 from cellctl.services import Services
 from cellctl.store import open_store
 from drivers.sim import world as world_module
+from tests.conftest import REPO
 
-# An eye-to-hand cell: a fixed camera 0.95 m above the table looking down, the plate carried
-# 0.12 m below the flange facing up.
-EYE_TO_HAND_SCENE = """
-format_version: 1
-name: eye-to-hand test cell (fixed camera, plate on the tool)
-seed: 5
-camera:
-  model: opencv5
-  width: 1280
-  height: 960
-  K: [[1400.0, 0.0, 641.7], [0.0, 1400.6, 481.2], [0.0, 0.0, 1.0]]
-  dist: [-0.03, 0.01, 0.0002, -0.0001, 0.0]
-  mount: base
-  T_base_cam: [0.40, 0.0, 0.95, 3.13, 0.03, 0.0]
-  imaging: {noise_sigma: 1.0, blur_sigma_px: 0.5, light_gradient: 0.1}
-robot:
-  home: [0.46, 0.06, 0.45, 3.14159265, 0.0, 0.0]
-  repeatability_mm: 0.02
-  repeatability_deg: 0.005
-table: {z_m: 0.0, reflectance: 0.35}
-targets:
-  - name: plate
-    target: {type: circle_plate, cols: 7, rows: 7, pitch_mm: 20.0, diameter_mm: 10.0}
-    attached_to: tool
-    pose: [-0.06, 0.06, 0.12, 0.0, 0.0, 0.02]
-"""
+EYE_TO_HAND_SCENE = REPO / "tests" / "data" / "scenes" / "eye-to-hand-plate-on-tool.yaml"
+"""A fixed camera 0.95 m above the table looking down, the plate carried 0.12 m below the flange."""
 
 
 def make_services(tmp: Path, seed: int, scene: Path | None = None, setup: str = "eye-in-hand",
@@ -103,8 +80,7 @@ def moved_poses(svc: Services) -> list[np.ndarray]:
 
 
 def test_eye_to_hand_stations_end_with_the_verdict_ok(tmp_path: Path, tmp_services: list[Services]) -> None:
-    scene = tmp_path / "eye-to-hand.yaml"
-    scene.write_text(EYE_TO_HAND_SCENE)
+    scene = EYE_TO_HAND_SCENE
     svc = make_services(tmp_path, 21, scene, "eye-to-hand")
     tmp_services.append(svc)
     job = run_capture(svc, {})
