@@ -20,9 +20,10 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
 3. **Outliers** (rule): a point is an outlier when its residual length exceeds
    ``5 * sigma_r``, with ``sigma_r = 1.4826 * median(|residual component|)`` over the kept points
    (a robust per-axis standard deviation, residuals weighted by the points' precision); a view is
-   an outlier when its RMS exceeds ``3 *`` the median view RMS. Outlier points are always
-   weighted out (weight 0, reported per view as ``n_outlier_points``) and the solve repeated until
-   the set is stable; outlier views are flagged, and with ``drop_outliers=True`` they (and the
+   an outlier when its RMS exceeds ``3 *`` the median view RMS. Where the points' stated
+   precision explains the residuals, outlier points are weighted out (weight 0, reported per view
+   as ``n_outlier_points``) and the solve repeated (``views.reject_outlier_points``); elsewhere,
+   and for views, they are flagged, and with ``drop_outliers=True`` they (and the
    outlier points) are removed and the solve repeated once.
    **Weights**: each point is weighted by its view's detection precision (``Detection
    .uv_sigma_px``, ``calibration.observations.point_weights``) with the error that the stated

@@ -78,8 +78,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     if n_obs <= n_par + 6 * len(views):
         raise CalibrationError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
     p, c, R, t, iters = solve_views(model, size, views, target)
-    floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
     p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
+    floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
     if drop_outliers:
         p0_res = (p.project(c, R, t) - p.obs)
         pt_out, view_out = flag_outliers(p, p0_res, base_weights(views))
@@ -107,8 +107,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             start = (c, np.array(keep_R), np.array(keep_t))
             p, c, R, t, it2 = solve_views(model, size, views, target, start=start)
             iters += it2
-            floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
             p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
+            floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
     # final Jacobian, covariance
     free = np.ones(n_par, dtype=bool)
     nrm, r = normal_equations_at(p, c, R, t, free)
@@ -196,8 +196,9 @@ def _reweight(model: str, size: tuple[int, int], views: list[ViewData], target: 
     p, c, R, t, iters = solved
     if s_all is None:
         return None, solved
+    keep = p.weights() > 0                       # points weighted out as outliers do not count
     res = p.project(c, R, t) - p.obs
-    tau = systematic_floor_px(res, s_all, n_par + 6 * len(views))
+    tau = systematic_floor_px(res[keep], s_all[keep], n_par + 6 * len(views))
     default = SYSTEMATIC_FLOOR * float(np.median(s_all))
     if tau <= REWEIGHT_MARGIN * default:
         return tau, solved
