@@ -36,11 +36,17 @@ class JointOptions:
     workspace) — it predicts at new stations, unlike i.i.d. corrections.
     ``intrinsics``: the camera's intrinsics refined jointly (additive ``c = c0 + dc``), with a
     Gaussian prior from ``camera_covariance`` (the intrinsics result's) when given.
+    ``exact_robot``: no per-station corrections — the recorded robot poses are taken as exact and
+    only the pixel residuals are minimised (the plain joint reprojection refinement). Its fit
+    minimises the same quantity a held-out station is judged by (pixels predicted from the
+    recorded pose), which is why it can predict better on an arm whose error is pose-dependent
+    millimetres, where per-station corrections under a small i.i.d. prior are the wrong model.
     """
 
     systematic: bool = False
     intrinsics: bool = False
     camera_covariance: NDArray[np.float64] | None = None
+    exact_robot: bool = False
 
 
 class JointProblem:
@@ -55,6 +61,7 @@ class JointProblem:
     def __init__(self, setup: str, stations: Sequence[Station], camera: CameraModel, sigma_px: float,
                  noise: RobotNoise, X0: Mat4, Z0: Mat4, options: JointOptions | None = None) -> None:
         self.setup, self.camera, self.sigma_px = setup, camera, sigma_px
+        self.stations, self.noise = list(stations), noise
         self.options = options or JointOptions()
         self.sig_t = noise.sigma_mm * 1e-3
         self.sig_r = np.radians(noise.sigma_deg)
@@ -71,6 +78,9 @@ class JointProblem:
         self.n_sys = 9 if self.options.systematic else 0
         self.k0 = 12 + self.n_cam + self.n_sys
         """Index of the first per-station correction."""
+        self.n_d = 0 if self.options.exact_robot else self.n
+        """Stations with a pose correction (0 for the exact-robot model)."""
+        self.n_params = self.k0 + 6 * self.n_d
         self.t_mean = self.G[:, :3, 3].mean(axis=0)
         self.cam_white: NDArray[np.float64] | None = None
         cov = self.options.camera_covariance
@@ -97,10 +107,16 @@ class JointProblem:
         out[:, :3, 3] = G[:, :3, 3] + (G[:, :3, 3] - self.t_mean) @ self.systematic_matrix(x).T
         return out
 
+    def corrections(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(n, 6) per-station corrections: orientation (rad), position (m); zeros for the exact robot."""
+        if not self.n_d:
+            return np.zeros((self.n, 6))
+        return x[self.k0:].reshape(self.n, 6)
+
     def poses(self, x: NDArray[np.float64]) -> tuple[Mat4, Mat4, NDArray[np.float64]]:
         X = perturb(self.X0, x[0:6])
         Z = perturb(self.Z0, x[6:12])
-        d = x[self.k0:].reshape(self.n, 6)
+        d = self.corrections(x)
         Gs = self.corrected(self.G, x)
         Gc = Gs.copy()
         Gc[:, :3, :3] = exp_so3(d[:, :3]) @ Gs[:, :3, :3]
@@ -126,8 +142,10 @@ class JointProblem:
         P = np.einsum("nij,nj->ni", Cs[:, :3, :3], self.obj) + Cs[:, :3, 3]
         e = (self.camera_at(x).project(P) - self.uv) * self.w[:, None]
         r_px = e.ravel() / self.sigma_px
-        d = x[self.k0:].reshape(self.n, 6)
-        parts = [np.nan_to_num(r_px, nan=1e6), d[:, :3].ravel() / self.sig_r, d[:, 3:].ravel() / self.sig_t]
+        parts = [np.nan_to_num(r_px, nan=1e6)]
+        if self.n_d:
+            d = self.corrections(x)
+            parts += [d[:, :3].ravel() / self.sig_r, d[:, 3:].ravel() / self.sig_t]
         if self.n_sys:
             parts.append(x[12 + self.n_cam:self.k0] / SYSTEMATIC_PRIOR)
         if self.cam_white is not None:
@@ -153,7 +171,7 @@ class JointProblem:
         rows_px = np.repeat(self.sid, 2)
         n_px = 2 * self.n_obs
         k0 = self.k0
-        for a in range(6):
+        for a in range(6 if self.n_d else 0):
             xp = x.copy()
             xp[k0 + a :: 6] += h
             col = (self.residuals(xp) - r0) / h
@@ -166,7 +184,7 @@ class JointProblem:
 
     def solve(self, x0: NDArray[np.float64] | None = None, max_iter: int = 50) -> LMResult:
         """Levenberg-Marquardt (dense normal equations; a few hundred parameters at most)."""
-        x = np.zeros(self.k0 + 6 * self.n) if x0 is None else x0.copy()
+        x = np.zeros(self.n_params) if x0 is None else x0.copy()
         r = self.residuals(x)
         cost = float(r @ r)
         lam = 1e-3

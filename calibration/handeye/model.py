@@ -112,6 +112,10 @@ class HandEyeResult:
     error_model: dict[str, Any] = field(default_factory=dict)
     """Which robot error model was used and how each candidate predicted held-out stations."""
     intrinsics_refined: bool = False
+    camera_uncertainty: str = "none"
+    """How the camera's covariance entered ``cov_X``/``cov_Z``: ``"prior"`` (joint intrinsics
+    refinement with the camera's covariance as its prior), ``"propagated"`` (intrinsics held fixed,
+    their covariance propagated to first order) or ``"none"`` (no camera covariance given)."""
 
     def predict_cam_target(self, T_base_tool: Mat4) -> Mat4:
         """Predicted ``T_cam_target`` of a new station with recorded robot pose ``T_base_tool``,
@@ -157,6 +161,7 @@ class HandEyeResult:
                 "target_rot_deg": float(np.degrees(np.sqrt(np.trace(self.cov_Z[:3, :3])))),
                 "target_trans_mm": float(1e3 * np.sqrt(np.trace(self.cov_Z[3:, 3:]))),
                 "target_covariance": self.cov_Z.tolist(),
+                "camera": self.camera_uncertainty,
             },
             "pixel_sigma_px": self.sigma_px,
             "chi2_reduced": self.chi2_reduced,

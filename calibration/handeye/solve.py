@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -62,6 +63,11 @@ def calibrate_handeye(
     the closed forms, the joint maximum-likelihood refinement, the covariance and leave-one-out
     prediction — the primary quality figure (``quality.loo_prediction_rms_px``).
 
+    ``camera_covariance``: the intrinsics' covariance (order ``fx, fy, cx, cy, dist...``, the camera
+    result's ``parameters.covariance``): a prior when the intrinsics are refined jointly, else
+    propagated into the reported covariance of X and Z (first order: the solution's sensitivity to
+    the intrinsics), so the uncertainty includes the camera's.
+
     ``error_model``: ``"auto"`` fits every model of ``calibration.handeye.error_model`` and keeps
     the one that predicts held-out stations best (needs ``leave_one_out``; without it the fixed
     prior is used), or one of ``ERROR_MODELS`` by name. ``estimate_robot_noise`` (older flag) asks
@@ -79,7 +85,7 @@ def calibrate_handeye(
     if sigma_px is None:
         sigma_px = _pixel_sigma(stations)
     intr = camera_verdict_ok is False if refine_intrinsics is None else refine_intrinsics
-    cov_c = None if camera_covariance is None else np.asarray(camera_covariance, dtype=np.float64)
+    cov_c = None if camera_covariance is None else _checked_camera_covariance(camera, camera_covariance)
     options = JointOptions(intrinsics=intr, camera_covariance=cov_c)
     with_loo = leave_one_out and len(stations) > MIN_STATIONS
     fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
@@ -93,6 +99,10 @@ def calibrate_handeye(
         r, t = transform_error_deg_mm(Xc, X)
         init_info[name].update({"diff_to_refined_deg": r, "diff_to_refined_mm": t})
     cov_X, cov_Z, chi2 = _covariance(res, problems, sigma_px, noise)
+    camera_unc = "prior" if (intr and cov_c is not None) else "none"
+    if cov_c is not None and not intr:
+        dX, dZ = _camera_propagation(job, res, cov_c)
+        cov_X, cov_Z, camera_unc = cov_X + dX, cov_Z + dZ, "propagated"
     cam = job.camera_at(res.x)
     station_json, rms_px, d = _station_report(job, res, stations, sigma_px)
     rot, tr = axxb_residuals(kept, X)
@@ -101,7 +111,7 @@ def calibrate_handeye(
         X=X, Z=Z, cov_X=cov_X, cov_Z=cov_Z, rms_px=rms_px, sigma_px=sigma_px, chi2_reduced=chi2,
         robot_noise=noise, stations=station_json, consistency={"rot_deg": stats(rot), "trans_mm": stats(tr)},
         init=init_info, problems=problems, pairs=pair_info, corrections=d, camera=cam,
-        error_model=model_info, intrinsics_refined=intr,
+        error_model=model_info, intrinsics_refined=intr, camera_uncertainty=camera_unc,
     )
     if with_loo:
         result.loo = fit.loo
@@ -227,12 +237,43 @@ def _covariance(res: LMResult, problems: list[Problem], sigma_px: float, noise: 
     return cov[:6, :6] * scale, cov[6:12, 6:12] * scale, chi2
 
 
+def _checked_camera_covariance(camera: CameraModel, cov: ArrayLike) -> NDArray[np.float64]:
+    c = np.asarray(cov, dtype=np.float64)
+    n_c = 4 + len(camera.dist)
+    if c.shape != (n_c, n_c) or not np.all(np.isfinite(c)):
+        raise HandEyeError(f"camera covariance must be {n_c}x{n_c} (fx, fy, cx, cy and the {n_c - 4} distortion "
+                           f"coefficients of the {camera.model} model), got shape {c.shape}")
+    return c
+
+
+def _camera_propagation(job: JointProblem, res: LMResult, cov_c: NDArray[np.float64]
+                        ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Covariance of X and Z (6x6 each) caused by the camera's own uncertainty ``cov_c`` when the
+    intrinsics are held fixed: ``S cov_c Sᵀ`` with ``S = -(J_θᵀ J_θ)⁻¹ J_θᵀ J_c`` the first-order
+    sensitivity of the solution to the intrinsics (whitened Jacobians at the solution)."""
+    n_c = len(job.c0)
+    opts = replace(job.options, intrinsics=True, camera_covariance=None)
+    full = JointProblem(job.setup, job.stations, job.camera, job.sigma_px, job.noise, job.X0, job.Z0, opts)
+    x = np.concatenate([res.x[:12], np.zeros(n_c), res.x[12:]])
+    J = full.jacobian(x, full.residuals(x))
+    cam_cols = np.arange(12, 12 + n_c)
+    theta = np.setdiff1d(np.arange(J.shape[1]), cam_cols)
+    Jt, Jc = J[:, theta], J[:, cam_cols]
+    try:
+        S = -np.linalg.solve(np.einsum("ij,ik->jk", Jt, Jt), np.einsum("ij,ik->jk", Jt, Jc))
+    except np.linalg.LinAlgError as exc:
+        raise HandEyeError("the joint refinement is singular: the poses do not determine the hand-eye "
+                           "transform; add poses rotated about different axes") from exc
+    cov = S[:12] @ cov_c @ S[:12].T
+    return cov[:6, :6], cov[6:12, 6:12]
+
+
 def _station_report(job: JointProblem, res: LMResult, stations: Sequence[Station], sigma_px: float
                     ) -> tuple[list[dict[str, Any]], float, NDArray[np.float64]]:
     """Per-station residuals (unweighted px) and robot corrections; overall RMS; (N, 6) corrections."""
     r_px = res.fun[: 2 * job.n_obs].reshape(-1, 2) * sigma_px / job.w[:, None]
     rms_px = float(np.sqrt(np.mean(np.sum(r_px * r_px, axis=1))))
-    d = res.x[job.k0:].reshape(job.n, 6)
+    d = job.corrections(res.x)
     out: list[dict[str, Any]] = []
     for k, s in enumerate(stations):
         rk = r_px[job.sid == k]

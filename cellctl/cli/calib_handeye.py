@@ -136,6 +136,29 @@ def _camera_verdict_ok(path: str) -> bool | None:
     return ok if isinstance(ok, bool) else None
 
 
+def _camera_covariance(path: str, camera: Any) -> Any:
+    """The intrinsics covariance of cam.json (``parameters``: names + covariance) in the order the
+    hand-eye uses (fx, fy, cx, cy, then the model's distortion coefficients), or None when the file
+    carries none (an OpenCV YAML, a hand-written file). It enters the hand-eye uncertainty."""
+    import numpy as np
+
+    from calibration.intrinsics.model import param_names
+
+    try:
+        params = json.loads(Path(path).read_text()).get("parameters")
+        names, cov = params["names"], np.asarray(params["covariance"], dtype=np.float64)
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
+        return None
+    want = param_names(camera.model)
+    if cov.shape != (len(names), len(names)) or not set(names) <= set(want) or not np.all(np.isfinite(cov)):
+        raise CommandError(f"{path}: parameters.covariance must be a square matrix over parameters.names "
+                           f"(a subset of {want}); re-run cellctl calib intrinsics or remove the parameters block")
+    idx = [want.index(n) for n in names]
+    full = np.zeros((len(want), len(want)))
+    full[np.ix_(idx, idx)] = cov
+    return full
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye
 
@@ -172,7 +195,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                    raw_ur_poses=poses.ur_poses, sigma_px=_pixel_sigma(args),
                                    leave_one_out=not args.no_loo,
                                    estimate_robot_noise=args.estimate_robot_noise,
-                                   camera_verdict_ok=_camera_verdict_ok(args.camera))
+                                   camera_verdict_ok=_camera_verdict_ok(args.camera),
+                                   camera_covariance=_camera_covariance(args.camera, camera))
     except HandEyeError as exc:
         from calibration.handeye_dof4_checks import is_dof4
 

@@ -101,3 +101,38 @@ def test_bad_dataset(dataset: tuple[Path, SimulatedHandEye], tmp_path: Path, cap
     (tmp_path / "poses.csv").write_text("image,x,y,z,rx,ry,rz\nmissing.png,0.4,0,0.3,0,3.1,0\n")
     assert main([*args, str(tmp_path)]) == 2
     assert "not there" in capsys.readouterr().err
+
+
+def test_camera_covariance_enters_the_uncertainty(dataset: tuple[Path, SimulatedHandEye], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """cam.json's parameters.covariance (as calib intrinsics writes it) is propagated into he.json's
+    uncertainty; a malformed one is named."""
+    d, sim = dataset
+    dets = tmp_path / "dets.json"
+    items = []
+    for k, det in enumerate(sim.detections):
+        item = det.to_json()
+        item["image"] = f"station_{k:02d}.png"
+        items.append(item)
+    dets.write_text(json.dumps(items))
+    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
+    sd = np.array([4.0, 4.0, 3.0, 3.0, 0.005, 0.01, 1e-4, 1e-4, 0.0])
+    cam = CAM.to_dict()
+    cam_cov = tmp_path / "cam_cov.json"
+    cam_cov.write_text(json.dumps({**cam, "parameters": {"names": names, "covariance": np.diag(sd**2).tolist()}}))
+    base = ["calib", "handeye", "--setup", "eye-in-hand", "--target", str(d / "board.yaml"), "--dataset", str(d),
+            "--detections", str(dets), "--no-loo", "--camera"]
+    assert main([*base, str(d / "cam.json")]) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert main([*base, str(cam_cov)]) == 0
+    withcov = json.loads(capsys.readouterr().out)
+    assert plain["uncertainty"]["camera"] == "none" and withcov["uncertainty"]["camera"] == "propagated"
+    assert np.allclose(withcov["T_tool_cam"], plain["T_tool_cam"], atol=1e-9)  # the estimate is unchanged
+    # a 4 px focal-length and 3 px centre uncertainty at 720 px moves a camera 0.5 m away by millimetres
+    assert withcov["uncertainty"]["trans_mm"] > 3 * plain["uncertainty"]["trans_mm"]
+    assert withcov["uncertainty"]["rot_deg"] > plain["uncertainty"]["rot_deg"]
+    bad = tmp_path / "cam_bad.json"
+    bad.write_text(json.dumps({**cam, "parameters": {"names": names, "covariance": [[1.0, 0.0], [0.0, 1.0]]}}))
+    assert main([*base, str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "parameters.covariance" in err and "square matrix" in err
