@@ -179,3 +179,31 @@ def test_perspective_fit_equals_numpy(scene: tuple[shape.ShapeModel, np.ndarray,
     got = kernels.perspective_fit(*args, CENTROID_HALF_WIDTH)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     assert abs(got[0] - args[3]) + abs(got[1] - args[4]) > 0.05  # it moved: the test exercises the fit
+
+
+@pytest.mark.parametrize("spread", [1, 3])
+def test_response_maps_equal_the_opencv_lookups(scene: tuple[shape.ShapeModel, np.ndarray, list],
+                                                spread: int) -> None:
+    """The compiled response planes and per-bin max filter against masks, ``cv2.LUT`` and one dilate."""
+    from vision.image import gradients
+    from vision.shape.responses import _RESPONSE_TABLE
+
+    _, img, _ = scene
+    lvl = pyramid(img, 2)[1]
+    thr = 3.0
+    gx, gy = gradients(lvl, 0.0)
+    mag = cv2.magnitude(gx, gy)
+    q = cv2.convertScaleAbs(cv2.phase(gx, gy, angleInDegrees=True), alpha=4.0 * N_BINS / 180.0, beta=-0.5)
+    q = cv2.bitwise_and(q, 4 * N_BINS - 1)
+    q[mag < thr] = 4 * N_BINS
+    lut = np.zeros((N_BINS, 1, 256), np.uint8)
+    lut[:, 0, :4 * N_BINS + 1] = _RESPONSE_TABLE
+    want = np.stack([cv2.LUT(q, lut[b]) for b in range(N_BINS)])
+    if spread > 1:
+        h, w = q.shape
+        stack = np.zeros((N_BINS, h + 1, w), np.uint8)
+        stack[:, :h] = want
+        want = cv2.dilate(stack.reshape(-1, w), np.ones((3, 3), np.uint8)).reshape(N_BINS, h + 1, w)[:, :h]
+    got = response_maps(lvl, thr, spread=spread)
+    np.testing.assert_array_equal(got, want)
+    assert np.count_nonzero(got == 4) > 1000 and np.count_nonzero(got == 0) > 1000

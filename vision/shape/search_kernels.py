@@ -6,6 +6,7 @@ and the neighbourhood tracking down the pyramid.
   did one ``np.add`` call per feature and angle (call overhead and a read-modify-write of the plane
   each time); here the same uint8 sums are one compiled, vectorised loop (3.5x less time, the same
   numbers).
+- ``response_planes``: the orientation response maps from the quantised orientations, one pass.
 - ``top_maxima``: local maxima over position and angle (3x3x3, circular in angle over the full turn)
   of the score planes at or above a threshold, from each plane's 3x3 maximum (``cv2.dilate``) in one
   pass (was a dozen whole-array numpy passes).
@@ -42,6 +43,24 @@ def accumulate_top(padf: U8, b: I64, start: I64, run: int, lin: U8, a0: int, a1:
             src = padf[b[ai, k], s:s + run]
             for i in range(run):
                 acc[i] += src[i]
+
+
+@njit(cache=True, boundscheck=False)
+def response_planes(q: U8, mag: NDArray[np.float32], thr: float, table: U8, out: U8) -> None:
+    """``out[b] = table[b, q]`` for every bin b, with ``q`` taken as "no edge" (the table's last
+    column) where ``mag < thr``: the orientation response maps in one pass."""
+    h, w = q.shape
+    none = table.shape[1] - 1
+    qq = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            qq[y, x] = none if mag[y, x] < thr else q[y, x]
+    for b in range(table.shape[0]):
+        tb = table[b]
+        ob = out[b]
+        for y in range(h):
+            for x in range(w):
+                ob[y, x] = tb[qq[y, x]]
 
 
 @njit(cache=True, boundscheck=False)
@@ -173,6 +192,8 @@ def warm_up() -> None:
     z8 = np.zeros((1, 8), np.uint8)
     zi = np.zeros((1, 1), np.int64)
     accumulate_top(z8, zi, zi, 1, z8.copy(), 0, 1)
+    z2 = np.zeros((2, 2), np.uint8)
+    response_planes(z2, np.zeros((2, 2), np.float32), 1.0, np.zeros((8, 33), np.uint8), np.zeros((8, 2, 2), np.uint8))
     p3 = np.zeros((1, 2, 2), np.uint8)
     top_maxima(p3, p3, 1, 1, False)
     z1 = np.zeros(1, np.int64)
