@@ -24,6 +24,7 @@ import yaml
 
 from calibration import geometry as g
 from calibration.targets import target_from_dict
+from cellctl.cli import main
 from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
 
 SCENE = REPO / "drivers" / "sim" / "scenes" / "virtual-cell-fixed-camera.yaml"
@@ -41,9 +42,21 @@ def _config(tmp: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+def tokens(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     tmp = tmp_path_factory.mktemp("tcp")
-    s = start_served(tmp, config=_config(tmp))
+    cfg = _config(tmp)
+    out: dict[str, Any] = {"tmp": tmp, "config": cfg}
+    for role in ("operator", "engineer"):
+        f = tmp / f"{role}.json"
+        assert main(["token", "add", "--config", str(cfg), "--name", f"{role}-1", "--role", role,
+                     "--out", str(f)]) == 0
+        out[role] = json.loads(f.read_text())["token"]
+    return out
+
+
+@pytest.fixture(scope="module")
+def served(tokens: dict[str, Any]) -> Iterator[Served]:
+    s = start_served(tokens["tmp"], config=tokens["config"], token=tokens["engineer"])
     try:
         yield s
     finally:
@@ -127,6 +140,16 @@ def test_the_turn_recovers_the_tool_centre(served: Served, truth: dict[str, Any]
         assert stored["result"]["verdict"]["ok"] is True
         # The turn left the robot free again: the operator can jog.
         _home(http)
+
+
+def test_the_turn_needs_the_engineer_and_valid_angles(served: Served, tokens: dict[str, Any]) -> None:
+    with served.client(token=tokens["operator"]) as http:
+        r = http.post("/routines/jog-to-mark", json={"marks": 4, "tool_centre": True})
+        assert r.status_code == 403 and "engineer" in r.json()["error"]["message"], r.text
+    with served.client() as http:
+        for angles, why in (([0, 10, 20], "span 20 deg"), ([0, 90], "at least 3"), ([0, 45, 200], "-180..180")):
+            r = http.post("/routines/jog-to-mark", json={"tool_centre": True, "tcp_angles_deg": angles})
+            assert r.status_code == 422 and why in r.json()["error"]["message"], r.text
 
 
 def test_a_stop_during_the_turn_ends_the_job_stopped(served: Served, truth: dict[str, Any]) -> None:
