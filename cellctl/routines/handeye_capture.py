@@ -144,6 +144,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             move(services, ctx, robot, cand.T_base_tool, speed, f"handeye-capture {cand.purpose}")
         except MotionRejected as exc:
             refused.append({"station": cand.purpose, "reason": str(exc)})
+            planner.failed_at(cand.T_base_tool)
             ctx.report(min(0.9, tried / p.max_stations), f"station {tried} ({cand.purpose}): skipped, refused ({exc})")
             continue
         c = capture(cam, robot, target, f"station{tried:02d}")
@@ -153,6 +154,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             planner.observe(c.T_base_tool, target_pose(camera, target, c.detection), cand.purpose)
         else:
             rejected += 1
+            planner.failed_at(cand.T_base_tool)
         cov = planner.coverage(p.stations)
         ctx.report(min(0.9, tried / p.max_stations), f"station {tried} ({cand.purpose}): "
                    + ("ok" if ok else f"rejected ({c.detection.reason or 'too few points'})"),

@@ -16,7 +16,7 @@ import numpy as np
 from calibration.intrinsics import calibrate
 from calibration.targets import Target
 from cellctl.jobs import JobContext
-from cellctl.routines.common import Capture, approximate_camera, capture, move, pivot_point, target_pose
+from cellctl.routines.common import Capture, RoutineError, approximate_camera, capture, move, pivot_point, target_pose
 from cellctl.routines.view_plan import Mat4, ViewPlanner
 from cellctl.services import Services
 from drivers.base import CameraBase, MotionRejected, RobotBase
@@ -44,7 +44,7 @@ class PlannedCapture:
         self.attempts = 1
         self.rejected = 0
         if first.T_base_tool is None:
-            raise ValueError("the start view has no robot pose")
+            raise RoutineError("the start view has no robot pose; the robot must report its pose")
         w, h = first.frame.size
         approx = approximate_camera(w, h)
         T_cam_target = target_pose(approx, target, first.detection)

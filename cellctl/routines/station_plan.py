@@ -58,6 +58,9 @@ IMAGE_MARGIN = 0.03
 """The predicted plate must keep this fraction of the image size from every border."""
 MAX_VIEW_ANGLE_DEG = 50.0
 """Most obliquity (plate normal against the line of sight) a planned view may have."""
+NEAR_FAILED_DEG = 8.0
+NEAR_FAILED_M = 0.03
+"""A candidate this close (rotation and position) to a station that gave nothing is left out."""
 AZIMUTHS = 16
 TILT_FRACTIONS = (0.6, 1.0)
 SPIN_FRACTIONS = (-1.0, -0.5, 0.0, 0.5, 1.0)
@@ -128,6 +131,8 @@ class StationPlanner:
     distance_range: float
     stations: list[Station] = field(default_factory=list)
     tried: set[str] = field(default_factory=set)
+    failed: list[Mat4] = field(default_factory=list)
+    """Poses whose shot was rejected or whose move was refused: their neighbours are left out too."""
     X: Mat4 = field(init=False)
     Z: Mat4 = field(init=False)
     estimated: bool = field(init=False, default=False)
@@ -154,6 +159,17 @@ class StationPlanner:
         """A station captured with the plate seen; the estimate is redone from all stations."""
         self.stations.append(Station(np.array(T_base_tool, dtype=np.float64), np.array(T_cam_target), purpose))
         self._estimate()
+
+    def failed_at(self, T_base_tool: Mat4) -> None:
+        """The station at ``T_base_tool`` gave nothing (shot rejected, move refused)."""
+        self.failed.append(np.array(T_base_tool, dtype=np.float64))
+
+    def _near_failed(self, T: Mat4) -> bool:
+        for F in self.failed:
+            rot, trans = g.transform_error(T, F)
+            if math.degrees(rot) < NEAR_FAILED_DEG and trans < NEAR_FAILED_M:
+                return True
+        return False
 
     def _estimate(self) -> None:
         H = [hand_pose(self.setup, s.T_base_tool) for s in self.stations]
@@ -272,6 +288,8 @@ class StationPlanner:
         except Exception as exc:  # noqa: BLE001 - the robot's own rule: any refusal leaves the pose out
             # One count per kind of refusal, whatever the numbers in it.
             return "refused by the robot's limits: " + re.sub(r"-?\d+(\.\d+)?", "N", str(exc).split(";")[0])
+        if self._near_failed(cand.T_base_tool):
+            return "next to a station that gave nothing"
         C = predict_cam_target(self.setup, self.X, self.Z, cand.T_base_tool)
         xyz = self.outline_m @ C[:3, :3].T + C[:3, 3]
         if np.any(xyz[:, 2] <= 0):
