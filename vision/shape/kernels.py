@@ -9,6 +9,7 @@ the border). Compiled on first use and cached on disk (``cache=True``).
 - ``gn_normal_equations``: the 4x4 normal equations of one weighted Gauss-Newton step.
 - ``profile_centroids``: the centroid edge offset, contrast and cleanliness of each normal profile.
 - ``fit_stage_a``: the Gauss-Newton loop of the refinement on gradient peaks.
+- ``fit_stage_b``: the refinement's Gauss-Newton loop on centroid edge positions (level 0).
 - ``perspective_fit``: the final plane-homography fit on centroid edge positions.
 
 The discrete search's loops are in ``search_kernels``.
@@ -167,6 +168,8 @@ def warm_up() -> None:
     fit_stage_a(np.zeros((4, 4, 2), np.float32), z2, z2, np.zeros(4), 1.0, 0.1, 1.0, 1, 1.0, 0.0, False, 1.0,
                 0.0, 4.0, 4.0)
     perspective_fit(np.zeros((4, 4), np.float32), z2, z2, 0.0, 0.0, 0.0, 1.0, 1.0, 1)
+    fit_stage_b(np.zeros((4, 4), np.float32), z2, z2, 0.0, 0.0, 0.0, 1.0, 1.0, 0.1, 1.0, True, 1, 1.0, 0.0, 4.0,
+                4.0, 1)
     from vision.shape import search_kernels
     search_kernels.warm_up()
 
@@ -323,3 +326,56 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
     theta = math.atan2(-l10, l00)
     scale = math.sqrt(abs(l00 * l11 - l01 * l10))
     return c0, c1, theta, scale
+
+
+@njit(cache=True)
+def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
+                s0: float, max_scale_dev: float, min_contrast: float, fit_scale: bool, iterations: int,
+                radius: float, vis_margin: float, width: float, height: float, half: int
+                ) -> tuple[float, float, float, float]:
+    """The centroid stage of ``refine.refine_lsq`` in one call: up to ``iterations`` weighted
+    Gauss-Newton steps on (x, y, theta[, scale]) of the centroid edge offsets along the normals of
+    the raw crop ``img_f`` (profile half width ``half``), the same arithmetic as the numpy loop.
+    Points outside ``[vis_margin, size - vis_margin]`` take no part; a step moving the outermost
+    point < 0.001 px ends it. Returns the pose (crop pixels, rad)."""
+    npts = m.shape[0]
+    q = np.empty((npts, 2))
+    n = np.empty((npts, 2))
+    Rm = np.empty((npts, 2))
+    Rdm = np.empty((npts, 2))
+    wgt = np.empty(npts)
+    for _ in range(iterations):
+        c, s = math.cos(th), math.sin(th)
+        for i in range(npts):
+            mx, my = m[i, 0], m[i, 1]
+            Rm[i, 0] = mx * c + my * s
+            Rm[i, 1] = mx * -s + my * c
+            Rdm[i, 0] = my * c + (-mx) * s  # R (m_y, -m_x)
+            Rdm[i, 1] = my * -s + (-mx) * c
+            q[i, 0] = sc * Rm[i, 0] + x
+            q[i, 1] = sc * Rm[i, 1] + y
+            n[i, 0] = nrm[i, 0] * c + nrm[i, 1] * s
+            n[i, 1] = nrm[i, 0] * -s + nrm[i, 1] * c
+        off, S, clean = profile_centroids(img_f, q, n, half)
+        wsum = 0.0
+        for i in range(npts):
+            ok = (clean[i] and abs(off[i]) < 1.0 and abs(S[i]) >= 0.5 * min_contrast
+                  and vis_margin <= q[i, 0] <= width - vis_margin and vis_margin <= q[i, 1] <= height - vis_margin)
+            wgt[i] = (1 - off[i] ** 2) ** 2 if ok else 0.0
+            wsum += wgt[i]
+        if wsum < 6:
+            break
+        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, off)
+        k = 4 if fit_scale else 3
+        Ak = A[:k, :k].copy()
+        for j in range(k):
+            Ak[j, j] += 1e-9
+        delta = np.linalg.solve(Ak, b[:k].copy())
+        ds = delta[3] if fit_scale else 0.0
+        x += delta[0]
+        y += delta[1]
+        th += delta[2]
+        sc = min(max(sc + ds, s0 * (1 - max_scale_dev)), s0 * (1 + max_scale_dev))
+        if abs(delta[0]) + abs(delta[1]) + (abs(delta[2]) + abs(ds)) * radius < 1e-3:
+            break
+    return x, y, th, sc

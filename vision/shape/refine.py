@@ -88,7 +88,6 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     """
     m = lm.points if subset is None else lm.points[subset]
     nrm_m = lm.normals if subset is None else lm.normals[subset]
-    dm0 = np.stack([m[:, 1], -m[:, 0]], axis=1)  # d(R m)/d theta = R (m_y, -m_x)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
     h, w = img_level.shape
     x0, y0 = max(int(pose.x - reach), 0), max(int(pose.y - reach), 0)
@@ -131,19 +130,10 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         img_f = fine[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         sel = found & (np.abs(d) < 1.0)
         persp = perspective
-        ms, ns, dms = m[sel], nrm_m[sel], dm0[sel]
-        for _ in range(1 if persp else 3):
-            R = rot(th)
-            Rm = ms @ R.T
-            q = sc * Rm + np.array([x, y])
-            n = ns @ R.T
-            off, S, clean = _profile(img_f, q, n)
-            ok = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
-            wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
-            if wgt.sum() < 6:
-                break
-            if update(_gn_step(n, Rm, dms @ R.T, sc, wgt, off, fit_scale)) < 1e-3:
-                break
+        ms, ns = m[sel], nrm_m[sel]
+        x, y, th, sc = kernels.fit_stage_b(  # the centroid Gauss-Newton loop, compiled (pick-speed)
+            img_f, ms, ns, x, y, th, sc, s0, max_scale_dev, float(min_contrast), bool(fit_scale),
+            1 if persp else 3, lm.radius, vis_margin, float(x1 - x0), float(y1 - y0), CENTROID_HALF_WIDTH)
         if persp:
             x, y, th, sc = kernels.perspective_fit(img_f, ms, ns, x, y, th, sc, float(min_contrast),
                                                    CENTROID_HALF_WIDTH)  # _perspective_fit compiled
