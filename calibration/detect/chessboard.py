@@ -24,8 +24,9 @@ iterated). bench/detection.py measures it: on rendered 9x6 boards at noise 2 / b
 halves the RMS error of ``findChessboardCornersSB`` even with ``CALIB_CB_ACCURACY`` (which we
 therefore leave off: it costs four times the time and adds nothing after our refinement) and
 beats ``findChessboardCorners`` + ``cornerSubPix`` (numbers in bench/results/detection.md). It
-is skipped where squares are too small for its window, and a corner it would move by more than
-0.75 px keeps OpenCV's position. Each corner carries its 1-sigma uncertainty from the image
+is skipped where squares are too small for its window, and a corner whose refinement does not
+converge to a saddle (or would move it more than ``SADDLE_MAX_MOVE_PX``) keeps OpenCV's position.
+Each corner carries its 1-sigma uncertainty from the image
 structure and noise in its window (``calibration.detect.precision``).
 """
 
@@ -134,8 +135,23 @@ def refine_saddle(grey: NDArray[np.uint8], uv: FloatArray, half_window: int = 3,
     """Our own saddle-point refinement: fit ``f = a u² + b uv + c v² + d u + e v + g`` to the lightly
     smoothed image in a small window and move to its stationary point (iterated).
 
-    Kept for measurement (bench/detection.py); the detector uses it only when it measurably helps.
+    Kept for measurement (bench/detection.py); the detector uses ``refine_saddle_converged``.
     """
+    return refine_saddle_converged(grey, uv, half_window, iterations)[0]
+
+
+SADDLE_CONVERGED_PX = 0.05
+"""A refinement has converged when its last step is shorter than this (px)."""
+SADDLE_MAX_MOVE_PX = 2.0
+"""A converged refinement may move a corner this far from OpenCV's position (within its window)."""
+
+
+def refine_saddle_converged(grey: NDArray[np.uint8], uv: FloatArray, half_window: int = 3, iterations: int = 6
+                            ) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """``refine_saddle`` with each step limited to 1 px in length (not dropped: OpenCV's sector
+    detector leaves blurred outer corners 1-1.4 px off, and a dropped first step left them
+    there), and a mask of the corners whose refinement converged to a saddle (last step below
+    ``SADDLE_CONVERGED_PX``)."""
     img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
     h, w = img.shape
     out = np.asarray(uv, dtype=np.float64).copy()
@@ -145,6 +161,7 @@ def refine_saddle(grey: NDArray[np.uint8], uv: FloatArray, half_window: int = 3,
     wts = np.exp(-(du**2 + dv**2) / (2 * (half_window * 0.7) ** 2))
     A = np.column_stack([du**2, du * dv, dv**2, du, dv, np.ones_like(du)]) * wts[:, None]
     pinv = np.linalg.pinv(A)
+    converged = np.zeros(len(out), dtype=bool)
     for _ in range(iterations):
         mu = (out[:, 0][:, None] + du[None, :]).astype(np.float32)
         mv = (out[:, 1][:, None] + dv[None, :]).astype(np.float32)
@@ -156,11 +173,15 @@ def refine_saddle(grey: NDArray[np.uint8], uv: FloatArray, half_window: int = 3,
         step_u = np.where(ok, (b * e - 2 * c * d) / np.where(ok, det, 1.0), 0.0)
         step_v = np.where(ok, (b * d - 2 * a * e) / np.where(ok, det, 1.0), 0.0)
         step = np.column_stack([step_u, step_v])
-        step[np.linalg.norm(step, axis=1) > 1.0] = 0.0
+        length = np.linalg.norm(step, axis=1)
+        step[~np.isfinite(length)] = 0.0
+        long = length > 1.0
+        step[long] /= length[long, None]
         out += step
+        converged = ok & (length < SADDLE_CONVERGED_PX)
     out[:, 0] = np.clip(out[:, 0], 0, w - 1)
     out[:, 1] = np.clip(out[:, 1], 0, h - 1)
-    return out
+    return out, converged
 
 
 def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: str = "",
@@ -182,9 +203,9 @@ def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: s
     if saddle_refinement:
         square_px = float(np.median(np.hypot(*np.diff(G, axis=1).reshape(-1, 2).T)))
         if square_px >= 4 * SADDLE_HALF_WINDOW:  # the window must see only this corner's four squares
-            refined = refine_saddle(grey, uv, SADDLE_HALF_WINDOW)
+            refined, converged = refine_saddle_converged(grey, uv, SADDLE_HALF_WINDOW)
             moved = np.hypot(*(refined - uv).T)
-            uv = np.where((moved < 0.75)[:, None], refined, uv)
+            uv = np.where((converged & (moved < SADDLE_MAX_MOVE_PX))[:, None], refined, uv)
     ids = target.points().ids
     sigma = gradient_sigma_px(grey, uv, CORNER_WINDOW_SIGMA_PX)
     return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64),
