@@ -10,14 +10,20 @@ model projects them. Sub-pixel rays are interpolated linearly from the per-pixel
 Why it is fast (a 1280x960 frame of the virtual cell in ~0.13x the time it took before; figures in
 ``bench/results/render.md``):
 - the ray field (the lens inversion) is computed exactly on a 16 px grid and interpolated by a
-  quintic spline (separable, two matrix products; error ~1e-7 px, checked against the exact
-  inversion at sample pixels, with a fall-back to the per-pixel inversion), cached per model;
+  quintic spline (separable; its local B-spline basis as sparse products; error ~1e-7 px, checked
+  against the exact inversion at sample pixels, with a fall-back to the per-pixel inversion),
+  cached per model;
 - a plane maps rays to its own coordinates by a homography, tested only inside the plane's
   window (the image box its ``extent_m`` can cover, found on a coarse grid), in compiled loops
   (``calibration.render_kernels``) that hand the reflectance function only the rays that hit;
 - planes are shaded front to back, so an occluded plane's reflectance is not evaluated;
 - supersampling visits only the edge pixels, and a pixel whose neighbours all see one object
-  only that object.
+  only that object;
+- the targets' own patterns (circle plate, chessboard, circle grid) are shaded in compiled loops,
+  bit-identical to their numpy ``reflectance`` (``calibration.render_patterns``), and an edge pixel
+  that sees one such pattern is supersampled in one fused loop;
+- bands of rows, then runs of edge pixels, go to a few threads (``RENDER_THREADS``); every
+  pixel's result is independent of the split.
 
 This is our own code: OpenCV has no renderer; the virtual cell and the benchmarks need one whose
 geometry is known to better than 0.02 px. Grey levels and camera defects: ``calibration.sensor``.
@@ -140,7 +146,7 @@ def _field_cached(model: str, width: int, height: int, K: bytes, dist: bytes) ->
 def _spline_field(cam: CameraModel) -> NDArray[np.float64] | None:
     """The ray field interpolated from an exact coarse inversion, or None when that is not
     accurate here (lens inversion undefined beyond the image, or a check pixel off by > 1e-5 px)."""
-    from scipy.interpolate import make_interp_spline
+    from scipy.interpolate import BSpline, make_interp_spline
 
     s = _COARSE_PX
     us = np.arange(-2 * s, cam.width + 2 * s, s, dtype=np.float64)
@@ -151,9 +157,17 @@ def _spline_field(cam: CameraModel) -> NDArray[np.float64] | None:
     coarse = cam.unproject(np.column_stack([cu.ravel(), cv.ravel()]))[:, :2].reshape(len(vs), len(us), 2)
     if not np.all(np.isfinite(coarse)):
         return None
-    Wu = make_interp_spline(us, np.eye(len(us)), k=5)(np.arange(cam.width, dtype=np.float64))
-    Wv = make_interp_spline(vs, np.eye(len(vs)), k=5)(np.arange(cam.height, dtype=np.float64))
-    field = np.stack([Wv @ coarse[..., i] @ Wu.T for i in range(2)], axis=-1)
+    # The tensor-product quintic interpolating spline: its coefficients (small dense solves),
+    # then its B-spline basis, 6 of them non-zero per pixel row and column (sparse products), so
+    # the per-pixel cost is 6 x 6 terms, not all the coarse samples.
+    su = make_interp_spline(us, np.eye(len(us)), k=5)
+    sv = make_interp_spline(vs, np.eye(len(vs)), k=5)
+    Du = BSpline.design_matrix(np.arange(cam.width, dtype=np.float64), su.t, 5).tocsr()
+    Dv = BSpline.design_matrix(np.arange(cam.height, dtype=np.float64), sv.t, 5).tocsr()
+    field = np.empty((cam.height, cam.width, 2))
+    for i in range(2):
+        coef = sv.c @ np.ascontiguousarray(coarse[..., i]) @ su.c.T
+        field[..., i] = Dv @ (Du @ coef.T).T
     rng = np.random.default_rng(0)
     check = np.column_stack([rng.integers(0, cam.width, 64), rng.integers(0, cam.height, 64)])
     exact = cam.unproject(check.astype(np.float64))[:, :2]
