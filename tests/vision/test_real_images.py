@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.pick_cases import Case, Found, TestImage, load_cases, read_grey, score, texture, to_reference
+from bench.pick_cases import Case, Found, TestImage, faint, load_cases, read_grey, scaled, score, texture, to_reference
 from vision import shape
 from vision.errors import SettingsError
 from vision.types import SearchParams
@@ -26,7 +26,7 @@ DEV = [(c, t) for c in CASES.values() for t in c.tests]
 KNOWN_MISSES = {
     "robertson_screw_heads": "screw heads on wood grain: the outline now leads the model, but the specular "
                              "socket (another angle and highlight on each screw) is still a third of it; "
-                             "heads score 0.27-0.49 at their true pose, the empty holes up to 0.32",
+                             "heads score 0.24-0.49 at their true pose, the empty holes up to 0.34",
 }
 
 
@@ -77,8 +77,8 @@ def _near_any(case: Case, f: Found, test: TestImage) -> bool:
     return any(math.hypot(x - i.x, y - i.y) <= gate for i in test.instances)
 
 
-@pytest.mark.xfail(strict=True, reason="the reverse-side key is another key of the same blank: its outline "
-                                       "matches the unmirrored model better (0.51) than the mirrored one (0.31)")
+@pytest.mark.xfail(strict=True, reason="the reverse-side key is another key of the same blank (other bitting, "
+                                       "light from another side): the mirrored model fits it best, at 0.43")
 def test_mirrored_key_found_with_mirrored_search() -> None:
     case = CASES["generalized_hough_keys"]
     test = case.tests[0]
@@ -146,6 +146,33 @@ def test_texture_heavy_background(multi: tuple[Case, TestImage, np.ndarray]) -> 
     case, test, img = multi
     s = score(case, test, _found(shape.find(model_of(case), texture(img))))
     assert s.found == 7 and s.false == 0 and s.out_of_tolerance == 0
+
+
+@pytest.mark.parametrize("case_id", ["sick_edgematcher_multi", "invariant_tm_shaft_supports", "generalized_hough_keys"])
+def test_faint_blurred_noisy_view(case_id: str) -> None:
+    """Contrast cut to a quarter, blur 2.5 px, noise 2 grey levels: the edges fall below the taught
+    contrast, and the find-time threshold follows the part down (above the image's noise)."""
+    case = CASES[case_id]
+    test = case.tests[0]
+    res = shape.find(model_of(case), faint(read_grey(test.path)))
+    required = TestImage(test.path, sum(1 for i in test.instances if not i.mirrored),
+                         [i for i in test.instances if not i.mirrored])
+    s = score(case, required, [f for f in _found(res) if _near_any(case, f, required)])
+    assert s.found == required.expected_count, res.reason()
+    assert s.out_of_tolerance == 0, (s.pos_err, s.ang_err)
+    assert score(case, test, _found(res)).false == 0
+
+
+@pytest.mark.parametrize("k", [0.5, 0.25])
+def test_small_parts(k: float) -> None:
+    """The back-lit double crosses with teach and test images resized (43 x 26 px, then 21 x 13 px):
+    the pyramid stays shallow enough to keep the part, and every instance is found."""
+    case = scaled(CASES["sick_edgematcher_multi"], k)
+    model = shape.teach(case.teach_image(), case.roi)
+    for test in case.tests:
+        s = score(case, test, _found(shape.find(model, case.test_image(test))))
+        assert s.found == test.expected_count and s.false == 0
+        assert s.out_of_tolerance == 0, (s.pos_err, s.ang_err)
 
 
 def test_mirror_image_of_an_asymmetric_part() -> None:
