@@ -10,10 +10,10 @@
    discrete level a second pass on unspread responses settles the +-1 px plateaus.
 3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
 
-The score (``refine.polarity_score``, HALCON's metric in our words) is the edge-direction
+The score (``score.direction_score``, HALCON's metric in our words) is the edge-direction
 agreement at the final pose averaged over the model points that lie inside the image: each point
-contributes ``cos`` of the angle between its normal and the nearest image edge's gradient times a
-distance weight, with the polarity rule asked (``use_polarity``, ``ignore_global_polarity``,
+contributes the agreement of its normal with the image edge's gradient direction within 1-1.5 px
+along the normal, with the polarity rule asked (``use_polarity``, ``ignore_global_polarity``,
 ``ignore_local_polarity``). It is the fraction of the visible model edges seen where they should
 be, so it falls smoothly with occlusion, and a part running off the image is scored on what is
 seen (down to ``min_visible`` of its points). With ``mirrored`` the model's mirror image is searched
