@@ -127,3 +127,18 @@ def test_the_image_does_not_depend_on_the_thread_count(monkeypatch: pytest.Monke
         frames.append(render_scene(cam, objs, 0.45, 6))
     for value, depth in frames[1:]:
         assert np.array_equal(value, frames[0][0]) and np.array_equal(depth, frames[0][1])
+
+
+def test_an_error_in_a_render_thread_reaches_the_caller(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reflectance that breaks the contract in a band shaded by a pool worker is the caller's
+    typed error, and the pool is still usable after it."""
+    from calibration.render import RenderError
+
+    monkeypatch.setattr(render, "RENDER_THREADS", 2)
+    cam = CameraModel("opencv5", 640, 480, K / 2 * np.array([[1], [1], [2]]))
+    T = g.make_transform(np.eye(3), [0, 0, 1.0])
+    bad = PlanarObject(T, lambda x, y: np.zeros(3) if np.any(y > 0.05) else np.zeros(x.shape))
+    with pytest.raises(RenderError, match="returned 3 values"):
+        render_scene(cam, [bad])
+    value, _ = render_scene(cam, [PlanarObject(T, lambda x, y: np.full(x.shape, 0.25))])
+    assert np.all(value == 0.25)
