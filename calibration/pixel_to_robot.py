@@ -8,7 +8,8 @@ Two kinds of calibration (the JSON files of docs/cli.md):
 - **hand-eye** (``he.json``): the pixel's ray, through the camera model, intersected with the
   horizontal working plane ``z = plane_z_mm`` of the robot base frame. ``T_base_cam`` is the
   calibration's ``T_base_cam`` (eye-to-hand) or ``T_base_tool(capture) · T_tool_cam``
-  (eye-in-hand, which needs the robot pose at capture). Uncertainty: first-order propagation of
+  (eye-in-hand, which needs the robot pose at capture; corrected by the calibration's systematic
+  robot error when its chosen error model has one). Uncertainty: first-order propagation of
   the hand-eye covariance (6x6), the pixel noise and, eye-in-hand, the robot's stated pose noise at
   capture (the calibration's robot noise model), by numerical Jacobians.
 """
@@ -85,6 +86,24 @@ def _matrix(calib: dict[str, Any], key: str) -> NDArray[np.float64]:
         raise MappingError(f"hand-eye calibration lacks {key}") from None
 
 
+def _systematic_corrected(calib: dict[str, Any], G: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The robot pose with the calibration's systematic position correction applied, when its chosen
+    error model has one (``error_model.systematic_A``: ``t_true = t_rec + A (t_rec - t_mean)``, base
+    frame, metres): X was estimated together with it, so it must be mapped through it too."""
+    em = calib.get("error_model") or {}
+    A, t_mean = em.get("systematic_A"), em.get("t_mean_m")
+    if A is None or t_mean is None:
+        return G
+    try:
+        A_m = np.asarray(A, dtype=np.float64).reshape(3, 3)
+        t0 = np.asarray(t_mean, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise MappingError("he.json error_model.systematic_A must be 3x3 and t_mean_m 3 numbers (metres)") from None
+    out = G.copy()
+    out[:3, 3] = G[:3, 3] + A_m @ (G[:3, 3] - t0)
+    return out
+
+
 def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, plane_z_mm: float,
                 robot_pose: ArrayLike | None = None, pixel_sigma_px: float | None = None,
                 with_uncertainty: bool = True) -> RobotPoint:
@@ -103,6 +122,7 @@ def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, pl
                                "metres and rotation vector as UR reports it)")
         rp = np.asarray(robot_pose, dtype=np.float64)
         G = ur_pose_to_transform(rp) if rp.size == 6 else as_transform(rp, "robot pose")
+        G = _systematic_corrected(calib, G)
     elif setup == "eye-to-hand":
         X = _matrix(calib, "T_base_cam")
         if robot_pose is not None:

@@ -25,6 +25,7 @@ from calibration.handeye import (
 )
 from calibration.handeye.error_model import PARSIMONY, predicts_better
 from calibration.observations import Detection
+from calibration.pixel_to_robot import pixel_to_robot
 from calibration.targets import Chessboard
 from drivers.sim.kinematics import KinematicError
 
@@ -163,3 +164,21 @@ def test_joint_intrinsics_refinement_on_when_the_camera_verdict_is_uncertain() -
     assert joint.loo["prediction_rms_px"] < 1.2 * true_cam.loo["prediction_rms_px"]
     assert joint.loo["prediction_rms_px"] < 0.7 * plain.loo["prediction_rms_px"]
     assert joint.to_json()["intrinsics_refined"] is True
+
+
+def test_mapping_goes_through_the_systematic_correction_the_hand_eye_was_fitted_with() -> None:
+    """A pixel of a target point, predicted at a station by the calibration, maps back onto that
+    point (base frame) only if the map applies the same systematic robot correction as the fit."""
+    G, dets = _kinematic_set(1)
+    res = calibrate_handeye("eye-in-hand", G[:N_CAL], dets[:N_CAL], CAM, TARGET, STATED, error_model="systematic",
+                            leave_one_out=False)
+    he = res.to_json()
+    A = np.asarray(he["error_model"]["systematic_A"])
+    g = G[N_CAL]
+    shift_mm = 1e3 * np.linalg.norm(A @ (g[:3, 3] - np.asarray(he["error_model"]["t_mean_m"])))
+    assert shift_mm > 0.2  # the correction matters at this station
+    P = TARGET.points().xyz_m[7]
+    P_base = res.Z[:3, :3] @ P + res.Z[:3, 3]
+    uv = res.predict_pixels(g, P[None])[0]
+    m = pixel_to_robot(he, uv, camera=CAM, plane_z_mm=1e3 * P_base[2], robot_pose=g)
+    assert np.linalg.norm(m.xyz_mm - 1e3 * P_base) < 0.01, (m.xyz_mm, 1e3 * P_base)
