@@ -78,6 +78,7 @@ def calibrate_handeye(
     """
     t_start = time.perf_counter()
     models = _models(error_model, estimate_robot_noise, leave_one_out)
+    cov_c = None if camera_covariance is None else _checked_camera_covariance(camera, camera_covariance)
     noise = robot_noise or RobotNoise()
     stations, problems, kept, pair_info = _checked_stations(setup, T_base_tool, detections, camera, target,
                                                             raw_ur_poses, drop_outliers)
@@ -85,7 +86,6 @@ def calibrate_handeye(
     if sigma_px is None:
         sigma_px = _pixel_sigma(stations)
     intr = camera_verdict_ok is False if refine_intrinsics is None else refine_intrinsics
-    cov_c = None if camera_covariance is None else _checked_camera_covariance(camera, camera_covariance)
     options = JointOptions(intrinsics=intr, camera_covariance=cov_c)
     with_loo = leave_one_out and len(stations) > MIN_STATIONS
     fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
