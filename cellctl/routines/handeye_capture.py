@@ -206,6 +206,11 @@ def _store(services: Services, ctx: JobContext, p: Params, result: HandEyeResult
     complete = _ok(result) and not cov.missing
     he["verdict"]["coverage"] = cov.to_json()
     he["verdict"]["coverage_missing"] = cov.missing
+    if cov.missing:
+        he["verdict"]["problems"].append({
+            "code": "coverage_missing", "severity": "warning",
+            "message": "the stations lack " + "; ".join(cov.missing) + ": run handeye-capture again with a larger "
+                       "max_stations, or more room (max_tilt_deg, max_spin_deg, distance_range, the envelope)"})
     record = services.store.save_calibration(
         "handeye", camera_id, robot_id, he,
         {"target": services.config.targets[tname], "camera_calibration_id": camera_calibration_id,

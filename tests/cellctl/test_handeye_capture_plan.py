@@ -141,6 +141,8 @@ def test_a_spent_budget_says_what_is_missing(tmp_path: Path, tmp_services: list[
     assert res["verdict"]["coverage_missing"] == missing
     stored = svc.store.get_calibration(res["calibration_id"]).result
     assert stored["verdict"]["coverage_missing"] == missing
+    problem = [q for q in stored["verdict"]["problems"] if q["code"] == "coverage_missing"]
+    assert len(problem) == 1 and "max_stations" in problem[0]["message"] and problem[0]["severity"] == "warning"
 
 
 def test_stations_over_the_budget_and_no_camera_are_clear_errors(tmp_path: Path,
