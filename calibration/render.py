@@ -32,18 +32,19 @@ geometry is known to better than 0.02 px. Grey levels and camera defects: ``cali
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import cmp_to_key, lru_cache
+from functools import cmp_to_key
 from types import ModuleType
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.camera_model import CameraModel
+from calibration.render_field import ray_field
+from calibration.render_pool import Scratch, parallel
+from calibration.render_pool import scratch as scratch_for
 from calibration.sensor import Imaging, to_grey
 
 if TYPE_CHECKING:
@@ -58,9 +59,6 @@ class RenderError(ValueError):
     """An object handed to the renderer does not behave as the contract says."""
 
 
-_COARSE_PX = 16
-"""Grid step (px) of the exact lens inversion that the ray field is interpolated from."""
-_FIELD_TOL_PX = 1e-5
 _WINDOW_PX = 8
 """Grid step (px) on which a plane's image window is found."""
 
@@ -87,16 +85,6 @@ class PlanarObject:
                 box = tuple(float(v) for v in extent())
                 if len(box) == 4:
                     object.__setattr__(self, "extent_m", box)
-
-
-# -- the ray field ---------------------------------------------------------------------------------
-def ray_field(camera: CameraModel) -> NDArray[np.float64]:
-    """(H, W, 2) normalized ideal ray coordinates ``(x, y)`` (ray ``[x, y, 1]``) per pixel centre."""
-    with _FIELD_LOCK:  # one inversion per camera even when several threads ask at once
-        return _field_cached(camera.model, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-
-
-_FIELD_LOCK = threading.Lock()
 
 
 def _kernels(patterns: bool = False) -> ModuleType:
@@ -128,51 +116,6 @@ def prepare(camera: CameraModel) -> None:
     refl, depth = render_scene(tiny, objects, supersample=2)
     to_grey(refl, Imaging(noise_sigma=1.0, light_gradient=0.1), np.random.default_rng(0), depth)
     ray_field(camera)
-
-
-@lru_cache(maxsize=8)
-def _field_cached(model: str, width: int, height: int, K: bytes, dist: bytes) -> NDArray[np.float64]:
-    cam = CameraModel(model, width, height,  # type: ignore[arg-type]
-                      np.frombuffer(K).reshape(3, 3).copy(), np.frombuffer(dist).copy())
-    field = _spline_field(cam)
-    if field is None:
-        uu, vv = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        field = cam.unproject(np.column_stack([uu.ravel(), vv.ravel()]))[:, :2].reshape(height, width, 2)
-    field = np.ascontiguousarray(field)
-    field.setflags(write=False)
-    return field
-
-
-def _spline_field(cam: CameraModel) -> NDArray[np.float64] | None:
-    """The ray field interpolated from an exact coarse inversion, or None when that is not
-    accurate here (lens inversion undefined beyond the image, or a check pixel off by > 1e-5 px)."""
-    from scipy.interpolate import BSpline, make_interp_spline
-
-    s = _COARSE_PX
-    us = np.arange(-2 * s, cam.width + 2 * s, s, dtype=np.float64)
-    vs = np.arange(-2 * s, cam.height + 2 * s, s, dtype=np.float64)
-    if min(us.size, vs.size) < 8:  # too small an image for the spline: invert every pixel
-        return None
-    cu, cv = np.meshgrid(us, vs)
-    coarse = cam.unproject(np.column_stack([cu.ravel(), cv.ravel()]))[:, :2].reshape(len(vs), len(us), 2)
-    if not np.all(np.isfinite(coarse)):
-        return None
-    # The tensor-product quintic interpolating spline: its coefficients (small dense solves),
-    # then its B-spline basis, 6 of them non-zero per pixel row and column (sparse products), so
-    # the per-pixel cost is 6 x 6 terms, not all the coarse samples.
-    su = make_interp_spline(us, np.eye(len(us)), k=5)
-    sv = make_interp_spline(vs, np.eye(len(vs)), k=5)
-    Du = BSpline.design_matrix(np.arange(cam.width, dtype=np.float64), su.t, 5).tocsr()
-    Dv = BSpline.design_matrix(np.arange(cam.height, dtype=np.float64), sv.t, 5).tocsr()
-    field = np.empty((cam.height, cam.width, 2))
-    for i in range(2):
-        coef = sv.c @ np.ascontiguousarray(coarse[..., i]) @ su.c.T
-        field[..., i] = Dv @ (Du @ coef.T).T
-    rng = np.random.default_rng(0)
-    check = np.column_stack([rng.integers(0, cam.width, 64), rng.integers(0, cam.height, 64)])
-    exact = cam.unproject(check.astype(np.float64))[:, :2]
-    err_px = np.abs(field[check[:, 1], check[:, 0]] - exact).max() * max(cam.fx, cam.fy)
-    return field if err_px < _FIELD_TOL_PX else None
 
 
 # -- planes ----------------------------------------------------------------------------------------
@@ -289,7 +232,7 @@ def _nearer(a: _Plane, b: _Plane) -> int:
     return -1 if diff < 0 else 1 if diff > 0 else a.index - b.index
 
 
-def _shade(p: _Plane, n: int, scratch: _Scratch, value: NDArray[np.float64], depth: NDArray[np.float64],
+def _shade(p: _Plane, n: int, scratch: Scratch, value: NDArray[np.float64], depth: NDArray[np.float64],
            which: NDArray[np.int32]) -> None:
     """Evaluate ``p``'s reflectance at its ``n`` compacted hits and store the defined ones."""
     if n == 0:
@@ -331,7 +274,7 @@ def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], backgroun
         value[ra * w : rb * w] = background
         depth[ra * w : rb * w] = np.inf
         which[ra * w : rb * w] = -1
-        scratch = _scratch(band * w)
+        scratch = scratch_for(band * w)
         for p in planes:  # nearest first, so an occluded plane's hits are never shaded
             r0, r1, c0, c1 = p.window
             a, b = max(ra, r0), min(rb, r1)
@@ -343,10 +286,10 @@ def render_scene(camera: CameraModel, objects: Sequence[PlanarObject], backgroun
                 n = k.hit_pixels(field, a, b, c0, c1, p.H, p.d, p.index, depth, which, *scratch.hits)
                 _shade(p, n, scratch, value, depth, which)
 
-    _parallel(shade_band, bands)
+    parallel(shade_band, bands, RENDER_THREADS)
     value2, which2 = value.reshape(h, w), which.reshape(h, w)
     if supersample > 1 and planes:
-        edges = _parallel(lambda rows: k.edge_pixels(value2, which2, rows[0], rows[1]), bands)
+        edges = parallel(lambda rows: k.edge_pixels(value2, which2, rows[0], rows[1]), bands, RENDER_THREADS)
         rows, cols, only = (np.concatenate([e[i] for e in edges]) for i in range(3))
         if rows.size:
             value2[rows, cols] = _supersample(field, rows, cols, only, planes, background, supersample)
@@ -362,79 +305,6 @@ def render_reflectance(camera: CameraModel, objects: Sequence[PlanarObject], bac
 _CHUNK_RAYS = 1 << 17
 RENDER_THREADS = max(1, min(4, os.cpu_count() or 1))
 """Threads a frame is rendered on (the caller's and pool workers); set before the first frame."""
-
-_POOL: ThreadPoolExecutor | None = None
-_POOL_LOCK = threading.Lock()
-_LOCAL = threading.local()
-_T = TypeVar("_T")
-_I = TypeVar("_I")
-
-
-def _parallel(fn: Callable[[_I], _T], items: Sequence[_I]) -> list[_T]:
-    """``[fn(item) for item in items]``, the items handed out one by one to the calling thread and
-    up to ``RENDER_THREADS - 1`` pool workers (the compiled loops release the GIL, numpy mostly)."""
-    global _POOL
-    helpers = min(RENDER_THREADS, len(items)) - 1
-    if helpers <= 0:
-        return [fn(item) for item in items]
-    with _POOL_LOCK:
-        if _POOL is None:
-            _POOL = ThreadPoolExecutor(max(RENDER_THREADS - 1, 1), thread_name_prefix="render")
-        pool = _POOL
-    todo = iter(range(len(items)))
-    take = threading.Lock()
-    out: list[_T | None] = [None] * len(items)
-
-    def work() -> None:
-        while True:
-            with take:
-                i = next(todo, None)
-            if i is None:
-                return
-            out[i] = fn(items[i])
-
-    futures = [pool.submit(work) for _ in range(helpers)]
-    try:
-        work()
-    finally:
-        for f in futures:
-            f.result()  # waits; re-raises a helper's error
-    return out  # type: ignore[return-value]
-
-
-class _Scratch:
-    """Compacted hits of one chunk: object x, y (m), depth (m) and the flat ray index; and the
-    sub-ray buffers of supersampling (value, depth, object)."""
-
-    def __init__(self) -> None:
-        self.ox = self.oy = self.lam = np.empty(0)
-        self.flat = np.empty(0, dtype=np.int64)
-        self.sub_value = self.sub_depth = np.empty(0)
-        self.sub_which = np.empty(0, dtype=np.int32)
-
-    @property
-    def hits(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-        return self.ox, self.oy, self.lam, self.flat
-
-    def ensure(self, size: int) -> None:
-        if self.ox.size < size:
-            self.ox, self.oy, self.lam = np.empty(size), np.empty(size), np.empty(size)
-            self.flat = np.empty(size, dtype=np.int64)
-
-    def ensure_sub(self, size: int) -> None:
-        if self.sub_value.size < size:
-            self.sub_value, self.sub_depth = np.empty(size), np.empty(size)
-            self.sub_which = np.empty(size, dtype=np.int32)
-
-
-def _scratch(size: int) -> _Scratch:
-    """This thread's scratch, at least ``size`` rays long."""
-    scratch: _Scratch | None = getattr(_LOCAL, "scratch", None)
-    if scratch is None:
-        scratch = _LOCAL.scratch = _Scratch()
-    scratch.ensure(size)
-    return scratch
-
 
 def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
                  only: NDArray[np.int64], planes: Sequence[_Plane], background: float,
@@ -469,7 +339,7 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
             out[sel] = res
             return
         m = sel.size * n2
-        scratch = _scratch(m)
+        scratch = scratch_for(m)
         scratch.ensure_sub(m)
         v, dp, wh = scratch.sub_value[:m], scratch.sub_depth[:m], scratch.sub_which[:m]
         v.fill(background)
@@ -481,7 +351,7 @@ def _supersample(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDAr
             _shade(p, hits, scratch, v, dp, wh)
         out[sel] = v.reshape(sel.size, n2).mean(axis=1)
 
-    _parallel(run, tasks)
+    parallel(run, tasks, RENDER_THREADS)
     return out
 
 
