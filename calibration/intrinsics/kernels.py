@@ -240,10 +240,13 @@ def damped_step(A: F64, B: F64, D: F64, gc: F64, gv: F64, lam: float) -> tuple[F
     """The Marquardt-damped Gauss-Newton step for the arrow-structured normal equations: the poses
     are eliminated view by view (Schur complement), the reduced intrinsics system is solved by
     a scaled least squares (rank-deficient directions get no step), then the poses are
-    back-substituted. Returns ``(dc, dv)`` with ``dv`` (V, 6)."""
+    back-substituted. Returns ``(dc, dv)`` with ``dv`` (V, 6); NaN when the system is not finite
+    (the caller treats it as a failed step)."""
     nv = D.shape[0]
     nc = A.shape[0]
     S = A.copy()
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(D)) and np.all(np.isfinite(B))):
+        return np.full(nc, np.nan), np.full((nv, 6), np.nan)
     for p in range(nc):
         S[p, p] += lam * A[p, p]
     rhs = -gc.copy()
@@ -259,8 +262,17 @@ def damped_step(A: F64, B: F64, D: F64, gc: F64, gv: F64, lam: float) -> tuple[F
         rhs += BDinv[k] @ gv[k]
     dc = np.zeros(nc)
     if nc:
-        sc = np.sqrt(np.maximum(np.diag(S), 1e-300))
+        dS = np.diag(S)
+        big = np.max(np.abs(dS))
+        sc = np.ones(nc)
+        for p in range(nc):
+            # a parameter without information (zero column, or a negative round-off) keeps scale 1:
+            # dividing by its ~0 diagonal overflowed to inf (a 6-view ChArUco set, rational model)
+            if np.isfinite(dS[p]) and dS[p] > 1e-300 + 1e-15 * big:
+                sc[p] = np.sqrt(dS[p])
         Ss = S / np.outer(sc, sc)
+        if not (np.all(np.isfinite(Ss)) and np.all(np.isfinite(rhs))):
+            return np.full(nc, np.nan), np.full((nv, 6), np.nan)
         dc = np.linalg.lstsq(Ss, rhs / sc, 1e-14)[0] / sc
     dv = np.empty((nv, 6))
     for k in range(nv):

@@ -188,12 +188,27 @@ def levenberg_marquardt(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[
     return c, R, t, it
 
 
+def information_scale(S: F64) -> F64:
+    """Square roots of the diagonal of a normal matrix, 1 where a parameter carries no information
+    (dividing by its ~0 diagonal overflows)."""
+    d = np.diag(S)
+    big = float(np.max(np.abs(d))) if d.size else 0.0
+    ok = np.isfinite(d) & (d > 1e-300 + 1e-15 * big)
+    return np.where(ok, np.sqrt(np.where(ok, d, 1.0)), 1.0)
+
+
 def marginals(n: NormalEquations) -> tuple[F64, F64]:
     """Inverse of the Schur complement (intrinsics covariance / sigma^2) and the pose blocks."""
     Dinv = np.linalg.inv(n.D)
     BDinv = n.B @ Dinv
     S = n.A - np.einsum("vij,vkj->ik", BDinv, n.B)
-    s = np.sqrt(np.maximum(np.diag(S), 1e-300))
-    S_inv = np.linalg.pinv(S / s[:, None] / s[None, :], rcond=1e-15) / s[:, None] / s[None, :]
+    s = information_scale(S)
+    Ss = S / s[:, None] / s[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Ss + Ss.T))
+    # A direction the data do not determine (eigenvalue below 1e-15 of the largest, or negative
+    # from round-off at a degenerate optimum) gets the variance of that bound, not pinv's zero:
+    # a rational fit to 5 views that ran into its pole reported 6e-8 px for a 0.4 px error.
+    floor = 1e-15 * max(float(np.max(np.abs(lam))) if lam.size else 1.0, 1e-300)
+    S_inv = (V / np.where(lam > floor, lam, floor)) @ V.T / s[:, None] / s[None, :]
     pose = Dinv + np.einsum("vji,jk,vkl->vil", BDinv, S_inv, BDinv)
     return S_inv, pose

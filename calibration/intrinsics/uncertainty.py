@@ -12,6 +12,7 @@ from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3
 from calibration.intrinsics.model import (
     NormalEquations,
+    information_scale,
     intrinsic_steps,
     intrinsics_vector,
     project_normalized,
@@ -167,7 +168,7 @@ def jackknife_projection_rms(camera: CameraModel, nrm: NormalEquations, pts: F64
     for g in range(G):
         Sr = S - Sv[gid == g].sum(axis=0)
         hg = hv[gid == g].sum(axis=0)
-        sc = np.sqrt(np.maximum(np.diag(Sr), 1e-300))
+        sc = information_scale(Sr)
         dc = np.linalg.lstsq(Sr / sc[:, None] / sc[None, :], hg / sc, rcond=1e-14)[0] / sc
         dq[g] = (M @ dc).reshape(-1, 2)
     dq = dq[:, valid]
