@@ -98,6 +98,11 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     d = services.config.calibration
     camera_id, robot_id = p.camera_id or d.camera, p.robot_id or d.robot
     tname, target = routine_target(services, p.target)
+    if p.tool_centre and d.setup == "eye-in-hand":
+        raise RoutineError("tool_centre needs a fixed camera that sees the gripper (calibration.setup: eye-to-hand); "
+                           "a camera on the tool turns with it")
+    if p.tcp_mark is not None and p.tcp_mark > p.marks:
+        raise RoutineError(f"tcp_mark {p.tcp_mark}: only {p.marks} marks will be recorded; give 1..{p.marks}")
     cam, robot = devices(services, camera_id, robot_id)
     if robot is None:
         raise RoutineError(f"routine needs robot {robot_id!r}; name a configured robot (robot_id)")
@@ -141,8 +146,6 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     np_json["verdict"] = assess_npoint(result, uv, xy, shot.frame.size, [m["step"] for m in pairs])
     if p.tool_centre:
         step = p.tcp_mark or _central_step(pairs)
-        if step > len(pairs):
-            raise RoutineError(f"tcp_mark {step}: only {len(pairs)} marks were recorded; give 1..{len(pairs)}")
         T_mark = poses[step - 1].copy()
         T_mark[:2, 3] = [pairs[step - 1]["x_mm"] * 1e-3, pairs[step - 1]["y_mm"] * 1e-3]
         ctx.report(0.62, f"turning the tool at mark {step} for the tool centre")

@@ -87,3 +87,15 @@ def test_the_wizard_shows_the_verdict(served: Served, browser: Browser, marks_mm
     expect(problem).to_contain_text("worst: mark 7")
     expect(problem).to_contain_text("re-record")
     page.screenshot(path=str(SHOTS / "wizard-verdict-not-ok.png"), full_page=True)
+
+
+def test_the_tool_centre_needs_a_fixed_camera(served: Served) -> None:
+    """The built-in cell's camera rides on the tool: the turn is refused before anything moves."""
+    with served.client() as http:
+        r = http.post("/routines/jog-to-mark", json={"tool_centre": True})
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 30
+        while (job := http.get(f"/jobs/{r.json()['id']}").json())["state"] == "running":
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+    assert job["state"] == "failed" and "needs a fixed camera" in job["error"], job
