@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from tests.conftest import REPO, free_port
 
@@ -34,10 +35,31 @@ def tour_script(port: int) -> str:
     return "set -euo pipefail\n" + script
 
 
-def test_the_tour_runs_as_written(tmp_path: Path) -> None:
+def _check_the_tour_results(cwd: Path) -> tuple[int, int]:
+    """What the tour promised is there; answers the two calibration ids it stored."""
+    assert (cwd / "frame.png").stat().st_size > 10000
+    intrinsics = json.loads((cwd / "intrinsics.json").read_text())
+    handeye = json.loads((cwd / "handeye.json").read_text())
+    assert intrinsics["state"] == "succeeded" and handeye["state"] == "succeeded"
+    picks = json.loads((cwd / "picks.json").read_text())["picks"]
+    assert picks and picks[0]["part"] == "bracket" and picks[0]["reachable"]
+    truth = json.loads((cwd / "truth.json").read_text())
+    bracket = next(p for p in truth["parts"] if p["name"] == "bracket")
+    pose = picks[0]["pick_pose"]
+    assert abs(pose["x_mm"] - bracket["x_mm"]) < 1.0 and abs(pose["y_mm"] - bracket["y_mm"]) < 1.0
+    # `record` never writes into a folder that holds data: the tour names a new one each time.
+    assert [p for p in cwd.glob("recording-*") if (p / "manifest.json").exists()]
+    assert "sha256" in (cwd / "cell.yaml").read_text()
+    return int(intrinsics["result"]["calibration_id"]), int(handeye["result"]["calibration_id"])
+
+
+@pytest.mark.timeout(1800)  # two whole tours with a real-time robot: ~2 x 4 min on an idle machine
+def test_the_tour_runs_as_written_twice_on_one_store(tmp_path: Path) -> None:
     """Start the service as the README's first command does (on a free port of its own, with its own
     HOME and so its own data dir), then run every tour block against that service, never against
-    whatever else may listen on 8080."""
+    whatever else may listen on 8080 — and then run the whole tour again, unchanged, in the same
+    folder against the same service and store (a user repeating it: the ids come from the answers,
+    the files are overwritten, the robot starts where the first tour left it)."""
     (tmp_path / ".venv").symlink_to(REPO / ".venv")
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "CELLCTL_"))}
@@ -48,6 +70,7 @@ def test_the_tour_runs_as_written(tmp_path: Path) -> None:
                               start_new_session=True)
     base = f"http://127.0.0.1:{port}"
     token_file = tmp_path / ".local" / "share" / "cellctl" / "virtual-cell.session-token"
+    ids: list[tuple[int, int]] = []
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -63,21 +86,20 @@ def test_the_tour_runs_as_written(tmp_path: Path) -> None:
         token = token_file.read_text().strip()
         me = httpx.get(base + "/robots/robot0/state", headers={"Authorization": f"Bearer {token}"}, timeout=10)
         assert me.status_code == 200, me.text
-        r = subprocess.run(["bash", "-c", tour_script(port)], cwd=tmp_path, env={**env, "CELLCTL_URL": base},
-                           capture_output=True, text=True, timeout=900)
-        assert r.returncode == 0, f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
+        for run in (1, 2):
+            r = subprocess.run(["bash", "-c", tour_script(port)], cwd=tmp_path, env={**env, "CELLCTL_URL": base},
+                               capture_output=True, text=True, timeout=900)
+            assert r.returncode == 0, f"run {run}\nstdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
+            ids.append(_check_the_tour_results(tmp_path))
+        active = httpx.get(base + "/calibrations", headers={"Authorization": f"Bearer {token}"}, timeout=10)
+        assert active.status_code == 200, active.text
     finally:
         os.killpg(server.pid, 15)
         server.wait(timeout=30)
-    # What the tour promised is there.
-    assert (tmp_path / "frame.png").stat().st_size > 10000
-    assert json.loads((tmp_path / "intrinsics.json").read_text())["state"] == "succeeded"
-    assert json.loads((tmp_path / "handeye.json").read_text())["state"] == "succeeded"
-    picks = json.loads((tmp_path / "picks.json").read_text())["picks"]
-    assert picks and picks[0]["part"] == "bracket" and picks[0]["reachable"]
-    truth = json.loads((tmp_path / "truth.json").read_text())
-    bracket = next(p for p in truth["parts"] if p["name"] == "bracket")
-    pose = picks[0]["pick_pose"]
-    assert abs(pose["x_mm"] - bracket["x_mm"]) < 1.0 and abs(pose["y_mm"] - bracket["y_mm"]) < 1.0
-    assert (tmp_path / "recording" / "manifest.json").exists()
-    assert "sha256" in (tmp_path / "cell.yaml").read_text()
+    # The second tour stored new versions (it read its ids from the answers, not 1 and 2) and
+    # activated them.
+    (cam1, he1), (cam2, he2) = ids
+    assert len([p for p in tmp_path.glob("recording-*") if (p / "manifest.json").exists()]) == 2
+    assert len({cam1, he1, cam2, he2}) == 4 and cam2 > cam1 and he2 > he1
+    active_ids = {int(c["id"]) for c in active.json() if c["active"]}
+    assert {cam2, he2} <= active_ids and not {cam1, he1} & active_ids
