@@ -105,12 +105,24 @@ class Coverage:
 
 def pair_information(A: Mat4) -> NDArray[np.float64]:
     """3x3 information a relative motion ``A`` gives about the hand-eye translation (see module)."""
-    w = g.log_so3(A[:3, :3])
-    theta = float(np.linalg.norm(w))
-    if theta < math.radians(MIN_PAIR_ANGLE_DEG) or theta > math.radians(MAX_PAIR_ANGLE_DEG):
+    return rotation_information(np.asarray(A, dtype=np.float64)[None, :3, :3])
+
+
+def rotation_information(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The summed ``pair_information`` of relative rotations ``R`` (n, 3, 3); pairs outside the
+    solver's usable angles (``MIN_PAIR_ANGLE_DEG``-``MAX_PAIR_ANGLE_DEG``) give nothing."""
+    if len(R) == 0:
         return np.zeros((3, 3))
-    a = w / theta
-    return 4.0 * math.sin(theta / 2) ** 2 * (np.eye(3) - np.outer(a, a))
+    # Angle from the trace, axis from the skew part (2 sin(theta) a): the usable angles stay off 0 and 180.
+    cos_t = np.clip((np.einsum("nii->n", R) - 1.0) / 2.0, -1.0, 1.0)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    theta = np.arccos(cos_t)
+    use = (theta >= math.radians(MIN_PAIR_ANGLE_DEG)) & (theta <= math.radians(MAX_PAIR_ANGLE_DEG))
+    if not np.any(use):
+        return np.zeros((3, 3))
+    a = v[use] / np.linalg.norm(v[use], axis=1, keepdims=True)
+    k = 2.0 * (1.0 - cos_t[use])  # 4 sin^2(theta / 2)
+    return np.asarray(k.sum() * np.eye(3) - np.einsum("n,ni,nj->ij", k, a, a), dtype=np.float64)
 
 
 @dataclass
@@ -136,6 +148,7 @@ class StationPlanner:
     X: Mat4 = field(init=False)
     Z: Mat4 = field(init=False)
     estimated: bool = field(init=False, default=False)
+    _R_stations: NDArray[np.float64] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.centre_m = self.target.points().xyz_m.mean(axis=0)
@@ -216,8 +229,10 @@ class StationPlanner:
         """The most informative candidate not tried yet, and why the others were left out (counts)."""
         info = self._information()
         base = _logdet(info)
+        self._R_stations = self._hand_rotations()
         d = self.distances_m()
         span = max(d) - min(d)
+        widen = span < self.distance_range * float(np.median(d))
         best: tuple[float, Candidate] | None = None
         left_out: dict[str, int] = {}
         for cand in self.candidates():
@@ -230,7 +245,7 @@ class StationPlanner:
             gain = _logdet(info + self._information_with(cand.T_base_tool)) - base
             d_new = self.d0_m * cand.distance_factor
             widened = max(max(d), d_new) - min(min(d), d_new) - span
-            if span < self.distance_range * float(np.median(d)):
+            if widen:
                 gain += 0.5 * min(widened / (self.distance_range * self.d0_m), 1.0)
             if best is None or gain > best[0]:
                 best = (gain, cand)
@@ -306,20 +321,18 @@ class StationPlanner:
         return ""
 
     # -- information -------------------------------------------------------------------------------
+    def _hand_rotations(self) -> NDArray[np.float64]:
+        return np.array([hand_pose(self.setup, s.T_base_tool)[:3, :3] for s in self.stations])
+
     def _information(self) -> NDArray[np.float64]:
-        H = [hand_pose(self.setup, s.T_base_tool) for s in self.stations]
-        M = np.zeros((3, 3))
-        for i in range(len(H)):
-            for j in range(i + 1, len(H)):
-                M += pair_information(invert_mul(H[j], H[i]))
-        return M
+        R = self._hand_rotations()
+        i, j = np.triu_indices(len(R), 1)
+        # The relative motion inv(H_j) H_i: its rotation R_j^T R_i.
+        return rotation_information(np.einsum("nki,nkj->nij", R[j], R[i]))
 
     def _information_with(self, T_base_tool: Mat4) -> NDArray[np.float64]:
-        Hc = hand_pose(self.setup, T_base_tool)
-        M = np.zeros((3, 3))
-        for s in self.stations:
-            M += pair_information(invert_mul(hand_pose(self.setup, s.T_base_tool), Hc))
-        return M
+        Rc = hand_pose(self.setup, T_base_tool)[:3, :3]
+        return rotation_information(np.einsum("nki,kj->nij", self._R_stations, Rc))
 
     # -- frames ------------------------------------------------------------------------------------
     def _centre_base(self) -> NDArray[np.float64]:
