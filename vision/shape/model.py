@@ -8,10 +8,14 @@ keeps a spread-out subset, and the coarse levels name the features of the discre
 
 Which edges make the model (HALCON's ``auto`` contrast and minimum component size, in our
 words): an edge must reach ``AUTO_CONTRAST_FRACTION`` of the ROI's strong edges somewhere along
-its connected run (hysteresis down to half of it), the run must be at least ``min_component_px``
-long, and edges within ``ROI_BORDER_PX`` of the ROI border or ``IMAGE_BORDER_PX`` of the image
-border are left out (the border cuts them, or the pyramid made them of reflected pixels).
-Normals keep their sign (dark to bright), so the search can hold edges to their polarity.
+its run (hysteresis down to half of it), the run must be at least ``min_component_px`` long, and
+edges within ``ROI_BORDER_PX`` of the ROI border or ``IMAGE_BORDER_PX`` of the image border are
+left out (the border cuts them, or the pyramid made them of reflected pixels). A run is a coherent
+chain (``coherent_chains``): neighbouring gradient maxima joined only along the edge and where the
+direction turns little, so texture does not merge into long networks. When there are more edge
+points than the model uses, long chains of good contrast (the part's outline) go first
+(``_priority``). Normals keep their sign (dark to bright), so the search can hold edges to their
+polarity. Own code: OpenCV's Canny links texture the same way and selects nothing by length.
 """
 
 from __future__ import annotations
