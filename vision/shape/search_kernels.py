@@ -77,8 +77,14 @@ def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[
         am = a - 1 if a > 0 else (na - 1 if circular else -1)
         ap = a + 1 if a < na - 1 else (0 if circular else -1)
         for y in range(nh):
+            row = planes[a, y]
+            mx = 0
+            for x in range(nw):  # a max reduction vectorises; about half the rows reach no threshold
+                mx = max(mx, row[x])
+            if mx < thr:
+                continue
             for x in range(nw):
-                v = planes[a, y, x]
+                v = row[x]
                 if v < thr or v < dil[a, y, x]:
                     continue
                 if am >= 0 and v < dil[am, y, x]:
