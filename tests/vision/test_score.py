@@ -144,3 +144,19 @@ def test_screw_head_model_follows_the_outline() -> None:
     p = m.levels[0].points + np.array([u + w / 2, v + h / 2])
     r = np.hypot(p[:, 0] - 122.0, p[:, 1] - 246.0)
     assert np.mean(np.abs(r - 50.0) < 6.0) >= 0.35
+
+
+def test_top_level_features_spread_over_a_level0_only_model() -> None:
+    """A part small enough that the model has level 0 only (the double cross at 0.35 size, 38
+    points): the exhaustive search's features cover the whole part, not its first rows."""
+    from bench.pick_cases import scaled
+
+    case = scaled({c.id: c for c in load_cases()}["sick_edgematcher_multi"], 0.35)
+    m = shape.teach(case.teach_image(), case.roi)
+    assert m.top_level == 0 and len(m.levels[0].points) > len(m.levels[0].features)
+    pts = m.levels[0].points
+    f = pts[m.levels[0].features]
+    extent = pts.max(axis=0) - pts.min(axis=0)
+    assert np.all(f.max(axis=0) - f.min(axis=0) >= 0.85 * extent)
+    first = pts[: len(f)]  # what taking the first points in storage order gave
+    assert not np.all(first.max(axis=0) - first.min(axis=0) >= 0.85 * extent)
