@@ -4,8 +4,8 @@ and the neighbourhood tracking down the pyramid.
 - ``accumulate_top``: LINE-MOD's linearised memories — each feature's shifted response map is one
   contiguous run of the padded map, so a rotated template's score plane is a sum of runs. numpy
   did one ``np.add`` call per feature and angle (call overhead and a read-modify-write of the plane
-  each time); here the same uint8 sums are one compiled, vectorised loop (3.5x less time, the same
-  numbers).
+  each time); here the same uint8 sums are one compiled, vectorised loop adding four runs per pass
+  (5x less time, the same numbers).
 - ``response_planes``: the orientation response maps from the quantised orientations, one pass.
 - ``top_maxima``: local maxima over position and angle (3x3x3, circular in angle over the full turn)
   of the score planes at or above a threshold, from each plane's 3x3 maximum (``cv2.dilate``) in one
@@ -38,11 +38,20 @@ def accumulate_top(padf: U8, b: I64, start: I64, run: int, lin: U8, a0: int, a1:
     nf = b.shape[1]
     for ai in range(a0, a1):
         acc = lin[ai, :run]
-        for k in range(nf):
-            s = start[ai, k]
-            src = padf[b[ai, k], s:s + run]
+        k = 0
+        while k + 4 <= nf:  # four runs per pass over the plane: a quarter of its loads and stores
+            s0 = padf[b[ai, k], start[ai, k]:start[ai, k] + run]
+            s1 = padf[b[ai, k + 1], start[ai, k + 1]:start[ai, k + 1] + run]
+            s2 = padf[b[ai, k + 2], start[ai, k + 2]:start[ai, k + 2] + run]
+            s3 = padf[b[ai, k + 3], start[ai, k + 3]:start[ai, k + 3] + run]
             for i in range(run):
-                acc[i] += src[i]
+                acc[i] += s0[i] + s1[i] + s2[i] + s3[i]
+            k += 4
+        while k < nf:
+            s0 = padf[b[ai, k], start[ai, k]:start[ai, k] + run]
+            for i in range(run):
+                acc[i] += s0[i]
+            k += 1
 
 
 @njit(cache=True, boundscheck=False)
