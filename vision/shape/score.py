@@ -79,6 +79,8 @@ def find_threshold(crop: NDArray[np.uint8], sigma: float, taught: float, part_gr
     to ``PART_FRACTION`` of its edges, but never below ``NOISE_FACTOR`` noise deviations of this
     image (nor the floor). A part of good contrast keeps the taught threshold: a lower one would let
     weak texture beside its edges capture the fit."""
+    if max(PART_FRACTION * part_grad, THRESHOLD_FLOOR) >= taught:
+        return float(taught)  # the noise term cannot change the answer: skip its estimate (pick-speed)
     noise = NOISE_FACTOR * _grad_noise_per_grey(sigma) * noise_sigma(crop)
     return float(min(taught, max(PART_FRACTION * part_grad, noise, THRESHOLD_FLOOR)))
 
