@@ -1,4 +1,4 @@
-"""Hand-eye and N-point benchmark (issue 5): cellctl against OpenCV's five closed forms.
+"""Hand-eye and N-point benchmark (issues 5, 15): cellctl against OpenCV's seven methods.
 
 Virtual-cell data with truth (``calibration.handeye.simulate_handeye``): both setups, 8/12/20
 robot stations, robot pose noise 0.02 mm/0.005°, 0.05 mm/0.01° and 0.1 mm/0.02° (per axis, the
@@ -10,17 +10,17 @@ Both solvers get the same detections: OpenCV's ``calibrateHandEye`` (TSAI, PARK,
 DANIILIDIS) and ``calibrateRobotWorldHandEye`` (RW_SHAH, RW_LI) get the per-station target poses
 from ``calibration.pnp`` (eye-to-hand: inverted robot poses, as OpenCV documents); cellctl runs
 its whole pipeline (checks, closed form, joint ML refinement with the stated robot noise,
-covariance). Times: cellctl includes the per-station
-PnP and the checks; OpenCV's exclude PnP.
+covariance). The accuracy tables run it without leave-one-out (the stated-noise fit); a separate
+table runs the default (leave-one-out, error model chosen) on some of the same sets. On the
+point-level sets the Cramér-Rao bound of the data (``handeye_common.cramer_rao``) says how close
+any unbiased estimator could come. Times: cellctl includes the per-station PnP and the checks;
+OpenCV's exclude PnP.
 
-Real data: ETH ASL's robot arm + SR300 pose streams (tests/data/handeye_ethz_robot_arm_sr300):
-no images, so each station's measured camera pose is turned into virtual detections of a 6x6
-grid (pitch 40 mm) through the SR300 IR model; no truth, so methods are compared by leave-one-out
-prediction of the target position (mm).
-
-N-point: 9 marks (3x3 over 200x140 mm), camera 0.5 m above the table tilted 1.5°, 0.1 px and
-0.02 mm noise; error of the default (LOO-chosen) model against the true map over the marks'
-field, against OpenCV's estimateAffine2D, estimateAffinePartial2D and findHomography.
+Robots that are not the stated model (bench/handeye_robots.py): the real ETH ASL arm and a
+virtual UR5e with kinematic error, by leave-one-out prediction, with a plain joint reprojection
+refinement as a further peer. N-point: 9 marks (3x3 over 200x140 mm), camera 0.5 m above the
+table tilted 1.5°, 0.1 px and 0.02 mm noise, against OpenCV's estimateAffine2D,
+estimateAffinePartial2D and findHomography.
 
     .venv/bin/python bench/handeye.py [--quick] [--out bench/results/handeye.md]
 """
@@ -43,57 +43,41 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.handeye_common import BOARD, CAM, PEERS, cramer_rao, fmt_noise, median_method  # noqa: E402
+from bench.handeye_robots import eth_real, eth_table, kinematic, kinematic_table  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
-from calibration.geometry import invert, make_transform, quaternion_to_matrix  # noqa: E402
 from calibration.handeye import (  # noqa: E402
-    OPENCV_METHODS,
     RobotNoise,
     calibrate_handeye,
     make_stations,
-    mean_pose,
-    opencv_handeye,
-    predict_cam_target,
     simulate_handeye,
-    target_from_station,
     transform_error_deg_mm,
 )
 from calibration.npoint import fit_npoint, simulate_npoint  # noqa: E402
 from calibration.observations import Detection  # noqa: E402
 from calibration.render import Imaging, PlanarObject, render  # noqa: E402
-from calibration.targets import Chessboard  # noqa: E402
 
-CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 958.3], [0, 1900.0, 601.2], [0, 0, 1]]),
-                  np.array([-0.12, 0.08, 0.0002, -0.0001, 0.0]))
-BOARD = Chessboard(11, 8, 25.0)
 NOISES = [RobotNoise(0.02, 0.005), RobotNoise(0.05, 0.01), RobotNoise(0.1, 0.02)]
-DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "handeye_ethz_robot_arm_sr300"
-
-
-def robot_world(setup: str, G: list[np.ndarray], C: list[np.ndarray], method: int) -> np.ndarray:
-    """OpenCV's calibrateRobotWorldHandEye (solves the hand-eye transform and the target pose
-    together, AX = ZB): base2gripper = inv(H_i), world = target; returns X = inv(gripper2cam)."""
-    H = [g if setup == "eye-in-hand" else invert(g) for g in G]
-    Hi = [invert(h) for h in H]
-    _, _, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye([c[:3, :3] for c in C], [c[:3, 3] for c in C],
-                                                        [h[:3, :3] for h in Hi], [h[:3, 3] for h in Hi],
-                                                        method=method)
-    return invert(make_transform(R_g2c, np.ravel(t_g2c)))
-
-
-PEERS: dict[str, Any] = {m: (lambda setup, G, C, m=m: opencv_handeye(setup, G, C, m)) for m in OPENCV_METHODS}
-PEERS["RW_SHAH"] = lambda setup, G, C: robot_world(setup, G, C, cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH)
-PEERS["RW_LI"] = lambda setup, G, C: robot_world(setup, G, C, cv2.CALIB_ROBOT_WORLD_HAND_EYE_LI)
+PIXEL_SIGMA_PX = 0.05
 
 
 def run_one(setup: str, G: list[np.ndarray], dets: list[Detection], X_true: np.ndarray, noise: RobotNoise,
-            camera: CameraModel = CAM, target: Any = BOARD) -> dict[str, Any]:
+            Z_true: np.ndarray | None = None, default: bool = False) -> dict[str, Any]:
+    """One data set: cellctl (stated-noise fit; with ``default`` also the default pipeline), every
+    peer, and (``Z_true`` given: point-level data of the stated model) the Cramér-Rao bound."""
     t0 = time.perf_counter()
-    res = calibrate_handeye(setup, G, dets, camera, target, noise, leave_one_out=False)
+    res = calibrate_handeye(setup, G, dets, CAM, BOARD, noise, leave_one_out=False)
     t_cellctl = time.perf_counter() - t0
     row: dict[str, Any] = {"cellctl": transform_error_deg_mm(res.X, X_true), "time_cellctl": t_cellctl,
                            "sigma": (res.uncertainty_rot_deg, res.uncertainty_trans_mm)}
-    stations, _ = make_stations(G, dets, camera, target)
+    if default:
+        full = calibrate_handeye(setup, G, dets, CAM, BOARD, noise)
+        row["default"] = transform_error_deg_mm(full.X, X_true)
+        row["default_model"] = full.error_model["chosen"]
+    stations, _ = make_stations(G, dets, CAM, BOARD)
+    if Z_true is not None:
+        row["crb"] = cramer_rao(setup, stations, CAM, PIXEL_SIGMA_PX, noise, X_true, Z_true)
     Gs, Cs = [s.G for s in stations], [s.C for s in stations]
     kept = {p["image"] for p in res.stations}
     Gk = [s.G for s in stations if s.image in kept]
@@ -107,8 +91,7 @@ def run_one(setup: str, G: list[np.ndarray], dets: list[Detection], X_true: np.n
     for m in PEERS:
         t0 = time.perf_counter()
         try:
-            Xm = PEERS[m](setup, Gs, Cs)
-            row[m] = transform_error_deg_mm(Xm, X_true)
+            row[m] = transform_error_deg_mm(PEERS[m](setup, Gs, Cs), X_true)
         except cv2.error:  # e.g. ANDREFF's "determinant(R) is null": counted as a failure
             row[m] = (float("nan"), float("nan"))
         row["time_" + m] = time.perf_counter() - t0
@@ -117,7 +100,7 @@ def run_one(setup: str, G: list[np.ndarray], dets: list[Detection], X_true: np.n
 
 def synthetic(quick: bool) -> list[dict[str, Any]]:
     rows = []
-    seeds = range(3) if quick else range(5)
+    seeds = range(8) if quick else range(12)
     n_list = [12] if quick else [8, 12, 20]
     for setup in ("eye-in-hand", "eye-to-hand"):
         for noise in NOISES:
@@ -125,10 +108,12 @@ def synthetic(quick: bool) -> list[dict[str, Any]]:
                 for seed in seeds:
                     rng = np.random.default_rng(1000 * seed + n)
                     sim = simulate_handeye(setup, n, rng, camera=CAM, target=BOARD, robot_noise=noise,
-                                           pixel_sigma_px=0.05)
-                    r = run_one(setup, sim.G_recorded, sim.detections, sim.X_true, noise)
+                                           pixel_sigma_px=PIXEL_SIGMA_PX)
+                    default = n == 12 and noise == NOISES[1] and seed < (3 if quick else 5)
+                    r = run_one(setup, sim.G_recorded, sim.detections, sim.X_true, noise, sim.Z_true, default)
                     r.update(setup=setup, noise=noise, n=n, seed=seed, kind="points, 0.05 px")
                     rows.append(r)
+        print(f"synthetic {setup} done", file=sys.stderr)
     return rows
 
 
@@ -152,12 +137,6 @@ def image_based(quick: bool) -> list[dict[str, Any]]:
                 r.update(setup=setup, noise=noise, n=len(dets), seed=seed, kind=f"images, {grey:g} grey levels")
                 rows.append(r)
     return rows
-
-
-def _fmt_noise(n: RobotNoise) -> str:
-    return f"{n.sigma_mm:g} mm / {n.sigma_deg:g}°"
-
-
 def summarise(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for r in rows:
@@ -184,6 +163,12 @@ def summarise(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[st
         s["rms_err_trans"] = float(np.sqrt(np.mean([r["cellctl"][1] ** 2 for r in rs])))
         s["rms_sig_rot"] = float(np.sqrt(np.mean([r["sigma"][0] ** 2 for r in rs])))
         s["rms_sig_trans"] = float(np.sqrt(np.mean([r["sigma"][1] ** 2 for r in rs])))
+        for m in ("cellctl", *PEERS):
+            s[m + "_rms_rot"] = float(np.sqrt(np.nanmean([r[m][0] ** 2 for r in rs])))
+            s[m + "_rms_trans"] = float(np.sqrt(np.nanmean([r[m][1] ** 2 for r in rs])))
+        if all("crb" in r for r in rs):
+            s["crb_rot"] = float(np.sqrt(np.mean([r["crb"][0] ** 2 for r in rs])))
+            s["crb_trans"] = float(np.sqrt(np.mean([r["crb"][1] ** 2 for r in rs])))
         out.append(s)
     return out
 
@@ -194,7 +179,7 @@ def accuracy_table(summary: list[dict[str, Any]], label_keys: tuple[str, ...]) -
             "rot ° / trans mm | actual/reported | cellctl ms | CV ms (best) |")
     lines = [head, "|" + "---|" * (len(label_keys) + 12)]
     for s in summary:
-        labels = [(_fmt_noise(s[k]) if k == "noise" else str(s[k])) for k in label_keys]
+        labels = [(fmt_noise(s[k]) if k == "noise" else str(s[k])) for k in label_keys]
         q = (s["rms_err_trans"] / s["rms_sig_trans"], s["rms_err_rot"] / s["rms_sig_rot"])
         lines.append(
             "| " + " | ".join(labels) + f" | {s['count']} | {s['cellctl_rot']:.4f} | {s[s['best_r'] + '_rot']:.4f} "
@@ -224,163 +209,6 @@ def method_table(summary: list[dict[str, Any]]) -> str:
                  for m in ("cellctl", *PEERS)]
         lines.append(f"| {s['setup']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-# ----------------------------------------------------------------------------------------------
-# real data: ETH ASL robot arm + SR300
-# ----------------------------------------------------------------------------------------------
-def _slerp_pose(t: np.ndarray, rows: np.ndarray) -> list[np.ndarray]:
-    from scipy.spatial.transform import Rotation, Slerp
-
-    ts = rows[:, 0]
-    sl = Slerp(ts, Rotation.from_quat(rows[:, 4:8]))
-    pos = np.column_stack([np.interp(t, ts, rows[:, k]) for k in (1, 2, 3)])
-    R = sl(t).as_matrix()
-    return [make_transform(R[k], pos[k]) for k in range(len(t))]
-
-
-def eth_real(quick: bool) -> dict[str, Any] | None:
-    robot_f = DATA / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv"
-    cam_f = DATA / "robot_arm_complete_bag_color_and_ir_target_ir.csv"
-    if not (robot_f.is_file() and cam_f.is_file()):
-        return None
-    rob = np.loadtxt(robot_f, delimiter=",")
-    cam = np.loadtxt(cam_f, delimiter=",")
-    dt = -0.02  # the published time offset (robot_t = cam_t + dt), SOURCE.txt
-    step = 60 if quick else 40
-    sel = cam[::step]
-    sel = sel[(sel[:, 0] + dt > rob[0, 0]) & (sel[:, 0] + dt < rob[-1, 0])]
-    G = _slerp_pose(sel[:, 0] + dt, rob)
-    T_target_cam = [make_transform(quaternion_to_matrix(r[4:8]), r[1:4]) for r in sel]
-    sr300 = CameraModel("opencv5", 640, 480, np.array([[471.845, 0, 316.850], [0, 471.686, 237.389], [0, 0, 1]]),
-                        np.array([-0.15024, -0.00326, -0.00126, -0.00042, 0.0]))
-    grid = Chessboard(6, 6, 40.0)
-    tp = grid.points()
-    dets = []
-    for k, T in enumerate(T_target_cam):
-        C = invert(T)
-        uv = sr300.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3])
-        dets.append(Detection(f"t{k:03d}", bool(np.all(np.isfinite(uv))), tp.ids.copy(), uv, image_size=(640, 480)))
-    setup = "eye-in-hand"
-    t0 = time.perf_counter()
-    res = calibrate_handeye(setup, G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3, leave_one_out=True)
-    t_cellctl = time.perf_counter() - t0
-    stations, _ = make_stations(G, dets, sr300, grid)
-    used = {p["image"] for p in res.stations}
-    st = [s for s in stations if s.image in used]
-    out: dict[str, Any] = {"n": len(st), "n_total": len(stations), "time_cellctl": t_cellctl,
-                           "cellctl_t_mm": (res.X[:3, 3] * 1e3).tolist(),
-                           "cellctl_loo": res.loo["position_mm"], "sigma": (res.uncertainty_rot_deg,
-                                                                            res.uncertainty_trans_mm),
-                           "chi2": res.chi2_reduced, "problems": [p.code for p in res.problems],
-                           "noise": res.robot_noise, "loo_px": res.loo["prediction_rms_px"],
-                           "error_model": res.error_model}
-    for m in PEERS:
-        miss = []
-        for i in range(len(st)):
-            rest = [s for k, s in enumerate(st) if k != i]
-            Xm = PEERS[m](setup, [s.G for s in rest], [s.C for s in rest])
-            Zm = mean_pose([target_from_station(setup, Xm, s.G, s.C) for s in rest])
-            miss.append(1e3 * np.linalg.norm(predict_cam_target(setup, Xm, Zm, st[i].G)[:3, 3] - st[i].C[:3, 3]))
-        Xall = PEERS[m](setup, [s.G for s in st], [s.C for s in st])
-        e = np.array(miss)
-        out[m] = {"mean": float(e.mean()), "rms": float(np.sqrt(np.mean(e**2))), "max": float(e.max()),
-                  "t_mm": (Xall[:3, 3] * 1e3).tolist()}
-    return out
-
-
-def eth_table(r: dict[str, Any] | None) -> str:
-    if r is None:
-        return "ETH data set not found under tests/data: skipped.\n"
-    lines = ["| method | LOO target position miss mm: mean / RMS / max | t_hinge_cam mm |", "|---|---|---|"]
-    c = r["cellctl_loo"]
-    nz = r["noise"]
-    em = r["error_model"]
-    cand = ", ".join(f"{k} {v['loo_prediction_rms_px']:.2f} px" for k, v in em["candidates"].items())
-    lines.append(f"| cellctl (joint ML, pixel σ 0.3 px stated; error model chosen by LOO: {em['chosen']}, robot σ "
-                 f"{nz.sigma_mm:.3g} mm / {nz.sigma_deg:.3g}°; LOO pixel prediction {r['loo_px']:.2f} px — {cand}) | "
-                 f"{c['mean']:.2f} / {c['rms']:.2f} / {c['max']:.2f} | "
-                 f"{np.round(r['cellctl_t_mm'], 1).tolist()} |")
-    for m in PEERS:
-        lines.append(f"| OpenCV {m} | {r[m]['mean']:.2f} / {r[m]['rms']:.2f} / {r[m]['max']:.2f} | "
-                     f"{np.round(r[m]['t_mm'], 1).tolist()} |")
-    best = min(PEERS, key=lambda m: r[m]["rms"])
-    lines.append("")
-    lines.append(f"{r['n']} stations used of {r['n_total']} (every 40th camera sample, robot pose SLERPed at "
-                 f"camera time - 0.02 s); cellctl reported 1σ {r['sigma'][0]:.3f}° / {r['sigma'][1]:.2f} mm, "
-                 f"reduced χ² {r['chi2']:.1f}, problems {r['problems']}; LOO RMS ratio cellctl / best OpenCV "
-                 f"({best}) = {c['rms'] / r[best]['rms']:.2f}. Reference (SOURCE.txt, DANIILIDIS on 169 pairs): "
-                 "t ≈ [-5.1, -19.0, 2.6] mm, base→target consistency mean 3.8 mm.")
-    return "\n".join(lines) + "\n"
-
-
-def kinematic(quick: bool) -> list[dict[str, Any]]:
-    """A UR5e-class arm with perturbed link lengths (1 mm) and joint zero offsets (0.05°)
-    (drivers.sim.kinematics): recorded = nominal pose, the camera sees the perturbed arm's. Leave-one-out
-    prediction (px) of each station's target points, per error model, next to OpenCV's closed forms
-    and next to what the true X, Z predict through the recorded poses."""
-    from drivers.sim.kinematics import KinematicError
-
-    rows = []
-    tp = BOARD.points()
-    for seed in range(2 if quick else 4):
-        rng = np.random.default_rng(500 + seed)
-        Z = make_transform(np.diag([1.0, -1.0, -1.0]), [0.30, -0.05, -0.15])  # within the arm's reach
-        sim = simulate_handeye("eye-in-hand", 12, rng, camera=CAM, target=BOARD,
-                               robot_noise=RobotNoise(0.02, 0.005), Z_true=Z)
-        arm = KinematicError(seed, link_sigma_mm=1.0, joint_offset_sigma_deg=0.05)
-        dets = []
-        for k, G in enumerate(sim.G_recorded):
-            _, Ga = arm.solve(G)
-            C = invert(sim.X_true) @ invert(Ga) @ sim.Z_true
-            uv = CAM.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3]) + rng.normal(0.0, 0.05, (len(tp.ids), 2))
-            dets.append(Detection(f"v{k:02d}.png", True, tp.ids.copy(), uv, image_size=CAM.size))
-        res = calibrate_handeye("eye-in-hand", sim.G_recorded, dets, CAM, BOARD, RobotNoise(0.05, 0.01))
-
-        def px(X: np.ndarray, Zm: np.ndarray, i: int, G: list[np.ndarray] = sim.G_recorded,
-               d: list[Detection] = dets) -> np.ndarray:
-            Cp = predict_cam_target("eye-in-hand", X, Zm, G[i])
-            return CAM.project(tp.xyz_m @ Cp[:3, :3].T + Cp[:3, 3]) - d[i].uv
-
-        truth_e = np.vstack([px(sim.X_true, sim.Z_true, i) for i in range(len(dets))])
-        row: dict[str, Any] = {"seed": seed, "chosen": res.error_model["chosen"],
-                               "cand": {k: v["loo_prediction_rms_px"]
-                                        for k, v in res.error_model["candidates"].items()},
-                               "loo": res.loo["prediction_rms_px"],
-                               "truth": float(np.sqrt(np.mean(np.sum(truth_e**2, axis=1)))),
-                               "err": transform_error_deg_mm(res.X, sim.X_true)}
-        stations, _ = make_stations(sim.G_recorded, dets, CAM, BOARD)
-        for m in PEERS:
-            e = []
-            for i in range(len(stations)):
-                rest = [s for k, s in enumerate(stations) if k != i]
-                try:
-                    Xm = PEERS[m]("eye-in-hand", [s.G for s in rest], [s.C for s in rest])
-                except cv2.error:
-                    e.append(np.full((len(tp.ids), 2), np.nan))
-                    continue
-                Zm = mean_pose([target_from_station("eye-in-hand", Xm, s.G, s.C) for s in rest])
-                e.append(px(Xm, Zm, i))
-            E = np.vstack(e)
-            row[m] = float(np.sqrt(np.nanmean(np.sum(E**2, axis=1))))
-        rows.append(row)
-        print(f"kinematic seed {seed}: done", file=sys.stderr)
-    return rows
-
-
-def kinematic_table(rows: list[dict[str, Any]]) -> str:
-    L = ["| seed | chosen model | LOO px: fixed prior / estimated i.i.d. / systematic | cellctl LOO px | truth X, Z "
-         "through recorded poses (px) | ratio to truth (target ≤ 1.2) | best OpenCV LOO px | error rot ° / trans mm |",
-         "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        c = r["cand"]
-        best = min(PEERS, key=lambda m: r[m])
-        ratio = r["loo"] / r["truth"]
-        L.append(f"| {r['seed']} | {r['chosen']} | {c.get('fixed_prior', float('nan')):.2f} / "
-                 f"{c.get('estimated_iid', float('nan')):.2f} / {c.get('systematic', float('nan')):.2f} | "
-                 f"{r['loo']:.2f} | {r['truth']:.2f} | {ratio:.2f} ({'met' if ratio <= 1.2 else 'MISSED'}) | "
-                 f"{best} {r[best]:.2f} | {r['err'][0]:.3f} / {r['err'][1]:.2f} |")
-    return "\n".join(L) + "\n"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -435,12 +263,139 @@ def npoint_bench(quick: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
+def bound_table(overall: list[dict[str, Any]], per_group: list[dict[str, Any]]) -> str:
+    """RMS errors against the Cramér-Rao bound, and the best ratio to OpenCV's median method any
+    unbiased estimator could expect (bound / median method, RMS)."""
+    L = ["| setup | noise | sets | cellctl RMS rot ° / trans mm | Cramér-Rao bound RMS rot ° / trans mm | cellctl / "
+         "bound | OpenCV median method RMS rot ° / trans mm | attainable ratio (bound / median method) rot / trans |",
+         "|---|---|---|---|---|---|---|---|"]
+    for s in [*per_group, *overall]:
+        mr = float(np.median([s[m + "_rms_rot"] for m in PEERS]))
+        mt = float(np.median([s[m + "_rms_trans"] for m in PEERS]))
+        L.append(f"| {s['setup']} | {fmt_noise(s['noise']) if 'noise' in s else 'all'} | {s['count']} | "
+                 f"{s['cellctl_rms_rot']:.4f} / {s['cellctl_rms_trans']:.3f} | "
+                 f"{s['crb_rot']:.4f} / {s['crb_trans']:.3f} | "
+                 f"{s['cellctl_rms_rot'] / s['crb_rot']:.2f} / {s['cellctl_rms_trans'] / s['crb_trans']:.2f} | "
+                 f"{mr:.4f} / {mt:.3f} | {s['crb_rot'] / mr:.2f} / {s['crb_trans'] / mt:.2f} |")
+    return "\n".join(L)
+
+
+def default_table(syn: list[dict[str, Any]]) -> str:
+    """The default pipeline (leave-one-out, error model chosen) against the stated-noise fit."""
+    L = ["| setup | sets | models chosen | default rot ° / trans mm (median) | stated-noise fit rot ° / trans mm | "
+         "OpenCV median method rot ° / trans mm |", "|---|---|---|---|---|---|"]
+    for setup in ("eye-in-hand", "eye-to-hand"):
+        rs = [r for r in syn if r["setup"] == setup and "default" in r]
+        if not rs:
+            continue
+        chosen: dict[str, int] = {}
+        for r in rs:
+            chosen[r["default_model"]] = chosen.get(r["default_model"], 0) + 1
+        med = [float(np.median([np.nanmedian([r[m][j] for r in rs]) for m in PEERS])) for j in (0, 1)]
+        L.append(f"| {setup} | {len(rs)} | {chosen} | {np.median([r['default'][0] for r in rs]):.4f} / "
+                 f"{np.median([r['default'][1] for r in rs]):.3f} | {np.median([r['cellctl'][0] for r in rs]):.4f} / "
+                 f"{np.median([r['cellctl'][1] for r in rs]):.3f} | {med[0]:.4f} / {med[1]:.3f} |")
+    return "\n".join(L)
+
+
+def target_table(overall: list[dict[str, Any]], per_group: list[dict[str, Any]], eth: dict[str, Any] | None,
+                 kin: list[dict[str, Any]]) -> str:
+    """The 'against the targets' table: each target, what this run measured, met or missed."""
+    rows: list[tuple[str, str, bool]] = []
+    for o in overall:
+        su = o["setup"]
+        rt = o["cellctl_trans"] / median_method(o, "trans")
+        rr = o["cellctl_rot"] / median_method(o, "rot")
+        groups = [g for g in per_group if g["setup"] == su]
+        wt = max(g["cellctl_trans"] / median_method(g, "trans") for g in groups)
+        wr = max(g["cellctl_rot"] / median_method(g, "rot") for g in groups)
+        rows += [
+            (f"issue 15, {su}: translation ≤ 0.8x OpenCV's median method (medians over all {o['count']} sets)",
+             f"{rt:.2f}", rt <= 0.8),
+            (f"issue 15, {su}: rotation ≤ 1.0x OpenCV's median method (all {o['count']} sets)", f"{rr:.2f}", rr <= 1.0),
+            (f"issue 15, {su}: the same at every noise level (worst level), translation / rotation",
+             f"{wt:.2f} / {wr:.2f}", wt <= 0.8 and wr <= 1.0),
+            (f"issue 5, {su}: translation ≤ 0.7x the best OpenCV method (chosen per row after seeing the truth)",
+             f"{o['ratio_t']:.2f}", o["ratio_t"] <= 0.7),
+            (f"issue 5, {su}: rotation ≤ 1.0x the best OpenCV method", f"{o['ratio_r']:.2f}", o["ratio_r"] <= 1.0),
+        ]
+    q = [g["rms_err_trans"] / g["rms_sig_trans"] for g in per_group] + \
+        [g["rms_err_rot"] / g["rms_sig_rot"] for g in per_group]
+    rows.append(("actual/reported error within 0.5–2 (every point-level row, rot and trans)",
+                 f"{min(q):.2f}–{max(q):.2f}", min(q) >= 0.5 and max(q) <= 2.0))
+    if kin:
+        worst = max(r["loo"] / r["truth"] for r in kin)
+        rows.append((f"kinematic-error arm: LOO ≤ 1.2x the true X, Z's own prediction (worst of {len(kin)} sets)",
+                     f"{worst:.2f}", worst <= 1.2))
+        wp = max(r["loo"] / r["plain"] for r in kin)
+        n_ok = sum(r["loo"] <= r["plain"] for r in kin)
+        rows.append((f"kinematic-error arm: default LOO ≤ the plain joint reprojection refinement's (worst of "
+                     f"{len(kin)} sets; {n_ok} met)", f"{wp:.2f}", wp <= 1.0))
+    if eth is not None:
+        best = min(PEERS, key=lambda m: eth[m]["rms"])
+        r = eth["cellctl_loo"]["rms"] / eth[best]["rms"]
+        rows.append((f"ETH real arm: LOO target position no worse than the best OpenCV method ({best})",
+                     f"{eth['cellctl_loo']['rms']:.2f} vs {eth[best]['rms']:.2f} mm ({r:.2f}x)", r <= 1.0))
+        rp = eth["cellctl_loo"]["rms"] / eth["plain"]["mm"]
+        rows.append(("ETH real arm: no worse than the plain joint reprojection refinement",
+                     f"{eth['cellctl_loo']['rms']:.2f} vs {eth['plain']['mm']:.2f} mm ({rp:.2f}x)", rp <= 1.0))
+    lines = ["| target | measured | result |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | **{'met' if ok else 'MISSED'}** |" for t, m, ok in rows]
+    return "\n".join(lines)
+
+
+def findings(overall: list[dict[str, Any]], per_group: list[dict[str, Any]], kin: list[dict[str, Any]]) -> str:
+    """Why the issue-15 figures are what they are (numbers from this run)."""
+    o = {s["setup"]: s for s in overall}
+    lvl = [g["crb_trans"] / float(np.median([g[m + "_rms_trans"] for m in PEERS]))
+           for g in per_group if g["setup"] == "eye-in-hand"]
+    eih, eth = o["eye-in-hand"], o["eye-to-hand"]
+    n_plain = sum(r["loo"] <= r["plain"] for r in kin)
+    eth_lvl = [g["cellctl_rot"] / median_method(g, "rot") for g in per_group if g["setup"] == "eye-to-hand"]
+    return "\n".join([
+        "- **Both setups are at the Cramér-Rao bound.** The joint refinement is joint over X, Z and a pose "
+        "correction per station, with the robot's rotation noise in the base frame exactly as the generator "
+        "draws it; its RMS error is "
+        f"{eih['cellctl_rms_rot'] / eih['crb_rot']:.2f}x / {eih['cellctl_rms_trans'] / eih['crb_trans']:.2f}x "
+        "(eye-in-hand rot / trans) and "
+        f"{eth['cellctl_rms_rot'] / eth['crb_rot']:.2f}x / {eth['cellctl_rms_trans'] / eth['crb_trans']:.2f}x "
+        "(eye-to-hand) of the bound. No weighting, initial estimate or robot-noise frame can do better on these "
+        "data: the ratio to OpenCV is fixed by how close OpenCV's closed forms already come to the bound.",
+        "- **Why eye-to-hand rotation looked behind (1.14x in the previous run):** that figure was the median over 9 "
+        "sets pooled across three noise levels (the pooled median picks whichever set lands in the middle). With "
+        f"{eth['count']} sets it is {eth['cellctl_rot'] / median_method(eth, 'rot'):.2f}x, and "
+        f"{min(eth_lvl):.2f}-{max(eth_lvl):.2f}x per noise level. The rotation is limited by the robot's reported orientation, which every method uses alike "
+        "(the camera sees the target's rotation far more precisely than the robot's 0.01°): the bound is only "
+        f"{eth['crb_rot'] / float(np.median([eth[m + '_rms_rot'] for m in PEERS])):.2f}x of OpenCV's median method "
+        "in rotation. calibrateRobotWorldHandEye (RW_SHAH, RW_LI) is among the peers; it does not come closer.",
+        "- **Why eye-in-hand translation is near 0.8-0.9x:** OpenCV's translation step (linear least squares on the "
+        "pairs, after the rotation) is already close to efficient when the robot's position noise dominates; the "
+        "bound is "
+        f"{eih['crb_trans'] / float(np.median([eih[m + '_rms_trans'] for m in PEERS])):.2f}x of the median method "
+        f"(RMS, all sets; {min(lvl):.2f}-{max(lvl):.2f}x per noise level), so ≤ 0.8x at every noise level is out "
+        "of reach for an unbiased estimator on these sets; pooled over all sets the median ratio meets it.",
+        "- **What was wrong, and fixed:** the default pipeline chose its robot error model by leave-one-out "
+        "prediction alone. On data that follow the stated model, held-out prediction is dominated by each held-out "
+        "station's own robot noise, so a wrong model could win by a few per cent by chance and cost ten times the "
+        "ML error (tests/calibration/test_handeye_error_model.py: an eye-to-hand set where the plain refinement "
+        "won leave-one-out by 2.8 % with 0.049° error against the ML fit's 0.0074°). Now the stated-noise fit is "
+        "kept while its reduced χ² is consistent with 1, and another model must win leave-one-out by 2 % and by "
+        "two standard errors of the paired per-station gain. The default-pipeline table above shows the ML fit "
+        "kept on every ideal set.",
+        f"- **Plain joint reprojection refinement** as a peer on the kinematic arm: cellctl's default predicts at "
+        f"least as well on {n_plain} of {len(kin)} sets; where the stated model's χ² is consistent with 1 the ML fit "
+        "is kept and the plain refinement may be a few per cent better on leave-one-out (it fits the very "
+        "quantity leave-one-out measures), at the cost of a worse X when the robot is as stated.",
+    ])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer seeds and station counts")
     ap.add_argument("--out", help="write the markdown here too")
     a = ap.parse_args()
-    t0 = time.time()
+    t0, c0 = time.time(), time.process_time()
+    load0 = os.getloadavg()
     syn = synthetic(a.quick)
     print(f"synthetic done ({time.time() - t0:.0f} s)", file=sys.stderr)
     img = image_based(a.quick)
@@ -453,74 +408,53 @@ def main() -> None:
 
     overall = summarise(syn, ("setup",))
     per_group = summarise(syn, ("setup", "noise", "n"))
-    tl = []
-    for o in overall:
-        tl.append(f"- {o['setup']}, translation: cellctl / best OpenCV method (median data set) = {o['ratio_t']:.2f} "
-                  f"(target ≤ 0.7): **{'met' if o['ratio_t'] <= 0.7 else 'MISSED'}**; rows meeting it: "
-                  f"{sum(g['ratio_t'] <= 0.7 for g in per_group if g['setup'] == o['setup'])}/9.")
-        tl.append(f"- {o['setup']}, rotation: ratio {o['ratio_r']:.2f} (target ≤ 1.0): "
-                  f"**{'met' if o['ratio_r'] <= 1.0 else 'MISSED'}**.")
-    q = [g["rms_err_trans"] / g["rms_sig_trans"] for g in per_group] + \
-        [g["rms_err_rot"] / g["rms_sig_rot"] for g in per_group]
-    tl.append(f"- reported 1σ vs actual error (RMS over 5 seeds, every row, rot and trans): actual/reported in "
-              f"[{min(q):.2f}, {max(q):.2f}] (target within 0.5–2): "
-              f"**{'met' if min(q) >= 0.5 and max(q) <= 2.0 else 'MISSED'}**.")
-    for o in overall:
-        med_t = float(np.median([o[m + "_trans"] for m in PEERS]))
-        med_r = float(np.median([o[m + "_rot"] for m in PEERS]))
-        rt, rr = o["cellctl_trans"] / med_t, o["cellctl_rot"] / med_r
-        tl.append(f"- issue 15, {o['setup']}: cellctl / OpenCV's median method: translation {rt:.2f} (target ≤ 0.8): "
-                  f"**{'met' if rt <= 0.8 else 'MISSED'}**; rotation {rr:.2f} (target ≤ 1.0): "
-                  f"**{'met' if rr <= 1.0 else 'MISSED'}**.")
-    gains = []
-    for o in overall:
-        med5 = float(np.median([o[m + "_trans"] for m in PEERS]))
-        gains.append(f"{o['setup']}: {100 * (1 - o['ratio_t']):.0f} % over the best, "
-                     f"{100 * (1 - o['cellctl_trans'] / med5):.0f} % over the median of OpenCV's seven")
-    tl.append("- why the translation target is missed: the data are generated with exactly the noise model the "
-              "solver states, so cellctl's estimate is maximum likelihood and its actual error matches its own "
-              "covariance (actual/reported ≈ 1): it is at the attainable limit. The best of OpenCV's seven, chosen "
-              "per row after seeing the truth, comes close to it on these well-spread stations, so 0.7x is not "
-              "reachable here; measured gain in translation: " + "; ".join(gains) + ". "
-              "Where cellctl wins by far is robustness: on the image-based sets with mis-oriented detections its "
-              "checks drop the bad views while every closed form fails by degrees and centimetres.")
-    parts_targets = "\n".join(tl)
+    cmd = ".venv/bin/python bench/handeye.py" + (" --quick" if a.quick else "") + (f" --out {a.out}" if a.out else "")
     parts = [
-        "# Hand-eye benchmark (issue 5): cellctl vs OpenCV calibrateHandEye (5 methods) and "
+        "# Hand-eye benchmark (issues 5, 15): cellctl vs OpenCV calibrateHandEye (5 methods) and "
         "calibrateRobotWorldHandEye (2)\n",
-        "Errors against truth: rotation (deg) and translation (mm) of T_tool_cam / T_base_cam; medians over "
-        "seeds. 'best CV' = the OpenCV method (of 7) with the lowest median in that row. Ratio = cellctl / best "
-        "(targets: translation ≤ 0.7, rotation ≤ 1.0). 'actual/reported' = RMS actual error / RMS reported "
-        "1σ (RMS over 3 dof), target within 0.5–2.\n",
+        f"Command: `{cmd}`. Errors against truth: rotation (deg) and translation (mm) of T_tool_cam / T_base_cam; "
+        "medians over seeds. 'best CV' = the OpenCV method (of 7) with the lowest median in that row; 'OpenCV's "
+        "median method' = the median of the seven methods' medians. 'actual/reported' = RMS actual error / RMS "
+        "reported 1σ (RMS over 3 dof), target within 0.5–2.\n",
         "## Targets\n",
-        parts_targets,
+        target_table(overall, per_group, eth, kin),
+        "\n## Findings (issue 15)\n",
+        findings(overall, per_group, kin),
         "\n## Point-level sets (pixel noise 0.05 px), per setup, robot noise and station count\n",
         accuracy_table(per_group, ("setup", "noise", "n")),
         "\n## Point-level sets, per setup (all noise levels and station counts)\n",
         accuracy_table(overall, ("setup",)),
         "\n### Median error of every method (rot / trans)\n",
         method_table(overall),
+        "\n### Against the Cramér-Rao bound (RMS over the sets)\n",
+        "The data follow the stated model exactly, so the inverse Fisher information at the truth bounds the "
+        "expected error of any unbiased estimator.\n",
+        bound_table(overall, per_group),
+        "\n### The default pipeline (leave-one-out on, error model chosen) on some of the same sets "
+        "(12 stations, 0.05 mm / 0.01°)\n",
+        default_table(syn),
         "\n## Image-based sets (rendered, detected by calibration.detect; robot 0.05 mm / 0.01°, 10 stations)\n",
         accuracy_table(summarise(img, ("setup", "kind")), ("setup", "kind")),
         "\n### Median error of every method on the image-based sets (rot / trans)\n",
         method_table(summarise(img, ("setup",))),
-        "\nSome rendered views came back from calibration.detect with the chessboard ids turned by 180° "
-        "(when the dark square outside corner (0, 0) lies beyond the image border); cellctl's mis-paired-view "
-        "check drops them, OpenCV's closed forms cannot. For the solvers alone, OpenCV again on only the "
-        "views cellctl kept (median rot / trans):\n",
+        "\nOpenCV again on only the views cellctl kept (its checks drop mis-paired views):\n",
         kept_table(summarise(img, ("setup",))),
         "\n## Real data: ETH ASL robot arm + SR300 (no truth: leave-one-out prediction)\n",
         eth_table(eth),
-        "\n## Kinematic-error robot (UR5e model, links 1 mm / joint zeros 0.05°, 12 stations, eye-in-hand)\n",
+        "\n## Kinematic-error robot (UR5e model, links 1 mm / joint zeros 0.05°, 12 stations, both setups, and "
+        "eye-in-hand with a poorly calibrated camera)\n",
         "The recorded poses are the nominal arm's, the camera sees the perturbed arm's (millimetres, "
-        "pose-dependent). cellctl fits three robot error models and keeps the one with the best leave-one-out "
-        "prediction (calibration.handeye.error_model); 'truth' = the true X and Z predicting each station "
-        "through its recorded pose (the floor any calibration can reach without modelling the arm).\n",
+        "pose-dependent). cellctl fits the stated-noise model; when its residuals reject it (χ² outside the "
+        "band of calibration.handeye.error_model) it fits the other error models and keeps the one that predicts "
+        "held-out stations significantly best. 'plain refinement' = X, Z fitted to the pixels with the recorded "
+        "poses taken as exact (bench/handeye_common.py, independent of cellctl's solver); 'truth' = the true X "
+        "and Z predicting each station through its recorded pose.\n",
         kinematic_table(kin),
         "\n## N-point: 9 marks, camera tilted 1.5°, 0.1 px + 0.02 mm noise\n",
         npt,
-        f"\nTotal run time {time.time() - t0:.0f} s (2-core machine shared with other jobs; "
-        "OPENBLAS_NUM_THREADS=1). Machine noise makes times indicative only; ratios are from the same run.\n",
+        f"\nTotal run time {time.time() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU; load average "
+        f"{load0[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2-core machine shared with other jobs; "
+        "OPENBLAS_NUM_THREADS=1). Times are indicative only; ratios are from the same run.\n",
     ]
     md = "\n".join(parts)
     print(md)
