@@ -14,9 +14,12 @@ from __future__ import annotations
 import re
 from typing import Any, Literal
 
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.handeye import HandEyeError, HandEyeResult, calibrate_handeye
+from calibration.intrinsics.model import param_names
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
 from cellctl.routines.common import (
@@ -105,6 +108,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     caps: list[Capture] = [first]
     speed = p.speed_m_s or defaults.speed_m_s
     camera_ok = (active.result.get("verdict") or {}).get("ok")
+    camera_cov = camera_covariance(active.result, camera.model)
     tried, rejected = 1, 0
     refused: list[dict[str, str]] = []
     left_out: dict[str, int] = {}
@@ -121,7 +125,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         try:
             poses = [c.T_base_tool for c in caps if c.T_base_tool is not None]  # every station has one
             result = calibrate_handeye(setup, poses, [c.detection for c in caps], camera, target,
-                                       camera_verdict_ok=camera_ok)
+                                       camera_verdict_ok=camera_ok, camera_covariance=camera_cov)
             failure = ""
         except HandEyeError as exc:
             result, failure = None, rest_words(str(exc))
@@ -174,6 +178,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     return _store(services, ctx, p, result, caps, cov, tname, active.id, camera_id, robot_id,
                   {"stations_tried": tried, "stations_rejected": rejected, "stations_refused": refused,
                    "candidates_left_out": left_out, "returned_to_start": not returned,
+                   "camera_covariance_used": camera_cov is not None,
                    **({"warning": returned} if returned else {})})
 
 
@@ -189,6 +194,25 @@ def _advice(cov: Coverage, tried: int, budget: int) -> str:
         return f"still missing: {missing}. Raise max_stations (spent {tried} of {budget})"
     return (f"still missing: {missing}. No reachable station was left: widen max_tilt_deg, max_spin_deg or "
             "distance_range, or start from a pose with more room in the robot's envelope")
+
+
+def camera_covariance(cam_json: dict[str, Any], model: str) -> NDArray[np.float64] | None:
+    """The active camera calibration's intrinsics covariance (``parameters``: names + covariance) in
+    the hand-eye's order (fx, fy, cx, cy, the model's distortion coefficients), or None when it has
+    none; it enters the hand-eye's uncertainty (as ``calib handeye`` does with cam.json)."""
+    params: Any = cam_json.get("parameters")
+    try:
+        names = list(params["names"])
+        cov = np.asarray(params["covariance"], dtype=np.float64)
+    except (TypeError, KeyError, ValueError):
+        return None
+    want = param_names(model)
+    if cov.shape != (len(names), len(names)) or not set(names) <= set(want) or not np.all(np.isfinite(cov)):
+        return None
+    idx = [want.index(n) for n in names]
+    full = np.zeros((len(want), len(want)))
+    full[np.ix_(idx, idx)] = cov
+    return full
 
 
 def rest_words(message: str) -> str:

@@ -86,6 +86,7 @@ def test_the_planned_stations_recover_T_tool_cam(first_calibration: dict[str, An
     assert trans * 1e3 < max(4 * sig["trans_mm"], 0.2), (trans * 1e3, sig)
     assert math.degrees(rot) < max(4 * sig["rot_deg"], 0.05), (math.degrees(rot), sig)
     assert res["loo_prediction_rms_px"] < 0.5
+    assert res["camera_covariance_used"] is True  # intrinsics-capture's covariance enters the uncertainty
 
 
 def test_the_moves_were_checked_and_audited(served: Served, first_calibration: dict[str, Any]) -> None:

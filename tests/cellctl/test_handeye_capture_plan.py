@@ -194,3 +194,15 @@ def test_pair_information_sees_only_rotation_across_its_axis() -> None:
     assert w[0] == pytest.approx(0.0, abs=1e-12)  # nothing along the rotation axis
     assert w[1] == pytest.approx(4 * math.sin(math.radians(15)) ** 2) and w[2] == pytest.approx(w[1])
     assert np.allclose(M @ [0, 0, 1], 0.0)
+
+
+def test_the_camera_covariance_is_read_in_the_handeye_order() -> None:
+    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"]  # k3 fixed: not in the calibration's parameters
+    cov = np.diag(np.arange(1.0, 9.0))
+    full = handeye_capture.camera_covariance({"parameters": {"names": names, "covariance": cov.tolist()}},
+                                             "opencv5")
+    assert full is not None and full.shape == (9, 9)
+    assert np.allclose(np.diag(full), [1, 2, 3, 4, 5, 6, 7, 8, 0])
+    assert handeye_capture.camera_covariance({}, "opencv5") is None  # e.g. a camera file without one
+    bad = {"parameters": {"names": ["fx", "kappa"], "covariance": np.eye(2).tolist()}}
+    assert handeye_capture.camera_covariance(bad, "opencv5") is None
