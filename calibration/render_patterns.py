@@ -9,10 +9,11 @@ and ``take_hits`` fused). The results are bit-identical to the numpy methods:
 exactly on its edges, and whole frames against the numpy path. ChArUco (marker bitmaps) and any
 other reflectance stay on the numpy path.
 
-``shader_for(reflectance)`` returns a shader for a target's bound ``reflectance`` method (None for
-anything else, including subclasses that override it); ``shade(n, ox, oy, lam, flat, index,
-value, depth, which)`` stores the defined ones of ``n`` compacted hits, as
-``render_kernels.take_hits`` does after a numpy reflectance.
+``shader_for(reflectance)`` returns a ``Shader`` for a target's bound ``reflectance`` method (None
+for anything else, including subclasses that override it). It shades compacted hits (as
+``render_kernels.take_hits`` does after a numpy reflectance), a plain pixel pass (ray, hit and
+pattern in one loop), and the edge pixels that see this pattern alone (sub-rays, pattern and numpy's
+pairwise mean in one loop, vectorised for the circle plate).
 """
 
 from __future__ import annotations
@@ -33,25 +34,31 @@ CIRCLE_PLATE, CHESSBOARD, CIRCLE_GRID = 0, 1, 2
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _plate(x: float, y: float, g: F64, cols: int, rows: int) -> float:  # pragma: no cover - compiled
+    """``CirclePlate.reflectance`` at ``(x, y)``, NaN off the plate. Branch-free (bitwise &, |): at
+    the edge pixels being supersampled the outcome flips from one sub-ray to the next, and
+    mispredicted branches cost more than the spare arithmetic; it also lets LLVM vectorise."""
+    on = (x >= g[11]) & (x <= g[13]) & (y >= g[12]) & (y <= g[14])  # _on_plate, extent_m
+    x0, y0, x1, y1 = g[4], g[5], g[6], g[7]  # inner edge of the frame
+    frame = (x >= g[0]) & (x <= g[2]) & (y >= g[1]) & (y <= g[3]) & ~((x > x0) & (x < x1) & (y > y0) & (y < y1))
+    triangle = (x >= x0) & (y >= y0) & ((x - x0) + (y - y0) <= g[8])
+    p = g[9]
+    c = min(max(np.rint(x / p), 0.0), cols - 1.0)  # nearest mark
+    r = min(max(np.rint(y / p), 0.0), rows - 1.0)
+    dx = x - c * p
+    dy = y - r * p
+    black = frame | triangle | (dx * dx + dy * dy <= g[10])
+    v = 1.0 - np.float64(black)
+    return v if on else np.nan
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _value(kind: int, x: float, y: float, g: F64, centres: F64, cols: int, rows: int
            ) -> float:  # pragma: no cover - compiled
     """The pattern's reflectance at object point ``(x, y)`` (m), NaN off the plate: the same
     arithmetic, in the same order, as the target's numpy ``reflectance``."""
     if kind == CIRCLE_PLATE:
-        # Branch-free (bitwise &, |): at the edge pixels being supersampled the outcome flips from
-        # one sub-ray to the next, and mispredicted branches cost more than the spare arithmetic.
-        on = (x >= g[11]) & (x <= g[13]) & (y >= g[12]) & (y <= g[14])  # _on_plate, extent_m
-        x0, y0, x1, y1 = g[4], g[5], g[6], g[7]  # inner edge of the frame
-        frame = (x >= g[0]) & (x <= g[2]) & (y >= g[1]) & (y <= g[3]) & ~((x > x0) & (x < x1) & (y > y0) & (y < y1))
-        triangle = (x >= x0) & (y >= y0) & ((x - x0) + (y - y0) <= g[8])
-        p = g[9]
-        c = min(max(np.rint(x / p), 0.0), cols - 1.0)  # nearest mark
-        r = min(max(np.rint(y / p), 0.0), rows - 1.0)
-        dx = x - c * p
-        dy = y - r * p
-        black = frame | triangle | (dx * dx + dy * dy <= g[10])
-        v = 1.0 - np.float64(black)
-        return v if on else np.nan
+        return _plate(x, y, g, cols, rows)
     if not (x >= g[1] and x <= g[3] and y >= g[2] and y <= g[4]):
         return np.nan
     if kind == CHESSBOARD:
@@ -143,9 +150,16 @@ def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, fie
     pixel, and numpy's mean: bit-identical to the generic path, without its buffers.
     """
     h, w_img = field.shape[0], field.shape[1]
-    if nsub * nsub > 128:  # beyond numpy's pairwise block: _mean would differ from it
+    n2 = nsub * nsub
+    if n2 > 128:  # beyond numpy's pairwise block: _mean would differ from it
         raise ValueError("supersample_alone: at most 11 x 11 sub-rays")
-    sub = np.empty(nsub * nsub)
+    ou = np.empty(n2)  # sub-ray offsets (px), sub-ray j * nsub + i
+    ov = np.empty(n2)
+    for j in range(nsub):
+        for i in range(nsub):
+            ou[j * nsub + i] = (i + 0.5) / nsub - 0.5
+            ov[j * nsub + i] = (j + 0.5) / nsub - 0.5
+    sub = np.empty(n2)
     for e in range(pix_rows.size):
         r = pix_rows[e]
         c = pix_cols[e]
@@ -157,23 +171,33 @@ def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, fie
         dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
         bx = field[r, c, 0]
         by = field[r, c, 1]
-        for j in range(nsub):
-            ov = (j + 0.5) / nsub - 0.5
-            for i in range(nsub):
-                ou = (i + 0.5) / nsub - 0.5
-                x = bx + ou * dux + ov * dvx
-                y = by + ou * duy + ov * dvy
-                v = background
-                ww = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-                if ww != 0.0:
-                    lm = d / ww
-                    if lm > 0.0 and lm < np.inf:
-                        t = _value(kind, (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / ww,
-                                   (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / ww, g, centres, cols, rows)
-                        if np.isfinite(t):
-                            v = t
-                sub[j * nsub + i] = v
-        out[e] = _mean(sub, nsub * nsub)
+        # Flat, branch-free loops over the sub-rays: a ray misses when its depth is not in (0, inf)
+        # (w == 0 included) or the pattern is not there (NaN).
+        # The circle plate's loop apart: the pattern switch inside a loop stops the vectoriser.
+        if kind == CIRCLE_PLATE:
+            for t in range(n2):
+                ox, oy, front = _subray(bx, by, ou[t], ov[t], dux, duy, dvx, dvy, H, d)
+                v = _plate(ox, oy, g, cols, rows)
+                sub[t] = v if front & (v == v) else background
+        else:
+            for t in range(n2):
+                ox, oy, front = _subray(bx, by, ou[t], ov[t], dux, duy, dvx, dvy, H, d)
+                v = _value(kind, ox, oy, g, centres, cols, rows)
+                sub[t] = v if front & (v == v) else background
+        out[e] = _mean(sub, n2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _subray(bx: float, by: float, ou: float, ov: float, dux: float, duy: float, dvx: float, dvy: float, H: F64,
+            d: float) -> tuple[float, float, bool]:  # pragma: no cover - compiled
+    """A sub-ray's hit on the plane (object x, y in m) and whether it is in front of the camera
+    (depth in (0, inf), so ``w == 0`` misses): ``render_kernels.hit_subrays``' arithmetic."""
+    x = bx + ou * dux + ov * dvx
+    y = by + ou * duy + ov * dvy
+    ww = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    lm = d / ww
+    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / ww, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / ww, (lm > 0.0) & (
+        lm < np.inf)
 
 
 @dataclass(frozen=True)
