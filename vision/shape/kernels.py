@@ -170,8 +170,11 @@ def warm_up() -> None:
     perspective_fit(np.zeros((4, 4), np.float32), z2, z2, 0.0, 0.0, 0.0, 1.0, 1.0, 1)
     fit_stage_b(np.zeros((4, 4), np.float32), z2, z2, 0.0, 0.0, 0.0, 1.0, 1.0, 0.1, 1.0, True, 1, 1.0, 0.0, 4.0,
                 4.0, 1)
-    from vision.shape import search_kernels
+    from vision.shape import score, search_kernels
     search_kernels.warm_up()
+    score.point_agreement(np.zeros((4, 4, 2), np.float32), z2, z2, 1.0, 1.5, 0.75, 0.5, 0.25)
+    for sigma in (0.0, 1.0):  # the score's noise reference per smoothing, computed once per process
+        score.find_threshold(np.zeros((8, 8), np.uint8), sigma, 3.0, 0.0)
 
 
 @njit(cache=True)
