@@ -28,12 +28,14 @@ from numpy.typing import NDArray
 from calibration.targets import MM, Chessboard, CircleGrid, CirclePlate
 
 F64 = NDArray[np.float64]
+# Every loop here is compiled with numpy's error model: a ray parallel to a plane (w == 0) divides
+# by zero to +-inf or NaN, which the hit tests reject, instead of raising (numba's Python model).
 
 
 CIRCLE_PLATE, CHESSBOARD, CIRCLE_GRID = 0, 1, 2
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _plate(x: float, y: float, g: F64, cols: int, rows: int) -> float:  # pragma: no cover - compiled
     """``CirclePlate.reflectance`` at ``(x, y)``, NaN off the plate. Branch-free (bitwise &, |): at
     the edge pixels being supersampled the outcome flips from one sub-ray to the next, and
@@ -52,7 +54,7 @@ def _plate(x: float, y: float, g: F64, cols: int, rows: int) -> float:  # pragma
     return v if on else np.nan
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _value(kind: int, x: float, y: float, g: F64, centres: F64, cols: int, rows: int
            ) -> float:  # pragma: no cover - compiled
     """The pattern's reflectance at object point ``(x, y)`` (m), NaN off the plate: the same
@@ -74,7 +76,7 @@ def _value(kind: int, x: float, y: float, g: F64, centres: F64, cols: int, rows:
     return 1.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def shade_hits(kind: int, g: F64, centres: F64, cols: int, rows: int, n: int, ox: F64, oy: F64, lam: F64,
                flat: NDArray[np.int64], index: int, value: F64, depth: F64,
                which: NDArray[np.int32]) -> None:  # pragma: no cover - compiled
@@ -88,31 +90,47 @@ def shade_hits(kind: int, g: F64, centres: F64, cols: int, rows: int, n: int, ox
             which[k] = index
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def shade_pixels(kind: int, g: F64, centres: F64, cols: int, rows: int, field: F64, r0: int, r1: int, c0: int,
                  c1: int, H: F64, d: float, index: int, value: F64, depth: F64,
                  which: NDArray[np.int32]) -> None:  # pragma: no cover - compiled
-    """``render_kernels.hit_pixels`` and ``shade_hits`` in one loop (no compacted hits)."""
+    """``render_kernels.hit_pixels`` and ``shade_hits`` in one pass (no compacted hits): per row, a
+    branch-free loop (vectorised for the circle plate) computes every ray's depth and pattern
+    value, then a plain loop stores those in front (``w == 0`` gives a depth of +-inf or NaN,
+    which never is)."""
     width = field.shape[1]
+    n = c1 - c0
+    lam = np.empty(n)
+    val = np.empty(n)
     for r in range(r0, r1):
-        for c in range(c0, c1):
-            x = field[r, c, 0]
-            y = field[r, c, 1]
-            w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-            if w == 0.0:
-                continue
-            lm = d / w
-            k = r * width + c
-            if lm > 0.0 and (lm < depth[k] or (lm == depth[k] and which[k] > index)):
-                v = _value(kind, (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w,
-                           g, centres, cols, rows)
-                if np.isfinite(v):
-                    value[k] = v
-                    depth[k] = lm
-                    which[k] = index
+        if kind == CIRCLE_PLATE:
+            for t in range(n):
+                ox, oy, lm = _ray(field[r, c0 + t, 0], field[r, c0 + t, 1], H, d)
+                lam[t] = lm
+                val[t] = _plate(ox, oy, g, cols, rows)
+        else:
+            for t in range(n):
+                ox, oy, lm = _ray(field[r, c0 + t, 0], field[r, c0 + t, 1], H, d)
+                lam[t] = lm
+                val[t] = _value(kind, ox, oy, g, centres, cols, rows)
+        for t in range(n):
+            k = r * width + c0 + t
+            lm = lam[t]
+            v = val[t]
+            if lm > 0.0 and (lm < depth[k] or (lm == depth[k] and which[k] > index)) and v == v:
+                value[k] = v
+                depth[k] = lm
+                which[k] = index
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _ray(x: float, y: float, H: F64, d: float) -> tuple[float, float, float]:  # pragma: no cover - compiled
+    """Ray ``[x, y, 1]``'s hit on the plane: object x, y (m) and depth, as ``hit_pixels`` forms them."""
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w, d / w
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _mean(a: F64, n: int) -> float:  # pragma: no cover - compiled
     """``numpy.mean`` of ``a[:n]`` bit for bit: numpy's pairwise sum (8 partial sums up to 128)."""
     if n < 8:
@@ -139,7 +157,7 @@ def _mean(a: F64, n: int) -> float:  # pragma: no cover - compiled
     return s / n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, field: F64,
                       pix_rows: NDArray[np.int64], pix_cols: NDArray[np.int64], nsub: int, H: F64, d: float,
                       background: float, out: F64) -> None:  # pragma: no cover - compiled
@@ -187,7 +205,7 @@ def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, fie
         out[e] = _mean(sub, n2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _subray(bx: float, by: float, ou: float, ov: float, dux: float, duy: float, dvx: float, dvy: float, H: F64,
             d: float) -> tuple[float, float, bool]:  # pragma: no cover - compiled
     """A sub-ray's hit on the plane (object x, y in m) and whether it is in front of the camera

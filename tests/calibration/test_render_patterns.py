@@ -142,3 +142,22 @@ def test_an_error_in_a_render_thread_reaches_the_caller(monkeypatch: pytest.Monk
         render_scene(cam, [bad])
     value, _ = render_scene(cam, [PlanarObject(T, lambda x, y: np.full(x.shape, 0.25))])
     assert np.all(value == 0.25)
+
+
+@pytest.mark.parametrize("supersample", [1, 4])
+def test_rays_parallel_to_a_pattern_miss_it(supersample: int) -> None:
+    """Rays with ``w = n . ray == 0`` exactly (parallel to the plane) are no hit, and no error:
+    a field of all-zero rays against a plane whose normal is the camera's x axis."""
+    from calibration.render_patterns import supersample_alone
+
+    shader = shader_for(CirclePlate(7, 7, 20.0, 10.0).reflectance)
+    assert shader is not None
+    field = np.zeros((3, 4, 2))
+    H = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # row 2: the normal (1, 0, 0)
+    value, depth, which = np.full(12, 0.45), np.full(12, np.inf), np.full(12, -1, dtype=np.int32)
+    shader.shade_pixels(field, 0, 3, 0, 4, H, 0.1, 0, value, depth, which)
+    assert np.all(value == 0.45) and np.all(np.isinf(depth)) and np.all(which == -1)
+    out = np.empty(2)
+    supersample_alone(shader.kind, shader.g, shader.centres, shader.cols, shader.rows, field,
+                      np.array([1, 2]), np.array([1, 3]), supersample, H, 0.1, 0.45, out)
+    assert np.all(out == 0.45)
