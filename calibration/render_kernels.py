@@ -188,3 +188,18 @@ def encode(img: NDArray[np.float32], noise: NDArray[np.float32],
             v = img[r, c] + noise[r, c] if noise.shape[0] else img[r, c]
             v = np.rint(v)
             out[r, c] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+
+
+@njit(cache=True, nogil=True)
+def shot_noise(img: NDArray[np.float32], z: NDArray[np.float32], gain: np.float32, read2: np.float32,
+               below: np.float32, out: NDArray[np.float32]) -> int:  # pragma: no cover - compiled
+    """``out = s + z sqrt(s gain + read2)`` with ``s = max(img, 0)`` (DN, float32: the shot and
+    read noise's Gaussian limit); the count of pixels with ``s < below`` (to be drawn Poisson)."""
+    h, w = img.shape
+    low = 0
+    for r in range(h):
+        for c in range(w):
+            s = max(img[r, c], np.float32(0.0))
+            out[r, c] = s + z[r, c] * np.sqrt(s * gain + read2)
+            low += s < below
+    return low

@@ -253,11 +253,15 @@ def _add_noise(img: NDArray[np.float32], im: Imaging, rng: np.random.Generator) 
         cv2.randn(z, 0.0, 1.0)
         read2 = np.float32(im.read_noise_dn) ** 2
         if im.gain_dn_per_e > 0:
+            from calibration import render_kernels as k
+
             gain = np.float32(im.gain_dn_per_e)
-            signal = np.maximum(img, np.float32(0))
-            out = signal + z * np.sqrt(signal * gain + read2)  # shot noise in its Gaussian limit
-            low = signal < np.float32(_POISSON_BELOW_E) * gain
-            if np.any(low):
+            out = np.empty_like(img)
+            below = np.float32(_POISSON_BELOW_E) * gain
+            # Shot noise in its Gaussian limit (one compiled pass); a Poisson draw where it is too dark.
+            if k.shot_noise(np.ascontiguousarray(img), z, gain, read2, below, out):
+                signal = np.maximum(img, np.float32(0))
+                low = signal < below
                 shot = rng.poisson(signal[low] / gain).astype(np.float32) * gain
                 out[low] = shot + z[low] * np.float32(im.read_noise_dn)
         else:
