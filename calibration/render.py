@@ -114,7 +114,8 @@ def prepare(camera: CameraModel) -> None:
     objects = [PlanarObject(near, CirclePlate(2, 2, 10.0, 5.0).reflectance),
                PlanarObject(T, lambda x, y: (x > 0).astype(np.float64))]
     refl, depth = render_scene(tiny, objects, supersample=2)
-    to_grey(refl, Imaging(noise_sigma=1.0, light_gradient=0.1), np.random.default_rng(0), depth)
+    to_grey(refl, Imaging(noise_sigma=1.0, light_gradient=0.1, gain_dn_per_e=0.05, read_noise_dn=1.0),
+            np.random.default_rng(0), depth)
     ray_field(camera)
 
 
