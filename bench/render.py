@@ -394,9 +394,11 @@ def main() -> None:
         "pixels; the image is the same for any thread count) pay off on a machine with a free core.",
         "- What the frame costs now, by pass: the targets' patterns (circle plate, chessboard, circle grid) are "
         "shaded in compiled loops bit-identical to their numpy `reflectance` (`calibration/render_patterns.py`), "
-        "and an edge pixel that sees one such pattern is supersampled in one fused loop; the imaging stage is two "
-        "compiled passes around OpenCV's blur. The virtual cell's parts and table are numpy functions of "
-        "`drivers/sim/world.py` (their polygon tests are now the largest numpy cost of a frame).",
+        "and an edge pixel that sees one such pattern is supersampled in one fused loop (vectorised for the circle "
+        "plate); the ray field's spline is evaluated through its local basis; the imaging stage's per-pixel "
+        "arithmetic is compiled passes around OpenCV's blur, pow and JPEG. The virtual cell's parts and table are "
+        "numpy functions of `drivers/sim/world.py`: their polygon tests are now the largest numpy cost of a frame, "
+        "and compiling them (as for the targets) is the next step.",
         "- The peer renders one plane with bilinear texture sampling (no area integration: edges alias, and "
         "the texture's own sampling moves them); ours intersects each pixel's ray with every plane, "
         "integrates edge pixels over their area (6x6 in the scene, 8x8 in the geometry test) and handles "
