@@ -1,8 +1,9 @@
 """Simulated robot (``kind: sim``): an arm of the virtual cell (``drivers/sim/``), as strict as a real one.
 
-- Moves take real time (distance / speed times the scene's ``motion_time_scale``, 1 by default):
-  the tool travels the straight line (position linear, orientation by slerp) and the camera sees
-  it on the way; ``state().moving`` is true meanwhile.
+- Moves take real time: distance / speed, or the turn at the scene's ``tool_turn_speed_deg_s`` when
+  that is longer, times the scene's ``motion_time_scale`` (1 by default). The tool travels the
+  straight line (position linear, orientation by slerp) and the camera sees it on the way;
+  ``state().moving`` is true meanwhile.
 - ``_stop`` halts the tool where it is, and the interrupted move raises ``DeviceOperationError``
   like the UR adapter (``RobotBase`` turns it into ``RobotStopped`` for the caller).
 - Faults of the scene (``robot.faults``): a protective stop halfway through a move (the move
@@ -127,8 +128,9 @@ class SimRobot(RobotBase):
         self._moves += 1
         protective_halfway = (faults.protective_stop_after_moves is not None
                               and self._moves == faults.protective_stop_after_moves + 1)
-        duration_s = float(np.linalg.norm(T_base_tool[:3, 3] - world.T_base_tool_commanded[:3, 3])) / speed_m_s
-        duration_s *= self.time_scale
+        duration_s = self.time_scale * max(
+            float(np.linalg.norm(T_base_tool[:3, 3] - world.T_base_tool_commanded[:3, 3])) / speed_m_s,
+            _turn_deg(world.T_base_tool_commanded, T_base_tool) / world.scene.robot.tool_turn_speed_deg_s)
         if duration_s > 0 or protective_halfway:
             self._travel(world, T_base_tool, T_true_end, max(duration_s, STEP_S), protective_halfway)
         world.place_tool(T_base_tool, T_true_end, joints)
@@ -166,6 +168,12 @@ class SimRobot(RobotBase):
     def _stop(self) -> None:
         """Halt the tool where it is (an interrupted move raises)."""
         self._halt.set()
+
+
+def _turn_deg(T0: NDArray[np.float64], T1: NDArray[np.float64]) -> float:
+    """The angle (deg) the tool turns from ``T0`` to ``T1``."""
+    c = (float(np.trace(T0[:3, :3].T @ T1[:3, :3])) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 class _Line:

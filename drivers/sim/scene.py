@@ -136,6 +136,10 @@ class RobotSpec(_Strict):
     motion_time_scale: float = Field(1.0, ge=0, le=10)
     """Simulated moves take distance/speed times this: 1 is real time (the default), 0 instantaneous
     (for tests and benches that need speed; a sim robot's ``motion_time_scale`` setting overrides it)."""
+    tool_turn_speed_deg_s: float = Field(90.0, gt=0, le=1000)
+    """How fast the tool turns (deg/s): a move takes the longer of its distance at the commanded
+    speed and its rotation at this rate, so a pure turn takes time too (and a Stop meets it
+    under way), as on a real arm with its orientation speed limit."""
     kinematic_error: KinematicErrorSpec | None = None
     """Pose-dependent error of the arm (perturbed UR5e link lengths and joint offsets); off when absent."""
     faults: RobotFaultSpec = Field(default_factory=lambda: RobotFaultSpec())

@@ -115,6 +115,27 @@ def test_stop_halts_mid_move_raises_and_latches_until_resume(robot: SimRobot) ->
     assert not robot.motion.latched
 
 
+def test_a_pure_turn_takes_time_and_a_stop_meets_it_under_way(robot: SimRobot) -> None:
+    """A turn about the tool axis moves no distance, yet it takes the turn at the scene's
+    ``tool_turn_speed_deg_s`` (90 deg/s): 90 deg is 1 s, and a Stop halts it part way round."""
+    turned = HOME @ ur_pose_to_transform([0, 0, 0, 0, 0, np.pi / 2])
+
+    def yaw_deg() -> float:
+        R = HOME[:3, :3].T @ robot.world.T_base_tool_true[:3, :3]
+        return float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
+
+    t0 = time.monotonic()
+    robot.move_linear(turned, 0.25)
+    assert time.monotonic() - t0 >= 0.95
+    assert abs(yaw_deg() - 90.0) < 1e-6
+    mover = _Mover(lambda: robot.move_linear(HOME, 0.25))
+    _wait_for(lambda: robot.state().moving and yaw_deg() < 80.0)
+    robot.stop(by="op")
+    assert isinstance(mover.join(), RobotStopped)
+    assert 1.0 < yaw_deg() < 80.0  # halted part way round, not at the target
+    assert robot.resume() is True
+
+
 def test_stop_aborts_the_whole_sequence(robot: SimRobot) -> None:
     reached: list[str] = []
 
