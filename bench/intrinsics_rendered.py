@@ -7,7 +7,13 @@ read noise, vignetting, blur, defocus away from the focus plane, gamma, JPEG), d
 ``calibration.detect``. Actual error = projection difference to the true lens over the covered
 cells (best rotation compensated); reported = ``uncertainty.projection_rms_px``. OpenCV gets our
 detections (bias-corrected centres for circle marks: it has no bias model) and its nearest model
-(opencv5 for division truth).
+(opencv5 for division truth). For the circle plate OpenCV also runs its own pipeline on the same
+images (``cv2.findCirclesGrid`` + ``calibrateCamera``, blob centres with their perspective bias):
+that is what a user of OpenCV gets; the first comparison isolates the solver.
+
+Times: both solvers after a warm-up (numba's compiled kernels are loaded once per process, as
+the service does at start), wall and CPU (``time.process_time``) per calibration; the load
+average is printed with the table.
 
 Run: ``.venv/bin/python bench/intrinsics_rendered.py --targets chessboard --seeds 10 [--out F.md]``.
 """
@@ -15,6 +21,8 @@ Run: ``.venv/bin/python bench/intrinsics_rendered.py --targets chessboard --seed
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -28,7 +36,14 @@ sys.path.insert(0, str(ROOT))
 
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
-from calibration.intrinsics import calibrate, covered_points, plan_views, projection_difference  # noqa: E402
+from calibration.detect.circle_grid import blob_detector  # noqa: E402
+from calibration.intrinsics import (  # noqa: E402
+    calibrate,
+    covered_points,
+    plan_views,
+    projection_difference,
+    synthetic_detections,
+)
 from calibration.observations import Detection  # noqa: E402
 from calibration.render import Imaging, PlanarObject, render  # noqa: E402
 from calibration.targets import Charuco, Chessboard, CirclePlate, PlanarTarget  # noqa: E402
@@ -50,15 +65,41 @@ NEED_VS_CV = {"chessboard": 1.0, "charuco": 1.0, "circle_plate": 0.5}
 
 
 def opencv_calibrate(dets: list[Detection], target: PlanarTarget, size: tuple[int, int], model: str
-                     ) -> tuple[CameraModel, float]:
+                     ) -> tuple[CameraModel, float, float]:
+    """OpenCV's calibrateCamera on the detections: camera, wall and CPU seconds."""
     tp = target.points()
     where = {int(i): k for k, i in enumerate(tp.ids)}
     obj = [tp.xyz_m[[where[int(i)] for i in d.ids]].astype(np.float32) for d in dets]
     img = [d.uv.astype(np.float32) for d in dets]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     _, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None, flags=CV_FLAGS[model])
     n = 8 if model == "opencv8" else 5
-    return CameraModel(model, size[0], size[1], K, dist.ravel()[:n]), time.perf_counter() - t0  # type: ignore[arg-type]
+    cam = CameraModel(model, size[0], size[1], K, dist.ravel()[:n])  # type: ignore[arg-type]
+    return cam, time.perf_counter() - t0, time.process_time() - c0
+
+
+def opencv_plate_points(img: np.ndarray, plate: CirclePlate) -> np.ndarray | None:
+    """OpenCV's own circle-grid detection of the plate's marks, ordered as the plate's ids (row by
+    row; a mirrored order, which no pose can produce, is flipped), or None when not found."""
+    ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID,
+                                blobDetector=blob_detector(img.shape[0] * img.shape[1], plate.cols * plate.rows))
+    if not ok:
+        return None
+    uv = np.asarray(c, dtype=np.float64).reshape(plate.rows, plate.cols, 2)
+    ex, ey = uv[0, -1] - uv[0, 0], uv[-1, 0] - uv[0, 0]
+    if ex[0] * ey[1] - ex[1] * ey[0] < 0:   # target x, y, z = into the target: counter-clockwise on screen
+        uv = uv[:, ::-1]
+    return uv.reshape(-1, 2)
+
+
+def warm_up() -> None:
+    """Load the compiled kernels of every model once (the service does this at start)."""
+    cam = CameraModel("opencv5", 640, 480, np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]))
+    board = Chessboard(9, 6, 25.0)
+    rng = np.random.default_rng(0)
+    dets = synthetic_detections(cam, board, plan_views(cam, board, 8, rng), 0.1, rng)
+    for m in TRUTHS:
+        calibrate(dets, board, m)
 
 
 def one_set(tname: str, model: str, seed: int, views: int, size: tuple[int, int]) -> dict[str, Any]:
@@ -68,19 +109,37 @@ def one_set(tname: str, model: str, seed: int, views: int, size: tuple[int, int]
     target = TARGETS[tname]
     rng = np.random.default_rng(seed)
     poses = plan_views(truth, target, views, rng, fill=0.6, margin_px=6, whole_outline=True)
-    dets = [detect(render(truth, [PlanarObject(T, target.reflectance)], DEFECTS, rng), target, f"v{k:02d}")
-            for k, T in enumerate(poses)]
+    imgs = [render(truth, [PlanarObject(T, target.reflectance)], DEFECTS, rng) for T in poses]
+    dets = [detect(img, target, f"v{k:02d}") for k, img in enumerate(imgs)]
     found = [d for d in dets if d.found]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(found, target, model)
-    t_ours = time.perf_counter() - t0
+    t_ours, c_ours = time.perf_counter() - t0, time.process_time() - c0
     pts = covered_points(res)
     cv_model = "opencv5" if model == "division" else model
-    cv_cam, t_cv = opencv_calibrate(found, target, size, cv_model)
-    return {"found": len(found), "act": projection_difference(res.camera, truth, pts)["rms_px"],
-            "rep": res.uncertainty["projection_rms_px"], "cv": projection_difference(cv_cam, truth, pts)["rms_px"],
-            "inflation": res.uncertainty.get("inflation", 1.0), "t_ours": t_ours, "t_cv": t_cv,
-            "verdict": res.verdict["ok"], "cv_model": cv_model}
+    cv_cam, t_cv, c_cv = opencv_calibrate(found, target, size, cv_model)
+    out = {"found": len(found), "act": projection_difference(res.camera, truth, pts)["rms_px"],
+           "rep": res.uncertainty["projection_rms_px"], "cv": projection_difference(cv_cam, truth, pts)["rms_px"],
+           "inflation": res.uncertainty.get("inflation", 1.0), "t_ours": t_ours, "t_cv": t_cv,
+           "c_ours": c_ours, "c_cv": c_cv, "verdict": res.verdict["ok"], "cv_model": cv_model}
+    # The same geometry with independent Gaussian noise at the residual level: what the median
+    # actual/reported of a perfectly honest uncertainty is on such a set (a single set's error is
+    # dominated by a few parameter directions, so the median ratio sits well below 1).
+    ref_rng = np.random.default_rng([seed, 7])
+    ref_dets = synthetic_detections(truth, target, poses, res.sigma_px, ref_rng)
+    ref = calibrate(ref_dets, target, model)
+    out["ref_ratio"] = (projection_difference(ref.camera, truth, covered_points(ref))["rms_px"]
+                        / ref.uncertainty["projection_rms_px"])
+    if isinstance(target, CirclePlate):
+        own = [(k, opencv_plate_points(img, target)) for k, img in enumerate(imgs)]
+        cv_dets = [Detection(f"v{k:02d}", True, target.points().ids.copy(), uv, image_size=size)
+                   for k, uv in own if uv is not None]
+        out["cv_own_found"] = len(cv_dets)
+        out["cv_own"] = float("nan")
+        if len(cv_dets) >= 3:
+            cam_own, _, _ = opencv_calibrate(cv_dets, target, size, cv_model)
+            out["cv_own"] = projection_difference(cam_own, truth, pts)["rms_px"]
+    return out
 
 
 def run(targets: list[str], models: list[str], seeds: int, views: int, size: tuple[int, int]) -> list[dict[str, Any]]:
@@ -98,32 +157,72 @@ def run(targets: list[str], models: list[str], seeds: int, views: int, size: tup
     return rows
 
 
+def _need(tname: str, model: str) -> float:
+    """The issue's accuracy target as a ratio to OpenCV: circle plate 0.5x, division truth 0.5x
+    (OpenCV's polynomial can only approximate it), the matching model 1.0x."""
+    return 0.5 if tname == "circle_plate" or model == "division" else 1.0
+
+
 def table(rows: list[dict[str, Any]], views: int, size: tuple[int, int], seeds: int) -> str:
+    load = os.getloadavg()
     L = [f"Defect-laden renders ({size[0]}x{size[1]}, {views} views per set, {seeds} seeds; shot + read noise, "
-         "vignetting 25 %, blur 0.7 px + defocus, gamma 1.1, JPEG 92). Medians over seeds.", "",
+         "vignetting 25 %, blur 0.7 px + defocus, gamma 1.1, JPEG 92). Medians over seeds. Times per "
+         f"calibration after a warm-up, wall / CPU; load average during the run {load[0]:.1f} / {load[1]:.1f} "
+         f"({platform.machine()}, {os.cpu_count()} cores shared, OpenCV {cv2.__version__}).", "",
          "| target | truth | OpenCV model | sets | views found | actual ours / cv (px) | ratio ours/cv (median) "
-         "| target vs cv | actual/reported (median) | within [0.5, 2] | inflated sets | time ours / cv (s) "
-         "| verdict ok |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| OpenCV own pipeline: views / actual (px) / ratio ours/it | actual/reported median (honest reference) "
+         "| actual/reported RMS (honest reference) | within [0.5, 2] "
+         "| inflated sets | time ours / cv wall (s) | time ours / cv CPU (s) | CPU ratio | verdict ok |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p = r["per"]
         if not p:
-            L.append(f"| {r['target']} | {r['model']} | - | 0 | - | - | - | MISSED (no set calibrated) | - | - | - "
-                     "| - | - |")
+            L.append(f"| {r['target']} | {r['model']} | - | 0 | - | - | - | - | - | - | - | - | - | - | - | - |")
             continue
         act = np.array([x["act"] for x in p])
         cv = np.array([x["cv"] for x in p])
         rq = act / np.array([x["rep"] for x in p])
-        ratio = float(np.median(act / cv))
-        need = NEED_VS_CV[r["target"]] if r["model"] != "division" or r["target"] == "circle_plate" else 0.5
-        tv = "met" if ratio <= need * 1.005 else f"MISSED (need <= {need}x)"
-        med = float(np.median(rq))
-        tu = "met" if 0.5 <= med <= 2.0 else "MISSED"
+        r["ratio"] = float(np.median(act / cv))
+        r["unc"] = float(np.median(rq))
+        rr = np.array([x["ref_ratio"] for x in p])
+        r["unc_ref"] = float(np.median(rr))
+        r["unc_rms"] = float(np.sqrt(np.mean(rq**2)))
+        r["unc_rms_ref"] = float(np.sqrt(np.mean(rr**2)))
+        c_ours = float(np.median([x["c_ours"] for x in p]))
+        c_cv = float(np.median([x["c_cv"] for x in p]))
+        r["cpu_ratio"] = c_ours / max(c_cv, 1e-9)
+        own = "-"
+        if "cv_own" in p[0]:
+            o = np.array([x["cv_own"] for x in p])
+            ok = np.isfinite(o)
+            r["ratio_own"] = float(np.median(act[ok] / o[ok])) if ok.any() else float("nan")
+            own = (f"{np.mean([x['cv_own_found'] for x in p]):.1f} / "
+                   f"{np.median(o[ok]) if ok.any() else float('nan'):.4f} / {r['ratio_own']:.2f}")
         failed = f" (+{r['failed']} failed)" if r["failed"] else ""
         L.append(f"| {r['target']} | {r['model']} | {p[0]['cv_model']} | {len(p)}{failed} "
-                 f"| {np.mean([x['found'] for x in p]):.1f} | {np.median(act):.4f} / {np.median(cv):.4f} | {ratio:.2f} "
-                 f"| {tv} | {med:.2f} ({tu}) | {np.mean((rq >= 0.5) & (rq <= 2)):.0%} "
-                 f"| {sum(x['inflation'] > 1 for x in p)} | {np.median([x['t_ours'] for x in p]):.2f} / "
-                 f"{np.median([x['t_cv'] for x in p]):.3f} | {sum(x['verdict'] for x in p)}/{len(p)} |")
+                 f"| {np.mean([x['found'] for x in p]):.1f} | {np.median(act):.4f} / {np.median(cv):.4f} "
+                 f"| {r['ratio']:.2f} | {own} | {r['unc']:.2f} ({r['unc_ref']:.2f}) | {r['unc_rms']:.2f} "
+                 f"({r['unc_rms_ref']:.2f}) | {np.mean((rq >= 0.5) & (rq <= 2)):.0%} "
+                 f"| {sum(x['inflation'] > 1 for x in p)} | {np.median([x['t_ours'] for x in p]):.3f} / "
+                 f"{np.median([x['t_cv'] for x in p]):.3f} | {c_ours:.3f} / {c_cv:.3f} | {r['cpu_ratio']:.1f}x "
+                 f"| {sum(x['verdict'] for x in p)}/{len(p)} |")
+    L += ["", "### Against the targets", "",
+          "| target | truth | measure | measured | target | verdict |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        if "ratio" not in r:
+            L.append(f"| {r['target']} | {r['model']} | all | no set calibrated | - | MISSED |")
+            continue
+        need = _need(r["target"], r["model"])
+        L.append(f"| {r['target']} | {r['model']} | projection error vs OpenCV on our detections | {r['ratio']:.2f}x "
+                 f"| <= {need}x | {'met' if r['ratio'] <= need * 1.005 else 'MISSED'} |")
+        if "ratio_own" in r:
+            ro = r["ratio_own"]
+            L.append(f"| {r['target']} | {r['model']} | projection error vs OpenCV's own pipeline | {ro:.2f}x "
+                     f"| <= {need}x | {'met' if ro <= need * 1.005 else 'MISSED'} |")
+        L.append(f"| {r['target']} | {r['model']} | actual / reported uncertainty (median) | {r['unc']:.2f} "
+                 f"| 0.5-2 | {'met' if 0.5 <= r['unc'] <= 2 else 'MISSED'} |")
+        L.append(f"| {r['target']} | {r['model']} | time with uncertainty / OpenCV (CPU) | {r['cpu_ratio']:.1f}x "
+                 f"| <= 10x | {'met' if r['cpu_ratio'] <= 10 else 'MISSED'} |")
     return "\n".join(L) + "\n"
 
 
@@ -138,6 +237,7 @@ def main() -> None:
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.split("x"))
     t0 = time.time()
+    warm_up()
     rows = run(a.targets.split(","), a.models.split(","), a.seeds, a.views, (size[0], size[1]))
     md = table(rows, a.views, (size[0], size[1]), a.seeds) + f"\nRun time {time.time() - t0:.0f} s.\n"
     print(md)
