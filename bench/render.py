@@ -27,7 +27,6 @@ import argparse
 import importlib.metadata
 import importlib.util
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -48,6 +47,7 @@ from bench.render_peers import (  # noqa: E402
     autogroup,
     circle_grid_texture,
     cpu_model,
+    first_frame,
     git_module,
     session_start_renderer,
     texture_from_reflectance,
@@ -90,7 +90,7 @@ class Timer:
         self.wall: list[float] = []
         self.cpu: list[float] = []
 
-    def __call__(self, fn: Callable[[], object]) -> None:
+    def __call__(self, fn: Callable[..., object]) -> None:
         t, c = time.perf_counter(), time.process_time()
         fn()
         self.wall.append(time.perf_counter() - t)
@@ -158,33 +158,42 @@ def bench_frames(n: int, tmp: Path) -> tuple[dict[str, tuple[float, float, float
             finally:
                 render.RENDER_THREADS = threads
 
-        timers["ours_plate"](ours)
-        timers["peer_plate"](theirs)
-        timers["cell"](world.render)
-        timers["grey_only"](world.render)  # same pose: the geometry is cached, only the imaging stage runs
-        timers["cell_1thread"](one_thread)
-        timers["cell_defects"](defects.render)
-        timers["grey_defects"](defects.render)
+        # The start renderer's frames (timed only when its modules loaded).
+        def at_start(objs: list[PlanarObject] = objs) -> None:
+            refl, depth = s_render.render_scene(cam, objs, im.background, im.supersample)
+            s_sensor.to_grey(refl, s_imaging, rng, depth)
+            frames["start"] = (refl, depth)
+
+        def start_plate(T_cam_plate: NDArray[np.float64] = T_cam_plate) -> None:
+            refl, depth = s_render.render_scene(cam, [PlanarObject(T_cam_plate, plate.reflectance)],
+                                                im.background, im.supersample)
+            s_sensor.to_grey(refl, s_imaging, rng, depth)
+
+        def start_defects() -> None:  # the objects built inside, as SimWorld.render does
+            refl, depth = s_render.render_scene(defects.camera_model, defects.planar_objects(), dim.background,
+                                                dim.supersample)
+            s_sensor.to_grey(refl, s_dimaging, rng, depth)
+
+        # Each of ours next to the start renderer's same frame, the pair's order alternating pose by
+        # pose, so that neither always runs on caches the step before it has just flushed.
+        flip = len(timers["cell"].wall) % 2 == 1
+        with_start = start is not None
+        def group(*items: tuple[str, Callable[..., object]] | None) -> list[tuple[str, Callable[..., object]]]:
+            return [item for item in items if item is not None]
+
+        steps = [
+            group(("ours_plate", ours), ("start_plate", start_plate) if with_start else None),
+            group(("peer_plate", theirs)),
+            group(("cell", world.render), ("start", at_start) if with_start else None),
+            group(("grey_only", world.render)),  # same pose: the geometry is cached, only the imaging runs
+            group(("cell_1thread", one_thread)),
+            group(("cell_defects", defects.render), ("start_defects", start_defects) if with_start else None),
+            group(("grey_defects", defects.render)),
+        ]
+        for pair in steps:
+            for name, fn in pair[::-1] if flip else pair:
+                timers[name](fn)
         if start is not None:
-
-            def at_start(objs: list[PlanarObject] = objs) -> None:
-                refl, depth = s_render.render_scene(cam, objs, im.background, im.supersample)
-                s_sensor.to_grey(refl, s_imaging, rng, depth)
-                frames["start"] = (refl, depth)
-
-            def start_plate(T_cam_plate: NDArray[np.float64] = T_cam_plate) -> None:
-                refl, depth = s_render.render_scene(cam, [PlanarObject(T_cam_plate, plate.reflectance)],
-                                                    im.background, im.supersample)
-                s_sensor.to_grey(refl, s_imaging, rng, depth)
-
-            def start_defects() -> None:  # the objects built inside, as SimWorld.render does
-                refl, depth = s_render.render_scene(defects.camera_model, defects.planar_objects(), dim.background,
-                                                    dim.supersample)
-                s_sensor.to_grey(refl, s_dimaging, rng, depth)
-
-            timers["start"](at_start)
-            timers["start_plate"](start_plate)
-            timers["start_defects"](start_defects)
             compared += 1
             identical += np.array_equal(frames["ours"][0], frames["start"][0])
             finite = np.isfinite(frames["start"][1])
@@ -203,40 +212,6 @@ def bench_frames(n: int, tmp: Path) -> tuple[dict[str, tuple[float, float, float
     out["peer_lens"] = (peer.lens_inversion_s * 1000,) * 3
     out["cell_max"] = (max(timers["cell"].wall) * 1000,) * 3
     return out, (identical, compared, depth_diff)
-
-
-_FIRST_FRAME = """
-import threading, time
-t0 = time.perf_counter()
-from drivers.camera.sim import SimCamera, SimCameraSettings
-t1 = time.perf_counter()
-cam = SimCamera("cam0", SimCameraSettings())
-cam.open()
-if PREPARED:
-    for th in threading.enumerate():
-        if th.name == "cam0-prepare":
-            th.join()
-t2 = time.perf_counter()
-cam.grab()
-t3 = time.perf_counter()
-print(t1 - t0, t2 - t1, t3 - t2)
-"""
-
-
-def first_frame(prepared: bool, runs: int = 3) -> tuple[float, float, float]:
-    """(imports, open [+ its background preparation], first grab) in ms, fresh processes, medians.
-
-    Not prepared: the grab right after ``open()``, which waits for the one-off work (lens
-    inversion, numba start-up). Prepared: the grab once open's background preparation is done.
-    """
-    rows = []
-    for _ in range(runs):
-        code = f"PREPARED = {prepared}\n" + _FIRST_FRAME
-        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                             check=True).stdout.split()
-        rows.append([float(x) for x in out])
-    m = np.median(np.array(rows), axis=0) * 1000
-    return float(m[0]), float(m[1]), float(m[2])
 
 
 def new_camera_frame(runs: int = 5) -> tuple[float, float, float]:
@@ -387,11 +362,12 @@ def main() -> None:
         "",
         "Notes:",
         "- Where the wall time goes beyond the CPU time: waiting for a core. With scheduler autogroup on, the "
-        "kernel shares the cores between sessions, not threads: at a load average of "
-        f"~{(load0 + load1) / 2:.0f} on {os.cpu_count()} cores this process gets about "
-        f"{100 * one_c / max(one_w, 1e-9):.0f} % of a core (1-thread frames: {one_c:.0f} ms CPU in {one_w:.0f} ms), "
-        "and a second thread does not raise that share. The render threads (bands of rows, then runs of edge "
-        "pixels; the image is the same for any thread count) pay off on a machine with a free core.",
+        "kernel shares the cores between sessions, not threads. In this run the process got "
+        f"{100 * one_c / max(one_w, 1e-9):.0f} % of a core on 1 thread ({one_c:.0f} ms CPU in {one_w:.0f} ms) and "
+        f"{100 * cell_cpu / max(cell, 1e-9):.0f} % on {render.RENDER_THREADS} threads ({cell_cpu:.0f} ms CPU in "
+        f"{cell:.0f} ms): a second thread raises the share only while a core is free (on the loaded machine, "
+        "load ~7-12, it did not; the 1-minute load average lags what the run saw). The threads take bands of rows, "
+        "then runs of edge pixels; the image is the same for any thread count.",
         "- What the frame costs now, by pass: the targets' patterns (circle plate, chessboard, circle grid) are "
         "shaded in compiled loops bit-identical to their numpy `reflectance` (`calibration/render_patterns.py`), "
         "and an edge pixel that sees one such pattern is supersampled in one fused loop (vectorised for the circle "

@@ -134,3 +134,37 @@ def autogroup() -> str:
         return "on" if Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1" else "off"
     except OSError:
         return "unknown"
+
+
+_FIRST_FRAME = """
+import threading, time
+t0 = time.perf_counter()
+from drivers.camera.sim import SimCamera, SimCameraSettings
+t1 = time.perf_counter()
+cam = SimCamera("cam0", SimCameraSettings())
+cam.open()
+if PREPARED:
+    for th in threading.enumerate():
+        if th.name == "cam0-prepare":
+            th.join()
+t2 = time.perf_counter()
+cam.grab()
+t3 = time.perf_counter()
+print(t1 - t0, t2 - t1, t3 - t2)
+"""
+
+
+def first_frame(prepared: bool, runs: int = 3) -> tuple[float, float, float]:
+    """(imports, open [+ its background preparation], first grab) in ms, fresh processes, medians.
+
+    Not prepared: the grab right after ``open()``, which waits for the one-off work (lens
+    inversion, numba start-up). Prepared: the grab once open's background preparation is done.
+    """
+    rows = []
+    for _ in range(runs):
+        code = f"PREPARED = {prepared}\n" + _FIRST_FRAME
+        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                             check=True).stdout.split()
+        rows.append([float(x) for x in out])
+    m = np.median(np.array(rows), axis=0) * 1000
+    return float(m[0]), float(m[1]), float(m[2])
