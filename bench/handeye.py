@@ -359,12 +359,15 @@ def findings(overall: list[dict[str, Any]], per_group: list[dict[str, Any]], kin
         f"{eih['cellctl_rms_rot'] / eih['crb_rot']:.2f}x / {eih['cellctl_rms_trans'] / eih['crb_trans']:.2f}x "
         "(eye-in-hand rot / trans) and "
         f"{eth['cellctl_rms_rot'] / eth['crb_rot']:.2f}x / {eth['cellctl_rms_trans'] / eth['crb_trans']:.2f}x "
-        "(eye-to-hand) of the bound. No weighting, initial estimate or robot-noise frame can do better on these "
-        "data: the ratio to OpenCV is fixed by how close OpenCV's closed forms already come to the bound.",
+        f"(eye-to-hand) of the bound (1σ sampling noise of an RMS over {eih['count']} sets of 3 dof: "
+        f"±{100 / np.sqrt(6 * eih['count']):.0f} %). No weighting, initial estimate or robot-noise frame can do "
+        "better on these data: the ratio to OpenCV is fixed by how close OpenCV's closed forms already come to "
+        "the bound.",
         "- **Why eye-to-hand rotation looked behind (1.14x in the previous run):** that figure was the median over 9 "
         "sets pooled across three noise levels (the pooled median picks whichever set lands in the middle). With "
         f"{eth['count']} sets it is {eth['cellctl_rot'] / median_method(eth, 'rot'):.2f}x, and "
-        f"{min(eth_lvl):.2f}-{max(eth_lvl):.2f}x per noise level. The rotation is limited by the robot's reported orientation, which every method uses alike "
+        f"{min(eth_lvl):.2f}-{max(eth_lvl):.2f}x per noise level. The rotation is limited by the robot's "
+        "reported orientation, which every method uses alike "
         "(the camera sees the target's rotation far more precisely than the robot's 0.01°): the bound is only "
         f"{eth['crb_rot'] / float(np.median([eth[m + '_rms_rot'] for m in PEERS])):.2f}x of OpenCV's median method "
         "in rotation. calibrateRobotWorldHandEye (RW_SHAH, RW_LI) is among the peers; it does not come closer.",
