@@ -459,10 +459,25 @@ def main() -> None:
         f"{load0[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2-core machine shared with other jobs; "
         "OPENBLAS_NUM_THREADS=1). Times are indicative only; ratios are from the same run.\n",
     ]
-    md = "\n".join(parts)
+    md = "\n".join(parts) + special_rows()
     print(md)
     if a.out:
         Path(a.out).write_text(md)
+
+
+SPECIAL = Path(__file__).parent / "results" / "handeye_special.md"
+
+
+def special_rows() -> str:
+    """The beyond-6-DOF rows (4-DOF, tool centre, measured frame) from ``bench/handeye_special.py``'s
+    latest results, so this table carries every hand-eye target; they are measured by that bench."""
+    text = SPECIAL.read_text() if SPECIAL.exists() else ""
+    head = "## Beyond 6-DOF AX=XB"
+    if head not in text:
+        return ""
+    section = head + text.split(head, 1)[1].split("\n\n\n", 1)[0]
+    return ("\n" + section.rstrip() + "\n\nThese rows are `bench/handeye_special.py`'s (its latest run, "
+            "`bench/results/handeye_special.md`), copied here when this bench writes its table.\n")
 
 
 if __name__ == "__main__":
