@@ -257,3 +257,25 @@ def test_centroid_stage_equals_numpy(scene: tuple[shape.ShapeModel, np.ndarray, 
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     # it moved towards the truth (the test exercises the steps, not a no-op)
     assert math.hypot(got[0] - (t.u_px - x0), got[1] - (t.v_px - y0)) < 0.5 * math.hypot(0.4, 0.3)
+
+
+def test_percentile75_is_numpys_percentile() -> None:
+    from vision.shape import kernels
+
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 3, 4, 5, 7, 100, 203):
+        a = rng.gamma(2.0, 10.0, n)
+        assert kernels.percentile75(a) == float(np.percentile(a, 75)), n
+
+
+def test_magnitudes_are_the_bilinear_gradient_magnitudes() -> None:
+    from vision.image import bilinear
+    from vision.shape import kernels
+
+    rng = np.random.default_rng(5)
+    gx = rng.normal(0, 10, (40, 50)).astype(np.float32)
+    gy = rng.normal(0, 10, (40, 50)).astype(np.float32)
+    q = np.column_stack([rng.uniform(-3, 53, 300), rng.uniform(-3, 43, 300)])  # some past the border
+    want = np.hypot(bilinear(gx, q[:, 0], q[:, 1]), bilinear(gy, q[:, 0], q[:, 1]))
+    got = kernels.magnitudes(np.ascontiguousarray(np.dstack([gx, gy])), q)
+    assert np.allclose(got, want, rtol=1e-6, atol=1e-9)

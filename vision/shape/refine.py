@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, bilinear, gradients, rot
+from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
 from vision.shape.score import direction_score, find_threshold
@@ -106,8 +106,9 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     G = cv2.merge([gx, gy])
     x, y, th, sc = pose.x - x0, pose.y - y0, pose.theta, pose.scale
     q0 = sc * (m @ rot(th).T) + np.array([x, y])
-    mag0 = np.hypot(bilinear(gx, q0[:, 0], q0[:, 1]), bilinear(gy, q0[:, 0], q0[:, 1]))
-    thr = find_threshold(crop, sigma, thr, float(np.percentile(mag0[visible(q0)], 75)) if visible(q0).any() else thr)
+    vis0 = visible(q0)
+    thr = find_threshold(crop, sigma, thr,
+                         kernels.percentile75(kernels.magnitudes(G, q0[vis0])) if vis0.any() else thr)
     p4, failed, q, d, found, cosd, sign = kernels.fit_stage_a(
         G, np.ascontiguousarray(m), np.ascontiguousarray(nrm_m), np.array([x, y, th, sc]), s0, max_scale_dev,
         float(search_px), int(iterations), float(thr), float(reject_below), bool(fit_scale), lm.radius,
