@@ -36,6 +36,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.machine import cpu_model  # noqa: E402
 from calibration import geometry as g  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.handeye import OPENCV_METHODS, calibrate_handeye, make_stations, opencv_handeye  # noqa: E402
@@ -238,13 +239,7 @@ def main() -> None:
 
 
 def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} cores)"
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores"
+    return f"{cpu_model()} ({os.cpu_count()} cores)"
 
 
 if __name__ == "__main__":

@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import cpu_model  # noqa: E402
 from calibration import geometry as g  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
@@ -432,8 +433,7 @@ def main() -> None:
     d4, tc, me = dof4_rows(), tcp_rows(), measured_rows()
     tr = tcp_rendered_rows()
     text = report(d4, tc, me, e2h_spread_rows(), tr)
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), "unknown CPU") if Path("/proc/cpuinfo").exists() else "unknown CPU"
+    cpu = cpu_model()
     text += (f"\nRun: {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU, load average "
              f"{os.getloadavg()[0]:.1f} at the end, {cpu} (the per-seed 's' column is wall time).\n")
     Path(args.out).write_text(text)

@@ -9,9 +9,7 @@ full scale around each candidate, with parabolic sub-pixel peaks in angle and po
 from __future__ import annotations
 
 import math
-import platform
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -154,12 +152,3 @@ class Baseline:
         return Found(x0 + px + dx + c[0], y0 + py + dy + c[1], wrap_deg(float(angles[k] + da)), s)
 
 
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()

@@ -29,7 +29,8 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.ncc_baseline import Baseline, Found, cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
+from bench.ncc_baseline import Baseline, Found  # noqa: E402
 from drivers.sim import pick_scenes  # noqa: E402
 from vision import shape  # noqa: E402
 

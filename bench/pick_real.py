@@ -33,7 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.ncc_baseline import Baseline, cpu_model  # noqa: E402
+from bench.machine import cpu_model  # noqa: E402
+from bench.ncc_baseline import Baseline  # noqa: E402
 from bench.pick_cases import (  # noqa: E402
     DATA,
     SIZES,

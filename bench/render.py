@@ -40,13 +40,13 @@ from numpy.typing import NDArray
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.machine import cpu_model  # noqa: E402
 from bench.render_peers import (  # noqa: E402
     PREVIOUS,
     SESSION_START,
     TexturePeer,
     autogroup,
     circle_grid_texture,
-    cpu_model,
     first_frame,
     git_module,
     session_start_renderer,

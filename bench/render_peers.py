@@ -4,7 +4,6 @@ this renderer as it was at earlier commits (loaded from git), and the machine's 
 from __future__ import annotations
 
 import importlib.util
-import platform
 import subprocess
 import sys
 import time
@@ -116,16 +115,6 @@ def session_start_renderer(tmp: Path) -> tuple[types.ModuleType, types.ModuleTyp
         return None
     render._kernels = lambda: kernels  # type: ignore[attr-defined]
     return render, sensor
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def autogroup() -> str:
