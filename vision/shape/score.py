@@ -30,6 +30,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import gradients
+from vision.shape.kernels import _bilinear2
 
 F64 = NDArray[np.float64]
 
@@ -86,20 +87,6 @@ def find_threshold(crop: NDArray[np.uint8], sigma: float, taught: float, part_gr
 
 
 @njit(cache=True)
-def _sample2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float]:
-    h, w = G.shape[0], G.shape[1]
-    x = min(max(x, 0.0), w - 1.001)
-    y = min(max(y, 0.0), h - 1.001)
-    x0, y0 = int(x), int(y)
-    fx, fy = x - x0, y - y0
-    t0 = G[y0, x0, 0] + (G[y0, x0 + 1, 0] - G[y0, x0, 0]) * fx
-    t1 = G[y0, x0, 1] + (G[y0, x0 + 1, 1] - G[y0, x0, 1]) * fx
-    u0 = G[y0 + 1, x0, 0] + (G[y0 + 1, x0 + 1, 0] - G[y0 + 1, x0, 0]) * fx
-    u1 = G[y0 + 1, x0, 1] + (G[y0 + 1, x0 + 1, 1] - G[y0 + 1, x0, 1]) * fx
-    return t0 + (u0 - t0) * fy, t1 + (u1 - t1) * fy
-
-
-@njit(cache=True)
 def point_agreement(G: NDArray[np.float32], q: F64, n: F64, thr: float, reach: float, full: float,
                     c0: float, step: float) -> tuple[F64, F64, F64, F64]:
     """Per model point (image place ``q``, unit normal ``n``): the best agreement with an edge (a
@@ -121,7 +108,7 @@ def point_agreement(G: NDArray[np.float32], q: F64, n: F64, thr: float, reach: f
         nx, ny = n[i, 0], n[i, 1]
         for j in range(ns):
             t = (j - k - 1) * step
-            gx, gy = _sample2(G, q[i, 0] + t * nx, q[i, 1] + t * ny)
+            gx, gy = _bilinear2(G, q[i, 0] + t * nx, q[i, 1] + t * ny)
             m2 = gx * gx + gy * gy
             s = gx * nx + gy * ny
             gn[j] = abs(s)
