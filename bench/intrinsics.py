@@ -78,7 +78,7 @@ def timed_calibrate(dets: list[Detection], board: Chessboard, model: str) -> tup
 
 
 def warm_up() -> None:
-    """Load the compiled kernels of every model once (the service does this at start)."""
+    """Load the compiled kernels of every model once, so no timed calibration pays their compilation."""
     cam = CameraModel("opencv5", 640, 480, np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]))
     board = Chessboard(9, 6, 25.0)
     rng = np.random.default_rng(0)

@@ -34,6 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.intrinsics import TRUTHS, warm_up  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
 from calibration.detect.circle_grid import blob_detector  # noqa: E402
@@ -48,11 +49,6 @@ from calibration.observations import Detection  # noqa: E402
 from calibration.render import Imaging, PlanarObject, render  # noqa: E402
 from calibration.targets import Charuco, Chessboard, CirclePlate, PlanarTarget  # noqa: E402
 
-TRUTHS = {
-    "opencv5": np.array([-0.28, 0.09, 0.0008, -0.0006, -0.015]),
-    "opencv8": np.array([0.15, -0.1, 0.0008, -0.0006, 0.01, 0.45, -0.05, 0.02]),
-    "division": np.array([-0.3]),
-}
 TARGETS: dict[str, PlanarTarget] = {
     "chessboard": Chessboard(9, 6, 25.0),
     "charuco": Charuco(7, 5, 30.0, 22.0, "DICT_4X4_50"),
@@ -91,15 +87,6 @@ def opencv_plate_points(img: np.ndarray, plate: CirclePlate) -> np.ndarray | Non
         uv = uv[:, ::-1]
     return uv.reshape(-1, 2)
 
-
-def warm_up() -> None:
-    """Load the compiled kernels of every model once (the service does this at start)."""
-    cam = CameraModel("opencv5", 640, 480, np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]))
-    board = Chessboard(9, 6, 25.0)
-    rng = np.random.default_rng(0)
-    dets = synthetic_detections(cam, board, plan_views(cam, board, 8, rng), 0.1, rng)
-    for m in TRUTHS:
-        calibrate(dets, board, m)
 
 
 def one_set(tname: str, model: str, seed: int, views: int, size: tuple[int, int]) -> dict[str, Any]:
