@@ -45,6 +45,21 @@ def hit_pixels(field: NDArray[np.float64], r0: int, r1: int, c0: int, c1: int, H
     return n
 
 
+@njit(cache=True, nogil=True, inline="always")
+def local_field(field: NDArray[np.float64], r: int, c: int) -> tuple[float, float, float, float, float, float]:
+    """The ray field at pixel (r, c) and its derivatives along the columns and the rows (central
+    differences, one-sided at the image border): a sub-ray at offset (ou, ov) px is
+    ``(bx + ou dux + ov dvx, by + ou duy + ov dvy)``."""
+    h, w_img = field.shape[0], field.shape[1]
+    cl, cr = max(c - 1, 0), min(c + 1, w_img - 1)
+    ru, rd = max(r - 1, 0), min(r + 1, h - 1)
+    dux = (field[r, cr, 0] - field[r, cl, 0]) / (cr - cl)
+    duy = (field[r, cr, 1] - field[r, cl, 1]) / (cr - cl)
+    dvx = (field[rd, c, 0] - field[ru, c, 0]) / (rd - ru)
+    dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
+    return field[r, c, 0], field[r, c, 1], dux, duy, dvx, dvy
+
+
 @njit(cache=True, nogil=True)
 def hit_subrays(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArray[np.int64],
                 only: NDArray[np.int64], nsub: int, r0: int, r1: int, c0: int, c1: int,
@@ -57,7 +72,6 @@ def hit_subrays(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArr
     around it) and the pixel is inside the plane's window. Sub-rays are linear in the ray field
     (central differences, one-sided at the image border).
     """
-    h, w_img = field.shape[0], field.shape[1]
     n2 = nsub * nsub
     n = 0
     for e in range(rows.size):
@@ -65,14 +79,7 @@ def hit_subrays(field: NDArray[np.float64], rows: NDArray[np.int64], cols: NDArr
         c = cols[e]
         if only[e] != index and not (only[e] == -2 and r0 <= r < r1 and c0 <= c < c1):
             continue
-        cl, cr = max(c - 1, 0), min(c + 1, w_img - 1)
-        ru, rd = max(r - 1, 0), min(r + 1, h - 1)
-        dux = (field[r, cr, 0] - field[r, cl, 0]) / (cr - cl)
-        duy = (field[r, cr, 1] - field[r, cl, 1]) / (cr - cl)
-        dvx = (field[rd, c, 0] - field[ru, c, 0]) / (rd - ru)
-        dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
-        bx = field[r, c, 0]
-        by = field[r, c, 1]
+        bx, by, dux, duy, dvx, dvy = local_field(field, r, c)
         for j in range(nsub):
             ov = (j + 0.5) / nsub - 0.5
             for i in range(nsub):

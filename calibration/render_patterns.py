@@ -25,6 +25,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from calibration.render_kernels import local_field
 from calibration.targets import MM, Chessboard, CircleGrid, CirclePlate
 
 F64 = NDArray[np.float64]
@@ -167,7 +168,6 @@ def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, fie
     The same sub-rays (``render_kernels.hit_subrays``), the same hit test against an empty
     pixel, and numpy's mean: bit-identical to the generic path, without its buffers.
     """
-    h, w_img = field.shape[0], field.shape[1]
     n2 = nsub * nsub
     if n2 > 128:  # beyond numpy's pairwise block: _mean would differ from it
         raise ValueError("supersample_alone: at most 11 x 11 sub-rays")
@@ -181,14 +181,7 @@ def supersample_alone(kind: int, g: F64, centres: F64, cols: int, rows: int, fie
     for e in range(pix_rows.size):
         r = pix_rows[e]
         c = pix_cols[e]
-        cl, cr = max(c - 1, 0), min(c + 1, w_img - 1)
-        ru, rd = max(r - 1, 0), min(r + 1, h - 1)
-        dux = (field[r, cr, 0] - field[r, cl, 0]) / (cr - cl)
-        duy = (field[r, cr, 1] - field[r, cl, 1]) / (cr - cl)
-        dvx = (field[rd, c, 0] - field[ru, c, 0]) / (rd - ru)
-        dvy = (field[rd, c, 1] - field[ru, c, 1]) / (rd - ru)
-        bx = field[r, c, 0]
-        by = field[r, c, 1]
+        bx, by, dux, duy, dvx, dvy = local_field(field, r, c)
         # Flat, branch-free loops over the sub-rays: a ray misses when its depth is not in (0, inf)
         # (w == 0 included) or the pattern is not there (NaN).
         # The circle plate's loop apart: the pattern switch inside a loop stops the vectoriser.
