@@ -35,16 +35,6 @@ class Pose:
     scale: float = 1.0
 
 
-def _gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, fit_scale: bool) -> F64:
-    """One weighted Gauss-Newton step for (x, y, theta[, scale]) on normal distances."""
-    A, b = kernels.gn_normal_equations(np.ascontiguousarray(n), np.ascontiguousarray(Rm),
-                                       np.ascontiguousarray(Rdm), float(scale), np.ascontiguousarray(wgt),
-                                       np.ascontiguousarray(resid))
-    k = 4 if fit_scale else 3
-    delta = np.linalg.solve(A[:k, :k] + np.eye(k) * 1e-9, b[:k])
-    return np.asarray(delta if fit_scale else np.append(delta, 0.0), dtype=np.float64)
-
-
 def _associate(G: F32, q: F64, n: F64, reach: float, thr: float
                ) -> tuple[F64, NDArray[np.bool_], F64, F64]:
     """Nearest image edge of matching orientation along each normal within ``reach`` px.
@@ -116,15 +106,6 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     x, y, th, sc = (float(t) for t in p4)
     if failed:
         return Refined(Pose(x + x0, y + y0, th, 0.0, sc), 0.0, float("nan"))
-
-    def update(delta: F64) -> float:
-        nonlocal x, y, th, sc
-        x += float(delta[0])
-        y += float(delta[1])
-        th += float(delta[2])
-        sc = float(np.clip(sc + float(delta[3]), s0 * (1 - max_scale_dev), s0 * (1 + max_scale_dev)))
-        return abs(float(delta[0])) + abs(float(delta[1])) + (abs(float(delta[2])) + abs(float(delta[3]))) \
-            * lm.radius
 
     if fine is not None:
         # stage B: centroid edge positions on the raw image (phase-exact), a few Gauss-Newton steps
