@@ -6,8 +6,10 @@
    radius at that level). Local maxima over position *and* angle, so several angle hypotheses
    of a nearly symmetric part survive.
 2. **Tracking down the pyramid** (batched gathers, ``responses.track``): on the level below the
-   top, +-2 angle steps and +-2 px on spread responses; on each finer level +-1; on the last
-   discrete level a second pass on unspread responses settles the +-1 px plateaus.
+   top, +-2 angle steps and +-2 px on spread responses, tracked again from where the best lies on
+   the window's edge (``_climb``: a partly hidden part's top-level peak can sit a few pixels off);
+   on each finer level +-1; on the last discrete level a second pass on unspread responses settles
+   the +-1 px plateaus.
 3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
 
 The score (``score.direction_score``, HALCON's metric in our words) is the edge-direction
@@ -38,7 +40,7 @@ from numpy.typing import NDArray
 
 from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
-from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
+from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features, spread_max, track
 from vision.types import Candidate, FindResult, Match, SearchParams
@@ -199,8 +201,10 @@ def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[P
             k_ = ks[sl]
             # below the top level the angle and position are still coarse: +-2 steps and +-2 px
             # (+-3 with the spread) there, +-1 further down
-            xs_, ys_, ts_, sc_ = track(spread_, lm, cx[sl], cy[sl], th[sl], 2 if first else 1,
-                                       2 if first else 1, k_)
+            if first:
+                xs_, ys_, ts_, sc_ = _climb(spread_, lm, cx[sl], cy[sl], th[sl], 2, k_)
+            else:
+                xs_, ys_, ts_, sc_ = track(spread_, lm, cx[sl], cy[sl], th[sl], 1, 1, k_)
             if last:
                 # the spread responses leave +-1 px plateaus: settle on the unspread ones
                 keep = sc_ >= coarse_min * 0.7
@@ -218,6 +222,39 @@ def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[P
         if timed_out:
             break
     return cands, timed_out
+
+
+CLIMB_STEPS = 3
+"""Times a tracked candidate whose best pose lies on its window's edge is tracked again from there."""
+
+
+def _climb(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64, reach: int,
+           k: F64) -> tuple[F64, F64, F64, F64]:
+    """``track`` over +-``reach`` px and angle steps, again from where a candidate's best pose lies
+    on the window's edge while that raises its score: the coarse level's peak of a partly hidden
+    part can sit a few pixels along its visible edges from the true pose (the edges that remain
+    match along a ridge), beyond one window."""
+    xs, ys, ts, sc = track(resp, lm, cx, cy, th, reach, reach, k)
+    for _ in range(CLIMB_STEPS):
+        da = np.abs(np.mod(ts - th + math.pi, 2 * math.pi) - math.pi)
+        edge = ((np.abs(xs - cx) >= reach - 0.5) | (np.abs(ys - cy) >= reach - 0.5)
+                | (da >= (reach - 0.5) * lm.angle_step))
+        if not edge.any():
+            break
+        i = np.flatnonzero(edge)
+        cx, cy, th = cx.copy(), cy.copy(), th.copy()
+        cx[i], cy[i], th[i] = np.rint(xs[i]).astype(np.int64), np.rint(ys[i]).astype(np.int64), ts[i]
+        x2, y2, t2, s2 = track(resp, lm, cx[i], cy[i], th[i], reach, reach, k[i])
+        better = s2 > sc[i]
+        j = i[better]
+        xs[j], ys[j], ts[j], sc[j] = x2[better], y2[better], t2[better], s2[better]
+        # only the ones that rose go on climbing
+        keep = np.zeros(len(cx), bool)
+        keep[j] = True
+        cx = np.where(keep, cx, np.rint(xs).astype(np.int64))
+        cy = np.where(keep, cy, np.rint(ys).astype(np.int64))
+        th = np.where(keep, th, ts)
+    return xs, ys, ts, sc
 
 
 def _few_per_position(cands: list[Pose], radius: float) -> list[Pose]:
