@@ -160,3 +160,18 @@ def test_high_min_score_keeps_clean_instances(bracket: tuple[scenes.PartShape, s
     img, _ = scenes.render(insts, _style(), np.random.default_rng(12))
     ms = shape.find(model, img, SearchParams(min_score=0.9)).matches
     assert len(ms) == 1 and abs(ms[0].u_px - 170.4) < 0.1 and ms[0].score >= 0.9
+
+
+def test_a_full_tray_of_identical_parts_is_found_whole(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
+    """30 identical parts: each is a cluster of top-level maxima, and the strongest clusters must
+    not take every candidate (a fixed candidate list found 12-16 of them)."""
+    part, model = bracket
+    rng = np.random.default_rng(11)
+    inst = [scenes.Instance(part, 110 + i * 212 + rng.uniform(-5, 5), 100 + j * 190 + rng.uniform(-5, 5),
+                            float(rng.uniform(-180, 180))) for i in range(6) for j in range(5)]
+    img, truth = scenes.render(inst, _style(size=(1280, 960), noise_sigma=2.0, clutter=10, blur_sigma_px=0.7), rng)
+    res = shape.find(model, img)
+    hits = [t for t in truth if any(math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) < 1.0
+                                    and abs(scenes.wrap_deg(m.angle_deg - t.angle_deg)) < 0.5 for m in res.matches)]
+    assert len(hits) == 30, f"{len(hits)} of 30 found"
+    assert len(res.matches) == 30

@@ -4,7 +4,8 @@
    sum of its features' response maps shifted by the rotated feature offsets — one vectorised
    ``uint8`` add per feature and angle, all positions at once. Angle step ``1.8/r`` (r: model
    radius at that level). Local maxima over position *and* angle, so several angle hypotheses
-   of a nearly symmetric part survive.
+   of a nearly symmetric part survive; the best 64 go on, and the best of every other position
+   scoring near the best part (``search_kernels.spread_budget``): many identical parts all survive.
 2. **Tracking down the pyramid** (batched gathers, ``responses.track``): on the level below the
    top, +-2 angle steps and +-2 px on spread responses, tracked again from where the best lies on
    the window's edge (``_climb``: a partly hidden part's top-level peak can sit a few pixels off);
@@ -47,7 +48,18 @@ from vision.types import Candidate, FindResult, Match, SearchParams
 
 TOP_STEP_FACTOR = 1.8
 """Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
-MAX_TOP_CANDIDATES = 64
+TOP_BEST = 64
+"""The best top-level candidates taken wherever they lie (a part's cluster of maxima at
+neighbouring positions and angles: a partly hidden part is often found through one of its
+cluster's lesser members)."""
+TOP_PER_POSITION = 1
+TOP_EXTRA_OF_BEST = 0.7
+"""Beyond ``TOP_BEST``, ``TOP_PER_POSITION`` more from each neighbourhood (half the model's
+top-level radius) not yet represented, scoring at least this fraction of the best candidate and the
+coarse minimum: the strongest parts' clusters alone would fill the list, and a full tray of 30
+identical parts was 12-16 found."""
+MAX_TOP_CANDIDATES = 160
+"""Most top-level candidates (bounds what a textured image, a maximum everywhere, can cost)."""
 HYPOTHESES_PER_POSITION = 3
 MIRROR_MARGIN = 0.02
 
@@ -114,23 +126,44 @@ def _scales(sp: SearchParams, radius: float) -> list[float]:
 
 
 def _top_search(model: ShapeModel, level_img: U8, thr_grad: float, search_box: Box, a0: float,
-                ext: float, thr_frac: float, scales: list[float], clock: _Clock) -> tuple[list[Pose], bool]:
+                ext: float, thr_frac: float, extra_min: float, scales: list[float],
+                clock: _Clock) -> tuple[list[Pose], bool]:
     """Exhaustive search of the top level over angles and ``scales``: candidate poses (top-level
     pixels), best first, and whether time ran out."""
     resp = response_maps(level_img, thr_grad, spread=3)
     out: list[Pose] = []
     timed_out = False
     for scale in scales:
-        cands, timed_out = _top_one_scale(model, resp, search_box, a0, ext, thr_frac, scale, clock)
+        cands, timed_out = _top_one_scale(model, resp, search_box, a0, ext, thr_frac, extra_min, scale, clock)
         out += cands
         if timed_out:
             break
     out.sort(key=lambda c: -c.score)
-    return out[:MAX_TOP_CANDIDATES], timed_out
+    if len(scales) > 1:
+        out = _within_budget(out, model.levels[model.top_level].radius, extra_min)
+    return out, timed_out
+
+
+def _within_budget(cands: list[Pose], radius: float, extra_min: float) -> list[Pose]:
+    """``cands`` (sorted best first, top-level pixels) under the candidate budget (``_budget``)."""
+    keep = _budget(np.array([c.x for c in cands]), np.array([c.y for c in cands]),
+                   np.array([c.score for c in cands]), radius, extra_min)
+    return [cands[i] for i in keep.tolist()]
+
+
+def _budget(xs: F64, ys: F64, sc: F64, radius: float, extra_min: float) -> NDArray[np.int64]:
+    """Indices kept of candidates sorted best first (top-level pixels; ``radius``: the model's
+    top-level radius): ``TOP_BEST``, then ``TOP_EXTRA_OF_BEST`` and ``TOP_PER_POSITION``."""
+    if len(sc) == 0:
+        return np.zeros(0, np.int64)
+    bar = max(extra_min, TOP_EXTRA_OF_BEST * float(sc[0]))
+    return sk.spread_budget(np.ascontiguousarray(xs, dtype=np.float64), np.ascontiguousarray(ys, dtype=np.float64),
+                            np.ascontiguousarray(sc, dtype=np.float64), radius / 2.0, TOP_BEST, TOP_PER_POSITION,
+                            bar, MAX_TOP_CANDIDATES)
 
 
 def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext: float, thr_frac: float,
-                   scale: float, clock: _Clock) -> tuple[list[Pose], bool]:
+                   extra_min: float, scale: float, clock: _Clock) -> tuple[list[Pose], bool]:
     L = model.top_level
     top = model.levels[L]
     s = 2.0 ** L
@@ -171,7 +204,9 @@ def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext:
     planes = np.ascontiguousarray(lin[:done].reshape(done, nh + 1, Wp)[:, :, :nw])
     dil = cv2.dilate(planes.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).reshape(planes.shape)
     ai_, ys, xs, sc = sk.top_maxima(planes, dil, nh, thr_top, full)
-    order = np.argsort(-sc, kind="stable")[:MAX_TOP_CANDIDATES]
+    order = np.argsort(-sc, kind="stable")
+    order = order[_budget(xs[order].astype(np.float64), ys[order].astype(np.float64), sc[order] / (4.0 * nf),
+                          top.radius, extra_min)]
     cands = [Pose(float(x + rx0), float(y + ry0), float(t), float(v) / (4.0 * nf), scale)
              for x, y, t, v in zip(xs[order].tolist(), ys[order].tolist(), thetas[ai_[order]].tolist(),
                                    sc[order].tolist(), strict=True)]
@@ -337,7 +372,7 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
     # below it a top-level candidate may start (0.4 .. 0.73 of it; 0.7 at the default 0.9).
     coarse_min = min(sp.min_score, 0.5)
     thr_frac = coarse_min * (0.4 + sp.greediness / 3.0)
-    cands, timed_out = _top_search(model, pyr[L], thr_grad, box, a0, ext, thr_frac,
+    cands, timed_out = _top_search(model, pyr[L], thr_grad, box, a0, ext, thr_frac, coarse_min,
                                    _scales(sp, model.levels[L].radius), clock)
     stats["t_top_s"] = clock.elapsed()
     stats["cpu_top_s"] = clock.cpu()

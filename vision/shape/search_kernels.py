@@ -10,6 +10,8 @@ and the neighbourhood tracking down the pyramid.
 - ``top_maxima``: local maxima over position and angle (3x3x3, circular in angle over the full turn)
   of the score planes at or above a threshold, from each plane's 3x3 maximum (``cv2.dilate``) in one
   pass (was a dozen whole-array numpy passes).
+- ``spread_budget``: the best candidates under a per-position budget, so that a few strong parts (each
+  a cluster of maxima at neighbouring positions and angles) cannot take the whole candidate list.
 - ``track_batch``: the best pose of each candidate over +-reach px and +-n_steps angle steps on a
   response map (``responses.track``'s contract), the feature offsets rotated inside the loop. A
   candidate whose rotated model stays inside the map takes a path without bounds checks.
@@ -203,6 +205,42 @@ def track_batch(resp: U8, m: F64, phi0: F64, cx: I64, cy: I64, cos_t: F64, sin_t
     return xs, ys, ts, out
 
 
+@njit(cache=True, boundscheck=False)
+def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_position: int, extra_min: float,
+                  cap: int) -> I64:
+    """Indices of at most ``cap`` candidates (``xs``, ``ys``, scores ``sc``, sorted best first): the
+    best ``n_free`` whatever their position, then one scoring at least ``extra_min`` while its
+    neighbourhood (within ``radius`` of a group's first member) holds fewer than ``per_position``."""
+    n = xs.shape[0]
+    m = min(n, cap)
+    keep = np.empty(m, np.int64)
+    gx = np.empty(m)
+    gy = np.empty(m)
+    gcount = np.zeros(m, np.int64)
+    ng = 0
+    nk = 0
+    r2 = radius * radius
+    for i in range(n):
+        if nk == cap or (i >= n_free and sc[i] < extra_min):
+            break
+        g = -1
+        for j in range(ng):
+            if (xs[i] - gx[j]) ** 2 + (ys[i] - gy[j]) ** 2 < r2:
+                g = j
+                break
+        if g < 0:
+            g = ng
+            gx[ng] = xs[i]
+            gy[ng] = ys[i]
+            ng += 1
+        elif i >= n_free and gcount[g] >= per_position:
+            continue
+        gcount[g] += 1
+        keep[nk] = i
+        nk += 1
+    return keep[:nk]
+
+
 def warm_up() -> None:
     """Load (or compile) this module's kernels on tiny inputs (see ``kernels.warm_up``)."""
     z8 = np.zeros((1, 8), np.uint8)
@@ -212,6 +250,7 @@ def warm_up() -> None:
     response_planes(z2, np.zeros((2, 2), np.float32), 1.0, np.zeros((8, 33), np.uint8), np.zeros((8, 2, 2), np.uint8))
     p3 = np.zeros((1, 2, 2), np.uint8)
     top_maxima(p3, p3, 1, 1, False)
+    spread_budget(np.zeros(2), np.zeros(2), np.zeros(2), 1.0, 1, 1, 0.0, 2)
     z1 = np.zeros(1, np.int64)
     t = np.zeros((1, 1))
     track_batch(p3, np.zeros((1, 2)), np.zeros(1), z1, z1, t, t, t, np.ones(1), 0, math.pi / 8)
