@@ -61,6 +61,10 @@ identical parts was 12-16 found."""
 MAX_TOP_CANDIDATES = 160
 """Most top-level candidates (bounds what a textured image, a maximum everywhere, can cost)."""
 HYPOTHESES_PER_POSITION = 3
+TIE_SCORE = 0.02
+TIE_MIN_TURN_DEG = 10.0
+"""Two refined hypotheses at one position, turned more than ``TIE_MIN_TURN_DEG`` apart and within
+``TIE_SCORE`` of each other, both go on to level 0 (not two copies of one pose)."""
 MIRROR_MARGIN = 0.02
 
 Box = tuple[float, float, float, float]
@@ -218,6 +222,8 @@ def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[P
     """Discrete tracking from the level below the top down to ``lowest_discrete``."""
     L = model.top_level
     timed_out = False
+    if lowest_discrete == L and cands:
+        return _settle_top(model, pyr[L], thr_grad, cands, coarse_min), False
     for lv in range(L - 1, lowest_discrete - 1, -1):
         if not cands:
             break
@@ -259,36 +265,43 @@ def _track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[P
     return cands, timed_out
 
 
-CLIMB_STEPS = 3
-"""Times a tracked candidate whose best pose lies on its window's edge is tracked again from there."""
+def _settle_top(model: ShapeModel, top_img: U8, thr_grad: float, cands: list[Pose], coarse_min: float) -> list[Pose]:
+    """A small model has no level to track on below its top: its candidates (spread scores, +-1 px
+    plateaus) are settled on the top level's unspread responses and held to the last tracking
+    level's minimum, so that only those go on to the (costlier) least-squares stage."""
+    lm = model.levels[model.top_level]
+    raw = response_maps(top_img, thr_grad, spread=1)
+    xs, ys, ts, sc = track(raw, lm, np.array([int(round(c.x)) for c in cands], dtype=np.int64),
+                           np.array([int(round(c.y)) for c in cands], dtype=np.int64),
+                           np.array([c.theta for c in cands]), 1, 1, np.array([c.scale for c in cands]))
+    out = [Pose(float(x), float(y), float(t), c.score, c.scale)
+           for x, y, t, v, c in zip(xs, ys, ts, sc, cands, strict=True) if v >= coarse_min * 0.6]
+    return _nms_pose(out, 2.0, 2.5 * lm.angle_step)
+
+
+CLIMB_STEPS = 4
+"""Most +-1 px steps a tracked candidate whose best lies on its window's edge climbs on (``_climb``)."""
 
 
 def _climb(resp: U8, lm: LevelModel, cx: NDArray[np.int64], cy: NDArray[np.int64], th: F64, reach: int,
            k: F64) -> tuple[F64, F64, F64, F64]:
-    """``track`` over +-``reach`` px and angle steps, again from where a candidate's best pose lies
-    on the window's edge while that raises its score: the coarse level's peak of a partly hidden
-    part can sit a few pixels along its visible edges from the true pose (the edges that remain
-    match along a ridge), beyond one window."""
+    """``track`` over +-``reach`` px and angle steps; a candidate whose best lies on the window's
+    edge then climbs on, +-1 px and step at a time, while its score rises (``CLIMB_STEPS`` at most):
+    the coarse level's peak of a partly hidden part can sit a few pixels along its visible edges
+    from the true pose (the edges that remain match along a ridge), beyond one window."""
     xs, ys, ts, sc = track(resp, lm, cx, cy, th, reach, reach, k)
+    da = np.abs(np.mod(ts - th + math.pi, 2 * math.pi) - math.pi)
+    moving = np.flatnonzero((np.abs(xs - cx) >= reach - 0.5) | (np.abs(ys - cy) >= reach - 0.5)
+                            | (da >= (reach - 0.5) * lm.angle_step))
     for _ in range(CLIMB_STEPS):
-        da = np.abs(np.mod(ts - th + math.pi, 2 * math.pi) - math.pi)
-        edge = ((np.abs(xs - cx) >= reach - 0.5) | (np.abs(ys - cy) >= reach - 0.5)
-                | (da >= (reach - 0.5) * lm.angle_step))
-        if not edge.any():
+        if len(moving) == 0:
             break
-        i = np.flatnonzero(edge)
-        cx, cy, th = cx.copy(), cy.copy(), th.copy()
-        cx[i], cy[i], th[i] = np.rint(xs[i]).astype(np.int64), np.rint(ys[i]).astype(np.int64), ts[i]
-        x2, y2, t2, s2 = track(resp, lm, cx[i], cy[i], th[i], reach, reach, k[i])
-        better = s2 > sc[i]
-        j = i[better]
-        xs[j], ys[j], ts[j], sc[j] = x2[better], y2[better], t2[better], s2[better]
-        # only the ones that rose go on climbing
-        keep = np.zeros(len(cx), bool)
-        keep[j] = True
-        cx = np.where(keep, cx, np.rint(xs).astype(np.int64))
-        cy = np.where(keep, cy, np.rint(ys).astype(np.int64))
-        th = np.where(keep, th, ts)
+        x0, y0, t0 = np.rint(xs[moving]).astype(np.int64), np.rint(ys[moving]).astype(np.int64), ts[moving]
+        x2, y2, t2, s2 = track(resp, lm, x0, y0, t0, 1, 1, k[moving])
+        rose = s2 > sc[moving]
+        j = moving[rose]
+        xs[j], ys[j], ts[j], sc[j] = x2[rose], y2[rose], t2[rose], s2[rose]
+        moving = j
     return xs, ys, ts, sc
 
 
@@ -347,7 +360,11 @@ def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[
         kept: list[Hypothesis] = []
         r2 = (min_dist / 2.0 ** lv2) ** 2
         for t in nxt2:
-            if all((t[0].x - o[0].x) ** 2 + (t[0].y - o[0].y) ** 2 >= r2 for o in kept):
+            rivals = [o for o in kept if (t[0].x - o[0].x) ** 2 + (t[0].y - o[0].y) ** 2 < r2]
+            # a near tie at one position (the other turn of a symmetric part) goes on to level 0 too:
+            # a coarse level cannot tell which of the two fits the full-resolution edges better
+            if not rivals or (lv2 > 0 and len(rivals) == 1 and t[2].score >= rivals[0][2].score - TIE_SCORE
+                              and abs(wrap_deg(math.degrees(t[0].theta - rivals[0][0].theta))) > TIE_MIN_TURN_DEG):
                 kept.append(t)
         poses = kept
         if timed_out:
