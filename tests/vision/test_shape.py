@@ -10,7 +10,7 @@ import pytest
 
 from drivers.sim import pick_scenes as scenes
 from vision import shape
-from vision.types import SearchParams
+from vision.types import FindResult, SearchParams
 
 SIZE = (640, 480)
 
@@ -170,7 +170,7 @@ def _tray(part: scenes.PartShape, seed: int) -> tuple[np.ndarray, list[scenes.Tr
     return scenes.render(inst, _style(size=(1280, 960), noise_sigma=2.0, clutter=10, blur_sigma_px=0.7), rng)
 
 
-def _hits(res: shape.FindResult, truth: list[tuple[float, float, float]], tol_px: float) -> int:
+def _hits(res: FindResult, truth: list[tuple[float, float, float]], tol_px: float) -> int:
     return sum(any(math.hypot(m.u_px - u, m.v_px - v) < tol_px and abs(scenes.wrap_deg(m.angle_deg - a)) < 1.0
                    for m in res.matches) for u, v, a in truth)
 
