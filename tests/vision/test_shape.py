@@ -194,7 +194,8 @@ def test_a_tray_of_small_parts_is_found_whole(k: int) -> None:
     big_teach, (u, v, w, h) = scenes.teach_scene(part, np.random.default_rng(1008), centre=(640.3, 480.6),
                                                  style=_style(size=(1280, 960), clutter=0))
     small = lambda im: cv2.resize(im, None, fx=1 / k, fy=1 / k, interpolation=cv2.INTER_AREA)  # noqa: E731
-    model = shape.teach(small(big_teach), (int(u / k), int(v / k), int(math.ceil(w / k)), int(math.ceil(h / k))))
+    cx, cy = (u + w / 2 + 0.5) / k - 0.5, (v + h / 2 + 0.5) / k - 0.5  # the reference point at 1/k
+    model = shape.teach(small(big_teach), (cx - w / (2 * k), cy - h / (2 * k), w / k, h / k))
     assert model.top_level == {2: 2, 4: 1}[k]
     found = 0
     for seed in (5, 6):
