@@ -111,7 +111,7 @@ def test_tracking_equals_numpy_inside_and_at_the_borders(scene: tuple[shape.Shap
 def test_climbing_reaches_a_pose_beyond_one_tracking_window(scene: tuple[shape.ShapeModel, np.ndarray, list]) -> None:
     """A coarse peak several pixels from the part (a partly hidden part's peak slides along its
     visible edges): one +-2 px window stops on its edge, climbing goes on to the part."""
-    from vision.shape.search import _climb
+    from vision.shape.tracking import climb
 
     model, img, truth = scene
     lv = 2
@@ -125,7 +125,7 @@ def test_climbing_reaches_a_pose_beyond_one_tracking_window(scene: tuple[shape.S
     th = np.array([math.radians(t.angle_deg) + 3 * lm.angle_step])
     k = np.ones(1)
     x1, y1, t1, s1 = track(resp, lm, cx, cy, th, 2, 2, k)
-    x2, y2, t2, s2 = _climb(resp, lm, cx, cy, th, 2, k)
+    x2, y2, t2, s2 = climb(resp, lm, cx, cy, th, 2, k)
     assert math.hypot(x1[0] * s - t.u_px, y1[0] * s - t.v_px) > 2 * s  # one window does not reach
     assert math.hypot(x2[0] * s - t.u_px, y2[0] * s - t.v_px) <= 1.5 * s
     assert abs(scenes.wrap_deg(math.degrees(t2[0]) - t.angle_deg)) <= math.degrees(lm.angle_step)
