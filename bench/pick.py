@@ -313,7 +313,7 @@ def _report(n: int, seed: int, ours: dict[str, Tally], theirs: dict[str, Tally] 
            "2 cores left this process a core (at a load of 7-12 on this shared machine the wall clock has "
            "been 2.5-3x the CPU time, so the CPU column is the steadier figure of the matcher's own cost). ")
         + "Narrowing the search (an angle range, a search "
-        "ROI, fewer instances with max_count) cuts the time in proportion. The baseline's false "
+        "ROI) cuts the time in proportion; max_count only trims the answer. The baseline's false "
         "detections are other parts and clutter reaching |NCC| >= 0.5 at some rotation (the same "
         "minimum score as cellctl's); its misses grow with occlusion. The compiled loops return what "
         "their numpy versions return (tests/vision/test_shape_search_kernels.py): accuracy, misses and "
