@@ -10,7 +10,7 @@ import pytest
 
 from drivers.sim import pick_scenes as scenes
 from vision import shape
-from vision.types import FindResult, SearchParams
+from vision.types import FindResult, Match, SearchParams
 
 SIZE = (640, 480)
 
@@ -205,3 +205,32 @@ def test_a_tray_of_small_parts_is_found_whole(k: int) -> None:
         found += _hits(res, [((t.u_px + 0.5) / k - 0.5, (t.v_px + 0.5) / k - 0.5, t.angle_deg) for t in truth], 2.0)
         assert len(res.matches) <= 30
     assert found == 60
+
+
+def test_overlap_is_the_rectangles_intersection_over_the_smaller() -> None:
+    """``overlap`` (with its early answer for far-apart rectangles) against the plain intersection."""
+    from vision.shape.search import overlap
+
+    roi = (0.0, 0.0, 60.0, 24.0)
+    rng = np.random.default_rng(4)
+
+    def plain(a: Match, b: Match) -> float:
+        ra = ((a.u_px, a.v_px), (60 * a.scale, 24 * a.scale), -a.angle_deg)
+        rb = ((b.u_px, b.v_px), (60 * b.scale, 24 * b.scale), -b.angle_deg)
+        kind, pts = cv2.rotatedRectangleIntersection(ra, rb)
+        if kind == cv2.INTERSECT_NONE or pts is None or len(pts) < 3:
+            return 0.0
+        return float(cv2.contourArea(cv2.convexHull(pts))) / min(ra[1][0] * ra[1][1], rb[1][0] * rb[1][1])
+
+    def match(u: float, v: float, a: float, s: float) -> Match:
+        return Match(u, v, a, 0.9, 0.1, s, False, 10, 10)
+
+    touching = 0
+    for _ in range(400):
+        a = match(100.0, 100.0, float(rng.uniform(-180, 180)), float(rng.uniform(0.9, 1.1)))
+        b = match(100.0 + rng.uniform(-70, 70), 100.0 + rng.uniform(-70, 70), float(rng.uniform(-180, 180)),
+                  float(rng.uniform(0.9, 1.1)))
+        assert overlap(roi, a, b) == pytest.approx(plain(a, b), abs=1e-12)
+        touching += plain(a, b) > 0
+    assert 50 < touching < 350  # both answers were exercised
+    assert overlap(roi, match(0, 0, 0, 1), match(0, 0, 0, 1)) == pytest.approx(1.0)

@@ -72,6 +72,8 @@ Box = tuple[float, float, float, float]
 def overlap(roi: Box, a: Match, b: Match) -> float:
     """Intersection of two matches' model rectangles over the smaller one (HALCON's MaxOverlap)."""
     u, v, w, h = roi
+    if math.hypot(a.u_px - b.u_px, a.v_px - b.v_px) > 0.5 * math.hypot(w, h) * (a.scale + b.scale):
+        return 0.0  # the rectangles' circumscribed circles are apart (most pairs on a full tray)
     ra = ((a.u_px, a.v_px), (w * a.scale, h * a.scale), -a.angle_deg)
     rb = ((b.u_px, b.v_px), (w * b.scale, h * b.scale), -b.angle_deg)
     kind, pts = cv2.rotatedRectangleIntersection(ra, rb)
