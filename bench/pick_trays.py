@@ -2,7 +2,7 @@
 
 A tray, a PCB with a row of identical parts, a blister: every part alike, so each one's cluster of
 top-level maxima competes with the others for the search's candidate list. Rendered 1280x960
-trays (``drivers.sim.pick_scenes``) of 30 brackets in 6 x 5 cells, each turned at random, with
+trays (``drivers.sim.pick_scenes.tray_scene``) of 30 brackets in 6 x 5 cells, each turned at random, with
 clutter, noise 2 grey levels and optical blur 0.7 px; the same trays at 1/2 and 1/4 size (small
 parts: a model of 2 or 1 pyramid levels). Both matchers search every image with the part taught
 once at that size, at their defaults; a match counts within 2 px (at that size) and 1 deg.
@@ -65,23 +65,6 @@ class Tally:
         self.false += len(got) - len(used)
 
 
-def tray(seed: int) -> tuple[NDArray[np.uint8], list[pick_scenes.Truth]]:
-    """30 brackets in 6 x 5 cells of a 1280 x 960 image, each turned at random."""
-    rng = np.random.default_rng(seed)
-    part = pick_scenes.part_bracket()
-    inst = [pick_scenes.Instance(part, 110 + i * 212 + rng.uniform(-5, 5), 100 + j * 190 + rng.uniform(-5, 5),
-                                 float(rng.uniform(-180, 180))) for i in range(6) for j in range(5)]
-    style = pick_scenes.SceneStyle(size=SIZE, noise_sigma=2.0, clutter=10, blur_sigma_px=0.7)
-    return pick_scenes.render(inst, style, rng)
-
-
-def _scaled_roi(roi: tuple[float, float, float, float], k: int) -> tuple[float, float, float, float]:
-    """The ROI at 1/k size, its centre (the reference point) mapped with the pixel-centre convention."""
-    u, v, w, h = roi
-    cx, cy = (u + w / 2.0 + 0.5) / k - 0.5, (v + h / 2.0 + 0.5) / k - 0.5
-    return (cx - w / (2 * k), cy - h / (2 * k), w / k, h / k)
-
-
 def _shrink(img: NDArray[np.uint8], k: int) -> NDArray[np.uint8]:
     return img if k == 1 else cv2.resize(img, None, fx=1 / k, fy=1 / k, interpolation=cv2.INTER_AREA)
 
@@ -92,11 +75,11 @@ def run(n_trays: int, with_baseline: bool) -> str:
     teach_img, (u, v, w, h) = pick_scenes.teach_scene(
         part, np.random.default_rng(1008), centre=(640.3, 480.6),
         style=pick_scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
-    trays = [tray(100 + i) for i in range(n_trays)]
+    trays = [pick_scenes.tray_scene(part, np.random.default_rng(100 + i)) for i in range(n_trays)]
     ours: dict[int, Tally] = {}
     theirs: dict[int, Tally] = {}
     for k in SCALES:
-        roi = _scaled_roi((u, v, w, h), k)
+        roi = pick_scenes.roi_at_scale((u, v, w, h), k)
         small_teach = _shrink(teach_img, k)
         model = shape.teach(small_teach, roi)
         base = Baseline.build(small_teach, roi) if with_baseline else None

@@ -339,3 +339,20 @@ def random_scene(rng: np.random.Generator, parts: list[PartShape], *, n_min: int
         light_dir_deg=float(rng.uniform(0, 360)),
         clutter=clutter, size=size, homography=H)
     return render(placed, style, rng)
+
+
+def tray_scene(part: PartShape, rng: np.random.Generator) -> tuple[NDArray[np.uint8], list[Truth]]:
+    """A full tray: 30 instances of ``part`` in 6 x 5 cells (212 x 190 px) of a 1280 x 960 image, each
+    turned at random, with clutter, noise 2 grey levels and optical blur 0.7 px."""
+    inst = [Instance(part, 110 + i * 212 + rng.uniform(-5, 5), 100 + j * 190 + rng.uniform(-5, 5),
+                     float(rng.uniform(-180, 180))) for i in range(6) for j in range(5)]
+    style = SceneStyle(size=(1280, 960), noise_sigma=2.0, clutter=10, blur_sigma_px=0.7)
+    return render(inst, style, rng)
+
+
+def roi_at_scale(roi: tuple[float, float, float, float], k: float) -> tuple[float, float, float, float]:
+    """The ROI ``(U, V, W, H)`` in the image shrunk by ``k``, its centre (the reference point) mapped
+    with the pixel-centre convention (the centre of the top-left pixel is (0, 0) at every size)."""
+    u, v, w, h = roi
+    cx, cy = (u + w / 2.0 + 0.5) / k - 0.5, (v + h / 2.0 + 0.5) / k - 0.5
+    return (cx - w / (2 * k), cy - h / (2 * k), w / k, h / k)

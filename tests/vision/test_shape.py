@@ -162,14 +162,6 @@ def test_high_min_score_keeps_clean_instances(bracket: tuple[scenes.PartShape, s
     assert len(ms) == 1 and abs(ms[0].u_px - 170.4) < 0.1 and ms[0].score >= 0.9
 
 
-def _tray(part: scenes.PartShape, seed: int) -> tuple[np.ndarray, list[scenes.Truth]]:
-    """30 identical parts in 6 x 5 cells of a 1280 x 960 image, each turned at random."""
-    rng = np.random.default_rng(seed)
-    inst = [scenes.Instance(part, 110 + i * 212 + rng.uniform(-5, 5), 100 + j * 190 + rng.uniform(-5, 5),
-                            float(rng.uniform(-180, 180))) for i in range(6) for j in range(5)]
-    return scenes.render(inst, _style(size=(1280, 960), noise_sigma=2.0, clutter=10, blur_sigma_px=0.7), rng)
-
-
 def _hits(res: FindResult, truth: list[tuple[float, float, float]], tol_px: float) -> int:
     return sum(any(math.hypot(m.u_px - u, m.v_px - v) < tol_px and abs(scenes.wrap_deg(m.angle_deg - a)) < 1.0
                    for m in res.matches) for u, v, a in truth)
@@ -179,7 +171,7 @@ def test_a_full_tray_of_identical_parts_is_found_whole(bracket: tuple[scenes.Par
     """30 identical parts: each is a cluster of top-level maxima, and the strongest clusters must
     not take every candidate (a fixed candidate list found 12-16 of them)."""
     part, model = bracket
-    img, truth = _tray(part, 11)
+    img, truth = scenes.tray_scene(part, np.random.default_rng(11))
     res = shape.find(model, img)
     assert _hits(res, [(t.u_px, t.v_px, t.angle_deg) for t in truth], 1.0) == 30
     assert len(res.matches) == 30
@@ -194,12 +186,11 @@ def test_a_tray_of_small_parts_is_found_whole(k: int) -> None:
     big_teach, (u, v, w, h) = scenes.teach_scene(part, np.random.default_rng(1008), centre=(640.3, 480.6),
                                                  style=_style(size=(1280, 960), clutter=0))
     small = lambda im: cv2.resize(im, None, fx=1 / k, fy=1 / k, interpolation=cv2.INTER_AREA)  # noqa: E731
-    cx, cy = (u + w / 2 + 0.5) / k - 0.5, (v + h / 2 + 0.5) / k - 0.5  # the reference point at 1/k
-    model = shape.teach(small(big_teach), (cx - w / (2 * k), cy - h / (2 * k), w / k, h / k))
+    model = shape.teach(small(big_teach), scenes.roi_at_scale((u, v, w, h), k))
     assert model.top_level == {2: 2, 4: 1}[k]
     found = 0
     for seed in (5, 6):
-        img, truth = _tray(part, seed)
+        img, truth = scenes.tray_scene(part, np.random.default_rng(seed))
         res = shape.find(model, small(img))
         # pixel-centre convention: the centre of the top-left pixel is (0, 0) at every size
         found += _hits(res, [((t.u_px + 0.5) / k - 0.5, (t.v_px + 0.5) / k - 0.5, t.angle_deg) for t in truth], 2.0)
