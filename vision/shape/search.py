@@ -126,14 +126,12 @@ def _within_budget(cands: list[Pose], radius: float, extra_min: float) -> list[P
 
 
 def _budget(xs: F64, ys: F64, sc: F64, radius: float, extra_min: float) -> NDArray[np.int64]:
-    """Indices kept of candidates sorted best first (top-level pixels; ``radius``: the model's
-    top-level radius): ``TOP_BEST``, then ``TOP_EXTRA_OF_BEST`` and ``TOP_PER_POSITION``."""
+    """Indices kept of candidates sorted best first (float64 arrays, top-level pixels; ``radius``: the
+    model's top-level radius): ``TOP_BEST``, then ``TOP_EXTRA_OF_BEST`` and ``TOP_PER_POSITION``."""
     if len(sc) == 0:
         return np.zeros(0, np.int64)
     bar = max(extra_min, TOP_EXTRA_OF_BEST * float(sc[0]))
-    return sk.spread_budget(np.ascontiguousarray(xs, dtype=np.float64), np.ascontiguousarray(ys, dtype=np.float64),
-                            np.ascontiguousarray(sc, dtype=np.float64), radius / 2.0, TOP_BEST, TOP_PER_POSITION,
-                            bar, MAX_TOP_CANDIDATES)
+    return sk.spread_budget(xs, ys, sc, radius / 2.0, TOP_BEST, TOP_PER_POSITION, bar, MAX_TOP_CANDIDATES)
 
 
 def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext: float, thr_frac: float,
