@@ -210,27 +210,12 @@ def test_robot_noise_estimated_from_data() -> None:
 def test_real_robot_arm_data_no_false_alarms() -> None:
     """ETH ASL robot arm + SR300 (real, tests/data): the measured camera poses become virtual
     detections of a grid; the real data must pass the checks and agree with OpenCV's closed form."""
-    from pathlib import Path
-
     from calibration.geometry import quaternion_to_matrix
     from calibration.handeye import opencv_handeye
+    from tests.calibration.conftest import SR300_IR as sr300
+    from tests.calibration.conftest import eth_arm_stations
 
-    data = Path(__file__).resolve().parents[1] / "data" / "handeye_ethz_robot_arm_sr300"
-    rob = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv", delimiter=",")
-    cam = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_target_ir.csv", delimiter=",")[::100]
-    cam = cam[(cam[:, 0] - 0.02 > rob[0, 0]) & (cam[:, 0] - 0.02 < rob[-1, 0])]
-    G = []
-    for t in cam[:, 0] - 0.02:  # nearest robot sample (50 Hz) at the published time offset
-        r = rob[np.argmin(np.abs(rob[:, 0] - t))]
-        G.append(make_transform(quaternion_to_matrix(r[4:8]), r[1:4]))
-    sr300 = CameraModel("opencv5", 640, 480, np.array([[471.845, 0, 316.85], [0, 471.686, 237.389], [0, 0, 1]]),
-                        np.array([-0.15024, -0.00326, -0.00126, -0.00042, 0.0]))
-    grid = Chessboard(6, 6, 40.0)
-    tp = grid.points()
-    dets = []
-    for k, row in enumerate(cam):
-        C = invert(make_transform(quaternion_to_matrix(row[4:8]), row[1:4]))
-        dets.append(Detection(f"t{k:03d}", True, tp.ids.copy(), sr300.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3])))
+    G, cam, dets, grid = eth_arm_stations()
     res = calibrate_handeye("eye-in-hand", G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3,
                             leave_one_out=False, estimate_robot_noise=True)
     codes = {p.code for p in res.problems}

@@ -8,13 +8,11 @@ the perturbed arm's — millimetres, pose-dependent.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.geometry import invert, make_transform, quaternion_to_matrix
+from calibration.geometry import invert, make_transform
 from calibration.handeye import (
     ERROR_MODELS,
     HandEyeResult,
@@ -28,6 +26,7 @@ from calibration.observations import Detection
 from calibration.pixel_to_robot import pixel_to_robot
 from calibration.targets import Chessboard
 from drivers.sim.kinematics import KinematicError
+from tests.calibration.conftest import SR300_IR, eth_arm_stations
 
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
                   np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
@@ -118,22 +117,8 @@ def test_another_model_must_predict_better_consistently_not_by_chance() -> None:
 def test_real_eth_arm_choice_never_worse_than_fixed_prior_on_held_out_stations() -> None:
     """ETH ASL robot arm + SR300 (real poses; virtual detections of a grid from the measured camera
     poses): calibrate on the first stations, predict the last ones."""
-    data = Path(__file__).resolve().parents[1] / "data" / "handeye_ethz_robot_arm_sr300"
-    rob = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv", delimiter=",")
-    cam = np.loadtxt(data / "robot_arm_complete_bag_color_and_ir_target_ir.csv", delimiter=",")[::100]
-    cam = cam[(cam[:, 0] - 0.02 > rob[0, 0]) & (cam[:, 0] - 0.02 < rob[-1, 0])]
-    G = []
-    for t in cam[:, 0] - 0.02:
-        r = rob[np.argmin(np.abs(rob[:, 0] - t))]
-        G.append(make_transform(quaternion_to_matrix(r[4:8]), r[1:4]))
-    sr300 = CameraModel("opencv5", 640, 480, np.array([[471.845, 0, 316.85], [0, 471.686, 237.389], [0, 0, 1]]),
-                        np.array([-0.15024, -0.00326, -0.00126, -0.00042, 0.0]))
-    grid = Chessboard(6, 6, 40.0)
-    tp = grid.points()
-    dets = []
-    for k, row in enumerate(cam):
-        C = invert(make_transform(quaternion_to_matrix(row[4:8]), row[1:4]))
-        dets.append(Detection(f"t{k:03d}", True, tp.ids.copy(), sr300.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3])))
+    G, _, dets, grid = eth_arm_stations()
+    sr300, tp = SR300_IR, grid.points()
     n_cal = (2 * len(G)) // 3
     noise = RobotNoise(0.5, 0.1)
     auto = calibrate_handeye("eye-in-hand", G[:n_cal], dets[:n_cal], sr300, grid, noise, sigma_px=0.3)
