@@ -93,7 +93,7 @@ def main() -> None:
     ap.add_argument("--clients", type=int, default=50)
     ap.add_argument("--seconds", type=float, default=30.0)
     args = ap.parse_args()
-    from cellctl.served import start_served, stop_served
+    from tests.support.served import start_served, stop_served
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-api-"))
     (tmp / "hello_app.py").write_text(HELLO_APP)

@@ -21,7 +21,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--max-examples", type=int, default=100)
     args = ap.parse_args()
-    from cellctl.served import start_served, stop_served
+    from tests.support.served import start_served, stop_served
 
     served = start_served(Path(tempfile.mkdtemp(prefix="bench-fuzz-")))
     try:

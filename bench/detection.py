@@ -1,10 +1,10 @@
 """Detection benchmark (issue 3): our detectors against OpenCV's on rendered images with known truth.
 
-Images are 1280x960, rendered by ``calibration.render`` (geometric error < 0.013 px) from a seed:
+Images are 1280x960, rendered by ``drivers.sim.imaging.renderer`` (geometric error < 0.013 px) from a seed:
 three camera models (opencv5, opencv8 rational, division), tilts 0-50°, the target filling
 10-80% of the image, noise 0.5-3 grey levels, blur 0.3-1.2 px, uneven light. Truth is
 ``camera.project(transform_points(T_cam_target, target.points().xyz_m))``; for circle marks the
-true imaged-ellipse centre adds ``calibration.conic.circle_centre_bias_px``.
+true imaged-ellipse centre adds ``calibration.detect.conic.circle_centre_bias_px``.
 
 OpenCV's results carry no target-frame ids; they are scored under the grid symmetry (half or
 quarter turn) that fits the truth best, which can only favour OpenCV.
@@ -32,13 +32,15 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.camera_model import CameraModel  # noqa: E402
-from calibration.conic import circle_centre_bias_px  # noqa: E402
-from calibration.detect import detect  # noqa: E402
+from calibration.detect import (  # noqa: E402
+    circle_centre_bias_px,
+    detect,
+)
 from calibration.detect.circle_grid import blob_detector  # noqa: E402
 from calibration.detect.circle_plate import conic_centres, detect_circle_plate, fit_ellipses_direct  # noqa: E402
 from calibration.geometry import make_transform, rotvec_to_matrix, transform_points  # noqa: E402
-from calibration.render import Imaging, PlanarObject, render  # noqa: E402
 from calibration.targets import Charuco, Chessboard, CircleGrid, CirclePlate, PlanarTarget  # noqa: E402
+from drivers.sim.imaging import Imaging, PlanarObject, render  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 T = TypeVar("T")
@@ -231,7 +233,7 @@ class PlateExtra:
 def exact_ellipse_centres(camera: CameraModel, T: FloatArray, centres_m: FloatArray, radius_m: float,
                           n: int = 256) -> FloatArray:
     """True imaged-ellipse centres: each mark's rim projected through the full lens model (n points)
-    and fitted with the same direct ellipse fit. Unlike ``calibration.conic`` (lens distortion applied
+    and fitted with the same direct ellipse fit. Unlike ``calibration.detect.conic`` (lens distortion applied
     to the centres only) this keeps distortion's effect on the mark's shape."""
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     rim = centres_m[:, None, :] + radius_m * np.stack([np.cos(t), np.sin(t), 0 * t], axis=1)[None]
@@ -440,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{verdict(ours_fixed <= best_cv[0] * 1.0001)} |",
         f"| circle_plate mark RMS <= 0.02 px without perspective bias (raw ellipse centre vs true "
         f"imaged-ellipse centre = direct fit to the projected rim, all plate images) | {ell_all:.4f} px "
-        f"(by camera: {ell_models}); against calibration.conic's first-order bias instead: {ell_conic:.4f} px "
+        f"(by camera: {ell_models}); against calibration.detect.conic's first-order bias instead: {ell_conic:.4f} px "
         f"| {verdict(ell_all <= 0.02)} |",
         f"| bias-corrected centres within 0.01 px of truth at 45° tilt | RMS(uv - truth) {corr45:.4f} px with "
         f"lens distortion (by camera: {corr45_models}), {corr45p:.4f} px distortion-free; "
@@ -456,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
     notes = [
         "Notes:",
         "- The true imaged-ellipse centre is a direct ellipse fit to the mark's rim projected through the full "
-        "lens model. `calibration.conic.circle_centre_bias_px` applies lens distortion to the centres only "
+        "lens model. `calibration.detect.conic.circle_centre_bias_px` applies lens distortion to the centres only "
         "(first order); against it our raw centres seem "
         f"{ell_conic:.4f} px off: that difference is distortion bending the marks, not detection error.",
         "- OpenCV's rows carry the perspective bias of circle centres (no correction); our circle_grid rows are "

@@ -5,10 +5,10 @@ robot stations, robot pose noise 0.02 mm/0.005°, 0.05 mm/0.01° and 0.1 mm/0.02
 module's stated noise model), a 11x8 chessboard (25 mm) seen by a 1920x1200 camera (f = 1900 px)
 from 0.38-0.52 m, several seeds. The point-level sets add Gaussian pixel noise of 0.05 px (what
 a good detector achieves at 1-3 grey levels); the image-based sets render each station with
-``calibration.render`` at 1 and 3 grey levels of noise and detect it with ``calibration.detect``.
+``drivers.sim.imaging.renderer`` at 1 and 3 grey levels of noise and detect it with ``calibration.detect``.
 Both solvers get the same detections: OpenCV's ``calibrateHandEye`` (TSAI, PARK, HORAUD, ANDREFF,
 DANIILIDIS) and ``calibrateRobotWorldHandEye`` (RW_SHAH, RW_LI) get the per-station target poses
-from ``calibration.pnp`` (eye-to-hand: inverted robot poses, as OpenCV documents); cellctl runs
+from ``calibration.pose.pnp`` (eye-to-hand: inverted robot poses, as OpenCV documents); cellctl runs
 its whole pipeline (checks, closed form, joint ML refinement with the stated robot noise,
 covariance). The accuracy tables run it without leave-one-out (the stated-noise fit); a separate
 table runs the default (leave-one-out, error model chosen) on some of the same sets. On the
@@ -47,16 +47,14 @@ from bench.handeye_common import BOARD, CAM, PEERS, cramer_rao, fmt_noise, media
 from bench.handeye_robots import eth_real, eth_table, kinematic, kinematic_table  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
-from calibration.handeye import (  # noqa: E402
-    RobotNoise,
-    calibrate_handeye,
-    make_stations,
-    simulate_handeye,
-    transform_error_deg_mm,
-)
-from calibration.npoint import fit_npoint, simulate_npoint  # noqa: E402
+from calibration.handeye import RobotNoise, calibrate_handeye, make_stations, transform_error_deg_mm
+from calibration.npoint import fit_npoint  # noqa: E402
 from calibration.observations import Detection  # noqa: E402
-from calibration.render import Imaging, PlanarObject, render  # noqa: E402
+from calibration.synthetic import (  # noqa: E402
+    simulate_handeye,
+    simulate_npoint,
+)
+from drivers.sim.imaging import Imaging, PlanarObject, render  # noqa: E402
 
 NOISES = [RobotNoise(0.02, 0.005), RobotNoise(0.05, 0.01), RobotNoise(0.1, 0.02)]
 PIXEL_SIGMA_PX = 0.05

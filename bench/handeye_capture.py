@@ -7,7 +7,7 @@ calibration is the cell's true one, so the stations are what is measured). Rows:
 - **planned**: the routine (``cellctl/routines/station_plan.py``): stations tried / used, verdict,
   coverage complete, hand-eye error against the scene's truth, reported 1-σ, leave-one-out px;
 - **OpenCV, same stations**: ``cv2.calibrateHandEye``'s five methods (TSAI, PARK, HORAUD, ANDREFF,
-  DANIILIDIS) on the planned stations (target poses from ``calibration.pnp``), the median method's
+  DANIILIDIS) on the planned stations (target poses from ``calibration.pose.pnp``), the median method's
   error — the named peer on the same data;
 - **fixed plan** (eye-in-hand cells, first seed): the routine's previous fixed pattern
   (``common.plan_pivot_stations``, 12 stations, 25° tilt, 40° spin) solved by the same solver.

@@ -17,15 +17,9 @@ import numpy as np
 from bench.handeye_common import BOARD, CAM, PEERS, loo_px, peer_fit, plain_refinement
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, make_transform, quaternion_to_matrix
-from calibration.handeye import (
-    RobotNoise,
-    calibrate_handeye,
-    make_stations,
-    predict_cam_target,
-    simulate_handeye,
-    transform_error_deg_mm,
-)
+from calibration.handeye import RobotNoise, calibrate_handeye, make_stations, predict_cam_target, transform_error_deg_mm
 from calibration.observations import Detection
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "handeye_ethz_robot_arm_sr300"

@@ -1,7 +1,7 @@
 """Calibrations beyond 6-DOF AX=XB (issue 16): 4-DOF hand-eye, tool centre, measured-frame hand-eye.
 
-Virtual-cell data with truth (``calibration.handeye_special_sim``, ``calibration.handeye``'s
-simulator), a 1920x1200 camera (f = 1900 px), an 8x6 chessboard (25 mm), pixel noise 0.05 px,
+Virtual-cell data with truth (``calibration.synthetic``: the SCARA cell, the tool centre and the 6-DOF
+stations), a 1920x1200 camera (f = 1900 px), an 8x6 chessboard (25 mm), pixel noise 0.05 px,
 seeds 0-4.
 
 - 4-DOF: a SCARA-style cell, 14 stations, robot noise 0.02 mm / 0.01° per axis, the tool turning
@@ -45,17 +45,28 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.machine import cpu_model  # noqa: E402
 from calibration import geometry as g  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
-from calibration.detect import detect  # noqa: E402
+from calibration.detect import (  # noqa: E402
+    detect,
+    find_spot,
+)
 from calibration.geometry import invert, make_transform, transform_error  # noqa: E402
-from calibration.handeye import RobotNoise, simulate_handeye  # noqa: E402
-from calibration.handeye_dof4 import DEFAULT_TARGET_Z_SIGMA_MM, calibrate_handeye_dof4, make_stations4  # noqa: E402
-from calibration.handeye_measured import calibrate_handeye_measured  # noqa: E402
-from calibration.handeye_special_sim import perturb_pose, simulate_scara, simulate_tool_centre  # noqa: E402
+from calibration.handeye import (  # noqa: E402
+    DEFAULT_TARGET_Z_SIGMA_MM,
+    RobotNoise,
+    calibrate_handeye_dof4,
+    calibrate_handeye_measured,
+    fit_tool_centre,
+    make_stations4,
+)
+from calibration.measure import map_handeye  # noqa: E402
 from calibration.npoint import fit_npoint  # noqa: E402
-from calibration.pixel_to_robot import map_handeye  # noqa: E402
+from calibration.synthetic import (  # noqa: E402
+    perturb_pose,
+    simulate_handeye,
+    simulate_scara,
+    simulate_tool_centre,
+)
 from calibration.targets import Chessboard  # noqa: E402
-from calibration.tcp import fit_tool_centre  # noqa: E402
-from calibration.tcp_spot import find_spot  # noqa: E402
 from drivers.sim.scene import BUILTIN_SCENE, load_scene  # noqa: E402
 from drivers.sim.tool_feature import draw_tool_feature  # noqa: E402
 from drivers.sim.world import SimWorld  # noqa: E402
@@ -142,7 +153,7 @@ def tcp_rendered_rows() -> list[dict[str, Any]]:
     """The tool centre on rendered frames of the fixed-camera virtual cell, as jog-to-mark's turn step
     does it: the N-point map from the plate's 3x3 marks (detected; the robot's reported flange, the
     disk put on each mark), then 7 angles over 180° at 2 marks; the disk found by
-    ``calibration.tcp_spot``. Each seed draws its own offset (15-40 mm, any direction). Peer: the same
+    ``calibration.detect.tool_spot``. Each seed draws its own offset (15-40 mm, any direction). Peer: the same
     fit with the spot as OpenCV's plain centroid of the thresholded region (``cv2.moments``)."""
     rows = []
     base = load_scene(FIXED_SCENE)

@@ -1,6 +1,6 @@
 """Benchmark: cellctl intrinsics vs OpenCV's calibrateCamera on the same detections.
 
-Synthetic sets: chessboard views rendered by ``calibration.render`` from a known camera (each
+Synthetic sets: chessboard views rendered by ``drivers.sim.imaging.renderer`` from a known camera (each
 model as truth), grey noise 1 or 3 levels, detected by ``calibration.detect``; both solvers get
 the same detections. Columns: projection error against the true lens over the whole image and
 over the region the views covered (RMS / max px, best rotation between the camera frames
@@ -33,16 +33,11 @@ sys.path.insert(0, str(ROOT))
 
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect, detect_file  # noqa: E402
-from calibration.intrinsics import (  # noqa: E402
-    calibrate,
-    covered_points,
-    plan_views,
-    projection_difference,
-    synthetic_detections,
-)
+from calibration.intrinsics import calibrate, covered_points, projection_difference  # noqa: E402
 from calibration.observations import Detection  # noqa: E402
-from calibration.render import Imaging, PlanarObject, render  # noqa: E402
+from calibration.synthetic import plan_views, synthetic_detections  # noqa: E402
 from calibration.targets import Chessboard  # noqa: E402
+from drivers.sim.imaging import Imaging, PlanarObject, render  # noqa: E402
 
 DATA = ROOT / "tests" / "data"
 W, H = 960, 720

@@ -2,7 +2,7 @@
 OpenCV's calibrateCamera on the same detections, and the honesty of the reported uncertainty.
 
 Each set: ``--views`` views planned by ``calibration.intrinsics.plan_views`` (the whole printed
-outline in view), rendered by ``calibration.render`` with the virtual camera's defects (shot +
+outline in view), rendered by ``drivers.sim.imaging.renderer`` with the virtual camera's defects (shot +
 read noise, vignetting, blur, defocus away from the focus plane, gamma, JPEG), detected by
 ``calibration.detect``. Actual error = projection difference to the true lens over the covered
 cells (best rotation compensated); reported = ``uncertainty.projection_rms_px``. OpenCV gets our
@@ -38,16 +38,11 @@ from bench.intrinsics import TRUTHS, warm_up  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
 from calibration.detect import detect  # noqa: E402
 from calibration.detect.circle_grid import blob_detector  # noqa: E402
-from calibration.intrinsics import (  # noqa: E402
-    calibrate,
-    covered_points,
-    plan_views,
-    projection_difference,
-    synthetic_detections,
-)
+from calibration.intrinsics import calibrate, covered_points, projection_difference  # noqa: E402
 from calibration.observations import Detection  # noqa: E402
-from calibration.render import Imaging, PlanarObject, render  # noqa: E402
+from calibration.synthetic import plan_views, synthetic_detections  # noqa: E402
 from calibration.targets import Charuco, Chessboard, CirclePlate, PlanarTarget  # noqa: E402
+from drivers.sim.imaging import Imaging, PlanarObject, render  # noqa: E402
 
 TARGETS: dict[str, PlanarTarget] = {
     "chessboard": Chessboard(9, 6, 25.0),

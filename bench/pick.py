@@ -1,6 +1,6 @@
 """Pick-guidance benchmark (issue 8): cellctl's shape matcher against a plain OpenCV baseline.
 
-Rendered 1280x960 scenes with known part poses (``drivers.sim.pick_scenes``): a taught bracket, 1-5
+Rendered 1280x960 scenes with known part poses (``tests.support.pick_scenes``): a taught bracket, 1-5
 instances of it, 0-2 distractor parts of another type, clutter, uneven light, noise, and four
 sets — top-down, slightly tilted camera (perspective), 0-30 % occlusion, and exactly 30 %
 occlusion. Every image is searched by both matchers with the same model ROI.
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import cpu_model  # noqa: E402
 from bench.ncc_baseline import Baseline, Found  # noqa: E402
-from drivers.sim import pick_scenes  # noqa: E402
+from tests.support import pick_scenes  # noqa: E402
 from vision import shape  # noqa: E402
 
 SIZE = (1280, 960)

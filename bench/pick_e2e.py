@@ -31,7 +31,7 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=40)
     args = ap.parse_args()
     from calibration import geometry as g
-    from cellctl.served import CELLCTL, run_job, start_served, stop_served
+    from tests.support.served import CELLCTL, run_job, start_served, stop_served
 
     truth = json.loads(subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout)
     bracket = next(p for p in truth["parts"] if p["name"] == "bracket")

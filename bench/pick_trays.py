@@ -2,7 +2,7 @@
 
 A tray, a PCB with a row of identical parts, a blister: every part alike, so each one's cluster of
 top-level maxima competes with the others for the search's candidate list. Rendered 1280x960
-trays (``drivers.sim.pick_scenes.tray_scene``) of 30 brackets in 6 x 5 cells, each turned at random, with
+trays (``tests.support.pick_scenes.tray_scene``) of 30 brackets in 6 x 5 cells, each turned at random, with
 clutter, noise 2 grey levels and optical blur 0.7 px; the same trays at 1/2 and 1/4 size (small
 parts: a model of 2 or 1 pyramid levels). Both matchers search every image with the part taught
 once at that size, at their defaults; a match counts within 2 px (at that size) and 1 deg.
@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import cpu_model  # noqa: E402
 from bench.ncc_baseline import Baseline, Found  # noqa: E402
-from drivers.sim import pick_scenes  # noqa: E402
+from tests.support import pick_scenes  # noqa: E402
 from vision import shape  # noqa: E402
 
 SIZE = (1280, 960)

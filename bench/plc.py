@@ -40,8 +40,8 @@ from pymodbus.client import ModbusTcpClient  # noqa: E402
 
 from cellctl.plc import modbus_server as mb  # noqa: E402
 from cellctl.plc.opcua_server import NAMESPACE  # noqa: E402
-from cellctl.served import stop_served  # noqa: E402
-from cellctl.served_plc import RECIPE, PlcCell, start_plc_cell  # noqa: E402
+from tests.support.served import stop_served  # noqa: E402
+from tests.support.served_plc import RECIPE, PlcCell, start_plc_cell  # noqa: E402
 
 POLL_S = 0.001
 

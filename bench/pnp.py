@@ -5,7 +5,7 @@ distortion) sees N target points (N = 6, 12, 50) of a planar target (points on a
 or a 3D target (points in a 0.3 m cube) at 0.5, 1 and 2 m, tilted up to ~35°, with Gaussian pixel
 noise of 0.1, 0.5 and 1 px; several seeds. Every solver gets the same undistorted normalized
 points; "raw" is the solver alone, "+LM" its candidates refined on pixels through the camera model
-(``calibration.pnp_methods``, the refinement every cellctl pose uses). Errors against truth:
+(``calibration.pose.methods``, the refinement every cellctl pose uses). Errors against truth:
 rotation angle (deg) and translation distance (mm) of ``T_cam_target``. Times are per call on the
 same points, median; RPnP is Python/numpy, OpenCV's solvers are C++.
 
@@ -37,8 +37,11 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.camera_model import CameraModel  # noqa: E402
-from calibration.pnp import PoseEstimationError  # noqa: E402
-from calibration.pnp_methods import candidates, estimate_pose_by  # noqa: E402
+from calibration.pose import (  # noqa: E402
+    PoseEstimationError,
+    candidates,
+    estimate_pose_by,
+)
 
 CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 961.0], [0, 1900.0, 598.0], [0, 0, 1]]),
                   np.array([-0.08, 0.05, 0.0002, -0.0001, 0.0]))

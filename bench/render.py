@@ -1,17 +1,17 @@
 """Renderer benchmark (issue 15): frame time of the virtual camera against an OpenCV texture warp.
 
-Ours: ``calibration.render`` (exact inverse mapping through the lens model, edges supersampled)
+Ours: ``drivers.sim.imaging.renderer`` (exact inverse mapping through the lens model, edges supersampled)
 and the virtual cell's ``SimWorld.render`` (every frame from a new pose, so nothing is cached).
 Peers, in the same run on the same poses:
 - the usual OpenCV way to render a plane — the target rasterised once into a texture (0.05 mm per
   texel; 0.1 mm, drawn by ``cv2.circle``, for the geometry test), per frame ``cv2.warpPerspective``
   into the ideal pinhole image and ``cv2.remap`` through the lens (maps from ``cv2.undistortPoints``
-  of every pixel, computed once) — followed by the same grey-level stage (``calibration.sensor.to_grey``);
+  of every pixel, computed once) — followed by the same grey-level stage (``drivers.sim.imaging.to_grey``);
   both render the built-in cell's circle plate at 1280x960 through its camera;
 - this renderer as it was at the start of this work (git ``SESSION_START``: render, kernels and
   sensor modules loaded from the history) and before issue 15 (git ``PREVIOUS``), on the whole cell.
 
-Geometry: 63 small disks on a plane facing the camera (as ``tests/calibration/test_render.py``):
+Geometry: 63 small disks on a plane facing the camera (as ``tests/drivers/test_imaging_render.py``):
 the error of each disk's centroid against the projected centre, for ours and for the texture warp.
 
     .venv/bin/python bench/render.py [--frames N] [--out bench/results/render.md]
@@ -53,11 +53,10 @@ from bench.render_peers import (  # noqa: E402
     texture_from_reflectance,
 )
 from calibration import geometry as g  # noqa: E402
-from calibration import render  # noqa: E402
 from calibration.camera_model import CameraModel  # noqa: E402
-from calibration.render import PlanarObject, ray_field, render_scene  # noqa: E402
-from calibration.sensor import Imaging, to_grey  # noqa: E402
 from calibration.targets import CircleGrid  # noqa: E402
+from drivers.sim.imaging import Imaging, PlanarObject, ray_field, render_scene, to_grey  # noqa: E402  # noqa: E402
+from drivers.sim.imaging import renderer as render  # noqa: E402
 from drivers.sim.scene import BUILTIN_SCENE, load_scene  # noqa: E402
 from drivers.sim.world import SimWorld  # noqa: E402
 
@@ -321,7 +320,7 @@ def main() -> None:
         f"| the first frame after start <= {TARGET_MS:.0f} ms: grab once open's background preparation is done "
         f"| {first_prepared_ms:.0f} ms (the preparation: {prep_ms:.0f} ms after open) | "
         f"{verdict(first_prepared_ms <= TARGET_MS)} |",
-        f"| geometric exactness kept (disk centroids, test_render.py: max < 0.02 px) | ours max "
+        f"| geometric exactness kept (disk centroids, test_imaging_render.py: max < 0.02 px) | ours max "
         f"{geo['ours'][0]:.4f} px, RMS {geo['ours'][1]:.4f} px | {verdict(geo['ours'][0] < 0.02)} |",
         f"| frames bit-identical to the renderer at git {SESSION_START} (reflectance, every pose) | "
         f"{same[0]} of {same[1]} poses identical; depth within {same[2]:.1e} m (the ray field's last bits) | "
@@ -369,7 +368,7 @@ def main() -> None:
         "load ~7-12, it did not; the 1-minute load average lags what the run saw). The threads take bands of rows, "
         "then runs of edge pixels; the image is the same for any thread count.",
         "- What the frame costs now, by pass: the targets' patterns (circle plate, chessboard, circle grid) are "
-        "shaded in compiled loops bit-identical to their numpy `reflectance` (`calibration/render_patterns.py`), "
+        "shaded in compiled loops bit-identical to their numpy `reflectance` (`drivers/sim/imaging/patterns.py`), "
         "and an edge pixel that sees one such pattern is supersampled in one fused loop (vectorised for the circle "
         "plate); the ray field's spline is evaluated through its local basis; the imaging stage's per-pixel "
         "arithmetic is compiled passes around OpenCV's blur, pow and JPEG. The virtual cell's parts and table are "

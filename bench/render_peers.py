@@ -84,6 +84,13 @@ SESSION_START = "bca30e5"
 """The renderer before this round of speed work (issue 15, item 1 of the second session)."""
 
 
+MOVED_IMPORTS: tuple[tuple[str, str], ...] = (
+    ("from calibration.sensor import", "from drivers.sim.imaging.sensor import"),
+    ("from calibration import render_kernels", "from drivers.sim.imaging import kernels as render_kernels"),
+)
+"""Imports of the historic renderer rewritten to where those modules live now (same code)."""
+
+
 def git_module(commit: str, path: str, name: str, tmp: Path) -> types.ModuleType | None:
     """``path`` as it was at ``commit``, imported as module ``name`` (None without the history).
 
@@ -95,6 +102,8 @@ def git_module(commit: str, path: str, name: str, tmp: Path) -> types.ModuleType
                              check=True).stdout
     except (OSError, subprocess.CalledProcessError):
         return None
+    for was, now in MOVED_IMPORTS:  # the renderer has moved since (calibration/ -> drivers/sim/imaging/)
+        src = src.replace(was, now)
     file = tmp / f"{name}.py"
     file.write_text(src)
     spec = importlib.util.spec_from_file_location(name, file)

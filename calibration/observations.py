@@ -3,7 +3,7 @@
 Pixels are ``(u, v)``, (0, 0) the centre of the top-left pixel. For circle marks ``uv`` is the
 image of each mark's *centre* (perspective bias corrected as well as the detector could without
 a calibrated camera) and ``uv_ellipse`` the raw fitted-ellipse centre, which solvers that know
-the camera use with ``calibration.conic.circle_centre_bias_px`` inside their loop.
+the camera use with ``calibration.detect.conic.circle_centre_bias_px`` inside their loop.
 
 ``uv_sigma_px`` is each point's own 1-sigma position uncertainty (px, per axis) from its local
 fit (``calibration.detect.precision``); solvers weight by it through ``point_weights``.

@@ -16,7 +16,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
-from calibration.files import read_text, yaml_error_text
+from calibration.io import read_text, yaml_error_text
 from cellctl.errors_format import format_validation_errors
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class

@@ -14,9 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.camera_io import camera_from_json
 from calibration.camera_model import CameraModel
-from calibration.pixel_to_robot import RobotPoint, map_handeye, map_npoint
+from calibration.io import camera_from_json
+from calibration.measure import RobotPoint, map_handeye, map_npoint
 from cellctl.services import Services
 
 

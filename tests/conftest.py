@@ -19,7 +19,7 @@ DATA = REPO / "tests" / "data"
 """Real images and measurements copied into the repository, each folder with SOURCE.txt and LICENSE.txt."""
 
 
-from cellctl.served import CELLCTL, Served, free_port, start_served, stop_served  # noqa: E402, F401
+from tests.support.served import CELLCTL, Served, free_port, start_served, stop_served  # noqa: E402, F401
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,10 @@
 - circle_grid: OpenCV's ``findCirclesGrid`` (``.circle_grid``),
 - circle_plate: our own HALCON-style plate detector (``.circle_plate``).
 
+Beside them: ``conic`` (the perspective bias of a circular mark's imaged centre, which the
+solvers correct for) and ``tool_spot`` (``find_spot``: the tool's saturated spot that the
+tool-centre step looks for).
+
 Errors: bad *input* (an empty or non-image array, an unreadable or corrupt file, a target type
 that cannot be seen in an image) raises ``DetectionError`` (a ``ValueError``) with one clear
 line; a valid image in which the target is not found returns ``Detection(found=False,
@@ -21,11 +25,16 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.detect.conic import circle_centre_bias_px, conic_centres_normalized
 from calibration.detect.quality import image_quality
+from calibration.detect.tool_spot import Spot, SpotNotFound, find_spot
 from calibration.observations import Detection
 from calibration.targets import Charuco, Chessboard, CircleGrid, CirclePlate, Points3D, Target
 
-__all__ = ["Detection", "DetectionError", "detect", "detect_file", "to_grey"]
+__all__ = [
+    "Detection", "DetectionError", "Spot", "SpotNotFound", "circle_centre_bias_px", "conic_centres_normalized",
+    "detect", "detect_file", "find_spot", "read_image", "to_grey",
+]
 
 
 class DetectionError(ValueError):

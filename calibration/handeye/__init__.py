@@ -17,7 +17,7 @@ What is OpenCV's and what is ours:
   ANDREFF, DANIILIDIS; eye-to-hand by passing the inverted robot poses, as OpenCV documents) plus
   our own pair-filtered least-squares (Kabsch on the rotation logs, then linear translation),
   which drops pairs whose relative rotation is too small or near 180°;
-- the per-station target pose is ``calibration.pnp.estimate_pose`` (OpenCV's PnP on undistorted
+- the per-station target pose is ``calibration.pose.pnp.estimate_pose`` (OpenCV's PnP on undistorted
   points, refined on pixels through our camera model; any lens model, division included);
 - the **joint refinement** is ours: a maximum-likelihood estimate over ``X``, ``Z`` and a small
   pose correction per station, minimising the reprojection error of every target point in every
@@ -46,12 +46,26 @@ Modules: ``model`` (types, limits, errors), ``frames`` (frame algebra, station p
 ``closed_form`` (AX = XB closed forms), ``checks`` (conventions, motion, outliers), ``joint``
 (the joint refinement, optionally with the intrinsics and a systematic robot error),
 ``error_model`` (the robot error model chosen by leave-one-out prediction), ``solve``
-(``calibrate_handeye``), ``simulate`` (virtual-cell data).
-Everything public is re-exported here: ``from calibration.handeye import X`` is the interface.
+(``calibrate_handeye``).
+
+The other hand-eye problems live beside it: ``dof4`` (4-DOF: SCARA, delta, top-down picking;
+``dof4_checks`` its motion checks), ``measured`` (a measured target frame, from one station up),
+``stations`` (the reprojection problem those two share) and ``tool_centre`` (the tool centre seen
+by a fixed camera while the tool turns about z). Virtual-cell data with truth is
+``calibration.synthetic``.
+Everything public is exported here: ``from calibration.handeye import X`` is the interface.
 """
 
 from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
 from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, relative_motions, solve_pairs, stats
+from calibration.handeye.dof4 import (
+    DEFAULT_TARGET_Z_SIGMA_MM,
+    HandEyeDof4Result,
+    Station4,
+    calibrate_handeye_dof4,
+    make_stations4,
+)
+from calibration.handeye.dof4_checks import check_dof4_motion, is_dof4, pair_residuals, tool_tilts_deg
 from calibration.handeye.error_model import ERROR_MODELS, choose_model, fit_model, leave_one_out_prediction
 from calibration.handeye.frames import (
     hand_pose,
@@ -64,6 +78,12 @@ from calibration.handeye.frames import (
     transform_error_deg_mm,
 )
 from calibration.handeye.joint import JointOptions, JointProblem, LMResult, refine, vce_robot_noise
+from calibration.handeye.measured import (
+    DEFAULT_TRACKER,
+    MeasuredHandEyeResult,
+    calibrate_handeye_measured,
+    compare_handeye,
+)
 from calibration.handeye.model import (
     MAX_PAIR_ANGLE_DEG,
     MIN_AXIS_SPREAD_DEG,
@@ -84,25 +104,28 @@ from calibration.handeye.model import (
     Setup,
     Station,
 )
-from calibration.handeye.simulate import SimulatedHandEye, simulate_handeye
 from calibration.handeye.solve import calibrate_handeye
-
-# The names these helpers had when hand-eye was one module (kept for code written against it).
-_mean_pose = mean_pose
-_perturb = perturb
-_hand = hand_pose
-_pairs = relative_motions
-_solve_pairs = solve_pairs
-_Joint = JointProblem
+from calibration.handeye.tool_centre import (
+    MIN_ANGLES,
+    MIN_ARC_DEG,
+    RECOMMENDED_ANGLES,
+    ToolCentreError,
+    ToolCentreResult,
+    fit_tool_centre,
+    flange_pose_for_feature,
+    tool_offset_vector,
+)
 
 __all__ = [
-    "ERROR_MODELS", "JointOptions", "choose_model", "fit_model",
-    "MAX_PAIR_ANGLE_DEG", "MIN_AXIS_SPREAD_DEG", "MIN_PAIR_ANGLE_DEG", "MIN_STATIONS", "OPENCV_METHODS",
-    "OUTLIER_FACTOR", "OUTLIER_FLOOR", "RECOMMENDED_STATIONS", "SETUPS", "WARN_AXIS_SPREAD_DEG",
-    "ConventionError", "HandEyeError", "HandEyeResult", "JointProblem", "LMResult", "Mat4", "Problem",
-    "RobotNoise", "Setup", "SimulatedHandEye", "Station", "axxb_residuals", "calibrate_handeye",
-    "check_conventions", "check_motion", "find_outlier_stations", "hand_pose", "leave_one_out_prediction",
-    "make_stations", "mean_pose", "opencv_handeye", "perturb", "predict_cam_target", "refine",
-    "relative_motions", "simulate_handeye", "solve_pairs", "station_pose", "stats", "target_from_station",
-    "transform_error_deg_mm", "vce_robot_noise",
+    "DEFAULT_TARGET_Z_SIGMA_MM", "DEFAULT_TRACKER", "ERROR_MODELS", "JointOptions", "choose_model", "fit_model",
+    "MAX_PAIR_ANGLE_DEG", "MIN_ANGLES", "MIN_ARC_DEG", "MIN_AXIS_SPREAD_DEG", "MIN_PAIR_ANGLE_DEG", "MIN_STATIONS",
+    "OPENCV_METHODS", "OUTLIER_FACTOR", "OUTLIER_FLOOR", "RECOMMENDED_ANGLES", "RECOMMENDED_STATIONS", "SETUPS",
+    "WARN_AXIS_SPREAD_DEG", "ConventionError", "HandEyeDof4Result", "HandEyeError", "HandEyeResult", "JointProblem",
+    "LMResult", "Mat4", "MeasuredHandEyeResult", "Problem", "RobotNoise", "Setup", "Station", "Station4",
+    "ToolCentreError", "ToolCentreResult", "axxb_residuals", "calibrate_handeye", "calibrate_handeye_dof4",
+    "calibrate_handeye_measured", "check_conventions", "check_dof4_motion", "check_motion", "compare_handeye",
+    "find_outlier_stations", "fit_tool_centre", "flange_pose_for_feature", "hand_pose", "is_dof4",
+    "leave_one_out_prediction", "make_stations", "make_stations4", "mean_pose", "opencv_handeye", "pair_residuals",
+    "perturb", "predict_cam_target", "refine", "relative_motions", "solve_pairs", "station_pose", "stats",
+    "target_from_station", "tool_offset_vector", "tool_tilts_deg", "transform_error_deg_mm", "vce_robot_noise",
 ]

@@ -23,7 +23,7 @@ from calibration.handeye.model import (
     Station,
 )
 from calibration.observations import Detection, point_weights
-from calibration.pnp import PoseEstimationError, estimate_pose
+from calibration.pose import PoseEstimationError, estimate_pose
 from calibration.targets import Target
 
 
@@ -60,7 +60,7 @@ def target_from_station(setup: str, X: Mat4, G: Mat4, C: Mat4) -> Mat4:
 # --------------------------------------------------------------------------------------------
 def station_pose(camera: CameraModel, obj: NDArray[np.float64], uv: NDArray[np.float64],
                  weights: NDArray[np.float64] | None = None) -> tuple[Mat4, float]:
-    """``T_cam_target`` of one view (``calibration.pnp.estimate_pose``: OpenCV's PnP on undistorted
+    """``T_cam_target`` of one view (``calibration.pose.pnp.estimate_pose``: OpenCV's PnP on undistorted
     points, then a refinement on pixels through the full camera model, weighted by ``weights``).
     Returns (T, unweighted rms_px)."""
     try:

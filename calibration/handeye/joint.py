@@ -20,7 +20,7 @@ from calibration.handeye.model import (
     RobotNoise,
     Station,
 )
-from calibration.intrinsics.model import camera_from_vector, intrinsic_steps, intrinsics_vector
+from calibration.intrinsics import camera_from_vector, intrinsic_steps, intrinsics_vector
 
 SYSTEMATIC_PRIOR: Final = 0.01
 """1-sigma prior of each entry of the systematic position correction ``A`` (1 % = 10 mm per metre):

@@ -14,7 +14,7 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
    optimum for the covariance anyway. It runs in two stages (first radial term only, then the
    full model) so a strongly distorted lens does not start far from its basin.
    For ``circle_plate`` detections that carry the raw ellipse centres (``uv_ellipse``) the
-   perspective bias of each mark (``calibration.conic.circle_centre_bias_px``) is recomputed from
+   perspective bias of each mark (``calibration.detect.conic.circle_centre_bias_px``) is recomputed from
    the current camera and poses and the solve repeated until the bias changes by < 1e-4 px
    (two or three rounds): the bias correction lives inside the estimation loop.
 3. **Outliers** (rule): a point is an outlier when its residual length exceeds
@@ -57,13 +57,20 @@ Modules: ``results`` (result types, limits, the error), ``model`` (the vectorise
 bundle solver), ``views`` (collecting views, the start, the solve loop, outliers), ``uncertainty``
 (projection uncertainty, jackknife, comparing cameras), ``kernels`` (the compiled projection with
 analytic derivatives and the Schur step, numba), ``solver`` (``calibrate``), ``crossval``
-(k-fold cross-validation), ``synthetic`` (planned views and synthetic detections). Everything
-public is re-exported here: ``from calibration.intrinsics import X`` is the interface.
+(k-fold cross-validation). Planned views and synthetic detections with truth are
+``calibration.synthetic``. Everything public is exported here: ``from calibration.intrinsics import X``
+is the interface.
 """
 
 from calibration.geometry import exp_so3 as rotations
 from calibration.intrinsics.crossval import cross_validate
-from calibration.intrinsics.model import camera_from_vector, intrinsics_vector, param_names, project_normalized
+from calibration.intrinsics.model import (
+    camera_from_vector,
+    intrinsic_steps,
+    intrinsics_vector,
+    param_names,
+    project_normalized,
+)
 from calibration.intrinsics.results import (
     JACKKNIFE_GROUPS,
     JACKKNIFE_MIN_VIEWS,
@@ -77,7 +84,6 @@ from calibration.intrinsics.results import (
     ViewResult,
 )
 from calibration.intrinsics.solver import calibrate
-from calibration.intrinsics.synthetic import plan_views, synthetic_detections
 from calibration.intrinsics.uncertainty import (
     cell_grid,
     coverage_counts,
@@ -88,13 +94,11 @@ from calibration.intrinsics.uncertainty import (
     uncertainty_summary,
 )
 
-_grid = cell_grid  # the name calibration.report imports (it predates the split)
-
 __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
     "VIEW_OUTLIER_FACTOR", "CalibrationError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "coverage_counts", "covered_points", "cross_validate",
-    "intrinsics_vector", "param_names", "plan_views", "project_normalized", "projection_difference",
-    "projection_jacobians", "projection_uncertainty", "rotations", "synthetic_detections",
+    "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
+    "projection_jacobians", "projection_uncertainty", "rotations",
     "uncertainty_summary",
 ]

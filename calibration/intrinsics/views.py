@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.camera_model import N_DIST
-from calibration.conic import circle_centre_bias_px
+from calibration.detect import circle_centre_bias_px
 from calibration.geometry import exp_so3, make_transform
 from calibration.intrinsics.model import (
     BundleProblem,

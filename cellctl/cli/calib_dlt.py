@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.files import read_text
+from calibration.io import read_text
 from cellctl.cli.output import CommandError
 
 log = logging.getLogger("cellctl.calib.dlt")
@@ -48,7 +48,7 @@ def read_observations(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration.dlt import DLTError, calibrate_dlt
+    from calibration.pose import DLTError, calibrate_dlt
     from calibration.targets import Points3D, load_target
 
     target = load_target(args.target)

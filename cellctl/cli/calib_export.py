@@ -28,29 +28,29 @@ def register(sub: Any) -> None:
 
 
 def run_export(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration import export
-    from calibration.camera_io import read_camera
+    from calibration import io as cal_io
+    from calibration.io import read_camera
 
     camera, _ = read_camera(args.camera)
     if args.format == "opencv":
-        export.write_opencv_yaml(camera, args.out_file)
+        cal_io.write_opencv_yaml(camera, args.out_file)
     elif args.format == "ros":
-        export.write_ros_yaml(camera, args.out_file, args.name)
+        cal_io.write_ros_yaml(camera, args.out_file, args.name)
     else:
         if not args.pixel_pitch_um:
             raise CommandError("HALCON export needs --pixel-pitch-um (the sensor cell width, e.g. 3.45)")
-        Path(args.out_file).write_text(export.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))
+        Path(args.out_file).write_text(cal_io.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))
     return {"written": str(args.out_file), "format": args.format, "model": camera.model}
 
 
 def run_import(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration import export
+    from calibration import io as cal_io
 
     if args.format == "opencv":
         import cv2
 
         try:
-            camera = export.read_opencv_yaml(args.file)
+            camera = cal_io.read_opencv_yaml(args.file)
         except (cv2.error, SystemError) as exc:
             # OpenCV's parser fails on anything that is not FileStorage YAML/XML (a SystemError from its binding).
             cause = getattr(exc, "__cause__", None) or exc
@@ -60,11 +60,11 @@ def run_import(args: argparse.Namespace) -> dict[str, Any]:
                                f"({detail[:160]}); give a file written by cv2.FileStorage (or --format ros for "
                                "a ROS camera_info YAML)") from None
     elif args.format == "ros":
-        camera = export.read_ros_yaml(args.file)
+        camera = cal_io.read_ros_yaml(args.file)
     else:
         try:
             text = Path(args.file).read_text()
         except OSError as exc:
             raise CommandError(f"{args.file}: cannot read ({exc.strerror})") from exc
-        camera = export.read_halcon_cam_par(text)
+        camera = cal_io.read_halcon_cam_par(text)
     return {**camera.to_dict(), "imported_from": str(args.file)}

@@ -8,8 +8,8 @@ out, pairs dropped, mis-paired images) go to stderr; a convention mistake or deg
 stops it with one clear line.
 
 Beyond 6-DOF AX=XB: ``--dof 4 --target-z-mm Z`` for robots that turn the tool only about the base
-z axis (``calibration.handeye_dof4``), and ``--T-base-target F.json`` / ``--T-tool-target F.json``
-when the target's frame was measured by other means (``calibration.handeye_measured``).
+z axis (``calibration.handeye.dof4``), and ``--T-base-target F.json`` / ``--T-tool-target F.json``
+when the target's frame was measured by other means (``calibration.handeye.measured``).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def register(sub: Any) -> None:
 
 def _camera(path: str) -> Any:
     try:
-        from calibration.camera_io import read_camera
+        from calibration.io import read_camera
     except ImportError:  # pragma: no cover - camera_io ships with the package
         from calibration.camera_model import CameraModel
 
@@ -86,8 +86,8 @@ def _camera(path: str) -> Any:
 
 def _load(args: argparse.Namespace) -> tuple[Any, Any, Any, list[Any]]:
     """(target, camera, poses, detections) of the data set; detections in poses.csv order."""
+    from calibration.io import read_poses_csv
     from calibration.observations import Detection
-    from calibration.robot_poses import read_poses_csv
     from calibration.targets import load_target
 
     target = load_target(args.target)
@@ -142,7 +142,7 @@ def _camera_covariance(path: str, camera: Any) -> Any:
     carries none (an OpenCV YAML, a hand-written file). It enters the hand-eye uncertainty."""
     import numpy as np
 
-    from calibration.intrinsics.model import param_names
+    from calibration.intrinsics import param_names
 
     try:
         params = json.loads(Path(path).read_text()).get("parameters")
@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if measured is not None:
         return _run_measured(args, measured, target, camera, poses, detections, noise)
     if args.dof == 4:
-        from calibration.handeye_dof4 import calibrate_handeye_dof4
+        from calibration.handeye import calibrate_handeye_dof4
 
         out = calibrate_handeye_dof4(args.setup, poses.T_base_tool, detections, camera, target, args.target_z_mm,
                                      noise, target_z_sigma_mm=args.target_z_sigma_mm, sigma_px=_pixel_sigma(args),
@@ -198,7 +198,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                    camera_verdict_ok=_camera_verdict_ok(args.camera),
                                    camera_covariance=_camera_covariance(args.camera, camera))
     except HandEyeError as exc:
-        from calibration.handeye_dof4_checks import is_dof4
+        from calibration.handeye import is_dof4
 
         if "--dof 4" not in str(exc) and is_dof4(list(poses.T_base_tool)):
             raise CommandError(f"{exc} — these poses turn the tool only about the base z axis: calibrate them "
@@ -253,8 +253,7 @@ def _measured_frame(args: argparse.Namespace) -> Any:
 
 def _run_measured(args: argparse.Namespace, T: Any, target: Any, camera: Any, poses: Any, detections: list[Any],
                   noise: Any) -> dict[str, Any]:
-    from calibration.handeye import RobotNoise
-    from calibration.handeye_measured import calibrate_handeye_measured, compare_handeye
+    from calibration.handeye import RobotNoise, calibrate_handeye_measured, compare_handeye
 
     try:
         tracker = RobotNoise(args.tracker_sigma_mm, args.tracker_sigma_deg)

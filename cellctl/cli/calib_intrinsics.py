@@ -135,11 +135,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _exports(args: argparse.Namespace, camera: Any) -> None:
-    from calibration import export
+    from calibration import io as cal_io
 
     if args.export_opencv:
-        export.write_opencv_yaml(camera, args.export_opencv)
+        cal_io.write_opencv_yaml(camera, args.export_opencv)
     if args.export_ros:
-        export.write_ros_yaml(camera, args.export_ros)
+        cal_io.write_ros_yaml(camera, args.export_ros)
     if args.export_halcon:
-        Path(args.export_halcon).write_text(export.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))
+        Path(args.export_halcon).write_text(cal_io.halcon_cam_par(camera, args.pixel_pitch_um * 1e-6))

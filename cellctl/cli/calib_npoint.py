@@ -29,13 +29,13 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.io import read_pairs_csv
     from calibration.npoint import fit_npoint
-    from calibration.robot_poses import read_pairs_csv
 
     uv, xy = read_pairs_csv(args.pairs)
     camera = None
     if args.camera:
-        from calibration.camera_io import read_camera
+        from calibration.io import read_camera
 
         camera = read_camera(args.camera)[0]
     try:

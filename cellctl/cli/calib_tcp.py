@@ -6,7 +6,7 @@ at one flange position form one circle (at least 3 angles over at least 30 deg; 
 recommended), one or more positions. ``np.json`` maps the pixels to mm (``cellctl calib npoint``).
 Prints ``tcp.json``: ``offset_mm`` (the feature's offset from the flange axis, tool x/y along base
 x/y at rz = 0), ``rotation_centre_px`` per flange position, ``rms_mm`` and the 1-sigma
-``uncertainty.offset_mm`` (``calibration.tcp``).
+``uncertainty.offset_mm`` (``calibration.handeye.tool_centre``).
 """
 
 from __future__ import annotations
@@ -59,8 +59,8 @@ def read_rotations(path: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.handeye import ToolCentreError, fit_tool_centre
     from calibration.npoint import NPointError, NPointResult
-    from calibration.tcp import ToolCentreError, fit_tool_centre
 
     try:
         data = json.loads(Path(args.npoint).read_text())

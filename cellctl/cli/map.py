@@ -15,8 +15,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from cellctl.api.numbers import pixel_problem, pose_ur_problem
 from cellctl.cli.output import CommandError
+from cellctl.numbers import pixel_problem, pose_ur_problem
 
 
 def register(sub: Any) -> None:
@@ -35,14 +35,14 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration.files import read_json
-    from calibration.pixel_to_robot import pixel_to_robot
+    from calibration.io import read_json
+    from calibration.measure import pixel_to_robot
 
     path = Path(args.calib)
     calib = read_json(path, "a calibration file (np.json or he.json)", CommandError)
     camera = None
     if args.camera:
-        from calibration.camera_io import read_camera
+        from calibration.io import read_camera
 
         camera = read_camera(args.camera)[0]
     pose = None

@@ -23,8 +23,8 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> list[dict[str, float]]:
-    from calibration.camera_io import read_camera, read_pose
-    from calibration.plane import image_to_plane
+    from calibration.io import read_camera, read_pose
+    from calibration.measure import image_to_plane
 
     if len(args.coords) % 2:
         raise CommandError(f"give pixel coordinates in pairs U V; got {len(args.coords)} numbers")

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from calibration import jsonable
+from calibration import io as cal_io
 
 
 class CommandError(Exception):
@@ -19,7 +19,7 @@ class CommandError(Exception):
 
 def dumps(result: Any) -> str:
     """The command's JSON: numpy values as plain numbers; a NaN/infinity is an error naming its key."""
-    return jsonable.dumps(result, indent=2)
+    return cal_io.dumps(result, indent=2)
 
 
 def emit(result: Any, out: str | Path | None = None) -> None:

@@ -30,11 +30,9 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration.camera_io import read_camera
-    from calibration.conic import circle_centre_bias_px
-    from calibration.detect import detect_file
-    from calibration.pnp import PoseEstimationError
-    from calibration.pnp_methods import estimate_pose_by
+    from calibration.detect import circle_centre_bias_px, detect_file
+    from calibration.io import read_camera
+    from calibration.pose import PoseEstimationError, estimate_pose_by
     from calibration.targets import CirclePlate, load_target
 
     if (args.image is None) == (args.points is None):
@@ -66,8 +64,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def _from_points(args: argparse.Namespace, camera: Any, target: Any) -> dict[str, Any]:
     """The pose from observed points (``id,u_px,v_px``); ids must be points of the target."""
-    from calibration.pnp import PoseEstimationError
-    from calibration.pnp_methods import estimate_pose_by
+    from calibration.pose import PoseEstimationError, estimate_pose_by
     from cellctl.cli.calib_dlt import read_observations
 
     ids, uv = read_observations(args.points)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from calibration.target_print import write_target
+from calibration.report import write_target
 from calibration.targets import load_target
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.tcp import flange_pose_for_feature, tool_offset_vector
+from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.mapping import ActiveMapping
 from cellctl.pick.recipe import Recipe
 

@@ -20,7 +20,7 @@ from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.detect import detect
 from calibration.observations import Detection
-from calibration.pnp import estimate_pose
+from calibration.pose import estimate_pose
 from calibration.targets import Target, target_from_dict
 from cellctl.jobs import JobContext
 from cellctl.motion import audited_move

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.handeye import HandEyeError, HandEyeResult, calibrate_handeye
-from calibration.intrinsics.model import param_names
+from calibration.intrinsics import param_names
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
 from cellctl.routines.common import (

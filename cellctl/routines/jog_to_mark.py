@@ -5,7 +5,7 @@ Flow: one shot of the plate from the current (capture) pose; the routine picks `
 spread over the plate (a 3x3 pattern by default) and, for each, waits for
 ``POST /jobs/{id}/record`` (the robot position is read then, or ``x_mm, y_mm`` given in the
 body). Then it fits the map (model by leave-one-out unless given), stores it (not activated)
-with the capture pose, and reports the residuals and its verdict (``calibration.npoint_verdict``).
+with the capture pose, and reports the residuals and its verdict (``calibration.npoint.verdict``).
 
 With ``tool_centre`` (a fixed camera that sees a feature of the gripper), the routine then turns
 the tool about z at one recorded mark and fits the tool centre (``cellctl.routines.tool_turn``):
@@ -21,10 +21,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
-from calibration.npoint import fit_npoint
-from calibration.npoint_verdict import assess_npoint
+from calibration.handeye import MIN_ANGLES, MIN_ARC_DEG
+from calibration.npoint import assess_npoint, fit_npoint
 from calibration.targets import Target
-from calibration.tcp import MIN_ANGLES, MIN_ARC_DEG
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
 from cellctl.routines.common import RoutineError, capture, devices, routine_target

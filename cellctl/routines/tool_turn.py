@@ -3,8 +3,8 @@
 With a fixed camera the operator jogs a feature of the gripper onto each mark, but the robot
 reports its flange axis. At one mark (the recorded pose of its step) the routine turns the tool
 about the base z axis — the tool's own axis when it points down — through the given angles; at
-each, the camera sees the feature (``calibration.tcp_spot``: a saturated spot ringed by dark)
-and the robot reports its flange. ``calibration.tcp`` fits the circle through the N-point map:
+each, the camera sees the feature (``calibration.detect.tool_spot``: a saturated spot ringed by dark)
+and the robot reports its flange. ``calibration.handeye.tool_centre`` fits the circle through the N-point map:
 the feature's offset from the flange axis, with its 1-sigma and residual.
 
 Motion: the routine takes the robot's motion for the step only (the operator jogged it freely
@@ -23,9 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
+from calibration.detect import SpotNotFound, find_spot
+from calibration.handeye import fit_tool_centre, tool_offset_vector
 from calibration.npoint import NPointResult
-from calibration.tcp import fit_tool_centre, tool_offset_vector
-from calibration.tcp_spot import SpotNotFound, find_spot
 from cellctl.jobs import JobContext
 from cellctl.routines.common import RoutineError, move, stop_robot_on_end
 from cellctl.services import Services

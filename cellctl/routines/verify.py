@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from calibration.pnp import estimate_pose
+from calibration.pose import estimate_pose
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
 from cellctl.routines.common import RoutineError, capture, detected_points_m, devices, routine_target

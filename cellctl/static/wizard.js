@@ -190,7 +190,7 @@ function wizResult(res) {
   $("#wiz-activate").disabled = false;
 }
 
-// The N-point verdict (calibration/npoint_verdict.py): OK, or NOT OK with each problem's advice.
+// The N-point verdict (calibration/npoint/verdict.py): OK, or NOT OK with each problem's advice.
 function showVerdict(v) {
   verdictBox.replaceChildren();
   if (!v) return;

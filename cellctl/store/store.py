@@ -18,7 +18,7 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
-from calibration import jsonable
+from calibration import io as cal_io
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -44,7 +44,7 @@ MAX_AUDIT_LIMIT = 10_000
 def to_json_text(value: Any, what: str) -> str:
     """``value`` as canonical JSON text; numpy arrays/scalars become lists/numbers; NaN/inf are refused."""
     try:
-        return jsonable.dumps(value, separators=(",", ":"), sort_keys=True)
+        return cal_io.dumps(value, separators=(",", ":"), sort_keys=True)
     except (TypeError, ValueError) as exc:
         raise InvalidInput(f"{what} cannot be stored as JSON: {exc}") from None
 

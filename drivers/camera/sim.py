@@ -10,8 +10,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
-from calibration.render import prepare
 from drivers.base import CameraBase, DeviceInitError, DeviceUnavailable, Frame
+from drivers.sim.imaging import prepare
 from drivers.sim.tool_feature import draw_tool_feature
 from drivers.sim.world import SimWorld, world_for
 

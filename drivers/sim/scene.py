@@ -40,7 +40,7 @@ class ImagingSpec(_Strict):
     """How the virtual camera turns what it sees into grey levels (DN, 0..255), defects included.
 
     Every defect is off by default. They apply in the order light meets them
-    (``calibration.sensor``, where the formulas are):
+    (``drivers.sim.imaging.sensor``, where the formulas are):
 
     - ``light_gradient``: brightness ramp from the image's left to its right edge;
     - ``vignetting``: fraction of the light lost at the image corners (cos^4 law of the distance

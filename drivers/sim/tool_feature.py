@@ -1,6 +1,6 @@
 """The tool's feature drawn over a sim camera's frame: a bright disk in a dark ring on the tool.
 
-The renderer (``calibration.render``) knows planes fixed to the base or the tool flange as
+The renderer (``drivers.sim.imaging.renderer``) knows planes fixed to the base or the tool flange as
 targets; a feature on the gripper, seen by a fixed camera, is drawn here instead, as an overlay
 on the finished frame: each circle (the ring, then the disk) is sampled in 3-D in the tool's
 x/y plane at the scene's ``tool_feature.offset_mm`` from the true flange pose, projected through

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.render import Imaging, PlanarObject, render_scene, to_grey
+from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
 from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene
 
@@ -147,7 +147,7 @@ class SimWorld:
 
         The geometric rendering (the expensive part) is cached for as long as the camera's pose
         and the scene's parts stay put; every frame still gets its own lighting, blur, noise and
-        the other imaging defects of the scene (``calibration.sensor``).
+        the other imaging defects of the scene (``drivers.sim.imaging.sensor``).
         """
         im = self.scene.camera.imaging
         imaging = Imaging(**im.model_dump(exclude={"supersample"}))

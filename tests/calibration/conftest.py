@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, make_transform, quaternion_to_matrix, rotvec_to_matrix, transform_points
 from calibration.observations import Detection
-from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import Chessboard, PlanarTarget
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 

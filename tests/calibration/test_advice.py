@@ -15,15 +15,9 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.intrinsics import (
-    CalibrationError,
-    CrossValidationError,
-    calibrate,
-    cross_validate,
-    plan_views,
-    synthetic_detections,
-)
+from calibration.intrinsics import CalibrationError, CrossValidationError, calibrate, cross_validate
 from calibration.observations import Detection
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 from calibration.verdict import assess, horizontal_fov_deg
 from cellctl.cli import main

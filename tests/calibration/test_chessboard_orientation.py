@@ -12,8 +12,8 @@ import pytest
 from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.detect import detect
-from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import Chessboard
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 K = np.array([[1400.0, 0.0, 640.0], [0.0, 1400.0, 480.0], [0.0, 0.0, 1.0]])
 CAM = CameraModel("opencv5", 1280, 960, K, np.zeros(5))

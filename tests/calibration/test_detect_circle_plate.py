@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.conic import circle_centre_bias_px
-from calibration.detect import detect
+from calibration.detect import circle_centre_bias_px, detect
 from calibration.detect.circle_plate import perspective_bias
 from calibration.geometry import make_transform, rotvec_to_matrix, transform_points
-from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import CirclePlate
+from drivers.sim.imaging import Imaging, PlanarObject, render
 from tests.calibration.conftest import plate_pose, render_target, truth_uv
 
 PLATE = CirclePlate(7, 7, 12.5, 6.25)

@@ -9,9 +9,10 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.detect import detect
-from calibration.intrinsics import calibrate, plan_views, projection_difference
+from calibration.intrinsics import calibrate, projection_difference
 from calibration.observations import Detection, point_weights
-from calibration.pnp import estimate_pose
+from calibration.pose import estimate_pose
+from calibration.synthetic import plan_views
 from calibration.targets import Charuco, Chessboard, CirclePlate
 from tests.calibration.conftest import plate_pose, render_target, truth_uv
 

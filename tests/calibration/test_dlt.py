@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.dlt import DLTError, calibrate_dlt
 from calibration.geometry import invert, look_at, transform_error
+from calibration.pose import DLTError, calibrate_dlt
 
 K = np.array([[1200.0, 0, 650], [0, 1195, 470], [0, 0, 1]])
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration import export
-from calibration.camera_io import CameraFileError, camera_from_json, read_camera, read_pose, write_camera
+from calibration import io as cal_io
 from calibration.camera_model import CameraModel
+from calibration.io import CameraFileError, camera_from_json, read_camera, read_pose, write_camera
 
 K = np.array([[1100.5, 0.0, 645.25], [0.0, 1098.125, 478.75], [0.0, 0.0, 1.0]])
 CAMS = {
@@ -27,41 +27,41 @@ def _same(a: CameraModel, b: CameraModel) -> None:
 @pytest.mark.parametrize("model", ["opencv5", "opencv8"])
 def test_opencv_yaml_round_trip(tmp_path: Path, model: str) -> None:
     f = tmp_path / "cam.yaml"
-    export.write_opencv_yaml(CAMS[model], f)
+    cal_io.write_opencv_yaml(CAMS[model], f)
     assert "camera_matrix" in f.read_text()
-    _same(export.read_opencv_yaml(f), CAMS[model])
+    _same(cal_io.read_opencv_yaml(f), CAMS[model])
 
 
 @pytest.mark.parametrize("model", ["opencv5", "opencv8"])
 def test_ros_round_trip(tmp_path: Path, model: str) -> None:
     f = tmp_path / "ci.yaml"
-    export.write_ros_yaml(CAMS[model], f, "cam0")
+    cal_io.write_ros_yaml(CAMS[model], f, "cam0")
     text = f.read_text()
     assert "camera_name: cam0" in text and ("plumb_bob" in text) == (model == "opencv5")
-    _same(export.read_ros_yaml(f), CAMS[model])
+    _same(cal_io.read_ros_yaml(f), CAMS[model])
 
 
 def test_halcon_round_trip() -> None:
-    text = export.halcon_cam_par(CAMS["division"], 3.45e-6)
+    text = cal_io.halcon_cam_par(CAMS["division"], 3.45e-6)
     assert "area_scan_division" in text and "Kappa:kappa:" in text
-    _same(export.read_halcon_cam_par(text), CAMS["division"])
+    _same(cal_io.read_halcon_cam_par(text), CAMS["division"])
 
 
 def test_refusals(tmp_path: Path) -> None:
-    with pytest.raises(export.ExportError, match="division"):
-        export.write_opencv_yaml(CAMS["division"], tmp_path / "x.yaml")
-    with pytest.raises(export.ExportError, match="division"):
-        export.ros_camera_info(CAMS["division"])
-    with pytest.raises(export.ExportError, match="division model"):
-        export.halcon_cam_par(CAMS["opencv5"], 3e-6)
-    with pytest.raises(export.ExportError, match="no such file"):
-        export.read_opencv_yaml(tmp_path / "missing.yaml")
+    with pytest.raises(cal_io.ExportError, match="division"):
+        cal_io.write_opencv_yaml(CAMS["division"], tmp_path / "x.yaml")
+    with pytest.raises(cal_io.ExportError, match="division"):
+        cal_io.ros_camera_info(CAMS["division"])
+    with pytest.raises(cal_io.ExportError, match="division model"):
+        cal_io.halcon_cam_par(CAMS["opencv5"], 3e-6)
+    with pytest.raises(cal_io.ExportError, match="no such file"):
+        cal_io.read_opencv_yaml(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("%YAML:1.0\n---\nimage_width: 10\n")
-    with pytest.raises(export.ExportError, match="camera_matrix"):
-        export.read_opencv_yaml(bad)
-    with pytest.raises(export.ExportError, match="lack"):
-        export.read_halcon_cam_par("Focus:foc: 0.01;")
+    with pytest.raises(cal_io.ExportError, match="camera_matrix"):
+        cal_io.read_opencv_yaml(bad)
+    with pytest.raises(cal_io.ExportError, match="lack"):
+        cal_io.read_halcon_cam_par("Focus:foc: 0.01;")
 
 
 def test_opencv_yaml_with_four_coefficients(tmp_path: Path) -> None:
@@ -74,7 +74,7 @@ def test_opencv_yaml_with_four_coefficients(tmp_path: Path) -> None:
     fs.write("image_width", 1280)
     fs.write("image_height", 960)
     fs.release()
-    cam = export.read_opencv_yaml(f)
+    cam = cal_io.read_opencv_yaml(f)
     assert cam.model == "opencv5" and cam.dist[4] == 0.0
 
 

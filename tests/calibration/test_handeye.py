@@ -8,15 +8,9 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, make_transform, rotvec_to_matrix, transform_to_ur_pose, ur_pose_to_transform
-from calibration.handeye import (
-    ConventionError,
-    HandEyeError,
-    RobotNoise,
-    calibrate_handeye,
-    simulate_handeye,
-    transform_error_deg_mm,
-)
+from calibration.handeye import ConventionError, HandEyeError, RobotNoise, calibrate_handeye, transform_error_deg_mm
 from calibration.observations import Detection
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),

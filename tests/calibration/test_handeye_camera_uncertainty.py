@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye, simulate_handeye, transform_error_deg_mm
+from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye, transform_error_deg_mm
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),

@@ -9,10 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import make_transform
-from calibration.handeye import HandEyeError, RobotNoise
-from calibration.handeye_dof4 import calibrate_handeye_dof4
-from calibration.handeye_special_sim import ScaraSet, simulate_scara
-from calibration.pixel_to_robot import pixel_to_robot
+from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye_dof4
+from calibration.measure import pixel_to_robot
+from calibration.synthetic import ScaraSet, simulate_scara
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 958], [0, 1900, 603], [0, 0, 1]]),

@@ -13,17 +13,11 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, make_transform
-from calibration.handeye import (
-    ERROR_MODELS,
-    HandEyeResult,
-    RobotNoise,
-    calibrate_handeye,
-    simulate_handeye,
-    transform_error_deg_mm,
-)
+from calibration.handeye import ERROR_MODELS, HandEyeResult, RobotNoise, calibrate_handeye, transform_error_deg_mm
 from calibration.handeye.error_model import PARSIMONY, predicts_better
+from calibration.measure import pixel_to_robot
 from calibration.observations import Detection
-from calibration.pixel_to_robot import pixel_to_robot
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 from drivers.sim.kinematics import KinematicError
 from tests.calibration.conftest import SR300_IR, eth_arm_stations

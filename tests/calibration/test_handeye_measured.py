@@ -9,9 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import PoseError, make_transform
-from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye, simulate_handeye
-from calibration.handeye_measured import calibrate_handeye_measured, compare_handeye
-from calibration.handeye_special_sim import perturb_pose
+from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye, calibrate_handeye_measured, compare_handeye
+from calibration.synthetic import perturb_pose, simulate_handeye
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 957], [0, 1900, 604], [0, 0, 1]]),

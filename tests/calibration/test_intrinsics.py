@@ -6,17 +6,10 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.conic import circle_centre_bias_px
-from calibration.intrinsics import (
-    CalibrationError,
-    calibrate,
-    covered_points,
-    cross_validate,
-    plan_views,
-    projection_difference,
-    synthetic_detections,
-)
+from calibration.detect import circle_centre_bias_px
+from calibration.intrinsics import CalibrationError, calibrate, covered_points, cross_validate, projection_difference
 from calibration.observations import Detection
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard, CirclePlate, Points3D
 
 K = np.array([[1100.0, 0.0, 645.0], [0.0, 1098.0, 478.0], [0.0, 0.0, 1.0]])

@@ -8,10 +8,11 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3
-from calibration.intrinsics import kernels, plan_views, synthetic_detections
+from calibration.intrinsics import kernels
 from calibration.intrinsics.model import BundleProblem, camera_from_vector, intrinsic_steps, normal_equations_at
 from calibration.intrinsics.uncertainty import cell_grid, jackknife_projection_rms, projection_difference
 from calibration.intrinsics.views import collect_views, solve_views
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 
 DIST = {"opencv5": [-0.28, 0.09, 0.0008, -0.0006, -0.015],

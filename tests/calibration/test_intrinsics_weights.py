@@ -9,8 +9,9 @@ import copy
 import numpy as np
 
 from calibration.camera_model import CameraModel
-from calibration.intrinsics import calibrate, covered_points, plan_views, projection_difference, synthetic_detections
+from calibration.intrinsics import calibrate, covered_points, projection_difference
 from calibration.observations import Detection, systematic_floor_px
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1280, 960, np.array([[1100.0, 0, 645], [0, 1098, 478], [0, 0, 1]]),

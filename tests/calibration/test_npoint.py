@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.npoint import NPointError, NPointResult, affine_par, apply_h, fit_npoint, simulate_npoint
+from calibration.npoint import NPointError, NPointResult, affine_par, apply_h, fit_npoint
+from calibration.synthetic import simulate_npoint
 
 
 def _cam(aspect: float = 1.0) -> CameraModel:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.camera_model import CameraModel
-from calibration.npoint import fit_npoint, simulate_npoint
-from calibration.npoint_verdict import MAX_LOO_RMS_MM, assess_npoint
+from calibration.npoint import MAX_LOO_RMS_MM, assess_npoint, fit_npoint
+from calibration.synthetic import simulate_npoint
 
 SIZE = (1920, 1200)
 

@@ -9,9 +9,10 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, transform_points, transform_to_ur_pose
-from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
-from calibration.npoint import fit_npoint, simulate_npoint
-from calibration.pixel_to_robot import MappingError, pixel_to_robot
+from calibration.handeye import RobotNoise, calibrate_handeye
+from calibration.measure import MappingError, pixel_to_robot
+from calibration.npoint import fit_npoint
+from calibration.synthetic import simulate_handeye, simulate_npoint
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),

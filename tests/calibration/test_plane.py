@@ -7,7 +7,7 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, look_at
-from calibration.plane import PlaneError, image_to_plane, plane_to_image
+from calibration.measure import PlaneError, image_to_plane, plane_to_image
 
 CAM = CameraModel("opencv5", 1280, 960, np.array([[1100.0, 0, 640], [0, 1100, 480], [0, 0, 1]]),
                   np.array([-0.2, 0.05, 0.001, 0.0, 0.0]))

@@ -7,7 +7,7 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, look_at, transform_error
-from calibration.pnp import PoseEstimationError, estimate_pose
+from calibration.pose import PoseEstimationError, estimate_pose
 from calibration.targets import Chessboard
 
 CAM = CameraModel("division", 1280, 960, np.array([[1100.0, 0, 640], [0, 1100, 480], [0, 0, 1]]),

@@ -8,13 +8,7 @@ import numpy as np
 import pytest
 
 from calibration.geometry import ur_pose_to_transform
-from calibration.robot_poses import (
-    RobotPoseFileError,
-    read_pairs_csv,
-    read_poses_csv,
-    write_pairs_csv,
-    write_poses_csv,
-)
+from calibration.io import RobotPoseFileError, read_pairs_csv, read_poses_csv, write_pairs_csv, write_poses_csv
 
 
 def test_poses_round_trip(tmp_path: Path) -> None:

@@ -9,9 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import transform_error
-from calibration.pnp import PoseEstimationError
-from calibration.pnp_methods import estimate_pose_by
-from calibration.rpnp import RPnPError, rpnp
+from calibration.pose import PoseEstimationError, RPnPError, estimate_pose_by, rpnp
 
 CAM = CameraModel("opencv5", 1280, 960, np.array([[1200.0, 0, 641], [0, 1200, 479], [0, 0, 1]]),
                   np.array([-0.12, 0.03, 0.0005, -0.0003, 0.0]))

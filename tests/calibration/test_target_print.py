@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calibration.detect import detect
-from calibration.target_print import (
+from calibration.report import (
     MM_PER_INCH,
     TargetPrintError,
     page_origin_px,

@@ -9,9 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import make_transform
-from calibration.handeye_special_sim import simulate_tool_centre
+from calibration.handeye import ToolCentreError, fit_tool_centre, flange_pose_for_feature, tool_offset_vector
 from calibration.npoint import fit_npoint
-from calibration.tcp import ToolCentreError, fit_tool_centre, flange_pose_for_feature, tool_offset_vector
+from calibration.synthetic import simulate_tool_centre
 
 CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 962], [0, 1900, 597], [0, 0, 1]]),
                   np.array([-0.05, 0.01, 0.0, 0.0, 0.0]))

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.tcp_spot import SpotNotFound, find_spot
+from calibration.detect import SpotNotFound, find_spot
 
 
 def _disk_image(centres: list[tuple[float, float]], r_px: float = 9.0, ring: bool = True,

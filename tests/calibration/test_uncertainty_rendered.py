@@ -12,9 +12,10 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.detect import detect
-from calibration.intrinsics import calibrate, covered_points, plan_views, projection_difference
-from calibration.render import Imaging, PlanarObject, render
+from calibration.intrinsics import calibrate, covered_points, projection_difference
+from calibration.synthetic import plan_views
 from calibration.targets import Charuco, Chessboard, CirclePlate
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 W, H = 400, 300
 K = np.array([[350.0, 0.0, 201.5], [0.0, 349.0, 148.0], [0.0, 0.0, 1.0]])

@@ -20,8 +20,8 @@ import yaml
 
 from calibration import geometry as g
 from cellctl.config import default_config_text
-from cellctl.served import run_job
 from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.support.served import run_job
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
+from calibration.handeye import RobotNoise, calibrate_handeye
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url

@@ -19,8 +19,8 @@ import pytest
 
 from calibration import geometry as g
 from calibration.targets import target_from_dict
-from cellctl.served import run_job
 from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.support.served import run_job
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +134,7 @@ def test_jog_to_mark_and_map(served: Served, calibrated: dict[str, Any], truth: 
         assert res["verdict"]["ok"] is True, res["verdict"]
         assert http.post(f"/calibrations/{res['calibration_id']}/activate").status_code == 200
         report = http.get(f"/calibrations/{res['calibration_id']}/report").text
-        assert "npoint calibration" in report and "Verdict: OK" in report  # calibration/npoint_verdict.py
+        assert "npoint calibration" in report and "Verdict: OK" in report  # calibration/npoint/verdict.py
         assert "Residual per mark" in report and "<svg" in report  # the N-point page has its own plots
         # Back to the capture pose, then map a mark's pixel and compare with its true position.
         assert http.post("/robots/robot0/move", json={"T_base_tool": home, "speed_m_s": 0.2}).status_code == 200

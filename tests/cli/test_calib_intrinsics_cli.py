@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.intrinsics import plan_views, projection_difference, synthetic_detections
-from calibration.render import Imaging, PlanarObject, render
+from calibration.intrinsics import projection_difference
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 from cellctl.cli import main
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 CELLCTL = str(Path(sys.executable).parent / "cellctl")
 TRUTH = CameraModel("opencv5", 640, 480, np.array([[600.0, 0, 322], [0, 600, 238], [0, 0, 1]]),
@@ -54,7 +55,7 @@ def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> No
     html = rep.read_text()
     assert html.count('<svg class="plot') == 6 and "Projection uncertainty" in html
     assert html.count("<figure class='thumb") == 8 and html.count("data:image/jpeg;base64,") == 8
-    from calibration.export import read_opencv_yaml
+    from calibration.io import read_opencv_yaml
 
     assert np.allclose(read_opencv_yaml(yml).K, est.K)
     for prob in cam["verdict"]["problems"]:

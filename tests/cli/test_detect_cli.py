@@ -12,8 +12,8 @@ import numpy as np
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import make_transform
-from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import CirclePlate
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 DATA = Path(__file__).resolve().parents[2] / "tests" / "data"

@@ -13,11 +13,12 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import transform_to_ur_pose
-from calibration.handeye import RobotNoise, SimulatedHandEye, simulate_handeye, transform_error_deg_mm
-from calibration.render import Imaging, PlanarObject, render
-from calibration.robot_poses import write_poses_csv
+from calibration.handeye import RobotNoise, transform_error_deg_mm
+from calibration.io import write_poses_csv
+from calibration.synthetic import SimulatedHandEye, simulate_handeye
 from calibration.targets import Chessboard
 from cellctl.cli import main
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 CAM = CameraModel("opencv5", 640, 480, np.array([[720.0, 0, 322], [0, 720.0, 238], [0, 0, 1]]),

@@ -16,9 +16,9 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, look_at, transform_error, transform_to_ur_pose
-from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye, simulate_handeye
-from calibration.handeye_special_sim import perturb_pose, simulate_scara, write_example
-from calibration.robot_poses import write_poses_csv
+from calibration.handeye import HandEyeError, RobotNoise, calibrate_handeye
+from calibration.io import write_poses_csv
+from calibration.synthetic import perturb_pose, simulate_handeye, simulate_scara, write_example
 from calibration.targets import Chessboard
 from cellctl.cli import main
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera_model import CameraModel
-from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
+from calibration.handeye import RobotNoise, calibrate_handeye
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 from cellctl.cli import main
 from tests.conftest import REPO

@@ -12,8 +12,9 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, transform_points, transform_to_ur_pose
-from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
-from calibration.npoint import fit_npoint, simulate_npoint
+from calibration.handeye import RobotNoise, calibrate_handeye
+from calibration.npoint import fit_npoint
+from calibration.synthetic import simulate_handeye, simulate_npoint
 from calibration.targets import Chessboard
 from cellctl.cli import main
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.npoint import simulate_npoint
-from calibration.robot_poses import write_pairs_csv
+from calibration.io import write_pairs_csv
+from calibration.synthetic import simulate_npoint
 from cellctl.cli import main
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cellctl.pick.model import FORMAT_VERSION
-from drivers.sim import pick_scenes as synth
+from tests.support import pick_scenes as synth
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 SIZE = (640, 480)

@@ -11,9 +11,9 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert, look_at, transform_error
-from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import Chessboard
 from cellctl.cli import main
+from drivers.sim.imaging import Imaging, PlanarObject, render
 
 CAM = CameraModel("opencv5", 640, 480, np.array([[600.0, 0, 322], [0, 600, 238], [0, 0, 1]]),
                   np.array([-0.2, 0.05, 0.0, 0.0, 0.0]))

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera_model import CameraModel
-from calibration.intrinsics import calibrate, plan_views, synthetic_detections
-from calibration.report import write_report
-from calibration.report_camera import MAX_VECTORS
+from calibration.intrinsics import calibrate
+from calibration.report import MAX_VECTORS, write_report
+from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 from calibration.verdict import MAX_PROJECTION_RMS_PX
 

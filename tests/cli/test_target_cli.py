@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from calibration.target_print import png_dpi
+from calibration.report import png_dpi
 
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 

@@ -11,9 +11,8 @@ import yaml
 
 from calibration import geometry as g
 from calibration.detect import detect
-from calibration.render import PlanarObject, render_scene
-from calibration.sensor import Imaging, vignetting_factor
 from drivers.camera.sim import SimCamera, SimCameraSettings
+from drivers.sim.imaging import Imaging, PlanarObject, render_scene, vignetting_factor
 from drivers.sim.scene import BUILTIN_SCENE, ImagingSpec, SceneError, load_scene, scene_from_dict
 from drivers.sim.world import SimWorld, forget_worlds, part_mask
 

@@ -10,9 +10,8 @@ import pytest
 import yaml
 
 from calibration import geometry as g
-from calibration.detect import detect
+from calibration.detect import SpotNotFound, detect, find_spot
 from calibration.targets import target_from_dict
-from calibration.tcp_spot import SpotNotFound, find_spot
 from drivers.camera.sim import SimCamera, SimCameraSettings
 from drivers.sim.scene import BUILTIN_SCENE, SceneError, load_scene, scene_from_dict
 from drivers.sim.world import forget_worlds, world_for

@@ -1,4 +1,4 @@
-"""calibration.files: a file that is missing, unreadable, not JSON or not YAML is the caller's typed error."""
+"""calibration.io.files: a file that is missing, unreadable, not JSON or not YAML is the caller's typed error."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from calibration.files import read_json, read_text, read_yaml
+from calibration.io import read_json, read_text, read_yaml
 
 
 class MyError(ValueError):

@@ -1,4 +1,4 @@
-"""calibration.jsonable: numpy to JSON with one policy: a non-finite number is an error naming its key."""
+"""calibration.io.jsonable: numpy to JSON with one policy: a non-finite number is an error naming its key."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.jsonable import NonFiniteError, dumps, to_jsonable
+from calibration.io import NonFiniteError, dumps, to_jsonable
 
 
 def test_numpy_arrays_scalars_tuples_and_keys_become_plain_json() -> None:

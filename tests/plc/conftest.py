@@ -1,4 +1,4 @@
-"""The PLC tests' served cell: one ``cellctl.served_plc`` cell for the whole session."""
+"""The PLC tests' served cell: one ``tests.support.served_plc`` cell for the whole session."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from cellctl.served_plc import RECIPE, SEED, PlcCell, prepare_cell, start_plc_cell
 from tests.conftest import stop_served
+from tests.support.served_plc import RECIPE, SEED, PlcCell, prepare_cell, start_plc_cell
 
 __all__ = ["RECIPE", "SEED", "PlcCell", "prepare_cell", "start_plc_cell"]
 

@@ -21,10 +21,11 @@ from playwright.sync_api import Browser, Page
 
 from calibration.camera_model import CameraModel
 from calibration.detect import detect_file
-from calibration.handeye import RobotNoise, calibrate_handeye, simulate_handeye
+from calibration.handeye import RobotNoise, calibrate_handeye
 from calibration.intrinsics import calibrate
 from calibration.npoint import fit_npoint
 from calibration.report import write_report
+from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard, target_from_dict
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
@@ -168,7 +169,7 @@ def test_summary_agrees_with_the_plots(cell: dict[str, Any]) -> None:
     umap = np.array([[np.nan if x is None else x for x in row] for row in data["uncertainty_map_px"]])
     assert umap == pytest.approx(res.uncertainty_map_px, rel=1e-3, nan_ok=True)
     corners = [umap[0, 0], umap[0, -1], umap[-1, 0], umap[-1, -1]]
-    from calibration.report_svg import fmt
+    from calibration.report.svg import fmt
 
     assert f"<td class='num'>{fmt(max(corners))} px</td>" in html  # the summary's corner figure is the map's
     assert data["uncertainty_limit_px"] == 0.5

@@ -20,7 +20,7 @@ import pytest
 from playwright.sync_api import Browser, Page, expect
 
 from calibration import geometry as g
-from calibration.camera_io import camera_from_json
+from calibration.io import camera_from_json
 from calibration.npoint import fit_npoint
 from cellctl.cli import main
 from cellctl.config import default_config_text

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.sim import pick_scenes as scenes
+from tests.support import pick_scenes as scenes
 from vision import blob
 from vision.types import SearchParams
 

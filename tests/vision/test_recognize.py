@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cellctl.pick import model as pm
-from drivers.sim import pick_scenes as scenes
+from tests.support import pick_scenes as scenes
 from vision.recognize import recognize
 from vision.types import SearchParams
 

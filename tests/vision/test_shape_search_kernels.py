@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.sim import pick_scenes as scenes
+from tests.support import pick_scenes as scenes
 from vision import shape
 from vision.image import CENTROID_HALF_WIDTH, pyramid
 from vision.shape import kernels, refine

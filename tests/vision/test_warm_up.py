@@ -18,7 +18,7 @@ import importlib, json, pkgutil
 import numpy as np
 from numba.core.registry import CPUDispatcher
 import vision.shape as shape
-from drivers.sim import pick_scenes as scenes
+from tests.support import pick_scenes as scenes
 from vision.types import SearchParams
 
 def compiled():

@@ -133,8 +133,8 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
            ) -> PlainTextResponse:
     import json
 
-    from calibration import export as ex
-    from calibration.camera_io import camera_from_json
+    from calibration import io as cal_io
+    from calibration.io import camera_from_json
 
     rec = _get(services, cal_id)
     if format == "json":
@@ -150,15 +150,15 @@ def export(cal_id: CalId, services: ServicesDep, _: Viewer,
                                "HALCON camera parameters are in metres on the sensor: give the sensor cell width "
                                "as pixel_pitch_um (micrometres, from the camera's data sheet, e.g. "
                                "?format=halcon&pixel_pitch_um=3.45)")
-            return PlainTextResponse(ex.halcon_cam_par(camera, pixel_pitch_um * 1e-6))
+            return PlainTextResponse(cal_io.halcon_cam_par(camera, pixel_pitch_um * 1e-6))
         with tempfile.TemporaryDirectory() as tmp:
             path = FilePath(tmp) / "camera.yaml"
             if format == "opencv":
-                ex.write_opencv_yaml(camera, path)
+                cal_io.write_opencv_yaml(camera, path)
             else:
-                ex.write_ros_yaml(camera, path, name=rec.camera_id)
+                cal_io.write_ros_yaml(camera, path, name=rec.camera_id)
             return PlainTextResponse(path.read_text(), media_type="application/x-yaml")
-    except ex.ExportError as exc:
+    except cal_io.ExportError as exc:
         raise ApiError(422, "export_unsupported", str(exc)) from None
 
 
@@ -173,7 +173,7 @@ def report(cal_id: CalId, services: ServicesDep, _: Viewer,
     Built from what the store keeps for the calibration (its result and inputs, both immutable),
     so it is the same every time it is asked for; the page is kept in memory once built.
     """
-    from calibration.report_html import ReportError, calibration_report, report_json
+    from calibration.report import ReportError, calibration_report, report_json
 
     rec = _get(services, cal_id)
     try:

@@ -9,12 +9,12 @@ from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
-from calibration.pixel_to_robot import MappingError
+from calibration.measure import MappingError
 from cellctl.api.deps import Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
-from cellctl.api.numbers import pixel_problem, point_problem, pose_envelope_problem, pose_ur_problem
 from cellctl.mapping import NoCalibration, active_mapping, npoint_pose_check
+from cellctl.numbers import pixel_problem, point_problem, pose_envelope_problem, pose_ur_problem
 
 router = APIRouter(tags=["map"])
 

@@ -11,8 +11,8 @@ from calibration import geometry as g
 from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
-from cellctl.api.numbers import pose_ur_problem, transform_problem
 from cellctl.motion import audited_move
+from cellctl.numbers import pose_ur_problem, transform_problem
 from cellctl.robot_state import state_to_json
 from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 

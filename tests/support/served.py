@@ -1,0 +1,93 @@
+"""``cellctl serve`` as a child process on a free loopback port: start it, reach it, stop it.
+
+For what drives a whole service from outside: the end-to-end tests and the benchmarks (test
+support, not part of the installed product). Only 127.0.0.1 is used.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+CELLCTL = str(Path(sys.executable).with_name("cellctl"))
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Served:
+    """A ``cellctl serve`` process on loopback, with its base URL and engineer token."""
+
+    process: subprocess.Popen[bytes]
+    base_url: str
+    token: str
+    data_dir: Path
+
+    def client(self, token: str | None = None, timeout_s: float = 20.0) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {token or self.token}"}
+        return httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout_s)
+
+
+def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str] | None = None,
+                 token: str | None = None, timeout_s: float = 60.0) -> Served:
+    """Start ``cellctl serve`` on a free port and wait until /health answers."""
+    port = free_port()
+    env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp / "data"), **(extra_env or {})}
+    cmd = [CELLCTL, "serve", "--host", "127.0.0.1", "--port", str(port)]
+    if config is not None:
+        cmd += ["--config", str(config)]
+    log = (tmp / "serve.log").open("wb")
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"cellctl serve exited: {(tmp / 'serve.log').read_text()}")
+        try:
+            if httpx.get(base + "/health", timeout=2.0).status_code == 200:
+                break
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    else:
+        proc.kill()
+        raise RuntimeError(f"cellctl serve did not start: {(tmp / 'serve.log').read_text()}")
+    if token is None:
+        token_files = list((tmp / "data").glob("*.session-token"))
+        token = token_files[0].read_text().strip() if token_files else ""
+    return Served(proc, base, token, tmp / "data")
+
+
+def stop_served(served: Served) -> None:
+    served.process.terminate()
+    try:
+        served.process.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        served.process.kill()
+        served.process.wait()
+
+
+def run_job(http: httpx.Client, name: str, params: dict[str, Any], timeout_s: float = 240.0) -> dict[str, Any]:
+    """Start routine ``name`` and wait until its job has ended; the job as JSON."""
+    r = http.post(f"/routines/{name}", json=params)
+    if r.status_code != 202:
+        raise RuntimeError(f"routine {name} did not start: {r.status_code} {r.text}")
+    job_id = r.json()["id"]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = http.get(f"/jobs/{job_id}").json()
+        if job["state"] != "running":
+            return dict(job)
+        time.sleep(0.3)
+    raise TimeoutError(f"{name} did not finish in {timeout_s} s")
