@@ -11,7 +11,7 @@
 #     `systemctl daemon-reload` and `systemctl enable cellctl` when systemd runs this system.
 # Re-running upgrades the copy and the venv and keeps the config and the data.
 #
-# Usage: sudo deploy/install.sh [--prefix DIR] [--root DIR] [--python PY] [--no-deps] [--no-aravis]
+# Usage: sudo deploy/install.sh [--prefix DIR] [--root DIR] [--python PY] [--no-deps] [--no-aravis] [--postgres]
 #   --root DIR   install into the tree DIR (a chroot, an image, a test tree) instead of /: every
 #                path above lives under DIR, the user is created in DIR/etc/passwd when that file
 #                exists, and systemctl is never called. The venv's scripts then name DIR in their
@@ -19,6 +19,8 @@
 #   --no-deps    install cellctl alone into the venv, without its dependencies (tests; systems
 #                where the dependencies come another way)
 #   --no-aravis  leave out the GigE Vision binding (PyGObject; needs deploy/install-system-deps.sh)
+#   --postgres   add the PostgreSQL driver (psycopg) for a plant-wide store (store.url:
+#                postgresql+psycopg://...); the default SQLite store needs nothing
 # Debian packages the cell needs (Aravis, socat, ...): deploy/install-system-deps.sh (run it first).
 set -euo pipefail
 
@@ -26,7 +28,8 @@ PREFIX=/opt/cellctl
 ROOT=""
 PY=${PYTHON:-python3}
 DEPS=1
-EXTRAS="[aravis]"
+ARAVIS=1
+POSTGRES=0
 SERVICE_USER=cellctl
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 ARGS="$*"
@@ -40,11 +43,17 @@ while [ $# -gt 0 ]; do
     --root) [ $# -ge 2 ] || die "--root needs a directory"; ROOT=$2; shift 2 ;;
     --python) [ $# -ge 2 ] || die "--python needs an interpreter"; PY=$2; shift 2 ;;
     --no-deps) DEPS=0; shift ;;
-    --no-aravis) EXTRAS=""; shift ;;
+    --no-aravis) ARAVIS=0; shift ;;
+    --postgres) POSTGRES=1; shift ;;
     -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) die "unknown option $1; see --help" ;;
   esac
 done
+
+EXTRAS=""
+[ "$ARAVIS" -eq 1 ] && EXTRAS=aravis
+[ "$POSTGRES" -eq 1 ] && EXTRAS=${EXTRAS:+$EXTRAS,}postgres
+EXTRAS=${EXTRAS:+[$EXTRAS]}
 
 case "$PREFIX" in /*) ;; *) die "--prefix must be an absolute path, got $PREFIX" ;; esac
 PREFIX=${PREFIX%/}

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up cellctl on a fresh Debian 12 machine: Debian packages (deploy/install-system-deps.sh),
-# a virtual environment in .venv/ and the package with its test tools. Idempotent; safe to re-run.
+# a virtual environment in .venv/ and the package with its test tools and the PostgreSQL driver
+# (the store tests run a real PostgreSQL). Idempotent; safe to re-run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,5 +25,5 @@ if [ ! -x .venv/bin/python ]; then
   fi
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e '.[test,aravis]'
+.venv/bin/python -m pip install -q -e '.[test,aravis,postgres]'
 echo "setup: ready (.venv/bin/cellctl)" >&2

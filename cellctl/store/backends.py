@@ -14,6 +14,7 @@ at a time while other cells write in parallel.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import sqlite3
 from pathlib import Path
 from typing import Any, Literal
@@ -46,6 +47,9 @@ def parse_url(url: str | sa.URL) -> sa.URL:
                                "use postgresql+psycopg://")
         if not u.database:
             raise InvalidInput("store url: name the database, e.g. postgresql+psycopg://user@127.0.0.1:5432/cellctl")
+        if importlib.util.find_spec("psycopg") is None:
+            raise InvalidInput("store url: a PostgreSQL store needs its driver, which is not installed: "
+                               "pip install 'cellctl[postgres]' (deploy/install.sh --postgres)")
     elif backend == "sqlite":
         if u.get_driver_name() != "pysqlite":
             raise InvalidInput(f"store url: driver {u.get_driver_name()!r} is not supported; use sqlite:///")

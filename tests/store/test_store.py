@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -321,6 +322,13 @@ def test_open_store_follows_the_config(tmp_path: Path, monkeypatch: pytest.Monke
     (tmp_path / "junk.db").write_bytes(b"this is not a database" * 100)
     with pytest.raises(StoreError, match="junk.db: file is not a database"):
         Store(f"sqlite:///{tmp_path / 'junk.db'}", "c")
+
+
+def test_postgresql_without_its_driver_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    """psycopg is an extra (``cellctl[postgres]``): a PostgreSQL URL without it is a config error saying so."""
+    monkeypatch.setitem(sys.modules, "psycopg", None)  # how Python marks a module as not importable
+    with pytest.raises(InvalidInput, match=r"needs its driver.*pip install 'cellctl\[postgres\]'"):
+        Store("postgresql+psycopg://u@127.0.0.1:1/x", "c")
 
 
 def test_backup_is_online_and_consistent(store: Store, tmp_path: Path) -> None:
