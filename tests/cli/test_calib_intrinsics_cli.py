@@ -16,6 +16,7 @@ from calibration.intrinsics import plan_views, projection_difference, synthetic_
 from calibration.render import Imaging, PlanarObject, render
 from calibration.targets import Chessboard
 from cellctl.cli import main
+from tests.support.cli import run_cli
 
 CELLCTL = str(Path(sys.executable).parent / "cellctl")
 TRUTH = CameraModel("opencv5", 640, 480, np.array([[600.0, 0, 322], [0, 600, 238], [0, 0, 1]]),
@@ -38,10 +39,9 @@ def image_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> None:
     out, rep, yml = tmp_path / "cam.json", tmp_path / "r.html", tmp_path / "cam.yaml"
-    p = subprocess.run([CELLCTL, "calib", "intrinsics", "--target", str(image_dir.parent / "board.yaml"),
-                        "--model", "opencv5", str(image_dir), "--out", str(out), "--report", str(rep),
-                        "--export-opencv", str(yml), "--cross-validate", "2"],
-                       capture_output=True, text=True, timeout=120)
+    p = run_cli("calib", "intrinsics", "--target", str(image_dir.parent / "board.yaml"),
+                "--model", "opencv5", str(image_dir), "--out", str(out), "--report", str(rep),
+                "--export-opencv", str(yml), "--cross-validate", "2")
     assert p.returncode == 0, p.stderr
     cam = json.loads(out.read_text())
     assert json.loads(p.stdout) == cam

@@ -1,0 +1,1 @@
+"""Support code for the tests and benches (never imported by the product)."""
