@@ -11,18 +11,26 @@ the robot goes through it:
   refused with ``RobotStopped`` until ``resume``.
 - A move gets a **deadline** from its distance and speed (``move_deadline_s``); a move that has
   not finished by then is stopped and raises ``DeviceTimeout``.
+- Every change of the latch (``latch``, ``resume``) is told to the owner's **latch listeners**
+  (``add_latch_listener``) as a ``LatchChange``: the service stores the latch through one, so it
+  outlives a crash. Whatever latches the robot (a Stop, a controller that drops out) goes through
+  ``latch``, so no latch escapes them.
 
 This module is pure bookkeeping (threads and events); ``RobotBase`` calls the adapter's hooks.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from drivers.errors import DriverError
+
+log = logging.getLogger(__name__)
 
 # A move is given this many times its nominal duration, plus a slack (MotionLimits), to finish:
 # real controllers accelerate and blend, so the nominal distance/speed is a lower bound.
@@ -72,6 +80,26 @@ class MotionSession:
         return self._aborted.wait(timeout_s)
 
 
+@dataclass(frozen=True)
+class LatchChange:
+    """One change of a robot's Stop latch, as its listeners see it."""
+
+    robot_id: str
+    latched: bool
+    """True: the robot was latched (again); False: an engineer cleared the latch."""
+    by: str
+    """Who latched it, or who cleared it."""
+    reason: str
+    """Why it was latched ("Stop", a controller dropout ...); "resume" when cleared."""
+    at_s: float
+    """When, seconds since the Unix epoch (for a latch: the time it is latched since)."""
+    seq: int
+    """1, 2, ... per owner in the order of the changes (listeners may be told out of order)."""
+
+
+LatchListener = Callable[[LatchChange], None]
+
+
 class MotionOwner:
     """The owner of one robot's motion and its Stop latch (thread-safe)."""
 
@@ -82,6 +110,34 @@ class MotionOwner:
         self._latched_by: str | None = None
         self._latched_reason = ""
         self._latched_s: float | None = None
+        self._seq = 0
+        self._listeners: list[LatchListener] = []
+
+    def add_latch_listener(self, listener: LatchListener) -> None:
+        """Call ``listener`` with every later change of the latch.
+
+        It is called in the thread that changed the latch, after the change took effect: it must
+        return at once (queue its work). Its failure is logged and never undoes or delays a latch.
+        """
+        with self._lock:
+            self._listeners.append(listener)
+
+    def remove_latch_listener(self, listener: LatchListener) -> None:
+        with self._lock:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+    def _changed(self, latched: bool, by: str, reason: str, at_s: float) -> tuple[LatchChange, list[LatchListener]]:
+        """The change to tell (call under the lock) and the listeners to tell it to."""
+        self._seq += 1
+        return LatchChange(self.robot_id, latched, by, reason, at_s, self._seq), list(self._listeners)
+
+    def _tell(self, change: LatchChange, listeners: list[LatchListener]) -> None:
+        for listener in listeners:
+            try:
+                listener(change)
+            except Exception:  # noqa: BLE001 - a listener never undoes or delays the latch
+                log.exception("robot %s: a latch listener failed on %s", self.robot_id, change)
 
     def begin(self, who: str, what: str) -> MotionSession:
         """Open a session for ``who`` doing ``what``; ``RobotStopped`` when latched, ``RobotBusy`` when owned."""
@@ -109,25 +165,34 @@ class MotionOwner:
         with self._lock:
             return self._session is session
 
-    def latch(self, who: str, reason: str = "Stop") -> MotionSession | None:
-        """Latch the robot stopped and abort the session that owns it (returned, if any)."""
+    def latch(self, who: str, reason: str = "Stop", since_s: float | None = None) -> MotionSession | None:
+        """Latch the robot stopped and abort the session that owns it (returned, if any).
+
+        ``since_s``: when the latch began, when it is older than this call (a latch carried over a
+        restart); default now.
+        """
         with self._lock:
             self._latched_by = who or "unknown"
             self._latched_reason = reason
-            self._latched_s = time.time()
+            self._latched_s = time.time() if since_s is None else since_s
             session = self._session
+            change = self._changed(True, self._latched_by, reason, self._latched_s)
         if session is not None:
             session.abort(f"{reason} by {who or 'unknown'}")
+        self._tell(*change)
         return session
 
-    def resume(self) -> bool:
-        """Clear the latch; True when the robot was latched."""
+    def resume(self, by: str = "") -> bool:
+        """Clear the latch (``by``: the engineer who resumed); True when the robot was latched."""
         with self._lock:
             was = self._latched_by is not None
             self._latched_by = None
             self._latched_reason = ""
             self._latched_s = None
-            return was
+            change = self._changed(False, by or "unknown", "resume", time.time()) if was else None
+        if change is not None:
+            self._tell(*change)
+        return was
 
     @property
     def latched(self) -> bool:

@@ -19,6 +19,7 @@ import sqlalchemy as sa
 
 import cellctl
 from calibration import jsonable
+from cellctl.store import latches as L
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -413,6 +414,20 @@ class Store:
             r.cell_id == self.cell_id).order_by(r.recipe_id)
         with self._read() as conn:
             return [_recipe(row) for row in conn.execute(q).all()]
+
+    # ------------------------------------------------------------------ robot latches (latches.py)
+
+    def set_latch(self, robot_id: str, latched_by: str, reason: str, since_s: float, result: str = "stored") -> None:
+        """Store that ``robot_id`` is latched, with its audit entry (one transaction)."""
+        L.set_latch(self, robot_id, latched_by, reason, since_s, result)
+
+    def clear_latch(self, robot_id: str, who: str, result: str = "stored: cleared") -> bool:
+        """Store that ``who`` resumed ``robot_id``, with its audit entry; True when it was stored latched."""
+        return L.clear_latch(self, robot_id, who, result)
+
+    def latches(self) -> list[L.StoredLatch]:
+        """The robots stored latched (they are latched again when the service starts)."""
+        return L.stored_latches(self)
 
     # ------------------------------------------------------------------ whole-store
 
