@@ -139,3 +139,21 @@ def _few(tmp_path: Path, det: Path) -> Path:
     f = tmp_path / "few.json"
     f.write_text(json.dumps(data))
     return f
+
+
+@pytest.mark.parametrize(("content", "words"), [
+    (b'{"image": "a.png", "points": []}', "holds a JSON object"),
+    (b"[1, 2]", "entries are not detections"),
+    (bytes(range(256)) * 4, "not a text file"),
+    (b"[{", "not valid JSON"),
+])
+def test_detections_that_are_not_a_detection_list_are_one_line(tmp_path: Path, content: bytes, words: str) -> None:
+    det = tmp_path / "det.json"
+    det.write_bytes(content)
+    target = tmp_path / "board.yaml"
+    target.write_text("type: chessboard\ncols: 9\nrows: 6\nsquare_mm: 25\n")
+    r = run_cli("calib", "intrinsics", "--target", str(target), "--model", "opencv5", "--detections", str(det))
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr
+    assert str(det) in lines[0] and words in lines[0] and "cellctl detect" in lines[0]
