@@ -75,7 +75,7 @@ def _detections(args: argparse.Namespace, target: Any) -> list[Any]:
         except json.JSONDecodeError as exc:
             raise CommandError(f"{args.detections}: not valid JSON ({exc}); {expected}") from exc
         if not isinstance(data, list):
-            kind = {dict: "object", str: "string"}.get(type(data), "number or literal")
+            kind = "object" if isinstance(data, dict) else "string" if isinstance(data, str) else "number or literal"
             raise CommandError(f"{args.detections}: holds a JSON {kind}, not a list of detections; {expected}")
         if not all(isinstance(d, dict) for d in data):
             raise CommandError(f"{args.detections}: a list whose entries are not detections; {expected}")
