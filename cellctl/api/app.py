@@ -19,6 +19,7 @@ from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
+from cellctl.latches import LatchKeeper
 from cellctl.services import Services
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,11 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
 
         cell = Cell(config)
         store = await run_in_threadpool(open_store, config)
-        services = Services(config, cell, store, JobManager())
+        # Robots latched before a crash or restart are latched again before anything is served.
+        latches = LatchKeeper(store, {rid: slot.device.motion for rid, slot in cell.robots.items()})
+        await run_in_threadpool(latches.restore)
+        latches.start()
+        services = Services(config, cell, store, JobManager(), latches=latches)
         app.state.cell = cell
         app.state.services = services
         metrics.attach(app.state.metrics, services)

@@ -17,7 +17,7 @@ from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import JobInputError, TooManyJobs
-from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines import HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
 
 router = APIRouter(tags=["jobs"])
 
@@ -92,9 +92,11 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
         msg = format_validation_errors(exc, with_input=False)
         raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
     motion = None
-    if moves:
+    robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
+    # A routine that measures with the robot still owns it too (when the cell has it), without moving it.
+    holds = name in HOLDS_ROBOT and ((params or {}).get("robot_id") is not None or robot_id in services.cell.robots)
+    if moves or holds:
         # The routine owns the robot's motion from now to its end: a second mover gets 409.
-        robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
         robot = services.cell.robot(str(robot_id)).device
         motion = (robot, robot.motion.begin(who.name, f"routine {name}"))
     try:
