@@ -15,6 +15,7 @@ from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
 from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
 from cellctl.api.routes import metrics as metrics_route
+from cellctl.api.routes import sim as sim_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
@@ -88,4 +89,5 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     for module in (health, auth, cameras, robots, targets, calibrations, jobs, map, pick, ui):
         app.include_router(module.router)
     app.include_router(metrics_route.router)
+    app.include_router(sim_route.router)
     return app
