@@ -41,6 +41,8 @@ class SearchParams:
     roi: tuple[float, float, float, float] | None = None
     """Search region ``(U, V, W, H)`` for the reference point; ``None``: the whole image."""
     timeout_s: float | None = None
+    """The search's own time budget (wall clock, s): it starts after the matcher's compiled loops are
+    loaded (``shape.warm_up``), so a first search in a process has the same budget as the next ones."""
     min_distance_px: float | None = None
     """Two matches closer than this are one (default: a third of the model's smaller size)."""
     max_overlap: float = 0.5

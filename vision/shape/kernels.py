@@ -18,6 +18,7 @@ The discrete search's loops are in ``search_kernels``.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numba import njit
@@ -183,9 +184,25 @@ def percentile75(a: F64) -> float:
     return s[hi] - d * (1.0 - t) if t >= 0.5 else s[lo] + d * t
 
 
+_WARM = threading.Event()
+_WARM_LOCK = threading.Lock()
+
+
 def warm_up() -> None:
-    """Load (or compile) every kernel now, on tiny inputs: the first search then costs what the
-    next ones cost (loading the compiled code takes ~1 s the first time in a process)."""
+    """Load (or compile) every kernel now, on tiny inputs, once per process: the first search then
+    costs what the next ones cost. Loading the compiled code from numba's disk cache takes ~1 s;
+    compiling it on a cold cache ~20 s. Thread-safe: a second caller waits for the first; later
+    calls return at once. ``search.find`` calls it before its clock starts, so a search's
+    ``timeout_s`` never pays for it."""
+    if _WARM.is_set():
+        return
+    with _WARM_LOCK:
+        if not _WARM.is_set():
+            _load_all()
+            _WARM.set()
+
+
+def _load_all() -> None:
     z2 = np.zeros((2, 2))
     z1 = np.zeros(2)
     associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)
