@@ -83,6 +83,9 @@ class StoreConfig(_Strict):
     url: str | None = None  # e.g. postgresql+psycopg://user@127.0.0.1:5432/cellctl; default: SQLite at path
     path: str | None = None
     """SQLite file; default: ``$XDG_DATA_HOME/cellctl/<cell_id>.db`` (``~/.local/share``)."""
+    backup_dir: str | None = None
+    """Folder of ``cellctl store backup`` without ``--out`` (and of ``restore --latest``); default:
+    ``<data dir>/backups``. Better on another disk than the store's."""
 
 
 class Envelope(_Strict):
