@@ -182,6 +182,14 @@ class MotionOwner:
         self._tell(*change)
         return session
 
+    def latch_if_owned(self, who: str, reason: str) -> MotionSession | None:
+        """``latch`` only while a session owns the motion and no latch is set (a controller lost
+        mid-sequence); the session it aborted, or None."""
+        with self._lock:
+            if self._session is None or self._latched_by is not None:
+                return None
+        return self.latch(who, reason)
+
     def resume(self, by: str = "") -> bool:
         """Clear the latch (``by``: the engineer who resumed); True when the robot was latched."""
         with self._lock:
