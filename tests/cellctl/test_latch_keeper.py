@@ -73,7 +73,8 @@ def test_a_robot_latched_before_a_restart_is_latched_after_it_and_the_audit_says
             with pytest.raises(RobotStopped, match="operator-1"):
                 owners2["robot0"].begin("engineer-1", "a move")
             note = again.audit_log(1, action=AUDIT_ACTION)[0]
-            assert note.result == f"latched at start: stopped before the restart at {when_text(since)} by operator-1 (Stop)"
+            assert note.result == ("latched at start: stopped before the restart at "
+                                   f"{when_text(since)} by operator-1 (Stop)")
             # The resume after the restart is stored too: a second restart finds the robot free.
             owners2["robot0"].resume("engineer-1")
             assert keeper2.wait_stored_blocking(10.0)
