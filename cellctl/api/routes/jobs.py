@@ -98,7 +98,7 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
     if moves or holds:
         # The routine owns the robot's motion from now to its end: a second mover gets 409.
         robot = services.cell.robot(str(robot_id)).device
-        motion = (robot, robot.motion.begin(who.name, f"routine {name}"))
+        motion = (robot, robot.motion.begin(who.name, f"routine {name}", still=holds and not moves))
     try:
         job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name, motion)
     except TooManyJobs as exc:
