@@ -47,6 +47,8 @@ class HttpConfig(_Strict):
     """Open event streams (``/jobs/{id}/events``) over all callers; more are refused with 429."""
     max_event_streams_per_token: int = Field(4, ge=1, le=1000)
     """Open event streams per token; more are refused with 429."""
+    body_timeout_s: float = Field(5.0, gt=0, le=600)
+    """A request body must arrive whole within this many seconds of its headers; a slower one is refused with 408."""
 
     @model_validator(mode="after")
     def _tls_pair(self) -> HttpConfig:

@@ -13,6 +13,7 @@ from starlette.concurrency import run_in_threadpool
 from cellctl import __version__, metrics
 from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
+from cellctl.api.pools import Pools
 from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
 from cellctl.api.routes import metrics as metrics_route
 from cellctl.api.routes import sim as sim_route
@@ -84,6 +85,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
     app.state.metrics = metrics.CellMetrics()
+    app.state.pools = Pools()  # worker-thread pools the safety routes and large bodies have to themselves
     app.add_middleware(RequestMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
     for module in (health, auth, cameras, robots, targets, calibrations, jobs, map, pick, ui):

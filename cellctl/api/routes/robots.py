@@ -2,21 +2,23 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.api.numbers import pose_ur_problem, transform_problem
 from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
+from cellctl.strict_types import Num
 from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 
-router = APIRouter(prefix="/robots", tags=["robots"])
+router = APIRouter(prefix="/robots", tags=["robots"], route_class=EdgeRoute)
 
 MAX_STATE_AGE_S = 1.0
 MOVE_TIMEOUT_S = 120.0
@@ -31,6 +33,24 @@ class PoseUR(BaseModel):
     rx_rad: float
     ry_rad: float
     rz_rad: float
+
+
+Metres = Annotated[Num, Field(ge=-100.0, le=100.0)]
+"""A strict coordinate in metres (no bool, no string; beyond 100 m is no work cell)."""
+Radians = Annotated[Num, Field(ge=-10.0, le=10.0)]
+"""A strict rotation-vector component in radians (the vector's norm is checked to be one turn at most)."""
+
+
+class PoseURInput(BaseModel):
+    """A UR pose in a request: metres and a rotation vector in radians, each a JSON number."""
+
+    model_config = ConfigDict(extra="forbid")
+    x_m: Metres
+    y_m: Metres
+    z_m: Metres
+    rx_rad: Radians
+    ry_rad: Radians
+    rz_rad: Radians
 
 
 class RobotStatePublic(BaseModel):
@@ -76,13 +96,14 @@ class MoveInput(BaseModel):
     """A linear move of the tool to ``T_base_tool`` (4x4, m) or to a UR pose (m, rad); speed in m/s."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    T_base_tool: list[list[float]] | None = None
-    pose_ur: PoseUR | None = None
-    speed_m_s: float = Field(0.05, gt=0, le=5.0)
+    T_base_tool: list[Annotated[list[Annotated[Num, Field(ge=-1e3, le=1e3)]], Field(max_length=4)]] | None = Field(
+        None, max_length=4)
+    pose_ur: PoseURInput | None = None
+    speed_m_s: Num = Field(0.05, gt=0, le=5.0)
 
     @field_validator("pose_ur")
     @classmethod
-    def _pose_magnitudes(cls, v: PoseUR | None) -> PoseUR | None:
+    def _pose_magnitudes(cls, v: PoseURInput | None) -> PoseURInput | None:
         problem = None if v is None else pose_ur_problem(
             [v.x_m, v.y_m, v.z_m, v.rx_rad, v.ry_rad, v.rz_rad], "pose_ur")
         if problem:
