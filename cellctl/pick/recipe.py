@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator
 
 from cellctl.pick.model import PartModel
+from cellctl.pick.place import GripperDevice, PlaceSection
 from cellctl.pick.model_schema import PartModelDoc
 from cellctl.strict_types import Bool, Count, Num
 
@@ -81,6 +82,8 @@ class GripperSettings(BaseModel):
     settle_s: Num = Field(0.2, ge=0, le=10, description="wait after closing before lifting, s")
     io_output: str | None = Field(None, max_length=64, description="digital output that closes the gripper "
                                                                     "(a configured io device's channel name)")
+    device: GripperDevice | None = Field(None, description="the gripper's io device and its grip check "
+                                                           "(docs/production.md); none: the pick does not grip")
 
 
 class Recipe(BaseModel):
@@ -109,6 +112,8 @@ class Recipe(BaseModel):
         None, description="robot pose to take the picture from, UR form [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad] "
                           "(metres, rotation vector in radians); taught with the part, usually read from the robot")
     gripper: GripperSettings = GripperSettings()
+    place: PlaceSection | None = Field(None, description="where picked parts go (fixed or grid; docs/production.md); "
+                                                         "none: the recipe only picks")
     tool_centre_offset_mm: tuple[Mm, Mm] | None = Field(
         None, description="the gripper's centre from the flange axis, as `cellctl calib tcp` reports it "
                           "(offset_mm: tool x/y along base x/y at tool rz = 0), mm; the pick poses then put "
