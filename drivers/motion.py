@@ -6,6 +6,9 @@ the robot goes through it:
 - A **session** owns the robot for a whole sequence (one move, a pick's approach/pick/retreat, a
   calibration routine's stations). While one is open, ``begin`` of another raises ``RobotBusy``:
   a second mover is refused, never queued or interleaved.
+- A **still** session (``begin(still=True)``) holds the robot standing still for a measurement
+  (a verify's shot): while one is open no session that moves is begun; it is refused only while
+  a session moves the robot, may be taken while the robot is latched, and cannot move it itself.
 - **Stop** (``RobotBase.stop``) halts the robot at once, aborts the open session (its current move
   raises ``RobotStopped``, its later moves are refused) and **latches**: every new session is
   refused with ``RobotStopped`` until ``resume``.
@@ -46,9 +49,13 @@ class RobotStopped(DriverError):
     """The robot was stopped: the move was halted, or the robot is latched until an engineer resumes."""
 
 
-@dataclass
+@dataclass(eq=False)
 class MotionSession:
-    """The right to move one robot, held by one caller for one sequence of moves."""
+    """The right to move one robot, held by one caller for one sequence of moves.
+
+    A ``still`` session holds the robot standing still for a measurement instead: nothing moves
+    the robot while it is open, and it cannot move the robot itself.
+    """
 
     robot_id: str
     who: str
@@ -57,6 +64,7 @@ class MotionSession:
     _aborted: threading.Event = field(default_factory=threading.Event)
     abort_reason: str = ""
     closed: bool = False
+    still: bool = False
 
     @property
     def aborted(self) -> bool:
@@ -112,6 +120,7 @@ class MotionOwner:
         self._latched_s: float | None = None
         self._seq = 0
         self._listeners: list[LatchListener] = []
+        self._holders: list[MotionSession] = []
 
     def add_latch_listener(self, listener: LatchListener) -> None:
         """Call ``listener`` with every later change of the latch.
@@ -139,10 +148,15 @@ class MotionOwner:
             except Exception:  # noqa: BLE001 - a listener never undoes or delays the latch
                 log.exception("robot %s: a latch listener failed on %s", self.robot_id, change)
 
-    def begin(self, who: str, what: str) -> MotionSession:
-        """Open a session for ``who`` doing ``what``; ``RobotStopped`` when latched, ``RobotBusy`` when owned."""
+    def begin(self, who: str, what: str, still: bool = False) -> MotionSession:
+        """Open a session for ``who`` doing ``what``; ``RobotStopped`` when latched, ``RobotBusy`` when owned.
+
+        ``still``: hold the robot standing still for a measurement (refused only while a session
+        moves it; a latched robot stands still, so it may be held). Several may hold it at once; while
+        one does, a session that would move it is refused, and a Stop does not abort it.
+        """
         with self._lock:
-            if self._latched_by is not None:
+            if self._latched_by is not None and not still:
                 raise RobotStopped(
                     f"robot {self.robot_id} is stopped (by {self._latched_by}: {self._latched_reason}); "
                     f"an engineer must resume it (POST /robots/{self.robot_id}/resume) before it moves again")
@@ -150,7 +164,14 @@ class MotionOwner:
             if current is not None:
                 raise RobotBusy(f"robot {self.robot_id} is busy: {current.what} (started by {current.who}) "
                                 "owns its motion; wait for it to finish or stop it")
-            session = MotionSession(self.robot_id, who, what)
+            session = MotionSession(self.robot_id, who, what, still=still)
+            if still:
+                self._holders.append(session)
+                return session
+            if self._holders:
+                h = self._holders[0]
+                raise RobotBusy(f"robot {self.robot_id} is busy: {h.what} (started by {h.who}) holds it still "
+                                "for a measurement; wait for it to finish")
             self._session = session
             return session
 
@@ -160,10 +181,17 @@ class MotionOwner:
             session.closed = True
             if self._session is session:
                 self._session = None
+            self._holders = [h for h in self._holders if h is not session]
 
     def is_current(self, session: MotionSession) -> bool:
+        """True while ``session`` owns the robot's motion (may move it)."""
         with self._lock:
             return self._session is session
+
+    def holds(self, session: MotionSession) -> bool:
+        """True while ``session`` owns the robot: moves it, or holds it still."""
+        with self._lock:
+            return self._session is session or any(h is session for h in self._holders)
 
     def latch(self, who: str, reason: str = "Stop", since_s: float | None = None) -> MotionSession | None:
         """Latch the robot stopped and abort the session that owns it (returned, if any).
@@ -210,13 +238,14 @@ class MotionOwner:
     def status(self) -> dict[str, Any]:
         """What a PLC or the page shows: latched (by whom, why, since), and who owns the motion."""
         with self._lock:
-            s = self._session
+            s = self._session or (self._holders[0] if self._holders else None)
             return {
                 "latched": self._latched_by is not None,
                 "latched_by": self._latched_by,
                 "latched_reason": self._latched_reason or None,
                 "latched_since_s": self._latched_s,
-                "owner": None if s is None else {"who": s.who, "what": s.what, "since_s": s.started_s},
+                "owner": None if s is None else {"who": s.who, "what": s.what, "since_s": s.started_s,
+                                                 "still": s.still},
             }
 
 

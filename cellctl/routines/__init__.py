@@ -24,8 +24,9 @@ ROUTINE_MODULES: Final[dict[str, str]] = {
 }
 MOVES_ROBOT: Final[frozenset[str]] = frozenset({"intrinsics-capture", "handeye-capture"})
 HOLDS_ROBOT: Final[frozenset[str]] = frozenset({"verify"})
-"""Routines that measure with the robot standing still: they own its motion for their whole run
-without moving it (the operator role is enough); refused (409) while another caller moves it."""
+"""Routines that measure with the robot standing still: they hold it still for their whole run
+without moving it (the operator role is enough); refused (409 robot_busy) while another caller
+moves it; a latched robot may be held (it stands still)."""
 
 
 def routine(name: str) -> Any:

@@ -67,15 +67,16 @@ def robot_still(ctx: JobContext, robot: Robot | None, what: str) -> Iterator[Non
     """Own ``robot``'s motion while a measurement is taken (unless the routine owns it already).
 
     A frame, and the robot pose read with it, measure something only while the robot stands
-    still: refused with ``RobotBusy`` while another caller moves the robot (``RobotStopped``
-    while it is latched). Once owned, nothing of ours moves it; a robot that still reports moving
-    after ``STILL_WAIT_S`` (moved by something else: the teach pendant) is refused too.
+    still: refused with ``RobotBusy`` while another caller moves the robot. The robot is held
+    with a still session (``MotionOwner.begin(still=True)``: nothing moves it meanwhile; a latched
+    robot may be held). Once held, nothing of ours moves it; a robot that still reports moving
+    after ``STILL_WAIT_S`` (a halt slowing down, or the teach pendant) is refused too.
     """
     if robot is None:
         yield
         return
-    owned = ctx.motion is not None and robot.motion.is_current(ctx.motion)
-    session = None if owned else robot.motion.begin(ctx.started_by, f"routine {what}")
+    owned = ctx.motion is not None and robot.motion.holds(ctx.motion)
+    session = None if owned else robot.motion.begin(ctx.started_by, f"routine {what}", still=True)
     try:
         deadline = time.monotonic() + STILL_WAIT_S
         while robot.state().moving:  # a halt or an arrival still settling

@@ -1,8 +1,9 @@
 """A routine's shot is taken while it owns the robot: ``routines.common.robot_still`` and ``capture``.
 
 On the real-time virtual robot and camera of the built-in scene (one shared world), with a real
-job context: another caller's session refuses the shot, a latch refuses it, the routine's own
-session lets it through, and a free robot is owned for the shot and free again after it.
+job context: another caller's session refuses the shot, the routine's own session lets it
+through, a free or latched robot is held still for the shot (nothing moves it meanwhile, not even
+after a resume) and free again after it.
 """
 
 from __future__ import annotations
@@ -39,12 +40,16 @@ def _ctx(motion: MotionSession | None = None) -> JobContext:
     return JobContext(Job(id="job1", name="verify", started_by="operator-1", params={}), motion)
 
 
-def test_a_free_robot_is_owned_for_the_shot_and_free_after_it(robot: SimRobot) -> None:
+AWAY = ur_pose_to_transform([0.42, 0.0, 0.5, np.pi, 0.0, 0.0])
+
+
+def test_a_free_robot_is_held_still_for_the_shot_and_free_after_it(robot: SimRobot) -> None:
     with robot_still(_ctx(), robot, "verify: shot"):
         owner = robot.motion.status()["owner"]
-        assert owner == {"who": "operator-1", "what": "routine verify: shot", "since_s": owner["since_s"]}
+        assert owner == {"who": "operator-1", "what": "routine verify: shot", "since_s": owner["since_s"],
+                         "still": True}
         with pytest.raises(RobotBusy, match="routine verify: shot"):
-            robot.move_linear(ur_pose_to_transform([0.42, 0.0, 0.5, np.pi, 0.0, 0.0]), 0.1)
+            robot.move_linear(AWAY, 0.1)
     assert robot.motion.status()["owner"] is None
 
 
@@ -55,10 +60,28 @@ def test_another_callers_session_refuses_the_shot(robot: SimRobot) -> None:
         assert robot.motion.is_current(theirs)  # their session is untouched
 
 
-def test_a_latched_robot_refuses_the_shot(robot: SimRobot) -> None:
+def test_a_latched_robot_may_be_held_and_a_resume_meanwhile_does_not_free_it(robot: SimRobot) -> None:
+    """A latched robot stands still: the shot is taken; an engineer's resume during it lets nothing move it."""
     robot.stop(by="operator-2")
-    with pytest.raises(RobotStopped, match="operator-2"), robot_still(_ctx(), robot, "verify: shot"):
-        pytest.fail("the shot ran while the robot was latched")
+    with robot_still(_ctx(), robot, "verify: shot"):
+        assert robot.resume("engineer-1")
+        with pytest.raises(RobotBusy, match="holds it still"):
+            robot.move_linear(AWAY, 0.1)
+        robot.stop(by="operator-2")  # a Stop during the shot latches; it does not abort the holder
+    with pytest.raises(RobotStopped, match="operator-2"):
+        robot.move_linear(AWAY, 0.1)
+    assert robot.motion.status()["owner"] is None
+
+
+def test_the_holders_session_cannot_move_the_robot(robot: SimRobot) -> None:
+    held = robot.motion.begin("operator-1", "routine verify", still=True)
+    try:
+        with pytest.raises(RobotBusy, match="does not own"):
+            robot.move_linear(AWAY, 0.1, session=held)
+        with robot_still(_ctx(held), robot, "verify: shot"):  # the routine's own hold lets its shot through
+            assert robot.motion.holds(held)
+    finally:
+        robot.motion.end(held)
 
 
 def test_the_routines_own_session_lets_the_shot_through(robot: SimRobot) -> None:

@@ -87,3 +87,18 @@ def test_verify_is_refused_while_another_caller_moves_the_robot_and_runs_once_it
         assert job["state"] == "succeeded", job
         assert job["result"]["passed"] is True
         assert op.get("/robots/robot0/motion").json()["owner"] is None  # released when it ended
+
+
+def test_verify_runs_while_the_robot_is_latched_and_holds_it_still(cell: tuple[Served, dict[str, str]]) -> None:
+    """A latched robot stands still: verify measures (PLC verify works while latched too)."""
+    served, tokens = cell
+    with served.client(timeout_s=60) as eng, served.client(token=tokens["operator"], timeout_s=60) as op:
+        assert op.post("/robots/robot0/stop").status_code == 200
+        try:
+            r = op.post("/routines/verify", json={})
+            assert r.status_code == 202, r.text
+            job = _wait(op, f"/jobs/{r.json()['id']}", lambda j: j["state"] != "running")
+            assert job["state"] == "succeeded" and job["result"]["passed"] is True, job
+            assert op.get("/robots/robot0/motion").json()["latched"] is True  # verify never resumes it
+        finally:
+            assert eng.post("/robots/robot0/resume").status_code == 200
