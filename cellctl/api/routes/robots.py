@@ -13,6 +13,7 @@ from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, s
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.api.numbers import pose_ur_problem, transform_problem
+from cellctl.api.pools import run_blocking
 from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
 from cellctl.strict_types import Num
@@ -159,21 +160,27 @@ async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operato
     try:
         await device_call(slot, lambda r: r.halt())
     except Exception as exc:
-        services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
-                             f"latched; halting failed: {exc}")
+        await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
+                           f"latched; halting failed: {exc}")
         raise
-    services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
+    # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
+    await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
     return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status(),
             "latch_stored": await _latch_stored(services)}
 
 
 @router.post("/{robot_id}/resume")
-def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+async def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
     """Clear the Stop latch (engineer): the robot may be moved again."""
     robot: Robot = _slot(cell, robot_id).device
-    was = robot.resume(who.name)
-    services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
-    stored = services.latches is not None and services.latches.wait_stored_blocking(LATCH_STORE_WAIT_S)
+
+    def clear() -> bool:
+        was = robot.resume(who.name)
+        services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
+        return was
+
+    was = await run_blocking(clear)  # the safety pool: a flood that fills the default pool cannot delay it
+    stored = await _latch_stored(services)
     return {"robot_id": robot_id, "resumed": was, **robot.motion.status(), "latch_stored": stored}
 
 
@@ -183,7 +190,7 @@ async def _latch_stored(services: ServicesDep) -> bool:
 
 
 @router.get("/{robot_id}/motion")
-def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
+async def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
     """Whether the robot is latched by a Stop, and who owns its motion now."""
     robot: Robot = _slot(cell, robot_id).device
     return {"robot_id": robot_id, **robot.motion.status()}
