@@ -47,6 +47,8 @@ class HttpConfig(_Strict):
     """Open event streams (``/jobs/{id}/events``) over all callers; more are refused with 429."""
     max_event_streams_per_token: int = Field(4, ge=1, le=1000)
     """Open event streams per token; more are refused with 429."""
+    body_timeout_s: float = Field(5.0, gt=0, le=600)
+    """A request body must arrive whole within this many seconds of its headers; a slower one is refused with 408."""
 
     @model_validator(mode="after")
     def _tls_pair(self) -> HttpConfig:
@@ -55,12 +57,17 @@ class HttpConfig(_Strict):
         return self
 
     def is_loopback(self) -> bool:
-        if self.host == "localhost":
-            return True
-        try:
-            return ipaddress.ip_address(self.host).is_loopback
-        except ValueError:
-            return False
+        return is_loopback_host(self.host)
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses (127.0.0.0/8, ::1); a host name or 0.0.0.0 is not."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 class TokenConfig(_Strict):
@@ -78,6 +85,9 @@ class StoreConfig(_Strict):
     url: str | None = None  # e.g. postgresql+psycopg://user@127.0.0.1:5432/cellctl; default: SQLite at path
     path: str | None = None
     """SQLite file; default: ``$XDG_DATA_HOME/cellctl/<cell_id>.db`` (``~/.local/share``)."""
+    backup_dir: str | None = None
+    """Folder of ``cellctl store backup`` without ``--out`` (and of ``restore --latest``); default:
+    ``<data dir>/backups``. Better on another disk than the store's."""
 
 
 class Envelope(_Strict):
@@ -186,6 +196,33 @@ class PlcConfig(_Strict):
     allow_motion: bool = False
     """Let a PLC start a pick that moves the robot (Modbus command 3, OPC UA ``PickAndMove``): an
     engineer-level act, off by default; the motion owner and the Stop latch apply as for REST."""
+    insecure_plc_network: bool = False
+    """The integrator's IEC 62443 zone decision: the PLC network is a zone of its own, and its conduit
+    admits only the PLC. Needed to serve OPC UA with ``security: none`` or Modbus with ``allow_motion``
+    on an address other than loopback (neither authenticates the client); refused otherwise."""
+
+    @model_validator(mode="after")
+    def _zones(self) -> PlcConfig:
+        problem = self.zone_problem()
+        if problem:
+            raise ValueError(problem)
+        return self
+
+    def zone_problem(self) -> str | None:
+        """Why this PLC setup exposes an unauthenticated server beyond loopback without the zone decision."""
+        if self.insecure_plc_network:
+            return None
+        zone = ("if the PLC network is a separate IEC 62443 zone whose conduit admits only the PLC, the integrator "
+                "records that decision with plc.insecure_plc_network: true")
+        if self.opcua.enabled and self.opcua.security == "none" and not is_loopback_host(self.opcua.host):
+            return (f"plc.opcua.security none on {self.opcua.host} (not loopback): any client on that network "
+                    "could call Pick without a certificate; use security basic256sha256 (docs/plc-opcua.md), "
+                    f"or {zone}")
+        if self.modbus.enabled and self.allow_motion and not is_loopback_host(self.modbus.host):
+            return (f"plc.allow_motion with plc.modbus on {self.modbus.host} (not loopback): Modbus has no "
+                    "authentication, so any client on that network could make the robot move; turn "
+                    f"allow_motion off, or {zone} (docs/plc-modbus.md)")
+        return None
 
 
 class CellConfig(_Strict):
@@ -281,3 +318,15 @@ def load_config(path: str | Path | None) -> CellConfig:
 def default_config_text() -> str:
     """The built-in virtual cell's ``cell.yaml`` (what ``cellctl config default`` prints)."""
     return resources.files("cellctl").joinpath("data/virtual-cell.yaml").read_text()
+
+
+SIM_KINDS = frozenset({"sim", "sim_gripper"})
+
+
+def sim_settings(config: CellConfig) -> dict[str, Any] | None:
+    """The settings (scene, seed) of the cell's first simulated device, None when it has none (the
+    virtual cell's truth: ``GET /sim/truth`` and ``cellctl sim truth``)."""
+    for dev in [*config.cameras.values(), *config.robots.values(), *config.io.values()]:
+        if dev.kind in SIM_KINDS:
+            return dict(dev.settings)
+    return None

@@ -114,6 +114,11 @@ class JobContext:
     def started_by(self) -> str:
         return self._job.started_by
 
+    @property
+    def name(self) -> str:
+        """The routine's name (``verify``, ``jog-to-mark`` ...)."""
+        return self._job.name
+
     def report(self, progress: float, message: str, **data: Any) -> None:
         job = self._job
         job.progress = max(0.0, min(1.0, progress))

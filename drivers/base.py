@@ -199,7 +199,7 @@ class Robot(Protocol):
     def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
                    session: MotionSession | None = None) -> None: ...
     def stop(self, by: str = "") -> None: ...
-    def resume(self) -> bool: ...
+    def resume(self, by: str = "") -> bool: ...
     def halt(self) -> None: ...
     def motion_session(self, who: str, what: str) -> contextlib.AbstractContextManager[MotionSession]: ...
     def move_deadline_s(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> float: ...
@@ -284,6 +284,7 @@ class RobotBase(DeviceBase):
     hook returned. ``stop`` halts and latches; ``resume`` clears the latch; ``halt`` stops motion
     without latching (cleanup after a failed sequence). Adapters implement ``_move_linear``,
     ``_stop`` and may poll ``_motion_aborted()`` while they wait for arrival.
+    A controller lost while a move runs or a sequence owns the robot latches it (``_controller_dropped``).
     """
 
     def __init__(self, robot_id: str, limits: MotionLimits) -> None:
@@ -374,12 +375,16 @@ class RobotBase(DeviceBase):
 
         timer = threading.Timer(deadline_s, on_deadline)
         timer.daemon = True
+        was_available = self.health().available  # a controller already gone before the move is no dropout
         with self._move_lock:
             self._moving_session = session
         timer.start()
         try:
             hook()
         except Exception as exc:
+            if isinstance(exc, DeviceUnavailable) and was_available:
+                self._controller_dropped(str(exc))  # latched; the move answers why it failed
+                raise
             if session.aborted:
                 raise RobotStopped(f"robot {self.robot_id}: the move was stopped ({session.abort_reason})") from exc
             if timed_out.is_set():
@@ -402,6 +407,13 @@ class RobotBase(DeviceBase):
         if stop_failures:
             msg += f"; STOPPING IT FAILED: {stop_failures[0]} — check the robot now"
         return DeviceTimeout(msg)
+
+    def _controller_dropped(self, reason: str) -> None:
+        """The controller was lost: latch the robot (the Stop's latch) if a move runs or a sequence owns it."""
+        session = self.motion.latch_if_owned("controller", f"controller dropped out: {reason}")
+        if session is not None:
+            log.warning("robot %s: the controller dropped out during %s; latched until an engineer resumes: %s",
+                        self.robot_id, session.what, reason)
 
     def _motion_aborted(self) -> bool:
         """True while the move in progress belongs to a session a Stop has aborted (adapters poll it)."""
@@ -437,9 +449,9 @@ class RobotBase(DeviceBase):
         self.motion.latch(by, "Stop")
         self._stop()
 
-    def resume(self) -> bool:
-        """Clear the Stop latch (an engineer's act); True when the robot was latched."""
-        return self.motion.resume()
+    def resume(self, by: str = "") -> bool:
+        """Clear the Stop latch (an engineer's act, ``by`` names them); True when the robot was latched."""
+        return self.motion.resume(by)
 
     def halt(self) -> None:
         """Stop any motion without latching (cleanup after a failed or cancelled sequence)."""

@@ -32,6 +32,7 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
         "modbus": ("drivers.io.modbus", "ModbusDigitalIO"),
         "serial_light": ("drivers.io.serial_light", "SerialLightController"),
         "robotiq_gripper": ("drivers.io.robotiq_gripper", "RobotiqGripper"),
+        "sim_gripper": ("drivers.io.sim_gripper", "SimGripper"),
     },
 }
 

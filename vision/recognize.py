@@ -10,14 +10,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import SettingsError
-from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, SearchParams
+from vision.types import (
+    MIN_SCORE_FLOOR,
+    Candidate,
+    FindResult,
+    Match,
+    Rejected,
+    SearchParams,
+    finite_or_none,
+    no_match_reason,
+)
 
 
 class PartLike(Protocol):
@@ -49,12 +58,17 @@ class Recognition:
     mirrored: bool = False
     n_points: int = 0
     """Model points that agreed with an image edge (0 for a blob model)."""
+    sigma_angle_deg: float = float("nan")
+    """1-sigma of ``angle_deg`` (``Match.sigma_angle_deg``; NaN for a blob model)."""
+    scores: dict[str, float] = field(default_factory=dict)
+    """The verification's scores (``Match.scores``)."""
 
     def as_dict(self) -> dict[str, object]:
         return {"part": self.part, "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg,
                 "score": self.score, "margin": self.margin, "runner_up": self.runner_up,
                 "runner_up_score": self.runner_up_score, "scale": self.scale, "mirrored": self.mirrored,
-                "n_points": self.n_points}
+                "n_points": self.n_points, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
+                "scores": dict(self.scores)}
 
 
 @dataclass
@@ -65,10 +79,12 @@ class RecognitionResult:
     best_rejected: Candidate | None = None
     """The best candidate of any model that stayed below ``min_score``."""
     min_score: float = 0.5
+    rejected: list[Rejected] = field(default_factory=list)
+    """Candidates that reached ``min_score`` and failed the verification (each part's, best first)."""
 
     def reason(self) -> str | None:
         """Why nothing was found, in one line (``None`` when something was)."""
-        return FindResult([], self.timed_out, self.elapsed_s, {}, self.best_rejected, self.min_score).reason() \
+        return no_match_reason(self.timed_out, self.best_rejected, self.min_score, self.rejected) \
             if not self.matches else None
 
 
@@ -92,14 +108,17 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
     t0 = time.perf_counter()
     low = replace(sp, min_score=max(sp.min_score * RUNNER_UP_FACTOR, MIN_SCORE_FLOOR), max_count=None)
     allm: list[_Hit] = []
+    rejected: list[Rejected] = []
     timed_out = False
     best: Candidate | None = None
+    searched_s = 0.0  # the models' own search time: a first search's one-off loading is not in it
     for m in models:
-        left = None if sp.timeout_s is None else max(sp.timeout_s - (time.perf_counter() - t0), 0.0)
+        left = None if sp.timeout_s is None else max(sp.timeout_s - searched_s, 0.0)
         if left is not None and left <= 0:
             timed_out = True
             break
         res = m.find(image, replace(low, timeout_s=left))
+        searched_s += res.elapsed_s
         timed_out |= res.timed_out
         r = _same_place_px(m)
         allm += [(mt.score, m.name, mt, r) for mt in res.matches]
@@ -125,11 +144,18 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
         score, name, mt, _ = g[0]
         if score < sp.min_score:
             continue
+        short = [k for k in ("coverage", "unclaimed") if mt.scores.get(k, 1.0) < sp.min_score]
+        if short:  # the verification ran at the lowered score: its fractions answer to the one asked
+            rejected.append(Rejected(mt.u_px, mt.v_px, mt.angle_deg, score, mt.mirrored, dict(mt.scores),
+                                     f"{short[0]} {mt.scores[short[0]]:.2f} < min_score {sp.min_score:g}"))
+            continue
         others = [t for t in g if t[1] != name]
         ru = others[0] if others else None
         ru_score = ru[0] if ru else 0.0
         out.append(Recognition(name, mt.u_px, mt.v_px, mt.angle_deg, score, score - ru_score,
-                               ru[1] if ru else None, ru_score, mt.scale, mt.mirrored, mt.n_points))
+                               ru[1] if ru else None, ru_score, mt.scale, mt.mirrored, mt.n_points,
+                               mt.sigma_angle_deg, dict(mt.scores)))
     if sp.max_count is not None:
         out = out[:sp.max_count]
-    return RecognitionResult(out, timed_out, time.perf_counter() - t0, best, sp.min_score)
+    rejected.sort(key=lambda x: -x.score)
+    return RecognitionResult(out, timed_out, time.perf_counter() - t0, best, sp.min_score, rejected)

@@ -41,6 +41,8 @@ class SearchParams:
     roi: tuple[float, float, float, float] | None = None
     """Search region ``(U, V, W, H)`` for the reference point; ``None``: the whole image."""
     timeout_s: float | None = None
+    """The search's own time budget (wall clock, s): it starts after the matcher's compiled loops are
+    loaded (``shape.warm_up``), so a first search in a process has the same budget as the next ones."""
     min_distance_px: float | None = None
     """Two matches closer than this are one (default: a third of the model's smaller size)."""
     max_overlap: float = 0.5
@@ -126,11 +128,41 @@ class Match:
     """Model points that agreed with an image edge at the final pose (direction and position)."""
     n_visible: int = 0
     """Model points inside the image at the final pose (the score is over these)."""
+    sigma_angle_deg: float = float("nan")
+    """1-sigma of ``angle_deg`` from the final fit (its residuals and geometry); NaN when unknown."""
+    sigma_px: float = float("nan")
+    """1-sigma of the reference point's position (px, the larger axis), from the same fit."""
+    scores: dict[str, float] = field(default_factory=dict)
+    """The verification's scores (``vision.shape.verify``): ``edge`` (= ``score``), ``coverage``,
+    ``polarity``, ``contrast``, ``missing_features``, ``unclaimed``."""
 
     def as_dict(self) -> dict[str, Any]:
         return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
                 "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
-                "n_visible": self.n_visible}
+                "n_visible": self.n_visible, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
+                "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
+
+
+def finite_or_none(x: float) -> float | None:
+    """``x``, or None when it is not finite (JSON has no NaN)."""
+    return float(x) if math.isfinite(x) else None
+
+
+@dataclass
+class Rejected:
+    """A candidate that reached ``min_score`` but failed the verification, with its scores and why."""
+
+    u_px: float
+    v_px: float
+    angle_deg: float
+    score: float
+    mirrored: bool
+    scores: dict[str, float]
+    reason: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
+                "mirrored": self.mirrored, "scores": dict(self.scores), "reason": self.reason}
 
 
 @dataclass
@@ -141,6 +173,9 @@ class Candidate:
     v_px: float
     angle_deg: float
     score: float
+    verdict: str | None = None
+    """What the verification says of it at a lower ``min_score``: None (not checked), ``"pass"``, or
+    why it would fail."""
 
 
 @dataclass
@@ -152,15 +187,31 @@ class FindResult:
     best_rejected: Candidate | None = None
     """The best candidate below ``min_score`` (``None`` if there was none)."""
     min_score: float = 0.5
+    rejected: list[Rejected] = field(default_factory=list)
+    """Candidates that reached ``min_score`` and failed the verification, best first."""
 
     def reason(self) -> str | None:
         """Why nothing was found, in one line (``None`` when something was)."""
         if self.matches:
             return None
-        if self.timed_out:
-            return "the search timed out before any candidate was scored: raise timeout_s or narrow the search"
-        c = self.best_rejected
-        if c is None:
-            return "no candidate: no part-like edges in the searched region"
-        return (f"best candidate scored {c.score:.2f} < min_score {self.min_score:g} "
-                f"at ({c.u_px:.1f}, {c.v_px:.1f}), angle {c.angle_deg:.1f} deg")
+        return no_match_reason(self.timed_out, self.best_rejected, self.min_score, self.rejected)
+
+
+def no_match_reason(timed_out: bool, best: Candidate | None, min_score: float, rejected: list[Rejected]) -> str:
+    """Why a search answered no match, in one line, with the setting that would change it."""
+    if timed_out:
+        return "the search timed out before any candidate was scored: raise timeout_s or narrow the search"
+    if rejected:
+        r = rejected[0]
+        return (f"{len(rejected)} candidate(s) reached min_score but failed the verification; the best, "
+                f"{r.score:.2f} at ({r.u_px:.1f}, {r.v_px:.1f}), angle {r.angle_deg:.1f} deg: {r.reason}")
+    if best is None:
+        return "no candidate: no part-like edges in the searched region"
+    lower = max(math.floor(best.score * 100) / 100, MIN_SCORE_FLOOR)
+    hint = ""
+    if best.verdict == "pass":
+        hint = f"; min_score {lower:g} would find it (it passes the verification)"
+    elif best.verdict:
+        hint = f"; a lower min_score would not find it either: {best.verdict}"
+    return (f"best candidate scored {best.score:.2f} < min_score {min_score:g} "
+            f"at ({best.u_px:.1f}, {best.v_px:.1f}), angle {best.angle_deg:.1f} deg{hint}")

@@ -13,12 +13,16 @@ from starlette.concurrency import run_in_threadpool
 from cellctl import __version__, metrics
 from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
+from cellctl.api.pools import Pools
 from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
 from cellctl.api.routes import metrics as metrics_route
+from cellctl.api.routes import production as production_route
+from cellctl.api.routes import sim as sim_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
+from cellctl.latches import LatchKeeper
 from cellctl.services import Services
 
 log = logging.getLogger(__name__)
@@ -42,7 +46,11 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
 
         cell = Cell(config)
         store = await run_in_threadpool(open_store, config)
-        services = Services(config, cell, store, JobManager())
+        # Robots latched before a crash or restart are latched again before anything is served.
+        latches = LatchKeeper(store, {rid: slot.device.motion for rid, slot in cell.robots.items()})
+        await run_in_threadpool(latches.restore)
+        latches.start()
+        services = Services(config, cell, store, JobManager(), latches=latches)
         app.state.cell = cell
         app.state.services = services
         metrics.attach(app.state.metrics, services)
@@ -78,9 +86,12 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.state.config = config
     app.state.tokens = TokenTable.from_config(config, session_tokens)
     app.state.metrics = metrics.CellMetrics()
+    app.state.pools = Pools()  # worker-thread pools the safety routes and large bodies have to themselves
     app.add_middleware(RequestMiddleware, metrics=app.state.metrics)
     install_error_handlers(app)
     for module in (health, auth, cameras, robots, targets, calibrations, jobs, map, pick, ui):
         app.include_router(module.router)
     app.include_router(metrics_route.router)
+    app.include_router(sim_route.router)
+    app.include_router(production_route.router)
     return app

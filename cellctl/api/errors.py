@@ -18,6 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from cellctl.errors_format import format_validation_errors
 from cellctl.logging_setup import request_id_var
+from cellctl.store.errors import StoreUnavailable
 from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected, RobotBusy, RobotStopped
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,13 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(DeviceTimeout)
     async def _timeout(_: Request, exc: DeviceTimeout) -> JSONResponse:
         return unavailable_response(str(exc))
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store(_: Request, exc: StoreUnavailable) -> JSONResponse:
+        # A damaged or unreachable store is the plant's outage, not our bug: 503 saying what to do.
+        log.error("store unavailable: %s", exc)
+        return JSONResponse(status_code=503, content={"available": False, "reason": str(exc),
+                                                      **error_body("store_unavailable", str(exc))})
 
     @app.exception_handler(MotionRejected)
     async def _rejected(_: Request, exc: MotionRejected) -> JSONResponse:

@@ -1,17 +1,18 @@
-"""Edge guards against hostile requests, applied before routing, parsing and authorisation.
+"""Edge guards against hostile requests, applied before routing, parsing and the route's own code.
 
 - **Body size**: a body larger than ``http.max_body_mb`` is refused with 413 — at once when its
   ``Content-Length`` says so (nothing is read), else as soon as the streamed bytes pass the limit
-  (what was read is dropped). uvicorn discards the rest of a refused body without keeping it.
-- **Non-finite numbers**: Python's ``json`` accepts ``NaN``, ``Infinity`` and ``1e999`` (which
-  becomes infinity); no cellctl route wants them. A body that parses as JSON and holds one is
-  refused with 422 naming the field (``body.recipe.plane_z_mm``), whatever the route.
+  (what was read is dropped); the connection is closed rather than the rest read.
+- **Slow bodies**: a body that has not arrived whole within ``http.body_timeout_s`` is refused
+  with 408 and the connection closed (a client that trickles its body holds nothing longer).
 - **Event streams**: requests for an event-stream route (``GET .../events``) and any response of
   type ``text/event-stream`` are counted per token and over all callers while they are open; one
   over ``http.max_event_streams_per_token`` / ``http.max_event_streams`` is refused with 429 —
-  for the routes, before routing and auth, so a burst costs no worker threads. (Each open stream
+  for the routes, before routing, so a burst costs no worker threads. (Each open stream
   holds a worker thread while it waits for events: an unbounded number starves every other route.)
 
+The token, the role and the body's JSON are checked by ``cellctl.api.middleware`` (with
+``cellctl.api.body``) in that order: no body is read before its caller is known.
 Pure ASGI, used by ``cellctl.api.middleware.RequestMiddleware``.
 """
 
@@ -19,22 +20,19 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
-import re
 import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 from starlette.types import Message, Receive, Scope
 
+UNAUTHORIZED = 401
+REQUEST_TIMEOUT = 408
 BODY_TOO_LARGE = 413
 UNPROCESSABLE = 422
 TOO_MANY = 429
-
-# Cheap pre-filter: only a body with one of these is parsed to look for a non-finite number.
-_SUSPECT = re.compile(rb"NaN|Infinity|[0-9][eE][+]?[0-9]{3}")
-
+CLIENT_CLOSED = 499
+"""Not sent (nobody is there to read it): the status logged and counted for a client that left mid-body."""
 
 @dataclass(frozen=True)
 class EdgeLimits:
@@ -43,10 +41,12 @@ class EdgeLimits:
     max_body_bytes: int = 8_000_000
     max_event_streams: int = 16
     max_event_streams_per_token: int = 4
+    body_timeout_s: float = 5.0
 
     @classmethod
     def from_http_config(cls, http: Any) -> EdgeLimits:
-        return cls(int(http.max_body_mb * 1e6), int(http.max_event_streams), int(http.max_event_streams_per_token))
+        return cls(int(http.max_body_mb * 1e6), int(http.max_event_streams), int(http.max_event_streams_per_token),
+                   float(http.body_timeout_s))
 
 
 def error_message(status: int, code: str, message: str, extra_headers: list[tuple[bytes, bytes]] | None = None
@@ -126,53 +126,6 @@ def replaying(body: bytes, receive: Receive) -> Receive:
         return await receive()
 
     return replay
-
-
-class _NonFinite:
-    """A JSON number that is not a finite double (the parser's stand-in, found by :func:`non_finite_field`)."""
-
-    def __init__(self, text: str) -> None:
-        self.text = text
-
-
-def _parse_float(text: str) -> float | _NonFinite:
-    value = float(text)
-    return value if math.isfinite(value) else _NonFinite(text)
-
-
-def non_finite_field(body: bytes) -> tuple[str, str] | None:
-    """``(field path, literal)`` of the first NaN/Infinity/overflowing number in a JSON body, else None.
-
-    A body that is not JSON is not judged here (the route answers what is wrong with it).
-    """
-    if not _SUSPECT.search(body):
-        return None
-    try:
-        doc = json.loads(body, parse_constant=_NonFinite, parse_float=_parse_float)
-    except (ValueError, UnicodeDecodeError, RecursionError):
-        return None
-    for path, value in _walk(doc):
-        if isinstance(value, _NonFinite):
-            return ".".join(["body", *path]), value.text
-    return None
-
-
-def _walk(doc: Any) -> Iterator[tuple[list[str], Any]]:
-    """Every leaf of a parsed JSON document with its path (iterative: deep documents are fine)."""
-    stack: list[tuple[list[str], Any]] = [([], doc)]
-    while stack:
-        path, value = stack.pop()
-        if isinstance(value, dict):
-            stack.extend((path + [str(k)], v) for k, v in reversed(list(value.items())))
-        elif isinstance(value, list):
-            stack.extend((path + [str(i)], v) for i, v in reversed(list(enumerate(value))))
-        else:
-            yield path, value
-
-
-def non_finite_text(field: str, literal: str) -> str:
-    return (f"{field}: {literal} is not a finite number; JSON numbers here must be finite "
-            "(no NaN, Infinity or values beyond +-1.8e308): send a finite value in the field's range")
 
 
 class StreamLimiter:

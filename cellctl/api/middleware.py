@@ -7,9 +7,20 @@ the response's ``X-Request-Id`` header and set in ``cellctl.logging_setup.reques
 log record written while the request is served. Latency runs from the request's arrival to the
 last byte of the response (for an SSE stream: until the stream ends).
 
-It also applies the edge guards of ``cellctl.api.guards`` before anything else sees the request:
-the body size limit (413), non-finite JSON numbers (422) and the cap on open event streams (429),
-with the limits of the config's ``http`` section (or ``limits`` when given).
+It also is the service's edge: before the app sees a request, in this order,
+
+1. a declared body over ``http.max_body_mb`` is refused (413), nothing read;
+2. the route's token and role are checked (401, 403) from the headers alone — no body is read or
+   parsed for a caller who may not call the route (an open route takes no body: it is never read);
+3. the body is read within ``http.body_timeout_s`` (408 for a slow one; a client that leaves
+   mid-body is logged and counted as 499, a client error) and up to the size limit (413);
+4. its JSON is parsed once and bounded (``cellctl.api.body``: non-finite or overlong numbers,
+   depth, value count: 422 naming the field) — a large body in the body pool, never on the loop;
+5. event streams are counted (429 over ``http.max_event_streams*``).
+
+Refusals that leave a body unread close the connection rather than read the rest. Each request
+runs its blocking work in its route's pool (``cellctl.api.pools``: Stop, resume, state and
+``/health`` in the safety pool). Limits come from the config's ``http`` section (or ``limits``).
 """
 
 from __future__ import annotations
@@ -20,13 +31,19 @@ import time
 import uuid
 from typing import Any
 
-from starlette.concurrency import run_in_threadpool
+import anyio
 from starlette.datastructures import MutableHeaders
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from cellctl.api.body import PARSED_KEY, inspect_body
+from cellctl.api.deps import PRINCIPAL_KEY, authenticate, role_refusal
+from cellctl.api.edge_routes import RouteInfo, RouteTable
+from cellctl.api.errors import ApiError
 from cellctl.api.guards import (
     BODY_TOO_LARGE,
+    CLIENT_CLOSED,
+    REQUEST_TIMEOUT,
     TOO_MANY,
     UNPROCESSABLE,
     BodyTooLarge,
@@ -38,13 +55,12 @@ from cellctl.api.guards import (
     error_message,
     has_body,
     is_event_stream,
-    non_finite_field,
-    non_finite_text,
     read_body,
     replaying,
     stream_key,
     too_large_text,
 )
+from cellctl.api.pools import OFF_LOOP_BYTES, Pools, pool_var, run_blocking
 from cellctl.logging_setup import request_id_var
 from cellctl.metrics import CellMetrics
 
@@ -94,6 +110,8 @@ class RequestMiddleware:
         self.metrics = metrics
         self._limits = limits
         self.streams = StreamLimiter()
+        self._routes: RouteTable | None = None
+        self._pools: Pools | None = None
 
     def limits(self, scope: Scope) -> EdgeLimits:
         """The edge limits: given ones, else the serving app's ``config.http``, else the defaults."""
@@ -102,6 +120,18 @@ class RequestMiddleware:
             http = getattr(config, "http", None)
             self._limits = EdgeLimits.from_http_config(http) if http is not None else EdgeLimits()
         return self._limits
+
+    def routes(self, scope: Scope) -> RouteTable:
+        if self._routes is None:
+            self._routes = RouteTable(scope["app"])
+        return self._routes
+
+    def pools(self, scope: Scope) -> Pools:
+        """The app's pools (``app.state.pools``), else the middleware's own."""
+        if self._pools is None:
+            found = getattr(getattr(scope.get("app"), "state", None), "pools", None)
+            self._pools = found if isinstance(found, Pools) else Pools()
+        return self._pools
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -122,7 +152,9 @@ class RequestMiddleware:
         failed = False
         at_edge = False
         try:
-            at_edge = await self._guarded(scope, receive, send_with_id)
+            at_edge, unsent = await self._guarded(scope, receive, send_with_id)
+            if unsent is not None:
+                status = unsent
         except BaseException:
             failed = True
             raise
@@ -143,36 +175,82 @@ class RequestMiddleware:
                 # On failure the id stays set so the outer error handler's log line still carries it.
                 request_id_var.reset(token)
 
-    async def _guarded(self, scope: Scope, receive: Receive, send: Send) -> bool:
-        """Refuse oversized bodies, non-finite JSON numbers and surplus event streams (True), else run the app."""
+    async def _guarded(self, scope: Scope, receive: Receive, send: Send) -> tuple[bool, int | None]:
+        """Run the edge's checks, then the app. ``(answered at the edge, status when none could be sent)``."""
         limits = self.limits(scope)
-        if has_body(scope):
-            length = declared_length(scope)
-            if length is not None and length > limits.max_body_bytes:
-                await _answer(send, BODY_TOO_LARGE, "body_too_large",
-                              too_large_text(limits.max_body_bytes, f"of {length / 1e6:.1f} MB is over"), CLOSE)
-                return True
-            try:
-                body = await read_body(receive, limits.max_body_bytes)
-            except BodyTooLarge:
-                await _answer(send, BODY_TOO_LARGE, "body_too_large", too_large_text(limits.max_body_bytes, "passed"),
-                              CLOSE)
-                return True
-            except ClientGone:
-                return True  # nobody to answer
-            # A large suspicious body is parsed off the event loop (other requests go on meanwhile).
-            bad = (non_finite_field(body) if len(body) < OFF_LOOP_BYTES
-                   else await run_in_threadpool(non_finite_field, body))
-            if bad is not None:
-                await _answer(send, UNPROCESSABLE, "invalid_request", non_finite_text(*bad))
-                return True
-            receive = replaying(body, receive)
+        pending = has_body(scope)
+        length = declared_length(scope)
+        if pending and length is not None and length > limits.max_body_bytes:
+            await _answer(send, BODY_TOO_LARGE, "body_too_large",
+                          too_large_text(limits.max_body_bytes, f"of {length / 1e6:.1f} MB is over"), CLOSE)
+            return True, None
+        route = self.routes(scope).match(scope)
+        token = pool_var.set(self.pools(scope).safety if route is not None and route.safety else None)
+        try:
+            if route is not None and route.role is not None:
+                refusal = self._refusal(scope, route)
+                if refusal is not None:
+                    await _answer(send, refusal.status, refusal.code, refusal.message, CLOSE if pending else None)
+                    return True, None
+                if pending:
+                    outcome, receive = await self._take_body(scope, receive, send, limits)
+                    if outcome is not None:
+                        return True, (None if outcome == ANSWERED else outcome)
+            elif pending:
+                send = _closing(send)  # the app answers (404, 405, an open route) without reading it
+            return await self._streams_and_app(scope, receive, send, limits), None
+        finally:
+            pool_var.reset(token)
 
+    def _refusal(self, scope: Scope, route: RouteInfo) -> ApiError | None:
+        """401/403 for a caller who may not call ``route`` (from the headers alone), else None."""
+        auth = None
+        for key, value in scope.get("headers", ()):
+            if key.lower() == b"authorization":
+                auth = bytes(value).decode("latin-1")
+        found = authenticate(scope["app"].state.tokens, auth)
+        if isinstance(found, ApiError):
+            return found
+        scope[PRINCIPAL_KEY] = found
+        return role_refusal(found, route.role) if route.role is not None else None
+
+    async def _take_body(self, scope: Scope, receive: Receive, send: Send, limits: EdgeLimits
+                         ) -> tuple[int | None, Receive]:
+        """Read, bound and parse the body. ``(None, receive replaying it)``, or the outcome when refused
+        (``ANSWERED``, or the status of a client that left)."""
+        try:
+            with anyio.fail_after(limits.body_timeout_s):
+                body = await read_body(receive, limits.max_body_bytes)
+        except TimeoutError:
+            await _answer(send, REQUEST_TIMEOUT, "body_timeout",
+                          f"the request body did not arrive within {limits.body_timeout_s:g} s "
+                          "(http.body_timeout_s in cell.yaml); send it at once, or raise the limit", CLOSE)
+            return ANSWERED, receive
+        except BodyTooLarge:
+            await _answer(send, BODY_TOO_LARGE, "body_too_large", too_large_text(limits.max_body_bytes, "passed"),
+                          CLOSE)
+            return ANSWERED, receive
+        except ClientGone:
+            access_log.info("the client closed the connection before its request body was complete")
+            return CLIENT_CLOSED, receive
+        if len(body) < OFF_LOOP_BYTES:
+            parsed, problem = inspect_body(body)
+        else:
+            parsed, problem = await run_blocking(inspect_body, body, True, pool=self.pools(scope).body)
+        if problem is not None:
+            await _answer(send, UNPROCESSABLE, "invalid_request", problem)
+            return ANSWERED, receive
+        if parsed is not None:
+            scope[PARSED_KEY] = parsed
+        return None, replaying(body, receive)
+
+    async def _streams_and_app(self, scope: Scope, receive: Receive, send: Send, limits: EdgeLimits) -> bool:
+        """Count event streams (429 over the limits: True), else run the app (False)."""
         held: str | None = None
         if scope.get("method") == "GET" and str(scope.get("path", "")).endswith("/events"):
-            # An event-stream route: the slot is taken before routing and auth, so a burst of
-            # requests is refused here without costing a worker thread each (an answer that is
-            # not a stream, e.g. 401 or 404, gives the slot back as soon as it is sent).
+            # An event-stream route: the slot is taken before routing, so a burst of requests is
+            # refused here without costing a worker thread each (an answer that is not a stream,
+            # e.g. 404, gives the slot back as soon as it is sent).
             key = stream_key(scope)
             refusal = self.streams.acquire(key, limits)
             if refusal is not None:
@@ -201,8 +279,20 @@ class RequestMiddleware:
         return False
 
 
-OFF_LOOP_BYTES = 256_000
-"""Bodies at least this large are checked for non-finite numbers in a worker thread."""
+ANSWERED = 0
+"""An edge outcome: the refusal has been sent."""
+
+
+def _closing(send: Send) -> Send:
+    """``send`` that marks the response ``Connection: close`` (the server then drops the unread body)."""
+
+    async def closing(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            MutableHeaders(scope=message)["connection"] = "close"
+        await send(message)
+
+    return closing
+
 
 # The server closes the connection after a refused body instead of reading the rest of it.
 CLOSE = [(b"connection", b"close")]

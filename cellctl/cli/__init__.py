@@ -15,6 +15,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Final
 
+import cellctl
 from cellctl.cli.output import CommandError, emit
 
 COMMAND_MODULES: Final[tuple[str, ...]] = (
@@ -41,10 +42,26 @@ def build_parser() -> argparse.ArgumentParser:
         description="Robot work-cell controller: acquisition, calibration and pick guidance.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
+    parser.add_argument("--version", action="version", version=f"cellctl {cellctl.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"cellctl.cli.{name}").register(sub)
+    for command in _commands(parser):
+        # `cellctl pick find ... -v` as well as `cellctl -v pick find ...`; SUPPRESS keeps a -v given
+        # before the command when it is absent after it.
+        command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                             help="debug logging on stderr (also accepted before the command)")
     return parser
+
+
+def _commands(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every parser below ``parser`` that takes arguments itself (the leaves of the command tree)."""
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):  # aliases map to the same parser
+                found += _commands(child) or [child]
+    return found
 
 
 def main(argv: Sequence[str] | None = None) -> int:

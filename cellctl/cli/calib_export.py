@@ -20,9 +20,15 @@ def register(sub: Any) -> None:
     p.add_argument("--name", default="camera", help="camera_name (ROS)")
     p.set_defaults(func=run_export)
     q: argparse.ArgumentParser = sub.add_parser(
-        "import", help="read an OpenCV FileStorage YAML/XML or ROS camera_info YAML into cam.json")
-    q.add_argument("file", help="OpenCV YAML/XML or ROS camera_info YAML")
-    q.add_argument("--format", default="opencv", choices=["opencv", "ros", "halcon"])
+        "import", help="read a camera file of OpenCV, ROS or HALCON into cam.json",
+        description="Read a camera calibration made elsewhere into cam.json. --format opencv (default): an "
+                    "OpenCV FileStorage YAML/XML with camera_matrix and distortion_coefficients; ros: a ROS "
+                    "camera_info YAML; halcon: HALCON camera parameters as write_cam_par writes them "
+                    "(area_scan_division only).")
+    q.add_argument("file", help="the camera file (see --format)")
+    q.add_argument("--format", default="opencv", choices=["opencv", "ros", "halcon"],
+                   help="opencv: FileStorage YAML/XML (default); ros: camera_info YAML; "
+                        "halcon: write_cam_par text (area_scan_division)")
     q.add_argument("--out", dest="out_json", help="write cam.json here too")
     q.set_defaults(func=run_import)
 

@@ -65,13 +65,24 @@ def _detections(args: argparse.Namespace, target: Any) -> list[Any]:
     from calibration.observations import Detection
 
     if args.detections:
+        expected = "give the JSON list that `cellctl detect --out F.json` writes"
         try:
             data = json.loads(Path(args.detections).read_text())
-            return [Detection.from_json(d) for d in data]
         except OSError as exc:
             raise CommandError(f"{args.detections}: cannot read detections ({exc.strerror})") from exc
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise CommandError(f"{args.detections}: not a cellctl detect JSON list ({exc})") from exc
+        except UnicodeDecodeError:
+            raise CommandError(f"{args.detections}: not a text file (binary data); {expected}") from None
+        except json.JSONDecodeError as exc:
+            raise CommandError(f"{args.detections}: not valid JSON ({exc}); {expected}") from exc
+        if not isinstance(data, list):
+            kind = "object" if isinstance(data, dict) else "string" if isinstance(data, str) else "number or literal"
+            raise CommandError(f"{args.detections}: holds a JSON {kind}, not a list of detections; {expected}")
+        if not all(isinstance(d, dict) for d in data):
+            raise CommandError(f"{args.detections}: a list whose entries are not detections; {expected}")
+        try:
+            return [Detection.from_json(d) for d in data]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CommandError(f"{args.detections}: not a cellctl detect JSON list ({exc}); {expected}") from exc
     if not args.images:
         raise CommandError("give IMAGE files or folders (or --detections FILE)")
     try:

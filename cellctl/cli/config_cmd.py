@@ -17,6 +17,9 @@ def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("config", help="configuration helpers")
     csub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     d = csub.add_parser("default", help="print the built-in virtual cell's cell.yaml")
+    d.add_argument("--scene", choices=sorted(DEFAULT_SCENES), default="virtual-cell",
+                   help="virtual-cell: the README tour's cell (eye-in-hand camera, two parts); production: a fixed "
+                        "camera over a pick area of parts, a place grid and a sim gripper (docs/production.md)")
     d.set_defaults(func=print_default)
     c = csub.add_parser("check", help="validate a cell.yaml and print its devices")
     c.add_argument("--config", required=True)
@@ -43,10 +46,19 @@ def register(sub: Any) -> None:
     rm.set_defaults(func=remove_token)
 
 
+DEFAULT_SCENES = {"virtual-cell": "data/virtual-cell.yaml", "production": "data/production-cell.yaml"}
+
+
 def print_default(args: argparse.Namespace) -> None:
+    from importlib import resources
+
     from cellctl.config import default_config_text
 
-    sys.stdout.write(default_config_text())
+    scene = getattr(args, "scene", "virtual-cell")
+    if scene == "virtual-cell":
+        sys.stdout.write(default_config_text())
+    else:
+        sys.stdout.write(resources.files("cellctl").joinpath(DEFAULT_SCENES[scene]).read_text())
 
 
 def check(args: argparse.Namespace) -> dict[str, Any]:

@@ -98,15 +98,25 @@ def register(sub: Any) -> None:
                    help="routine parameter (JSON value or plain string); repeatable, e.g. --param views=14")
     r.add_argument("--follow", action="store_true",
                    help="show progress on stderr until the job ends (and ask before each operator step)")
-    r.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"), help=URL_HELP)
-    r.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"), help=TOKEN_HELP)
+    _service_args(r)
     r.add_argument("--out", dest="out_json", help="also write the final job JSON to this file")
     r.set_defaults(func=run)
     s = jsub.add_parser("status", help="print a job")
     s.add_argument("job_id", help="the job's id (the 'id' of the job run answer)")
-    s.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"), help=URL_HELP)
-    s.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"), help=TOKEN_HELP)
+    _service_args(s)
     s.set_defaults(func=status)
+    ls = jsub.add_parser("list", help="print the service's jobs, newest first (running and ended)")
+    _service_args(ls)
+    ls.set_defaults(func=list_jobs)
+    c = jsub.add_parser("cancel", help="cancel a running job: its routine stops the robot and stores nothing")
+    c.add_argument("job_id", help="the job's id (from `cellctl job list` or the job run answer)")
+    _service_args(c)
+    c.set_defaults(func=cancel)
+
+
+def _service_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", default=os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080"), help=URL_HELP)
+    p.add_argument("--token", default=os.environ.get("CELLCTL_TOKEN"), help=TOKEN_HELP)
 
 
 def _token(args: argparse.Namespace) -> str:
@@ -232,11 +242,29 @@ def _follow(http: Any, job_id: str, progress: Progress | None = None) -> None:
                     return
 
 
-def status(args: argparse.Namespace) -> dict[str, Any]:
+def _call(args: argparse.Namespace, method: str, path: str) -> Any:
     import httpx
 
     try:
         with _client(args) as http:
-            return _check(http.get(f"/jobs/{args.job_id}"))
+            r = http.request(method, path)
+            if r.status_code < 400 and isinstance(r.json(), list):
+                return r.json()
+            return _check(r)
     except httpx.HTTPError as exc:
-        raise CommandError(f"cannot reach the service at {args.url} ({exc})") from None
+        raise CommandError(f"cannot reach the service at {args.url} ({exc}); is `cellctl serve` running?") from None
+
+
+def status(args: argparse.Namespace) -> dict[str, Any]:
+    job: dict[str, Any] = _call(args, "GET", f"/jobs/{args.job_id}")
+    return job
+
+
+def list_jobs(args: argparse.Namespace) -> list[dict[str, Any]]:
+    jobs: list[dict[str, Any]] = _call(args, "GET", "/jobs")
+    return jobs
+
+
+def cancel(args: argparse.Namespace) -> dict[str, Any]:
+    job: dict[str, Any] = _call(args, "DELETE", f"/jobs/{args.job_id}")
+    return job

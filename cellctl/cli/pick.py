@@ -1,8 +1,10 @@
 """``cellctl pick teach|find``: teach a part model from an image ROI, find it in images.
 
 ``find`` with one ``--model`` answers ``[{"image", "matches": [{"u_px", "v_px", "angle_deg",
-"score", ...}], "time_ms", "timed_out"[, "reason"]}]`` (docs/cli.md); with several it recognises
-which part each match is and adds ``part``, ``margin`` and ``runner_up`` to each match. ``time_ms``
+"score", "scores", ...}], "rejected": [...], "time_ms", "timed_out"[, "reason"]}]`` (docs/cli.md):
+``scores`` are the verification's per match, ``rejected`` the candidates that reached the score and
+failed it, with why; with several models it recognises which part each match is and adds ``part``,
+``margin`` and ``runner_up`` to each match. ``time_ms``
 is the in-process search time of that image (the compiled kernels are loaded once before the
 first); ``reason`` says why nothing was found.
 """
@@ -93,11 +95,13 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
             res = models[0].find(img, sp)
             matches: list[dict[str, Any]] = [mt.as_dict() for mt in res.matches]
             timed_out, elapsed, reason = res.timed_out, res.elapsed_s, res.reason()
+            rejected = [x.as_dict() for x in res.rejected]
         else:
             rr = recognize(models, img, sp)
             matches = [r.as_dict() for r in rr.matches]
             timed_out, elapsed, reason = rr.timed_out, rr.elapsed_s, rr.reason()
-        item: dict[str, Any] = {"image": path, "matches": matches, "timed_out": timed_out,
+            rejected = [x.as_dict() for x in rr.rejected]
+        item: dict[str, Any] = {"image": path, "matches": matches, "rejected": rejected, "timed_out": timed_out,
                                 "time_ms": round(elapsed * 1000.0, 2)}
         if reason is not None:
             item["reason"] = reason

@@ -31,6 +31,9 @@ def register(sub: Any) -> None:
                                      "documented place: /etc/cellctl/tls/key.pem)")
     p.add_argument("--log-format", choices=("json", "text"), default=None,
                    help="log lines as JSON objects or text (default: text on a terminal, json otherwise)")
+    p.add_argument("--new-store", action="store_true",
+                   help="start even though the store is missing or empty while this cell ran on one before: "
+                        "begins a new empty store (see docs/store.md)")
     p.set_defaults(func=run)
 
 
@@ -44,7 +47,9 @@ def write_private(path: Path, text: str) -> None:
     Written to a new file and renamed over ``path``: an old file keeps neither its mode (a 644
     token file becomes 600) nor its contents, and a symlink at ``path`` is replaced, not followed.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from cellctl.store.files import private_dir
+
+    private_dir(path.parent)  # the data folder, 0700 when we create it
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.unlink(missing_ok=True)
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -63,6 +68,7 @@ def run(args: argparse.Namespace) -> None:
 
     from cellctl.api.app import create_app
     from cellctl.plc import preflight as plc_preflight
+    from cellctl.store.startup import check_store_at_start
 
     config = load_config(args.config)
     http = config.http.model_copy(update={k: v for k, v in (("host", args.host), ("port", args.port),
@@ -72,6 +78,7 @@ def run(args: argparse.Namespace) -> None:
     config = config.model_copy(update={"http": http})
     _check_ports(config)  # before the session-token file: a serve that cannot start must not replace it
     plc_preflight(config)  # OPC UA certificates and the trusted clients: one line, not a start-up traceback
+    check_store_at_start(config, new_store=args.new_store)  # damaged, missing or emptied store: refused
     session: list[tuple[str, Any, str]] = []
     if not config.auth.tokens:
         if not http.is_loopback():

@@ -7,7 +7,7 @@ import importlib
 from typing import Any
 
 from cellctl.cli.output import CommandError
-from cellctl.config import load_config
+from cellctl.config import load_config, sim_settings
 
 
 def register(sub: Any) -> None:
@@ -24,11 +24,9 @@ def register(sub: Any) -> None:
 def truth(args: argparse.Namespace) -> dict[str, Any]:
     from drivers.sim.world import world_for
 
-    cfg = load_config(args.config)
-    sims = [d for d in [*cfg.cameras.values(), *cfg.robots.values()] if d.kind == "sim"]
-    if not sims:
+    settings = sim_settings(load_config(args.config))
+    if settings is None:
         raise CommandError("the config has no simulated (kind: sim) camera or robot; there is no truth to show")
-    settings = sims[0].settings
     return world_for(settings.get("scene"), settings.get("seed")).truth()
 
 

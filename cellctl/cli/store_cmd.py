@@ -1,8 +1,10 @@
-"""``cellctl store backup|restore|info``: back up and restore the cell's calibration/recipe/audit store.
+"""``cellctl store backup|backups|restore|info``: back up and restore the cell's calibration/recipe/audit store.
 
 A SQLite store is backed up with SQLite's online backup API (the service may keep running); a
-PostgreSQL store as a JSON dump of this cell's rows. Restore reads either, refuses to overwrite a
-non-empty store unless ``--force``, and replaces the cell's rows in one transaction.
+PostgreSQL store as a JSON dump of this cell's rows. Without ``--out`` a backup goes to the cell's
+backup folder (catalog.py), which ``backups`` lists. Restore reads either format, refuses to
+overwrite a non-empty store unless ``--force``, and replaces the cell's rows in one transaction;
+a damaged SQLite file is set aside (``--force``) and the backup restored into a new one.
 """
 
 from __future__ import annotations
@@ -12,9 +14,12 @@ import getpass
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cellctl.cli.output import CommandError
+
+if TYPE_CHECKING:
+    from cellctl.config import CellConfig
 
 
 def register(sub: Any) -> None:
@@ -27,7 +32,8 @@ def register(sub: Any) -> None:
                         description="SQLite: an online copy of the database file (sqlite format); "
                                     "PostgreSQL: a JSON dump of this cell's rows (json format).")
     b.add_argument("--config", required=True, help="cell.yaml naming the store (store.url / store.path)")
-    b.add_argument("--out", required=True, help="the backup file to write (replaced atomically)")
+    b.add_argument("--out", help="the backup file to write (replaced atomically); default: a new file "
+                                 "<cell_id>-<UTC time>.db|.json in store.backup_dir (default <data dir>/backups)")
     b.add_argument("--format", choices=("sqlite", "json"), default=None,
                    help="sqlite (default for a SQLite store) or json (default for PostgreSQL; works for both)")
     b.set_defaults(func=run_backup)
@@ -36,12 +42,20 @@ def register(sub: Any) -> None:
                         description="Reads a sqlite or json backup, refuses a non-empty store unless --force, "
                                     "and replaces the cell's rows in one transaction (all or nothing).")
     r.add_argument("--config", required=True, help="cell.yaml naming the store (store.url / store.path)")
-    r.add_argument("--from", dest="src", required=True, help="the backup file (from cellctl store backup)")
-    r.add_argument("--force", action="store_true", help="replace a store that already holds rows of this cell")
+    which = r.add_mutually_exclusive_group(required=True)
+    which.add_argument("--from", dest="src", help="the backup file (from cellctl store backup)")
+    which.add_argument("--latest", action="store_true", help="the newest backup in the backup folder "
+                                                             "(see cellctl store backups)")
+    r.add_argument("--force", action="store_true", help="replace a store that already holds rows of this cell; "
+                                                        "a damaged SQLite store file is renamed <file>.damaged-<time>")
     r.add_argument("--who", default=None, help="name logged in the audit entry (default: cli:<user>)")
     r.set_defaults(func=run_restore)
 
-    i = ssub.add_parser("info", help="where the store is and how many rows this cell has in it")
+    ls = ssub.add_parser("backups", help="this cell's backups in the backup folder, newest first")
+    ls.add_argument("--config", required=True, help="cell.yaml (store.backup_dir, default <data dir>/backups)")
+    ls.set_defaults(func=run_backups)
+
+    i = ssub.add_parser("info", help="where the store is, whether SQLite finds it sound, how many rows this cell has")
     i.add_argument("--config", required=True)
     i.set_defaults(func=run_info)
 
@@ -57,10 +71,12 @@ def _store_errors() -> Iterator[None]:
         raise CommandError(f"store: {text[0] if text else type(exc).__name__}") from None
 
 
-def _with_store(args: argparse.Namespace, fn: Callable[[Any], dict[str, Any]], must_exist: bool) -> dict[str, Any]:
+def _with_store(args: argparse.Namespace, fn: Callable[[CellConfig, Any], dict[str, Any]],
+                must_exist: bool) -> dict[str, Any]:
     from cellctl.config import load_config
     from cellctl.store import Store, store_url
     from cellctl.store.backends import backend_of
+    from cellctl.store.integrity import recovery_hint
 
     cfg = load_config(args.config)
     with _store_errors():
@@ -68,25 +84,71 @@ def _with_store(args: argparse.Namespace, fn: Callable[[Any], dict[str, Any]], m
         if must_exist and backend_of(url) == "sqlite" and not Path(str(url.database)).exists():
             raise CommandError(f"no store at {url.database} for cell {cfg.cell_id!r}; nothing to back up "
                                "(check store.path in the config)")
-        with Store(url, cfg.cell_id) as store:
-            return fn(store)
+        with Store(url, cfg.cell_id, recovery_hint(cfg.source)) as store:
+            return fn(cfg, store)
+
+
+def _sqlite_file(cfg: CellConfig) -> Path | None:
+    """The store's SQLite file when it is one and holds something (None: PostgreSQL, missing or empty)."""
+    from cellctl.store import store_url
+    from cellctl.store.backends import backend_of
+
+    url = store_url(cfg)
+    db = Path(str(url.database))
+    return db if backend_of(url) == "sqlite" and db.is_file() and db.stat().st_size > 0 else None
 
 
 def run_backup(args: argparse.Namespace) -> dict[str, Any]:
-    from cellctl.store.backup import backup
+    from cellctl.store.backup import BackupFormat, backup
+    from cellctl.store.catalog import new_backup_path
 
-    return _with_store(args, lambda store: backup(store, args.out, args.format), must_exist=True)
+    def go(cfg: CellConfig, store: Any) -> dict[str, Any]:
+        fmt: BackupFormat = args.format or ("sqlite" if store.backend == "sqlite" else "json")
+        return backup(store, args.out or new_backup_path(cfg, fmt), fmt)
+
+    return _with_store(args, go, must_exist=True)
+
+
+def run_backups(args: argparse.Namespace) -> dict[str, Any]:
+    from cellctl.config import load_config
+    from cellctl.store.catalog import backup_dir, list_backups
+
+    cfg = load_config(args.config)
+    return {"cell_id": cfg.cell_id, "dir": str(backup_dir(cfg)), "backups": list_backups(cfg)}
 
 
 def run_restore(args: argparse.Namespace) -> dict[str, Any]:
+    from cellctl.config import load_config
     from cellctl.store.backup import restore
+    from cellctl.store.catalog import latest_backup, set_aside
+    from cellctl.store.integrity import quick_check
 
-    if not Path(args.src).is_file():
-        raise CommandError(f"--from {args.src}: no such file; give a file written by cellctl store backup")
+    cfg = load_config(args.config)
+    with _store_errors():
+        src = latest_backup(cfg) if args.latest else Path(args.src)
+    if not src.is_file():
+        raise CommandError(f"--from {src}: no such file; give a file written by cellctl store backup")
     who = args.who or f"cli:{getpass.getuser()}"
-    return _with_store(args, lambda store: restore(store, args.src, who, force=args.force), must_exist=False)
+    aside: Path | None = None
+    db = _sqlite_file(cfg)
+    problem = quick_check(db) if db is not None else None
+    if db is not None and problem is not None:
+        if not args.force:
+            raise CommandError(f"the store {db} is damaged ({problem}); with --force it is renamed "
+                               f"{db.name}.damaged-<time> and the backup is restored into a new store")
+        aside = set_aside(db)
+    out = _with_store(args, lambda _cfg, store: restore(store, src, who, force=args.force), must_exist=False)
+    return {**out, "damaged_store_set_aside": str(aside) if aside else None}
 
 
 def run_info(args: argparse.Namespace) -> dict[str, Any]:
-    return _with_store(args, lambda store: {"backend": store.backend, "store": store.describe(),
-                                            "cell_id": store.cell_id, "counts": store.counts()}, must_exist=False)
+    from cellctl.config import load_config
+    from cellctl.store.integrity import quick_check, recovery_hint
+
+    db = _sqlite_file(load_config(args.config))
+    problem = quick_check(db) if db is not None else None
+    if problem is not None:
+        raise CommandError(f"the store {db} is damaged ({problem}); {recovery_hint(args.config)}")
+    return _with_store(args, lambda _cfg, store: {
+        "backend": store.backend, "store": store.describe(), "cell_id": store.cell_id,
+        "integrity": "ok" if db is not None else "not checked", "counts": store.counts()}, must_exist=False)

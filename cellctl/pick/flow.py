@@ -119,7 +119,7 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
     current_yaw = math.atan2(T_capture[1, 0], T_capture[0, 0])
     picks = []
     for r in found.matches[: sp.max_count]:
-        pp = pick_pose(mapping, recipe, r.u_px, r.v_px, r.angle_deg, T_capture, current_yaw)
+        pp = pick_pose(mapping, recipe, r.u_px, r.v_px, r.angle_deg, T_capture, current_yaw, r.sigma_angle_deg)
         reason = None
         try:
             robot.limits.check_pose(pp["T_pick"])
@@ -128,7 +128,8 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
             reason = str(exc)
         picks.append({**r.as_dict(), "pick_pose": pose_json(pp["T_pick"]),
                       "approach_pose": pose_json(pp["T_approach"]), "T_base_tool": pp["T_pick"].tolist(),
-                      "part_yaw_deg": pp["part_yaw_deg"], "gripper_yaw_deg": pp["gripper_yaw_deg"],
+                      "part_yaw_deg": pp["part_yaw_deg"], "base_yaw_deg": pp["base_yaw_deg"],
+                      "gripper_yaw_deg": pp["gripper_yaw_deg"],
                       "uncertainty": {"sigma_mm": pp["sigma_mm"], "sigma_yaw_deg": pp["sigma_yaw_deg"]},
                       "reachable": reason is None, "not_reachable_reason": reason})
     reason = found.reason()
@@ -140,6 +141,7 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
         "frame_id": frame_id, "image_url": f"/frames/{frame_id}.png", "timed_out": found.timed_out,
         "calibration": {"kind": mapping.kind, "id": mapping.calibration_id},
         "capture_pose": pose_json(T_capture), "picks": picks, "reason": reason,
+        "rejected": [x.as_dict() for x in found.rejected],
         "latency_ms": {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3,
                        "total": (t_done - t0) * 1e3},
         "moved": False,

@@ -3,10 +3,16 @@
 A match ``(u, v, angle)`` becomes a pose in the robot base frame through the active calibration
 (``cellctl.mapping``): the reference point is mapped onto the working plane; the part's x axis
 (the image direction at ``angle``, counter-clockwise on screen) is mapped by a second point, which
-gives the part's yaw in the base frame (mirrored cameras included). The gripper's pose is the
-recipe's grasp offset (part frame, mm) and grasp yaw from there, the gripper's symmetry folding
-the yaw to the one nearest the tool's current yaw (a parallel gripper never turns more than 90 deg),
-the tool pointing as the recipe says.
+gives the part's yaw in the base frame, ``base_yaw_deg`` (mirrored cameras included). The gripper's
+pose is the recipe's grasp offset (part frame, mm) and grasp yaw from there, the gripper's symmetry
+folding the yaw to the one nearest the tool's current yaw (a parallel gripper never turns more than
+90 deg), the tool pointing as the recipe says.
+
+``part_yaw_deg`` is the part's rotation relative to the teach image, counter-clockwise on screen
+(the match's angle: 0 means it lies as when taught). Its 1-sigma, ``sigma_yaw_deg``, is the match's
+own (``Match.sigma_angle_deg``, from the fit); the calibration turns every part alike, so its
+orientation error is a constant offset of ``base_yaw_deg`` that belongs to the calibration's
+uncertainty, not to each pick's.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from calibration import geometry as g
 from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.mapping import ActiveMapping
 from cellctl.pick.recipe import Recipe
+from vision.image import wrap_deg
 
 AXIS_PROBE_PX = 25.0
 
@@ -33,8 +40,10 @@ def fold_yaw(yaw: float, symmetry: float, near: float) -> float:
 
 
 def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
-              T_capture: NDArray[np.float64] | None, current_yaw: float) -> dict[str, Any]:
-    """Gripper pick and approach poses (T_base_tool) for one match, with uncertainty."""
+              T_capture: NDArray[np.float64] | None, current_yaw: float,
+              sigma_angle_deg: float = float("nan")) -> dict[str, Any]:
+    """Gripper pick and approach poses (T_base_tool) for one match, with uncertainty
+    (``sigma_angle_deg``: the match's angle 1-sigma)."""
     z_plane = recipe.plane_z_mm
     a = math.radians(angle_deg)
     p0 = mapping.map(np.array([u, v]), z_plane, T_capture)
@@ -58,11 +67,12 @@ def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_
     T_approach = T_pick.copy()
     T_approach[2, 3] += recipe.approach_height_mm * 1e-3
     sig0 = p0.sigma_mm
-    lever = float(np.linalg.norm(d))
-    sigma_yaw = math.degrees(math.sqrt(float(sig0[0] ** 2 + sig0[1] ** 2) * 2) / lever) if lever > 0 else float("nan")
-    return {"T_pick": T_pick, "T_approach": T_approach, "part_yaw_deg": math.degrees(part_yaw),
-            "gripper_yaw_deg": math.degrees(yaw), "sigma_mm": [float(x) for x in sig0],
-            "sigma_yaw_deg": sigma_yaw}
+    # (the yaw's 1-sigma once came from sig0 at both ends of the 25 px probe, as if the calibration's
+    # error were independent at points 25 px apart: 1.66 deg for a part found to 0.02 deg)
+    return {"T_pick": T_pick, "T_approach": T_approach, "part_yaw_deg": wrap_deg(angle_deg),
+            "base_yaw_deg": math.degrees(part_yaw), "gripper_yaw_deg": math.degrees(yaw),
+            "sigma_mm": [float(x) for x in sig0],
+            "sigma_yaw_deg": float(sigma_angle_deg) if math.isfinite(sigma_angle_deg) else None}
 
 
 def pose_json(T: NDArray[np.float64]) -> dict[str, float]:

@@ -38,6 +38,9 @@ class PlcServers:
 
 def preflight(config: CellConfig) -> None:
     """Refuse, with one line (``OSError``), a PLC setup that could not start: run before serving."""
+    zone = config.plc.zone_problem()  # the config's own check, again for a config built in code
+    if zone:
+        raise OSError(zone)
     if config.plc.opcua.enabled:
         from cellctl.plc.opcua_server import security_problem
 
@@ -49,6 +52,9 @@ def preflight(config: CellConfig) -> None:
 def start_plc_servers(services: Services) -> PlcServers:
     """Start the servers the config enables; on a failure stop those already started and raise."""
     cfg = services.config.plc
+    zone = cfg.zone_problem()
+    if zone:
+        raise OSError(zone)
     servers = PlcServers()
     try:
         if cfg.modbus.enabled:

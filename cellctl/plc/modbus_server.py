@@ -61,7 +61,6 @@ thread (one at a time), so a slow pick never delays register reads.
 from __future__ import annotations
 
 import asyncio
-import ipaddress
 import logging
 import math
 import time
@@ -73,6 +72,7 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from cellctl.config import is_loopback_host
 from cellctl.plc.requests import (
     ERROR_TEXTS,
     TEXT_UNKNOWN_COMMAND,
@@ -111,11 +111,7 @@ async def _gateway_no_response(function_code: int, start_address: int, address: 
     return ExcCodes.GATEWAY_NO_RESPONSE
 
 
-def is_loopback(host: str) -> bool:
-    try:
-        return host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+is_loopback = is_loopback_host
 
 
 def int32_words(value: float) -> list[int]:
@@ -180,7 +176,8 @@ class ModbusPlcServer:
                         "PLC's network only", self.host)
         if self.services.config.plc.allow_motion:
             log.warning("plc.allow_motion is on: any Modbus client that reaches %s:%d may make the robot pick "
-                        "(command 3)", self.host, self.port)
+                        "(command 3)%s", self.host, self.port, "" if is_loopback(self.host) else
+                        " (plc.insecure_plc_network: true, the integrator's IEC 62443 zone decision)")
         return self
 
     def stop(self) -> None:

@@ -197,8 +197,9 @@ class OpcUaPlcServer:
         if self.services.config.plc.allow_motion:
             log.warning("plc.allow_motion is on: an OPC UA client at %s may move the robot (PickAndMove)", self.url)
         if self.config.security == "none" and not is_loopback(self.config.host):
-            log.warning("PLC OPC UA server on %s without security: anyone on that network can call Pick; "
-                        "use security basic256sha256 (docs/plc-opcua.md)", self.config.host)
+            log.warning("PLC OPC UA server on %s without security (plc.insecure_plc_network: true, the "
+                        "integrator's IEC 62443 zone decision): anyone on that network can call Pick",
+                        self.config.host)
         return self
 
     def stop(self) -> None:

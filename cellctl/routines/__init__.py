@@ -1,7 +1,9 @@
 """Calibration routines run as jobs: name -> ``run(services, ctx) -> result``.
 
 Every routine leaves the robot stopped when it fails or is cancelled (an end hook), and stores
-nothing unless it completes; a new calibration is stored but not activated.
+nothing unless it completes; a new calibration is stored but not activated. Every shot a routine
+measures with is taken while it owns the robot's motion (``common.robot_still``): no other caller
+moves the robot during it.
 """
 
 from __future__ import annotations
@@ -21,6 +23,10 @@ ROUTINE_MODULES: Final[dict[str, str]] = {
     "verify": "cellctl.routines.verify",
 }
 MOVES_ROBOT: Final[frozenset[str]] = frozenset({"intrinsics-capture", "handeye-capture"})
+HOLDS_ROBOT: Final[frozenset[str]] = frozenset({"verify"})
+"""Routines that measure with the robot standing still: they hold it still for their whole run
+without moving it (the operator role is enough); refused (409 robot_busy) while another caller
+moves it; a latched robot may be held (it stands still)."""
 
 
 def routine(name: str) -> Any:

@@ -9,7 +9,10 @@ dropped and counted.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,9 +28,13 @@ from calibration.targets import Target, target_from_dict
 from cellctl.jobs import JobContext
 from cellctl.motion import audited_move
 from cellctl.services import Services
-from drivers.base import Camera, CameraBase, Frame, MotionRejected, Robot, RobotBase
+from drivers.base import Camera, CameraBase, Frame, MotionRejected, Robot, RobotBase, RobotBusy
 
 Mat4 = NDArray[np.float64]
+
+
+STILL_WAIT_S = 2.0
+"""How long a measurement waits for a robot it owns to report standing still before refusing."""
 
 
 class RoutineError(ValueError):
@@ -55,10 +62,44 @@ def devices(services: Services, camera_id: str, robot_id: str | None) -> tuple[C
     return cam, robot
 
 
-def capture(cam: Camera, robot: Robot | None, target: Target, name: str) -> Capture:
-    """One frame, the robot pose at the time of it, and the target detected in it."""
-    T = robot.state().T_base_tool if robot is not None else None
-    frame = cam.grab(timeout_s=5.0)
+@contextlib.contextmanager
+def robot_still(ctx: JobContext, robot: Robot | None, what: str) -> Iterator[None]:
+    """Own ``robot``'s motion while a measurement is taken (unless the routine owns it already).
+
+    A frame, and the robot pose read with it, measure something only while the robot stands
+    still: refused with ``RobotBusy`` while another caller moves the robot. The robot is held
+    with a still session (``MotionOwner.begin(still=True)``: nothing moves it meanwhile; a latched
+    robot may be held). Once held, nothing of ours moves it; a robot that still reports moving
+    after ``STILL_WAIT_S`` (a halt slowing down, or the teach pendant) is refused too.
+    """
+    if robot is None:
+        yield
+        return
+    owned = ctx.motion is not None and robot.motion.holds(ctx.motion)
+    session = None if owned else robot.motion.begin(ctx.started_by, f"routine {what}", still=True)
+    try:
+        deadline = time.monotonic() + STILL_WAIT_S
+        while robot.state().moving:  # a halt or an arrival still settling
+            if time.monotonic() > deadline:
+                raise RobotBusy(f"robot {robot.robot_id} is moving (not by cellctl); {what} measures only while "
+                                "it stands still — stop it, then try again")
+            time.sleep(0.02)
+        yield
+    finally:
+        if session is not None:
+            robot.motion.end(session)
+
+
+def capture(cam: Camera, robot: Robot | None, target: Target, name: str,
+            ctx: JobContext | None = None) -> Capture:
+    """One frame, the robot pose at the time of it, and the target detected in it.
+
+    With ``ctx`` (every routine passes its own), the robot is held still for the shot
+    (``robot_still``); without, the caller owns the robot or needs no pose.
+    """
+    with robot_still(ctx, robot, f"{ctx.name}: shot {name}") if ctx is not None else contextlib.nullcontext():
+        T = robot.state().T_base_tool if robot is not None else None
+        frame = cam.grab(timeout_s=5.0)
     det = detect(frame.pixels, target, name)
     return Capture(frame, det, T)
 

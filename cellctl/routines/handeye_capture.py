@@ -96,7 +96,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     def good(c: Capture) -> bool:
         return c.detection.found and len(c.detection.ids) >= p.min_point_fraction * n_points
 
-    first = capture(cam, robot, target, "station01")
+    first = capture(cam, robot, target, "station01", ctx)
     if not good(first):
         raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason or 'too few points'}"
                            "); move the robot (POST /robots/{id}/move) so the whole plate is in view, then start "
@@ -151,7 +151,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             planner.failed_at(cand.T_base_tool)
             ctx.report(min(0.9, tried / p.max_stations), f"station {tried} ({cand.purpose}): skipped, refused ({exc})")
             continue
-        c = capture(cam, robot, target, f"station{tried:02d}")
+        c = capture(cam, robot, target, f"station{tried:02d}", ctx)
         ok = good(c) and c.T_base_tool is not None
         if ok and c.T_base_tool is not None:
             caps.append(c)

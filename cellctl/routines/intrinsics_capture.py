@@ -79,7 +79,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             ctx.wait_input({"step": k + 1, "of": p.views,
                             "instruction": "present the plate in a new pose (tilt it, move it to image corners), "
                                            "then record"}, timeout_s=p.step_timeout_s)
-            c = capture(cam, None, target, f"view{k + 1:02d}")
+            c = capture(cam, None, target, f"view{k + 1:02d}", ctx)
             if good(c):
                 caps.append(c)
             else:
@@ -87,7 +87,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
             ctx.report((k + 1) / (p.views + 1), f"view {k + 1}/{p.views}: "
                        + ("ok" if good(c) else f"rejected ({c.detection.reason or 'too few points'})"))
     else:
-        first = capture(cam, robot, target, "view01")
+        first = capture(cam, robot, target, "view01", ctx)
         if not good(first) or first.T_base_tool is None:
             raise RoutineError(f"the plate is not seen from the start pose ({first.detection.reason}); "
                                "move the robot so the whole plate is in view, then start again")

@@ -1,4 +1,4 @@
-"""``jog-to-mark``: the seed's N-point routine — the camera sees the marks, the operator jogs the
+"""``jog-to-mark``: the N-point (jog-to-mark) calibration — the camera sees the marks, the operator jogs the
 tool tip to each mark and records; the image→robot map is fitted and its error reported.
 
 Flow: one shot of the plate from the current (capture) pose; the routine picks ``marks`` marks
@@ -26,9 +26,10 @@ from calibration.npoint import assess_npoint, fit_npoint
 from calibration.targets import Target
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
-from cellctl.routines.common import RoutineError, capture, devices, routine_target
+from cellctl.routines.common import RoutineError, capture, devices, robot_still, routine_target
 from cellctl.routines.tool_turn import TurnPlan, run_turn
 from cellctl.services import Services
+from drivers.base import RobotBusy, RobotStopped
 
 
 class Params(BaseModel):
@@ -105,7 +106,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     cam, robot = devices(services, camera_id, robot_id)
     if robot is None:
         raise RoutineError(f"routine needs robot {robot_id!r}; name a configured robot (robot_id)")
-    shot = capture(cam, robot, target, "marks")
+    shot = capture(cam, robot, target, "marks", ctx)
     if not shot.detection.found:
         raise RoutineError(f"the marks are not seen ({shot.detection.reason}); put the plate in view and start again")
     ids = [int(i) for i in shot.detection.ids]
@@ -118,11 +119,18 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     pairs = []
     poses: list[np.ndarray] = []
     for k, mark in enumerate(marks):
-        got = ctx.wait_input({**mark, "of": len(marks), "marks": marks,
-                              "instruction": f"jog the tool tip onto mark {mark['step']} (row {mark['row']}, "
-                                             f"col {mark['col']}) and press record"},
-                              timeout_s=p.step_timeout_s)
-        T = robot.state().T_base_tool
+        instruction = (f"jog the tool tip onto mark {mark['step']} (row {mark['row']}, col {mark['col']}) "
+                       "and press record")
+        while True:
+            got = ctx.wait_input({**mark, "of": len(marks), "marks": marks, "instruction": instruction},
+                                 timeout_s=p.step_timeout_s)
+            try:
+                with robot_still(ctx, robot, f"jog-to-mark: recording mark {mark['step']}"):
+                    T = robot.state().T_base_tool
+                break
+            except (RobotBusy, RobotStopped) as exc:  # a jog still moving, or latched: the pose is not the mark's
+                ctx.report(0.05 + k / len(marks) * (0.55 if p.tool_centre else 0.85), f"not recorded: {exc}")
+                instruction = f"not recorded: {exc}; when the robot stands on mark {mark['step']}, press record"
         if "x_mm" in got and "y_mm" in got:
             x_mm, y_mm = float(got["x_mm"]), float(got["y_mm"])
         else:

@@ -92,7 +92,7 @@ class PlannedCapture:
                 self.ctx.report(self._progress(), f"view {self.attempts} ({purpose}): skipped, unreachable ({exc})")
                 continue
             move(self.services, self.ctx, self.robot, T, self.speed, f"intrinsics-capture {purpose}")
-            c = capture(self.cam, self.robot, self.target, f"view{self.attempts:02d}")
+            c = capture(self.cam, self.robot, self.target, f"view{self.attempts:02d}", self.ctx)
             ok = self.good(c)
             self.planner.observe(T, c.detection.uv, ok, purpose)
             if ok:

@@ -27,7 +27,7 @@ from calibration.detect import SpotNotFound, find_spot
 from calibration.handeye import fit_tool_centre, tool_offset_vector
 from calibration.npoint import NPointResult
 from cellctl.jobs import JobContext
-from cellctl.routines.common import RoutineError, move, stop_robot_on_end
+from cellctl.routines.common import RoutineError, move, robot_still, stop_robot_on_end
 from cellctl.services import Services
 from drivers.base import CameraBase, RobotBase
 
@@ -83,8 +83,9 @@ def run_turn(services: Services, ctx: JobContext, robot: RobotBase, cam: CameraB
             move(services, ctx, robot, turned(plan.T_mark, angle), plan.speed_m_s,
                  f"jog-to-mark: tool turned {angle:g} deg at mark {plan.step}")
             ctx.check_cancelled()
-            T = robot.state().T_base_tool
-            frame = cam.grab(timeout_s=5.0)
+            with robot_still(ctx, robot, f"jog-to-mark: tool-centre turn at {angle:g} deg"):
+                T = robot.state().T_base_tool
+                frame = cam.grab(timeout_s=5.0)
             try:
                 spot = find_spot(frame.pixels)
             except SpotNotFound as exc:

@@ -51,7 +51,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     he_cal = services.store.active("handeye", camera_id, robot_id)
     cam, robot = devices(services, camera_id, robot_id if he_cal is not None else None)
     ctx.report(0.2, "capturing the plate")
-    c = capture(cam, robot, target, "verify")
+    c = capture(cam, robot, target, "verify", ctx)
     if not c.detection.found:
         raise RoutineError(f"the plate is not seen ({c.detection.reason}); put it in view and verify again")
     X = detected_points_m(target, c.detection)

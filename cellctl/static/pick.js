@@ -170,8 +170,10 @@ $("#pick-form").addEventListener("submit", async (ev) => {
     const body = { recipe_id: Number($("#pick-recipe").value), move: has("engineer") && $("#pick-move").checked };
     const answer = await api("POST", "/pick", body);
     state.lastPick = answer;
+    const rejected = answer.rejected || [];
     $("#pick-status").textContent = `${answer.picks.length} pick(s) · frame ${answer.frame_id} · calibration `
       + `${answer.calibration.kind} #${answer.calibration.id} · ${fmt(answer.latency_ms.total, 0)} ms`
+      + (rejected.length ? ` · ${rejected.length} candidate(s) rejected by the verification` : "")
       + (answer.moved ? " · robot moved to the best pick" : "");
     $("#pick-reason").textContent = answer.reason || "";
     const tbody = $("#pick-table tbody");
@@ -180,8 +182,11 @@ $("#pick-form").addEventListener("submit", async (ev) => {
       const tr = document.createElement("tr");
       const pp = p.pick_pose || {};
       const sig = (p.uncertainty && p.uncertainty.sigma_mm) || [];
+      // part_yaw_deg: the turn from the teach image, counter-clockwise on screen (0: as taught)
+      const sy = p.uncertainty && p.uncertainty.sigma_yaw_deg;
+      const yaw = fmt(p.part_yaw_deg, 2) + (sy === null || sy === undefined ? "" : ` ± ${fmt(sy, 2)}`);
       const cells = [k + 1, p.part, fmt(p.u_px, 1), fmt(p.v_px, 1), fmt(p.score, 3), fmt(pp.x_mm, 2), fmt(pp.y_mm, 2),
-        fmt(pp.z_mm, 2), fmt(p.part_yaw_deg, 2), sig.length ? fmt(Math.max(sig[0], sig[1]), 3) : "–",
+        fmt(pp.z_mm, 2), yaw, sig.length ? fmt(Math.max(sig[0], sig[1]), 3) : "–",
         p.reachable ? "yes" : `no: ${p.not_reachable_reason}`];
       for (const x of cells) { const td = document.createElement("td"); td.textContent = x; tr.append(td); }
       tr.lastChild.className = p.reachable ? "reach-yes" : "reach-no";

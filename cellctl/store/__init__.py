@@ -19,8 +19,10 @@ from cellctl.store.errors import (
     NotFound,
     NothingToRollBack,
     RestoreRefused,
+    StoreDamaged,
     StoreError,
     StoreFormatError,
+    StoreUnavailable,
 )
 from cellctl.store.records import (
     CALIBRATION_KINDS,
@@ -38,7 +40,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CALIBRATION_KINDS", "AuditEntry", "Backend", "CalibrationKind", "CalibrationRecord", "CalibrationSummary",
     "CorruptRecord", "InvalidInput", "NotFound", "NothingToRollBack", "Recipe", "RestoreRefused", "Store",
-    "StoreError", "StoreFormatError", "open_store", "store_url",
+    "StoreDamaged", "StoreError", "StoreFormatError", "StoreUnavailable", "open_store", "store_url",
 ]
 
 
@@ -58,4 +60,6 @@ def store_url(config: CellConfig) -> sa.URL:
 
 def open_store(config: CellConfig) -> Store:
     """Open (creating when missing) the store of the cell ``config`` describes."""
-    return Store(store_url(config), config.cell_id)
+    from cellctl.store.integrity import recovery_hint
+
+    return Store(store_url(config), config.cell_id, recovery_hint(config.source))

@@ -22,6 +22,7 @@ from typing import Any, Literal
 import sqlalchemy as sa
 
 from cellctl.store.errors import InvalidInput
+from cellctl.store.files import create_private, private_dir, tighten
 
 Backend = Literal["sqlite", "postgresql"]
 
@@ -84,9 +85,11 @@ def make_engine(url: sa.URL) -> sa.Engine:
 def _sqlite_engine(url: sa.URL) -> sa.Engine:
     path = Path(str(url.database))
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        private_dir(path.parent)
+        if not create_private(path):  # a new store is 0600 (and so are its -wal/-shm: SQLite copies the mode)
+            tighten(path)
     except OSError as exc:
-        raise InvalidInput(f"store: cannot create the directory {path.parent} ({exc.strerror}); "
+        raise InvalidInput(f"store: cannot create {path} ({exc.strerror}); "
                            "set store.path in cell.yaml to a writable place") from None
     engine = sa.create_engine(
         url,

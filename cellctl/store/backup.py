@@ -34,6 +34,7 @@ import sqlalchemy as sa
 import cellctl
 from cellctl.store import schema as S
 from cellctl.store.errors import RestoreRefused, StoreError, StoreFormatError
+from cellctl.store.files import create_private, open_private
 from cellctl.store.store import Store
 
 DUMP_FORMAT = "cellctl-store-dump"
@@ -54,13 +55,14 @@ def backup(store: Store, out: str | Path, fmt: BackupFormat | None = None) -> di
     if not out.parent.is_dir():
         raise StoreError(f"backup: the directory {out.parent} does not exist")
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp.unlink(missing_ok=True)
     try:
         if fmt == "sqlite":
             counts = _sqlite_backup(Path(str(store.url.database)), tmp, store.cell_id)
         else:
             dump = dump_cell(store)
             counts = {name: len(t["rows"]) for name, t in dump["tables"].items()}
-            with tmp.open("w") as f:
+            with os.fdopen(open_private(tmp), "w") as f:
                 json.dump(dump, f, separators=(",", ":"))
                 f.flush()
                 os.fsync(f.fileno())
@@ -75,6 +77,7 @@ def backup(store: Store, out: str | Path, fmt: BackupFormat | None = None) -> di
 def _sqlite_backup(db: Path, tmp: Path, cell_id: str) -> dict[str, int]:
     src = sqlite3.connect(db, timeout=30)
     try:
+        create_private(tmp)  # 0600 before SQLite opens it (its journal gets the same mode)
         dst = sqlite3.connect(tmp)
         try:
             src.backup(dst)

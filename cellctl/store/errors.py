@@ -29,7 +29,17 @@ class StoreFormatError(StoreError):
     """The database was written by a newer cellctl, or is not a cellctl store at all."""
 
 
-class CorruptRecord(StoreError):
+class StoreUnavailable(StoreError):
+    """The store cannot be used now: its file is locked, unreadable or on a full disk, or its database
+    server is unreachable. The service answers 503 ``store_unavailable`` with the message."""
+
+
+class StoreDamaged(StoreUnavailable):
+    """The store's data is damaged (SQLite says malformed / not a database, a record fails its
+    checksum): the message says how to restore the last backup. It stays so until restored."""
+
+
+class CorruptRecord(StoreDamaged):
     """A stored record's checksum does not match its payload (storage damaged outside cellctl)."""
 
 

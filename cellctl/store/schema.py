@@ -87,6 +87,17 @@ audit = sa.Table(
     sa.Column("result", sa.Text, nullable=False),
 )
 
+latches = sa.Table(
+    "robot_latches", metadata,
+    # One row per latched robot (cleared: no row). Live safety state, not a record: not in CELL_TABLES,
+    # so a backup's restore never latches or frees a robot (see latches.py).
+    sa.Column("cell_id", sa.String(128), primary_key=True),
+    sa.Column("robot_id", sa.String(128), primary_key=True),
+    sa.Column("latched_by", sa.String(256), nullable=False),
+    sa.Column("reason", sa.Text, nullable=False),
+    sa.Column("since_s", sa.Double, nullable=False),
+)
+
 sa.Index("ix_calibrations_cell", calibrations.c.cell_id, calibrations.c.kind, calibrations.c.camera_id)
 sa.Index("ix_activations_cell", activations.c.cell_id, activations.c.kind, activations.c.camera_id)
 sa.Index("ix_recipes_cell", recipes.c.cell_id, recipes.c.recipe_id)

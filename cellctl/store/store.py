@@ -8,7 +8,6 @@ share between threads: each call checks a connection out of the engine's pool fo
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from collections.abc import Iterator
@@ -18,7 +17,7 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
-from calibration import io as cal_io
+from cellctl.store import latches as L
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -26,9 +25,12 @@ from cellctl.store.errors import (
     InvalidInput,
     NotFound,
     NothingToRollBack,
+    StoreDamaged,
     StoreError,
     StoreFormatError,
+    StoreUnavailable,
 )
+from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
 from cellctl.store.records import (
     CALIBRATION_KINDS,
     AuditEntry,
@@ -37,27 +39,9 @@ from cellctl.store.records import (
     CalibrationSummary,
     Recipe,
 )
+from cellctl.store.values import check_key, check_text, describe_key, payload_sha256, to_json_text
 
 MAX_AUDIT_LIMIT = 10_000
-
-
-def to_json_text(value: Any, what: str) -> str:
-    """``value`` as canonical JSON text; numpy arrays/scalars become lists/numbers; NaN/inf are refused."""
-    try:
-        return cal_io.dumps(value, separators=(",", ":"), sort_keys=True)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInput(f"{what} cannot be stored as JSON: {exc}") from None
-
-
-def payload_sha256(result_json: str, inputs_json: str) -> str:
-    h = hashlib.sha256(result_json.encode())
-    h.update(b"\n")
-    h.update(inputs_json.encode())
-    return h.hexdigest()
-
-
-def describe_key(kind: str, camera_id: str, robot_id: str | None) -> str:
-    return f"{kind}/{camera_id}" + (f"/{robot_id}" if robot_id else "")
 
 
 class Store:
@@ -65,14 +49,19 @@ class Store:
 
     ``url`` is a SQLAlchemy URL: ``sqlite:////abs/path.db`` or
     ``postgresql+psycopg://user@host:port/dbname``. The tables are created when missing; a store
-    written by a newer cellctl is refused with :class:`StoreFormatError`.
+    written by a newer cellctl is refused with :class:`StoreFormatError`. A damaged or unreachable
+    store raises :class:`StoreUnavailable` (:class:`StoreDamaged`: ``recovery`` says what to do) and
+    :attr:`problem` keeps saying so (see integrity.py).
     """
 
-    def __init__(self, url: str | sa.URL, cell_id: str) -> None:
+    def __init__(self, url: str | sa.URL, cell_id: str, recovery: str = DEFAULT_RECOVERY) -> None:
         if not cell_id:
             raise InvalidInput("store: cell_id must not be empty")
         self.url = parse_url(url)
         self.cell_id = cell_id
+        self.recovery = recovery
+        self._damaged: str | None = None  # kept until the process ends: only a restore mends it
+        self._unavailable: str | None = None  # cleared by the next call that succeeds
         self.backend: Backend = backend_of(self.url)
         self._engine = make_engine(self.url)
         try:
@@ -101,6 +90,30 @@ class Store:
         """The URL without its password (for logs and CLI output)."""
         return self.url.render_as_string(hide_password=True)
 
+    @property
+    def problem(self) -> str | None:
+        """Why the store cannot be used, as last met by a call (damage stays reported); None: fine."""
+        return self._damaged or self._unavailable
+
+    def _failed(self, exc: sa.exc.DBAPIError) -> StoreError:
+        err = store_error(exc, self.describe(), self.backend, self.recovery)
+        return self._note(err)
+
+    def _note(self, err: StoreError) -> StoreError:
+        if isinstance(err, StoreDamaged):
+            self._damaged = self._damaged or str(err)
+        elif isinstance(err, StoreUnavailable):
+            self._unavailable = str(err)
+        return err
+
+    def _loads(self, text: str, what: str) -> Any:
+        """Stored JSON text parsed; text that does not parse means the storage was damaged."""
+        try:
+            return json.loads(text)
+        except ValueError as exc:
+            raise self._note(StoreDamaged(f"store {self.describe()} is damaged ({what} is not JSON: {exc}); "
+                                          f"{self.recovery}")) from None
+
     @contextmanager
     def _read(self) -> Iterator[sa.Connection]:
         try:
@@ -109,7 +122,8 @@ class Store:
         except sa.exc.IntegrityError:
             raise
         except sa.exc.DBAPIError as exc:  # unreachable server, locked/damaged file, not a database ...
-            raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
+            raise self._failed(exc) from exc
+        self._unavailable = None
 
     @contextmanager
     def _write(self) -> Iterator[sa.Connection]:
@@ -124,7 +138,8 @@ class Store:
         except sa.exc.IntegrityError:
             raise
         except sa.exc.DBAPIError as exc:
-            raise StoreError(f"store {self.describe()}: {_first_line(exc)}") from exc
+            raise self._failed(exc) from exc
+        self._unavailable = None
 
     def _create_schema(self) -> None:
         with self._write() as conn:
@@ -167,8 +182,8 @@ class Store:
         what it was computed from (observations, robot poses). The version number is one more than
         the highest stored for that key. Nothing is ever overwritten.
         """
-        _check_key(kind, camera_id, robot_id)
-        _check_text(creator, "creator")
+        check_key(kind, camera_id, robot_id)
+        check_text(creator, "creator")
         if not isinstance(result, dict) or not isinstance(inputs, dict):
             raise InvalidInput("save_calibration: result and inputs must be dicts")
         result_json = to_json_text(result, "calibration result")
@@ -229,7 +244,7 @@ class Store:
 
         Activating the version that is already active changes nothing but is still logged.
         """
-        _check_text(who, "who")
+        check_text(who, "who")
         with self._write() as conn:
             row = self._calibration_row(conn, cal_id)
             current = self._current_state(conn, row.kind, row.camera_id, row.robot_id)
@@ -248,7 +263,7 @@ class Store:
 
     def active(self, kind: CalibrationKind, camera_id: str, robot_id: str | None = None) -> CalibrationRecord | None:
         """The active version of (kind, camera_id, robot_id), or ``None`` when none is."""
-        _check_key(kind, camera_id, robot_id)
+        check_key(kind, camera_id, robot_id)
         with self._read() as conn:
             cal_id = self._active_id(conn, kind, camera_id, robot_id or "")
             if cal_id is None:
@@ -263,8 +278,8 @@ class Store:
         activation leaves none active (returns ``None``); with nothing to go back to it raises
         :class:`NothingToRollBack`.
         """
-        _check_key(kind, camera_id, robot_id)
-        _check_text(who, "who")
+        check_key(kind, camera_id, robot_id)
+        check_text(who, "who")
         rid = robot_id or ""
         key = describe_key(kind, camera_id, robot_id)
         a = S.activations.c
@@ -290,7 +305,7 @@ class Store:
     def activation_history(self, kind: CalibrationKind, camera_id: str,
                            robot_id: str | None = None) -> list[dict[str, Any]]:
         """Every activation/rollback of (kind, camera_id, robot_id), oldest first."""
-        _check_key(kind, camera_id, robot_id)
+        check_key(kind, camera_id, robot_id)
         a = S.activations.c
         with self._read() as conn:
             rows = conn.execute(sa.select(a.seq, a.calibration_id, a.action, a.who, a.at_s).where(
@@ -310,13 +325,13 @@ class Store:
 
     def _record(self, row: sa.Row[Any], active: bool) -> CalibrationRecord:
         if payload_sha256(row.result_json, row.inputs_json) != row.sha256:
-            raise CorruptRecord(f"calibration {row.id}: stored payload does not match its checksum; "
-                                "restore the store from a backup")
+            raise self._note(CorruptRecord(f"calibration {row.id}: stored payload does not match its checksum: the "
+                                           f"store {self.describe()} is damaged; {self.recovery}"))
         return CalibrationRecord(
             id=row.id, cell_id=row.cell_id, kind=row.kind, camera_id=row.camera_id, robot_id=row.robot_id or None,
             version=row.version, tool_version=row.tool_version, creator=row.creator, note=row.note,
-            created_s=row.created_s, active=active, result=json.loads(row.result_json),
-            inputs=json.loads(row.inputs_json), sha256=row.sha256)
+            created_s=row.created_s, active=active, result=self._loads(row.result_json, "a calibration"),
+            inputs=self._loads(row.inputs_json, "a calibration"), sha256=row.sha256)
 
     def _current_state(self, conn: sa.Connection, kind: str, camera_id: str, rid: str) -> sa.Row[Any] | None:
         a = S.activations.c
@@ -348,8 +363,8 @@ class Store:
 
     def audit(self, who: str, action: str, target: str, detail: dict[str, Any], result: str) -> None:
         """Log one act (a motion, a calibration change, a restore ...) with its result."""
-        _check_text(who, "who")
-        _check_text(action, "action")
+        check_text(who, "who")
+        check_text(action, "action")
         if not isinstance(detail, dict):
             raise InvalidInput("audit: detail must be a dict")
         with self._write() as conn:
@@ -366,7 +381,7 @@ class Store:
         with self._read() as conn:
             rows = conn.execute(q.order_by(t.id.desc()).limit(limit)).all()
         return [AuditEntry(id=r.id, cell_id=r.cell_id, at_s=r.at_s, who=r.who, action=r.action, target=r.target,
-                           detail=json.loads(r.detail_json), result=r.result) for r in rows]
+                           detail=self._loads(r.detail_json, "an audit entry"), result=r.result) for r in rows]
 
     # ------------------------------------------------------------------ recipes
 
@@ -374,8 +389,8 @@ class Store:
         """Store a new version of recipe ``recipe_id`` (the latest version is the one in force)."""
         if isinstance(recipe_id, bool) or not isinstance(recipe_id, int) or recipe_id < 0:
             raise InvalidInput(f"recipe id must be a non-negative integer (the PLC's recipe number), got {recipe_id!r}")
-        _check_text(name, "recipe name")
-        _check_text(who, "who")
+        check_text(name, "recipe name")
+        check_text(who, "who")
         if not isinstance(data, dict):
             raise InvalidInput("save_recipe: data must be a dict")
         data_json = to_json_text(data, "recipe data")
@@ -401,7 +416,7 @@ class Store:
         if row is None:
             which = f"recipe {recipe_id}" + (f" version {version}" if version is not None else "")
             raise NotFound(f"{which} not found in the store of cell {self.cell_id!r}; list them with list_recipes")
-        return _recipe(row)
+        return self._recipe(row)
 
     def list_recipes(self) -> list[Recipe]:
         """The latest version of every recipe, by recipe id."""
@@ -412,7 +427,21 @@ class Store:
                                                       r.version == latest.c.version)).where(
             r.cell_id == self.cell_id).order_by(r.recipe_id)
         with self._read() as conn:
-            return [_recipe(row) for row in conn.execute(q).all()]
+            return [self._recipe(row) for row in conn.execute(q).all()]
+
+    # ------------------------------------------------------------------ robot latches (latches.py)
+
+    def set_latch(self, robot_id: str, latched_by: str, reason: str, since_s: float, result: str = "stored") -> None:
+        """Store that ``robot_id`` is latched, with its audit entry (one transaction)."""
+        L.set_latch(self, robot_id, latched_by, reason, since_s, result)
+
+    def clear_latch(self, robot_id: str, who: str, result: str = "stored: cleared") -> bool:
+        """Store that ``who`` resumed ``robot_id``, with its audit entry; True when it was stored latched."""
+        return L.clear_latch(self, robot_id, who, result)
+
+    def latches(self) -> list[L.StoredLatch]:
+        """The robots stored latched (they are latched again when the service starts)."""
+        return L.stored_latches(self)
 
     # ------------------------------------------------------------------ whole-store
 
@@ -425,30 +454,7 @@ class Store:
     def is_empty(self) -> bool:
         return not any(self.counts().values())
 
-
-def _recipe(row: sa.Row[Any]) -> Recipe:
-    return Recipe(recipe_id=row.recipe_id, version=row.version, name=row.name, data=json.loads(row.data_json),
-                  creator=row.creator, created_s=row.created_s, cell_id=row.cell_id)
-
-
-def _check_key(kind: str, camera_id: str, robot_id: str | None) -> None:
-    if kind not in CALIBRATION_KINDS:
-        raise InvalidInput(f"calibration kind {kind!r} is not one of {', '.join(CALIBRATION_KINDS)}")
-    _check_text(camera_id, "camera_id")
-    if kind == "camera" and robot_id is not None:
-        raise InvalidInput("a camera calibration belongs to a camera alone; pass robot_id=None")
-    if kind != "camera" and robot_id is None:
-        raise InvalidInput(f"a {kind} calibration relates a camera to a robot; pass its robot_id")
-    if robot_id is not None:
-        _check_text(robot_id, "robot_id")
-
-
-def _check_text(value: object, what: str) -> None:
-    if not isinstance(value, str) or not value.strip():
-        raise InvalidInput(f"{what} must be a non-empty string, got {value!r}")
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(getattr(exc, "orig", None) or exc)
-    return text.strip().splitlines()[0] if text.strip() else type(exc).__name__
-
+    def _recipe(self, row: sa.Row[Any]) -> Recipe:
+        return Recipe(recipe_id=row.recipe_id, version=row.version, name=row.name, creator=row.creator,
+                      data=self._loads(row.data_json, f"recipe {row.recipe_id}"), created_s=row.created_s,
+                      cell_id=row.cell_id)

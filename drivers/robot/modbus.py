@@ -193,11 +193,10 @@ class ModbusRobot(RobotBase):
             except Exception as exc:  # a poll thread that dies would serve nothing: every failure is an outage
                 self._connected = False
                 # an outage counts once, from the first failed poll or stale read until the next good poll
-                self._outages.down(
-                    str(exc)
-                    if isinstance(exc, (DeviceUnavailable, DeviceOperationError))
-                    else (f"robot {self.robot_id}: unexpected {type(exc).__name__} while polling: {exc}")
-                )
+                reason = (str(exc) if isinstance(exc, (DeviceUnavailable, DeviceOperationError))
+                          else f"robot {self.robot_id}: unexpected {type(exc).__name__} while polling: {exc}")
+                if self._outages.down(reason):
+                    self._controller_dropped(reason)  # mid-sequence: latched as a Stop latches
                 with self._io_lock:
                     self._client.close()
                 if self._closing.wait(backoff.next_wait_s()):
@@ -243,7 +242,9 @@ class ModbusRobot(RobotBase):
             )
         age = now - s.host_time_s
         if age > self.config.state_max_age_s:
-            self._outages.down(self._outages.reason or f"state older than {self.config.state_max_age_s} s")
+            reason = self._outages.reason or f"state older than {self.config.state_max_age_s} s"
+            if self._outages.down(reason):
+                self._controller_dropped(reason)
             raise DeviceUnavailable(
                 f"robot {self.robot_id}: newest state is {age:.2f} s old (limit "
                 f"{self.config.state_max_age_s} s): {self._outages.reason or 'no answer'}; reconnecting"

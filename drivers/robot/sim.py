@@ -124,6 +124,7 @@ class SimRobot(RobotBase):
         except OutOfReach as exc:
             raise MotionRejected(f"robot {self.robot_id}: {exc}") from exc
         self._halt.clear()
+        world.move_started(speed_m_s)
         faults = world.scene.robot.faults
         self._moves += 1
         protective_halfway = (faults.protective_stop_after_moves is not None

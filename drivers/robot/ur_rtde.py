@@ -18,6 +18,11 @@ worker is refused, and control requests are refused at once with ``DeviceUnavail
 still tried, within ``stop_timeout_s``). The workers die with the process that owns the adapter.
 Moves are sent asynchronously (``moveL``/``moveJ`` with ``async=True``) and their completion is
 observed in the state stream, so ``stop()`` can interrupt them.
+
+**When the service dies, the arm stops.** Before every move the control worker arms the
+controller's RTDE watchdog (``setWatchdog(watchdog_min_frequency_hz)``) and then kicks it from its
+own process; when the kicks stop for 1/f s (the service killed, its workers with it, or hung) the
+controller stops the control script and the arm halts.
 """
 
 from __future__ import annotations
@@ -106,6 +111,11 @@ class URRTDESettings(BaseModel):
     joint_acceleration_rad_s2: float = Field(1.4, gt=0, le=40)
     position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
     joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
+    watchdog_min_frequency_hz: float = Field(
+        10.0, ge=1.0, le=125.0,
+        description="the controller's RTDE watchdog, armed for every move: with no update from us for "
+        "1/f s (the service died or hangs) the controller stops the arm",
+    )
 
 
 # -- the adapter ---------------------------------------------------------------------------------------
@@ -126,9 +136,9 @@ class URRTDERobot(RobotBase):
             settings if isinstance(settings, URRTDESettings) else URRTDESettings.model_validate(settings)
         )
         ctx = mp.get_context("spawn")
-        self._link = StateLink(robot_id, self.config, ctx)
-        self._control = ControlLink(robot_id, self.config.host, self.config.frequency_hz, ctx,
-                                    self._link.call_in_supervisor)
+        self._link = StateLink(robot_id, self.config, ctx, on_outage=self._controller_dropped)
+        self._control = ControlLink(robot_id, self.config.host, self.config.frequency_hz,
+                                    self.config.watchdog_min_frequency_hz, ctx, self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
         self._ever_connected = False
 
@@ -324,7 +334,7 @@ class URRTDERobot(RobotBase):
             if not s.metadata["program_running"]:
                 raise DeviceOperationError(
                     f"robot {self.robot_id}: the control script stopped during the move "
-                    "(target unreachable or stopped on the pendant)"
+                    "(target unreachable, stopped on the pendant, or its RTDE watchdog expired)"
                 )
             if arrived(s) and not s.moving:
                 return

@@ -1,10 +1,11 @@
 """The ``ur_rtde`` adapter's links to its worker processes: the supervised state stream and control.
 
 ``StateLink`` runs the state worker (``ur_rtde_worker.state_worker``) under a supervisor thread
-that restarts a dead or silent worker with exponential back-off and counts the outages.
-``ControlLink`` sends one request at a time to the control worker with a deadline and kills a
-worker that misses it. Every worker process is started by the supervisor thread (a long-lived
-thread: the workers' ``PR_SET_PDEATHSIG`` follows the thread that started them).
+that restarts a dead or silent worker with exponential back-off and counts the outages (telling
+``on_outage`` when one begins). ``ControlLink`` sends one request at a time to the control worker
+with a deadline and kills a worker that misses it (the worker kicks the controller's RTDE watchdog
+between requests). Every worker process is started by the supervisor thread (a long-lived thread:
+the workers' ``PR_SET_PDEATHSIG`` follows the thread that started them).
 """
 
 from __future__ import annotations
@@ -34,9 +35,12 @@ log = logging.getLogger(__name__)
 class StateLink:
     """The state worker, its shared memory, and the supervisor thread that keeps it running."""
 
-    def __init__(self, robot_id: str, config: URRTDESettings, ctx: SpawnContext) -> None:
+    def __init__(self, robot_id: str, config: URRTDESettings, ctx: SpawnContext,
+                 on_outage: Callable[[str], None] | None = None) -> None:
         self.robot_id = robot_id
         self.config = config
+        self.on_outage = on_outage
+        """Called with the reason when an outage begins (in whichever thread noticed it)."""
         self._ctx = ctx
         self.buffer = StateBuffer(ctx)
         self.outages = Outages()
@@ -111,7 +115,9 @@ class StateLink:
         age = self.buffer.age_s()
         if age is not None and age > self.config.state_max_age_s:
             stale_since = time.monotonic() - (age - self.config.state_max_age_s)
-            self.outages.down(self.reason or "RTDE state is stale", since_s=stale_since)
+            reason = self.reason or f"RTDE state is {age:.2f} s old"
+            if self.outages.down(reason, since_s=stale_since) and self.on_outage is not None:
+                self.on_outage(reason)
 
     @property
     def failure(self) -> str:
@@ -194,11 +200,12 @@ class StateLink:
 class ControlLink:
     """The control worker: one ``(op, args)`` request at a time, each with a deadline."""
 
-    def __init__(self, robot_id: str, host: str, frequency_hz: float, ctx: SpawnContext,
+    def __init__(self, robot_id: str, host: str, frequency_hz: float, watchdog_hz: float, ctx: SpawnContext,
                  spawn_in: Callable[[Callable[[], SpawnProcess]], SpawnProcess]) -> None:
         self.robot_id = robot_id
         self.host = host
         self.frequency_hz = frequency_hz
+        self.watchdog_hz = watchdog_hz
         self._ctx = ctx
         self._spawn_in = spawn_in
         self._lock = threading.Lock()
@@ -235,7 +242,7 @@ class ControlLink:
 
         def spawn() -> SpawnProcess:
             proc = self._ctx.Process(target=control_worker, name=f"ur-control-{self.robot_id}", daemon=True,
-                                     args=(self.host, self.frequency_hz, child, os.getpid()))
+                                     args=(self.host, self.frequency_hz, self.watchdog_hz, child, os.getpid()))
             proc.start()
             return proc
 

@@ -9,6 +9,12 @@ parent thread ends (``PR_SET_PDEATHSIG``; the adapter starts workers from its lo
 supervisor thread) and exits at once if its parent is already gone. ``ur_rtde`` may block with
 the GIL held, so no Python-level watcher could be relied on.
 
+The control worker arms the controller's **RTDE watchdog** before every move (``setWatchdog``:
+the control script stops, and the arm with it, when no input update arrives within 1/f s) and
+then kicks it (``kickWatchdog``) several times per period for as long as the control script runs
+(the script keeps a watchdog until it stops). The kicks come from this process, so when the
+service dies (its workers with it, above) or hangs the kicks stop and the controller halts the arm.
+
 Kept free of numpy/scipy/pydantic imports so that a worker starts in well under a second: a
 reconnect after an outage is one new process. (``spawn`` also imports the parent's main script in
 each worker, without running its ``if __name__ == "__main__"`` block: entry scripts that import
@@ -171,25 +177,62 @@ def state_worker(host: str, frequency_hz: float, buffer: StateBuffer, stop: Any,
         receiver.disconnect()
 
 
-class _Clients:
-    """The control worker's ur_rtde clients, (re)connected on first use."""
+KICKS_PER_WATCHDOG_PERIOD = 5
+"""Kicks sent per watchdog period (1/f): a few late or lost ones do not stop the arm."""
 
-    def __init__(self, host: str, frequency_hz: float) -> None:
+
+class _Clients:
+    """The control worker's ur_rtde clients, (re)connected on first use, and the watchdog they kick."""
+
+    def __init__(self, host: str, frequency_hz: float, watchdog_hz: float) -> None:
         self.host = host
         self.frequency_hz = frequency_hz
+        self.watchdog_hz = watchdog_hz
+        self.watchdog_armed = False
+        """True while the running control script has our watchdog (a new or restarted script has none)."""
+        self.last_kick_s = 0.0
         self.ctrl: Any = None
         self.io: Any = None
         self.dash: Any = None
+
+    @property
+    def kick_period_s(self) -> float:
+        return 1.0 / (self.watchdog_hz * KICKS_PER_WATCHDOG_PERIOD)
 
     def control(self) -> Any:
         if self.ctrl is None or not self.ctrl.isConnected():
             import rtde_control
 
+            self.watchdog_armed = False
             self.ctrl = rtde_control.RTDEControlInterface(self.host, self.frequency_hz)
         elif not self.ctrl.isProgramRunning():
+            self.watchdog_armed = False
             self.ctrl.reuploadScript()
             time.sleep(0.3)
         return self.ctrl
+
+    def _armed_control(self) -> Any:
+        """The control interface with the watchdog armed in its script: no move is sent without it."""
+        ctrl = self.control()
+        if not self.watchdog_armed:
+            if not ctrl.setWatchdog(self.watchdog_hz):
+                raise RuntimeError(f"the controller did not arm the RTDE watchdog ({self.watchdog_hz:g} Hz); "
+                                   "the move was not sent")
+            self.watchdog_armed = True
+            self.last_kick_s = time.monotonic()
+        return ctrl
+
+    def kick_if_due(self) -> None:
+        """Kick the armed watchdog when a kick period has passed since the last one."""
+        if not self.watchdog_armed or time.monotonic() - self.last_kick_s < self.kick_period_s:
+            return
+        self.last_kick_s = time.monotonic()
+        try:
+            alive = self.ctrl is not None and self.ctrl.isConnected() and self.ctrl.kickWatchdog()
+        except Exception:  # noqa: BLE001 - a lost connection: the next move reconnects and arms again
+            alive = False
+        if not alive:  # the script stopped (its watchdog with it) or the connection is gone
+            self.watchdog_armed = False
 
     def io_interface(self) -> Any:
         if self.io is None or not self.io.isConnected():
@@ -208,9 +251,9 @@ class _Clients:
 
     def run(self, op: str, args: tuple[Any, ...]) -> Any:
         if op == "moveL":
-            return self.control().moveL(*args)
+            return self._armed_control().moveL(*args)
         if op == "moveJ":
-            return self.control().moveJ(*args)
+            return self._armed_control().moveJ(*args)
         if op in ("stopL", "stopJ"):
             # nothing to stop when no control connection was ever made
             return None if self.ctrl is None else getattr(self.ctrl, op)(*args)
@@ -229,13 +272,17 @@ class _Clients:
                     obj.disconnect()
 
 
-def control_worker(host: str, frequency_hz: float, conn: Connection, parent_pid: int) -> None:
-    """Answer ``(op, args)`` requests on ``conn`` with ``("ok", result)`` or ``("error", text)``."""
+def control_worker(host: str, frequency_hz: float, watchdog_hz: float, conn: Connection, parent_pid: int) -> None:
+    """Answer ``(op, args)`` requests on ``conn`` with ``("ok", result)`` or ``("error", text)``;
+    between requests, kick the controller's watchdog while it is armed."""
     _die_with_parent(parent_pid)
     _quiet_stdout()
-    clients = _Clients(host, frequency_hz)
+    clients = _Clients(host, frequency_hz, watchdog_hz)
     while True:
         try:
+            if not conn.poll(clients.kick_period_s if clients.watchdog_armed else None):
+                clients.kick_if_due()
+                continue
             op, args = conn.recv()
         except (EOFError, OSError):
             break
@@ -246,4 +293,5 @@ def control_worker(host: str, frequency_hz: float, conn: Connection, parent_pid:
             conn.send(("ok", clients.run(op, args)))
         except Exception as exc:
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        clients.kick_if_due()
     clients.disconnect()

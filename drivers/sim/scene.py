@@ -20,9 +20,19 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from calibration.camera_model import CameraModel
 from calibration.geometry import ur_pose_to_transform
 from calibration.targets import PlanarTarget, target_from_dict
+from drivers.sim.production_spec import ProductionSpec
 
 SCENE_FORMAT_VERSION = 1
 BUILTIN_SCENE = Path(__file__).with_name("scenes") / "virtual-cell.yaml"
+BUILTIN_SCENES = {"production": Path(__file__).with_name("scenes") / "production.yaml"}
+"""Scenes a sim device's ``scene`` setting may name instead of giving a path."""
+
+
+def resolve_scene(path: str | Path | None) -> Path | None:
+    """A scene setting as a path: a built-in scene's name (``production``) or the path itself."""
+    if path is None or str(path) == "":
+        return None
+    return BUILTIN_SCENES.get(str(path), Path(path))
 
 
 class SceneError(ValueError):
@@ -221,6 +231,8 @@ class SceneSpec(_Strict):
     parts: list[PartSpec] = []
     tool_feature: ToolFeatureSpec | None = None
     """A feature on the tool for a fixed camera to see (the tool centre); none when absent."""
+    production: ProductionSpec | None = None
+    """Parts as objects a sim gripper picks and places (``drivers.sim.production``); none when absent."""
 
     def T_tool_cam(self) -> np.ndarray | None:
         c = self.camera
@@ -249,7 +261,8 @@ def scene_from_dict(data: Any, source: str = "scene") -> SceneSpec:
 
 def load_scene(path: str | Path | None = None) -> SceneSpec:
     """Read a scene file (default: the built-in virtual cell)."""
-    p = Path(path) if path is not None else BUILTIN_SCENE
+    resolved = resolve_scene(path)
+    p = resolved if resolved is not None else BUILTIN_SCENE
     try:
         data = yaml.safe_load(p.read_text())
     except OSError as exc:

@@ -20,7 +20,9 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
-from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene
+from drivers.sim.production import ProductionParts
+from drivers.sim.production_view import production_objects, production_truth
+from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene, resolve_scene
 
 
 class SimWorld:
@@ -41,6 +43,9 @@ class SimWorld:
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
         self._reflectance_cache: tuple[bytes, NDArray[np.float64], NDArray[np.float64]] | None = None
+        prod = scene.production
+        self.production = None if prod is None else ProductionParts(prod, scene.table.z_m, scene.seed)
+        """The production scene's parts (picked and placed by a sim gripper); None without one."""
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -104,6 +109,11 @@ class SimWorld:
             angle = self._rng.normal(0.0, np.radians(spec.repeatability_deg))
             self._T_report_error = g.make_transform(g.rotvec_to_matrix(axis * angle), dt)
 
+    def move_started(self, speed_m_s: float) -> None:
+        """The robot starts a move at ``speed_m_s``: a held part may slip (``production.gripper.slip_accel_m_s2``)."""
+        if self.production is not None:
+            self.production.move_started(speed_m_s, self.T_base_tool_true)
+
     # -- camera -----------------------------------------------------------------------------------
     def T_base_cam(self) -> NDArray[np.float64]:
         fixed = self.scene.T_base_cam_fixed()
@@ -134,6 +144,8 @@ class SimWorld:
                 for spec, target in self._targets]
         table = self.scene.table
         T_cam_table = T_cam_base @ g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
+        if self.production is not None:
+            objs.extend(production_objects(self.production, T_cam_base, self.T_base_tool_true))
         for part in reversed(self.scene.parts):
             r_m = float(np.max(np.linalg.norm(np.asarray(part.outline_mm, dtype=np.float64), axis=1))) / 1000.0
             x_m, y_m = part.x_mm / 1000.0, part.y_mm / 1000.0
@@ -153,6 +165,8 @@ class SimWorld:
         imaging = Imaging(**im.model_dump(exclude={"supersample"}))
         with self._lock:
             key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
+            if self.production is not None:
+                key += self.production.key(self.T_base_tool_true)
             if any(spec.attached_to == "tool" for spec, _ in self._targets):
                 key += self.T_base_tool_true.tobytes()  # a target on the tool moves with it
             cached = self._reflectance_cache
@@ -219,6 +233,10 @@ class SimWorld:
         T_tool_cam = self.scene.T_tool_cam()
         if T_tool_cam is not None:
             out["T_tool_cam"] = T_tool_cam.tolist()
+        if self.production is not None:
+            # A production scene's parts are objects with a state (INTERFACES: /sim/truth).
+            out.update(production_truth(self.production, self.camera_model, self.T_base_cam(),
+                                        self.T_base_tool_true))
         feature = self.scene.tool_feature
         if feature is not None:  # the tool centre's truth: the feature's offset from the flange, mm
             T_tool_feature = g.make_transform(np.eye(3), np.asarray(feature.offset_mm) * 1e-3)
@@ -271,6 +289,7 @@ _WORLDS_LOCK = threading.Lock()
 
 def world_for(scene_path: str | Path | None, seed: int | None = None) -> SimWorld:
     """The shared world of a scene file (built-in when ``None``), created on first use."""
+    scene_path = resolve_scene(scene_path)
     key = (str(Path(scene_path).resolve()) if scene_path else "built-in", -1 if seed is None else seed)
     with _WORLDS_LOCK:
         world = _WORLDS.get(key)

@@ -1,4 +1,4 @@
-"""The auth matrix: each route x each role x no/bad token, on a served cell with three tokens."""
+"""The auth matrix: each route x each role x no/bad token, on the app (in-process) with three tokens."""
 
 from __future__ import annotations
 
@@ -7,11 +7,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from cellctl.cli import main
-from tests.conftest import Served, start_served, stop_served
+from tests.support.app import AppCell, in_process_cell
 
 ROLES = ("viewer", "operator", "engineer")
 RANK = {r: i for i, r in enumerate(ROLES)}
@@ -54,7 +53,7 @@ ROUTES: list[tuple[str, str, dict[str, Any] | None, str]] = [
 
 
 @pytest.fixture(scope="module")
-def served_with_tokens(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dict[str, str]]]:
+def cell_with_tokens(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[AppCell, dict[str, str]]]:
     tmp = tmp_path_factory.mktemp("auth")
     cfg = tmp / "cell.yaml"
     from cellctl.config import default_config_text
@@ -67,38 +66,34 @@ def served_with_tokens(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tup
                      "--out", str(out)]) == 0
         tokens[role] = json.loads(out.read_text())["token"]
     assert tokens["viewer"] not in cfg.read_text()  # stored hashed only
-    served = start_served(tmp, config=cfg, token=tokens["engineer"])
-    assert not list((tmp / "data").glob("*.session-token"))  # tokens configured: no session token
-    try:
-        yield served, tokens
-    finally:
-        stop_served(served)
+    with in_process_cell(tmp, config=cfg, token=tokens["engineer"]) as cell:
+        yield cell, tokens
 
 
 @pytest.mark.parametrize(("method", "path", "body", "least"), ROUTES, ids=[f"{m} {p}" for m, p, _, _ in ROUTES])
-def test_auth_matrix(served_with_tokens: tuple[Served, dict[str, str]], method: str, path: str,
+def test_auth_matrix(cell_with_tokens: tuple[AppCell, dict[str, str]], method: str, path: str,
                      body: dict[str, Any] | None, least: str) -> None:
-    served, tokens = served_with_tokens
-    with httpx.Client(base_url=served.base_url, timeout=30) as http:
-        r = http.request(method, path, json=body)
-        assert r.status_code == 401, (method, path, r.status_code)
-        r = http.request(method, path, json=body, headers={"Authorization": "Bearer not-a-token"})
-        assert r.status_code == 401
-        assert r.json()["error"]["code"] == "unauthorized"
-        for role in ROLES:
-            r = http.request(method, path, json=body, headers={"Authorization": f"Bearer {tokens[role]}"})
-            if RANK[role] < RANK[least]:
-                assert r.status_code == 403, (method, path, role, r.status_code, r.text)
-                assert r.json()["error"]["code"] == "forbidden"
-            else:
-                assert r.status_code not in (401, 403, 500), (method, path, role, r.status_code, r.text)
+    cell, tokens = cell_with_tokens
+    http = cell.client
+    r = http.request(method, path, json=body)
+    assert r.status_code == 401, (method, path, r.status_code)
+    r = http.request(method, path, json=body, headers={"Authorization": "Bearer not-a-token"})
+    assert r.status_code == 401
+    assert r.json()["error"]["code"] == "unauthorized"
+    for role in ROLES:
+        r = http.request(method, path, json=body, headers={"Authorization": f"Bearer {tokens[role]}"})
+        if RANK[role] < RANK[least]:
+            assert r.status_code == 403, (method, path, role, r.status_code, r.text)
+            assert r.json()["error"]["code"] == "forbidden"
+        else:
+            assert r.status_code not in (401, 403, 500), (method, path, role, r.status_code, r.text)
 
 
-def test_open_routes_need_no_token(served_with_tokens: tuple[Served, dict[str, str]]) -> None:
-    served, _ = served_with_tokens
+def test_open_routes_need_no_token(cell_with_tokens: tuple[AppCell, dict[str, str]]) -> None:
+    cell, _ = cell_with_tokens
     for path in ("/health", "/openapi.json", "/docs", "/redoc", "/docs/assets/swagger-ui-bundle.js", "/",
                  "/ui/main.js"):
-        assert httpx.get(served.base_url + path, timeout=10).status_code == 200
+        assert cell.client.get(path).status_code == 200
 
 
 def test_refuses_non_loopback_without_tokens(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -78,7 +78,7 @@ def test_pick_pose_matches_truth_after_the_part_moved(services: Services) -> Non
     part = world.scene.parts[0]
     before = run_pick(services, 1)
     assert before["picks"] and before["picks"][0]["part"] == "bracket"
-    yaw0 = before["picks"][0]["part_yaw_deg"]
+    yaw0 = before["picks"][0]["base_yaw_deg"]
     p0 = before["picks"][0]["pick_pose"]
     assert math.hypot(p0["x_mm"] - part.x_mm, p0["y_mm"] - part.y_mm) < 0.3
     # The part is put down elsewhere, turned by 45 degrees.
@@ -89,7 +89,7 @@ def test_pick_pose_matches_truth_after_the_part_moved(services: Services) -> Non
     p = best["pick_pose"]
     assert math.hypot(p["x_mm"] - part.x_mm, p["y_mm"] - part.y_mm) < 0.3
     assert abs(p["z_mm"] - 5.0) < 1e-6
-    turn = (best["part_yaw_deg"] - yaw0 + 180) % 360 - 180
+    turn = (best["base_yaw_deg"] - yaw0 + 180) % 360 - 180
     assert abs(abs(turn) - 45.0) < 0.2
     assert best["uncertainty"]["sigma_mm"][0] > 0
     assert after["latency_ms"]["total"] > 0 and after["image_url"] == f"/frames/{after['frame_id']}.png"

@@ -46,6 +46,7 @@ def test_remove_and_add_take_effect_without_restart(tmp_path: Path) -> None:
     plc = str(_cli("token", "add", "--config", str(cfg), "--name", "plc", "--role", "operator")["token"])
     served = start_served(tmp_path, config=cfg, token=keep)
     try:
+        assert not list((tmp_path / "data").glob("*.session-token"))  # tokens configured: no session token
         base = served.base_url
         assert _status_becomes(base, plc, 200) == 200
         assert _cli("token", "list", "--config", str(cfg))["tokens"] == [

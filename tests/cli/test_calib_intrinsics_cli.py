@@ -17,6 +17,7 @@ from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
 from cellctl.cli import main
 from drivers.sim.imaging import Imaging, PlanarObject, render
+from tests.support.cli import run_cli
 
 CELLCTL = str(Path(sys.executable).parent / "cellctl")
 TRUTH = CameraModel("opencv5", 640, 480, np.array([[600.0, 0, 322], [0, 600, 238], [0, 0, 1]]),
@@ -39,10 +40,9 @@ def image_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> None:
     out, rep, yml = tmp_path / "cam.json", tmp_path / "r.html", tmp_path / "cam.yaml"
-    p = subprocess.run([CELLCTL, "calib", "intrinsics", "--target", str(image_dir.parent / "board.yaml"),
-                        "--model", "opencv5", str(image_dir), "--out", str(out), "--report", str(rep),
-                        "--export-opencv", str(yml), "--cross-validate", "2"],
-                       capture_output=True, text=True, timeout=120)
+    p = run_cli("calib", "intrinsics", "--target", str(image_dir.parent / "board.yaml"),
+                "--model", "opencv5", str(image_dir), "--out", str(out), "--report", str(rep),
+                "--export-opencv", str(yml), "--cross-validate", "2")
     assert p.returncode == 0, p.stderr
     cam = json.loads(out.read_text())
     assert json.loads(p.stdout) == cam
@@ -140,3 +140,21 @@ def _few(tmp_path: Path, det: Path) -> Path:
     f = tmp_path / "few.json"
     f.write_text(json.dumps(data))
     return f
+
+
+@pytest.mark.parametrize(("content", "words"), [
+    (b'{"image": "a.png", "points": []}', "holds a JSON object"),
+    (b"[1, 2]", "entries are not detections"),
+    (bytes(range(256)) * 4, "not a text file"),
+    (b"[{", "not valid JSON"),
+])
+def test_detections_that_are_not_a_detection_list_are_one_line(tmp_path: Path, content: bytes, words: str) -> None:
+    det = tmp_path / "det.json"
+    det.write_bytes(content)
+    target = tmp_path / "board.yaml"
+    target.write_text("type: chessboard\ncols: 9\nrows: 6\nsquare_mm: 25\n")
+    r = run_cli("calib", "intrinsics", "--target", str(target), "--model", "opencv5", "--detections", str(det))
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr
+    assert str(det) in lines[0] and words in lines[0] and "cellctl detect" in lines[0]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -14,14 +13,13 @@ from calibration.camera_model import CameraModel
 from calibration.geometry import make_transform
 from calibration.targets import CirclePlate
 from drivers.sim.imaging import Imaging, PlanarObject, render
+from tests.support.cli import run_cli, run_process
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 DATA = Path(__file__).resolve().parents[2] / "tests" / "data"
 PLATE_YAML = "type: circle_plate\ncols: 7\nrows: 7\npitch_mm: 12.5\ndiameter_mm: 6.25\n"
 
 
-def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([CELLCTL, *args], capture_output=True, text=True, timeout=120)
+run = run_cli  # the same main() in-process; run_process: the console script, once
 
 
 def _plate_image(path: Path) -> None:
@@ -39,7 +37,7 @@ def test_detect_plate_json_and_out_file(tmp_path: Path) -> None:
     image = tmp_path / "plate.png"
     _plate_image(image)
     out = tmp_path / "det.json"
-    r = run("detect", "--target", str(target), str(image), "--out", str(out))
+    r = run_process("detect", "--target", str(target), str(image), "--out", str(out))
     assert r.returncode == 0, r.stderr
     result = json.loads(r.stdout)
     assert json.loads(out.read_text()) == result

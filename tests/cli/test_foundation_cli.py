@@ -10,14 +10,12 @@ import cv2
 import pytest
 
 from tests.conftest import CELLCTL, REPO
-
-
-def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([CELLCTL, *args], capture_output=True, text=True, timeout=120, cwd=cwd)
+from tests.support.cli import run_cli as run
 
 
 def test_config_default_prints_the_example() -> None:
-    r = run("config", "default")
+    """The console script itself (the other tests call its ``main`` in-process)."""
+    r = subprocess.run([CELLCTL, "config", "default"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0
     assert r.stdout == (REPO / "deploy" / "examples" / "virtual-cell.yaml").read_text()
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +15,8 @@ from calibration.npoint import fit_npoint
 from calibration.synthetic import simulate_handeye, simulate_npoint
 from calibration.targets import Chessboard
 from cellctl.cli import main
+from tests.support.cli import run_cli, run_process
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
                   np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
 
@@ -53,19 +51,18 @@ def test_map_eye_in_hand(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     err = np.array([out["x_mm"], out["y_mm"], out["z_mm"]]) - P * 1e3
     assert np.linalg.norm(err) < 3 * out["sigma"]["total_mm"] < 3.0
     # missing robot pose: one clear line, exit 2
-    r = subprocess.run([CELLCTL, "map", "--calib", str(he), "--plane-z-mm", "0", "100", "100"],
-                       capture_output=True, text=True, timeout=60)
+    r = run_process("map", "--calib", str(he), "--plane-z-mm", "0", "100", "100")  # the entry point once
     assert r.returncode == 2 and "robot pose at capture" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([CELLCTL, "map", "--calib", str(he), "--plane-z-mm", "0", "--robot-pose", "1,2,3",
-                        "100", "100"], capture_output=True, text=True, timeout=60)
+    r = run_cli("map", "--calib", str(he), "--plane-z-mm", "0", "--robot-pose", "1,2,3",
+                        "100", "100")
     assert r.returncode == 2 and "six numbers" in r.stderr
 
 
 def test_map_bad_calibration_file(tmp_path: Path) -> None:
     bad = tmp_path / "x.json"
     bad.write_text("{not json")
-    r = subprocess.run([CELLCTL, "map", "--calib", str(bad), "1", "2"], capture_output=True, text=True, timeout=60)
+    r = run_cli("map", "--calib", str(bad), "1", "2")
     assert r.returncode == 2 and "not valid JSON" in r.stderr
     bad.write_text(json.dumps({"hello": 1}))
-    r = subprocess.run([CELLCTL, "map", "--calib", str(bad), "1", "2"], capture_output=True, text=True, timeout=60)
+    r = run_cli("map", "--calib", str(bad), "1", "2")
     assert r.returncode == 2 and "np.json" in r.stderr

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +12,8 @@ from calibration.camera_model import CameraModel
 from calibration.io import write_pairs_csv
 from calibration.synthetic import simulate_npoint
 from cellctl.cli import main
+from tests.support.cli import run_cli, run_process
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 CAM = CameraModel("opencv5", 1920, 1200, np.array([[1900.0, 0, 960], [0, 1900.0, 600], [0, 0, 1]]),
                   np.array([-0.1, 0.02, 0.0, 0.0, 0.0]))
 
@@ -41,11 +39,10 @@ def test_npoint_tilted_camera(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 def test_npoint_bad_input(tmp_path: Path) -> None:
     p = tmp_path / "pairs.csv"
     p.write_text("u_px,v_px,x_mm,y_mm\n100,100,0,0\n200,200,10,-10\n300,300,20,-20\n400,400,30,-30\n")
-    r = subprocess.run([CELLCTL, "calib", "npoint", "--pairs", str(p)], capture_output=True, text=True, timeout=60)
+    r = run_process("calib", "npoint", "--pairs", str(p))  # the entry point once
     assert r.returncode == 2 and "collinear" in r.stderr and "Traceback" not in r.stderr
     p.write_text("u,v,x,y\n1,2,3,4\n")
-    r = subprocess.run([CELLCTL, "calib", "npoint", "--pairs", str(p)], capture_output=True, text=True, timeout=60)
+    r = run_cli("calib", "npoint", "--pairs", str(p))
     assert r.returncode == 2 and "header must be u_px,v_px,x_mm,y_mm" in r.stderr
-    r = subprocess.run([CELLCTL, "calib", "npoint", "--pairs", str(tmp_path / "none.csv")], capture_output=True,
-                       text=True, timeout=60)
+    r = run_cli("calib", "npoint", "--pairs", str(tmp_path / "none.csv"))
     assert r.returncode == 2 and "cannot read" in r.stderr

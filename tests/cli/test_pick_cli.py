@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,13 +13,12 @@ import pytest
 
 from cellctl.pick.model import FORMAT_VERSION
 from tests.support import pick_scenes as synth
+from tests.support.cli import run_cli, run_process
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 SIZE = (640, 480)
 
 
-def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([CELLCTL, *args], capture_output=True, text=True, timeout=120)
+run = run_cli  # the same main() in-process; run_process: the console script, once
 
 
 @dataclass
@@ -48,7 +45,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> Files:
 def test_teach_then_find(files: Files) -> None:
     d = files.dir
     model = d / "bracket.json"
-    r = run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out", str(model))
+    r = run_process("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--out", str(model))
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["mode"] == "shape" and summary["reference_px"] == [320.0, 240.0]

@@ -4,17 +4,12 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 from calibration.report import png_dpi
+from tests.support.cli import run_cli, run_process
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
-
-
-def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([CELLCTL, *args], capture_output=True, text=True, timeout=120)
+run = run_cli  # the same main() in-process; run_process: the console script, once
 
 
 def test_render_each_format(tmp_path: Path) -> None:
@@ -22,7 +17,8 @@ def test_render_each_format(tmp_path: Path) -> None:
     target.write_text("type: circle_plate\ncols: 7\nrows: 7\npitch_mm: 12.5\ndiameter_mm: 6.25\n")
     for ext in ("svg", "pdf", "png"):
         out = tmp_path / f"plate.{ext}"
-        r = run("target", "render", "--target", str(target), "--out", str(out), "--dpi", "200")
+        runner = run_process if ext == "svg" else run  # the entry point once
+        r = runner("target", "render", "--target", str(target), "--out", str(out), "--dpi", "200")
         assert r.returncode == 0, r.stderr
         summary = json.loads(r.stdout)
         # page: the plate (frame inner edge (cols + 1) pitches, frame and white rim one pitch each side)

@@ -18,6 +18,8 @@ from drivers.registry import adapter_class, kinds
 def _settings(kind: str, tmp_path: Path) -> dict[str, object]:
     if kind == "modbus":
         return {"host": "127.0.0.1", "port": 1, "timeout_s": 0.2}  # nothing listens on port 1
+    if kind == "sim_gripper":
+        return {"scene": None}  # the built-in virtual cell has no production parts: nothing to grip
     return {"port": str(tmp_path / "no-such-tty")}
 
 

@@ -276,3 +276,49 @@ def test_register_codec_types_word_order_and_scale() -> None:
         spec = RegisterSpec(address=0, data_type="int32", scale=1.0)
         regs = r._encode(spec, 0x00010002)
         assert regs == ([1, 2] if order == "big" else [2, 1])
+
+
+MOVING_OWNER = """
+import sys
+from drivers.base import MotionLimits
+from drivers.robot.modbus import ModbusRobot
+r = ModbusRobot("plc0", {"host": "127.0.0.1", "port": int(sys.argv[1]), "timeout_s": 0.3, "state_max_age_s": 0.3},
+                MotionLimits(x_mm=(-900, 900), y_mm=(-900, 900), z_mm=(0, 900), max_linear_speed_m_s=1.0))
+r.connect()
+target = r.state().T_base_tool.copy()
+target[1, 3] += 0.25
+print("moving", flush=True)
+r.move_linear(target, 0.1)  # 2.5 s; the test kills this process on the way
+"""
+
+
+def test_kill_9_of_the_owner_mid_move_the_plc_watchdog_halts_the_robot(sim: PeerProcess) -> None:
+    """The process that drives the robot dies mid-move: our heartbeat (register 50) stops changing and
+    the simulated PLC stops the move within its watchdog (1 s), reporting error 2 (watchdog expired)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    port = int(sim.args[1])
+    watcher = ModbusRobot("watcher", _settings(port, heartbeat_out_address=None), LIMITS)  # reads; no heartbeat
+    owner = subprocess.Popen([sys.executable, "-c", MOVING_OWNER, str(port)],
+                             cwd=Path(__file__).resolve().parents[2], stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL)
+    try:
+        watcher.connect()
+        y0 = watcher.state().T_base_tool[1, 3]
+        wait_for(lambda: watcher.state().T_base_tool[1, 3] - y0 > 0.03, 30.0)  # 0.3 s into the move
+        y_kill = watcher.state().T_base_tool[1, 3]
+        owner.kill()
+        owner.wait(timeout=10)
+        wait_for(lambda: watcher.state().metadata["status"] == "error", 1.0 + 1.0)  # the watchdog, plus margin
+        y_halt = watcher.state().T_base_tool[1, 3]
+        assert y_halt - y_kill < 0.1 * (1.0 + 0.2 + 0.5)  # heartbeat period + watchdog + margin, at 0.1 m/s
+        assert y0 + 0.25 - y_halt > 0.05  # short of the target
+        time.sleep(0.3)
+        assert watcher.state().T_base_tool[1, 3] == y_halt  # frozen
+    finally:
+        watcher.close()
+        if owner.poll() is None:
+            owner.kill()
+            owner.wait(timeout=10)

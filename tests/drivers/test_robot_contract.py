@@ -283,7 +283,9 @@ def test_replay_refuses_motion_but_keeps_playing(rig: Rig) -> None:
 
 
 @pytest.mark.parametrize("rig", MOVING, indirect=True)
-def test_peer_drop_mid_move_raises_unavailable_then_the_adapter_reconnects(rig: Rig) -> None:
+def test_peer_drop_mid_move_raises_unavailable_latches_and_the_adapter_reconnects(rig: Rig) -> None:
+    """The controller vanishes mid-move: the move fails as unavailable and the robot is latched as a
+    Stop latches it; when the controller is back, nothing moves until an engineer resumes."""
     robot = rig.robot
     start = robot.state().T_base_tool
     mover = Mover(lambda: robot.move_linear(offset(start, dx_m=DX_M), SPEED_M_S))
@@ -294,10 +296,52 @@ def test_peer_drop_mid_move_raises_unavailable_then_the_adapter_reconnects(rig: 
     with pytest.raises(DeviceUnavailable):
         robot.state()
     assert not health(robot).available
-    with pytest.raises(DeviceUnavailable):
+    status = robot.motion.status()
+    assert status["latched"] and status["latched_by"] == "controller", status
+    assert "controller dropped out" in status["latched_reason"]
+    with pytest.raises(RobotStopped, match="resume"):
         robot.move_linear(start, 0.1)  # refused while the controller is gone, never queued
     rig.restore()
     wait_until(lambda: health(robot).available, 20.0)
+    here = robot.state().T_base_tool
+    with pytest.raises(RobotStopped, match="resume"):
+        robot.move_linear(offset(here, dz_m=0.01), 0.1)  # back, but latched: no move without a resume
+    assert distance_mm(robot.state().T_base_tool, here) < 0.5
+    assert robot.resume() is True
+    robot.move_linear(offset(here, dz_m=0.01), 0.1)
+    assert distance_mm(robot.state().T_base_tool, offset(here, dz_m=0.01)) < 0.5
+
+
+@pytest.mark.parametrize("rig", ["modbus", "ur_rtde"], indirect=True)
+def test_peer_drop_between_the_moves_of_a_sequence_latches(rig: Rig) -> None:
+    """A sequence owns the robot (a pick, a routine) and the controller drops out between two moves:
+    even when it is back before the next move, the sequence is aborted and the robot latched."""
+    robot = rig.robot
+    start = robot.state().T_base_tool
+    with robot.motion_session("contract test", "a two-move sequence") as session:
+        robot.move_linear(offset(start, dz_m=0.01), 0.1, session=session)
+        rig.drop()
+        wait_until(lambda: not health(robot).available, 10.0)
+        rig.restore()
+        wait_until(lambda: health(robot).available, 20.0)
+        with pytest.raises(RobotStopped, match="controller dropped out"):
+            robot.move_linear(start, 0.1, session=session)
+    assert robot.motion.status()["latched_by"] == "controller"
+    with pytest.raises(RobotStopped, match="resume"):
+        robot.move_linear(start, 0.1)
+    assert robot.resume() is True
+    robot.move_linear(start, 0.1)
+
+
+@pytest.mark.parametrize("rig", MOVING, indirect=True)
+def test_peer_drop_while_idle_does_not_latch(rig: Rig) -> None:
+    """A controller lost while nothing moves or owns the robot is an outage, not a latch."""
+    robot = rig.robot
+    rig.drop()
+    wait_until(lambda: not health(robot).available, 10.0)
+    rig.restore()
+    wait_until(lambda: health(robot).available, 20.0)
+    assert not robot.motion.latched
     here = robot.state().T_base_tool
     robot.move_linear(offset(here, dz_m=0.01), 0.1)
     assert distance_mm(robot.state().T_base_tool, offset(here, dz_m=0.01)) < 0.5

@@ -52,3 +52,80 @@ def test_arm_kinematics_round_trip_and_a_linear_move() -> None:
     finished = c.arm.step(1.5)  # past its 1 s duration
     assert finished is not None and c.arm.moves_completed == 1
     np.testing.assert_allclose(c.arm.T, target, atol=1e-9)
+
+
+def _running_script(c: Controller, now: float) -> None:
+    """The control script uploaded and started (the script server's part, without sockets)."""
+    c.script.script_arrived(c.arm, now)
+    c.step(now + 0.2)
+    assert c.script.program_running
+
+
+def _command(c: Controller, now: float, cmd: int, doubles: list[float], asynchronous: bool = False) -> None:
+    """One ``ur_rtde`` command through the input registers: sent, done, cleared (each an input package)."""
+    from drivers.peers.ur_emulator.rtde import apply_inputs
+
+    regs = {f"input_double_register_{i}": v for i, v in enumerate(doubles)}
+    apply_inputs(c, {"input_int_register_0": cmd, **regs, "input_int_register_1": int(asynchronous)})
+    c.step(now)
+    assert c.script.out_int[0] == 2, "the command was not done"
+    apply_inputs(c, {"input_int_register_0": 0})
+    c.step(now + 0.002)
+
+
+def test_rtde_watchdog_stops_the_program_and_the_arm_when_the_inputs_stop() -> None:
+    """setWatchdog (command 35, f from input double register 0) arms the script's watchdog on
+    input_int_register_0: fed, the move goes on; silent for longer than 1/f, the program stops and the
+    arm halts where it is. A stall of the emulator itself (one long tick) is not taken for silence."""
+    from drivers.peers.ur_emulator.rtde import apply_inputs
+    from drivers.peers.ur_emulator.script import CMD_MOVEL, CMD_SET_WATCHDOG
+
+    c = Controller()
+    t = 100.0
+    _running_script(c, t)
+    t += 0.2
+    _command(c, t, CMD_SET_WATCHDOG, [10.0])  # 10 Hz: a gap over 0.1 s stops the program
+    assert c.script.watchdog_hz == 10.0
+    start = c.arm.T.copy()
+    pose = T_to_pose(start)
+    pose[0] += 0.25  # 250 mm at 0.05 m/s: 5 s
+    t += 0.01
+    _command(c, t, CMD_MOVEL, [*pose, 0.05, 1.2], asynchronous=True)
+    for _ in range(50):  # 1 s of kicks every 20 ms (kickWatchdog's packages carry register 0)
+        for _tick in range(10):
+            t += 0.002
+            c.step(t)
+        apply_inputs(c, {"input_int_register_0": 0})
+    assert c.script.program_running and c.arm.motion is not None
+    c.step(t + 1.0)  # the emulator's own process stalled for 1 s: counted as one 10 ms tick, not silence
+    t += 1.0
+    assert c.script.program_running and c.script.watchdog_trips == 0
+    for _tick in range(60):  # then 120 ms of silence at the controller's 500 Hz
+        t += 0.002
+        c.step(t)
+    assert not c.script.program_running and c.script.watchdog_trips == 1
+    assert "RTDE watchdog" in c.script.stop_reason
+    assert c.arm.motion is None and c.script.watchdog_hz == 0.0  # the watchdog ends with the program
+    frozen = c.arm.T.copy()
+    moved_m = float(np.linalg.norm(frozen[:3, 3] - start[:3, 3]))
+    assert 0.09 < moved_m < 0.12  # 2.1 s at 0.05 m/s (the arm moved through the stall): far from 250 mm
+    for _tick in range(100):
+        t += 0.002
+        c.step(t)
+    np.testing.assert_array_equal(c.arm.T, frozen)
+
+
+def test_kick_watchdog_is_a_command_the_script_finishes_and_waits_to_have_cleared() -> None:
+    """kickWatchdog's command 99 is not one of the script's realtime commands: done, then ready after a clear."""
+    from drivers.peers.ur_emulator.rtde import apply_inputs
+    from drivers.peers.ur_emulator.script import CMD_KICK_WATCHDOG
+
+    c = Controller()
+    _running_script(c, 0.0)
+    apply_inputs(c, {"input_int_register_0": CMD_KICK_WATCHDOG})
+    c.step(0.3)
+    c.step(0.302)
+    assert c.script.out_int[0] == 2
+    apply_inputs(c, {"input_int_register_0": 0})
+    c.step(0.304)
+    assert c.script.out_int[0] == 1

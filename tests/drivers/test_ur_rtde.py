@@ -404,3 +404,48 @@ def test_kill_9_of_the_owner_takes_its_workers_with_it(ur_emulator: PeerProcess)
         for p in _children(owner.pid):
             with contextlib.suppress(OSError):
                 os.kill(p, signal.SIGKILL)
+
+
+MOVING_OWNER = """
+import sys
+import numpy as np
+from drivers.base import MotionLimits
+from drivers.robot.ur_rtde import URRTDERobot
+r = URRTDERobot("ur0", {"host": "127.0.0.1", "connect_timeout_s": 20.0, "state_max_age_s": 0.3},
+                MotionLimits(x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5))
+r.connect()
+target = r.state().T_base_tool.copy()
+target[0, 3] += 0.25
+print("moving", flush=True)
+r.move_linear(target, 0.05)  # 5 s; the test kills this process on the way
+"""
+
+
+def test_kill_9_of_the_owner_mid_move_the_rtde_watchdog_halts_the_arm(ur_emulator: PeerProcess) -> None:
+    """The process that drives the arm dies mid-move: its control worker dies with it, the watchdog's
+    kicks stop, and the controller stops the program and the arm within the watchdog period (10 Hz)."""
+    import rtde_receive
+
+    receiver = rtde_receive.RTDEReceiveInterface("127.0.0.1")
+    owner = subprocess.Popen([sys.executable, "-c", MOVING_OWNER], cwd=Path(__file__).resolve().parents[2],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        x0 = receiver.getActualTCPPose()[0]
+        wait_for(lambda: receiver.getActualTCPPose()[0] - x0 > 0.03, 30.0)  # 0.6 s into the move
+        x_kill = receiver.getActualTCPPose()[0]
+        owner.kill()
+        t_kill = time.monotonic()
+        owner.wait(timeout=10)
+        wait_for(lambda: receiver.getRuntimeState() != 2, 2.0)  # the control script was stopped
+        halted_s = time.monotonic() - t_kill
+        x_halt = receiver.getActualTCPPose()[0]
+        assert halted_s < 0.1 + 0.5  # the watchdog period, plus a margin for a loaded machine
+        assert x_halt - x_kill < 0.05 * (0.1 + 0.5)
+        time.sleep(0.3)
+        assert receiver.getActualTCPPose()[0] == x_halt  # frozen
+        assert x0 + 0.25 - x_halt > 0.15  # far from the target
+    finally:
+        receiver.disconnect()
+        if owner.poll() is None:
+            owner.kill()
+            owner.wait(timeout=10)

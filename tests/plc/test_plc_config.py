@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import socket
 import time
 from collections.abc import Iterator
@@ -94,3 +95,78 @@ def test_modbus_server_starts_and_stops_from_the_config(tmp_path: Path) -> None:
         svc.close()
     with socket.socket() as s:
         assert s.connect_ex(("127.0.0.1", port)) != 0  # the port is free again
+
+
+ZONE = "plc.insecure_plc_network: true"
+
+
+@pytest.mark.parametrize("plc", [
+    {"opcua": {"enabled": True, "host": "0.0.0.0"}},
+    {"opcua": {"enabled": True, "host": "192.168.10.5", "security": "none"}, "allow_motion": False},
+    {"opcua": {"enabled": True, "host": "plc-net.example"}},  # a name may resolve to anything
+    {"modbus": {"enabled": True, "host": "192.168.10.5"}, "allow_motion": True},
+    {"modbus": {"enabled": True, "host": "::"}, "allow_motion": True},
+])
+def test_an_unauthenticated_server_beyond_loopback_needs_the_zone_decision(tmp_path: Path,
+                                                                           plc: dict[str, object]) -> None:
+    """OPC UA without security, or Modbus that may move the robot, off loopback: refused at load,
+    naming the key and the IEC 62443 zone decision; accepted once the config records it."""
+    key = "plc.opcua.security none" if "opcua" in plc else "plc.allow_motion with plc.modbus"
+    with pytest.raises(ConfigError, match=f"{key} on .*not loopback.*IEC 62443 zone.*{ZONE}"):
+        parse_config(config_with(tmp_path, plc))
+    cfg = parse_config(config_with(tmp_path, {**plc, "insecure_plc_network": True}))
+    assert cfg.plc.insecure_plc_network and cfg.plc.zone_problem() is None
+
+
+@pytest.mark.parametrize("plc", [
+    {"opcua": {"enabled": True, "host": "127.0.0.1"}, "allow_motion": True},
+    {"opcua": {"enabled": True, "host": "::1"}},
+    {"opcua": {"enabled": True, "host": "localhost"}},
+    {"opcua": {"enabled": False, "host": "0.0.0.0"}},  # not served: nothing exposed
+    {"opcua": {"enabled": True, "host": "0.0.0.0", "security": "basic256sha256", "cert": "c.pem", "key": "k.pem",
+               "trusted_client_certs": "trusted"}, "allow_motion": True},
+    {"modbus": {"enabled": True, "host": "127.0.0.2"}, "allow_motion": True},
+    {"modbus": {"enabled": True, "host": "192.168.10.5"}},  # no motion: picks and verify only (warned)
+    {"modbus": {"enabled": False, "host": "192.168.10.5"}, "allow_motion": True},
+])
+def test_loopback_secured_or_motionless_servers_need_no_zone_decision(tmp_path: Path,
+                                                                      plc: dict[str, object]) -> None:
+    cfg = parse_config(config_with(tmp_path, plc))
+    assert not cfg.plc.insecure_plc_network and cfg.plc.zone_problem() is None
+
+
+def test_the_zone_check_also_holds_for_a_config_built_in_code(services: Services) -> None:
+    """A config changed with model_copy skips pydantic's validators: the servers still refuse to start."""
+    plc = services.config.plc.model_copy(update={
+        "allow_motion": True, "modbus": services.config.plc.modbus.model_copy(update={
+            "enabled": True, "host": "192.168.10.5", "port": free_port()})})
+    unsafe = Services(services.config.model_copy(update={"plc": plc}), services.cell, services.store, services.jobs)
+    with pytest.raises(OSError, match=f"plc.allow_motion with plc.modbus on 192.168.10.5.*{ZONE}"):
+        start_plc_servers(unsafe)
+    from cellctl.plc import preflight
+
+    with pytest.raises(OSError, match=ZONE):
+        preflight(unsafe.config)
+
+
+def test_serve_refuses_to_start_without_the_zone_decision(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from cellctl.cli import main
+
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(config_with(tmp_path, {"opcua": {"enabled": True, "host": "0.0.0.0"}})))
+    assert main(["serve", "--config", str(path), "--port", str(free_port())]) == 2
+    err = capsys.readouterr().err
+    assert "plc.opcua.security none on 0.0.0.0" in err and ZONE in err
+    assert not (tmp_path / "cell.db").exists()  # refused before anything was opened
+
+
+@pytest.mark.parametrize("page", ["plc-modbus.md", "plc-opcua.md"])
+def test_the_docs_plc_sections_parse(tmp_path: Path, page: str) -> None:
+    """Every ``plc:`` example of the PLC pages is a valid config (the zone decision ones included)."""
+    from tests.conftest import REPO
+
+    blocks = re.findall(r"```yaml\n(.*?)```", (REPO / "docs" / page).read_text(), flags=re.S)
+    sections = [yaml.safe_load(b)["plc"] for b in blocks if b.startswith("plc:")]
+    assert any(s.get("insecure_plc_network") for s in sections)
+    for plc in sections:
+        parse_config(config_with(tmp_path, plc))

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import random
+import sqlite3
+from pathlib import Path
 from typing import Any
 
 from cellctl.store import Store
@@ -60,3 +63,19 @@ def without_ids(snap: dict[str, Any]) -> dict[str, Any]:
         "recipe_versions": snap["recipe_versions"],
         "audit": [{**e.to_dict(), "id": None, "target": target(e.target)} for e in snap["audit"]],
     }
+
+
+def damage_table(db: Path, table: str, seed: int = 7) -> None:
+    """Write random bytes over the first page of ``table`` in the SQLite file ``db`` (its WAL folded in
+    first; nothing may have the file open): what a failing disk or a stray write does to a store."""
+    conn = sqlite3.connect(db)
+    try:
+        conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        (root,) = conn.execute("SELECT rootpage FROM sqlite_master WHERE type = 'table' AND name = ?",
+                               (table,)).fetchone()
+        (page_size,) = conn.execute("PRAGMA page_size").fetchone()
+    finally:
+        conn.close()
+    with db.open("r+b") as f:
+        f.seek((root - 1) * page_size)
+        f.write(random.Random(seed).randbytes(page_size))

@@ -21,7 +21,7 @@ from cellctl.store import (
     NothingToRollBack,
     RestoreRefused,
     Store,
-    StoreError,
+    StoreDamaged,
     StoreFormatError,
     open_store,
     store_url,
@@ -320,7 +320,7 @@ def test_open_store_follows_the_config(tmp_path: Path, monkeypatch: pytest.Monke
     with pytest.raises(InvalidInput, match="in-memory SQLite"):
         Store("sqlite://", "c")
     (tmp_path / "junk.db").write_bytes(b"this is not a database" * 100)
-    with pytest.raises(StoreError, match="junk.db: file is not a database"):
+    with pytest.raises(StoreDamaged, match=r"junk.db is damaged \(file is not a database\).*cellctl store restore"):
         Store(f"sqlite:///{tmp_path / 'junk.db'}", "c")
 
 

@@ -356,3 +356,64 @@ def roi_at_scale(roi: tuple[float, float, float, float], k: float) -> tuple[floa
     u, v, w, h = roi
     cx, cy = (u + w / 2.0 + 0.5) / k - 0.5, (v + h / 2.0 + 0.5) / k - 0.5
     return (cx - w / (2 * k), cy - h / (2 * k), w / k, h / k)
+
+
+# ----------------------------------------------------------------------------- look-alike distractors
+
+
+def mirrored_part(part: PartShape) -> PartShape:
+    """The part's mirror image (x -> -x about its reference point): the part lying face down."""
+    flip = np.array([-1.0, 1.0])
+    return PartShape(f"{part.name}-mirrored", part.outer[::-1] * flip, tuple(h[::-1] * flip for h in part.holes))
+
+
+def part_without_hole(part: PartShape, index: int) -> PartShape:
+    """The part with its hole ``index`` left out: a similar part lacking one feature."""
+    holes = tuple(h for k, h in enumerate(part.holes) if k != index)
+    return PartShape(f"{part.name}-without-hole-{index}", part.outer, holes)
+
+
+def _clip_half(poly: FloatArray, normal: FloatArray) -> FloatArray:
+    """The polygon's part where ``p . normal <= 0`` (Sutherland-Hodgman against one line)."""
+    out: list[FloatArray] = []
+    n = len(poly)
+    for k in range(n):
+        a, b = poly[k], poly[(k + 1) % n]
+        da, db = float(a @ normal), float(b @ normal)
+        if da <= 0:
+            out.append(a)
+        if (da <= 0) != (db <= 0):
+            out.append(a + (b - a) * (da / (da - db)))
+    return np.array(out, dtype=np.float64).reshape(-1, 2)
+
+
+def part_half(part: PartShape, angle_deg: float = 0.0) -> PartShape:
+    """The part cut in two through its reference point by a line at ``angle_deg`` (part frame): the
+    half on the side the line's normal points away from. Holes cut by the line open into notches
+    (drawn as holes of the clipped outline); holes beyond it go."""
+    a = math.radians(angle_deg)
+    normal = np.array([-math.sin(a), math.cos(a)])
+    outer = _clip_half(part.outer, normal)
+    holes = tuple(c for c in (_clip_half(h, normal) for h in part.holes) if len(c) >= 3)
+    return PartShape(f"{part.name}-half-{angle_deg:g}", outer, holes)
+
+
+def distractor_scene(distractor: PartShape, rng: np.random.Generator, n: int = 4,
+                     size: tuple[int, int] = (1280, 960)) -> NDArray[np.uint8]:
+    """``n`` instances of a look-alike at random poses on the bench's imaging conditions (clutter,
+    uneven light, noise 1-3 grey levels): an image where the part itself is nowhere."""
+    w, h = size
+    placed: list[Instance] = []
+    r = distractor.extent_px() + 6
+    tries = 0
+    while len(placed) < n and tries < 500:
+        tries += 1
+        u, v = rng.uniform(r, w - r), rng.uniform(r, h - r)
+        if all(math.hypot(u - p.u_px, v - p.v_px) >= 2 * r for p in placed):
+            placed.append(Instance(distractor, float(u), float(v), float(rng.uniform(-180, 180))))
+    style = SceneStyle(background=float(rng.uniform(60, 110)), part_value=float(rng.uniform(170, 220)),
+                       blur_sigma_px=float(rng.uniform(0.5, 0.9)), noise_sigma=float(rng.uniform(1.0, 3.0)),
+                       light_gradient=float(rng.uniform(0.0, 0.4)), light_dir_deg=float(rng.uniform(0, 360)),
+                       clutter=15, size=size)
+    img, _ = render(placed, style, rng)
+    return img

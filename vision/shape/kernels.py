@@ -18,6 +18,7 @@ The discrete search's loops are in ``search_kernels``.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numba import njit
@@ -183,9 +184,46 @@ def percentile75(a: F64) -> float:
     return s[hi] - d * (1.0 - t) if t >= 0.5 else s[lo] + d * t
 
 
+_WARM = threading.Event()
+_WARM_LOCK = threading.Lock()
+
+
 def warm_up() -> None:
-    """Load (or compile) every kernel now, on tiny inputs: the first search then costs what the
-    next ones cost (loading the compiled code takes ~1 s the first time in a process)."""
+    """Load (or compile) every kernel now, on tiny inputs, once per process: the first search then
+    costs what the next ones cost. Loading the compiled code from numba's disk cache takes ~1 s;
+    compiling it on a cold cache ~20 s. Thread-safe: a second caller waits for the first; later
+    calls return at once. ``search.find`` calls it before its clock starts, so a search's
+    ``timeout_s`` never pays for it."""
+    if _WARM.is_set():
+        return
+    with _WARM_LOCK:
+        if not _WARM.is_set():
+            _load_all()
+            _WARM.set()  # before the search below, which calls warm_up() itself
+            _first_search()
+
+
+def _first_search() -> None:
+    """One small real search (teach a drawn part, find it turned): loads whatever compiled loop a
+    search reaches that ``_load_all`` does not name, and pays the first call's one-off costs on the
+    rest of the path (refinement, verification), so the next search costs what the hundredth does."""
+    import cv2
+
+    from vision.shape.model import teach
+    from vision.shape.search import find
+
+    img = np.full((240, 320), 60, np.uint8)
+    part = np.array([[110, 70], [210, 70], [210, 110], [160, 110], [160, 170], [110, 170]], np.int32)
+    cv2.fillPoly(img, [part], 190)
+    cv2.circle(img, (135, 95), 10, 60, -1)
+    img = cv2.GaussianBlur(img, (5, 5), 0.8)
+    model = teach(img, (90.0, 50.0, 140.0, 140.0))
+    M = cv2.getRotationMatrix2D((160.0, 120.0), 25.0, 1.0)
+    M[:, 2] += (7.3, -4.6)
+    find(model, cv2.warpAffine(img, M, (320, 240), borderValue=60))
+
+
+def _load_all() -> None:
     z2 = np.zeros((2, 2))
     z1 = np.zeros(2)
     associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)

@@ -18,12 +18,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
-from vision.shape.score import direction_score, find_threshold
+from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
 
 
 @dataclass
@@ -62,6 +63,18 @@ class Refined:
     n_points: int = 0
     """Model points that agree (an edge within 1 px, direction and polarity as asked)."""
     n_visible: int = 0
+    sigma_deg: float = float("nan")
+    """1-sigma of the angle from the final fit's residuals (level 0 only)."""
+    sigma_px: float = float("nan")
+    """1-sigma of the reference point's position (the larger axis), from the same."""
+    detail: PointDetail | None = None
+    """Per model point at the final pose (level 0 only): what the verification reads."""
+    grad_noise: float = 0.0
+    """The gradient magnitude (grey levels / px) that the image's noise reaches around the part."""
+    q: F64 | None = None
+    """(N, 2) the model points at the final pose, image pixels (level 0 only)."""
+    n: F64 | None = None
+    """(N, 2) their unit normals there."""
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -124,15 +137,76 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
+        sig_deg, sig_px = _pose_sigma(img_f, m, nrm_m, q, n, th, sc, min_contrast, fit_scale,
+                                      visible(q))
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
     vis = visible(q)
-    score, n_agree, n_vis = direction_score(G, q, n, vis, thr, polarity, min_visible)
+    score, n_agree, n_vis, detail = direction_detail(G, q, n, vis, thr, polarity, min_visible)
     inl = found & vis & (np.abs(d) < 1.0)
     rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
-    return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
+    if fine is None:
+        return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
+    return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, sig_deg, sig_px, detail,
+                   grad_noise(crop, sigma), q + np.array([x0, y0]), n)
+
+
+def _pose_sigma(img_f: F32, m: F64, nrm: F64, q: F64, n: F64, th: float, sc: float, min_contrast: float,
+                fit_scale: bool, vis: NDArray[np.bool_]) -> tuple[float, float]:
+    """1-sigma of the angle (deg) and of the position (px, larger axis) of the final fit: the
+    Gauss-Newton covariance ``s^2 (J^T J)^-1`` of the centroid edge offsets it fitted, ``s`` their
+    RMS about the fit. Neighbouring points see overlapping pixels (the profile's width): their errors
+    are not independent, so the covariance is scaled by the profile's width over the points' spacing
+    (the number of points per independent one)."""
+    k = 4 if fit_scale else 3
+    var_th, var_x, var_y, npts = _pose_var(img_f, np.ascontiguousarray(m), np.ascontiguousarray(q),
+                                           np.ascontiguousarray(n), th, sc, float(min_contrast), k, vis,
+                                           CENTROID_HALF_WIDTH)
+    if npts <= k + 2 or not var_th >= 0:
+        return float("nan"), float("nan")
+    return math.degrees(math.sqrt(var_th)), math.sqrt(max(var_x, var_y, 0.0))
+
+
+@njit(cache=True)
+def _pose_var(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_contrast: float, k: int,
+              vis: NDArray[np.bool_], half: int) -> tuple[float, float, float, int]:
+    """Variances of (theta, x, y) of a fit whose points ``q`` (normals ``n``) came from model
+    points ``m`` at angle ``th`` and scale ``sc``, and the points used (compiled; pick-speed)."""
+    off, S, clean = kernels.profile_centroids(img_f, q, n, half)
+    c, s = math.cos(th), math.sin(th)
+    A = np.zeros((4, 4))
+    ss = 0.0
+    cnt = 0
+    gap = 0.0
+    last_x, last_y = 0.0, 0.0
+    J = np.empty(4)
+    for i in range(q.shape[0]):
+        if not (clean[i] and abs(off[i]) < 1.0 and abs(S[i]) >= 0.5 * min_contrast and vis[i]):
+            continue
+        mx, my = m[i, 0], m[i, 1]
+        J[0] = n[i, 0]
+        J[1] = n[i, 1]
+        J[2] = sc * (n[i, 0] * (my * c - mx * s) + n[i, 1] * (-my * s - mx * c))
+        J[3] = n[i, 0] * (mx * c + my * s) + n[i, 1] * (-mx * s + my * c)
+        for r in range(4):
+            for cc in range(4):
+                A[r, cc] += J[r] * J[cc]
+        ss += off[i] * off[i]
+        if cnt > 0:
+            gap += min(math.hypot(q[i, 0] - last_x, q[i, 1] - last_y), 2.0 * half + 1.0)
+        last_x, last_y = q[i, 0], q[i, 1]
+        cnt += 1
+    if cnt <= k + 2:
+        return -1.0, -1.0, -1.0, cnt
+    spacing = gap / (cnt - 1)
+    corr = max((2.0 * half + 1.0) / max(spacing, 1e-9), 1.0)
+    Ak = A[:k, :k].copy()
+    for j in range(k):
+        Ak[j, j] += 1e-12
+    cov = np.linalg.inv(Ak) * (ss / (cnt - k)) * corr
+    return cov[2, 2], cov[0, 0], cov[1, 1], cnt
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,

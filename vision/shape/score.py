@@ -23,6 +23,7 @@ Own code (numba): OpenCV has no rotation-invariant shape score.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -74,6 +75,28 @@ def _grad_noise_per_grey(sigma: float) -> float:
     return _GRAD_NOISE[key]
 
 
+def grad_noise(crop: NDArray[np.uint8], sigma: float) -> float:
+    """The gradient magnitude (grey levels / px, smoothing ``sigma``) that the noise of ``crop`` reaches:
+    ``NOISE_FACTOR`` deviations of one gradient component (an edge weaker than this is not told from noise)."""
+    return NOISE_FACTOR * _grad_noise_per_grey(sigma) * noise_sigma_sparse(crop)
+
+
+def noise_sigma_sparse(img: NDArray[np.uint8], step: int = 3) -> float:
+    """``noise_sigma`` from the mask's response at every ``step``-th row and column only (the same
+    estimate from a ninth of the work; pick-speed)."""
+    h, w = img.shape
+    if h < 3 + step or w < 3 + step:
+        return noise_sigma(img)
+    ye, xe = h - 2, w - 2
+
+    def at(dy: int, dx: int) -> NDArray[np.float32]:
+        return img[dy:dy + ye:step, dx:dx + xe:step].astype(np.float32)
+
+    r = (at(0, 0) + at(0, 2) + at(2, 0) + at(2, 2) - 2 * (at(0, 1) + at(1, 0) + at(1, 2) + at(2, 1))
+         + 4 * at(1, 1))
+    return float(math.sqrt(math.pi / 2.0) / 6.0 * np.mean(np.abs(r)))
+
+
 def find_threshold(crop: NDArray[np.uint8], sigma: float, taught: float, part_grad: float) -> float:
     """The gradient threshold (grey levels / px) for fitting and scoring in ``crop``: the taught one,
     lowered for a faint part (``part_grad``: the gradient magnitude typical of the candidate's edges)
@@ -88,12 +111,13 @@ def find_threshold(crop: NDArray[np.uint8], sigma: float, taught: float, part_gr
 
 @njit(cache=True)
 def point_agreement(G: NDArray[np.float32], q: F64, n: F64, thr: float, reach: float, full: float,
-                    c0: float, step: float) -> tuple[F64, F64, F64, F64]:
+                    c0: float, step: float) -> tuple[F64, F64, F64, F64, F64]:
     """Per model point (image place ``q``, unit normal ``n``): the best agreement with an edge (a
     ridge of the gradient across it, above ``thr``) of the point's polarity and of the opposite
-    one within ``reach`` along the normal, and the distance (px, signed along ``n``) where each was
-    seen."""
+    one within ``reach`` along the normal, the distance (px, signed along ``n``) where each was
+    seen, and the strongest gradient magnitude met along the normal (grey levels / px)."""
     npts = q.shape[0]
+    gmax = np.zeros(npts)
     pos = np.zeros(npts)
     neg = np.zeros(npts)
     dpos = np.zeros(npts)
@@ -113,6 +137,8 @@ def point_agreement(G: NDArray[np.float32], q: F64, n: F64, thr: float, reach: f
             s = gx * nx + gy * ny
             gn[j] = abs(s)
             ms[j] = m2
+            if m2 > gmax[i]:
+                gmax[i] = m2
             cs[j] = s / math.sqrt(m2) if m2 > 0.0 else 0.0
         for j in range(1, ns - 1):
             # only on the edge itself (the ridge of the gradient across it): a blurred edge's flank
@@ -136,7 +162,47 @@ def point_agreement(G: NDArray[np.float32], q: F64, n: F64, thr: float, reach: f
             elif v > neg[i]:
                 neg[i] = v
                 dneg[i] = t
-    return pos, neg, dpos, dneg
+        gmax[i] = math.sqrt(gmax[i])
+    return pos, neg, dpos, dneg, gmax
+
+
+@dataclass
+class PointDetail:
+    """Per model point at a pose (the verification's input): the agreement counted in the score
+    (0..1, polarity rule applied), the polarity seen (+1 as taught, -1 reversed, 0 no edge), the
+    strongest gradient along the normal (grey levels / px) and whether the point is visible."""
+
+    agree: F64
+    sign: NDArray[np.int8]
+    gmax: F64
+    visible: NDArray[np.bool_]
+
+
+def direction_detail(G: NDArray[np.float32], q: F64, n: F64, visible: NDArray[np.bool_], thr: float,
+                     polarity: str, min_visible: float) -> tuple[float, int, int, PointDetail]:
+    """``direction_score`` with the per-point detail it was summed from."""
+    n_vis = int(np.count_nonzero(visible))
+    c0 = math.cos(math.radians(SCORE_MAX_ANGLE_DEG))
+    pos, neg, dpos, dneg, gmax = point_agreement(G, np.ascontiguousarray(q), np.ascontiguousarray(n), float(thr),
+                                                 SCORE_REACH_PX, SCORE_FULL_PX, c0, _STEP_PX)
+    pos = np.where(visible, pos, 0.0)
+    neg = np.where(visible, neg, 0.0)
+    agree_pos = (pos > 0) & (np.abs(dpos) <= 1.0)
+    agree_neg = (neg > 0) & (np.abs(dneg) <= 1.0)
+    if polarity == "ignore_local_polarity":
+        use_pos = pos >= neg
+    else:
+        use_pos = np.full(len(pos), polarity == "use_polarity" or float(pos.sum()) >= float(neg.sum()))
+    agree = np.where(use_pos, pos, neg)
+    sign = np.where(agree > 0, np.where(use_pos, 1, -1), 0).astype(np.int8)
+    detail = PointDetail(agree, sign, gmax, np.asarray(visible, dtype=np.bool_))
+    if n_vis == 0 or n_vis < min_visible * len(visible):
+        return 0.0, 0, n_vis, detail
+    if polarity == "ignore_local_polarity":
+        n_agree = int(np.count_nonzero(agree_pos | agree_neg))
+    else:
+        n_agree = int(np.count_nonzero(agree_pos if use_pos[0] else agree_neg))
+    return float(agree.sum()) / n_vis, n_agree, n_vis, detail
 
 
 def direction_score(G: NDArray[np.float32], q: F64, n: F64, visible: NDArray[np.bool_], thr: float,
@@ -144,20 +210,5 @@ def direction_score(G: NDArray[np.float32], q: F64, n: F64, visible: NDArray[np.
     """(score, agreeing points, visible points) of model points ``q`` with normals ``n`` on the
     two-channel gradient image ``G`` (the same pixels as ``q``). A point agrees when its edge is
     within 1 px with a direction inside the angle limit; the score is over the visible points."""
-    n_vis = int(np.count_nonzero(visible))
-    if n_vis == 0 or n_vis < min_visible * len(visible):
-        return 0.0, 0, n_vis
-    c0 = math.cos(math.radians(SCORE_MAX_ANGLE_DEG))
-    pos, neg, dpos, dneg = point_agreement(G, np.ascontiguousarray(q), np.ascontiguousarray(n), float(thr),
-                                           SCORE_REACH_PX, SCORE_FULL_PX, c0, _STEP_PX)
-    pos = np.where(visible, pos, 0.0)
-    neg = np.where(visible, neg, 0.0)
-    agree_pos = (pos > 0) & (np.abs(dpos) <= 1.0)
-    agree_neg = (neg > 0) & (np.abs(dneg) <= 1.0)
-    if polarity == "ignore_local_polarity":
-        best = np.maximum(pos, neg)
-        return float(best.sum()) / n_vis, int(np.count_nonzero(agree_pos | agree_neg)), n_vis
-    s_pos, s_neg = float(pos.sum()), float(neg.sum())
-    if polarity == "use_polarity" or s_pos >= s_neg:
-        return s_pos / n_vis, int(np.count_nonzero(agree_pos)), n_vis
-    return s_neg / n_vis, int(np.count_nonzero(agree_neg)), n_vis
+    s, n_agree, n_vis, _ = direction_detail(G, q, n, visible, thr, polarity, min_visible)
+    return s, n_agree, n_vis

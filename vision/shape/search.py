@@ -40,11 +40,13 @@ from numpy.typing import NDArray
 
 from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
+from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
-from vision.types import Candidate, FindResult, Match, SearchParams
+from vision.shape.verify import Contour, claimed, contour_of, verify
+from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, Rejected, SearchParams
 
 TOP_STEP_FACTOR = 1.8
 """Top-level angle step in units of 1/r: the outermost feature moves <= 0.7 px off a step."""
@@ -237,8 +239,11 @@ def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[
     return poses, best_low, timed_out
 
 
+Found = tuple[Match, Refined]
+
+
 def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bool, clock: Clock,
-                stats: dict[str, float]) -> tuple[list[Match], Candidate | None, bool]:
+                stats: dict[str, float]) -> tuple[list[Found], Refined | None, bool]:
     """Level-0 matches of one model (the taught one or its mirror image), not yet suppressed."""
     H0, W0 = pyr[0].shape
     L = model.top_level
@@ -268,12 +273,10 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
     stats["n_tracked"] = stats.get("n_tracked", 0.0) + len(cands)
     poses, low, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist,
                                      clock)
-    found = [Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
-                   r.n_points, r.n_visible)
+    found = [(Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
+                    r.n_points, r.n_visible, r.sigma_deg, r.sigma_px), r)
              for p, lv, r in poses if lv == 0 and su <= p.x <= su + sw and sv <= p.y <= sv + sh]
-    best = None if low is None else Candidate(low.pose.x, low.pose.y, wrap_deg(math.degrees(low.pose.theta)),
-                                              low.score)
-    return found, best, timed_out or t_out
+    return found, low, timed_out or t_out
 
 
 def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
@@ -284,34 +287,77 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     model points (``SearchParams.min_visible``).
     """
     sp = search or SearchParams()
+    warm_up()  # the compiled loops are loaded (or compiled) before the search's clock starts
     clock = Clock(sp.timeout_s)
     img = as_gray(image)
     stats: dict[str, float] = {}
     if img.size == 0 or min(img.shape) < 8:
         return FindResult([], False, clock.elapsed(), stats, None, sp.min_score)
     pyr = pyramid(img, model.top_level + 1)
-    found: list[Match] = []
-    best: Candidate | None = None
+    found: list[Found] = []
+    low: tuple[Refined, bool] | None = None
     timed_out = False
     for mirrored in (False, True) if sp.mirrored else (False,):
         m = model.mirrored() if mirrored else model
         f, b, t_out = _search_one(m, pyr, sp, mirrored, clock, stats)
         found += f
         timed_out |= t_out
-        if b is not None and (best is None or b.score > best.score):
-            best = b
+        if b is not None and (low is None or b.score > low[0].score):
+            low = (b, mirrored)
     u, v, w, h = model.roi
     min_dist = sp.min_distance_px if sp.min_distance_px is not None else min(w, h) / 3.0
-    # final non-maximum suppression on level 0; a part and its mirror image compete too, and the
-    # mirror image must win by a margin (a mirror-symmetric part matches both ways)
-    found.sort(key=lambda m: -m.score + (MIRROR_MARGIN if m.mirrored else 0.0))
-    final: list[Match] = []
-    for mt in found:
-        if all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2
-               and overlap(model.roi, mt, o) <= sp.max_overlap for o in final):
-            final.append(mt)
+    final, rejected = _verified(model, found, sp, min_dist)
     if sp.max_count is not None:
         final = final[:sp.max_count]
+    best = None
+    if low is not None:
+        r, mir = low
+        best = Candidate(r.pose.x, r.pose.y, wrap_deg(math.degrees(r.pose.theta)), r.score)
+        if r.detail is not None and r.q is not None:
+            lm = model.mirrored().levels[0] if mir else model.levels[0]
+            why = verify(lm, r.q, r.detail, r.grad_noise, max(r.score, MIN_SCORE_FLOOR), r.score).rejected_because
+            best.verdict = why or "pass"
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()
-    return FindResult(final, timed_out, clock.elapsed(), stats, best, sp.min_score)
+    return FindResult(final, timed_out, clock.elapsed(), stats, best, sp.min_score, rejected)
+
+
+def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist: float
+              ) -> tuple[list[Match], list[Rejected]]:
+    """Final non-maximum suppression on level 0 with the verification (``verify``): the matches kept,
+    best first, and the candidates that reached ``min_score`` but failed a check.
+
+    A part and its mirror image compete too, and the mirror image must win by a margin (a
+    mirror-symmetric part matches both ways). A candidate near a better match (closer than
+    ``min_dist`` or its rectangle overlapping by more than ``max_overlap``) is the same instance; a
+    candidate whose seen edges, less those on better matches' contours, score below ``min_score`` is
+    a ghost made of their edges (two touching identical parts)."""
+    found.sort(key=lambda t: -t[0].score + (MIRROR_MARGIN if t[0].mirrored else 0.0))
+    final: list[Match] = []
+    contours: list[Contour] = []
+    rejected: list[Rejected] = []
+    levels = {False: model.levels[0], True: model.mirrored().levels[0] if sp.mirrored else model.levels[0]}
+    for mt, r in found:
+        if any((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 < min_dist ** 2
+               or overlap(model.roi, mt, o) > sp.max_overlap for o in final):
+            continue
+        if r.detail is None or r.q is None or r.n is None:
+            final.append(mt)  # (not reached: every level-0 refinement carries its detail)
+            continue
+        vd = verify(levels[mt.mirrored], r.q, r.detail, r.grad_noise, sp.min_score, mt.score)
+        why = vd.rejected_because
+        if why is None:
+            seen = (r.detail.agree > 0) & r.detail.visible
+            mine = seen & ~claimed(r.q, r.n, seen, contours)
+            unclaimed = float(r.detail.agree[mine].sum()) / max(mt.n_visible, 1)
+            vd.scores["unclaimed"] = round(unclaimed, 4)
+            if unclaimed < sp.min_score:
+                why = (f"its edges are mostly those of better matches (unclaimed score {unclaimed:.2f} < "
+                       f"min_score {sp.min_score:g}): a ghost between neighbouring parts")
+        mt.scores = vd.scores
+        if why is None:
+            final.append(mt)
+            contours.append(contour_of(r.q, r.n))
+        elif all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2 for o in rejected):
+            rejected.append(Rejected(mt.u_px, mt.v_px, mt.angle_deg, mt.score, mt.mirrored, vd.scores, why))
+    return final, rejected

@@ -11,13 +11,15 @@ from fastapi import APIRouter, Body, Path, Query
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Engineer, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.store import NotFound, NothingToRollBack
+from cellctl.strict_types import Bool
 
 log = logging.getLogger(__name__)
-router = APIRouter(prefix="/calibrations", tags=["calibrations"])
+router = APIRouter(prefix="/calibrations", tags=["calibrations"], route_class=EdgeRoute)
 
 Kind = Literal["camera", "handeye", "npoint"]
 CalId = Annotated[int, Path(ge=1, le=2**62, description="calibration id")]
@@ -46,7 +48,7 @@ class RollbackInput(BaseModel):
 
 class ActivateInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    force: bool = Field(False, description="activate even though the calibration's verdict is not ok "
+    force: Bool = Field(False, description="activate even though the calibration's verdict is not ok "
                                            "(logged in the audit log with the problems)")
 
 

@@ -12,14 +12,16 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import JobInputError, TooManyJobs
-from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines import HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.strict_types import Num
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(tags=["jobs"], route_class=EdgeRoute)
 
 
 class JobPublic(BaseModel):
@@ -42,9 +44,9 @@ class RecordInput(BaseModel):
     """Operator input for a waiting routine (jog-to-mark: the tool is at the mark)."""
 
     model_config = ConfigDict(extra="forbid")
-    x_mm: float | None = Field(None, ge=-1e5, le=1e5,
+    x_mm: Num | None = Field(None, ge=-1e5, le=1e5,
                                description="robot x of the mark, mm (default: read from the robot)")
-    y_mm: float | None = Field(None, ge=-1e5, le=1e5,
+    y_mm: Num | None = Field(None, ge=-1e5, le=1e5,
                                description="robot y of the mark, mm (default: read from the robot)")
 
 
@@ -87,16 +89,19 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
         raise ApiError(403, "forbidden", f"routine {name} needs the engineer role; token {who.name!r} has {who.role}")
     module = routine(name)
     try:
-        module.Params.model_validate(params or {})
+        # Strict in JSON terms: a number is a JSON number (not true or "0.4"); JSON integers are fine floats.
+        module.Params.model_validate_json(json.dumps(params or {}), strict=True)
     except ValidationError as exc:
         msg = format_validation_errors(exc, with_input=False)
         raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
     motion = None
-    if moves:
+    robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
+    # A routine that measures with the robot still owns it too (when the cell has it), without moving it.
+    holds = name in HOLDS_ROBOT and ((params or {}).get("robot_id") is not None or robot_id in services.cell.robots)
+    if moves or holds:
         # The routine owns the robot's motion from now to its end: a second mover gets 409.
-        robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
         robot = services.cell.robot(str(robot_id)).device
-        motion = (robot, robot.motion.begin(who.name, f"routine {name}"))
+        motion = (robot, robot.motion.begin(who.name, f"routine {name}", still=holds and not moves))
     try:
         job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name, motion)
     except TooManyJobs as exc:
@@ -119,7 +124,7 @@ def _add_routine_route(name: str) -> None:
     async def start(request: Request, services: ServicesDep, who: Operator) -> dict[str, Any]:
         raw = await request.body()
         try:
-            params = json.loads(raw) if raw.strip() else None
+            params = await request.json() if raw.strip() else None  # the edge's parse (cellctl.api.body)
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ApiError(422, "invalid_params", f"routine {name}: the body is not JSON ({exc})") from None
         return await run_in_threadpool(_start, name, services, who, params)

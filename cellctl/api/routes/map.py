@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter
@@ -10,26 +10,28 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
 from calibration.measure import MappingError
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.mapping import NoCalibration, active_mapping, npoint_pose_check
 from cellctl.numbers import pixel_problem, point_problem, pose_envelope_problem, pose_ur_problem
+from cellctl.strict_types import Num
 
-router = APIRouter(tags=["map"])
+router = APIRouter(tags=["map"], route_class=EdgeRoute)
 
 
 class MapInput(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    u_px: float = Field(ge=-1e6, le=1e6)
-    v_px: float = Field(ge=-1e6, le=1e6)
+    u_px: Num = Field(ge=-1e6, le=1e6)
+    v_px: Num = Field(ge=-1e6, le=1e6)
     camera_id: str | None = None
     robot_id: str | None = None
-    plane_z_mm: float | None = Field(None, ge=-1e5, le=1e5, description="working plane height in the robot base "
-                                                                        "frame, mm (needed with a hand-eye "
-                                                                        "calibration)")
-    robot_pose_ur: list[float] | None = Field(None, min_length=6, max_length=6,
-                                              description="T_base_tool at capture (m, rad); default: now")
+    plane_z_mm: Num | None = Field(None, ge=-1e5, le=1e5, description="working plane height in the robot base "
+                                                                      "frame, mm (needed with a hand-eye "
+                                                                      "calibration)")
+    robot_pose_ur: list[Annotated[Num, Field(ge=-1e3, le=1e3)]] | None = Field(
+        None, min_length=6, max_length=6, description="T_base_tool at capture (m, rad); default: now")
     calibration: Literal["auto", "handeye", "npoint"] = "auto"
 
     @field_validator("robot_pose_ur")

@@ -12,6 +12,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Engineer, Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
@@ -20,28 +21,32 @@ from cellctl.pick.flow import PickError, Recipe, run_pick
 from cellctl.pick.frames import annotate
 from cellctl.pick.model import ModelFileError
 from cellctl.store import NotFound
+from cellctl.strict_types import Bool, Count, Num
 
 log = logging.getLogger(__name__)
-router = APIRouter(tags=["pick"])
+router = APIRouter(tags=["pick"], route_class=EdgeRoute)
+
+
+RoiPx = Annotated[Num, Field(ge=-1e5, le=1e5)]
 
 
 class RecipeInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    recipe_id: int = Field(ge=0, le=65535, description="the PLC's recipe number")
+    recipe_id: Count = Field(ge=0, le=65535, description="the PLC's recipe number")
     recipe: Recipe
 
 
 class PickInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    recipe_id: int = Field(ge=0, le=65535)
+    recipe_id: Count = Field(ge=0, le=65535)
     camera_id: str | None = None
-    move: bool = Field(False, description="pick the best reachable part with the robot (engineer role)")
+    move: Bool = Field(False, description="pick the best reachable part with the robot (engineer role)")
 
 
 class TeachInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
     camera_id: str | None = None
-    roi: tuple[float, float, float, float] = Field(description="U, V, W, H in pixels; reference point = centre")
+    roi: tuple[RoiPx, RoiPx, RoiPx, RoiPx] = Field(description="U, V, W, H in pixels; reference point = centre")
     mode: Literal["shape", "blob"] = "shape"
     name: str = Field("part", min_length=1, max_length=64)
 

@@ -2,24 +2,28 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calibration import geometry as g
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import CellDep, Engineer, Operator, Viewer, device_call, slot_or_404
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.api.pools import run_blocking
 from cellctl.motion import audited_move
 from cellctl.numbers import pose_ur_problem, transform_problem
 from cellctl.robot_state import state_to_json
+from cellctl.strict_types import Num
 from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 
-router = APIRouter(prefix="/robots", tags=["robots"])
+router = APIRouter(prefix="/robots", tags=["robots"], route_class=EdgeRoute)
 
 MAX_STATE_AGE_S = 1.0
 MOVE_TIMEOUT_S = 120.0
+LATCH_STORE_WAIT_S = 5.0
 
 
 class PoseUR(BaseModel):
@@ -30,6 +34,24 @@ class PoseUR(BaseModel):
     rx_rad: float
     ry_rad: float
     rz_rad: float
+
+
+Metres = Annotated[Num, Field(ge=-100.0, le=100.0)]
+"""A strict coordinate in metres (no bool, no string; beyond 100 m is no work cell)."""
+Radians = Annotated[Num, Field(ge=-10.0, le=10.0)]
+"""A strict rotation-vector component in radians (the vector's norm is checked to be one turn at most)."""
+
+
+class PoseURInput(BaseModel):
+    """A UR pose in a request: metres and a rotation vector in radians, each a JSON number."""
+
+    model_config = ConfigDict(extra="forbid")
+    x_m: Metres
+    y_m: Metres
+    z_m: Metres
+    rx_rad: Radians
+    ry_rad: Radians
+    rz_rad: Radians
 
 
 class RobotStatePublic(BaseModel):
@@ -75,13 +97,14 @@ class MoveInput(BaseModel):
     """A linear move of the tool to ``T_base_tool`` (4x4, m) or to a UR pose (m, rad); speed in m/s."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    T_base_tool: list[list[float]] | None = None
-    pose_ur: PoseUR | None = None
-    speed_m_s: float = Field(0.05, gt=0, le=5.0)
+    T_base_tool: list[Annotated[list[Annotated[Num, Field(ge=-1e3, le=1e3)]], Field(max_length=4)]] | None = Field(
+        None, max_length=4)
+    pose_ur: PoseURInput | None = None
+    speed_m_s: Num = Field(0.05, gt=0, le=5.0)
 
     @field_validator("pose_ur")
     @classmethod
-    def _pose_magnitudes(cls, v: PoseUR | None) -> PoseUR | None:
+    def _pose_magnitudes(cls, v: PoseURInput | None) -> PoseURInput | None:
         problem = None if v is None else pose_ur_problem(
             [v.x_m, v.y_m, v.z_m, v.rx_rad, v.ry_rad, v.rz_rad], "pose_ur")
         if problem:
@@ -137,24 +160,37 @@ async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operato
     try:
         await device_call(slot, lambda r: r.halt())
     except Exception as exc:
-        services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
-                             f"latched; halting failed: {exc}")
+        await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
+                           f"latched; halting failed: {exc}")
         raise
-    services.store.audit(who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
-    return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status()}
+    # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
+    await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
+    return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status(),
+            "latch_stored": await _latch_stored(services)}
 
 
 @router.post("/{robot_id}/resume")
-def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+async def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engineer) -> dict[str, Any]:
     """Clear the Stop latch (engineer): the robot may be moved again."""
     robot: Robot = _slot(cell, robot_id).device
-    was = robot.resume()
-    services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
-    return {"robot_id": robot_id, "resumed": was, **robot.motion.status()}
+
+    def clear() -> bool:
+        was = robot.resume(who.name)
+        services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
+        return was
+
+    was = await run_blocking(clear)  # the safety pool: a flood that fills the default pool cannot delay it
+    stored = await _latch_stored(services)
+    return {"robot_id": robot_id, "resumed": was, **robot.motion.status(), "latch_stored": stored}
+
+
+async def _latch_stored(services: ServicesDep) -> bool:
+    """True once the latch's change is in the store (it then outlives a crash); False after a few seconds."""
+    return services.latches is not None and await services.latches.wait_stored(LATCH_STORE_WAIT_S)
 
 
 @router.get("/{robot_id}/motion")
-def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
+async def motion_status(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
     """Whether the robot is latched by a Stop, and who owns its motion now."""
     robot: Robot = _slot(cell, robot_id).device
     return {"robot_id": robot_id, **robot.motion.status()}

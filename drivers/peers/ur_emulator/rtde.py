@@ -112,8 +112,9 @@ def _masked(old: int, values: dict[str, Any], name: str) -> int:
 
 
 def apply_inputs(ctrl: Controller, values: dict[str, Any]) -> None:
-    """Apply one RTDE input package: registers, digital outputs (masked), the speed slider."""
+    """Apply one RTDE input package: registers, digital outputs (masked), the speed slider; feed the watchdog."""
     s, arm = ctrl.script, ctrl.arm
+    s.input_updated(list(values))
     for name, v in values.items():
         if name.startswith("input_int_register_"):
             s.in_int[int(name.rsplit("_", 1)[1])] = int(v)

@@ -4,7 +4,15 @@ When a script arrives, the emulator plays the control script's part of the regis
 program running (robot status bits 0b11, runtime state 2) and output int register 0 = 1 (ready);
 a command in input int register 0 runs, output int register 0 = 2 when it is done, back to 1 when
 the client clears the command; 255 stops the script. The command codes are ``ur_rtde``'s
-``RobotCommand::Type``; ``input_int_register_1`` = 1 marks an asynchronous move.
+``RobotCommand::Type``; ``input_int_register_1`` = 1 marks an asynchronous move. The script's
+"realtime" commands (servo, speed, ...) are acknowledged at once and not simulated; every other
+command, an unknown one too, ends with "done" and waits for the client to clear it, as the script does.
+
+The **RTDE watchdog**: command 35 (``setWatchdog``) arms ``rtde_set_watchdog("input_int_register_0",
+f, "stop")`` with f (Hz) from input double register 0. From then on, while the script runs, every
+RTDE input package that carries ``input_int_register_0`` (every command ``ur_rtde``'s control
+interface sends, and its clears) feeds it; a gap longer than 1/f stops the program, which halts the
+arm where it is, and is logged. The watchdog ends with the program, as the controller's does.
 """
 
 from __future__ import annotations
@@ -31,8 +39,16 @@ CMD_STOPJ = 34
 CMD_FK_DEFAULT = 43
 CMD_FK_ARGS = 44
 CMD_STOP_SCRIPT = 255
-CONTINUOUS_CMDS = {9, 10, 11, 12, 24, 6, 99, 38, 25, 26, 27, 55}
-"""Commands the client does not wait for (servo/speed/force/watchdog...): acknowledged, ignored."""
+CMD_SET_WATCHDOG = 35
+CMD_KICK_WATCHDOG = 99
+REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+"""The control script's realtime commands (servo, speed, force...): ready again at once; not simulated.
+Every other command, ``kickWatchdog``'s 99 among them, is done once and then waits for a clear."""
+WATCHDOG_VARIABLE = "input_int_register_0"
+"""The input the script's watchdog watches (``ur_rtde`` without its upper register range)."""
+WATCHDOG_MAX_TICK_S = 0.01
+"""Silence is counted in controller ticks of at most this (s): a stall of the emulator's own process
+(a loaded test machine) is not taken for the client's silence, which a real-time controller never sees."""
 
 SCRIPT_START_S = 0.15
 """How long after the last script bytes the program counts as started (the controller compiles it)."""
@@ -49,6 +65,15 @@ class ControlScript:
     out_int: list[int] = field(default_factory=lambda: [0] * 48)
     out_double: list[float] = field(default_factory=lambda: [0.0] * 48)
     cmd_state: str = "ready"  # ready | busy | done
+    watchdog_hz: float = 0.0
+    """The armed watchdog's minimum input frequency (Hz); 0: none armed."""
+    watchdog_silent_s: float = 0.0
+    """Controller time since the watched input was last updated (s)."""
+    watchdog_trips: int = 0
+    """Programs the watchdog has stopped (since the emulator started)."""
+    stop_reason: str = ""
+    """Why the program last stopped (empty while it runs or before the first)."""
+    last_tick_s: float | None = None
 
     def runtime_state(self) -> int:
         return 2 if self.program_running else 1
@@ -62,7 +87,9 @@ class ControlScript:
     def stop(self, arm: Arm, reason: str) -> None:
         if self.program_running:
             log.info("control script stopped: %s", reason)
+            self.stop_reason = reason
         self.program_running = False
+        self.watchdog_hz = 0.0  # "all watchdogs are removed on program stop"
         arm.motion = None
         self.out_int[0] = 0
         self.cmd_state = "ready"
@@ -71,12 +98,33 @@ class ControlScript:
         self.cmd_state = "done"
         self.out_int[0] = 2
 
+    def input_updated(self, names: list[str]) -> None:
+        """An RTDE input package with ``names`` arrived: it feeds the watchdog if it carries its variable."""
+        if WATCHDOG_VARIABLE in names:
+            self.watchdog_silent_s = 0.0
+
+    def _check_watchdog(self, arm: Arm, now: float) -> None:
+        last, self.last_tick_s = self.last_tick_s, now
+        if not (self.program_running and self.watchdog_hz > 0) or last is None:
+            return
+        self.watchdog_silent_s += min(max(0.0, now - last), WATCHDOG_MAX_TICK_S)
+        period_s = 1.0 / self.watchdog_hz
+        if self.watchdog_silent_s > period_s:
+            moving = arm.motion is not None
+            self.watchdog_trips += 1
+            log.warning("RTDE watchdog: %s not updated for %.3f s (minimum %g Hz): program stopped%s",
+                        WATCHDOG_VARIABLE, self.watchdog_silent_s, self.watchdog_hz,
+                        ", the arm halted mid-move" if moving else "")
+            self.stop(arm, f"RTDE watchdog: {WATCHDOG_VARIABLE} not updated within {period_s:.3f} s")
+
     def step(self, arm: Arm, now: float) -> None:
-        """Start a script that has arrived, then run the register handshake of one tick."""
+        """Start a script that has arrived, check the watchdog, then run the register handshake of one tick."""
+        self._check_watchdog(arm, now)
         if self.receiving_since is not None and now - self.receiving_since > SCRIPT_START_S:
             self.receiving_since = None
             if arm.ready:
                 self.program_running = True
+                self.stop_reason = ""
                 self.cmd_state = "ready"
                 self.out_int[0] = 1
                 log.info("control script running")
@@ -98,8 +146,8 @@ class ControlScript:
         if cmd == CMD_STOP_SCRIPT:
             self.stop(arm, "stopScript")
             return
-        if cmd in CONTINUOUS_CMDS:
-            return  # servo/speed/watchdog streams: the client does not wait for "done"; not simulated
+        if cmd in REALTIME_CMDS:
+            return  # servo/speed/force streams: the script is ready again at once; not simulated
         if cmd in (CMD_MOVEL, CMD_MOVEJ):
             self.cmd_state = "busy"
             start = arm.start_linear if cmd == CMD_MOVEL else arm.start_joint
@@ -117,6 +165,13 @@ class ControlScript:
             self.out_double[0:6] = list(T_to_pose(arm.T))
         elif cmd == CMD_FK_ARGS:
             self.out_double[0:6] = list(T_to_pose(forward_kinematics(np.array(d[0:6]))))
+        elif cmd == CMD_SET_WATCHDOG:
+            if not (d[0] > 0 and np.isfinite(d[0])):
+                self.stop(arm, f"rtde_set_watchdog: invalid minimum frequency {d[0]!r}")
+                return
+            self.watchdog_hz = float(d[0])
+            self.watchdog_silent_s = 0.0
+            log.info("RTDE watchdog armed on %s: minimum %g Hz, action stop", WATCHDOG_VARIABLE, d[0])
         self.finish_command()
 
 

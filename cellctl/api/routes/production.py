@@ -1,0 +1,177 @@
+"""Production over REST: start, watch, pause, resume and stop a run; its cycles; the next place slot.
+
+``POST /production/start`` (engineer) answers 202 with the run id; the run owns the robot's motion
+until it ends. ``POST /robots/{id}/stop`` stays the emergency path: the run ends ``stopped`` at
+once and a held part stays gripped. docs/production.md is the contract.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Path, Query
+from fastapi.responses import PlainTextResponse, Response
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
+
+from cellctl.api.deps import Engineer, Operator, Viewer
+from cellctl.api.deps_services import ServicesDep
+from cellctl.api.errors import ApiError
+from cellctl.cell import UnknownDevice
+from cellctl.mapping import NoCalibration
+from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning, manager_for
+from cellctl.production.records import to_csv
+from cellctl.store import NotFound
+
+router = APIRouter(prefix="/production", tags=["production"])
+
+
+class StartInput(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    recipe_id: int = Field(ge=0, le=65535, description="the recipe to run (it needs a place section and a "
+                                                       "gripper device)")
+    count: int = Field(0, ge=0, le=1_000_000, description="parts to place; 0: until the area is empty")
+    robot_id: str | None = Field(None, max_length=128, description="default: the recipe's, else "
+                                                                   "calibration.robot")
+    camera_id: str | None = Field(None, max_length=128, description="default: the recipe's, else "
+                                                                    "calibration.camera")
+    overlap: bool = Field(True, description="with a fixed camera, take and search the next picture while the "
+                                            "robot places (false: after it is back, for comparison)")
+
+
+class SlotInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    recipe_id: int = Field(ge=0, le=65535)
+    next_slot: int = Field(ge=0, le=1_000_000, description="the next free slot (0-based) of the recipe's place "
+                                                          "pattern")
+
+
+
+def _manager(services: ServicesDep) -> ProductionManager:
+    return manager_for(services)
+
+
+def _current(services: ServicesDep, robot_id: str | None) -> dict[str, Any]:
+    try:
+        return _manager(services).current(robot_id)
+    except NoRun as exc:
+        raise ApiError(404, "no_run", str(exc)) from None
+
+
+@router.post("/start", status_code=202, responses={404: {}, 409: {}, 422: {}, 503: {}})
+async def start(body: StartInput, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+    """Start a run (engineer): 409 ``robot_busy`` / ``robot_stopped`` as for any motion, 409
+    ``production_running`` when a run already owns the robot, 409 ``gripper_holding`` when the
+    gripper holds something."""
+    manager = _manager(services)
+    try:
+        run = await run_in_threadpool(manager.start, body.recipe_id, body.count, who.name, body.robot_id,
+                                      body.camera_id, body.overlap)
+    except NotFound:
+        raise ApiError(404, "unknown_recipe", f"no recipe {body.recipe_id} (GET /recipes lists them)") from None
+    except UnknownDevice as exc:
+        raise ApiError(404, "unknown_device", str(exc)) from None
+    except ProductionRunning as exc:
+        raise ApiError(409, "production_running", str(exc)) from None
+    except GripperHolding as exc:
+        raise ApiError(409, "gripper_holding", str(exc)) from None
+    except (PickError, NoCalibration) as exc:
+        raise ApiError(422, "cannot_run", str(exc)) from None
+    services.store.audit(who.name, "production.start", str(body.recipe_id),
+                         {"run_id": run.status.run_id, "count": body.count, "robot_id": run.s.robot_id}, "ok")
+    return {"run_id": run.status.run_id, "state": run.status.state}
+
+
+@router.get("", responses={404: {}})
+def current(services: ServicesDep, _: Viewer, robot_id: str | None = None) -> dict[str, Any]:
+    """The current or last run: state, ended_because, counters, cycle_ms, next_slot."""
+    return _current(services, robot_id)
+
+
+@router.post("/pause", responses={404: {}})
+def pause(services: ServicesDep, who: Operator, robot_id: str | None = None) -> dict[str, Any]:
+    """Pause after the current cycle (operator)."""
+    run = _run(services, robot_id)
+    run.pause()
+    services.store.audit(who.name, "production.pause", str(run.status.run_id), {}, "ok")
+    return run.public()
+
+
+@router.post("/resume", responses={404: {}, 409: {}})
+def resume(services: ServicesDep, who: Operator, robot_id: str | None = None) -> dict[str, Any]:
+    """Resume a paused run (operator); 409 ``robot_stopped`` while the robot is latched."""
+    run = _run(services, robot_id)
+    _manager(services).resume(robot_id)
+    services.store.audit(who.name, "production.resume", str(run.status.run_id), {}, "ok")
+    return run.public()
+
+
+@router.post("/stop", responses={404: {}})
+def stop(services: ServicesDep, who: Operator, robot_id: str | None = None) -> dict[str, Any]:
+    """End the run after the current cycle (operator). The emergency stop is POST /robots/{id}/stop."""
+    run = _run(services, robot_id)
+    run.stop()
+    services.store.audit(who.name, "production.stop", str(run.status.run_id), {}, "ok")
+    return run.public()
+
+
+@router.get("/runs/{run_id}/cycles", responses={404: {}}, response_model=None)
+def cycles(run_id: Annotated[int, Path(ge=1)], services: ServicesDep, _: Viewer,
+           format: Annotated[Literal["json", "csv"], Query(description="json (default) or csv")] = "json",
+           ) -> Response | list[dict[str, Any]]:
+    """The run's cycle records, oldest first (``?format=csv``: the same as CSV)."""
+    store = _manager(services).store
+    try:
+        store.get_run(run_id)
+    except NotFound as exc:
+        raise ApiError(404, "unknown_run", str(exc)) from None
+    records = store.cycles(run_id)
+    if format == "csv":
+        return PlainTextResponse(to_csv(records), media_type="text/csv",
+                                 headers={"Content-Disposition": f'attachment; filename="run-{run_id}-cycles.csv"'})
+    return records
+
+
+@router.put("/slot", responses={404: {}, 409: {}, 422: {}})
+def set_slot(body: SlotInput, services: ServicesDep, who: Engineer) -> dict[str, Any]:
+    """Set the recipe's next free place slot (engineer); stored, it survives a restart."""
+    try:
+        recipe = Recipe.model_validate(services.store.get_recipe(body.recipe_id).data)
+    except NotFound:
+        raise ApiError(404, "unknown_recipe", f"no recipe {body.recipe_id} (GET /recipes lists them)") from None
+    n = None if recipe.place is None else recipe.place.slot_count()
+    if n is not None and body.next_slot > n:
+        raise ApiError(422, "invalid_slot", f"recipe {body.recipe_id}'s place pattern has {n} slots (0..{n - 1}); "
+                                            f"next_slot {body.next_slot} is beyond it")
+    manager = _manager(services)
+    running = [r for r in manager._runs.values() if not r.ended and r.s.recipe_id == body.recipe_id]
+    if running:
+        raise ApiError(409, "production_running", f"production run {running[0].status.run_id} places recipe "
+                                                  f"{body.recipe_id}'s parts now; stop it before setting the slot")
+    manager.store.set_next_slot(body.recipe_id, body.next_slot, who.name)
+    services.store.audit(who.name, "production.slot", str(body.recipe_id), {"next_slot": body.next_slot}, "ok")
+    return {"recipe_id": body.recipe_id, "next_slot": manager.store.next_slot(body.recipe_id)}
+
+
+@router.post("/gripper/open", responses={404: {}, 409: {}})
+def open_gripper(services: ServicesDep, who: Engineer,
+                 recipe_id: Annotated[int, Query(ge=0, le=65535)]) -> dict[str, Any]:
+    """Open the recipe's gripper by hand (engineer), e.g. after a Stop left a part gripped."""
+    try:
+        out = _manager(services).open_gripper(recipe_id)
+    except NotFound:
+        raise ApiError(404, "unknown_recipe", f"no recipe {recipe_id}") from None
+    except ProductionRunning as exc:
+        raise ApiError(409, "production_running", str(exc)) from None
+    except PickError as exc:
+        raise ApiError(422, "cannot_run", str(exc)) from None
+    services.store.audit(who.name, "production.gripper_open", str(recipe_id), out, "ok")
+    return out
+
+
+def _run(services: ServicesDep, robot_id: str | None) -> Any:
+    try:
+        return _manager(services).run(robot_id)
+    except NoRun as exc:
+        raise ApiError(404, "no_run", str(exc)) from None

@@ -1,0 +1,131 @@
+"""A recipe's ``place`` section and its gripper's device: where parts go, and how a grip is checked.
+
+Place poses are where the **part** goes (its reference point on its top face, its taught x axis
+along the pose's x), in the robot base frame, UR form (metres, rotation vector in radians):
+
+- ``fixed``: one pose, every part goes there;
+- ``grid``: slot ``k = l*R*C + r*C + c`` (0-based, row-major, then layer) at
+  ``T_origin @ Trans(c*px, r*py, l*h)`` (mm in the origin's frame).
+
+A place found by vision (``located``) is not built yet: a recipe naming it is refused.
+
+The gripper's device (``GripperDevice``) names a configured ``io`` device and how to drive and
+check it: ``robotiq_2f`` (a Robotiq 2F gripper or the virtual cell's ``sim_gripper``: the
+object-detected status, and the closed width within ``width_tolerance_mm`` of the recipe's
+``grip_width_mm`` when that is given), ``vacuum`` (a digital output switches the vacuum, a vacuum
+switch input says the cup holds) or ``parallel`` (two outputs close and open the fingers, a
+"closed on part" input says they hold something).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from calibration import geometry as g
+
+UR = tuple[float, float, float, float, float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _metres(v: UR, what: str) -> UR:
+    if any(abs(x) > 20.0 for x in v[:3]):
+        raise ValueError(f"{what} translation {list(v[:3])} looks like millimetres: the UR form is in metres "
+                         "(e.g. [0.4, -0.2, 0.006, 0, 0, 0])")
+    if any(abs(x) > 2 * np.pi for x in v[3:]):
+        raise ValueError(f"{what} rotation {list(v[3:])} is not a rotation vector in radians")
+    return v
+
+
+class FixedPlace(_Strict):
+    kind: Literal["fixed"]
+    pose_ur: UR = Field(description="where the part goes: [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad], base frame")
+    approach_height_mm: float | None = Field(None, ge=0, le=1000, description="pre-/post-place height above the "
+                                                                              "place, mm (default: the recipe's)")
+
+    @field_validator("pose_ur")
+    @classmethod
+    def _pose(cls, v: UR) -> UR:
+        return _metres(v, "pose_ur")
+
+    def slot_count(self) -> int | None:
+        return None  # every part goes to the one pose
+
+    def T_slot(self, k: int) -> NDArray[np.float64]:
+        return g.ur_pose_to_transform(list(self.pose_ur))
+
+
+class GridPlace(_Strict):
+    kind: Literal["grid"]
+    origin_ur: UR = Field(description="slot 0's pose, UR form (m, rad), base frame")
+    rows: int = Field(ge=1, le=1000)
+    cols: int = Field(ge=1, le=1000)
+    pitch_mm: tuple[float, float] = Field(description="[px, py]: column and row pitch in the origin's frame, mm")
+    layers: int = Field(1, ge=1, le=1000)
+    layer_mm: float = Field(0.0, ge=0, le=1000, description="height of one layer (stacking), mm")
+    approach_height_mm: float | None = Field(None, ge=0, le=1000)
+
+    @field_validator("origin_ur")
+    @classmethod
+    def _pose(cls, v: UR) -> UR:
+        return _metres(v, "origin_ur")
+
+    @field_validator("pitch_mm")
+    @classmethod
+    def _pitch(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if any(abs(x) > 1e4 for x in v):
+            raise ValueError(f"pitch_mm {list(v)} is more than 10 m")
+        return v
+
+    def slot_count(self) -> int:
+        return self.rows * self.cols * self.layers
+
+    def T_slot(self, k: int) -> NDArray[np.float64]:
+        """Slot ``k``'s pose (the part's), 4x4 metres."""
+        n = self.slot_count()
+        if not 0 <= k < n:
+            raise ValueError(f"slot {k} is not in the grid's 0..{n - 1}")
+        layer, rest = divmod(k, self.rows * self.cols)
+        r, c = divmod(rest, self.cols)
+        offset = np.array([c * self.pitch_mm[0], r * self.pitch_mm[1], layer * self.layer_mm]) * 1e-3
+        return g.ur_pose_to_transform(list(self.origin_ur)) @ g.make_transform(np.eye(3), offset)
+
+
+PlaceSection = Annotated[FixedPlace | GridPlace, Field(discriminator="kind")]
+
+
+class GripperDevice(_Strict):
+    """The gripper's device and how its grip is checked (see the module docstring)."""
+
+    io_id: str = Field(min_length=1, max_length=128, description="a configured io device (cell.yaml io:)")
+    kind: Literal["robotiq_2f", "vacuum", "parallel"] = Field(
+        description="robotiq_2f: a Robotiq 2F or the sim gripper; vacuum: output on/off and a vacuum switch input; "
+                    "parallel: close and open outputs and a 'closed on part' input")
+    output: int | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum output; parallel: the close "
+                                                                 "output")
+    open_output: int | None = Field(None, ge=0, le=65535, description="parallel: the open output; vacuum: an "
+                                                                      "optional blow-off output pulsed at release")
+    input: int | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum switch; parallel: 'closed on "
+                                                                "part'")
+    stroke_mm: float = Field(85.0, gt=0, le=1000, description="robotiq_2f: the fingers' full opening, mm")
+    width_tolerance_mm: float = Field(3.0, gt=0, le=100, description="robotiq_2f with grip_width_mm: the closed "
+                                                                     "width must be this close to it, mm")
+    release_s: float = Field(0.1, ge=0, le=10, description="wait after opening before the tool leaves, s")
+    retries: int = Field(2, ge=0, le=20, description="a part whose grip fails is tried again (from a fresh picture) "
+                                                     "this many times before it is skipped")
+    input_timeout_s: float = Field(1.0, gt=0, le=30, description="vacuum/parallel: how long the check waits for "
+                                                                 "its input, s")
+
+    @model_validator(mode="after")
+    def _channels(self) -> GripperDevice:
+        if self.kind == "vacuum" and (self.output is None or self.input is None):
+            raise ValueError("a vacuum gripper needs output (the vacuum) and input (the vacuum switch)")
+        if self.kind == "parallel" and (self.output is None or self.open_output is None or self.input is None):
+            raise ValueError("a parallel gripper needs output (close), open_output (open) and input (closed on part)")
+        return self

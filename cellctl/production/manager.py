@@ -1,0 +1,139 @@
+"""The production runs of one service: at most one per robot, started, paused, resumed, stopped.
+
+The manager checks what a start needs before the run owns the robot: the recipe (a place section
+and a gripper device), the robot free (``RobotBusy``) and not latched (``RobotStopped``), and no
+run on that robot already (``ProductionRunning``).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.gripper import Gripper
+from cellctl.production.run import ProductionRun, RunSettings
+from cellctl.services import Services
+from cellctl.store.production import ProductionStore
+from drivers.base import RobotBase, RobotStopped
+
+
+class ProductionRunning(RuntimeError):
+    """A production run already owns the robot."""
+
+
+class GripperHolding(RuntimeError):
+    """The gripper holds something before a run starts."""
+
+
+class NoRun(LookupError):
+    """No production run has been started in this cell."""
+
+
+class ProductionManager:
+    """Production runs of one service (``manager_for(services)``)."""
+
+    def __init__(self, services: Services) -> None:
+        self.services = services
+        self.store = ProductionStore(services.store.engine, services.store.cell_id)
+        self._runs: dict[str, ProductionRun] = {}
+        self._last: ProductionRun | None = None
+        self._lock = threading.Lock()
+
+    def start(self, recipe_id: int, count: int, who: str, robot_id: str | None = None, camera_id: str | None = None,
+              overlap: bool = True) -> ProductionRun:
+        stored = self.services.store.get_recipe(recipe_id)
+        recipe = Recipe.model_validate(stored.data)
+        if recipe.place is None:
+            raise PickError(f"recipe {recipe_id} has no place section: production needs one (fixed or grid; "
+                            "docs/production.md)")
+        if recipe.gripper.device is None:
+            raise PickError(f"recipe {recipe_id}'s gripper names no device (gripper.device): production must grip "
+                            "and check the grip (docs/production.md)")
+        d = self.services.config.calibration
+        rid = robot_id or recipe.robot_id or d.robot
+        cid = camera_id or recipe.camera_id or d.camera
+        robot: RobotBase = self.services.cell.robot(rid).ensure_open()
+        self.services.cell.camera(cid)  # an unknown camera is refused before the robot is taken
+        if Gripper(self.services, recipe.gripper).holding():
+            raise GripperHolding(f"gripper {recipe.gripper.device.io_id} holds something: take the part out and "
+                                 "open the gripper (POST /production/gripper/open) before a run starts")
+        with self._lock:
+            current = self._runs.get(rid)
+            if current is not None and not current.ended:
+                raise ProductionRunning(f"production run {current.status.run_id} already runs on robot {rid} "
+                                        f"({current.status.state}); stop it first (POST /production/stop)")
+            session = robot.motion.begin(who, f"production run of recipe {recipe_id}")
+            try:
+                run_id = self.store.new_run(recipe_id, rid, who)
+                run = ProductionRun(self.services, self.store,
+                                    RunSettings(recipe_id, stored.version, recipe, rid, cid, count, overlap, who),
+                                    robot, session, run_id)
+            except BaseException:
+                robot.motion.end(session)
+                raise
+            self._runs[rid] = run
+            self._last = run
+        run.start()
+        return run
+
+    def run(self, robot_id: str | None = None) -> ProductionRun:
+        """The robot's current or last run (default: the last run started)."""
+        with self._lock:
+            run = self._runs.get(robot_id) if robot_id else self._last
+        if run is None:
+            raise NoRun("no production run has been started" + (f" on robot {robot_id}" if robot_id else "")
+                        + " since the service started (POST /production/start)")
+        return run
+
+    def current(self, robot_id: str | None = None) -> dict[str, Any]:
+        """The current or last run as ``GET /production`` shows it (the last stored one after a restart)."""
+        try:
+            return self.run(robot_id).public()
+        except NoRun:
+            last = self.store.last_run()
+            if last is None:
+                raise
+            return {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+
+    def resume(self, robot_id: str | None = None) -> ProductionRun:
+        run = self.run(robot_id)
+        if run.robot.motion.latched:
+            raise RobotStopped(f"robot {run.robot.robot_id} is latched by a Stop; an engineer must resume the robot "
+                               f"(POST /robots/{run.robot.robot_id}/resume) first")
+        run.resume()
+        return run
+
+    def open_gripper(self, recipe_id: int) -> dict[str, Any]:
+        """Open the recipe's gripper by hand (refused while a run owns its robot)."""
+        recipe = Recipe.model_validate(self.services.store.get_recipe(recipe_id).data)
+        with self._lock:
+            busy = [r for r in self._runs.values() if not r.ended]
+        if busy:
+            raise ProductionRunning(f"production run {busy[0].status.run_id} is running; stop it first")
+        gripper = Gripper(self.services, recipe.gripper)
+        gripper.open()
+        return {"holding": gripper.holding()}
+
+    def shutdown(self, timeout_s: float = 10.0) -> None:
+        with self._lock:
+            runs = list(self._runs.values())
+        for run in runs:
+            run.stop()
+            run.robot.halt()
+        for run in runs:
+            run.join(timeout_s)
+
+
+_MANAGERS: dict[int, tuple[Services, ProductionManager]] = {}
+_MANAGERS_LOCK = threading.Lock()
+
+
+def manager_for(services: Services) -> ProductionManager:
+    """The service's production manager (made on first use)."""
+    with _MANAGERS_LOCK:
+        entry = _MANAGERS.get(id(services))
+        if entry is None or entry[0] is not services:
+            entry = (services, ProductionManager(services))
+            _MANAGERS[id(services)] = entry
+        return entry[1]

@@ -1,0 +1,336 @@
+"""The production run: pick from the area, place into the next slot, cycle after cycle, until done.
+
+One run per robot; it owns the robot's motion session for its whole life (a second mover gets
+``RobotBusy``). Each cycle decides from a fresh picture: nothing found ends the run
+``area_empty``; parts found but none pickable (every pose outside the envelope or the tool's cone,
+or every part skipped after its grip failed ``retries`` times) ends it ``none_pickable``. A failed
+grip retreats empty and the part is tried again from a fresh picture.
+
+States: ``running`` -> ``pausing`` (pause asked: the cycle finishes) -> ``paused`` -> ``running``;
+``stopping`` (stop asked: the cycle finishes) -> ``stopped``; ``complete`` (count reached, area
+empty, none pickable); ``failed`` (an error: the robot is halted). A robot Stop aborts the motion
+session at once: the run ends ``stopped`` and the gripper is not opened (a held part stays held).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from cellctl.motion import audited_move, halt_after_failure
+from cellctl.pick.pose import pose_json
+from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.gripper import Gripper
+from cellctl.production.place import Plan
+from cellctl.production.records import Counters, CycleTimes, Durations, clean
+from cellctl.production.vision import Candidate, Picture, Prefetch, take_picture, tool_yaw
+from cellctl.services import Services
+from cellctl.store.production import ProductionStore
+from drivers.base import MotionSession, RobotBase, RobotStopped
+
+log = logging.getLogger(__name__)
+
+State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
+Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
+SAME_PART_MM = 8.0
+"""A match this close to a part tried before is that part (for retries and skips)."""
+
+
+@dataclass
+class RunSettings:
+    recipe_id: int
+    recipe_version: int
+    recipe: Recipe
+    robot_id: str
+    camera_id: str
+    count: int
+    overlap: bool
+    who: str
+
+
+@dataclass
+class _Tried:
+    xy_mm: np.ndarray
+    failures: int = 0
+
+
+@dataclass
+class RunStatus:
+    run_id: int
+    recipe_id: int
+    robot_id: str
+    state: State = "running"
+    ended_because: Ended | None = None
+    error: str | None = None
+    counters: Counters = field(default_factory=Counters)
+    times: CycleTimes = field(default_factory=CycleTimes)
+
+
+class ProductionRun:
+    """One run in its own thread (``start``); ``pause``/``resume``/``stop`` are safe from any thread."""
+
+    def __init__(self, services: Services, store: ProductionStore, settings: RunSettings, robot: RobotBase,
+                 session: MotionSession, run_id: int) -> None:
+        self.services, self.store, self.s, self.robot, self.session = services, store, settings, robot, session
+        self.status = RunStatus(run_id, settings.recipe_id, settings.robot_id)
+        self.gripper = Gripper(services, settings.recipe.gripper)
+        self._cond = threading.Condition()
+        self._pause = False
+        self._stop = False
+        self._n = 0
+        self._tried: list[_Tried] = []
+        self._thread = threading.Thread(target=self._main, name=f"production-{run_id}", daemon=True)
+        self.done = threading.Event()
+
+    # -- control ----------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread.start()
+
+    def pause(self) -> None:
+        with self._cond:
+            if self.status.state == "running":
+                self._pause = True
+                self.status.state = "pausing"
+            self._cond.notify_all()
+
+    def resume(self) -> None:
+        with self._cond:
+            self._pause = False
+            if self.status.state in ("pausing", "paused"):
+                self.status.state = "running"
+            self._cond.notify_all()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop = True
+            if self.status.state in ("running", "pausing", "paused"):
+                self.status.state = "stopping"
+            self._cond.notify_all()
+
+    def join(self, timeout_s: float | None = None) -> None:
+        self._thread.join(timeout_s)
+
+    @property
+    def ended(self) -> bool:
+        return self.done.is_set()
+
+    def public(self) -> dict[str, Any]:
+        st = self.status
+        return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
+                "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
+                "next_slot": self.store.next_slot(st.recipe_id), "error": st.error, "cycles": self._n}
+
+    # -- the run ----------------------------------------------------------------------------------
+    def _main(self) -> None:
+        try:
+            ended = self._cycles()
+            state: State = "stopped" if ended == "stopped" else "complete"
+            self._end(state, ended)
+        except RobotStopped as exc:
+            # The emergency path: halted and latched already; the gripper keeps what it holds.
+            self._record("stopped", detail=str(exc))
+            self._end("stopped", "stopped", None)
+        except Exception as exc:  # noqa: BLE001 - the run ends failed, saying why; the robot is halted
+            log.exception("production run %s failed", self.status.run_id)
+            halt_after_failure(self.robot, exc)
+            self._end("failed", "failed", str(exc))
+        finally:
+            self.robot.motion.end(self.session)
+            self.done.set()
+
+    def _end(self, state: State, ended: Ended, error: str | None = None) -> None:
+        with self._cond:
+            self.status.state = state
+            self.status.ended_because = ended
+            self.status.error = error
+            self._cond.notify_all()
+        try:
+            self.store.update_run(self.status.run_id, state, ended, clean(self._summary()), ended=True)
+        except Exception:  # noqa: BLE001 - the run's end is logged even when the store is gone
+            log.exception("production run %s: storing its end failed", self.status.run_id)
+
+    def _summary(self) -> dict[str, Any]:
+        st = self.status
+        return {"counters": st.counters.as_dict(), "cycle_ms": st.times.summary(), "error": st.error,
+                "cycles": self._n}
+
+    def _cycles(self) -> Ended:
+        self._move_to_capture()
+        prefetch: Prefetch | None = None
+        while True:
+            ended = self._between_cycles()
+            if ended is not None:
+                return ended
+            t_cycle = time.monotonic()
+            d = Durations()
+            if prefetch is not None:
+                picture, waited = prefetch.wait()
+                prefetch = None
+            else:
+                self._move_to_capture()
+                picture = self._picture()
+                waited = picture.took_s
+            d.add("vision", waited)
+            self.session.check()
+            if not picture.candidates:
+                self.status.counters.empty_area += 1
+                self._record("empty", picture=picture, detail=picture.reason or "nothing found")
+                return "area_empty"
+            cand = self._choose(picture)
+            if cand is None:
+                self._record("none_pickable", picture=picture, detail=self._why_none(picture))
+                return "none_pickable"
+            prefetch = self._pick_and_place(cand, picture, d, t_cycle)
+
+    def _between_cycles(self) -> Ended | None:
+        """Stop, pause, or the count reached: what happens before the next cycle starts."""
+        with self._cond:
+            if self._stop:
+                return "stopped"
+            if self.s.count and self.status.counters.placed >= self.s.count:
+                return "count_reached"
+            if self._pause:
+                self.status.state = "paused"
+                self._store_state()
+                while self._pause and not self._stop and not self.session.aborted:
+                    self._cond.wait(0.2)
+                if self._stop:
+                    return "stopped"
+                self.session.check()
+                self.status.state = "running"
+        self._store_state()
+        return None
+
+    def _store_state(self) -> None:
+        self.store.update_run(self.status.run_id, self.status.state, None, clean(self._summary()))
+
+    def _choose(self, picture: Picture) -> Candidate | None:
+        retries = self.s.recipe.gripper.device.retries if self.s.recipe.gripper.device else 0
+        unreachable = 0
+        for c in picture.candidates:
+            if c.plan.problem is not None:
+                unreachable += 1
+                continue
+            tried = self._tried_at(c.plan)
+            if tried is not None and tried.failures > retries:
+                continue  # skipped: its grip failed too often
+            self.status.counters.unreachable += unreachable
+            return c
+        self.status.counters.unreachable += unreachable
+        return None
+
+    def _why_none(self, picture: Picture) -> str:
+        problems = [c.plan.problem for c in picture.candidates if c.plan.problem]
+        skipped = len(picture.candidates) - len(problems)
+        parts = []
+        if problems:
+            parts.append(f"{len(problems)} not reachable ({problems[0]})")
+        if skipped:
+            parts.append(f"{skipped} skipped after failed grips")
+        return f"{len(picture.candidates)} part(s) found, none pickable: " + "; ".join(parts)
+
+    def _tried_at(self, plan: Plan) -> _Tried | None:
+        xy = plan.T_base_part[:2, 3] * 1e3
+        return next((t for t in self._tried if float(np.linalg.norm(t.xy_mm - xy)) < SAME_PART_MM), None)
+
+    # -- one cycle --------------------------------------------------------------------------------
+    def _move(self, T: np.ndarray, why: str, d: Durations) -> None:
+        t0 = time.monotonic()
+        audited_move(self.services.store, self.s.who, self.robot, T, self.s.recipe.speed_m_s,
+                     f"production run {self.status.run_id}: {why}", self.session)
+        d.add("motion", time.monotonic() - t0)
+
+    def _move_to_capture(self) -> None:
+        r = self.s.recipe
+        if r.capture_pose_ur is None:
+            return
+        from calibration import geometry as g
+
+        T = g.ur_pose_to_transform(list(r.capture_pose_ur))
+        here = self.robot.state().T_base_tool
+        if float(np.linalg.norm(here[:3, 3] - T[:3, 3])) > 1e-3:
+            self._move(T, "to the capture pose", Durations())
+
+    def _picture(self) -> Picture:
+        yaw = tool_yaw(self.robot.state().T_base_tool)
+        return take_picture(self.services, self.s.recipe_id, self.s.recipe_version, self.s.recipe, self.s.camera_id,
+                            self.robot, yaw)
+
+    def _pick_and_place(self, cand: Candidate, picture: Picture, d: Durations, t_cycle: float) -> Prefetch | None:
+        r, plan, c = self.s.recipe, cand.plan, self.status.counters
+        d.add("gripper", self.gripper.open())
+        self._move(plan.T_pick_approach, "pre-pick", d)
+        self._move(plan.T_pick, "pick", d)
+        check = self.gripper.close_and_check()
+        d.add("gripper", check.elapsed_s)
+        self._move(plan.T_pick_approach, "post-pick", d)
+        if not check.held:
+            c.grip_failures += 1
+            tried = self._tried_at(plan)
+            if tried is None:
+                tried = _Tried(plan.T_base_part[:2, 3] * 1e3)
+                self._tried.append(tried)
+            tried.failures += 1
+            retries = r.gripper.device.retries if r.gripper.device else 0
+            if tried.failures > retries:
+                c.skipped += 1
+                self._record("skipped", cand, picture, d=d, detail=f"{check.detail}; skipped after "
+                             f"{tried.failures} failed grips", t_cycle=t_cycle)
+            else:
+                c.retries += 1
+                self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
+            return None
+        c.picked += 1
+        slot = self.store.next_slot(self.s.recipe_id)
+        if r.place is None:
+            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
+                            "(docs/production.md)")
+        n_slots = r.place.slot_count()
+        if n_slots is not None and slot >= n_slots:
+            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
+                            "(PUT /production/slot)")
+        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
+        self._move(T_place_app, "pre-place", d)
+        prefetch = None
+        if self.s.overlap:  # the arm is out of the camera's view: the next picture is taken meanwhile
+            prefetch = Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id,
+                                self.robot, tool_yaw(T_place))
+        self._move(T_place, "place", d)
+        d.add("gripper", self.gripper.release())
+        self._move(T_place_app, "post-place", d)
+        if n_slots is not None:
+            self.store.set_next_slot(self.s.recipe_id, slot + 1, self.s.who)
+        c.placed += 1
+        durations = d.as_ms(time.monotonic() - t_cycle)
+        self.status.times.add(durations)
+        self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle,
+                     durations=durations)
+        return prefetch
+
+    def _record(self, result: str, cand: Candidate | None = None, picture: Picture | None = None,
+                slot: int | None = None, T_place: np.ndarray | None = None, d: Durations | None = None,
+                detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None) -> None:
+        self._n += 1
+        if durations is None and d is not None and t_cycle is not None:
+            durations = d.as_ms(time.monotonic() - t_cycle)
+        rec: dict[str, Any] = {
+            "n": self._n, "t": time.time(), "run_id": self.status.run_id, "result": result, "slot": slot,
+            "recipe_id": self.s.recipe_id, "recipe_version": self.s.recipe_version,
+            "score": None if cand is None else float(cand.match["score"]),
+            "pick_pose": None if cand is None else pose_json(cand.plan.T_pick),
+            "place_pose": None if T_place is None else pose_json(T_place),
+            "uncertainty": None if cand is None else {"sigma_mm": cand.plan.sigma_mm,
+                                                      "sigma_yaw_deg": cand.plan.sigma_yaw_deg},
+            "durations_ms": durations, "frame_id": None if picture is None else picture.frame_id,
+            "calibration": None if picture is None else picture.calibration,
+            "found": None if picture is None else picture.found, "detail": detail,
+        }
+        try:
+            self.store.add_cycle(self.status.run_id, clean(rec))
+        except Exception:  # noqa: BLE001 - a record that cannot be stored must not hide the cycle's outcome
+            log.exception("production run %s: storing cycle %d failed", self.status.run_id, self._n)

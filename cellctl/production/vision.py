@@ -1,0 +1,94 @@
+"""A production cycle's picture: grab, search the recipe's parts, plan each one's pick.
+
+With a fixed camera the picture of the next cycle is taken and searched while the robot places
+the current part (``Prefetch``: a thread), so that the cycle waits for vision only when the search
+takes longer than the place. With a camera on the arm the capture pose is part of the cycle.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from cellctl.mapping import active_mapping
+from cellctl.pick.flow import _locate
+from cellctl.pick.recipe import Recipe
+from cellctl.production.place import Plan, plan_part
+from cellctl.services import Services
+from drivers.base import RobotBase
+
+
+@dataclass
+class Candidate:
+    """One found part: the match as the pick answer gives it, and its plan."""
+
+    match: dict[str, Any]
+    plan: Plan
+
+
+@dataclass
+class Picture:
+    """What one capture found: the candidates (best score first), the frame and the time it took."""
+
+    candidates: list[Candidate]
+    frame_id: int | None
+    reason: str | None
+    calibration: dict[str, Any]
+    took_s: float
+    found: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
+    """True when the active calibration says the camera rides on the arm (eye-in-hand)."""
+    mapping = active_mapping(services, camera_id, robot_id, recipe.calibration, recipe.plane_z_mm is not None)
+    if mapping.kind == "handeye":
+        return bool(mapping.calib.get("setup") == "eye-in-hand")
+    return mapping.calib.get("capture_pose_ur") is not None
+
+
+def take_picture(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str,
+                 robot: RobotBase, current_yaw: float) -> Picture:
+    """Grab and search now; plan every match (pick poses checked against the robot's limits)."""
+    t0 = time.monotonic()
+    answer = _locate(services, recipe_id, version, recipe, camera_id, robot)
+    mapping = active_mapping(services, camera_id, robot.robot_id, recipe.calibration, recipe.plane_z_mm is not None)
+    T_capture = np.array(robot.state().T_base_tool) if mapping.kind == "handeye" else None
+    cands = []
+    for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
+        cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
+                   time.monotonic() - t0, len(cands))
+
+
+class Prefetch:
+    """A picture taken and searched in the background (the robot is out of the camera's view)."""
+
+    def __init__(self, services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str,
+                 robot: RobotBase, current_yaw: float) -> None:
+        self.future: Future[Picture] = Future()
+
+        def work() -> None:
+            try:
+                self.future.set_result(take_picture(services, recipe_id, version, recipe, camera_id, robot,
+                                                    current_yaw))
+            except BaseException as exc:  # noqa: BLE001 - handed to the cycle that waits for it
+                self.future.set_exception(exc)
+
+        threading.Thread(target=work, name="production-vision", daemon=True).start()
+
+    def wait(self) -> tuple[Picture, float]:
+        """The picture and the seconds the caller waited for it."""
+        t0 = time.monotonic()
+        picture = self.future.result()
+        return picture, time.monotonic() - t0
+
+
+def tool_yaw(T: Any) -> float:
+    return math.atan2(float(T[1][0]), float(T[0][0]))

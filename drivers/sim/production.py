@@ -1,0 +1,279 @@
+"""Parts as objects of the virtual cell: scattered in a pick area, gripped, carried, put down.
+
+Each part has a state: ``in_area`` (lying in the pick area), ``held`` (in the sim gripper: its pose
+is the tool's true pose times where it sat in the gripper when it closed), ``placed`` (put down in
+the place area) or ``dropped`` (anywhere else: it slipped, or was let go elsewhere). A part that
+is let go lands on the table below where it was, level, keeping its yaw.
+
+Poses are ``T_base_part`` (4x4, metres): the part's reference point on its top face, x along the
+outline's x (``drivers.sim.production_spec.PartTemplate``). The pick area's scatter is seeded and
+deterministic (``scatter``); so are the gripper's failures (the world's seed).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration import geometry as g
+from drivers.sim.production_spec import AreaSpec, ProductionSpec
+
+PartState = Literal["in_area", "held", "placed", "dropped"]
+SAMPLE_MM = 1.0
+"""Spacing of the points that test two parts for overlap, mm."""
+
+
+@dataclass
+class SimPart:
+    """One part: its id, state and pose (the pose while held is relative to the tool)."""
+
+    id: int
+    state: PartState
+    T_base_part: NDArray[np.float64]
+    """Where it lies (``in_area``, ``placed``, ``dropped``); its pose when it was gripped, while held."""
+    T_tool_part: NDArray[np.float64] | None = None
+
+
+@dataclass(frozen=True)
+class GripOutcome:
+    """What one close did: the part now held (or None) and why not."""
+
+    part_id: int | None
+    reason: str
+
+
+def yaw_of(T: NDArray[np.float64]) -> float:
+    """The yaw (rad) of a pose's x axis about the base z axis."""
+    return math.atan2(float(T[1, 0]), float(T[0, 0]))
+
+
+def flat_pose(x_mm: float, y_mm: float, z_mm: float, yaw_deg: float) -> NDArray[np.float64]:
+    return g.make_transform(g.rotvec_to_matrix([0.0, 0.0, math.radians(yaw_deg)]),
+                            [x_mm * 1e-3, y_mm * 1e-3, z_mm * 1e-3])
+
+
+class ProductionParts:
+    """The parts of a production scene and what the sim gripper does to them (thread-safe)."""
+
+    def __init__(self, spec: ProductionSpec, table_z_m: float, seed: int) -> None:
+        self.spec = spec
+        self.table_z_m = table_z_m
+        self._lock = threading.RLock()
+        self._rng = np.random.default_rng([seed, 0x6717])
+        self._outline = np.asarray(spec.part.outline_mm, dtype=np.float64)
+        self._samples = _sample_points(spec.part.outline_mm, spec.part.holes_mm)
+        self.parts: list[SimPart] = [SimPart(k, "in_area", T) for k, T in enumerate(self._scatter())]
+        n = len(self.parts)
+        for k, fixed in enumerate(spec.unreachable):
+            self.parts.append(SimPart(n + k, "in_area", self.lying(fixed.x_mm, fixed.y_mm, fixed.angle_deg)))
+        self.closed = False
+        self.version = 0
+        """Bumped whenever a part moves relative to the table (the render cache key uses it)."""
+
+    # -- poses ------------------------------------------------------------------------------------
+    @property
+    def top_z_mm(self) -> float:
+        return self.table_z_m * 1e3 + self.spec.part.thickness_mm
+
+    def lying(self, x_mm: float, y_mm: float, angle_deg: float) -> NDArray[np.float64]:
+        return flat_pose(x_mm, y_mm, self.top_z_mm, angle_deg)
+
+    def pose(self, part: SimPart, T_base_tool_true: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The part's true pose now (a held part moves with the tool)."""
+        if part.state == "held" and part.T_tool_part is not None:
+            return T_base_tool_true @ part.T_tool_part
+        return part.T_base_part
+
+    def poses(self, T_base_tool_true: NDArray[np.float64]) -> list[tuple[SimPart, NDArray[np.float64]]]:
+        with self._lock:
+            return [(p, self.pose(p, T_base_tool_true)) for p in self.parts]
+
+    def key(self, T_base_tool_true: NDArray[np.float64]) -> bytes:
+        """Changes whenever what the camera could see of the parts changes."""
+        with self._lock:
+            held = any(p.state == "held" for p in self.parts)
+            return b"parts%d" % self.version + (T_base_tool_true.tobytes() if held else b"")
+
+    def held(self) -> SimPart | None:
+        with self._lock:
+            return next((p for p in self.parts if p.state == "held"), None)
+
+    # -- the gripper ------------------------------------------------------------------------------
+    def close(self, T_base_tool_true: NDArray[np.float64]) -> GripOutcome:
+        """Close the gripper at the tool's true pose: hold the part it closes on, if any."""
+        gs = self.spec.gripper
+        with self._lock:
+            if self.closed:
+                held = self.held()
+                return GripOutcome(None if held is None else held.id, "already closed")
+            self.closed = True
+            best, best_d = None, math.inf
+            for p in self.parts:
+                if p.state == "held":
+                    continue
+                d = float(np.hypot(*(T_base_tool_true[:2, 3] - p.T_base_part[:2, 3]))) * 1e3
+                if d < best_d:
+                    best, best_d = p, d
+            if best is None or best_d > gs.tolerance_mm:
+                return GripOutcome(None, f"no part within {gs.tolerance_mm} mm of the gripper's centre"
+                                   + ("" if best is None else f" (nearest {best_d:.1f} mm)"))
+            dz_mm = (T_base_tool_true[2, 3] - best.T_base_part[2, 3]) * 1e3
+            if not -self.spec.part.thickness_mm <= dz_mm <= gs.above_mm:
+                return GripOutcome(None, f"the gripper closed {dz_mm:.1f} mm from part {best.id}'s top face "
+                                   f"(allowed -{self.spec.part.thickness_mm}..{gs.above_mm} mm)")
+            dyaw = math.degrees(yaw_of(T_base_tool_true) - yaw_of(best.T_base_part))
+            sym = gs.symmetry_deg
+            off = abs((dyaw + sym / 2) % sym - sym / 2)
+            if off > gs.tolerance_deg:
+                return GripOutcome(None, f"the fingers are {off:.1f} deg off part {best.id}'s grip axis")
+            if gs.fail_probability > 0 and self._rng.uniform() < gs.fail_probability:
+                return GripOutcome(None, f"part {best.id} slipped from the fingers as they closed (simulated)")
+            best.T_tool_part = g.invert(T_base_tool_true) @ best.T_base_part
+            best.state = "held"
+            self.version += 1
+            return GripOutcome(best.id, "")
+
+    def open(self, T_base_tool_true: NDArray[np.float64]) -> int | None:
+        """Open the gripper: the held part (its id returned) lands below where it is."""
+        with self._lock:
+            self.closed = False
+            held = self.held()
+            if held is None:
+                return None
+            self._let_go(held, T_base_tool_true)
+            return held.id
+
+    def move_started(self, speed_m_s: float, T_base_tool_true: NDArray[np.float64]) -> int | None:
+        """A move starts at ``speed_m_s``: a held part slips out when the acceleration is too high."""
+        gs = self.spec.gripper
+        if gs.slip_accel_m_s2 is None or speed_m_s / gs.accel_ramp_s < gs.slip_accel_m_s2:
+            return None
+        with self._lock:
+            held = self.held()
+            if held is None:
+                return None
+            self._let_go(held, T_base_tool_true, slipped=True)
+            return held.id
+
+    def width_mm(self) -> float:
+        """The fingers' opening: open, the part's grip width when holding, 0 when closed empty."""
+        with self._lock:
+            if not self.closed:
+                return self.spec.gripper.open_width_mm
+            return self.spec.part.grip_width_mm if self.held() is not None else 0.0
+
+    def _let_go(self, part: SimPart, T_base_tool_true: NDArray[np.float64], slipped: bool = False) -> None:
+        T = self.pose(part, T_base_tool_true)
+        x_mm, y_mm = float(T[0, 3]) * 1e3, float(T[1, 3]) * 1e3
+        part.T_base_part = self.lying(x_mm, y_mm, math.degrees(yaw_of(T)))
+        part.T_tool_part = None
+        if slipped:
+            part.state = "dropped"
+        elif self.spec.place_area.contains(x_mm, y_mm):
+            part.state = "placed"
+        elif self.spec.pick_area.contains(x_mm, y_mm):
+            part.state = "in_area"
+        else:
+            part.state = "dropped"
+        self.version += 1
+
+    # -- the scatter ------------------------------------------------------------------------------
+    def _scatter(self) -> list[NDArray[np.float64]]:
+        """Seeded poses in the pick area: no overlap, some touching a neighbour or the area's edge."""
+        sc = self.spec.scatter
+        rng = np.random.default_rng([sc.seed, 0x5CA7])
+        area = self.spec.pick_area
+        placed: list[tuple[float, float, float]] = []
+        clear = sc.clear_part
+        if clear is not None and sc.count > 0:
+            placed.append((clear.x_mm, clear.y_mm, clear.angle_deg))
+        tries = 0
+        while len(placed) < sc.count:
+            tries += 1
+            if tries > 20000:
+                raise ValueError(f"production scene: {sc.count} parts do not fit in the pick area "
+                                 f"({len(placed)} placed); enlarge pick_area or lower scatter.count")
+            cand = (float(rng.uniform(*area.x_mm)), float(rng.uniform(*area.y_mm)), float(rng.uniform(-180, 180)))
+            if not self._fits(cand, placed, area):
+                continue
+            if rng.uniform() < sc.touching:
+                cand = self._slide(cand, placed, area, rng)
+            placed.append(cand)
+        return [self.lying(*p) for p in placed]
+
+    def _world_samples(self, pose: tuple[float, float, float]) -> NDArray[np.float64]:
+        a = math.radians(pose[2])
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return self._samples @ R.T + np.array(pose[:2])
+
+    def _fits(self, cand: tuple[float, float, float], placed: list[tuple[float, float, float]],
+              area: AreaSpec) -> bool:
+        pts = self._world_samples(cand)
+        if not (np.all((pts[:, 0] >= area.x_mm[0]) & (pts[:, 0] <= area.x_mm[1]))
+                and np.all((pts[:, 1] >= area.y_mm[0]) & (pts[:, 1] <= area.y_mm[1]))):
+            return False
+        reach = 2 * self.spec.part_radius_mm()
+        clear = self.spec.scatter.clear_part
+        for k, other in enumerate(placed):
+            margin = clear.clearance_mm if (k == 0 and clear is not None) else SAMPLE_MM
+            d = math.hypot(cand[0] - other[0], cand[1] - other[1])
+            if d > reach + margin:
+                continue
+            if d < self.spec.part_radius_mm() / 2:
+                return False  # nearly on top of each other: the edges may not cross
+            if _overlap(pts, self._world_samples(other), margin):
+                return False
+        return True
+
+    def _slide(self, cand: tuple[float, float, float], placed: list[tuple[float, float, float]], area: AreaSpec,
+               rng: np.random.Generator) -> tuple[float, float, float]:
+        """Slide the part toward a random direction until it touches a neighbour or the area's edge."""
+        a = rng.uniform(0, 2 * math.pi)
+        step = np.array([math.cos(a), math.sin(a)]) * SAMPLE_MM
+        cur = cand
+        for _ in range(400):
+            nxt = (cur[0] + float(step[0]), cur[1] + float(step[1]), cur[2])
+            if not self._fits(nxt, placed, area):
+                return cur
+            cur = nxt
+        return cur
+
+    # -- truth ------------------------------------------------------------------------------------
+    def outline_in_base(self, T_base_part: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The outline's corners in the base frame (metres), on the part's top face."""
+        pts = np.column_stack([self._outline * 1e-3, np.zeros(len(self._outline))])
+        return g.transform_points(T_base_part, pts)
+
+    def truth(self, T_base_tool_true: NDArray[np.float64]) -> list[dict[str, Any]]:
+        return [{"id": p.id, "state": p.state, "T_base_part": T.tolist()} for p, T in self.poses(T_base_tool_true)]
+
+
+def _sample_points(outline_mm: list[list[float]], holes_mm: list[list[list[float]]]) -> NDArray[np.float64]:
+    """Points along the outline every SAMPLE_MM, part frame, mm (two outlines of one part overlap
+    only where their edges cross or come near: neither fits inside the other)."""
+    poly = np.asarray(outline_mm, dtype=np.float64)
+    edge = []
+    for i in range(len(poly)):
+        p, q = poly[i], poly[(i + 1) % len(poly)]
+        n = max(1, int(math.ceil(float(np.linalg.norm(q - p)) / SAMPLE_MM)))
+        edge.append(p + (q - p) * (np.arange(n)[:, None] / n))
+    return np.concatenate(edge)
+
+
+def _overlap(a: NDArray[np.float64], b: NDArray[np.float64], margin_mm: float) -> bool:
+    """True when two sampled parts come nearer than ``margin_mm`` (point to point)."""
+    lo = np.maximum(a.min(axis=0), b.min(axis=0)) - margin_mm
+    hi = np.minimum(a.max(axis=0), b.max(axis=0)) + margin_mm
+    if np.any(lo > hi):
+        return False
+    a = a[np.all((a >= lo) & (a <= hi), axis=1)]
+    b = b[np.all((b >= lo) & (b <= hi), axis=1)]
+    if len(a) == 0 or len(b) == 0:
+        return False
+    d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=2)
+    return bool(d2.min() < margin_mm * margin_mm)

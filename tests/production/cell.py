@@ -1,0 +1,126 @@
+"""A served production cell for the tests: the built-in production scene with a scatter of N parts,
+the camera's and the hand-eye's true calibrations stored and active, a part taught, a recipe saved.
+
+The calibrations are the scene's truth (stored and activated as any calibration would be), so the
+tests measure the production run itself; ``test_production_calibration`` calibrates the same cell
+by its own routines.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import yaml
+
+from cellctl.config import parse_config
+from cellctl.store import open_store
+from drivers.sim.scene import BUILTIN_SCENES, load_scene
+from drivers.sim.world import SimWorld
+from tests.support.served import CELLCTL, Served, start_served
+
+CLEAR_POSE_UR = [0.45, -0.30, 0.25, math.pi, 0.0, 0.0]
+"""Out of the camera's view: where the robot waits and the first picture is taken from."""
+
+
+def production_config(tmp: Path, scene: dict[str, Any] | None = None, time_scale: float = 0.2,
+                      count: int = 4, seed: int = 3) -> Path:
+    """cell.yaml of the production cell (``cellctl config default --scene production``), its scene
+    written to ``tmp`` with ``scatter.count``/``seed`` and the ``production`` overrides in ``scene``."""
+    text = subprocess.run([CELLCTL, "config", "default", "--scene", "production"], check=True, capture_output=True,
+                          text=True).stdout
+    cfg = yaml.safe_load(text)
+    data = yaml.safe_load(BUILTIN_SCENES["production"].read_text())
+    data["production"]["scatter"].update({"count": count, "seed": seed})
+    for key, value in (scene or {}).items():
+        if isinstance(value, dict):
+            data["production"].setdefault(key, {}).update(value)
+        else:
+            data["production"][key] = value
+    scene_path = tmp / "scene.yaml"
+    scene_path.write_text(yaml.safe_dump(data))
+    for dev in (cfg["cameras"]["cam0"], cfg["robots"]["robot0"], cfg["io"]["gripper0"]):
+        dev["settings"]["scene"] = str(scene_path)
+    cfg["robots"]["robot0"]["settings"]["motion_time_scale"] = time_scale
+    cfg["io"]["gripper0"]["settings"]["time_scale"] = time_scale
+    cfg["store"]["path"] = str(tmp / "cell.db")
+    path = tmp / "cell.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    store_truth(path, scene_path)
+    return path
+
+
+def store_truth(config_path: Path, scene_path: Path) -> None:
+    """Store and activate the scene's true camera and eye-to-hand hand-eye (before the service starts)."""
+    config = parse_config(yaml.safe_load(config_path.read_text()))
+    truth = SimWorld(load_scene(scene_path)).truth()
+    with open_store(config) as store:
+        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
+        he = {"setup": "eye-to-hand", "T_base_cam": truth["T_base_cam"],
+              "T_tool_target": truth["targets"]["plate"]["T_tool_target"],
+              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
+              "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
+        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
+        store.activate(cam.id, "test")
+        store.activate(h.id, "test")
+
+
+def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> dict[str, Any]:
+    """Move clear of the view, teach the clear part from a live frame, store the production recipe."""
+    r = http.post("/robots/robot0/move", json={"pose_ur": dict(zip(("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"),
+                                                                 CLEAR_POSE_UR, strict=True)), "speed_m_s": 0.5})
+    assert r.status_code == 200, r.text
+    truth = http.get("/sim/truth").json()
+    u, v, w, h = truth["parts"][0]["roi_px"]
+    roi = [u - 12, v - 12, w + 24, h + 24]
+    model = http.post("/pick/teach", json={"roi": roi, "name": "bracket"})
+    assert model.status_code == 200, model.text
+    recipe: dict[str, Any] = {
+        "name": "bracket", "models": [model.json()], "plane_z_mm": 6.0, "grasp_z_mm": 0.0,
+        "approach_height_mm": 40.0, "speed_m_s": 0.5, "capture_pose_ur": CLEAR_POSE_UR,
+        "search": {"max_count": 40, "min_score": 0.7},
+        "gripper": {"grip_width_mm": 30.0, "settle_s": 0.05, "device": {"io_id": "gripper0", "kind": "robotiq_2f"}},
+        "place": truth["place_grid"],
+    }
+    recipe.update(overrides)
+    saved = http.post("/recipes", json={"recipe_id": recipe_id, "recipe": recipe})
+    assert saved.status_code == 201, saved.text
+    return recipe
+
+
+def serve(tmp: Path, config: Path) -> Served:
+    return start_served(tmp, config)
+
+
+def wait_ended(http: httpx.Client, timeout_s: float = 120.0) -> dict[str, Any]:
+    """Poll GET /production until the run has ended; the last answer."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st: dict[str, Any] = http.get("/production").json()
+        if st["ended_because"] is not None:
+            return st
+        time.sleep(0.2)
+    raise TimeoutError(f"the run did not end in {timeout_s} s: {http.get('/production').json()}")
+
+
+def wait_for(http: httpx.Client, check: Any, timeout_s: float = 60.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st: dict[str, Any] = http.get("/production").json()
+        if check(st):
+            return st
+        time.sleep(0.05)
+    raise TimeoutError(f"not reached in {timeout_s} s: {http.get('/production').json()}")
+
+
+def slot_error(part_T: list[list[float]], slot_T: np.ndarray) -> tuple[float, float]:
+    """(mm, deg) between a part's true pose and its slot's."""
+    from calibration import geometry as g
+
+    rot, trans = g.transform_error(np.asarray(part_T), slot_T)
+    return trans * 1e3, math.degrees(rot)

@@ -1,0 +1,196 @@
+"""Verification of a refined match: second, independent looks at the part before it is answered.
+
+The search's score (``score.direction_score``) is the fraction of the model's edge points seen
+where they should be. A false candidate can reach it in ways a real part cannot: its seen points
+bunched on one straight edge of the model, their contrast flipping from point to point (texture,
+or pieces of two neighbouring parts), a feature of the part plainly absent in a clean region (a
+similar part without that hole, the part's mirror image), edges no stronger than the image's noise,
+or edges that a better match already explains (a ghost straddling two touching identical parts).
+Each check reads the per-point detail of the final pose (``score.PointDetail``) and the model's
+own features (its edge chains, ``features``); each threshold is a property of the model or the
+image, not a number fitted to a data set:
+
+- ``coverage``: the share of the model's contour (by points) in features at least half seen. A
+  match needs ``min_score`` of it, as of its score: the score's fraction must be spread over
+  the part, not bunched on one edge.
+- ``polarity``: of neighbouring seen points along a feature, the share whose contrast has the same
+  sign. A part's contrast changes sign only where its background does (a few places); texture's
+  flips at random (0.5). A match needs more than ``POLARITY_MIN`` (the midpoint).
+- ``contrast``: the median gradient of the seen edges over what the image's noise reaches around
+  the part (``score.grad_noise``, 4 deviations). A match needs at least 1.
+- ``missing``: a feature of at least ``MISSING_MIN_FRACTION`` of the model's points, less than a
+  quarter seen, inside the region the seen points span, where the image shows no edge above its
+  noise: nothing hides it there, so the part lacks it (an occluder, a shadow or a neighbour would
+  show an edge of its own). Any such feature rejects the match.
+- ``unclaimed`` (in ``search.find``'s suppression): the score counting only the seen points that no
+  better match's contour covers; below ``min_score`` the match is a ghost of better ones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from vision.image import F64
+from vision.shape.model import CHAIN_MAX_TURN_DEG, LevelModel
+from vision.shape.score import SCORE_MAX_ANGLE_DEG, PointDetail
+
+POLARITY_MIN = 0.75
+"""Least share of neighbouring seen points with the same contrast sign: halfway between a part's
+(1 but for a few background changes) and texture's (0.5)."""
+MISSING_MIN_FRACTION = 0.05
+"""A feature smaller than this share of the model's points is not judged missing (a glint, a speck
+of texture in the teach image)."""
+MISSING_SEEN_MAX = 0.25
+FLAT_SHARE = 0.8
+"""A feature is absent when at least this share of its unseen points has no edge above the noise."""
+LINK_SPACINGS = 2.5
+"""Model points closer than this many typical spacings (median nearest neighbour) are neighbours on
+a chain: the model keeps a spread-out subset, whose gaps along an edge reach twice the spacing."""
+CLAIM_PX = 1.5
+"""A seen point within this distance of a better match's model point (direction within the score's
+angle limit) is that match's edge."""
+
+
+@dataclass
+class Features:
+    """The model's level-0 edge chains: a label per point and the linked neighbour pairs."""
+
+    labels: NDArray[np.int64]
+    count: int
+    pairs: NDArray[np.int64]
+    """(K, 2) indices of neighbouring points along a chain."""
+
+
+def features(lm: LevelModel) -> Features:
+    """The chains of the level-0 model (cached on ``lm``): points linked when closer than ``LINK_SPACINGS`` times the
+    model's typical spacing and turned by less than ``CHAIN_MAX_TURN_DEG``."""
+    cached = lm.__dict__.get("_features")
+    if isinstance(cached, Features):
+        return cached
+    pts, nrm = lm.points, lm.normals
+    n = len(pts)
+    d = np.hypot(pts[:, None, 0] - pts[None, :, 0], pts[:, None, 1] - pts[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    spacing = float(np.median(d.min(axis=1))) if n > 1 else 1.0
+    cosang = np.abs(nrm @ nrm.T)
+    link = (d <= LINK_SPACINGS * spacing) & (cosang >= math.cos(math.radians(CHAIN_MAX_TURN_DEG)))
+    i, j = np.nonzero(np.triu(link))
+    g = coo_matrix((np.ones(len(i), np.int8), (i, j)), shape=(n, n))
+    count, lab = connected_components(g, directed=False)
+    out = Features(np.asarray(lab, np.int64), int(count), np.stack([i, j], axis=1).astype(np.int64))
+    lm.__dict__["_features"] = out
+    return out
+
+
+@dataclass
+class Verdict:
+    scores: dict[str, float]
+    rejected_because: str | None
+
+
+def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_score: float,
+           score: float) -> Verdict:
+    """The checks of a match whose level-0 model points lie at ``q`` (image pixels)."""
+    f = features(lm)
+    seen = (detail.agree > 0) & detail.visible
+    vis = detail.visible
+    n_pts = len(q)
+    scores: dict[str, float] = {"edge": round(score, 4)}
+    # coverage: the contour's share in features at least half seen (of the visible ones)
+    n_vis_f = np.bincount(f.labels[vis], minlength=f.count)
+    n_seen_f = np.bincount(f.labels[seen], minlength=f.count)
+    half_seen = (n_vis_f > 0) & (2 * n_seen_f >= n_vis_f)
+    coverage = float(n_vis_f[half_seen].sum()) / max(float(n_vis_f.sum()), 1.0)
+    scores["coverage"] = round(coverage, 4)
+    # polarity coherence along the chains
+    a, b = f.pairs[:, 0], f.pairs[:, 1]
+    both = seen[a] & seen[b]
+    n_pairs = int(np.count_nonzero(both))
+    polarity = float(np.count_nonzero(detail.sign[a][both] == detail.sign[b][both])) / n_pairs if n_pairs else 1.0
+    scores["polarity"] = round(polarity, 4)
+    contrast = float(np.median(detail.gmax[seen])) / max(grad_noise, 1e-9) if seen.any() else 0.0
+    scores["contrast"] = round(min(contrast, 999.0), 2)
+    maybe = (n_vis_f >= MISSING_MIN_FRACTION * n_pts) & (n_seen_f < MISSING_SEEN_MAX * n_vis_f)
+    missing = _missing(f, q, seen, vis, detail.gmax, grad_noise, np.flatnonzero(maybe)) if maybe.any() else []
+    scores["missing_features"] = float(len(missing))
+    if score < min_score:
+        return Verdict(scores, f"score {score:.2f} < min_score {min_score:g}")
+    if coverage < min_score:
+        return Verdict(scores, f"its seen edges bunch on a part of the contour: coverage {coverage:.2f} "
+                               f"< min_score {min_score:g}")
+    if polarity <= POLARITY_MIN:
+        return Verdict(scores, f"the contrast along its edges flips at random (coherence {polarity:.2f} <= "
+                               f"{POLARITY_MIN:g}): texture or pieces of other parts, not one part")
+    if contrast < 1.0:
+        return Verdict(scores, f"its edges are not above the image's noise (contrast {contrast:.2f} < 1)")
+    if missing:
+        x, y = missing[0]
+        return Verdict(scores, f"a feature of the part is missing at ({x:.0f}, {y:.0f}): no edge there, "
+                               "and nothing hides it")
+    return Verdict(scores, None)
+
+
+def _missing(f: Features, q: F64, seen: NDArray[np.bool_], vis: NDArray[np.bool_], gmax: F64,
+             grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
+    """Centres (image px) of the features ``ks`` (large, mostly unseen) that are absent where nothing
+    could hide them."""
+    if np.count_nonzero(seen) < 3:
+        return []
+    hull = cv2.convexHull(q[seen].astype(np.float32))
+    out = []
+    flat = gmax < grad_noise
+    for k in ks.tolist():
+        idx = np.flatnonzero((f.labels == k) & vis)
+        unseen = idx[~seen[idx]]
+        if np.count_nonzero(flat[unseen]) < FLAT_SHARE * len(unseen):
+            continue
+        c = q[idx].mean(axis=0)
+        # inside the seen region by more than the reach of the score (a feature on the seen region's
+        # rim may be where an occluder's straight cut runs)
+        if cv2.pointPolygonTest(hull, (float(c[0]), float(c[1])), True) > 2.0:
+            out.append((float(c[0]), float(c[1])))
+    return out
+
+
+Contour = tuple[float, float, float, F64, F64]
+"""A kept match's contour: centre x, y and radius (px), points and normals at its pose."""
+
+
+def contour_of(q: F64, n: F64) -> Contour:
+    c = q.mean(axis=0)
+    return float(c[0]), float(c[1]), float(np.sqrt(((q - c) ** 2).sum(axis=1).max())), q, n
+
+
+def claimed(q: F64, n: F64, seen: NDArray[np.bool_], others: list[Contour]) -> NDArray[np.bool_]:
+    """Which seen points of a match lie on the contour of one of ``others`` (kept matches): within
+    ``CLAIM_PX`` and the direction within the score's angle limit."""
+    out = np.zeros(len(q), bool)
+    if not others or not seen.any():
+        return out
+    c0 = math.cos(math.radians(SCORE_MAX_ANGLE_DEG))
+    idx = np.flatnonzero(seen)
+    qs = q[idx]
+    lo, hi = qs.min(axis=0) - CLAIM_PX, qs.max(axis=0) + CLAIM_PX
+    cx, cy, rad, _, _ = contour_of(q, n)
+    for ox, oy, orad, qo, no in others:
+        if (ox - cx) ** 2 + (oy - cy) ** 2 > (rad + orad + CLAIM_PX) ** 2:
+            continue  # apart (most pairs on a full tray)
+        # only the other's points inside this match's box (on a full tray most others are apart)
+        near_box = (qo[:, 0] >= lo[0]) & (qo[:, 0] <= hi[0]) & (qo[:, 1] >= lo[1]) & (qo[:, 1] <= hi[1])
+        if not near_box.any():
+            continue
+        qo, no = qo[near_box], no[near_box]
+        d2 = (qs[:, None, 0] - qo[None, :, 0]) ** 2 + (qs[:, None, 1] - qo[None, :, 1]) ** 2
+        near = d2 <= CLAIM_PX ** 2
+        if not near.any():
+            continue
+        cos = np.abs(n[idx] @ no.T)
+        out[idx[(near & (cos >= c0)).any(axis=1)]] = True
+    return out
