@@ -117,6 +117,10 @@ class GripperDevice(_Strict):
     width_tolerance_mm: float = Field(3.0, gt=0, le=100, description="robotiq_2f with grip_width_mm: the closed "
                                                                      "width must be this close to it, mm")
     release_s: float = Field(0.1, ge=0, le=10, description="wait after opening before the tool leaves, s")
+    clearance_mm: float | None = Field(None, gt=0, le=1000, description="a part whose reference point has another "
+                                                                     "found part's nearer than this is not picked "
+                                                                     "(the gripper would hit the neighbour); none: "
+                                                                     "not checked")
     retries: int = Field(2, ge=0, le=20, description="a part whose grip fails is tried again (from a fresh picture) "
                                                      "this many times before it is skipped")
     input_timeout_s: float = Field(1.0, gt=0, le=30, description="vacuum/parallel: how long the check waits for "

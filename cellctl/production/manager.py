@@ -89,12 +89,15 @@ class ProductionManager:
     def current(self, robot_id: str | None = None) -> dict[str, Any]:
         """The current or last run as ``GET /production`` shows it (the last stored one after a restart)."""
         try:
-            return self.run(robot_id).public()
+            out = self.run(robot_id).public()
         except NoRun:
             last = self.store.last_run()
             if last is None:
                 raise
-            return {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+            out = {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+        totals = self.store.totals(exclude_run_id=int(out["run_id"]))
+        out["totals"] = {k: totals.get(k, 0) + int(v) for k, v in out["counters"].items()}
+        return out
 
     def resume(self, robot_id: str | None = None) -> ProductionRun:
         run = self.run(robot_id)

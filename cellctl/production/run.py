@@ -84,6 +84,7 @@ class ProductionRun:
         self._stop = False
         self._n = 0
         self._tried: list[_Tried] = []
+        self._unreachable: list[np.ndarray] = []
         self._thread = threading.Thread(target=self._main, name=f"production-{run_id}", daemon=True)
         self.done = threading.Event()
 
@@ -210,26 +211,28 @@ class ProductionRun:
         self.store.update_run(self.status.run_id, self.status.state, None, clean(self._summary()))
 
     def _choose(self, picture: Picture) -> Candidate | None:
-        retries = self.s.recipe.gripper.device.retries if self.s.recipe.gripper.device else 0
-        unreachable = 0
+        """The best-scoring pickable part; the unreachable ones are counted once each per run."""
+        device = self.s.recipe.gripper.device
+        retries = device.retries if device is not None else 0
+        chosen = None
         for c in picture.candidates:
             if c.plan.problem is not None:
-                unreachable += 1
+                xy = c.plan.T_base_part[:2, 3] * 1e3
+                if not any(float(np.linalg.norm(xy - seen)) < SAME_PART_MM for seen in self._unreachable):
+                    self._unreachable.append(xy)
+                    self.status.counters.unreachable += 1
                 continue
             tried = self._tried_at(c.plan)
-            if tried is not None and tried.failures > retries:
-                continue  # skipped: its grip failed too often
-            self.status.counters.unreachable += unreachable
-            return c
-        self.status.counters.unreachable += unreachable
-        return None
+            if chosen is None and (tried is None or tried.failures <= retries):
+                chosen = c
+        return chosen
 
     def _why_none(self, picture: Picture) -> str:
         problems = [c.plan.problem for c in picture.candidates if c.plan.problem]
         skipped = len(picture.candidates) - len(problems)
         parts = []
         if problems:
-            parts.append(f"{len(problems)} not reachable ({problems[0]})")
+            parts.append(f"{len(problems)} not pickable ({problems[0]})")
         if skipped:
             parts.append(f"{skipped} skipped after failed grips")
         return f"{len(picture.candidates)} part(s) found, none pickable: " + "; ".join(parts)

@@ -63,8 +63,23 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     cands = []
     for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
         cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    device = recipe.gripper.device
+    if device is not None and device.clearance_mm is not None:
+        _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
                    time.monotonic() - t0, len(cands))
+
+
+def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
+    """Mark the parts the gripper would hit a neighbour at (reference points nearer than ``clearance_mm``)."""
+    xy = [c.plan.T_base_part[:2, 3] * 1e3 for c in cands]
+    for i, c in enumerate(cands):
+        if c.plan.problem is not None:
+            continue
+        near = [float(np.linalg.norm(xy[i] - xy[j])) for j in range(len(cands)) if j != i]
+        if near and min(near) < clearance_mm:
+            c.plan.problem = (f"a neighbour lies {min(near):.1f} mm from it (clearance {clearance_mm:g} mm): "
+                              "the gripper would hit it")
 
 
 class Prefetch:

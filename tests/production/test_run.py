@@ -84,8 +84,10 @@ def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path)
         assert end["ended_because"] == "none_pickable" and end["state"] == "complete", end
         c = end["counters"]
         assert c["placed"] == 1 and c["unreachable"] == 2 and c["empty_area"] == 0, c
+        assert end["totals"]["placed"] == 1
         last = http.get(f"/production/runs/{first}/cycles").json()[-1]
-        assert last["result"] == "none_pickable" and "not reachable" in last["detail"], last
+        assert last["result"] == "none_pickable", last
+        assert "2 not pickable" in last["detail"] and "envelope" in last["detail"], last
         states = [p["state"] for p in http.get("/sim/truth").json()["parts"]]
         assert states == ["placed", "in_area", "in_area"]
     finally:
