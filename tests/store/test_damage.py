@@ -10,9 +10,10 @@ import pytest
 
 from cellctl.cli import main
 from cellctl.config import load_config
-from cellctl.store import CorruptRecord, Store, StoreDamaged, StoreError, open_store
+from cellctl.store import CorruptRecord, Store, StoreDamaged, StoreError, StoreUnavailable, open_store
 from cellctl.store.integrity import quick_check
 from tests.store.helpers import damage_table, populate, snapshot
+from tests.store.pgcluster import PostgresCluster
 
 RESTORE = "cellctl store restore --config"
 
@@ -121,3 +122,19 @@ def test_restore_latest_without_backups_says_where_it_looked(tmp_path: Path,
     assert main(["store", "restore", "--config", str(cfg), "--latest"]) == 2
     err = capsys.readouterr().err
     assert f"no backups of cell 'line1' in {tmp_path / 'bk'}; give the backup file with --from FILE" in err
+
+
+def test_an_unreachable_database_is_unavailable_until_it_is_back(postgres: PostgresCluster,
+                                                                 postgres_url: str, cell_id: str) -> None:
+    with Store(postgres_url, cell_id) as s:
+        populate(s)
+        postgres.pause()
+        try:
+            with pytest.raises(StoreUnavailable, match="is unreachable .*check that the database server runs") as err:
+                s.list_recipes()
+            assert not isinstance(err.value, StoreDamaged)
+            assert s.problem is not None and "is unreachable" in s.problem
+        finally:
+            postgres.resume()
+        assert [r.recipe_id for r in s.list_recipes()] == [2, 7]
+        assert s.problem is None  # an outage that passed is no longer reported
