@@ -221,7 +221,7 @@ def _pose_var(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_cont
     g[2] = l10 / r2
     g[4] = -l00 / r2
     g[6] = (-l10 * cx + l00 * cy) / r2
-    return g @ cov @ g, cov[0, 0], cov[1, 1], cnt
+    return float(g @ cov @ g), cov[0, 0], cov[1, 1], cnt
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
