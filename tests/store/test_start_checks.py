@@ -145,3 +145,21 @@ def test_an_older_world_readable_store_is_made_private(tmp_path: Path, umask_022
     with Store(f"sqlite:///{db}", "c") as s:
         s.list_recipes()
     assert {f.name: mode(f) for f in tmp_path.iterdir()} == {f.name: 0o600 for f in tmp_path.iterdir()}
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="what root creates for the service's user: needs root")
+def test_root_creates_the_store_for_the_owner_of_its_folder(tmp_path: Path) -> None:
+    """``sudo cellctl store restore`` into the service's folder leaves a store the service can open."""
+    import pwd
+
+    nobody = pwd.getpwnam("nobody")
+    folder = tmp_path / "var-lib-cellctl"
+    folder.mkdir()
+    os.chown(folder, nobody.pw_uid, nobody.pw_gid)
+    db = folder / "store" / "line1.db"
+    with Store(f"sqlite:///{db}", "c") as s:
+        populate(s)
+        backup(s, folder / "b.db")
+        made = (db.parent, db, db.with_name("line1.db-wal"), db.with_name("line1.db-shm"), folder / "b.db")
+        owners = {p.name: (os.stat(p).st_uid, os.stat(p).st_gid) for p in made}
+    assert set(owners.values()) == {(nobody.pw_uid, nobody.pw_gid)}, owners
