@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import getpass
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -120,7 +121,7 @@ def run_backups(args: argparse.Namespace) -> dict[str, Any]:
 def run_restore(args: argparse.Namespace) -> dict[str, Any]:
     from cellctl.config import load_config
     from cellctl.store.backup import restore
-    from cellctl.store.catalog import latest_backup, set_aside
+    from cellctl.store.catalog import latest_backup, read_latches, set_aside
     from cellctl.store.integrity import quick_check
 
     cfg = load_config(args.config)
@@ -132,13 +133,28 @@ def run_restore(args: argparse.Namespace) -> dict[str, Any]:
     aside: Path | None = None
     db = _sqlite_file(cfg)
     problem = quick_check(db) if db is not None else None
+    latches: list[tuple[str, str, str, float]] | None = []
     if db is not None and problem is not None:
         if not args.force:
             raise CommandError(f"the store {db} is damaged ({problem}); with --force it is renamed "
                                f"{db.name}.damaged-<time> and the backup is restored into a new store")
+        latches = read_latches(db, cfg.cell_id)
         aside = set_aside(db)
-    out = _with_store(args, lambda _cfg, store: restore(store, src, who, force=args.force), must_exist=False)
-    return {**out, "damaged_store_set_aside": str(aside) if aside else None}
+
+    def go(_cfg: CellConfig, store: Any) -> dict[str, Any]:
+        out = restore(store, src, who, force=args.force)
+        for robot_id, by, reason, since_s in latches or []:  # a latched robot stays latched (docs/store.md)
+            store.set_latch(robot_id, by, reason, since_s, result=f"carried over from the damaged store {aside}")
+        return out
+
+    out = _with_store(args, go, must_exist=False)
+    if aside is None:
+        return out
+    if latches is None:
+        print(f"cellctl: the Stop latches stored in {aside} cannot be read: no robot is latched now; check "
+              "every robot before it moves again", file=sys.stderr)
+    return {**out, "damaged_store_set_aside": str(aside),
+            "latches_carried_over": None if latches is None else [r[0] for r in latches]}
 
 
 def run_info(args: argparse.Namespace) -> dict[str, Any]:

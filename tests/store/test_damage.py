@@ -85,12 +85,15 @@ def _config(tmp: Path) -> Path:
     return cfg
 
 
-def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("damaged", ["calibrations", "robot_latches"])
+def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         damaged: str) -> None:
     cfg = _config(tmp_path)
     db = tmp_path / "data" / "line1.db"
     with open_store(load_config(cfg)) as s:
         populate(s)
         before = snapshot(s)
+        s.set_latch("ur0", "operator", "Stop", 1_796_000_000.0)  # live state, not in the backup
     assert main(["store", "backup", "--config", str(cfg)]) == 0
     assert main(["store", "backup", "--config", str(cfg), "--format", "json"]) == 0
     capsys.readouterr()
@@ -101,19 +104,28 @@ def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys:
     newest = listed["backups"][0]["file"]
     assert newest.endswith(".json") and Path(newest).name.startswith("line1-")
 
-    damage_table(db, "calibrations")
+    damage_table(db, damaged)
     assert main(["store", "info", "--config", str(cfg)]) == 2
     assert "is damaged (database disk image is malformed); stop cellctl" in capsys.readouterr().err
     assert main(["store", "restore", "--config", str(cfg), "--latest"]) == 2
     assert "with --force it is renamed line1.db.damaged-" in capsys.readouterr().err
     assert main(["store", "restore", "--config", str(cfg), "--latest", "--force"]) == 0
-    out = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr()
+    out = json.loads(printed.out)
     assert out["from"] == newest and Path(out["damaged_store_set_aside"]).name.startswith("line1.db.damaged-")
     assert Path(out["damaged_store_set_aside"]).exists() and quick_check(db) is None
     with open_store(load_config(cfg)) as s:
         after = snapshot(s)
+        latches = s.latches()
     assert after["records"] == before["records"] and after["recipes"] == before["recipes"]
-    assert after["audit"][0].action == "store.restore"
+    if damaged == "calibrations":  # the latch table could be read: the robot stays latched
+        assert out["latches_carried_over"] == ["ur0"]
+        assert [(x.robot_id, x.latched_by, x.reason) for x in latches] == [("ur0", "operator", "Stop")]
+        assert [e.action for e in after["audit"][:2]] == ["robot.latch", "store.restore"]
+    else:  # it could not: said so, loudly
+        assert out["latches_carried_over"] is None and latches == []
+        assert "Stop latches stored in" in printed.err and "check every robot" in printed.err
+        assert after["audit"][0].action == "store.restore"
 
 
 def test_restore_latest_without_backups_says_where_it_looked(tmp_path: Path,
