@@ -85,6 +85,9 @@ def tighten(db: Path) -> list[str]:
         except FileNotFoundError:
             continue
         if st.st_uid == os.geteuid() and st.st_mode & 0o077:
-            os.chmod(p, st.st_mode & 0o700)
+            try:
+                os.chmod(p, st.st_mode & 0o700)
+            except OSError:  # a read-only mount: the store can still be read
+                continue
             changed.append(str(p))
     return changed
