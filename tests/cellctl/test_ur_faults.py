@@ -181,6 +181,7 @@ def test_a_controller_that_drops_out_mid_move_latches_the_robot_until_resumed(
         r = box["response"]
         assert r.status_code == 503 and r.json()["error"]["code"] == "device_unavailable", r.text
         motion = http.get("/robots/ur0/motion").json()
+        print(f"\nafter the controller dropped out: {motion}")
         assert motion["latched"] and motion["latched_by"] == "controller", motion
         assert "controller dropped out" in motion["latched_reason"]
         emulator.start()  # the controller is back (at its home pose); the adapter reconnects by itself
