@@ -17,7 +17,9 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health")
-def health(cell: CellDep, request: Request) -> dict[str, Any]:
+async def health(cell: CellDep, request: Request) -> dict[str, Any]:
+    # Async on purpose: in-memory reads only, answered on the event loop with no worker thread,
+    # so a flood that holds every worker thread cannot delay it (cellctl.api.pools).
     startup: Startup = request.app.state.startup
     waiting = startup.waiting_for()
     body: dict[str, Any] = {
