@@ -74,6 +74,10 @@ def test_registry_and_settings_validation() -> None:
         cls.Settings.model_validate({"host": "127.0.0.1", "state_max_age_s": -1})
     with pytest.raises(ValueError, match="port"):
         cls.Settings.model_validate({"host": "127.0.0.1", "port": 30004})
+    assert cls.Settings.model_validate({"host": "127.0.0.1"}).watchdog_min_frequency_hz == 10.0
+    for hz in (0, 0.5, 200, "fast"):  # a watchdog cannot be switched off, nor asked for beyond 50 Hz
+        with pytest.raises(ValueError, match="watchdog_min_frequency_hz"):
+            cls.Settings.model_validate({"host": "127.0.0.1", "watchdog_min_frequency_hz": hz})
 
 
 @pytest.fixture(scope="class")
