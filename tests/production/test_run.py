@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended
 from cellctl.served import Served, stop_served
-from tests.production.cell import production_config, serve, slot_error, teach_recipe, wait_ended
 
 
 @pytest.fixture()

@@ -6,8 +6,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended, wait_for
 from cellctl.served import stop_served
-from tests.production.cell import production_config, serve, slot_error, teach_recipe, wait_ended, wait_for
 
 
 def truth_parts(http: Any) -> list[dict[str, Any]]:
