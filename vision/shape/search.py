@@ -315,7 +315,8 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         best = Candidate(r.pose.x, r.pose.y, wrap_deg(math.degrees(r.pose.theta)), r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
-            why = verify(lm, r.q, r.detail, r.grad_noise, max(r.score, MIN_SCORE_FLOOR), r.score).rejected_because
+            lower = max(math.floor(r.score * 100) / 100, MIN_SCORE_FLOOR)  # the hint's min_score
+            why = verify(lm, r.q, r.detail, r.grad_noise, lower, r.score).rejected_because
             best.verdict = why or "pass"
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()

@@ -118,7 +118,11 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     contrast = float(np.median(detail.gmax[seen])) / max(grad_noise, 1e-9) if seen.any() else 0.0
     scores["contrast"] = round(min(contrast, 999.0), 2)
     maybe = (n_vis_f >= MISSING_MIN_FRACTION * n_pts) & (n_seen_f < MISSING_SEEN_MAX * n_vis_f)
-    missing = _missing(f, q, seen, vis, detail.gmax, grad_noise, np.flatnonzero(maybe)) if maybe.any() else []
+    # the region seen: the hull of the features at least half seen (a stray agreement in clutter beyond
+    # an occluder's edge does not stretch it over the hidden part)
+    seen_region = seen & half_seen[f.labels]
+    missing = (_missing(f, q, seen, seen_region, vis, detail.gmax, grad_noise, np.flatnonzero(maybe))
+               if maybe.any() else [])
     scores["missing_features"] = float(len(missing))
     if score < min_score:
         return Verdict(scores, f"score {score:.2f} < min_score {min_score:g}")
@@ -137,13 +141,13 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     return Verdict(scores, None)
 
 
-def _missing(f: Features, q: F64, seen: NDArray[np.bool_], vis: NDArray[np.bool_], gmax: F64,
-             grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
+def _missing(f: Features, q: F64, seen: NDArray[np.bool_], region: NDArray[np.bool_], vis: NDArray[np.bool_],
+             gmax: F64, grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
     """Centres (image px) of the features ``ks`` (large, mostly unseen) that are absent where nothing
-    could hide them."""
-    if np.count_nonzero(seen) < 3:
+    could hide them: no edge above the noise, inside the hull of the ``region`` points."""
+    if np.count_nonzero(region) < 3:
         return []
-    hull = cv2.convexHull(q[seen].astype(np.float32))
+    hull = cv2.convexHull(q[region].astype(np.float32))
     out = []
     flat = gmax < grad_noise
     for k in ks.tolist():
