@@ -12,6 +12,10 @@
    on each finer level +-1; on the last discrete level a second pass on unspread responses settles
    the +-1 px plateaus.
 3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
+4. **Verification** (``verify.verify``, in the final suppression ``_verified``): a second look at each
+   refined pose (coverage of the model's features, contrast polarity along its chains, contrast over
+   the image's noise, a feature missing where nothing hides it, edges already claimed by a better
+   match); a candidate that fails is not answered but listed in ``FindResult.rejected`` with why.
 
 The score (``score.direction_score``, HALCON's metric in our words) is the edge-direction
 agreement at the final pose averaged over the model points that lie inside the image: each point
