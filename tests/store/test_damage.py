@@ -150,3 +150,13 @@ def test_an_unreachable_database_is_unavailable_until_it_is_back(postgres: Postg
             postgres.resume()
         assert [r.recipe_id for r in s.list_recipes()] == [2, 7]
         assert s.problem is None  # an outage that passed is no longer reported
+
+
+def test_a_file_that_cannot_be_opened_is_not_called_damaged(tmp_path: Path) -> None:
+    """Restoring a backup would not help a store that cannot be opened: it is unavailable, not damaged."""
+    (tmp_path / "store.db").mkdir()  # what SQLite meets where a file should be: cannot open
+    with pytest.raises(StoreUnavailable, match=r"store.db cannot be read to check it \(") as err:
+        quick_check(tmp_path / "store.db")
+    assert not isinstance(err.value, StoreDamaged)
+    (tmp_path / "junk.db").write_bytes(b"not a database" * 400)
+    assert quick_check(tmp_path / "junk.db") == "file is not a database"
