@@ -24,6 +24,7 @@ from collections import deque
 from collections.abc import Mapping
 
 from cellctl.store import Store
+from cellctl.store.latches import AUDIT_ACTION
 from drivers.motion import LatchChange, MotionOwner
 
 log = logging.getLogger(__name__)
@@ -85,7 +86,7 @@ class LatchKeeper:
 
     def _audit_quietly(self, robot_id: str, result: str) -> None:
         try:
-            self.store.audit("cellctl", "robot.latch", robot_id, {"latched": True}, result)
+            self.store.audit("cellctl", AUDIT_ACTION, robot_id, {"latched": True}, result)
         except Exception as exc:  # noqa: BLE001 - the store is the trouble here; the log has it
             log.error("robot %s: auditing its latch failed: %s", robot_id, exc)
 
