@@ -14,8 +14,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator
 
 from cellctl.pick.model import PartModel
-from cellctl.pick.place import GripperDevice, PlaceSection
 from cellctl.pick.model_schema import PartModelDoc
+from cellctl.pick.place import GripperDevice, PlaceSection
 from cellctl.strict_types import Bool, Count, Num
 
 
