@@ -114,7 +114,7 @@ def test_serve_refuses_a_damaged_or_lost_store_and_restoring_the_backup_brings_i
     db.write_bytes(b"")
     code, err = _serve(path, capsys)
     assert code == 2 and f"the store {db} is empty (0 bytes)" in err
-    assert "cellctl serve --new-store" in err and db.stat().st_size == 0
+    assert f"cellctl serve --config {path} --new-store" in err and db.stat().st_size == 0
     db.unlink()
     code, err = _serve(path, capsys)
     assert code == 2 and f"the store {db} does not exist" in err and not db.exists()

@@ -61,7 +61,7 @@ def test_a_store_gone_after_a_start_refuses_the_start(tmp_path: Path, data_dir: 
     db = tmp_path / "store" / "line1.db"
     with open_store(cfg) as s:
         populate(s)
-    check_store_at_start(cfg)
+    audit = check_store_at_start(cfg)["counts"]["audit"]
     size = db.stat().st_size
     for side in ("-wal", "-shm"):
         db.with_name(db.name + side).unlink(missing_ok=True)
@@ -79,9 +79,10 @@ def test_a_store_gone_after_a_start_refuses_the_start(tmp_path: Path, data_dir: 
         check_store_at_start(cfg)
     msg = str(err.value)
     assert msg.startswith("refusing to start: ") and found.replace("\\", "") in msg
-    assert f"{size} bytes, 3 calibrations, 4 activations, 3 recipes" in msg  # what it was at the last start
+    # what the store was at the last start
+    assert f"{size} bytes, 3 calibrations, 4 activations, 3 recipe versions, {audit} audit entries;" in msg
     assert f"cellctl store restore --config {cfg.source} --latest --force" in msg
-    assert "cellctl serve --new-store" in msg and f"delete {marker_path(cfg)}" in msg
+    assert f"cellctl serve --config {cfg.source} --new-store" in msg and f"delete {marker_path(cfg)}" in msg
     # Refusing changed nothing: still refused, and no store was created in the missing one's place.
     with pytest.raises(StoreStartRefused):
         check_store_at_start(cfg)
