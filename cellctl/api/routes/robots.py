@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter
@@ -16,9 +17,11 @@ from cellctl.api.numbers import pose_ur_problem, transform_problem
 from cellctl.api.pools import run_blocking
 from cellctl.motion import audited_move
 from cellctl.robot_state import state_to_json
+from cellctl.store.errors import StoreUnavailable
 from cellctl.strict_types import Num
 from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/robots", tags=["robots"], route_class=EdgeRoute)
 
 MAX_STATE_AGE_S = 1.0
@@ -160,13 +163,23 @@ async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operato
     try:
         await device_call(slot, lambda r: r.halt())
     except Exception as exc:
-        await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
-                           f"latched; halting failed: {exc}")
-        raise
-    # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
-    await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
+        await _audit_stop(services, who.name, robot_id, aborted, f"latched; halting failed: {exc}")
+        raise  # the device's error, never one of the store's
+    audited = await _audit_stop(services, who.name, robot_id, aborted, "ok")
     return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status(),
-            "latch_stored": await _latch_stored(services)}
+            "latch_stored": await _latch_stored(services), "audit_stored": audited}
+
+
+async def _audit_stop(services: ServicesDep, who: str, robot_id: str, aborted: Any, result: str) -> bool:
+    """Audit a Stop; False when the store cannot take it. The robot has stopped either way: a store
+    that is down must not turn the Stop's answer into an error (the log keeps the record)."""
+    try:
+        # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
+        await run_blocking(services.store.audit, who, "robot.stop", robot_id, {"aborted": _what(aborted)}, result)
+        return True
+    except StoreUnavailable as exc:
+        log.error("robot %s stopped by %s (%s); its audit entry was not stored: %s", robot_id, who, result, exc)
+        return False
 
 
 @router.post("/{robot_id}/resume")
