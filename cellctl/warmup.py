@@ -27,6 +27,7 @@ import asyncio
 import logging
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -59,11 +60,16 @@ def warm_renderer(cameras: Iterable[SimCamera] = ()) -> None:
         cam.warm_up()
 
 
-def warm_matcher() -> None:
-    """Load the shape matcher's compiled loops (once per process)."""
+SEARCH_SIZE = (1280, 960)
+"""Image size (width, height) the matcher's warm-up searches when no simulated camera tells it better."""
+
+
+def warm_matcher(image_size: tuple[int, int] = SEARCH_SIZE) -> None:
+    """Load the shape matcher's compiled loops (once per process), its warm-up search on an image of
+    ``image_size`` (the cameras'), so that the first real search costs what the next ones do."""
     from vision.shape import warm_up
 
-    warm_up()
+    warm_up(image_size)
 
 
 _CALIBRATION_WARM = threading.Event()
@@ -78,6 +84,8 @@ def warm_calibration() -> None:
     with _CALIBRATION_LOCK:
         if _CALIBRATION_WARM.is_set():
             return
+        from numba.core.errors import NumbaPerformanceWarning
+
         from calibration.camera_model import CameraModel
         from calibration.intrinsics import calibrate, plan_views, synthetic_detections
         from calibration.targets import Chessboard
@@ -86,8 +94,11 @@ def warm_calibration() -> None:
         board = Chessboard(9, 6, 25.0)
         rng = np.random.default_rng(0)
         dets = synthetic_detections(cam, board, plan_views(cam, board, 6, rng), 0.1, rng)
-        for model in ("opencv5", "opencv8", "division"):
-            calibrate(dets, board, model)
+        with warnings.catch_warnings():
+            # compiling the Schur step says '@' is faster on contiguous arrays: known, and not the user's to act on
+            warnings.simplefilter("ignore", NumbaPerformanceWarning)
+            for model in ("opencv5", "opencv8", "division"):
+                calibrate(dets, board, model)
         _CALIBRATION_WARM.set()
 
 
@@ -170,8 +181,13 @@ def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
     def renderer() -> None:
         warm_renderer(slot.device for slot in sims if slot.is_open and isinstance(slot.device, SimCamera))
 
+    def matcher() -> None:
+        shown = [slot.device.settings() for slot in sims]  # a sim camera's size, no IO (None when closed)
+        sizes = [(int(c["width"]), int(c["height"])) for c in shown if c.get("width") and c.get("height")]
+        warm_matcher(max(sizes, key=lambda wh: wh[0] * wh[1]) if sizes else SEARCH_SIZE)
+
     tasks: list[tuple[str, Callable[[], None]]] = [(RENDERER, renderer)] if sims else []
-    return Startup([*tasks, (MATCHER, warm_matcher), (CALIBRATION, warm_calibration)], since_s)
+    return Startup([*tasks, (MATCHER, matcher), (CALIBRATION, warm_calibration)], since_s)
 
 
 def warm_all() -> dict[str, float]:
