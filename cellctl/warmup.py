@@ -178,8 +178,8 @@ def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
     (each open one also inverts its lens), the matcher and the calibration solver."""
     sims = [slot for slot in cell.cameras.values() if isinstance(slot.device, SimCamera)]
 
-    def renderer() -> None:
-        warm_renderer(slot.device for slot in sims if slot.is_open and isinstance(slot.device, SimCamera))
+    def renderer() -> None:  # with no sim camera open yet, the loops alone (its lens when it opens)
+        warm_renderer([slot.device for slot in sims if slot.is_open and isinstance(slot.device, SimCamera)])
 
     def matcher() -> None:
         shown = [slot.device.settings() for slot in sims]  # a sim camera's size, no IO (None when closed)
