@@ -15,7 +15,8 @@ image, not a number fitted to a data set:
   the part, not bunched on one edge.
 - ``polarity``: of neighbouring seen points along a feature, the share whose contrast has the same
   sign. A part's contrast changes sign only where its background does (a few places); texture's
-  flips at random (0.5). A match needs more than ``POLARITY_MIN`` (the midpoint).
+  flips at random (0.5). A match needs more than chance by three standard deviations of a coin's
+  share over its pairs (``0.5 + 1.5 / sqrt(pairs)``), and never more than ``POLARITY_MIN``.
 - ``contrast``: the median gradient of the seen edges over what the image's noise reaches around
   the part (``score.grad_noise``, 4 deviations). A match needs at least 1.
 - ``missing``: a feature of at least ``MISSING_MIN_FRACTION`` of the model's points, less than a
@@ -42,8 +43,9 @@ from vision.shape.model import CHAIN_MAX_TURN_DEG, LevelModel
 from vision.shape.score import SCORE_MAX_ANGLE_DEG, PointDetail
 
 POLARITY_MIN = 0.75
-"""Least share of neighbouring seen points with the same contrast sign: halfway between a part's
-(1 but for a few background changes) and texture's (0.5)."""
+"""The most a match's polarity coherence is asked: halfway between a part's (1 but for a few
+background changes) and texture's (0.5); with many pairs the test against chance asks less (a
+specular part on wood flips more than a machined one on a table)."""
 MISSING_MIN_FRACTION = 0.05
 """A feature smaller than this share of the model's points is not judged missing (a glint, a speck
 of texture in the teach image)."""
@@ -129,9 +131,11 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     if coverage < min_score:
         return Verdict(scores, f"its seen edges bunch on a part of the contour: coverage {coverage:.2f} "
                                f"< min_score {min_score:g}")
-    if polarity <= POLARITY_MIN:
+    pol_min = min(POLARITY_MIN, 0.5 + 1.5 / math.sqrt(max(n_pairs, 1)))
+    if polarity <= pol_min:
         return Verdict(scores, f"the contrast along its edges flips at random (coherence {polarity:.2f} <= "
-                               f"{POLARITY_MIN:g}): texture or pieces of other parts, not one part")
+                               f"{pol_min:.2f} over {n_pairs} neighbours): texture or pieces of other parts, "
+                               "not one part")
     if contrast < 1.0:
         return Verdict(scores, f"its edges are not above the image's noise (contrast {contrast:.2f} < 1)")
     if missing:
