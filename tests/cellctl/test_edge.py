@@ -28,6 +28,7 @@ from cellctl.api.body import MAX_DEPTH, MAX_NUMBER_CHARS, MAX_VALUES
 from cellctl.auth import hash_token
 from cellctl.config import CellConfig, load_config
 from cellctl.pick.model import teach
+from tests.support.wait import wait_until
 
 TOKENS = {"viewer": "cct_edge-viewer", "operator": "cct_edge-operator", "engineer": "cct_edge-engineer"}
 
@@ -303,7 +304,9 @@ def test_safety_routes_answer_while_every_default_worker_thread_is_busy(
     tokens = c.portal.call(lambda: anyio.to_thread.current_default_thread_limiter().total_tokens)
     busy = [c.portal.start_task_soon(anyio.to_thread.run_sync, time.sleep, hold_s) for _ in range(int(tokens) + 5)]
     try:
-        time.sleep(0.3)
+        wait_until(lambda: c.portal.call(  # type: ignore[union-attr]
+            lambda: anyio.to_thread.current_default_thread_limiter().borrowed_tokens) >= tokens,
+            hold_s / 2, "every default worker thread held")
         t0 = time.perf_counter()
         for method, path, role in (("POST", "/robots/robot0/stop", "operator"),
                                    ("GET", "/robots/robot0/state", "viewer"),
