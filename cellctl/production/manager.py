@@ -58,6 +58,9 @@ class ProductionManager:
         if Gripper(self.services, recipe.gripper).holding():
             raise GripperHolding(f"gripper {recipe.gripper.device.io_id} holds something: take the part out and "
                                  "open the gripper (POST /production/gripper/open) before a run starts")
+        finishing = self._runs.get(rid)
+        if finishing is not None and finishing.status.ended_because is not None:
+            finishing.done.wait(10.0)  # it has ended: its last writes and the robot's release follow at once
         with self._lock:
             current = self._runs.get(rid)
             if current is not None and not current.ended:
@@ -85,6 +88,12 @@ class ProductionManager:
             raise NoRun("no production run has been started" + (f" on robot {robot_id}" if robot_id else "")
                         + " since the service started (POST /production/start)")
         return run
+
+    def snapshot(self) -> dict[str, Any] | None:
+        """The last run started in this service, from memory (None: none yet)."""
+        with self._lock:
+            run = self._last
+        return None if run is None else run.snapshot()
 
     def current(self, robot_id: str | None = None) -> dict[str, Any]:
         """The current or last run as ``GET /production`` shows it (the last stored one after a restart)."""
@@ -130,6 +139,13 @@ class ProductionManager:
 
 _MANAGERS: dict[int, tuple[Services, ProductionManager]] = {}
 _MANAGERS_LOCK = threading.Lock()
+
+
+def existing_manager(services: Services) -> ProductionManager | None:
+    """The service's production manager if one was made (no store access: safe on an event loop)."""
+    with _MANAGERS_LOCK:
+        entry = _MANAGERS.get(id(services))
+    return entry[1] if entry is not None and entry[0] is services else None
 
 
 def manager_for(services: Services) -> ProductionManager:

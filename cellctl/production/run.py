@@ -109,6 +109,8 @@ class ProductionRun:
                                         ) else None
         self._thread = threading.Thread(target=self._main, name=f"production-{run_id}", daemon=True)
         self.done = threading.Event()
+        self.last_record: dict[str, Any] | None = None
+        """The last cycle's record (what a PLC reads as the last cycle's result)."""
 
     # -- control ----------------------------------------------------------------------------------
     def start(self) -> None:
@@ -148,6 +150,13 @@ class ProductionRun:
                 "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
                 "next_slot": self.store.next_slot(st.recipe_id) if self.ended else self._next_slot,
                 "error": st.error, "cycles": self._n}
+
+    def snapshot(self) -> dict[str, Any]:
+        """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
+        st = self.status
+        return {"run_id": st.run_id, "state": st.state, "ended_because": st.ended_because,
+                "counters": st.counters.as_dict(), "next_slot": self._next_slot,
+                "cycle_median_ms": st.times.summary()["median"], "last": self.last_record}
 
     # -- the run ----------------------------------------------------------------------------------
     def _main(self) -> None:
@@ -377,4 +386,5 @@ class ProductionRun:
             "found": None if picture is None else picture.found, "detail": detail,
         }
         record = clean(rec)
+        self.last_record = record
         self._writer.put(lambda: self.store.add_cycle(self.status.run_id, record))
