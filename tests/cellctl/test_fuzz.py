@@ -25,7 +25,9 @@ from typing import Any
 
 import httpx
 import pytest
+import yaml
 
+from cellctl.config import default_config_text
 from tests.conftest import Served, start_served, stop_served
 
 LEFT_OUT = ("/routines/", "/production/start", "/production/slot", "/production/gripper")
@@ -39,7 +41,12 @@ MARK = "@@hostile@@"
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
-    s = start_served(tmp_path_factory.mktemp("fuzz"))
+    tmp = tmp_path_factory.mktemp("fuzz")
+    data = yaml.safe_load(default_config_text())
+    # Instantaneous moves: the fuzz checks every answer, not the travel of the moves it happens to make.
+    data["robots"]["robot0"]["settings"]["motion_time_scale"] = 0.0
+    (tmp / "cell.yaml").write_text(yaml.safe_dump(data))
+    s = start_served(tmp, tmp / "cell.yaml")
     try:
         yield s
     finally:
