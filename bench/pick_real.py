@@ -25,6 +25,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -106,11 +107,19 @@ class Ncc:
         return out, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
-def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool) -> tuple[list[Found], float, float]:
-    """Matches, wall ms (``FindResult.elapsed_s``), CPU ms (the search's own process time)."""
+def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool) -> tuple[list[Found], float, float, int]:
+    """Matches, wall ms (``FindResult.elapsed_s``), CPU ms (the search's own process time), and the
+    candidates the verification rejected."""
     res = shape.find(model, img, SearchParams(mirrored=mirrored))
     return ([Found(m.u_px, m.v_px, m.angle_deg, m.score, m.mirrored) for m in res.matches],
-            res.elapsed_s * 1e3, res.stats.get("cpu_total_s", float("nan")) * 1e3)
+            res.elapsed_s * 1e3, res.stats.get("cpu_total_s", float("nan")) * 1e3, len(res.rejected))
+
+
+def _pr(t: Tally) -> str:
+    """Precision (found / (found + false)) and recall (found / expected) of a tally."""
+    prec = t.found / (t.found + t.false) if t.found + t.false else float("nan")
+    rec = t.found / t.expected if t.expected else float("nan")
+    return f"precision {prec:.3f} ({t.found} / {t.found + t.false}), recall {rec:.3f} ({t.found} / {t.expected})"
 
 
 def _mirrored_found(case: Case, test: TestImage, found: list[Found]) -> tuple[int, int, int]:
@@ -137,8 +146,8 @@ class Run:
     false_where: list[str] = field(default_factory=list)
 
 
-def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float) -> str:
-    return (f"| {name} | {test.expected_count} | {so.found} | {so.false} | {_max(so.pos_err)} | "
+def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float, rejected: int) -> str:
+    return (f"| {name} | {test.expected_count} | {so.found} | {so.false} | {rejected} | {_max(so.pos_err)} | "
             f"{_max(so.ang_err)} | {so.over_target} / {so.out_of_tolerance} | {ms:.1f} | {cpu:.1f} |")
 
 
@@ -151,7 +160,7 @@ def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: 
         for vname, fn in variants.items():
             key = label or vname
             img = fn(base_img)  # type: ignore[operator]
-            ours, ms, cpu = _ours(model, img, False)
+            ours, ms, cpu, n_rej = _ours(model, img, False)
             so = score(case, test, ours)
             run.variants.setdefault(key, (Tally(), Tally()))[0].add(so, ms, cpu)
             if so.false:
@@ -164,15 +173,15 @@ def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: 
             if vname != "original" or label is not None:
                 continue
             name = str(test.path.relative_to(DATA))
-            r = _row(name, test, so, ms, cpu)
+            r = _row(name, test, so, ms, cpu, n_rej)
             if st is not None:
                 r += (f" {st.found} | {st.false} | {_max(st.pos_err)} | {_max(st.ang_err)} | "
                       f"{st.over_target} / {st.out_of_tolerance} | {ms_b:.0f} | {cpu_b:.0f} |")
             run.rows.append(r)
-            mo, ms_m, cpu_m = _ours(model, img, True)
+            mo, ms_m, cpu_m, n_rej_m = _ours(model, img, True)
             sm = score(case, test, mo)
             run.mirror.add(sm, ms_m, cpu_m)
-            run.mirror_rows.append(_row(name, test, sm, ms_m, cpu_m))
+            run.mirror_rows.append(_row(name, test, sm, ms_m, cpu_m, n_rej_m))
             n, hit, hit_m = _mirrored_found(case, test, mo)
             for j, x in enumerate((n, hit, hit_m)):
                 run.mirrored_instances[j] += x
@@ -225,9 +234,9 @@ def _targets(r: Run, with_baseline: bool) -> list[str]:
 
 def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
             load1: tuple[float, float, float]) -> str:
-    head = ("| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol "
-            "| ms | CPU ms |")
-    sep = "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+    head = ("| image | expected | found | false | rejected | max pos err px | max angle err deg | over target / "
+            "beyond tol | ms | CPU ms |")
+    sep = "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     if with_baseline:
         head += (" NCC found | NCC false | NCC pos err | NCC angle err | NCC over target / beyond tol | NCC ms "
                  "| NCC CPU ms |")
@@ -255,13 +264,23 @@ def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
         "",
         head, sep, *r.rows,
         "",
+        "'false': matches that are not an instance of the part (or lie beyond half the part's size from "
+        "one); 'rejected': candidates that reached min_score and failed the verification "
+        "(`vision/shape/verify.py`), never answered.",
+        "",
+        f"Precision / recall on the originals: cellctl {_pr(r.variants['original'][0])}"
+        + (f"; NCC {_pr(r.variants['original'][1])}" if with_baseline else "") + ".",
+        "",
+        f"Over every variant and size: cellctl {_pr(_sum(v[0] for v in r.variants.values()))}"
+        + (f"; NCC {_pr(_sum(v[1] for v in r.variants.values()))}" if with_baseline else "") + ".",
+        "",
         "## Mirrored search on (`SearchParams(mirrored=True)`)",
         "",
-        "| image | expected | found | false | max pos err px | max angle err deg | over target / beyond tol | ms "
-        "| CPU ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| image | expected | found | false | rejected | max pos err px | max angle err deg | over target / beyond "
+        "tol | ms | CPU ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *r.mirror_rows,
-        f"| **all** | {m.expected} | {m.found} | {m.false} | {_max(m.pos)} | {_max(m.ang)} | {m.over} / {m.bad} | "
+        f"| **all** | {m.expected} | {m.found} | {m.false} | - | {_max(m.pos)} | {_max(m.ang)} | {m.over} / {m.bad} | "
         f"{_med(m.ms):.1f} (median) | {_med(m.cpu_ms):.1f} (median) |",
         "",
         "## Hard variants (sums over the 12 images; default settings)",
@@ -282,6 +301,15 @@ def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
         lines.append(row)
     lines += ["", *_targets(r, with_baseline)]
     return "\n".join(lines) + "\n"
+
+
+def _sum(ts: Iterable[Tally]) -> Tally:
+    out = Tally()
+    for t in ts:
+        out.found += t.found
+        out.expected += t.expected
+        out.false += t.false
+    return out
 
 
 NOTES_MARK = "## Notes"

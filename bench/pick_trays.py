@@ -146,7 +146,10 @@ def _report(n_trays: int, ours: dict[int, Tally], theirs: dict[int, Tally] | Non
         "were 12-16 of 30 found. A model of 1-2 levels has no level to track on, and its candidates "
         "are settled on unspread responses before the least-squares stage (without it 105 of 120 were "
         "found at 1/4 when it was measured). The time grows with the number of parts: the least-squares "
-        "refinement is per part.",
+        "refinement is per part, and so is the verification (`vision/shape/verify.py`), whose check "
+        "that a match's edges are not those of better matches only compares neighbours whose contours "
+        "can touch. The previous table (before the verification) had the same counts: 120 / 120 / 119, "
+        "0 false.",
     ]
     return "\n".join(lines) + "\n"
 

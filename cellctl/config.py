@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -111,6 +112,9 @@ class DeviceConfig(_Strict):
     settings: dict[str, Any] = {}
 
 
+POSE_NAME = re.compile(r"[A-Za-z0-9_.-]{1,40}")
+
+
 class CameraConfig(DeviceConfig):
     pass
 
@@ -123,6 +127,32 @@ class RobotConfig(DeviceConfig):
     """Largest angle of the tool's z axis from straight down (deg); null: orientation not checked."""
     max_move_duration_s: float = Field(60.0, gt=0, le=3600)
     """A move that would take longer at its speed is refused (s)."""
+    poses: dict[str, list[float]] = {}
+    """Named tool poses (home, capture poses): ``name: [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]``, UR's
+    form in the base frame (metres, rotation vector in radians); ``POST /robots/{id}/move
+    {"named_pose": name}`` goes there. Each must lie in the envelope and the tool cone."""
+
+    @model_validator(mode="after")
+    def _poses_inside(self) -> RobotConfig:
+        from calibration.geometry import ur_pose_to_transform
+        from drivers.base import MotionRejected
+
+        for name, pose in self.poses.items():
+            if not POSE_NAME.fullmatch(name):
+                raise ValueError(f"poses.{name}: a pose name is 1-40 letters, digits, '_', '-' or '.'")
+            if len(pose) != 6:
+                raise ValueError(f"poses.{name}: a pose is 6 numbers [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad] "
+                                 f"(UR form: metres, rotation vector in radians), got {len(pose)}")
+            if not all(math.isfinite(v) for v in pose):
+                raise ValueError(f"poses.{name}: every number must be finite")
+            if max(abs(v) for v in pose[:3]) > 100.0 or math.hypot(*pose[3:]) > 2 * math.pi + 1e-6:
+                raise ValueError(f"poses.{name}: {list(pose)} is not a UR pose [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad] "
+                                 "(metres, and a rotation vector of at most one turn in radians)")
+            try:
+                self.limits().check_pose(ur_pose_to_transform(pose))
+            except MotionRejected as exc:
+                raise ValueError(f"poses.{name}: {exc}") from None
+        return self
 
     def limits(self) -> MotionLimits:
         e = self.envelope

@@ -24,6 +24,7 @@ from collections import deque
 from collections.abc import Mapping
 
 from cellctl.store import Store
+from cellctl.store.latches import AUDIT_ACTION
 from drivers.motion import LatchChange, MotionOwner
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,8 @@ class LatchKeeper:
         self._last_seq: dict[str, int] = {}
         self._waiters: list[tuple[int, concurrent.futures.Future[bool]]] = []
         self._closing = False
+        self._failing = False
+        """The store refused the newest write (retried): a waiter is answered False at once, not after its timeout."""
         self._thread: threading.Thread | None = None
 
     # -- start-up --------------------------------------------------------------------------------
@@ -85,7 +88,7 @@ class LatchKeeper:
 
     def _audit_quietly(self, robot_id: str, result: str) -> None:
         try:
-            self.store.audit("cellctl", "robot.latch", robot_id, {"latched": True}, result)
+            self.store.audit("cellctl", AUDIT_ACTION, robot_id, {"latched": True}, result)
         except Exception as exc:  # noqa: BLE001 - the store is the trouble here; the log has it
             log.error("robot %s: auditing its latch failed: %s", robot_id, exc)
 
@@ -109,7 +112,7 @@ class LatchKeeper:
         with self._cond:
             if self._written >= self._issued:
                 fut.set_result(True)
-            elif self._closing:
+            elif self._closing or self._failing:
                 fut.set_result(False)
             else:
                 self._waiters.append((self._issued, fut))
@@ -130,7 +133,6 @@ class LatchKeeper:
             return False
 
     def _run(self) -> None:
-        failing = False
         while True:
             with self._cond:
                 while not self._pending and not self._closing:
@@ -141,11 +143,12 @@ class LatchKeeper:
             try:
                 self._store(change)
             except Exception as exc:  # noqa: BLE001 - retried until stored; the latch in memory holds meanwhile
-                if not failing:
+                if not self._failing:
                     log.error("robot %s: storing its latch change (%s by %s) failed: %s; retrying every %.0f s",
                               change.robot_id, "latched" if change.latched else "cleared", change.by, exc, RETRY_S)
-                failing = True
                 with self._cond:
+                    self._failing = True
+                    self._resolve(None, False)  # waiters get their answer now: not stored (yet)
                     if self._closing:
                         log.error("robot %s: the latch change was NOT stored before the service stopped",
                                   change.robot_id)
@@ -153,10 +156,10 @@ class LatchKeeper:
                         continue
                     self._cond.wait(RETRY_S)
                 continue
-            if failing:
+            if self._failing:
                 log.warning("robot %s: latch change stored after the store came back", change.robot_id)
-                failing = False
             with self._cond:
+                self._failing = False
                 self._pending.popleft()
                 self._written = ticket
                 self._resolve(ticket, True)

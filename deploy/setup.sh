@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Sets up cellctl on a fresh Debian 12 machine: Debian packages (deploy/install-system-deps.sh),
 # a virtual environment in .venv/ and the package with its test tools and the PostgreSQL driver
-# (the store tests run a real PostgreSQL). Idempotent; safe to re-run.
+# (the store tests run a real PostgreSQL), and numba's disk cache of the compiled loops (renderer,
+# matcher, calibration solver: about a minute of CPU the first time, seconds later), so the first
+# frame, search and calibration do not compile. Idempotent; safe to re-run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -26,4 +28,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[test,aravis,postgres]'
+# Into __pycache__ beside the modules, or NUMBA_CACHE_DIR when set (the service must see the same).
+echo "setup: compiling the renderer's, matcher's and solver's loops into numba's cache" >&2
+.venv/bin/cellctl warm-up >/dev/null
 echo "setup: ready (.venv/bin/cellctl)" >&2

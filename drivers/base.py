@@ -352,14 +352,14 @@ class RobotBase(DeviceBase):
                     hook: Callable[[], None]) -> None:
         if session is None:
             with self.motion_session("direct", what) as own:
-                self._run_move(own, nominal_s, hook)
+                self._run_move(own, nominal_s, hook, in_sequence=False)
         else:
             if not self.motion.is_current(session):
                 session.check()
                 raise RobotBusy(f"robot {self.robot_id}: {session.what} does not own the robot's motion")
-            self._run_move(session, nominal_s, hook)
+            self._run_move(session, nominal_s, hook, in_sequence=True)
 
-    def _run_move(self, session: MotionSession, nominal_s: float, hook: Callable[[], None]) -> None:
+    def _run_move(self, session: MotionSession, nominal_s: float, hook: Callable[[], None], in_sequence: bool) -> None:
         session.check()
         deadline_s = move_deadline_s(nominal_s, self.limits.move_deadline_slack_s)
         timed_out = threading.Event()
@@ -375,14 +375,14 @@ class RobotBase(DeviceBase):
 
         timer = threading.Timer(deadline_s, on_deadline)
         timer.daemon = True
-        was_available = self.health().available  # a controller already gone before the move is no dropout
+        dropout_if_lost = in_sequence or self.health().available  # gone before a lone move: an outage only
         with self._move_lock:
             self._moving_session = session
         timer.start()
         try:
             hook()
         except Exception as exc:
-            if isinstance(exc, DeviceUnavailable) and was_available:
+            if isinstance(exc, DeviceUnavailable) and dropout_if_lost:
                 self._controller_dropped(str(exc))  # latched; the move answers why it failed
                 raise
             if session.aborted:

@@ -9,6 +9,7 @@ list in ``tests/slow.txt``, plus every browser test).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -30,6 +31,49 @@ def served_virtual_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Se
         yield served
     finally:
         stop_served(served)
+
+
+# -- parallel runs (pytest-xdist) ----------------------------------------------------------------------
+
+WORKERS = 4
+"""Workers for ``-n auto`` (pyproject's addopts): more than the 2 cores of the reference machine pay,
+as much of the suite waits on motion and served processes rather than computing (docs/testing.md)."""
+UR_GROUP = "ur_emulator"
+"""The UR emulator listens on the fixed ports the ur_rtde client dials (30004, 29999, ...): its tests
+share one xdist worker (``--dist loadgroup``), one emulator at a time."""
+SHARED_CELLS = ("plc_cell", "served_virtual_cell")
+"""Session fixtures that serve a cell: their tests share one worker, so the cell starts once."""
+
+
+def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | None:
+    """The worker group of a test under ``--dist loadgroup``, or None to balance it freely.
+
+    The UR emulator's tests share one group (fixed ports); the tests of a shared served cell share
+    its group; a module with a module-scoped fixture (a served cell, a capture) stays on one worker
+    so that the fixture runs once, not once per worker its tests land on.
+    """
+    if "ur_emulator" in module_text:
+        return UR_GROUP
+    names = set(getattr(item, "fixturenames", ()))
+    for name in SHARED_CELLS:
+        if name in names:
+            return name
+    info = getattr(item, "_fixtureinfo", None)
+    defs = info.name2fixturedefs.values() if info is not None else ()
+    if any(d and d[-1].scope == "module" for d in defs):
+        return rel_path
+    return None
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: ``CELLCTL_TEST_WORKERS`` if set, no workers for one file or one test (the run
+    stays in this process and starts at once), else ``WORKERS``."""
+    if os.environ.get("CELLCTL_TEST_WORKERS"):
+        return int(os.environ["CELLCTL_TEST_WORKERS"])
+    paths = {a.split("::", 1)[0] for a in config.args}
+    if len(paths) == 1 and Path(next(iter(paths))).is_file():
+        return 0
+    return WORKERS
 
 
 # -- markers ----------------------------------------------------------------------------------------
@@ -73,3 +117,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         base_id, file_id = item.nodeid.split("[", 1)[0], item.nodeid.split("::", 1)[0]
         if "browser" in kinds or {item.nodeid, base_id, file_id} & slow:
             item.add_marker("slow")
+        group = xdist_group_of(item, rel, _module_text[path])
+        if group is not None and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(group))

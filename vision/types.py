@@ -210,8 +210,8 @@ def no_match_reason(timed_out: bool, best: Candidate | None, min_score: float, r
     lower = max(math.floor(best.score * 100) / 100, MIN_SCORE_FLOOR)
     hint = ""
     if best.verdict == "pass":
-        hint = f"; min_score {lower:g} would find it (it passes the verification)"
+        hint = f"; at min_score {lower:g} it would be answered (it passes the verification)"
     elif best.verdict:
-        hint = f"; a lower min_score would not find it either: {best.verdict}"
+        hint = f"; a lower min_score would not answer it either: {best.verdict}"
     return (f"best candidate scored {best.score:.2f} < min_score {min_score:g} "
             f"at ({best.u_px:.1f}, {best.v_px:.1f}), angle {best.angle_deg:.1f} deg{hint}")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-import threading
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -24,17 +24,9 @@ from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
 from cellctl.services import Services
+from cellctl.warmup import service_startup
 
 log = logging.getLogger(__name__)
-
-
-def _warm_up_matcher() -> None:
-    from vision.shape import warm_up
-
-    try:
-        warm_up()
-    except Exception:  # noqa: BLE001 - a failed warm-up only costs the first search its load time
-        log.warning("loading the matcher's compiled loops failed; the first search will load them", exc_info=True)
 
 
 def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] | None = None) -> FastAPI:
@@ -44,6 +36,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         from cellctl.store import open_store
 
+        t0 = time.monotonic()  # the start-up's "ready in" counts from here
         cell = Cell(config)
         store = await run_in_threadpool(open_store, config)
         # Robots latched before a crash or restart are latched again before anything is served.
@@ -55,9 +48,11 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         app.state.services = services
         metrics.attach(app.state.metrics, services)
         await run_in_threadpool(cell.open_all)
-        # The matcher's compiled loops load in the background, so the first pick costs what the next ones do.
-        threading.Thread(target=_warm_up_matcher, name="matcher-warm-up", daemon=True).start()
-        log.info("cell %s ready: cameras %s, robots %s; store %s", config.cell_id, sorted(cell.cameras),
+        # The compiled loops (renderer, matcher, solver) load in the background; /health says
+        # `starting` until they have, and a camera image waits for its camera's (cellctl.warmup).
+        app.state.startup = service_startup(cell, since_s=t0)
+        app.state.startup.start()
+        log.info("cell %s open: cameras %s, robots %s; store %s; warming up", config.cell_id, sorted(cell.cameras),
                  sorted(cell.robots), store.describe())
         from cellctl.plc import start_plc_servers
 

@@ -94,8 +94,11 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(status_code=422, content=error_body("invalid_input", _with_notes(exc)))
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
-        message = format_validation_errors(exc.errors(), with_input=False)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # An unknown key's message lists the keys accepted there (read from the route's body model).
+        body_field = getattr(request.scope.get("route"), "body_field", None)
+        model = getattr(getattr(body_field, "field_info", None), "annotation", None)
+        message = format_validation_errors(exc.errors(), with_input=False, model=model, model_loc=1)
         return JSONResponse(status_code=422, content=error_body("invalid_request", message))
 
     @app.exception_handler(StarletteHTTPException)

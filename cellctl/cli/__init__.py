@@ -33,6 +33,7 @@ COMMAND_MODULES: Final[tuple[str, ...]] = (
     "target",
     "pick",
     "store_cmd",
+    "warm_up",
 )
 
 

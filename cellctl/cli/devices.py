@@ -1,14 +1,21 @@
-"""``cellctl grab`` and ``cellctl robot state``: one device, opened for the call."""
+"""``cellctl grab`` and ``cellctl robot state|move|stop|resume``.
+
+``grab`` and ``robot state --config`` open one device for the call (no service may be driving it).
+``robot state --url``, ``move``, ``stop`` and ``resume`` ask a running ``cellctl serve`` (``--url``,
+``--token`` as for ``cellctl job``): the service owns the robot, its motion checks, Stop latch and audit log.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 from typing import Any
 
 import cv2
 
 from cellctl.cell import Cell
+from cellctl.cli.job import TOKEN_HELP, _service_args
 from cellctl.cli.output import CommandError
 from cellctl.config import load_config
 from cellctl.robot_state import state_to_json
@@ -24,10 +31,35 @@ def register(sub: Any) -> None:
 
     r: argparse.ArgumentParser = sub.add_parser("robot", help="robot commands")
     rsub = r.add_subparsers(dest="robot_command", metavar="ACTION", required=True)
-    s = rsub.add_parser("state", help="print a robot's state as JSON")
-    s.add_argument("--config", help="cell.yaml (default: the built-in virtual cell)")
+    s = rsub.add_parser("state", help="print a robot's state as JSON (from the device, or --url: the service)",
+                        description="Without --url: opens the robot of --config directly for this call (no service "
+                                    "may be driving it). With --url: asks the running service (GET /robots/ID/state, "
+                                    "which adds whether a Stop latches it).")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("--config", help="read the device directly: cell.yaml (default: the built-in virtual cell)")
+    where.add_argument("--url", default=None, help="ask the running service at this base URL instead, e.g. "
+                                                   "http://127.0.0.1:8080")
+    s.add_argument("--token", default=None, help=TOKEN_HELP + "; with --url")
     s.add_argument("--robot", required=True, help="robot id in the config")
     s.set_defaults(func=robot_state)
+
+    m = rsub.add_parser("move", help="move the tool on the running service (engineer): to a named pose or a UR pose",
+                        description="POST /robots/ID/move on the running service: a checked linear move (envelope, "
+                                    "tool cone, speed), refused while another motion owns the robot or a Stop "
+                                    "latches it. Named poses are the config's robots.<id>.poses.")
+    m.add_argument("--robot", required=True, help="robot id in the config")
+    to = m.add_mutually_exclusive_group(required=True)
+    to.add_argument("--named-pose", help="a pose named in the config (robots.<id>.poses), e.g. home")
+    to.add_argument("--pose-ur", help="x,y,z,rx,ry,rz: metres and a rotation vector in radians (base frame)")
+    m.add_argument("--speed-m-s", type=float, default=None, help="tool speed, m/s (default: the service's, 0.05)")
+    _service_args(m)
+    m.set_defaults(func=robot_move)
+    for name, helptext in (("stop", "halt the robot now and latch it (operator); the running sequence is aborted"),
+                           ("resume", "clear the Stop latch (engineer): the robot may move again")):
+        a = rsub.add_parser(name, help=helptext + " - on the running service", description=helptext + ".")
+        a.add_argument("--robot", required=True, help="robot id in the config")
+        _service_args(a)
+        a.set_defaults(func=robot_stop if name == "stop" else robot_resume)
 
 
 def grab(args: argparse.Namespace) -> dict[str, Any]:
@@ -49,6 +81,11 @@ def grab(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def robot_state(args: argparse.Namespace) -> dict[str, Any]:
+    if args.url is not None:
+        args.token = args.token or os.environ.get("CELLCTL_TOKEN")
+        return _service(args, "GET", f"/robots/{args.robot}/state")
+    if args.token is not None:
+        raise CommandError("--token belongs to --url (the service form); without --url the device is read directly")
     cell = Cell(load_config(args.config))
     if args.robot not in cell.robots:
         raise CommandError(f"no robot {args.robot!r} in the config; configured: {sorted(cell.robots)}")
@@ -58,3 +95,45 @@ def robot_state(args: argparse.Namespace) -> dict[str, Any]:
         return state_to_json(args.robot, slot.ensure_open().state())
     finally:
         slot.close()
+
+
+def _service(args: argparse.Namespace, method: str, path: str, body: dict[str, Any] | None = None) -> dict[str, Any]:
+    import httpx
+
+    from cellctl.cli.job import _check, _client
+
+    try:
+        with _client(args) as http:
+            return _check(http.request(method, path, json=body))
+    except httpx.HTTPError as exc:
+        raise CommandError(f"cannot reach the service at {args.url} ({exc}); is `cellctl serve` running?") from None
+
+
+def robot_move(args: argparse.Namespace) -> dict[str, Any]:
+    body: dict[str, Any] = {}
+    if args.named_pose is not None:
+        body["named_pose"] = args.named_pose
+    else:
+        try:
+            pose = [float(x) for x in args.pose_ur.split(",")]
+        except ValueError:
+            raise CommandError(f"--pose-ur must be six numbers x,y,z,rx,ry,rz, got {args.pose_ur!r}") from None
+        if len(pose) != 6:
+            raise CommandError(f"--pose-ur must be six numbers x,y,z,rx,ry,rz (m, rad), got {len(pose)}")
+        from cellctl.numbers import pose_ur_problem
+
+        problem = pose_ur_problem(pose, "--pose-ur")
+        if problem:
+            raise CommandError(problem + "; e.g. --pose-ur 0.4,0,0.55,3.1416,0,0")
+        body["pose_ur"] = dict(zip(("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"), pose, strict=True))
+    if args.speed_m_s is not None:
+        body["speed_m_s"] = args.speed_m_s
+    return _service(args, "POST", f"/robots/{args.robot}/move", body)
+
+
+def robot_stop(args: argparse.Namespace) -> dict[str, Any]:
+    return _service(args, "POST", f"/robots/{args.robot}/stop")
+
+
+def robot_resume(args: argparse.Namespace) -> dict[str, Any]:
+    return _service(args, "POST", f"/robots/{args.robot}/resume")

@@ -1,4 +1,7 @@
-"""``cellctl store backup|backups|restore|info``: back up and restore the cell's calibration/recipe/audit store.
+"""``cellctl store backup|backups|restore|info|add``: back up and restore the cell's store; add a calibration file.
+
+``add`` stores a calibration file made elsewhere (cam.json, he.json, np.json) as a new, inactive
+version, checked as ``POST /calibrations`` checks it (``cellctl.calibration_file``).
 
 A SQLite store is backed up with SQLite's online backup API (the service may keep running); a
 PostgreSQL store as a JSON dump of this cell's rows. Without ``--out`` a backup goes to the cell's
@@ -11,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import getpass
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -54,6 +58,22 @@ def register(sub: Any) -> None:
     ls = ssub.add_parser("backups", help="this cell's backups in the backup folder, newest first")
     ls.add_argument("--config", required=True, help="cell.yaml (store.backup_dir, default <data dir>/backups)")
     ls.set_defaults(func=run_backups)
+
+    a = ssub.add_parser("add", help="store a calibration file (cam.json, he.json, np.json) as a new, inactive version",
+                        description="Checks the file as POST /calibrations does (kind, values, finite numbers) and "
+                                    "stores it as a new version of its camera (and robot); it is not activated "
+                                    "(POST /calibrations/{id}/activate, or the page's Calibrations tab). Works on "
+                                    "the store named by the config; a running service sees it at once.")
+    a.add_argument("file", help="the calibration file: cam.json (calib intrinsics, calib import, calib dlt), he.json "
+                                "(calib handeye, --dof 4 too) or np.json (calib npoint)")
+    a.add_argument("--config", required=True, help="cell.yaml naming the store and the cell's cameras and robots")
+    a.add_argument("--kind", choices=("camera", "handeye", "npoint"), default=None,
+                   help="the calibration's kind (default: recognised from the file's keys)")
+    a.add_argument("--camera", default=None, help="the camera it belongs to (default: the config's calibration.camera)")
+    a.add_argument("--robot", default=None, help="hand-eye and n-point: the robot (default: calibration.robot)")
+    a.add_argument("--note", default="", help="a note stored with the version")
+    a.add_argument("--who", default=None, help="name logged as its creator (default: cli:<user>)")
+    a.set_defaults(func=run_add)
 
     i = ssub.add_parser("info", help="where the store is, whether SQLite finds it sound, how many rows this cell has")
     i.add_argument("--config", required=True)
@@ -120,7 +140,7 @@ def run_backups(args: argparse.Namespace) -> dict[str, Any]:
 def run_restore(args: argparse.Namespace) -> dict[str, Any]:
     from cellctl.config import load_config
     from cellctl.store.backup import restore
-    from cellctl.store.catalog import latest_backup, set_aside
+    from cellctl.store.catalog import latest_backup, read_latches, set_aside
     from cellctl.store.integrity import quick_check
 
     cfg = load_config(args.config)
@@ -132,13 +152,28 @@ def run_restore(args: argparse.Namespace) -> dict[str, Any]:
     aside: Path | None = None
     db = _sqlite_file(cfg)
     problem = quick_check(db) if db is not None else None
+    latches: list[tuple[str, str, str, float]] | None = []
     if db is not None and problem is not None:
         if not args.force:
             raise CommandError(f"the store {db} is damaged ({problem}); with --force it is renamed "
                                f"{db.name}.damaged-<time> and the backup is restored into a new store")
+        latches = read_latches(db, cfg.cell_id)
         aside = set_aside(db)
-    out = _with_store(args, lambda _cfg, store: restore(store, src, who, force=args.force), must_exist=False)
-    return {**out, "damaged_store_set_aside": str(aside) if aside else None}
+
+    def go(_cfg: CellConfig, store: Any) -> dict[str, Any]:
+        out = restore(store, src, who, force=args.force)
+        for robot_id, by, reason, since_s in latches or []:  # a latched robot stays latched (docs/store.md)
+            store.set_latch(robot_id, by, reason, since_s, result=f"carried over from the damaged store {aside}")
+        return out
+
+    out = _with_store(args, go, must_exist=False)
+    if aside is None:
+        return out
+    if latches is None:
+        print(f"cellctl: the Stop latches stored in {aside} cannot be read: no robot is latched now; check "
+              "every robot before it moves again", file=sys.stderr)
+    return {**out, "damaged_store_set_aside": str(aside),
+            "latches_carried_over": None if latches is None else [r[0] for r in latches]}
 
 
 def run_info(args: argparse.Namespace) -> dict[str, Any]:
@@ -152,3 +187,22 @@ def run_info(args: argparse.Namespace) -> dict[str, Any]:
     return _with_store(args, lambda _cfg, store: {
         "backend": store.backend, "store": store.describe(), "cell_id": store.cell_id,
         "integrity": "ok" if db is not None else "not checked", "counts": store.counts()}, must_exist=False)
+
+
+def run_add(args: argparse.Namespace) -> dict[str, Any]:
+    from calibration.io import read_json
+    from cellctl.calibration_file import CalibrationFileError, add_calibration
+
+    if len(args.note) > 500:
+        raise CommandError("--note: at most 500 characters")
+    data = read_json(args.file, "a calibration file (cam.json, he.json or np.json)", CommandError)
+    who = args.who or f"cli:{getpass.getuser()}"
+
+    def go(cfg: CellConfig, store: Any) -> dict[str, Any]:
+        try:
+            return add_calibration(store, cfg, data, who, args.kind, args.camera, args.robot, args.note,
+                                   source=str(args.file))
+        except CalibrationFileError as exc:
+            raise CommandError(str(exc)) from None
+
+    return _with_store(args, go, must_exist=False)

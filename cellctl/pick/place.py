@@ -26,8 +26,10 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from calibration import geometry as g
+from cellctl.strict_types import Count, Num
 
-UR = tuple[float, float, float, float, float, float]
+UR = tuple[Num, Num, Num, Num, Num, Num]
+"""A UR pose; strict numbers (cellctl.strict_types): a JSON number, never a bool or a string."""
 
 
 class _Strict(BaseModel):
@@ -46,7 +48,7 @@ def _metres(v: UR, what: str) -> UR:
 class FixedPlace(_Strict):
     kind: Literal["fixed"]
     pose_ur: UR = Field(description="where the part goes: [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad], base frame")
-    approach_height_mm: float | None = Field(None, ge=0, le=1000, description="pre-/post-place height above the "
+    approach_height_mm: Num | None = Field(None, ge=0, le=1000, description="pre-/post-place height above the "
                                                                               "place, mm (default: the recipe's)")
 
     @field_validator("pose_ur")
@@ -64,12 +66,12 @@ class FixedPlace(_Strict):
 class GridPlace(_Strict):
     kind: Literal["grid"]
     origin_ur: UR = Field(description="slot 0's pose, UR form (m, rad), base frame")
-    rows: int = Field(ge=1, le=1000)
-    cols: int = Field(ge=1, le=1000)
-    pitch_mm: tuple[float, float] = Field(description="[px, py]: column and row pitch in the origin's frame, mm")
-    layers: int = Field(1, ge=1, le=1000)
-    layer_mm: float = Field(0.0, ge=0, le=1000, description="height of one layer (stacking), mm")
-    approach_height_mm: float | None = Field(None, ge=0, le=1000)
+    rows: Count = Field(ge=1, le=1000)
+    cols: Count = Field(ge=1, le=1000)
+    pitch_mm: tuple[Num, Num] = Field(description="[px, py]: column and row pitch in the origin's frame, mm")
+    layers: Count = Field(1, ge=1, le=1000)
+    layer_mm: Num = Field(0.0, ge=0, le=1000, description="height of one layer (stacking), mm")
+    approach_height_mm: Num | None = Field(None, ge=0, le=1000)
 
     @field_validator("origin_ur")
     @classmethod
@@ -107,19 +109,23 @@ class GripperDevice(_Strict):
     kind: Literal["robotiq_2f", "vacuum", "parallel"] = Field(
         description="robotiq_2f: a Robotiq 2F or the sim gripper; vacuum: output on/off and a vacuum switch input; "
                     "parallel: close and open outputs and a 'closed on part' input")
-    output: int | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum output; parallel: the close "
+    output: Count | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum output; parallel: the close "
                                                                  "output")
-    open_output: int | None = Field(None, ge=0, le=65535, description="parallel: the open output; vacuum: an "
+    open_output: Count | None = Field(None, ge=0, le=65535, description="parallel: the open output; vacuum: an "
                                                                       "optional blow-off output pulsed at release")
-    input: int | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum switch; parallel: 'closed on "
+    input: Count | None = Field(None, ge=0, le=65535, description="vacuum: the vacuum switch; parallel: 'closed on "
                                                                 "part'")
-    stroke_mm: float = Field(85.0, gt=0, le=1000, description="robotiq_2f: the fingers' full opening, mm")
-    width_tolerance_mm: float = Field(3.0, gt=0, le=100, description="robotiq_2f with grip_width_mm: the closed "
+    stroke_mm: Num = Field(85.0, gt=0, le=1000, description="robotiq_2f: the fingers' full opening, mm")
+    width_tolerance_mm: Num = Field(3.0, gt=0, le=100, description="robotiq_2f with grip_width_mm: the closed "
                                                                      "width must be this close to it, mm")
-    release_s: float = Field(0.1, ge=0, le=10, description="wait after opening before the tool leaves, s")
-    retries: int = Field(2, ge=0, le=20, description="a part whose grip fails is tried again (from a fresh picture) "
+    release_s: Num = Field(0.1, ge=0, le=10, description="wait after opening before the tool leaves, s")
+    clearance_mm: Num | None = Field(None, gt=0, le=1000, description="a part whose reference point has another "
+                                                                     "found part's nearer than this is not picked "
+                                                                     "(the gripper would hit the neighbour); none: "
+                                                                     "not checked")
+    retries: Count = Field(2, ge=0, le=20, description="a part whose grip fails is tried again (from a fresh picture) "
                                                      "this many times before it is skipped")
-    input_timeout_s: float = Field(1.0, gt=0, le=30, description="vacuum/parallel: how long the check waits for "
+    input_timeout_s: Num = Field(1.0, gt=0, le=30, description="vacuum/parallel: how long the check waits for "
                                                                  "its input, s")
 
     @model_validator(mode="after")

@@ -7,16 +7,18 @@ are protocol addresses, 0-based (the "4x" reference is 40001 + address). Unmappe
 writes to the read-only block answer exception 02 (illegal data address); other unit ids
 exception 0B.
 
-Register map (version 2; full description with the handshake in docs/plc-modbus.md)::
+Register map (version 3; full description with the handshake in docs/plc-modbus.md)::
 
     address  dir  meaning
     0        W    COMMAND: 0 idle (no-op, answered at once), 1 pick (recipe in 1), 2 verify calibration,
-                  3 pick with robot motion (recipe in 1; only with plc.allow_motion: true)
+                  3 pick with robot motion (recipe in 1; only with plc.allow_motion: true), 4..7
+                  production start (recipe in 1, count in 3; plc.allow_motion), pause, resume, stop
     1        W    RECIPE: recipe number 0..65535
     2        W    SEQUENCE: request counter 1..65535 written by the PLC (0 = no request). A write that
                   changes it to a new non-zero value starts the request latched from 0..2 (write 0..2
                   in one FC16). While BUSY such a write is refused with exception 06 (device busy),
                   not applied, and flagged with REFUSED / REFUSED_SEQ; the running request goes on.
+    3        W    COUNT: production start: parts to place, 0 = until the area is empty (write 0..3 in one FC16)
     10       R    STATUS bits: bit0 BUSY, bit1 DONE (answer ok), bit2 ERROR (answer failed),
                   bit3 REFUSED (the last sequence write was refused: busy), live on every read:
                   bit4 ROBOT_LATCHED (the cell's robot is stopped until an engineer resumes it),
@@ -44,6 +46,9 @@ Register map (version 2; full description with the handshake in docs/plc-modbus.
                     +8 SCORE x1000 (0..1000), +9 REACHABLE (1: inside the envelope, 0: do not send it)
     110-173  R    MESSAGE: the error's one-line text, ASCII, 2 characters per register (high byte
                   first), NUL-padded, at most 128 characters
+    174-202  R    PRODUCTION: the production run's state, live on every read (docs/plc-modbus.md):
+                  run id, state, ended_because, counters, next slot, the last cycle's result, slot,
+                  cycle time and 1-sigma uncertainty
 
 int32 values are two registers, **big-endian words: high word first**, two's complement.
 
@@ -73,6 +78,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from cellctl.config import is_loopback_host
+from cellctl.plc.production import PRODUCTION_COMMANDS, execute_production, production_words
 from cellctl.plc.requests import (
     ERROR_TEXTS,
     TEXT_UNKNOWN_COMMAND,
@@ -87,8 +93,8 @@ from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
-MAP_VERSION = 2
-COMMAND, RECIPE, SEQUENCE = 0, 1, 2
+MAP_VERSION = 3
+COMMAND, RECIPE, SEQUENCE, COUNT = 0, 1, 2, 3
 STATUS, ECHO_SEQ, ACTIVE_SEQ, ERROR_CODE, ERROR_TEXT = 10, 11, 12, 13, 14
 RESULT_COMMAND, PICKS_REPORTED, PICKS_FOUND, VERIFY_PASSED, REFUSED_SEQ = 15, 16, 17, 18, 19
 DRIFT_PX, DRIFT_MM, LATENCY, HEARTBEAT, MAX_PICKS_REG, MAP_VERSION_REG, PICKED = 20, 22, 24, 26, 27, 28, 29
@@ -97,7 +103,9 @@ PICK_STRIDE = 10
 MAX_PICKS = 8
 MESSAGE = PICKS + PICK_STRIDE * MAX_PICKS  # 110
 MESSAGE_REGS = 64
-END = MESSAGE + MESSAGE_REGS  # 174: first address after the map
+PRODUCTION = MESSAGE + MESSAGE_REGS  # 174: the production block (live on every read)
+PRODUCTION_REGS = 29
+END = PRODUCTION + PRODUCTION_REGS  # 203: first address after the map
 READ_ONLY = STATUS
 
 BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
@@ -192,7 +200,7 @@ class ModbusPlcServer:
         ours = SimDevice(
             id=self.unit_id,
             simdata=[
-                SimData(COMMAND, count=3, values=0, datatype=DataType.REGISTERS),
+                SimData(COMMAND, count=4, values=0, datatype=DataType.REGISTERS),
                 SimData(READ_ONLY, count=END - READ_ONLY, values=0, datatype=DataType.REGISTERS, readonly=True),
             ],
             action=self._action,
@@ -212,9 +220,9 @@ class ModbusPlcServer:
             return ExcCodes.ILLEGAL_FUNCTION
         answer: ExcCodes | None = None
         if set_values and address <= SEQUENCE < address + len(set_values):
-            block = [int(registers[a - start_address]) for a in (COMMAND, RECIPE, SEQUENCE)]
+            block = [int(registers[a - start_address]) for a in (COMMAND, RECIPE, SEQUENCE, COUNT)]
             for i, v in enumerate(set_values):
-                if address + i <= SEQUENCE:
+                if address + i <= COUNT:
                     block[address + i] = int(v)
             seq = block[SEQUENCE]
             if seq != 0 and seq != self._last_seq:
@@ -225,13 +233,17 @@ class ModbusPlcServer:
                     log.warning("PLC Modbus request %d refused: request %d is running", seq, self._last_seq)
                     answer = ExcCodes.DEVICE_BUSY
                 else:
-                    self._accept(block[COMMAND], block[RECIPE], seq)
+                    self._accept(block[COMMAND], block[RECIPE], seq, block[COUNT])
         self._publish(registers, start_address)
         return answer
 
     def _publish(self, registers: list[int], start_address: int) -> None:
         self._image[HEARTBEAT] = int(time.monotonic() * 10) & 0xFFFF
         self._image[STATUS] = (self._image[STATUS] & ~LIVE_BITS) | self._robot_bits()
+        try:
+            self._image[PRODUCTION:END] = production_words(self.services)
+        except Exception:  # noqa: BLE001 - the register map is served whatever the run's state
+            log.exception("reading the production run's state failed")
         registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
 
     def _robot_bits(self) -> int:
@@ -243,7 +255,7 @@ class ModbusPlcServer:
             return 0
         return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0)
 
-    def _accept(self, command: int, recipe: int, seq: int) -> None:
+    def _accept(self, command: int, recipe: int, seq: int, count: int = 0) -> None:
         self.requests += 1
         self._last_seq = seq
         self._busy = True
@@ -259,9 +271,12 @@ class ModbusPlcServer:
             self._run(seq, command, lambda: execute_verify(self.services, "plc:modbus"))
         elif command == CMD_PICK_MOVE:
             self._run(seq, command, lambda: execute_pick(self.services, recipe, "plc:modbus", move=True))
+        elif command in PRODUCTION_COMMANDS:
+            self._run(seq, command, lambda: execute_production(self.services, command, recipe, count, "plc:modbus"))
         else:
-            self._post(seq, command, failure(TEXT_UNKNOWN_COMMAND, f"unknown command code {command}: "
-                                                                   "use 0 idle, 1 pick, 2 verify, 3 pick with motion"))
+            self._post(seq, command, failure(TEXT_UNKNOWN_COMMAND, f"unknown command code {command}: use 0 idle, "
+                                                                   "1 pick, 2 verify, 3 pick with motion, 4..7 "
+                                                                   "production start, pause, resume, stop"))
 
     def _run(self, seq: int, command: int, work: Any) -> None:
         future = asyncio.get_running_loop().run_in_executor(self._executor, work)
@@ -281,7 +296,7 @@ class ModbusPlcServer:
         """Write the whole answer at once (the loop never interleaves a read with this)."""
         img = self._image
         picks = out.picks[:MAX_PICKS]
-        img[PICKS:END] = [0] * (END - PICKS)
+        img[PICKS:PRODUCTION] = [0] * (PRODUCTION - PICKS)
         for k, p in enumerate(picks):
             pose = p["pick_pose"]
             base = PICKS + PICK_STRIDE * k
@@ -302,7 +317,7 @@ class ModbusPlcServer:
         img[RESULT_COMMAND] = command & 0xFFFF
         img[ERROR_CODE] = out.error_class
         img[ERROR_TEXT] = out.text_index
-        img[MESSAGE:END] = ascii_words("" if out.ok else out.message)
+        img[MESSAGE:PRODUCTION] = ascii_words("" if out.ok else out.message)
         img[LATENCY : LATENCY + 2] = int32_words((time.perf_counter() - self._accepted_at) * 1e4)
         img[ECHO_SEQ] = seq
         img[STATUS] = (img[STATUS] & REFUSED) | (DONE if out.ok else ERROR) | self._robot_bits()

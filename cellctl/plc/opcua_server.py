@@ -28,7 +28,7 @@ Methods
 
 Failures are OPC UA status codes (the message in ``LastError``): unknown recipe BadNotFound,
 recipe number outside 0..65535 BadOutOfRange, a wrong argument type BadInvalidArgument, no
-calibration or a recipe that cannot be used BadInvalidState, camera/robot unavailable
+calibration or a recipe that cannot be used BadInvalidState, camera/robot or the store unavailable
 BadResourceUnavailable, timeout BadTimeout, robot latched/stopped BadRequestNotAllowed, robot busy
 BadLocked, motion off BadNotExecutable, anything else BadInternalError.
 
@@ -62,6 +62,7 @@ from cellctl.plc.requests import (
     TEXT_RECIPE_RANGE,
     TEXT_ROBOT_BUSY,
     TEXT_ROBOT_STOPPED,
+    TEXT_STORE,
     TEXT_TIMEOUT,
     TEXT_UNKNOWN_RECIPE,
     TEXT_VERIFY_FAILED_TO_RUN,
@@ -91,6 +92,7 @@ STATUS_OF_TEXT: dict[int, int] = {
     TEXT_ROBOT_STOPPED: ua.StatusCodes.BadRequestNotAllowed,
     TEXT_ROBOT_BUSY: ua.StatusCodes.BadLocked,
     TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable,
+    TEXT_STORE: ua.StatusCodes.BadResourceUnavailable,
 }
 
 _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (

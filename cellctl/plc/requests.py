@@ -30,7 +30,7 @@ from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, run_pick
 from cellctl.pick.model import ModelFileError
 from cellctl.services import Services
-from cellctl.store import NotFound
+from cellctl.store import NotFound, StoreUnavailable
 from drivers.base import DriverError, MotionRejected, RobotBusy, RobotStopped
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,7 @@ TEXT_RECIPE_RANGE = 11
 TEXT_ROBOT_STOPPED = 12
 TEXT_ROBOT_BUSY = 13
 TEXT_MOTION_OFF = 14
+TEXT_STORE = 15
 TEXT_INTERNAL = 99
 
 ERROR_TEXTS: dict[int, tuple[int, str]] = {
@@ -89,6 +90,7 @@ ERROR_TEXTS: dict[int, tuple[int, str]] = {
     TEXT_ROBOT_STOPPED: (CLASS_STOPPED, "robot stopped: an engineer must resume it"),
     TEXT_ROBOT_BUSY: (CLASS_BUSY, "refused: the robot is moved by another caller (a move, pick or routine)"),
     TEXT_MOTION_OFF: (CLASS_SETUP, "robot motion from the PLC is off (plc.allow_motion in cell.yaml)"),
+    TEXT_STORE: (CLASS_RUNTIME, "the store is damaged or unreachable: call the engineer (restore the last backup)"),
     TEXT_INTERNAL: (CLASS_INTERNAL, "internal error (see the service log)"),
 }
 
@@ -142,6 +144,8 @@ def execute_pick(services: Services, recipe_id: int, who: str, move: bool = Fals
                 out = failure(TEXT_ROBOT_BUSY, _first_line(exc))
             except MotionRejected as exc:
                 out = failure(TEXT_CANNOT_PICK, f"the robot refused the pick: {_first_line(exc)}")
+            except StoreUnavailable as exc:
+                out = failure(TEXT_STORE, _first_line(exc))
             except NotFound as exc:
                 out = failure(TEXT_UNKNOWN_RECIPE, str(exc))
             except NoCalibration as exc:

@@ -58,6 +58,9 @@ class ProductionManager:
         if Gripper(self.services, recipe.gripper).holding():
             raise GripperHolding(f"gripper {recipe.gripper.device.io_id} holds something: take the part out and "
                                  "open the gripper (POST /production/gripper/open) before a run starts")
+        finishing = self._runs.get(rid)
+        if finishing is not None and finishing.status.ended_because is not None:
+            finishing.done.wait(10.0)  # it has ended: its last writes and the robot's release follow at once
         with self._lock:
             current = self._runs.get(rid)
             if current is not None and not current.ended:
@@ -86,15 +89,24 @@ class ProductionManager:
                         + " since the service started (POST /production/start)")
         return run
 
+    def snapshot(self) -> dict[str, Any] | None:
+        """The last run started in this service, from memory (None: none yet)."""
+        with self._lock:
+            run = self._last
+        return None if run is None else run.snapshot()
+
     def current(self, robot_id: str | None = None) -> dict[str, Any]:
         """The current or last run as ``GET /production`` shows it (the last stored one after a restart)."""
         try:
-            return self.run(robot_id).public()
+            out = self.run(robot_id).public()
         except NoRun:
             last = self.store.last_run()
             if last is None:
                 raise
-            return {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+            out = {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+        totals = self.store.totals(exclude_run_id=int(out["run_id"]))
+        out["totals"] = {k: totals.get(k, 0) + int(v) for k, v in out["counters"].items()}
+        return out
 
     def resume(self, robot_id: str | None = None) -> ProductionRun:
         run = self.run(robot_id)
@@ -127,6 +139,13 @@ class ProductionManager:
 
 _MANAGERS: dict[int, tuple[Services, ProductionManager]] = {}
 _MANAGERS_LOCK = threading.Lock()
+
+
+def existing_manager(services: Services) -> ProductionManager | None:
+    """The service's production manager if one was made (no store access: safe on an event loop)."""
+    with _MANAGERS_LOCK:
+        entry = _MANAGERS.get(id(services))
+    return entry[1] if entry is not None and entry[0] is services else None
 
 
 def manager_for(services: Services) -> ProductionManager:

@@ -75,10 +75,12 @@ def plan_part(mapping: ActiveMapping, recipe: Recipe, match: dict[str, Any], T_c
               current_yaw: float, limits: MotionLimits) -> Plan:
     """The pick of one match (``u_px``, ``v_px``, ``angle_deg``), its grasp, and whether it is reachable."""
     u, v, angle = float(match["u_px"]), float(match["v_px"]), float(match["angle_deg"])
-    pp = pick_pose(mapping, recipe, u, v, angle, T_capture, current_yaw)
+    sigma_angle = match.get("sigma_angle_deg")
+    pp = pick_pose(mapping, recipe, u, v, angle, T_capture, current_yaw,
+                   float("nan") if sigma_angle is None else float(sigma_angle))
     z_mm = recipe.plane_z_mm if recipe.plane_z_mm is not None else 0.0
     p0 = mapping.map(np.array([u, v]), recipe.plane_z_mm, T_capture, with_uncertainty=False).xyz_mm
-    part_yaw = math.radians(pp["part_yaw_deg"])
+    part_yaw = math.radians(pp["base_yaw_deg"])  # the part's taught x axis in the base frame
     T_part = g.make_transform(g.rotvec_to_matrix([0.0, 0.0, part_yaw]), [p0[0] * 1e-3, p0[1] * 1e-3, z_mm * 1e-3])
     sym = math.radians(recipe.gripper_symmetry_deg)
     n = max(1, round(2 * math.pi / sym))

@@ -22,13 +22,23 @@ from typing import Any, Literal
 
 import numpy as np
 
-from cellctl.motion import audited_move, halt_after_failure
+from cellctl.mapping import ActiveMapping, active_mapping
+from cellctl.motion import halt_after_failure, outcome, pose_ur
 from cellctl.pick.pose import pose_json
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.gripper import Gripper
 from cellctl.production.place import Plan
 from cellctl.production.records import Counters, CycleTimes, Durations, clean
-from cellctl.production.vision import Candidate, Picture, Prefetch, take_picture, tool_yaw
+from cellctl.production.vision import (
+    Candidate,
+    Picture,
+    Prefetch,
+    ViewWatch,
+    camera_on_arm,
+    take_picture,
+    tool_yaw,
+)
+from cellctl.production.writer import Writer
 from cellctl.services import Services
 from cellctl.store.production import ProductionStore
 from drivers.base import MotionSession, RobotBase, RobotStopped
@@ -37,6 +47,8 @@ log = logging.getLogger(__name__)
 
 State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
 Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
+VIEW_MARGIN_MM = 100.0
+"""The arm counts as out of a fixed camera's view when nothing within this of its tool centre is in the image."""
 SAME_PART_MM = 8.0
 """A match this close to a part tried before is that part (for retries and skips)."""
 
@@ -84,8 +96,21 @@ class ProductionRun:
         self._stop = False
         self._n = 0
         self._tried: list[_Tried] = []
+        self._unreachable: list[np.ndarray] = []
+        self._writer = Writer(f"production-{run_id}-store")
+        self._next_slot = store.next_slot(settings.recipe_id)
+        self._mapping: ActiveMapping | None = None
+        if settings.overlap and camera_on_arm(services, settings.camera_id, settings.robot_id, settings.recipe):
+            settings.overlap = False  # a camera on the arm sees from the capture pose only: part of the cycle
+        if settings.overlap:
+            mapping = active_mapping(services, settings.camera_id, settings.robot_id, settings.recipe.calibration,
+                                     settings.recipe.plane_z_mm is not None)
+            self._mapping = mapping if (mapping.kind == "handeye" and mapping.calib.get("setup") == "eye-to-hand"
+                                        ) else None
         self._thread = threading.Thread(target=self._main, name=f"production-{run_id}", daemon=True)
         self.done = threading.Event()
+        self.last_record: dict[str, Any] | None = None
+        """The last cycle's record (what a PLC reads as the last cycle's result)."""
 
     # -- control ----------------------------------------------------------------------------------
     def start(self) -> None:
@@ -123,7 +148,15 @@ class ProductionRun:
         st = self.status
         return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
                 "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
-                "next_slot": self.store.next_slot(st.recipe_id), "error": st.error, "cycles": self._n}
+                "next_slot": self.store.next_slot(st.recipe_id) if self.ended else self._next_slot,
+                "error": st.error, "cycles": self._n}
+
+    def snapshot(self) -> dict[str, Any]:
+        """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
+        st = self.status
+        return {"run_id": st.run_id, "state": st.state, "ended_because": st.ended_because,
+                "counters": st.counters.as_dict(), "next_slot": self._next_slot,
+                "cycle_median_ms": st.times.summary()["median"], "last": self.last_record}
 
     # -- the run ----------------------------------------------------------------------------------
     def _main(self) -> None:
@@ -140,6 +173,8 @@ class ProductionRun:
             halt_after_failure(self.robot, exc)
             self._end("failed", "failed", str(exc))
         finally:
+            self._writer.flush()
+            self._writer.close()
             self.robot.motion.end(self.session)
             self.done.set()
 
@@ -149,10 +184,8 @@ class ProductionRun:
             self.status.ended_because = ended
             self.status.error = error
             self._cond.notify_all()
-        try:
-            self.store.update_run(self.status.run_id, state, ended, clean(self._summary()), ended=True)
-        except Exception:  # noqa: BLE001 - the run's end is logged even when the store is gone
-            log.exception("production run %s: storing its end failed", self.status.run_id)
+        summary = clean(self._summary())
+        self._writer.put(lambda: self.store.update_run(self.status.run_id, state, ended, summary, ended=True))
 
     def _summary(self) -> dict[str, Any]:
         st = self.status
@@ -207,29 +240,32 @@ class ProductionRun:
         return None
 
     def _store_state(self) -> None:
-        self.store.update_run(self.status.run_id, self.status.state, None, clean(self._summary()))
+        state, summary = self.status.state, clean(self._summary())
+        self._writer.put(lambda: self.store.update_run(self.status.run_id, state, None, summary))
 
     def _choose(self, picture: Picture) -> Candidate | None:
-        retries = self.s.recipe.gripper.device.retries if self.s.recipe.gripper.device else 0
-        unreachable = 0
+        """The best-scoring pickable part; the unreachable ones are counted once each per run."""
+        device = self.s.recipe.gripper.device
+        retries = device.retries if device is not None else 0
+        chosen = None
         for c in picture.candidates:
             if c.plan.problem is not None:
-                unreachable += 1
+                xy = c.plan.T_base_part[:2, 3] * 1e3
+                if not any(float(np.linalg.norm(xy - seen)) < SAME_PART_MM for seen in self._unreachable):
+                    self._unreachable.append(xy)
+                    self.status.counters.unreachable += 1
                 continue
             tried = self._tried_at(c.plan)
-            if tried is not None and tried.failures > retries:
-                continue  # skipped: its grip failed too often
-            self.status.counters.unreachable += unreachable
-            return c
-        self.status.counters.unreachable += unreachable
-        return None
+            if chosen is None and (tried is None or tried.failures <= retries):
+                chosen = c
+        return chosen
 
     def _why_none(self, picture: Picture) -> str:
         problems = [c.plan.problem for c in picture.candidates if c.plan.problem]
         skipped = len(picture.candidates) - len(problems)
         parts = []
         if problems:
-            parts.append(f"{len(problems)} not reachable ({problems[0]})")
+            parts.append(f"{len(problems)} not pickable ({problems[0]})")
         if skipped:
             parts.append(f"{skipped} skipped after failed grips")
         return f"{len(picture.candidates)} part(s) found, none pickable: " + "; ".join(parts)
@@ -241,9 +277,18 @@ class ProductionRun:
     # -- one cycle --------------------------------------------------------------------------------
     def _move(self, T: np.ndarray, why: str, d: Durations) -> None:
         t0 = time.monotonic()
-        audited_move(self.services.store, self.s.who, self.robot, T, self.s.recipe.speed_m_s,
-                     f"production run {self.status.run_id}: {why}", self.session)
-        d.add("motion", time.monotonic() - t0)
+        speed = self.s.recipe.speed_m_s
+        detail = {"pose_ur": pose_ur(T), "speed_m_s": speed, "why": f"production run {self.status.run_id}: {why}"}
+        audit = self.services.store.audit
+        try:
+            self.robot.move_linear(T, speed, session=self.session)
+        except Exception as exc:
+            result = outcome(exc)
+            self._writer.put(lambda: audit(self.s.who, "robot.move", self.robot.robot_id, detail, result))
+            raise
+        finally:
+            d.add("motion", time.monotonic() - t0)
+        self._writer.put(lambda: audit(self.s.who, "robot.move", self.robot.robot_id, detail, "ok"))
 
     def _move_to_capture(self) -> None:
         r = self.s.recipe
@@ -286,7 +331,7 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
-        slot = self.store.next_slot(self.s.recipe_id)
+        slot = self._next_slot
         if r.place is None:
             raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
                             "(docs/production.md)")
@@ -295,16 +340,26 @@ class ProductionRun:
             raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
                             "(PUT /production/slot)")
         T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
-        self._move(T_place_app, "pre-place", d)
+        def next_picture() -> Prefetch:
+            return Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id, self.robot,
+                            tool_yaw(T_place))
+
+        # With a fixed camera the next picture is taken as soon as the arm has left its view.
+        watch = None if not self.s.overlap or self._mapping is None else ViewWatch(
+            next_picture, self.robot, self._mapping, VIEW_MARGIN_MM)
+        try:
+            self._move(T_place_app, "pre-place", d)
+        finally:
+            early = None if watch is None else watch.stop()
         prefetch = None
-        if self.s.overlap:  # the arm is out of the camera's view: the next picture is taken meanwhile
-            prefetch = Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id,
-                                self.robot, tool_yaw(T_place))
+        if self.s.overlap:  # at the latest now: the arm is over the place, out of the camera's view
+            prefetch = early or next_picture()
         self._move(T_place, "place", d)
         d.add("gripper", self.gripper.release())
         self._move(T_place_app, "post-place", d)
         if n_slots is not None:
-            self.store.set_next_slot(self.s.recipe_id, slot + 1, self.s.who)
+            self._next_slot = slot + 1
+            self._writer.put(lambda: self.store.set_next_slot(self.s.recipe_id, slot + 1, self.s.who))
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
         self.status.times.add(durations)
@@ -330,7 +385,6 @@ class ProductionRun:
             "calibration": None if picture is None else picture.calibration,
             "found": None if picture is None else picture.found, "detail": detail,
         }
-        try:
-            self.store.add_cycle(self.status.run_id, clean(rec))
-        except Exception:  # noqa: BLE001 - a record that cannot be stored must not hide the cycle's outcome
-            log.exception("production run %s: storing cycle %d failed", self.status.run_id, self._n)
+        record = clean(rec)
+        self.last_record = record
+        self._writer.put(lambda: self.store.add_cycle(self.status.run_id, record))

@@ -10,13 +10,15 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from cellctl.mapping import active_mapping
+from calibration import geometry as g
+from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.flow import _locate
 from cellctl.pick.recipe import Recipe
 from cellctl.production.place import Plan, plan_part
@@ -63,8 +65,71 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     cands = []
     for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
         cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    device = recipe.gripper.device
+    if device is not None and device.clearance_mm is not None:
+        _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
                    time.monotonic() - t0, len(cands))
+
+
+def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
+    """Mark the parts the gripper would hit a neighbour at (reference points nearer than ``clearance_mm``)."""
+    xy = [c.plan.T_base_part[:2, 3] * 1e3 for c in cands]
+    for i, c in enumerate(cands):
+        if c.plan.problem is not None:
+            continue
+        near = [float(np.linalg.norm(xy[i] - xy[j])) for j in range(len(cands)) if j != i]
+        if near and min(near) < clearance_mm:
+            c.plan.problem = (f"a neighbour lies {min(near):.1f} mm from it (clearance {clearance_mm:g} mm): "
+                              "the gripper would hit it")
+
+
+def out_of_view(mapping: ActiveMapping, T_base_tool: Any, margin_mm: float) -> bool:
+    """True when nothing within ``margin_mm`` of the tool (and what it holds) can be in the fixed
+    camera's image: a ring of points around the tool, at its height and down to the working plane,
+    all project outside the image (through the active eye-to-hand calibration)."""
+    cam = mapping.camera
+    if mapping.kind != "handeye" or mapping.calib.get("setup") != "eye-to-hand" or cam is None:
+        return False
+    T_cam_base = g.invert(np.asarray(mapping.calib["T_base_cam"], dtype=np.float64))
+    p = np.asarray(T_base_tool, dtype=np.float64)[:3, 3]
+    a = np.linspace(0.0, 2 * math.pi, 16, endpoint=False)
+    ring = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]) * margin_mm * 1e-3
+    pts = np.concatenate([p + ring, p + ring * 0.5, [p]])
+    low = pts.copy()
+    low[:, 2] = min(p[2], 0.0)
+    uv = cam.project(g.transform_points(T_cam_base, np.concatenate([pts, low])))
+    inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5)
+              & (uv[:, 1] >= -0.5) & (uv[:, 1] <= cam.height - 0.5))
+    return not bool(inside.any())
+
+
+class ViewWatch:
+    """Starts the next picture as soon as the arm is out of the fixed camera's view (polls the robot)."""
+
+    def __init__(self, start: Callable[[], Prefetch], robot: RobotBase, mapping: ActiveMapping,
+                 margin_mm: float, poll_s: float = 0.01) -> None:
+        self.prefetch: Prefetch | None = None
+        self._stop = threading.Event()
+
+        def watch() -> None:
+            while not self._stop.is_set():
+                try:
+                    if out_of_view(mapping, robot.state().T_base_tool, margin_mm):
+                        self.prefetch = start()
+                        return
+                except Exception:  # noqa: BLE001 - no early picture; the cycle takes it after the move
+                    return
+                self._stop.wait(poll_s)
+
+        self._thread = threading.Thread(target=watch, name="production-view-watch", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> Prefetch | None:
+        """Stop watching; the picture started meanwhile, if any."""
+        self._stop.set()
+        self._thread.join(5.0)
+        return self.prefetch
 
 
 class Prefetch:

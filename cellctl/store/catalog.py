@@ -1,4 +1,4 @@
-"""The cell's backup folder, and a damaged store file set aside.
+"""The cell's backup folder, and a damaged store file set aside (with its robots' Stop latches read out).
 
 ``cellctl store backup`` without ``--out`` writes ``<backup dir>/<cell_id>-<UTC time>.db`` (or
 ``.json``); ``cellctl store backups`` lists them, newest first; ``cellctl store restore --latest``
@@ -7,6 +7,7 @@ takes the newest. The folder is ``store.backup_dir``, else ``<data dir>/backups`
 
 from __future__ import annotations
 
+import sqlite3
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -85,3 +86,20 @@ def set_aside(db: Path) -> Path:
             side.rename(aside.with_name(aside.name + suffix))
     db.rename(aside)
     return aside
+
+
+def read_latches(db: Path, cell_id: str) -> list[tuple[str, str, str, float]] | None:
+    """The Stop latches stored in the (damaged) SQLite file ``db``: (robot_id, latched_by, reason,
+    since_s); None when they cannot be read."""
+    try:
+        conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30)
+    except sqlite3.Error:
+        return None
+    try:
+        rows = conn.execute("SELECT robot_id, latched_by, reason, since_s FROM robot_latches WHERE cell_id = ? "
+                            "ORDER BY robot_id", (cell_id,)).fetchall()
+        return [(str(r[0]), str(r[1]), str(r[2]), float(r[3])) for r in rows]
+    except (sqlite3.Error, ValueError, TypeError):
+        return None
+    finally:
+        conn.close()

@@ -5,6 +5,10 @@ most desktops) does not matter. SQLite gives a database's ``-wal``, ``-shm`` and
 files the mode of the database file, so creating the database file 0600 before SQLite opens it
 covers them too. Folders that already exist keep their mode (systemd's ``StateDirectory`` sets its
 own, 0750).
+
+Run as root (``sudo cellctl store restore ...``) in a folder that belongs to another user (the
+service's), a new file or folder is given to that folder's owner, as SQLite does with the
+``-wal``/``-shm`` files of a database: a restored store must stay readable by the service.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ def private_dir(path: Path) -> None:
         except FileExistsError:
             continue
         os.chmod(d, DIR_MODE)
+        _give_to_folder_owner(d)
 
 
 def create_private(path: Path) -> bool:
@@ -43,6 +48,7 @@ def create_private(path: Path) -> bool:
         return False
     try:
         os.fchmod(fd, FILE_MODE)
+        _give_to_folder_owner(path, fd)
     finally:
         os.close(fd)
     return True
@@ -52,7 +58,19 @@ def open_private(path: Path) -> int:
     """A new file ``path`` (it must not exist) with mode 0600, open for writing: a descriptor for ``os.fdopen``."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, FILE_MODE)
     os.fchmod(fd, FILE_MODE)
+    _give_to_folder_owner(path, fd)
     return fd
+
+
+def _give_to_folder_owner(path: Path, fd: int | None = None) -> None:
+    if os.geteuid() != 0:
+        return
+    st = os.stat(path.parent)
+    if st.st_uid != 0:
+        if fd is None:
+            os.chown(path, st.st_uid, st.st_gid, follow_symlinks=False)
+        else:
+            os.fchown(fd, st.st_uid, st.st_gid)
 
 
 def tighten(db: Path) -> list[str]:
@@ -67,6 +85,9 @@ def tighten(db: Path) -> list[str]:
         except FileNotFoundError:
             continue
         if st.st_uid == os.geteuid() and st.st_mode & 0o077:
-            os.chmod(p, st.st_mode & 0o700)
+            try:
+                os.chmod(p, st.st_mode & 0o700)
+            except OSError:  # a read-only mount: the store can still be read
+                continue
             changed.append(str(p))
     return changed

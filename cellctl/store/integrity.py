@@ -84,17 +84,22 @@ def store_error(exc: sa.exc.DBAPIError, where: str, backend: str, recovery: str)
 
 def quick_check(db: Path) -> str | None:
     """SQLite's ``PRAGMA quick_check`` of the file ``db`` (read-only): None when it is sound, else the
-    first problem it reports. Reads every page once: a second or so per few hundred MB."""
+    first problem it reports. Reads every page once (0.4 s for 208 MB in the page cache).
+
+    A file that cannot be read at all (permissions, a missing ``-shm`` in a read-only folder) raises
+    :class:`StoreUnavailable`: that is not damage, and restoring a backup would not help.
+    """
     try:
         conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30)
+        try:
+            rows = conn.execute("PRAGMA quick_check").fetchall()
+        finally:
+            conn.close()
     except sqlite3.Error as exc:
-        return str(exc)
-    try:
-        rows = conn.execute("PRAGMA quick_check").fetchall()
-    except sqlite3.Error as exc:
-        return str(exc)
-    finally:
-        conn.close()
+        if is_damage(exc):
+            return str(exc)
+        raise StoreUnavailable(f"store {db} cannot be read to check it ({exc}); check the disk that holds it "
+                               "(mounted, the user's permissions on the file and its folder)") from None
     if len(rows) == 1 and rows[0][0] == "ok":
         return None
     lines = [ln.strip() for r in rows for ln in str(r[0]).splitlines() if ln.strip() and "***" not in ln]

@@ -136,6 +136,18 @@ class ProductionStore:
                                .order_by(runs.c.id.desc()).limit(1)).first()
         return None if row is None else self.get_run(int(row[0]))
 
+    def totals(self, exclude_run_id: int | None = None) -> dict[str, int]:
+        """Every stored run's counters summed (all runs of the cell but ``exclude_run_id``)."""
+        with self._read() as conn:
+            rows = conn.execute(sa.select(runs.c.id, runs.c.summary_json).where(runs.c.cell_id == self.cell_id)).all()
+        out: dict[str, int] = {}
+        for run_id, summary in rows:
+            if run_id == exclude_run_id:
+                continue
+            for key, value in (json.loads(summary).get("counters") or {}).items():
+                out[key] = out.get(key, 0) + int(value)
+        return out
+
     # -- cycles -----------------------------------------------------------------------------------
     def add_cycle(self, run_id: int, record: dict[str, Any]) -> None:
         with self._write() as conn:

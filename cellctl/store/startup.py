@@ -51,8 +51,12 @@ def read_marker(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else {}
 
 
+ROW_WORDS = {"calibrations": "calibrations", "activations": "activations", "recipes": "recipe versions",
+             "audit": "audit entries"}
+
+
 def _rows(counts: dict[str, int]) -> str:
-    shown = [f"{n} {name}" for name, n in counts.items() if n]
+    shown = [f"{n} {ROW_WORDS.get(name, name)}" for name, n in counts.items() if n]
     return ", ".join(shown) if shown else "no rows"
 
 
@@ -67,7 +71,8 @@ def _refusal(config: CellConfig, marker: dict[str, Any], marker_file: Path, foun
         f"refusing to start: {found}, but cell {config.cell_id!r} ran on a store before (at {when}: {before}; "
         f"recorded in {marker_file}); starting would serve an empty store (no calibrations, no recipes). "
         f"Restore the last backup: {restore_commands(config.source)}; or, to begin a new empty store on "
-        f"purpose, start once with cellctl serve --new-store (or delete {marker_file})")
+        f"purpose, start once with cellctl serve --config {config.source or 'cell.yaml'} --new-store "
+        f"(or delete {marker_file})")
 
 
 def check_store_at_start(config: CellConfig, new_store: bool = False) -> dict[str, Any]:

@@ -59,6 +59,13 @@ class SimCamera(CameraBase):
         threading.Thread(target=prepare, args=(self._world.camera_model,), name=f"{self.camera_id}-prepare",
                          daemon=True).start()
 
+    def warm_up(self) -> None:
+        """Do the first frame's one-off work now and return when it is done: invert the lens and
+        load the renderer's compiled loops (compiling them on a cold numba cache). Thread-safe, and
+        cheap once done; it renders no frame, so the seeded scene's frames stay as they were.
+        A service calls it before it counts a grab's time against a deadline."""
+        prepare(self.world.camera_model)
+
     def close(self) -> None:
         self._world = None
 

@@ -112,7 +112,7 @@ class URRTDESettings(BaseModel):
     position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
     joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
     watchdog_min_frequency_hz: float = Field(
-        10.0, ge=1.0, le=125.0,
+        10.0, ge=1.0, le=50.0,
         description="the controller's RTDE watchdog, armed for every move: with no update from us for "
         "1/f s (the service died or hangs) the controller stops the arm",
     )

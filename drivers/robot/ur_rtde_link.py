@@ -115,7 +115,8 @@ class StateLink:
         age = self.buffer.age_s()
         if age is not None and age > self.config.state_max_age_s:
             stale_since = time.monotonic() - (age - self.config.state_max_age_s)
-            reason = self.reason or f"RTDE state is {age:.2f} s old"
+            reason = self.reason or (f"no new RTDE state from {self.config.host} for {age:.2f} s "
+                                     f"(limit {self.config.state_max_age_s:g} s)")
             if self.outages.down(reason, since_s=stale_since) and self.on_outage is not None:
                 self.on_outage(reason)
 

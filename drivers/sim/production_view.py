@@ -8,6 +8,7 @@ by the tool (tilted with it), or put down in the place area. The renderer
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any
 
 import numpy as np
@@ -30,14 +31,90 @@ def _reflectance(outline_mm: list[list[float]], holes_mm: list[list[list[float]]
     return out
 
 
+class _Lying:
+    """Every lying part on one plane (its frame: the base's, shifted to the parts' top face).
+
+    Each ray is tested exactly (``part_mask``) against the parts whose outline, grown by
+    ``GROW_MM``, covers its cell of a coarse label raster (two labels a cell: parts may touch), so
+    a ray meets one or two parts' tests instead of every part's.
+    """
+
+    CELL_MM = 0.5
+    GROW_MM = 1.5
+
+    def __init__(self, outline_mm: list[list[float]], holes_mm: list[list[list[float]]], value: float,
+                 poses_mm: list[tuple[float, float, float]], extent_m: tuple[float, float, float, float]) -> None:
+        import cv2
+
+        self.outline, self.holes, self.value, self.poses = outline_mm, holes_mm, value, poses_mm
+        self.x0, self.y0 = extent_m[0] * 1e3, extent_m[1] * 1e3
+        w = int(math.ceil((extent_m[2] - extent_m[0]) * 1e3 / self.CELL_MM)) + 1
+        h = int(math.ceil((extent_m[3] - extent_m[1]) * 1e3 / self.CELL_MM)) + 1
+        self.labels = np.zeros((2, h, w), np.int16)
+        poly = np.asarray(outline_mm, dtype=np.float64)
+        grow = max(1, int(math.ceil(2 * self.GROW_MM / self.CELL_MM)))
+        for k, (x_mm, y_mm, angle_deg) in enumerate(poses_mm):
+            a = math.radians(angle_deg)
+            R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+            pts = (poly @ R.T + [x_mm, y_mm] - [self.x0, self.y0]) / self.CELL_MM
+            mask = np.zeros((h, w), np.uint8)
+            cv2.fillPoly(mask, [np.round(pts).astype(np.int32)], 1)
+            cv2.polylines(mask, [np.round(pts).astype(np.int32)], True, 1, grow)
+            on = mask.astype(bool)
+            first = on & (self.labels[0] == 0)
+            self.labels[0][first] = k + 1
+            self.labels[1][on & ~first] = k + 1
+
+    def __call__(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+        from drivers.sim.world import part_mask
+
+        out = np.full(x.shape, np.nan)
+        _, h, w = self.labels.shape
+        ix = np.clip(((x * 1e3 - self.x0) / self.CELL_MM).astype(np.int64), 0, w - 1)
+        iy = np.clip(((y * 1e3 - self.y0) / self.CELL_MM).astype(np.int64), 0, h - 1)
+        for layer in self.labels:
+            lab = layer[iy, ix]
+            hit = np.flatnonzero(lab)
+            if hit.size == 0:
+                continue
+            order = hit[np.argsort(lab[hit], kind="stable")]
+            ks, starts = np.unique(lab[order], return_index=True)
+            for k, lo, hi in zip(ks, starts, [*starts[1:], len(order)], strict=True):
+                sel = order[lo:hi]
+                x_mm, y_mm, angle_deg = self.poses[int(k) - 1]
+                inside = part_mask(self.outline, self.holes, x_mm, y_mm, angle_deg, x[sel], y[sel])
+                out[sel[inside]] = self.value
+        return out
+
+
 def production_objects(parts: ProductionParts, T_cam_base: NDArray[np.float64],
                        T_base_tool_true: NDArray[np.float64]) -> list[PlanarObject]:
-    """The parts as planes in the camera frame, each bounded by its outline's box."""
+    """The parts as planes in the camera frame.
+
+    The parts that lie on the table share one plane at their top face (bounded by the box around
+    them all: one plane for the renderer, not one per part); a held part is a plane of its own at
+    its pose, bounded by its outline's box.
+    """
     spec = parts.spec.part
-    shade = functools.partial(_reflectance, spec.outline_mm, spec.holes_mm, spec.reflectance)
     poly = np.asarray(spec.outline_mm, dtype=np.float64) * 1e-3
     box = (float(poly[:, 0].min()), float(poly[:, 1].min()), float(poly[:, 0].max()), float(poly[:, 1].max()))
-    return [PlanarObject(T_cam_base @ T, shade, box) for _, T in parts.poses(T_base_tool_true)]
+    objs = []
+    lying: list[tuple[float, float, float]] = []
+    for part, T in parts.poses(T_base_tool_true):
+        if part.state == "held":
+            shade = functools.partial(_reflectance, spec.outline_mm, spec.holes_mm, spec.reflectance)
+            objs.append(PlanarObject(T_cam_base @ T, shade, box))
+        else:
+            lying.append((float(T[0, 3]) * 1e3, float(T[1, 3]) * 1e3, math.degrees(math.atan2(T[1, 0], T[0, 0]))))
+    if lying:
+        r_m = parts.spec.part_radius_mm() * 1e-3
+        xy = np.array([p[:2] for p in lying]) * 1e-3
+        extent = (float(xy[:, 0].min()) - r_m, float(xy[:, 1].min()) - r_m,
+                  float(xy[:, 0].max()) + r_m, float(xy[:, 1].max()) + r_m)
+        T_base_top = g.make_transform(np.eye(3), [0.0, 0.0, parts.top_z_mm * 1e-3])
+        lying_shade = _Lying(spec.outline_mm, spec.holes_mm, spec.reflectance, lying, extent)
+        objs.append(PlanarObject(T_cam_base @ T_base_top, lying_shade, extent))
+    return objs
 
 
 def roi_px(parts: ProductionParts, camera: CameraModel, T_cam_base: NDArray[np.float64],

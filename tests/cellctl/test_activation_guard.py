@@ -1,6 +1,6 @@
 """Guarded activation (INTERFACES §5): a calibration whose verdict is not ok needs ``{"force": true}``.
 
-The store is filled before ``cellctl serve`` starts (a real SQLite store, the real app on uvicorn):
+The store is filled before the service starts (a real SQLite store, the real app in-process):
 one camera calibration whose verdict is not ok, one whose verdict is ok, and an n-point map (no
 verdict for that kind).
 """
@@ -8,13 +8,12 @@ verdict for that kind).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
-from tests.conftest import Served, start_served, stop_served
+from tests.support.app import AppCell, in_process_cell
 
 CAMERA = {"model": "opencv5", "width": 1280, "height": 960,
           "K": [[1900.0, 0.0, 640.0], [0.0, 1900.0, 480.0], [0.0, 0.0, 1.0]], "dist": [0.0] * 5, "rms_px": 0.05}
@@ -23,7 +22,7 @@ PROBLEMS = [{"code": "too_few_views", "message": "3 views; calibrate with at lea
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dict[str, int]]]:
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[AppCell, dict[str, int]]]:
     tmp = tmp_path_factory.mktemp("activation")
     db = tmp / "store.db"
     cfg = tmp / "cell.yaml"
@@ -37,11 +36,8 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, d
             "npoint": store.save_calibration("npoint", "cam0", "robot0", {
                 "model": "homography", "H": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "rms_mm": 0.1}, {}, "test").id,
         }
-    served = start_served(tmp, config=cfg)
-    try:
-        yield served, ids
-    finally:
-        stop_served(served)
+    with in_process_cell(tmp, config=cfg) as cell:
+        yield cell, ids
 
 
 def _active_camera(http: object, cal_id: int) -> bool:
@@ -50,9 +46,9 @@ def _active_camera(http: object, cal_id: int) -> bool:
     return bool(r.json()["active"])
 
 
-def test_not_ok_verdict_is_refused_with_its_problems(served: tuple[Served, dict[str, int]]) -> None:
+def test_not_ok_verdict_is_refused_with_its_problems(served: tuple[AppCell, dict[str, int]]) -> None:
     s, ids = served
-    with s.client() as http:
+    with s.http() as http:
         for body in (None, {}, {"force": False}):
             r = http.post(f"/calibrations/{ids['bad']}/activate", json=body)
             assert r.status_code == 409, r.text
@@ -63,18 +59,19 @@ def test_not_ok_verdict_is_refused_with_its_problems(served: tuple[Served, dict[
         assert not _active_camera(http, ids["bad"])
 
 
-def test_ok_verdict_and_no_verdict_activate_without_force(served: tuple[Served, dict[str, int]]) -> None:
+def test_ok_verdict_and_no_verdict_activate_without_force(served: tuple[AppCell, dict[str, int]]) -> None:
     s, ids = served
-    with s.client() as http:
+    with s.http() as http:
         for key in ("good", "npoint"):
             r = http.post(f"/calibrations/{ids[key]}/activate")
             assert r.status_code == 200, r.text
             assert r.json()["active"] is True
 
 
-def test_force_activates_and_is_audited(served: tuple[Served, dict[str, int]]) -> None:
+def test_force_activates_and_is_audited(served: tuple[AppCell, dict[str, int]],
+                                       caplog: pytest.LogCaptureFixture) -> None:
     s, ids = served
-    with s.client() as http:
+    with s.http() as http:
         r = http.post(f"/calibrations/{ids['bad']}/activate", json={"force": True})
         assert r.status_code == 200, r.text
         assert r.json()["active"] is True
@@ -84,13 +81,12 @@ def test_force_activates_and_is_audited(served: tuple[Served, dict[str, int]]) -
         assert len(forced) == 1
         assert forced[0]["target"] == f"calibration:{ids['bad']}"
         assert [p["code"] for p in forced[0]["detail"]["problems"]] == ["too_few_views", "tilt_too_small"]
-        log = (Path(s.data_dir).parent / "serve.log").read_text()
-        assert "although its verdict is not ok" in log
+        assert "although its verdict is not ok" in caplog.text
 
 
-def test_unknown_keys_in_the_body_are_refused(served: tuple[Served, dict[str, int]]) -> None:
+def test_unknown_keys_in_the_body_are_refused(served: tuple[AppCell, dict[str, int]]) -> None:
     s, ids = served
-    with s.client() as http:
+    with s.http() as http:
         r = http.post(f"/calibrations/{ids['bad']}/activate", json={"forced": True})
         assert r.status_code == 422
         assert "forced" in r.json()["error"]["message"]

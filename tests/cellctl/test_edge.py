@@ -12,10 +12,12 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import time
 from collections.abc import Iterator, MutableMapping
 from pathlib import Path
 from typing import Any
 
+import anyio.to_thread
 import numpy as np
 import pytest
 from fastapi import FastAPI
@@ -26,6 +28,7 @@ from cellctl.api.body import MAX_DEPTH, MAX_NUMBER_CHARS, MAX_VALUES
 from cellctl.auth import hash_token
 from cellctl.config import CellConfig, load_config
 from cellctl.pick.model import teach
+from tests.support.wait import wait_until
 
 TOKENS = {"viewer": "cct_edge-viewer", "operator": "cct_edge-operator", "engineer": "cct_edge-engineer"}
 
@@ -287,3 +290,33 @@ def test_other_routes_take_json_numbers_only(client: tuple[TestClient, dict[str,
     refused(c.post("/calibrations/1/activate", json={"force": 1}, headers=auth("engineer")), "body.force")
     r = post_raw(c, "/routines/verify", '{"tolerance_px": true}', "operator")
     assert r.status_code == 422 and "tolerance_px" in r.text, r.text
+
+
+# -- the safety routes have threads of their own --------------------------------------------------------
+
+def test_safety_routes_answer_while_every_default_worker_thread_is_busy(
+        client: tuple[TestClient, dict[str, Any]]) -> None:
+    """A flood that holds all of anyio's default worker threads (what sync routes and
+    run_in_threadpool use) must not delay Stop, resume, state, motion or /health."""
+    c, _ = client
+    assert c.portal is not None
+    hold_s = 4.0
+    tokens = c.portal.call(lambda: anyio.to_thread.current_default_thread_limiter().total_tokens)
+    busy = [c.portal.start_task_soon(anyio.to_thread.run_sync, time.sleep, hold_s) for _ in range(int(tokens) + 5)]
+    try:
+        wait_until(lambda: c.portal.call(  # type: ignore[union-attr]
+            lambda: anyio.to_thread.current_default_thread_limiter().borrowed_tokens) >= tokens,
+            hold_s / 2, "every default worker thread held")
+        t0 = time.perf_counter()
+        for method, path, role in (("POST", "/robots/robot0/stop", "operator"),
+                                   ("GET", "/robots/robot0/state", "viewer"),
+                                   ("GET", "/robots/robot0/motion", "viewer"),
+                                   ("POST", "/robots/robot0/resume", "engineer")):
+            r = c.request(method, path, headers=auth(role))
+            assert r.status_code == 200, (path, r.text)
+        assert c.get("/health").status_code == 200
+        elapsed_s = time.perf_counter() - t0
+        assert elapsed_s < 0.5 * hold_s, elapsed_s  # answered while the default pool was still full
+    finally:
+        for f in busy:
+            f.result(30)

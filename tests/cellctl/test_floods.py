@@ -27,6 +27,7 @@ import yaml
 from cellctl.cli import main
 from cellctl.config import default_config_text
 from tests.conftest import Served, start_served, stop_served
+from tests.support.wait import wait_until
 
 MAX_STREAMS, MAX_STREAMS_PER_TOKEN = 6, 4
 BODY_MB = 40
@@ -139,14 +140,14 @@ def test_four_parallel_40_mb_bodies_without_a_token(cell: tuple[Served, dict[str
             results.append((kind, repr(exc), time.perf_counter() - t0))
 
     with HealthProbe(served.base_url) as probe:
-        time.sleep(0.2)
+        wait_until(lambda: probe.latencies_s, 30.0, "a first /health answer")
         for kind in ("declared", "chunked"):
             threads = [threading.Thread(target=post, args=(kind,)) for _ in range(4)]
             for t in threads:
                 t.start()
             for t in threads:
                 t.join(90.0)
-        time.sleep(0.2)
+        wait_until(lambda: len(probe.latencies_s) >= 5, 30.0, "five /health answers")
     assert [r[1] for r in results] == [413] * 4 + [401] * 4, results
     assert max(r[2] for r in results) < 30.0, results  # loose: the client writes 40 MB on a shared machine
     assert not probe.failures and len(probe.latencies_s) >= 5
@@ -199,7 +200,7 @@ def test_stop_is_not_delayed_by_a_no_token_flood_of_large_numbers(cell: tuple[Se
     for t in clients:
         t.start()
     try:
-        time.sleep(0.3)
+        wait_until(lambda: outcomes, 60.0, "the flood's first refused body")
         latencies = stop_and_resume(served.base_url, tokens, 10)
     finally:
         stop_flood.set()

@@ -1,10 +1,12 @@
 """Hostile numbers at the edge of a served cell: every one answers a 4xx naming the field, never 200/500.
 
 The cell is the virtual cell with its true calibrations active and recipe 1 (the bracket) stored
-(``tests.plc.conftest.prepare_cell``), served by ``cellctl serve`` and called over loopback with
-httpx. The list is issue 12's: NaN/Infinity/1e308 in recipes, ``min_score 1e-9``, absurd and
-millimetre robot poses for ``/map``, moves at 1e301 m or 1e-300 m/s, JSON's NaN/Infinity literals
-(Python's ``json`` accepts them) on any route and under any content type.
+(``tests.plc.conftest.prepare_cell``): the real app with its lifespan, in this process behind
+FastAPI's TestClient (``tests.support.app``); nothing here depends on uvicorn or a socket (the
+served floods and slow bodies: test_floods.py, test_edge.py). The list is issue 12's:
+NaN/Infinity/1e308 in recipes, ``min_score 1e-9``, absurd and millimetre robot poses for ``/map``,
+moves at 1e301 m or 1e-300 m/s, JSON's NaN/Infinity literals (Python's ``json`` accepts them) on
+any route and under any content type.
 """
 
 from __future__ import annotations
@@ -17,23 +19,19 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.conftest import Served, start_served, stop_served
 from tests.plc.conftest import RECIPE, prepare_cell
+from tests.support.app import AppCell, in_process_cell
 
 DOWN = {"rx_rad": 3.14159, "ry_rad": 0.0, "rz_rad": 0.0}
 
 
 @pytest.fixture(scope="module")
-def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dict[str, Any]]]:
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[AppCell, dict[str, Any]]]:
     tmp = tmp_path_factory.mktemp("hostile")
     path, _ = prepare_cell(tmp, {})
-    served = start_served(tmp, config=path, timeout_s=120.0)
-    try:
-        with served.client() as http:
-            recipe = http.get(f"/recipes/{RECIPE}").json()["data"]
-        yield served, recipe
-    finally:
-        stop_served(served)
+    with in_process_cell(tmp, config=path) as app, app.http() as http:
+        recipe = http.get(f"/recipes/{RECIPE}").json()["data"]
+        yield app, recipe
 
 
 def strict_json(text: str) -> Any:
@@ -57,9 +55,9 @@ def raw_post(http: httpx.Client, path: str, text: str, content_type: str = "appl
 # -- JSON's non-finite literals, on any route and any content type --------------------------------------
 
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e999", "-2.5E+400"])
-def test_non_finite_literals_are_refused_naming_the_field(cell: tuple[Served, dict[str, Any]], literal: str) -> None:
+def test_non_finite_literals_are_refused_naming_the_field(cell: tuple[AppCell, dict[str, Any]], literal: str) -> None:
     served, _ = cell
-    with served.client() as http:
+    with served.http() as http:
         for path, text, field in (
             ("/map", f'{{"u_px": {literal}, "v_px": 10}}', "body.u_px"),
             ("/map", f'{{"u_px": 10, "v_px": 10, "plane_z_mm": {literal}}}', "body.plane_z_mm"),
@@ -76,17 +74,17 @@ def test_non_finite_literals_are_refused_naming_the_field(cell: tuple[Served, di
                 assert literal in msg and "finite" in msg
 
 
-def test_a_body_is_not_parsed_before_the_token_is_checked(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_a_body_is_not_parsed_before_the_token_is_checked(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, _ = cell
-    r = httpx.post(served.base_url + "/map", content=b'{"u_px": NaN, "v_px": 1}', timeout=20,
-                   headers={"Content-Type": "application/json"})
+    r = served.client.post("/map", content=b'{"u_px": NaN, "v_px": 1}',
+                           headers={"Content-Type": "application/json"})
     assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized", r.text
 
 
-def test_words_that_contain_nan_are_not_numbers(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_words_that_contain_nan_are_not_numbers(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, recipe = cell
     body = {"recipe_id": 41, "recipe": {**recipe, "name": "NaNo Infinity bracket 1e999"}}
-    with served.client() as http:
+    with served.http() as http:
         r = http.post("/recipes", json=body)
         assert r.status_code == 201, r.text
         assert http.get("/recipes/41").json()["data"]["name"] == "NaNo Infinity bracket 1e999"
@@ -119,7 +117,7 @@ RECIPE_CASES: list[tuple[str, Any, str]] = [
 
 
 @pytest.mark.parametrize(("key", "value", "field"), RECIPE_CASES, ids=[f"{k}={v!s:.12}" for k, v, _ in RECIPE_CASES])
-def test_recipe_numbers_out_of_range_are_refused(cell: tuple[Served, dict[str, Any]], key: str, value: Any,
+def test_recipe_numbers_out_of_range_are_refused(cell: tuple[AppCell, dict[str, Any]], key: str, value: Any,
                                                  field: str) -> None:
     served, recipe = cell
     r = copy.deepcopy(recipe)
@@ -127,16 +125,16 @@ def test_recipe_numbers_out_of_range_are_refused(cell: tuple[Served, dict[str, A
         r.setdefault("search", {})[key.removeprefix("search.")] = value
     else:
         r[key] = value
-    with served.client() as http:
+    with served.http() as http:
         msg = refused(http.post("/recipes", json={"recipe_id": 40, "recipe": r}), field)
         if key == "search.min_score":
             assert "0.05" in msg
         assert http.get("/recipes/40").status_code == 404  # nothing was stored
 
 
-def test_a_sane_recipe_still_saves_and_picks(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_a_sane_recipe_still_saves_and_picks(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, recipe = cell
-    with served.client(timeout_s=60) as http:
+    with served.http() as http:
         assert http.post("/recipes", json={"recipe_id": 42, "recipe": recipe}).status_code == 201
         r = http.post("/pick", json={"recipe_id": 42})
         assert r.status_code == 200, r.text
@@ -160,18 +158,18 @@ MAP_CASES: list[tuple[dict[str, Any], str]] = [
 
 
 @pytest.mark.parametrize(("change", "field"), MAP_CASES, ids=[str(c) for c, _ in MAP_CASES])
-def test_map_refuses_absurd_inputs(cell: tuple[Served, dict[str, Any]], change: dict[str, Any], field: str) -> None:
+def test_map_refuses_absurd_inputs(cell: tuple[AppCell, dict[str, Any]], change: dict[str, Any], field: str) -> None:
     served, _ = cell
     body = {"u_px": 640.0, "v_px": 480.0, "plane_z_mm": 0.0, **change}
-    with served.client() as http:
+    with served.http() as http:
         r = http.post("/map", json=body)
         assert r.status_code == 422, r.text
         assert field in strict_json(r.text)["error"]["message"]
 
 
-def test_map_answers_finite_numbers_for_sane_inputs(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_map_answers_finite_numbers_for_sane_inputs(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, _ = cell
-    with served.client() as http:
+    with served.http() as http:
         for pose in (None, [0.4, 0.0, 0.5, 3.14159, 0.0, 0.0]):
             r = http.post("/map", json={"u_px": 640.0, "v_px": 480.0, "plane_z_mm": 0.0, "robot_pose_ur": pose})
             assert r.status_code == 200, r.text
@@ -196,10 +194,10 @@ MOVE_CASES: list[tuple[dict[str, Any], str]] = [
 
 
 @pytest.mark.parametrize(("body", "field"), MOVE_CASES, ids=[str(b)[:60] for b, _ in MOVE_CASES])
-def test_moves_with_absurd_numbers_are_refused_before_motion(cell: tuple[Served, dict[str, Any]],
+def test_moves_with_absurd_numbers_are_refused_before_motion(cell: tuple[AppCell, dict[str, Any]],
                                                              body: dict[str, Any], field: str) -> None:
     served, _ = cell
-    with served.client() as http:
+    with served.http() as http:
         before = http.get("/robots/robot0/state").json()["pose_ur"]
         r = http.post("/robots/robot0/move", json=body)
         assert 400 <= r.status_code < 500 and r.status_code != 409, r.text
@@ -209,21 +207,21 @@ def test_moves_with_absurd_numbers_are_refused_before_motion(cell: tuple[Served,
         assert http.get("/robots/robot0/motion").json()["owner"] is None
 
 
-def test_a_deep_non_finite_number_is_named_by_its_path(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_a_deep_non_finite_number_is_named_by_its_path(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, _ = cell
     doc = {"recipe_id": 43, "recipe": {"name": "x", "models": [{"levels": [{"points": [[1.0, 2.0], [3.0, "@"]]}]}]}}
     text = json.dumps(doc).replace('"@"', "-Infinity")
-    with served.client() as http:
+    with served.http() as http:
         msg = refused(raw_post(http, "/recipes", text), "body.recipe.models.0.levels.0.points.1.1")
         assert "-Infinity" in msg
 
 
-def test_a_non_finite_number_deep_in_a_large_body_is_named(cell: tuple[Served, dict[str, Any]]) -> None:
+def test_a_non_finite_number_deep_in_a_large_body_is_named(cell: tuple[AppCell, dict[str, Any]]) -> None:
     served, _ = cell
     points = [[float(i), float(i) + 0.5] for i in range(40_000)]  # ~1 MB of JSON: checked off the event loop
     doc = {"recipe_id": 44, "recipe": {"name": "big", "models": [{"points": points + [[1.0, "@"]]}]}}
     text = json.dumps(doc).replace('"@"', "NaN")
     assert len(text) > 500_000
-    with served.client() as http:
+    with served.http() as http:
         refused(raw_post(http, "/recipes", text), f"body.recipe.models.0.points.{len(points)}.1")
         assert http.get("/recipes/44").status_code == 404

@@ -1,5 +1,5 @@
 """REST messages an integrator meets on day one: the right code, the field and the fix, no
-internal function names. A served cell whose store holds an active camera + hand-eye calibration."""
+internal function names. The app (in-process) over a store that holds an active camera + hand-eye calibration."""
 
 from __future__ import annotations
 
@@ -14,14 +14,14 @@ from calibration.synthetic import simulate_handeye
 from calibration.targets import Chessboard
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
-from tests.conftest import Served, start_served, stop_served
+from tests.support.app import AppCell, in_process_cell
 
 CAM = CameraModel("opencv5", 1600, 1200, np.array([[1700.0, 0, 800], [0, 1700.0, 600], [0, 0, 1]]),
                   np.array([-0.08, 0.04, 0.0, 0.0, 0.0]))
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, int]]:
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[AppCell, int]]:
     tmp = tmp_path_factory.mktemp("errors")
     board = Chessboard(8, 6, 30.0)
     sim = simulate_handeye("eye-in-hand", 10, np.random.default_rng(5), camera=CAM, target=board,
@@ -35,16 +35,13 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, i
         store.activate(store.save_calibration("handeye", "cam0", "robot0", he.to_json(), {}, "test").id, "test")
     cfg = tmp / "cell.yaml"
     cfg.write_text(default_config_text().replace("path: null ", f"path: {db} "))
-    s = start_served(tmp, config=cfg)
-    try:
-        yield s, cam.id
-    finally:
-        stop_served(s)
+    with in_process_cell(tmp, config=cfg) as cell:
+        yield cell, cam.id
 
 
-def test_map_without_plane_height_with_an_active_handeye(served: tuple[Served, int]) -> None:
+def test_map_without_plane_height_with_an_active_handeye(served: tuple[AppCell, int]) -> None:
     s, _ = served
-    with s.client() as http:
+    with s.http() as http:
         r = http.post("/map", json={"u_px": 800, "v_px": 600})
         assert r.status_code == 422, r.text
         err = r.json()["error"]
@@ -55,9 +52,9 @@ def test_map_without_plane_height_with_an_active_handeye(served: tuple[Served, i
         assert len(r.json()["sigma_mm"]) == 3
 
 
-def test_halcon_export_needs_the_pixel_pitch(served: tuple[Served, int]) -> None:
+def test_halcon_export_needs_the_pixel_pitch(served: tuple[AppCell, int]) -> None:
     s, cam_id = served
-    with s.client() as http:
+    with s.http() as http:
         r = http.get(f"/calibrations/{cam_id}/export", params={"format": "halcon"})
         assert r.status_code == 422
         err = r.json()["error"]
@@ -71,9 +68,9 @@ def test_halcon_export_needs_the_pixel_pitch(served: tuple[Served, int]) -> None
         assert "division lens model" in err["message"] and "--" not in err["message"]
 
 
-def test_unknown_recipe_names_the_route_not_a_function(served: tuple[Served, int]) -> None:
+def test_unknown_recipe_names_the_route_not_a_function(served: tuple[AppCell, int]) -> None:
     s, _ = served
-    with s.client() as http:
+    with s.http() as http:
         for r in (http.get("/recipes/77"), http.post("/pick", json={"recipe_id": 77})):
             assert r.status_code == 404
             msg = r.json()["error"]["message"]

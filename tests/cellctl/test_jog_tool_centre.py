@@ -26,6 +26,7 @@ from calibration import geometry as g
 from calibration.targets import target_from_dict
 from cellctl.cli import main
 from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
+from tests.support.wait import wait_until
 
 SCENE = REPO / "drivers" / "sim" / "scenes" / "virtual-cell-fixed-camera.yaml"
 R_DOWN = g.rotvec_to_matrix([np.pi, 0.0, 0.0])
@@ -168,8 +169,8 @@ def test_a_stop_during_the_turn_ends_the_job_stopped(served: Served, truth: dict
             assert job["state"] == "running", job["error"]
             assert time.monotonic() < deadline
             time.sleep(0.05)
-        # The routine owns the robot now: a jog is refused.
-        time.sleep(0.2)
+        # The routine owns the robot now, turning the tool: a jog is refused.
+        wait_until(lambda: http.get("/robots/robot0/state").json()["moving"], 30.0, "the turn under way")
         pose = _flange_for_mark(truth, 0)
         assert http.post("/robots/robot0/move", json={"pose_ur": pose, "speed_m_s": 0.1}).status_code == 409
         assert http.post("/robots/robot0/stop").status_code == 200

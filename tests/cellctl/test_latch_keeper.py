@@ -139,3 +139,17 @@ def test_after_close_the_keeper_stores_no_more_changes(store: Store) -> None:
     owners["robot0"].latch("operator-1", "Stop")  # no longer listened to
     assert keeper.wait_stored_blocking(5.0)  # nothing told: nothing to wait for
     assert store.latches() == []
+
+
+def test_a_controller_dropout_latch_is_stored_like_a_stop(store: Store) -> None:
+    """The adapters latch a robot whose controller dropped out mid-sequence through the same latch."""
+    keeper, owners = _started(store, "robot0")
+    try:
+        session = owners["robot0"].begin("engineer-1", "a two-move sequence")
+        assert owners["robot0"].latch_if_owned("controller", "controller dropped out mid-sequence") is session
+        assert keeper.wait_stored_blocking(10.0)
+        assert [(x.latched_by, x.reason) for x in store.latches()] == [
+            ("controller", "controller dropped out mid-sequence")]
+        owners["robot0"].end(session)
+    finally:
+        keeper.close()

@@ -1,7 +1,8 @@
 """``/metrics``: Prometheus text, token-protected, fed by requests, devices, routines and picks.
 
-The HTTP tests run a real ``cellctl serve`` of the virtual cell on a loopback port, with a
-viewer and an engineer token in its config; the in-process tests use real cells (simulated and
+The HTTP tests run the virtual cell's app in this process behind FastAPI's TestClient
+(``tests.support.app``: create_app with its lifespan), with a viewer and an engineer token in its
+config; the in-process tests use real cells (simulated and
 OpenCV video-file devices) and a real ``JobManager``.
 """
 
@@ -15,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import httpx
 import numpy as np
 import pytest
 import yaml
@@ -28,7 +28,7 @@ from cellctl.config import default_config_text, parse_config
 from cellctl.jobs import JobCancelled, JobContext, JobManager
 from cellctl.services import Services
 from drivers.camera.sim import SimCamera, SimCameraSettings
-from tests.conftest import Served, start_served, stop_served
+from tests.support.app import AppCell, in_process_cell
 
 VIEWER = "cct_test-viewer-token-0123456789"
 ENGINEER = "cct_test-engineer-token-0123456789"
@@ -44,13 +44,10 @@ def write_config(path: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[AppCell]:
     tmp = tmp_path_factory.mktemp("metrics")
-    s = start_served(tmp, write_config(tmp / "cell.yaml"), token=ENGINEER)
-    try:
-        yield s
-    finally:
-        stop_served(s)
+    with in_process_cell(tmp, write_config(tmp / "cell.yaml"), token=ENGINEER) as app:
+        yield app
 
 
 def samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
@@ -62,26 +59,26 @@ def samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
     return out
 
 
-def scrape(served: Served, token: str = VIEWER) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
-    r = httpx.get(served.base_url + "/metrics", headers={"Authorization": f"Bearer {token}"}, timeout=10)
+def scrape(served: AppCell, token: str = VIEWER) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    r = served.client.get("/metrics", headers={"Authorization": f"Bearer {token}"})
     assert r.status_code == 200, r.text
     assert r.headers["content-type"].startswith("text/plain")
     return samples(r.text)
 
 
-def test_metrics_needs_a_token(served: Served) -> None:
-    r = httpx.get(served.base_url + "/metrics", timeout=10)
+def test_metrics_needs_a_token(served: AppCell) -> None:
+    r = served.client.get("/metrics")
     assert r.status_code == 401
     assert r.json()["error"]["code"] == "unauthorized"
-    r = httpx.get(served.base_url + "/metrics", headers={"Authorization": "Bearer cct_not-a-token"}, timeout=10)
+    r = served.client.get("/metrics", headers={"Authorization": "Bearer cct_not-a-token"})
     assert r.status_code == 401
     # the lowest role is enough
-    assert ("cellctl_build_info", (("version", httpx.get(served.base_url + "/health").json()["version"]),)) \
+    assert ("cellctl_build_info", (("version", served.client.get("/health").json()["version"]),)) \
         in scrape(served, VIEWER)
 
 
-def test_request_latency_is_per_route_template_and_status(served: Served) -> None:
-    with served.client(ENGINEER) as c:
+def test_request_latency_is_per_route_template_and_status(served: AppCell) -> None:
+    with served.http(ENGINEER) as c:
         for _ in range(3):
             assert c.get("/robots/robot0/state").status_code == 200
         assert c.get("/robots/nope/state").status_code == 404
@@ -101,29 +98,29 @@ def test_request_latency_is_per_route_template_and_status(served: Served) -> Non
     assert m[inf] == m[key]
 
 
-def test_device_gauges_of_the_virtual_cell(served: Served) -> None:
+def test_device_gauges_of_the_virtual_cell(served: AppCell) -> None:
     m = scrape(served)
     assert m[("cellctl_robot_connected", (("robot", "robot0"),))] == 1.0
     assert m[("cellctl_device_available", (("category", "camera"), ("device", "cam0"), ("kind", "sim")))] == 1.0
     assert m[("cellctl_device_outages_total", (("category", "robot"), ("device", "robot0")))] == 0.0
 
 
-def test_request_id_is_echoed_or_made(served: Served) -> None:
-    r = httpx.get(served.base_url + "/health", headers={"X-Request-Id": "plc-7.order:42"}, timeout=10)
+def test_request_id_is_echoed_or_made(served: AppCell) -> None:
+    r = served.client.get("/health", headers={"X-Request-Id": "plc-7.order:42"})
     assert r.headers["x-request-id"] == "plc-7.order:42"
-    made = httpx.get(served.base_url + "/health", timeout=10).headers["x-request-id"]
+    made = served.client.get("/health").headers["x-request-id"]
     assert re.fullmatch(r"[0-9a-f]{32}", made)
-    assert httpx.get(served.base_url + "/health", timeout=10).headers["x-request-id"] != made
+    assert served.client.get("/health").headers["x-request-id"] != made
     # an id that is not a sane token is not echoed (it would end up in the logs): a new one is made
-    r = httpx.get(served.base_url + "/health", headers={"X-Request-Id": "a b; drop"}, timeout=10)
+    r = served.client.get("/health", headers={"X-Request-Id": "a b; drop"})
     assert re.fullmatch(r"[0-9a-f]{32}", r.headers["x-request-id"])
     # errors carry it too
-    r = httpx.get(served.base_url + "/metrics", headers={"X-Request-Id": "denied-1"}, timeout=10)
+    r = served.client.get("/metrics", headers={"X-Request-Id": "denied-1"})
     assert r.status_code == 401 and r.headers["x-request-id"] == "denied-1"
 
 
-def test_routine_outcomes_are_counted(served: Served) -> None:
-    with served.client(ENGINEER) as c:
+def test_routine_outcomes_are_counted(served: AppCell) -> None:
+    with served.http(ENGINEER) as c:
         r = c.post("/routines/verify", json={})
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]

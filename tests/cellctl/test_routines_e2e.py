@@ -2,7 +2,9 @@
 
 One served process for the module: intrinsics-capture → activate → handeye-capture → activate →
 verify → jog-to-mark (the test plays the operator: it jogs the robot onto each mark's true
-position over the API and presses record) → activate → /map.
+position over the API and presses record) → activate → /map. The robot moves at 5x real time
+(``motion_time_scale: 0.2``): the routines, not the travel, are tested here, yet a move still
+takes time, so a cancel lands mid-routine (real-time motion: the README tour, the operator page).
 """
 
 from __future__ import annotations
@@ -16,16 +18,22 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+import yaml
 
 from calibration import geometry as g
 from calibration.targets import target_from_dict
+from cellctl.config import default_config_text
 from tests.conftest import CELLCTL, Served, start_served, stop_served
 from tests.support.served import run_job
 
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
-    s = start_served(tmp_path_factory.mktemp("routines"))
+    tmp = tmp_path_factory.mktemp("routines")
+    data = yaml.safe_load(default_config_text())
+    data["robots"]["robot0"]["settings"]["motion_time_scale"] = 0.2
+    (tmp / "cell.yaml").write_text(yaml.safe_dump(data))
+    s = start_served(tmp, tmp / "cell.yaml")
     try:
         yield s
     finally:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -114,7 +115,25 @@ def test_serve_refuses_a_damaged_or_lost_store_and_restoring_the_backup_brings_i
     db.write_bytes(b"")
     code, err = _serve(path, capsys)
     assert code == 2 and f"the store {db} is empty (0 bytes)" in err
-    assert "cellctl serve --new-store" in err and db.stat().st_size == 0
+    assert f"cellctl serve --config {path} --new-store" in err and db.stat().st_size == 0
     db.unlink()
     code, err = _serve(path, capsys)
     assert code == 2 and f"the store {db} does not exist" in err and not db.exists()
+
+
+def test_stop_on_a_damaged_store_still_answers_that_the_robot_stopped(tmp_path: Path) -> None:
+    """Stop always wins: the robot halts and latches; the store's failure shows as not stored, not as an error."""
+    config = load_config(write_config(tmp_path))
+    stored_calibrations(config)
+    damage_table(tmp_path / "store" / "cell.db", "audit")
+    app = create_app(config, [("eng", "engineer", hash_token(TOKEN))])
+    with TestClient(app) as client:
+        t0 = time.monotonic()
+        r = client.post("/robots/robot0/stop", headers=AUTH)
+        took_s = time.monotonic() - t0
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["stopped"] is True and body["latched"] is True
+        assert body["audit_stored"] is False and body["latch_stored"] is False
+        assert took_s < 4.0  # not the latch wait's 5 s: a failing store is answered at once
+        assert client.get("/robots/robot0/state", headers=AUTH).json()["latched"] is True

@@ -74,7 +74,7 @@ def check_command(parser: argparse.ArgumentParser, command: str) -> list[str]:
                 problems.append(f"{' '.join(path)}: no command {w!r} (has {sorted(subs)})")
                 break
             parsers, path = [subs[n] for n in names], [*path, w]
-    if _subparsers(parsers[0]) and words and not {"-h", "--help"} & set(words):
+    if _subparsers(parsers[0]) and words and not {"-h", "--help", "--version"} & set(words):
         problems.append(f"{' '.join(path)}: incomplete, needs one of {sorted(_subparsers(parsers[0]))}")
     return problems
 

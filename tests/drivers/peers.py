@@ -18,6 +18,25 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[2]
 
 
+def fresh_state(robot: Any, timeout_s: float = 5.0) -> Any:
+    """``robot.state()`` once a sample within the adapter's age limit is there, polled until ``timeout_s``.
+
+    For set-ups: on a loaded machine one sample can come late (a UR state 0.20 s old against a 0.2 s
+    limit), and the adapter rightly refuses it as stale (``DeviceUnavailable``); a set-up waits for the
+    next one instead of failing. The adapter's rule is not loosened: a state that stays stale fails here.
+    """
+    from drivers.base import DeviceUnavailable
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return robot.state()
+        except DeviceUnavailable:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.01)
+
+
 def wait_port(port: int, timeout_s: float = 10.0, host: str = "127.0.0.1") -> None:
     """Wait until something accepts TCP connections on ``host:port``."""
     deadline = time.monotonic() + timeout_s

@@ -278,3 +278,27 @@ def test_a_failing_stop_is_raised_and_the_latch_holds() -> None:
     assert r.motion.latched
     with pytest.raises(RobotStopped):
         r.move_linear(FAR, 0.1)
+
+
+def test_a_sequence_that_finds_its_controller_gone_latches_a_lone_move_does_not() -> None:
+    """The controller is gone at a sequence's next move: a dropout mid-sequence, latched as a Stop
+    latches. A lone move asked for while the controller is already gone is an outage: refused, no latch."""
+    forget_worlds()
+    r = SimRobot("robot0", SimRobotSettings(seed=1, motion_time_scale=0.0), LIMITS)
+    with r:
+        with r.motion_session("test", "a two-move sequence") as session:
+            r.move_linear(HOME, 0.25, session=session)
+            r.simulate_drop_off()
+            with pytest.raises(DeviceUnavailable):
+                r.move_linear(FAR, 0.25, session=session)
+        status = r.motion.status()
+        assert status["latched"] and status["latched_by"] == "controller", status
+        assert "controller dropped out" in status["latched_reason"]
+        assert r.resume() is True
+        r.connect()  # the controller is back
+        r.move_linear(FAR, 0.25)
+        r.simulate_drop_off()
+        with pytest.raises(DeviceUnavailable):
+            r.move_linear(HOME, 0.25)
+        assert not r.motion.latched
+    forget_worlds()

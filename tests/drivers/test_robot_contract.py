@@ -42,7 +42,7 @@ from drivers.robot.modbus import ModbusRobot
 from drivers.robot.sim import SimRobot, SimRobotSettings
 from drivers.robot.ur_rtde import URRTDERobot
 from drivers.sim.world import forget_worlds
-from tests.drivers.peers import PeerProcess, free_port
+from tests.drivers.peers import PeerProcess, free_port, fresh_state
 
 MOVING = ["sim", "modbus", "ur_rtde"]
 ALL = [*MOVING, "replay"]
@@ -124,6 +124,7 @@ def _ur(slow: bool) -> Rig:
     rig.cleanup += [lambda: _release(lock), peer.stop]
     try:
         robot.connect()
+        fresh_state(robot)
     except BaseException:
         robot.close()
         for fn in reversed(rig.cleanup):

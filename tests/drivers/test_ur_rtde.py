@@ -27,7 +27,7 @@ from drivers.base import (
 from drivers.peers.ur_emulator import HOME_Q, fixed_port_lock, forward_kinematics
 from drivers.registry import adapter_class
 from drivers.robot.ur_rtde import URRTDERobot
-from tests.drivers.peers import PeerProcess, answers_within, wait_port
+from tests.drivers.peers import PeerProcess, answers_within, fresh_state, wait_port
 
 LIMITS = MotionLimits(
     x_mm=(-800, 800), y_mm=(-800, 800), z_mm=(0, 900), max_linear_speed_m_s=0.5, max_joint_speed_rad_s=1.0
@@ -49,6 +49,7 @@ def robot(ur_emulator: PeerProcess) -> Iterator[URRTDERobot]:
     r = URRTDERobot("ur0", SETTINGS, LIMITS)
     r.connect()
     try:
+        fresh_state(r)
         yield r
     finally:
         r.close()
@@ -73,6 +74,10 @@ def test_registry_and_settings_validation() -> None:
         cls.Settings.model_validate({"host": "127.0.0.1", "state_max_age_s": -1})
     with pytest.raises(ValueError, match="port"):
         cls.Settings.model_validate({"host": "127.0.0.1", "port": 30004})
+    assert cls.Settings.model_validate({"host": "127.0.0.1"}).watchdog_min_frequency_hz == 10.0
+    for hz in (0, 0.5, 200, "fast"):  # a watchdog cannot be switched off, nor asked for beyond 50 Hz
+        with pytest.raises(ValueError, match="watchdog_min_frequency_hz"):
+            cls.Settings.model_validate({"host": "127.0.0.1", "watchdog_min_frequency_hz": hz})
 
 
 @pytest.fixture(scope="class")
@@ -83,6 +88,7 @@ def class_robot() -> Iterator[URRTDERobot]:
         r = URRTDERobot("ur0", SETTINGS, LIMITS)
         try:
             r.connect()
+            fresh_state(r)
             yield r
         finally:
             r.close()
@@ -96,14 +102,15 @@ def shared_robot(class_robot: URRTDERobot) -> URRTDERobot:
     r = class_robot
     r.connect()  # a no-op unless a test closed it
     r.resume()
-    if r.state().metadata["safety_mode"] != "normal":
+    if fresh_state(r).metadata["safety_mode"] != "normal":
         r.unlock_protective_stop()
-    if r.state().metadata["robot_mode"] != "running":
+    if fresh_state(r).metadata["robot_mode"] != "running":
         r.power_on()
         r.brake_release()
     wait_for(lambda: r.state().metadata["robot_mode"] == "running" and r.state().metadata["safety_mode"] == "normal",
              5.0)
     r.move_joint(np.array(HOME_Q), speed_rad_s=1.0)
+    fresh_state(r)
     return r
 
 

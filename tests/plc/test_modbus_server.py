@@ -141,11 +141,11 @@ def test_plc_verifies_the_calibration(plc_cell: PlcCell) -> None:
 def test_plc_that_writes_garbage_gets_errors_never_a_dead_server(plc_cell: PlcCell) -> None:
     with plc(plc_cell) as client:
         seq = next_seq()
-        request(client, 7, RECIPE, seq)  # no such command: answered at once
+        request(client, 99, RECIPE, seq)  # no such command: answered at once
         a = read_answer(client)
         assert a.echo == seq and a.status == mb.ERROR
         assert (a.error_code, a.error_text) == (CLASS_REQUEST, TEXT_UNKNOWN_COMMAND)
-        assert "unknown command code 7" in message(client)
+        assert "unknown command code 99" in message(client)
 
         seq = next_seq()
         request(client, mb.CMD_PICK, 65000, seq)  # no such recipe

@@ -16,18 +16,21 @@ from cellctl.jobs import JobManager
 from cellctl.plc.requests import (
     CLASS_DRIFT,
     CLASS_REQUEST,
+    CLASS_RUNTIME,
     CLASS_SETUP,
     ERROR_TEXTS,
     TEXT_BAD_RECIPE,
     TEXT_DRIFTED,
     TEXT_NO_CALIBRATION,
     TEXT_RECIPE_RANGE,
+    TEXT_STORE,
     execute_pick,
     execute_verify,
 )
 from cellctl.services import Services
 from cellctl.store import open_store
 from tests.plc.conftest import RECIPE, prepare_cell
+from tests.store.helpers import damage_table
 
 
 @pytest.fixture(scope="module")
@@ -99,3 +102,16 @@ def test_verify_of_a_drifted_hand_eye_is_the_drift_error(services: Services) -> 
     assert out.verify is not None and out.verify["passed"] is False and out.verify["drift_mm"] > 0.5
     assert "calibration drifted" in out.message
     assert execute_verify(services, "test").ok  # the true one again
+
+
+def test_a_damaged_store_is_a_runtime_error_naming_the_restore(tmp_path: Path) -> None:
+    """Not an internal error: the PLC shows "call the engineer", the message says how to restore."""
+    path, _ = prepare_cell(tmp_path, {})
+    damage_table(tmp_path / "cell.db", "recipes")
+    svc = services_of(path)
+    try:
+        out = execute_pick(svc, RECIPE, "test")
+    finally:
+        svc.close()
+    assert (out.ok, out.text_index, out.error_class) == (False, TEXT_STORE, CLASS_RUNTIME)
+    assert "cell.db is damaged" in out.message and "cellctl store restore --config" in out.message

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.production.cell import production_config, serve, slot_error, teach_recipe, wait_ended
+from tests.support.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended
 from tests.support.served import Served, stop_served
 
 
@@ -52,3 +52,43 @@ def test_a_run_empties_the_area_into_the_grid(served4: Served) -> None:
     ms = end["cycle_ms"]
     assert ms["median"] > 0 and ms["motion_median"] > 0 and ms["p95"] >= ms["median"]
     assert np.isfinite([ms["vision_median"], ms["gripper_median"]]).all()
+
+
+def test_grip_failures_are_retried_and_counted(tmp_path: Path) -> None:
+    served = serve(tmp_path, production_config(tmp_path, count=3, scene={"gripper": {"fail_probability": 0.5}}))
+    try:
+        http = served.client(timeout_s=60)
+        teach_recipe(http, gripper={"grip_width_mm": 30.0, "settle_s": 0.05,
+                                    "device": {"io_id": "gripper0", "kind": "robotiq_2f", "retries": 8}})
+        run_id = http.post("/production/start", json={"recipe_id": 1}).json()["run_id"]
+        end = wait_ended(http)
+        c = end["counters"]
+        assert end["ended_because"] == "area_empty" and c["placed"] == 3, end
+        assert c["grip_failures"] >= 1 and c["retries"] == c["grip_failures"] and c["skipped"] == 0, c
+        results = [r["result"] for r in http.get(f"/production/runs/{run_id}/cycles").json()]
+        assert results.count("grip_failed") == c["grip_failures"] and results.count("placed") == 3
+        assert all(p["state"] == "placed" for p in http.get("/sim/truth").json()["parts"])
+    finally:
+        stop_served(served)
+
+
+def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path) -> None:
+    unreachable = [{"x_mm": 640.0, "y_mm": 40.0, "angle_deg": 30.0},
+                   {"x_mm": 640.0, "y_mm": -50.0, "angle_deg": -100.0}]  # beyond the envelope's x = 615 mm
+    served = serve(tmp_path, production_config(tmp_path, count=1, scene={"unreachable": unreachable}))
+    try:
+        http = served.client(timeout_s=60)
+        teach_recipe(http)
+        first = http.post("/production/start", json={"recipe_id": 1}).json()["run_id"]
+        end = wait_ended(http)  # the taught part is placed, then only the unreachable ones are left
+        assert end["ended_because"] == "none_pickable" and end["state"] == "complete", end
+        c = end["counters"]
+        assert c["placed"] == 1 and c["unreachable"] == 2 and c["empty_area"] == 0, c
+        assert end["totals"]["placed"] == 1
+        last = http.get(f"/production/runs/{first}/cycles").json()[-1]
+        assert last["result"] == "none_pickable", last
+        assert "2 not pickable" in last["detail"] and "envelope" in last["detail"], last
+        states = [p["state"] for p in http.get("/sim/truth").json()["parts"]]
+        assert states == ["placed", "in_area", "in_area"]
+    finally:
+        stop_served(served)

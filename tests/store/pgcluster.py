@@ -71,15 +71,31 @@ class PostgresCluster:
         last = ""
         for _ in range(3):  # the port may be taken between choosing and binding
             self.port = _free_port()
-            opts = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sock} "
-                    "-c fsync=off -c synchronous_commit=off -c full_page_writes=off -c max_connections=60")
-            r = self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
-                          "-o", opts, "start", timeout_s=90)
+            r = self._pg_ctl_start()
             if r.returncode == 0:
                 self._wait_ready()
                 return
             last = (self.log.read_text()[-2000:] if self.log.exists() else "") + r.stderr
         raise RuntimeError(f"pg_ctl start failed: {last.strip()}")
+
+    def _pg_ctl_start(self) -> subprocess.CompletedProcess[str]:
+        opts = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sock} "
+                "-c fsync=off -c synchronous_commit=off -c full_page_writes=off -c max_connections=60")
+        return self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
+                         "-o", opts, "start", timeout_s=90)
+
+    def pause(self) -> None:
+        """Shut the server down, keeping its data (an outage of the plant's database)."""
+        r = self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "fast", "-w", "stop")
+        if r.returncode != 0:
+            raise RuntimeError(f"pg_ctl stop failed: {r.stderr.strip()}")
+
+    def resume(self) -> None:
+        """Start the paused server again on the same port."""
+        r = self._pg_ctl_start()
+        if r.returncode != 0:
+            raise RuntimeError(f"pg_ctl start failed: {r.stderr.strip()}")
+        self._wait_ready()
 
     def _wait_ready(self, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s

@@ -10,9 +10,10 @@ import pytest
 
 from cellctl.cli import main
 from cellctl.config import load_config
-from cellctl.store import CorruptRecord, Store, StoreDamaged, StoreError, open_store
+from cellctl.store import CorruptRecord, Store, StoreDamaged, StoreError, StoreUnavailable, open_store
 from cellctl.store.integrity import quick_check
 from tests.store.helpers import damage_table, populate, snapshot
+from tests.store.pgcluster import PostgresCluster
 
 RESTORE = "cellctl store restore --config"
 
@@ -84,12 +85,15 @@ def _config(tmp: Path) -> Path:
     return cfg
 
 
-def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("damaged", ["calibrations", "robot_latches"])
+def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         damaged: str) -> None:
     cfg = _config(tmp_path)
     db = tmp_path / "data" / "line1.db"
     with open_store(load_config(cfg)) as s:
         populate(s)
         before = snapshot(s)
+        s.set_latch("ur0", "operator", "Stop", 1_796_000_000.0)  # live state, not in the backup
     assert main(["store", "backup", "--config", str(cfg)]) == 0
     assert main(["store", "backup", "--config", str(cfg), "--format", "json"]) == 0
     capsys.readouterr()
@@ -100,19 +104,28 @@ def test_cli_backs_up_lists_and_restores_a_damaged_store(tmp_path: Path, capsys:
     newest = listed["backups"][0]["file"]
     assert newest.endswith(".json") and Path(newest).name.startswith("line1-")
 
-    damage_table(db, "calibrations")
+    damage_table(db, damaged)
     assert main(["store", "info", "--config", str(cfg)]) == 2
     assert "is damaged (database disk image is malformed); stop cellctl" in capsys.readouterr().err
     assert main(["store", "restore", "--config", str(cfg), "--latest"]) == 2
     assert "with --force it is renamed line1.db.damaged-" in capsys.readouterr().err
     assert main(["store", "restore", "--config", str(cfg), "--latest", "--force"]) == 0
-    out = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr()
+    out = json.loads(printed.out)
     assert out["from"] == newest and Path(out["damaged_store_set_aside"]).name.startswith("line1.db.damaged-")
     assert Path(out["damaged_store_set_aside"]).exists() and quick_check(db) is None
     with open_store(load_config(cfg)) as s:
         after = snapshot(s)
+        latches = s.latches()
     assert after["records"] == before["records"] and after["recipes"] == before["recipes"]
-    assert after["audit"][0].action == "store.restore"
+    if damaged == "calibrations":  # the latch table could be read: the robot stays latched
+        assert out["latches_carried_over"] == ["ur0"]
+        assert [(x.robot_id, x.latched_by, x.reason) for x in latches] == [("ur0", "operator", "Stop")]
+        assert [e.action for e in after["audit"][:2]] == ["robot.latch", "store.restore"]
+    else:  # it could not: said so, loudly
+        assert out["latches_carried_over"] is None and latches == []
+        assert "Stop latches stored in" in printed.err and "check every robot" in printed.err
+        assert after["audit"][0].action == "store.restore"
 
 
 def test_restore_latest_without_backups_says_where_it_looked(tmp_path: Path,
@@ -121,3 +134,29 @@ def test_restore_latest_without_backups_says_where_it_looked(tmp_path: Path,
     assert main(["store", "restore", "--config", str(cfg), "--latest"]) == 2
     err = capsys.readouterr().err
     assert f"no backups of cell 'line1' in {tmp_path / 'bk'}; give the backup file with --from FILE" in err
+
+
+def test_an_unreachable_database_is_unavailable_until_it_is_back(postgres: PostgresCluster,
+                                                                 postgres_url: str, cell_id: str) -> None:
+    with Store(postgres_url, cell_id) as s:
+        populate(s)
+        postgres.pause()
+        try:
+            with pytest.raises(StoreUnavailable, match="is unreachable .*check that the database server runs") as err:
+                s.list_recipes()
+            assert not isinstance(err.value, StoreDamaged)
+            assert s.problem is not None and "is unreachable" in s.problem
+        finally:
+            postgres.resume()
+        assert [r.recipe_id for r in s.list_recipes()] == [2, 7]
+        assert s.problem is None  # an outage that passed is no longer reported
+
+
+def test_a_file_that_cannot_be_opened_is_not_called_damaged(tmp_path: Path) -> None:
+    """Restoring a backup would not help a store that cannot be opened: it is unavailable, not damaged."""
+    (tmp_path / "store.db").mkdir()  # what SQLite meets where a file should be: cannot open
+    with pytest.raises(StoreUnavailable, match=r"store.db cannot be read to check it \(") as err:
+        quick_check(tmp_path / "store.db")
+    assert not isinstance(err.value, StoreDamaged)
+    (tmp_path / "junk.db").write_bytes(b"not a database" * 400)
+    assert quick_check(tmp_path / "junk.db") == "file is not a database"

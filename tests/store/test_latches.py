@@ -6,8 +6,10 @@ import math
 
 import pytest
 
+from cellctl.latches import LatchKeeper
 from cellctl.store import InvalidInput, Store
 from cellctl.store.latches import AUDIT_ACTION, StoredLatch
+from drivers.motion import MotionOwner
 
 
 def test_a_latch_is_stored_with_its_audit_entry_and_read_back_after_reopening(store: Store, store_url: str,
@@ -62,3 +64,22 @@ def test_bad_latch_input_is_refused_and_nothing_is_stored(store: Store, robot_id
         store.set_latch(robot_id, who, "Stop", since_s)
     assert store.latches() == []
     assert store.audit_log(10, action=AUDIT_ACTION) == []
+
+
+def test_the_service_keeper_carries_a_latch_over_a_restart_on_this_backend(store: Store, store_url: str,
+                                                                           cell_id: str) -> None:
+    """What the service does at start and on a Stop, on SQLite and on PostgreSQL."""
+    owner = MotionOwner("robot0")
+    keeper = LatchKeeper(store, {"robot0": owner})
+    keeper.restore()
+    keeper.start()
+    owner.latch("operator-1", "Stop")
+    assert keeper.wait_stored_blocking(10.0)
+    keeper.close()
+    with Store(store_url, cell_id) as again:
+        fresh = MotionOwner("robot0")  # the restarted service's robot: nothing in memory
+        after = LatchKeeper(again, {"robot0": fresh})
+        assert after.restore() == ["robot0"]
+        after.close()
+        assert fresh.status()["latched_by"] == "operator-1"
+        assert again.audit_log(1, action=AUDIT_ACTION)[0].result.startswith("latched at start: ")

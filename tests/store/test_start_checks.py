@@ -61,7 +61,7 @@ def test_a_store_gone_after_a_start_refuses_the_start(tmp_path: Path, data_dir: 
     db = tmp_path / "store" / "line1.db"
     with open_store(cfg) as s:
         populate(s)
-    check_store_at_start(cfg)
+    audit = check_store_at_start(cfg)["counts"]["audit"]
     size = db.stat().st_size
     for side in ("-wal", "-shm"):
         db.with_name(db.name + side).unlink(missing_ok=True)
@@ -79,9 +79,10 @@ def test_a_store_gone_after_a_start_refuses_the_start(tmp_path: Path, data_dir: 
         check_store_at_start(cfg)
     msg = str(err.value)
     assert msg.startswith("refusing to start: ") and found.replace("\\", "") in msg
-    assert f"{size} bytes, 3 calibrations, 4 activations, 3 recipes" in msg  # what it was at the last start
+    # what the store was at the last start
+    assert f"{size} bytes, 3 calibrations, 4 activations, 3 recipe versions, {audit} audit entries;" in msg
     assert f"cellctl store restore --config {cfg.source} --latest --force" in msg
-    assert "cellctl serve --new-store" in msg and f"delete {marker_path(cfg)}" in msg
+    assert f"cellctl serve --config {cfg.source} --new-store" in msg and f"delete {marker_path(cfg)}" in msg
     # Refusing changed nothing: still refused, and no store was created in the missing one's place.
     with pytest.raises(StoreStartRefused):
         check_store_at_start(cfg)
@@ -145,3 +146,21 @@ def test_an_older_world_readable_store_is_made_private(tmp_path: Path, umask_022
     with Store(f"sqlite:///{db}", "c") as s:
         s.list_recipes()
     assert {f.name: mode(f) for f in tmp_path.iterdir()} == {f.name: 0o600 for f in tmp_path.iterdir()}
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="what root creates for the service's user: needs root")
+def test_root_creates_the_store_for_the_owner_of_its_folder(tmp_path: Path) -> None:
+    """``sudo cellctl store restore`` into the service's folder leaves a store the service can open."""
+    import pwd
+
+    nobody = pwd.getpwnam("nobody")
+    folder = tmp_path / "var-lib-cellctl"
+    folder.mkdir()
+    os.chown(folder, nobody.pw_uid, nobody.pw_gid)
+    db = folder / "store" / "line1.db"
+    with Store(f"sqlite:///{db}", "c") as s:
+        populate(s)
+        backup(s, folder / "b.db")
+        made = (db.parent, db, db.with_name("line1.db-wal"), db.with_name("line1.db-shm"), folder / "b.db")
+        owners = {p.name: (os.stat(p).st_uid, os.stat(p).st_gid) for p in made}
+    assert set(owners.values()) == {(nobody.pw_uid, nobody.pw_gid)}, owners

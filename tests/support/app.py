@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 from fastapi.testclient import TestClient
 
 from cellctl.api.app import create_app
@@ -31,6 +32,12 @@ class AppCell:
     def auth(self, token: str | None = None) -> dict[str, str]:
         """The Authorization header for ``token`` (default: the engineer token)."""
         return {"Authorization": f"Bearer {token or self.token}"}
+
+    def http(self, token: str | None = None) -> httpx.Client:
+        """A client that sends ``token`` (default: the engineer's) with every request, like
+        ``Served.client``; it shares the app's running lifespan with ``client``."""
+        return httpx.Client(transport=self.client._transport, base_url=self.client.base_url,
+                            headers=self.auth(token))
 
 
 @contextmanager

@@ -3,7 +3,9 @@
 - ``model``: ``teach(image, roi)`` -> ``ShapeModel`` (edge points per pyramid level).
 - ``responses``: quantized orientation response maps and the discrete pose search on them.
 - ``search``: ``find(model, image, SearchParams)`` -> ``FindResult``, coarse to fine.
-- ``refine``: least-squares sub-pixel refinement (similarity, then plane homography).
+- ``refine``: least-squares sub-pixel refinement (similarity, then plane homography), with the
+  pose's 1-sigma from the fit.
+- ``verify``: the checks a refined match must pass before it is answered (scores per match).
 - ``kernels``: the compiled inner loops (numba); ``warm_up()`` loads them before a timed search.
 """
 

@@ -188,31 +188,35 @@ _WARM = threading.Event()
 _WARM_LOCK = threading.Lock()
 
 
-def warm_up() -> None:
+def warm_up(image_size: tuple[int, int] | None = None) -> None:
     """Load (or compile) every kernel now, on tiny inputs, once per process: the first search then
     costs what the next ones cost. Loading the compiled code from numba's disk cache takes ~1 s;
     compiling it on a cold cache ~20 s. Thread-safe: a second caller waits for the first; later
     calls return at once. ``search.find`` calls it before its clock starts, so a search's
-    ``timeout_s`` never pays for it."""
+    ``timeout_s`` never pays for it. ``image_size`` ``(width, height)``: the images the searches
+    will see (default 320x240); the warm-up's own small search runs on one that size, so the
+    process's memory for such images is in place before the first timed search."""
     if _WARM.is_set():
         return
     with _WARM_LOCK:
         if not _WARM.is_set():
             _load_all()
             _WARM.set()  # before the search below, which calls warm_up() itself
-            _first_search()
+            _first_search(image_size or (320, 240))
 
 
-def _first_search() -> None:
+def _first_search(image_size: tuple[int, int]) -> None:
     """One small real search (teach a drawn part, find it turned): loads whatever compiled loop a
     search reaches that ``_load_all`` does not name, and pays the first call's one-off costs on the
-    rest of the path (refinement, verification), so the next search costs what the hundredth does."""
+    rest of the path (refinement, verification; first touches of image-sized buffers), so the next
+    search costs what the hundredth does."""
     import cv2
 
     from vision.shape.model import teach
     from vision.shape.search import find
 
-    img = np.full((240, 320), 60, np.uint8)
+    w, h = max(int(image_size[0]), 320), max(int(image_size[1]), 240)
+    img = np.full((h, w), 60, np.uint8)
     part = np.array([[110, 70], [210, 70], [210, 110], [160, 110], [160, 170], [110, 170]], np.int32)
     cv2.fillPoly(img, [part], 190)
     cv2.circle(img, (135, 95), 10, 60, -1)
@@ -220,7 +224,7 @@ def _first_search() -> None:
     model = teach(img, (90.0, 50.0, 140.0, 140.0))
     M = cv2.getRotationMatrix2D((160.0, 120.0), 25.0, 1.0)
     M[:, 2] += (7.3, -4.6)
-    find(model, cv2.warpAffine(img, M, (320, 240), borderValue=60))
+    find(model, cv2.warpAffine(img, M, (w, h), borderValue=60))
 
 
 def _load_all() -> None:

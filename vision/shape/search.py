@@ -12,6 +12,10 @@
    on each finer level +-1; on the last discrete level a second pass on unspread responses settles
    the +-1 px plateaus.
 3. **Least-squares refinement** (``refine.refine_lsq``) on level 1, then level 0.
+4. **Verification** (``verify.verify``, in the final suppression ``_verified``): a second look at each
+   refined pose (coverage of the model's features, contrast polarity along its chains, contrast over
+   the image's noise, a feature missing where nothing hides it, edges already claimed by a better
+   match); a candidate that fails is not answered but listed in ``FindResult.rejected`` with why.
 
 The score (``score.direction_score``, HALCON's metric in our words) is the edge-direction
 agreement at the final pose averaged over the model points that lie inside the image: each point
@@ -315,7 +319,8 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         best = Candidate(r.pose.x, r.pose.y, wrap_deg(math.degrees(r.pose.theta)), r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
-            why = verify(lm, r.q, r.detail, r.grad_noise, max(r.score, MIN_SCORE_FLOOR), r.score).rejected_because
+            lower = max(math.floor(r.score * 100) / 100, MIN_SCORE_FLOOR)  # the hint's min_score
+            why = verify(lm, r.q, r.detail, r.grad_noise, lower, r.score).rejected_because
             best.verdict = why or "pass"
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()

@@ -15,7 +15,8 @@ image, not a number fitted to a data set:
   the part, not bunched on one edge.
 - ``polarity``: of neighbouring seen points along a feature, the share whose contrast has the same
   sign. A part's contrast changes sign only where its background does (a few places); texture's
-  flips at random (0.5). A match needs more than ``POLARITY_MIN`` (the midpoint).
+  flips at random (0.5). A match needs more than chance by three standard deviations of a coin's
+  share over its pairs (``0.5 + 1.5 / sqrt(pairs)``), and never more than ``POLARITY_MIN``.
 - ``contrast``: the median gradient of the seen edges over what the image's noise reaches around
   the part (``score.grad_noise``, 4 deviations). A match needs at least 1.
 - ``missing``: a feature of at least ``MISSING_MIN_FRACTION`` of the model's points, less than a
@@ -42,8 +43,9 @@ from vision.shape.model import CHAIN_MAX_TURN_DEG, LevelModel
 from vision.shape.score import SCORE_MAX_ANGLE_DEG, PointDetail
 
 POLARITY_MIN = 0.75
-"""Least share of neighbouring seen points with the same contrast sign: halfway between a part's
-(1 but for a few background changes) and texture's (0.5)."""
+"""The most a match's polarity coherence is asked: halfway between a part's (1 but for a few
+background changes) and texture's (0.5); with many pairs the test against chance asks less (a
+specular part on wood flips more than a machined one on a table)."""
 MISSING_MIN_FRACTION = 0.05
 """A feature smaller than this share of the model's points is not judged missing (a glint, a speck
 of texture in the teach image)."""
@@ -118,16 +120,22 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     contrast = float(np.median(detail.gmax[seen])) / max(grad_noise, 1e-9) if seen.any() else 0.0
     scores["contrast"] = round(min(contrast, 999.0), 2)
     maybe = (n_vis_f >= MISSING_MIN_FRACTION * n_pts) & (n_seen_f < MISSING_SEEN_MAX * n_vis_f)
-    missing = _missing(f, q, seen, vis, detail.gmax, grad_noise, np.flatnonzero(maybe)) if maybe.any() else []
+    # the region seen: the hull of the features at least half seen (a stray agreement in clutter beyond
+    # an occluder's edge does not stretch it over the hidden part)
+    seen_region = seen & half_seen[f.labels]
+    missing = (_missing(f, q, seen, seen_region, vis, detail.gmax, grad_noise, np.flatnonzero(maybe))
+               if maybe.any() else [])
     scores["missing_features"] = float(len(missing))
     if score < min_score:
         return Verdict(scores, f"score {score:.2f} < min_score {min_score:g}")
     if coverage < min_score:
         return Verdict(scores, f"its seen edges bunch on a part of the contour: coverage {coverage:.2f} "
                                f"< min_score {min_score:g}")
-    if polarity <= POLARITY_MIN:
+    pol_min = min(POLARITY_MIN, 0.5 + 1.5 / math.sqrt(max(n_pairs, 1)))
+    if polarity <= pol_min:
         return Verdict(scores, f"the contrast along its edges flips at random (coherence {polarity:.2f} <= "
-                               f"{POLARITY_MIN:g}): texture or pieces of other parts, not one part")
+                               f"{pol_min:.2f} over {n_pairs} neighbours): texture or pieces of other parts, "
+                               "not one part")
     if contrast < 1.0:
         return Verdict(scores, f"its edges are not above the image's noise (contrast {contrast:.2f} < 1)")
     if missing:
@@ -137,13 +145,13 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     return Verdict(scores, None)
 
 
-def _missing(f: Features, q: F64, seen: NDArray[np.bool_], vis: NDArray[np.bool_], gmax: F64,
-             grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
+def _missing(f: Features, q: F64, seen: NDArray[np.bool_], region: NDArray[np.bool_], vis: NDArray[np.bool_],
+             gmax: F64, grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
     """Centres (image px) of the features ``ks`` (large, mostly unseen) that are absent where nothing
-    could hide them."""
-    if np.count_nonzero(seen) < 3:
+    could hide them: no edge above the noise, inside the hull of the ``region`` points."""
+    if np.count_nonzero(region) < 3:
         return []
-    hull = cv2.convexHull(q[seen].astype(np.float32))
+    hull = cv2.convexHull(q[region].astype(np.float32))
     out = []
     flat = gmax < grad_noise
     for k in ks.tolist():

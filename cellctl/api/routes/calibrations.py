@@ -1,4 +1,4 @@
-"""Calibrations: list, get, activate, roll back, export (OpenCV / ROS / HALCON), report."""
+"""Calibrations: add a file made elsewhere, list, get, activate, roll back, export (OpenCV / ROS / HALCON), report."""
 
 from __future__ import annotations
 
@@ -64,6 +64,41 @@ def _get(services: ServicesDep, cal_id: int) -> Any:
 def list_calibrations(services: ServicesDep, _: Viewer, kind: Kind | None = None, camera_id: str | None = None,
                       robot_id: str | None = None) -> list[dict[str, Any]]:
     return [s.to_dict() for s in services.store.list_calibrations(kind, camera_id, robot_id)]
+
+
+@router.post("", status_code=201, responses={
+    422: {"description": "invalid_calibration: a value of the file is wrong (the message names it); "
+                         "not_a_calibration: the file is of another kind (the message names what it looks like and "
+                         "what to give); unknown_device: no such camera_id/robot_id in the config"}},
+    openapi_extra={"requestBody": {"required": True, "content": {"application/json": {"schema": {
+        "type": "object", "description": "a calibration file as the CLI writes it: cam.json (calib intrinsics, "
+                                         "calib import, calib dlt), he.json (calib handeye, --dof 4 too) or "
+                                         "np.json (calib npoint)"}}}}})
+def add_calibration(services: ServicesDep, who: Engineer,
+                    data: Annotated[Any, Body(description="the calibration file's JSON, as written")],
+                    kind: Annotated[Kind | None, Query(description="camera, handeye or npoint (default: "
+                                                                   "recognised from the file's keys)")] = None,
+                    camera_id: Annotated[str | None, Query(max_length=64, description="the camera it belongs to "
+                                                           "(default: the config's calibration.camera)")] = None,
+                    robot_id: Annotated[str | None, Query(max_length=64, description="hand-eye and n-point: the "
+                                                          "robot (default: calibration.robot); not for a camera "
+                                                          "calibration")] = None,
+                    note: Annotated[str, Query(max_length=500, description="stored with the version")] = ""
+                    ) -> dict[str, Any]:
+    """Store a calibration made elsewhere as a new version (engineer); it is never activated here.
+
+    The file is checked as the service would use it (kind, schema, finite numbers, sane sizes);
+    the answer is the stored version's summary with the file's verdict (``verdict_ok``: null when
+    the file has none) and ``activated: false``. Activate it with ``POST /calibrations/{id}/activate``.
+    """
+    from cellctl.calibration_file import CalibrationFileError
+    from cellctl.calibration_file import add_calibration as add
+
+    try:
+        return add(services.store, services.config, data, who.name, kind, camera_id, robot_id, note,
+                   source="the body")
+    except CalibrationFileError as exc:
+        raise ApiError(422, exc.code, str(exc)) from None
 
 
 @router.get("/{cal_id}")

@@ -10,12 +10,15 @@ from fastapi.responses import Response
 
 from cellctl.api.deps import CellDep, Viewer, device_call, slot_or_404
 from cellctl.api.errors import ApiError
+from cellctl.warmup import READY_WAIT_S, RENDERER, Startup
 from drivers.base import Camera, Frame
 
 router = APIRouter(prefix="/cameras", tags=["cameras"])
 
 CAMERA_TIMEOUT_S = 5.0
-"""A frame may take a while (exposure, a first virtual render); past this the camera is unavailable."""
+"""A frame may take a while (exposure, a virtual render); past this the camera is unavailable. The
+clock starts after the service's own start-up work for cameras (``cellctl.warmup``): compiling the
+renderer is never counted as the camera's time."""
 
 
 def _slot(cell: CellDep, camera_id: str) -> Any:
@@ -46,6 +49,11 @@ async def camera_image(
     def grab(cam: Camera) -> Frame:
         return cam.grab(timeout_s=2.5)
 
+    startup: Startup = request.app.state.startup
+    if not await startup.wait_async(RENDERER, READY_WAIT_S):  # held, not refused: a first grab after start works
+        waiting = ", ".join(startup.waiting_for())
+        raise ApiError(503, "starting", f"the service is still starting (waiting for {waiting} after "
+                                        f"{READY_WAIT_S:.0f} s); try again shortly")
     frame: Frame = await device_call(slot, grab, timeout_s=CAMERA_TIMEOUT_S)
     ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", frame.pixels)
     if not ok:

@@ -92,7 +92,7 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
         # Strict in JSON terms: a number is a JSON number (not true or "0.4"); JSON integers are fine floats.
         module.Params.model_validate_json(json.dumps(params or {}), strict=True)
     except ValidationError as exc:
-        msg = format_validation_errors(exc, with_input=False)
+        msg = format_validation_errors(exc, with_input=False, model=module.Params)
         raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
     motion = None
     robot_id = (params or {}).get("robot_id") or services.config.calibration.robot

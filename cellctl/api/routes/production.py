@@ -14,6 +14,7 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
+from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Engineer, Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
@@ -23,27 +24,28 @@ from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning, manager_for
 from cellctl.production.records import to_csv
 from cellctl.store import NotFound
+from cellctl.strict_types import Bool, Count
 
-router = APIRouter(prefix="/production", tags=["production"])
+router = APIRouter(prefix="/production", tags=["production"], route_class=EdgeRoute)
 
 
 class StartInput(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    recipe_id: int = Field(ge=0, le=65535, description="the recipe to run (it needs a place section and a "
+    recipe_id: Count = Field(ge=0, le=65535, description="the recipe to run (it needs a place section and a "
                                                        "gripper device)")
-    count: int = Field(0, ge=0, le=1_000_000, description="parts to place; 0: until the area is empty")
+    count: Count = Field(0, ge=0, le=1_000_000, description="parts to place; 0: until the area is empty")
     robot_id: str | None = Field(None, max_length=128, description="default: the recipe's, else "
                                                                    "calibration.robot")
     camera_id: str | None = Field(None, max_length=128, description="default: the recipe's, else "
                                                                     "calibration.camera")
-    overlap: bool = Field(True, description="with a fixed camera, take and search the next picture while the "
+    overlap: Bool = Field(True, description="with a fixed camera, take and search the next picture while the "
                                             "robot places (false: after it is back, for comparison)")
 
 
 class SlotInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    recipe_id: int = Field(ge=0, le=65535)
-    next_slot: int = Field(ge=0, le=1_000_000, description="the next free slot (0-based) of the recipe's place "
+    recipe_id: Count = Field(ge=0, le=65535)
+    next_slot: Count = Field(ge=0, le=1_000_000, description="the next free slot (0-based) of the recipe's place "
                                                           "pattern")
 
 
@@ -117,7 +119,7 @@ def stop(services: ServicesDep, who: Operator, robot_id: str | None = None) -> d
 
 
 @router.get("/runs/{run_id}/cycles", responses={404: {}}, response_model=None)
-def cycles(run_id: Annotated[int, Path(ge=1)], services: ServicesDep, _: Viewer,
+def cycles(run_id: Annotated[int, Path(ge=1, le=2**62)], services: ServicesDep, _: Viewer,
            format: Annotated[Literal["json", "csv"], Query(description="json (default) or csv")] = "json",
            ) -> Response | list[dict[str, Any]]:
     """The run's cycle records, oldest first (``?format=csv``: the same as CSV)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter
@@ -16,9 +17,11 @@ from cellctl.api.pools import run_blocking
 from cellctl.motion import audited_move
 from cellctl.numbers import pose_ur_problem, transform_problem
 from cellctl.robot_state import state_to_json
+from cellctl.store.errors import StoreUnavailable
 from cellctl.strict_types import Num
 from drivers.base import DeviceUnavailable, MotionSession, Robot, RobotBase, RobotState
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/robots", tags=["robots"], route_class=EdgeRoute)
 
 MAX_STATE_AGE_S = 1.0
@@ -72,8 +75,12 @@ def _slot(cell: CellDep, robot_id: str) -> Any:
 
 
 @router.get("")
-def list_robots(cell: CellDep, _: Viewer) -> list[dict[str, Any]]:
-    return [{**slot.status(), "motion": slot.device.motion.status()} for slot in cell.robots.values()]
+def list_robots(cell: CellDep, services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
+    """Each robot's status, motion owner and latch, and its named poses (``poses``: name → UR pose, m/rad)."""
+    robots = services.config.robots
+    return [{**slot.status(), "motion": slot.device.motion.status(),
+             "poses": {k: list(v) for k, v in (robots[rid].poses if rid in robots else {}).items()}}
+            for rid, slot in cell.robots.items()]
 
 
 @router.get("/{robot_id}/state", response_model=RobotStatePublic, responses={503: {}})
@@ -94,12 +101,15 @@ async def robot_state(robot_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]
 
 
 class MoveInput(BaseModel):
-    """A linear move of the tool to ``T_base_tool`` (4x4, m) or to a UR pose (m, rad); speed in m/s."""
+    """A linear move of the tool to ``T_base_tool`` (4x4, m), to a UR pose (m, rad) or to a pose named
+    in the config (``robots.<id>.poses``); speed in m/s. Give exactly one of the three."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     T_base_tool: list[Annotated[list[Annotated[Num, Field(ge=-1e3, le=1e3)]], Field(max_length=4)]] | None = Field(
         None, max_length=4)
     pose_ur: PoseURInput | None = None
+    named_pose: str | None = Field(None, max_length=40, description="a pose named in the config's robots.<id>.poses "
+                                                                    "(GET /robots lists them), e.g. home")
     speed_m_s: Num = Field(0.05, gt=0, le=5.0)
 
     @field_validator("pose_ur")
@@ -126,10 +136,15 @@ async def move(robot_id: str, body: MoveInput, cell: CellDep, services: Services
     """Move the tool (engineer). 409 ``robot_busy`` while another motion owns the robot, 409
     ``robot_stopped`` while it is latched by a Stop, or when a Stop halted this move."""
     slot = _slot(cell, robot_id)
-    if (body.T_base_tool is None) == (body.pose_ur is None):
-        raise ApiError(422, "invalid_request", "give exactly one of T_base_tool (4x4, m) or pose_ur (m, rad)")
+    given = [k for k in ("T_base_tool", "pose_ur", "named_pose") if getattr(body, k) is not None]
+    if len(given) != 1:
+        raise ApiError(422, "invalid_request", "give exactly one of T_base_tool (4x4, m), pose_ur (m, rad) or "
+                                               "named_pose (a name from the config's robots.<id>.poses)"
+                                               + (f"; got {' and '.join(given)}" if given else ""))
     try:
-        if body.pose_ur is not None:
+        if body.named_pose is not None:
+            T = g.ur_pose_to_transform(list(_named_pose(services, robot_id, body.named_pose)))
+        elif body.pose_ur is not None:
             p = body.pose_ur
             T = g.ur_pose_to_transform([p.x_m, p.y_m, p.z_m, p.rx_rad, p.ry_rad, p.rz_rad])
         elif body.T_base_tool is not None:
@@ -137,14 +152,25 @@ async def move(robot_id: str, body: MoveInput, cell: CellDep, services: Services
     except g.PoseError as exc:
         raise ApiError(422, "invalid_pose", str(exc)) from None
 
+    what = "POST /robots/move" + (f" named_pose {body.named_pose}" if body.named_pose is not None else "")
+
     def go(robot: RobotBase) -> RobotState:
-        audited_move(services.store, who.name, robot, T, body.speed_m_s, "POST /robots/move")
+        audited_move(services.store, who.name, robot, T, body.speed_m_s, what)
         return robot.state()
 
     deadline_s = await device_call(slot, lambda robot: robot.move_deadline_s(T, body.speed_m_s))
     # The robot's own deadline stops a late move; the request waits a little longer for that answer.
     state: RobotState = await device_call(slot, go, timeout_s=min(deadline_s, MOVE_TIMEOUT_S) + 5.0)
     return state_to_json(robot_id, state)
+
+
+def _named_pose(services: ServicesDep, robot_id: str, name: str) -> tuple[float, ...]:
+    robot = services.config.robots.get(robot_id)
+    poses = robot.poses if robot is not None else {}
+    if name not in poses:
+        known = ", ".join(sorted(poses)) or "none (add them under robots.<id>.poses in cell.yaml)"
+        raise ApiError(422, "unknown_pose", f"robot {robot_id} has no pose named {name!r}; named poses: {known}")
+    return tuple(poses[name])
 
 
 @router.post("/{robot_id}/stop")
@@ -160,13 +186,27 @@ async def stop(robot_id: str, cell: CellDep, services: ServicesDep, who: Operato
     try:
         await device_call(slot, lambda r: r.halt())
     except Exception as exc:
-        await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)},
-                           f"latched; halting failed: {exc}")
-        raise
-    # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
-    await run_blocking(services.store.audit, who.name, "robot.stop", robot_id, {"aborted": _what(aborted)}, "ok")
+        await _latch_stored(services)
+        await _audit_stop(services, who.name, robot_id, aborted, f"latched; halting failed: {exc}")
+        raise  # the device's error, never one of the store's
+    # The latch's own write first: an audit entry written meanwhile would wait for the store's lock
+    # (SQLite backs off in steps of milliseconds: ~30 ms added to a Stop's answer).
+    stored = await _latch_stored(services)
+    audited = await _audit_stop(services, who.name, robot_id, aborted, "ok")
     return {"robot_id": robot_id, "stopped": True, "aborted": _what(aborted), **robot.motion.status(),
-            "latch_stored": await _latch_stored(services)}
+            "latch_stored": stored, "audit_stored": audited}
+
+
+async def _audit_stop(services: ServicesDep, who: str, robot_id: str, aborted: Any, result: str) -> bool:
+    """Audit a Stop; False when the store cannot take it. The robot has stopped either way: a store
+    that is down must not turn the Stop's answer into an error (the log keeps the record)."""
+    try:
+        # The store is written in the safety pool (cellctl.api.pools), never on the event loop.
+        await run_blocking(services.store.audit, who, "robot.stop", robot_id, {"aborted": _what(aborted)}, result)
+        return True
+    except StoreUnavailable as exc:
+        log.error("robot %s stopped by %s (%s); its audit entry was not stored: %s", robot_id, who, result, exc)
+        return False
 
 
 @router.post("/{robot_id}/resume")
@@ -174,13 +214,14 @@ async def resume(robot_id: str, cell: CellDep, services: ServicesDep, who: Engin
     """Clear the Stop latch (engineer): the robot may be moved again."""
     robot: Robot = _slot(cell, robot_id).device
 
-    def clear() -> bool:
+    def clear() -> tuple[bool, bool]:
         was = robot.resume(who.name)
+        # As for Stop: the latch's write first, then the audit entry (no wait for the store's lock).
+        stored = services.latches is not None and services.latches.wait_stored_blocking(LATCH_STORE_WAIT_S)
         services.store.audit(who.name, "robot.resume", robot_id, {"was_latched": was}, "ok")
-        return was
+        return was, stored
 
-    was = await run_blocking(clear)  # the safety pool: a flood that fills the default pool cannot delay it
-    stored = await _latch_stored(services)
+    was, stored = await run_blocking(clear)  # the safety pool: a flood that fills the default pool cannot delay it
     return {"robot_id": robot_id, "resumed": was, **robot.motion.status(), "latch_stored": stored}
 
 

@@ -12,8 +12,10 @@ It speaks the controller's side of three protocols on one host, one module each:
 The simulated arm (``arm.py``) is a UR5e (its published DH parameters): ``moveL`` moves the TCP
 in a straight line at the commanded speed (m/s), ``moveJ`` moves the joints at the commanded
 speed (rad/s), ``stopL``/``stopJ`` stop, a protective stop (``triggerProtectiveStop``) halts it
-until the dashboard's ``unlock protective stop``. Standard digital outputs are wired back to the
-standard digital inputs (output *i* drives input *i*), so IO can be tested through the real protocol.
+until the dashboard's ``unlock protective stop``, and ``setWatchdog`` arms the control script's
+RTDE watchdog: input updates that stop for 1/f s stop the program and the arm (``script.py``).
+Standard digital outputs are wired back to the standard digital inputs (output *i* drives input
+*i*), so IO can be tested through the real protocol.
 
 We write our own here because no UR simulator runs without Docker (URSim); the protocol details
 follow ``ur_rtde``'s sources (``rtde.cpp``, ``rtde_control_interface.cpp``, ``dashboard_client.cpp``).

@@ -69,6 +69,8 @@ class ControlScript:
     """The armed watchdog's minimum input frequency (Hz); 0: none armed."""
     watchdog_silent_s: float = 0.0
     """Controller time since the watched input was last updated (s)."""
+    watchdog_fed_s: float = 0.0
+    """When it was last updated (``time.monotonic``), for the report."""
     watchdog_trips: int = 0
     """Programs the watchdog has stopped (since the emulator started)."""
     stop_reason: str = ""
@@ -102,6 +104,7 @@ class ControlScript:
         """An RTDE input package with ``names`` arrived: it feeds the watchdog if it carries its variable."""
         if WATCHDOG_VARIABLE in names:
             self.watchdog_silent_s = 0.0
+            self.watchdog_fed_s = time.monotonic()
 
     def _check_watchdog(self, arm: Arm, now: float) -> None:
         last, self.last_tick_s = self.last_tick_s, now
@@ -112,8 +115,9 @@ class ControlScript:
         if self.watchdog_silent_s > period_s:
             moving = arm.motion is not None
             self.watchdog_trips += 1
-            log.warning("RTDE watchdog: %s not updated for %.3f s (minimum %g Hz): program stopped%s",
-                        WATCHDOG_VARIABLE, self.watchdog_silent_s, self.watchdog_hz,
+            log.warning("RTDE watchdog: %s not updated for %.3f s (%.3f s on the host clock; minimum %g Hz): "
+                        "program stopped%s", WATCHDOG_VARIABLE, self.watchdog_silent_s,
+                        time.monotonic() - self.watchdog_fed_s, self.watchdog_hz,
                         ", the arm halted mid-move" if moving else "")
             self.stop(arm, f"RTDE watchdog: {WATCHDOG_VARIABLE} not updated within {period_s:.3f} s")
 

@@ -1,9 +1,9 @@
-"""A served production cell for the tests: the built-in production scene with a scatter of N parts,
-the camera's and the hand-eye's true calibrations stored and active, a part taught, a recipe saved.
+"""A served production cell for the tests and ``bench/production.py``: the built-in production scene
+with a scatter of N parts, the camera's and the hand-eye's true calibrations stored and active, the
+upright part taught from a live frame, a production recipe saved.
 
-The calibrations are the scene's truth (stored and activated as any calibration would be), so the
-tests measure the production run itself; ``test_production_calibration`` calibrates the same cell
-by its own routines.
+The calibrations are the scene's truth (stored and activated as any calibration would be), so what
+is measured is the production run itself.
 """
 
 from __future__ import annotations
@@ -74,12 +74,14 @@ def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> di
     """Move clear of the view, teach the clear part from a live frame, store the production recipe."""
     r = http.post("/robots/robot0/move", json={"pose_ur": dict(zip(("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"),
                                                                  CLEAR_POSE_UR, strict=True)), "speed_m_s": 0.5})
-    assert r.status_code == 200, r.text
+    if r.status_code != 200:
+        raise RuntimeError(f"the move out of the camera's view failed: {r.text}")
     truth = http.get("/sim/truth").json()
     u, v, w, h = truth["parts"][0]["roi_px"]
     roi = [u - 12, v - 12, w + 24, h + 24]
     model = http.post("/pick/teach", json={"roi": roi, "name": "bracket"})
-    assert model.status_code == 200, model.text
+    if model.status_code != 200:
+        raise RuntimeError(f"teaching the part failed: {model.text}")
     recipe: dict[str, Any] = {
         "name": "bracket", "models": [model.json()], "plane_z_mm": 6.0, "grasp_z_mm": 0.0,
         "approach_height_mm": 40.0, "speed_m_s": 0.5, "capture_pose_ur": CLEAR_POSE_UR,
@@ -89,7 +91,8 @@ def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> di
     }
     recipe.update(overrides)
     saved = http.post("/recipes", json={"recipe_id": recipe_id, "recipe": recipe})
-    assert saved.status_code == 201, saved.text
+    if saved.status_code != 201:
+        raise RuntimeError(f"saving the recipe failed: {saved.text}")
     return recipe
 
 

@@ -1,0 +1,202 @@
+"""Start-up work: the compiled loops (numba) that frames, searches and calibrations run on.
+
+Loading them from numba's disk cache takes a second or two per process; compiling them on a cold
+cache takes about a minute of CPU (renderer ~10 s, matcher ~20 s, calibration solver ~20 s on this
+2-core machine, idle). Two users of this module:
+
+- ``cellctl serve`` runs :func:`service_startup`'s tasks on one background thread as soon as its
+  devices are open (numba compiles one function at a time anyway, so the order says what is ready
+  first: the renderer, which the first ``GET /cameras/{id}/image`` needs, then the matcher, then
+  the calibration solver). ``GET /health`` says ``starting`` with what it is ``waiting_for`` until
+  they are done, then ``ok``; the service logs one line with the time it took. Requests are not
+  refused meanwhile: a camera image waits (up to ``READY_WAIT_S``) for its camera's warm-up before
+  the device deadline starts, and a search waits for the matcher's loops before its ``timeout_s``
+  starts (``vision.shape.warm_up``); everything else is served at once.
+- ``cellctl warm-up`` (run by ``deploy/setup.sh``) compiles everything into numba's disk cache, so
+  a fresh clone's first frame, first search and first calibration load instead of compiling.
+
+Where the compiled code is cached: beside each module (``__pycache__/*.nbi``, ``*.nbc``), or in
+``NUMBA_CACHE_DIR`` when it is set (the systemd unit sets ``/var/lib/cellctl/numba-cache``, as
+``/opt`` is read-only to the service). An edited module is compiled again (the cache is keyed by
+the source file).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cellctl.cell import Cell
+from drivers.camera.sim import SimCamera
+
+log = logging.getLogger(__name__)
+
+RENDERER = "renderer kernels"
+MATCHER = "matcher kernels"
+CALIBRATION = "calibration kernels"
+
+READY_WAIT_S = 90.0
+"""How long a request that needs a warm-up (a camera image) waits for it before answering 503
+``starting``; on a warm cache the whole start-up takes 1-3 s, on a cold one up to a minute or two
+under load."""
+
+
+def warm_renderer(cameras: Iterable[SimCamera] = ()) -> None:
+    """Load the renderer's compiled loops; each given (open) simulated camera also inverts its lens."""
+    from calibration.camera_model import CameraModel
+    from drivers.sim.imaging import prepare
+
+    cams = list(cameras)
+    if not cams:
+        prepare(CameraModel("opencv5", 16, 12, np.array([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]])))
+    for cam in cams:
+        cam.warm_up()
+
+
+SEARCH_SIZE = (1280, 960)
+"""Image size (width, height) the matcher's warm-up searches when no simulated camera tells it better."""
+
+
+def warm_matcher(image_size: tuple[int, int] = SEARCH_SIZE) -> None:
+    """Load the shape matcher's compiled loops (once per process), its warm-up search on an image of
+    ``image_size`` (the cameras'), so that the first real search costs what the next ones do."""
+    from vision.shape import warm_up
+
+    warm_up(image_size)
+
+
+_CALIBRATION_WARM = threading.Event()
+_CALIBRATION_LOCK = threading.Lock()
+
+
+def warm_calibration() -> None:
+    """Load the camera calibration solver's compiled loops (once per process): a small synthetic
+    calibration of each lens model (~0.2 s once loaded)."""
+    if _CALIBRATION_WARM.is_set():
+        return
+    with _CALIBRATION_LOCK:
+        if _CALIBRATION_WARM.is_set():
+            return
+        from numba.core.errors import NumbaPerformanceWarning
+
+        from calibration.camera_model import CameraModel
+        from calibration.intrinsics import calibrate
+        from calibration.synthetic import plan_views, synthetic_detections
+        from calibration.targets import Chessboard
+
+        cam = CameraModel("opencv5", 640, 480, np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]))
+        board = Chessboard(9, 6, 25.0)
+        rng = np.random.default_rng(0)
+        dets = synthetic_detections(cam, board, plan_views(cam, board, 6, rng), 0.1, rng)
+        with warnings.catch_warnings():
+            # compiling the Schur step says '@' is faster on contiguous arrays: known, and not the user's to act on
+            warnings.simplefilter("ignore", NumbaPerformanceWarning)
+            for model in ("opencv5", "opencv8", "division"):
+                calibrate(dets, board, model)
+        _CALIBRATION_WARM.set()
+
+
+# -- the service's start-up ---------------------------------------------------------------------------
+
+
+@dataclass
+class _Task:
+    name: str
+    fn: Callable[[], None]
+    done: threading.Event = field(default_factory=threading.Event)
+    seconds: float | None = None
+    error: str | None = None
+
+
+class Startup:
+    """Named start-up tasks run in order on one background thread; what is still pending, and
+    waits for one of them. A task that fails is logged and counted as done (the first use of what
+    it warms then pays the load itself): the service never stays ``starting`` for ever."""
+
+    def __init__(self, tasks: Sequence[tuple[str, Callable[[], None]]], since_s: float | None = None) -> None:
+        """``since_s``: the ``time.monotonic()`` the logged "ready in" counts from (default: now)."""
+        self._tasks = [_Task(name, fn) for name, fn in tasks]
+        self._t0 = time.monotonic() if since_s is None else since_s
+        self.ready_after_s: float | None = None if self._tasks else 0.0
+
+    def start(self) -> None:
+        """Run the tasks on a background thread."""
+        threading.Thread(target=self._run, name="cellctl-warm-up", daemon=True).start()
+
+    def _run(self) -> None:
+        for task in self._tasks:
+            t = time.monotonic()
+            try:
+                task.fn()
+            except Exception as exc:  # noqa: BLE001 - reported; the first use will load what it needs itself
+                task.error = f"{type(exc).__name__}: {exc}"
+                log.warning("start-up: warming the %s failed; their first use loads them", task.name, exc_info=True)
+            task.seconds = time.monotonic() - t
+            if task is self._tasks[-1]:
+                self.ready_after_s = time.monotonic() - self._t0  # before the last event: ready has a time
+            task.done.set()
+        parts = ", ".join(f"{t.name} {t.seconds:.1f} s" + (" (failed)" if t.error else "") for t in self._tasks)
+        log.info("service ready in %.1f s (%s)", self.ready_after_s, parts)
+
+    @property
+    def ready(self) -> bool:
+        return all(t.done.is_set() for t in self._tasks)
+
+    def waiting_for(self) -> list[str]:
+        """The tasks not done yet, in the order they run."""
+        return [t.name for t in self._tasks if not t.done.is_set()]
+
+    def failed(self) -> dict[str, str]:
+        return {t.name: t.error for t in self._tasks if t.error is not None}
+
+    def wait(self, name: str, timeout_s: float) -> bool:
+        """Wait until task ``name`` is done; True at once when there is no such task."""
+        task = next((t for t in self._tasks if t.name == name), None)
+        return task is None or task.done.wait(timeout_s)
+
+    async def wait_async(self, name: str, timeout_s: float = READY_WAIT_S) -> bool:
+        """:meth:`wait` without blocking the event loop (polls every 50 ms)."""
+        task = next((t for t in self._tasks if t.name == name), None)
+        if task is None:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while not task.done.is_set():
+            if time.monotonic() >= deadline:
+                return False
+            await asyncio.sleep(0.05)
+        return True
+
+
+def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
+    """The start-up work of a service on ``cell``: the renderer when it has a simulated camera
+    (each open one also inverts its lens), the matcher and the calibration solver."""
+    sims = [slot for slot in cell.cameras.values() if isinstance(slot.device, SimCamera)]
+
+    def renderer() -> None:  # with no sim camera open yet, the loops alone (its lens when it opens)
+        warm_renderer([slot.device for slot in sims if slot.is_open and isinstance(slot.device, SimCamera)])
+
+    def matcher() -> None:
+        shown = [slot.device.settings() for slot in sims]  # a sim camera's size, no IO (None when closed)
+        sizes = [(int(c["width"]), int(c["height"])) for c in shown if c.get("width") and c.get("height")]
+        warm_matcher(max(sizes, key=lambda wh: wh[0] * wh[1]) if sizes else SEARCH_SIZE)
+
+    tasks: list[tuple[str, Callable[[], None]]] = [(RENDERER, renderer)] if sims else []
+    return Startup([*tasks, (MATCHER, matcher), (CALIBRATION, warm_calibration)], since_s)
+
+
+def warm_all() -> dict[str, float]:
+    """Compile (or load) every compiled loop of the renderer, matcher and calibration solver;
+    seconds per part. What ``cellctl warm-up`` runs."""
+    out = {}
+    for name, fn in ((RENDERER, warm_renderer), (MATCHER, warm_matcher), (CALIBRATION, warm_calibration)):
+        t = time.monotonic()
+        fn()
+        out[name] = round(time.monotonic() - t, 2)
+    return out
