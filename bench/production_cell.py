@@ -85,7 +85,7 @@ def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> di
     recipe: dict[str, Any] = {
         "name": "bracket", "models": [model.json()], "plane_z_mm": 6.0, "grasp_z_mm": 0.0,
         "approach_height_mm": 40.0, "speed_m_s": 0.5, "capture_pose_ur": CLEAR_POSE_UR,
-        "search": {"max_count": 40, "min_score": 0.7},
+        "search": {"max_count": 40, "min_score": 0.7, "timeout_s": 5.0},
         "gripper": {"grip_width_mm": 30.0, "settle_s": 0.05, "device": {"io_id": "gripper0", "kind": "robotiq_2f"}},
         "place": truth["place_grid"],
     }

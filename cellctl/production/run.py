@@ -49,6 +49,8 @@ State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete
 Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
 VIEW_MARGIN_MM = 100.0
 """The arm counts as out of a fixed camera's view when nothing within this of its tool centre is in the image."""
+SEARCH_RETRIES = 2
+"""A search that timed out with nothing found is repeated this many times before the run fails."""
 SAME_PART_MM = 8.0
 """A match this close to a part tried before is that part (for retries and skips)."""
 
@@ -208,8 +210,19 @@ class ProductionRun:
                 self._move_to_capture()
                 picture = self._picture()
                 waited = picture.took_s
+            for _ in range(SEARCH_RETRIES):
+                if picture.candidates or not picture.timed_out:
+                    break
+                # Nothing found in a search that ran out of time is not an empty area: look again.
+                log.warning("production run %s: the search timed out with nothing found; looking again",
+                            self.status.run_id)
+                picture = self._picture()
+                waited += picture.took_s
             d.add("vision", waited)
             self.session.check()
+            if not picture.candidates and picture.timed_out:
+                raise PickError(f"the search ran out of its time ({self.s.recipe.search.timeout_s} s) "
+                                f"{SEARCH_RETRIES + 1} times with nothing found: raise the recipe's search.timeout_s")
             if not picture.candidates:
                 self.status.counters.empty_area += 1
                 self._record("empty", picture=picture, detail=picture.reason or "nothing found")

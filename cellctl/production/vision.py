@@ -44,6 +44,8 @@ class Picture:
     calibration: dict[str, Any]
     took_s: float
     found: int = 0
+    timed_out: bool = False
+    """The search ran out of its time budget (``search.timeout_s``): what it found may not be all."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -69,7 +71,7 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     if device is not None and device.clearance_mm is not None:
         _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
-                   time.monotonic() - t0, len(cands))
+                   time.monotonic() - t0, len(cands), bool(answer.get("timed_out")))
 
 
 def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
