@@ -223,8 +223,12 @@ class TestAgainstOneEmulator:
         target = robot.state().T_base_tool.copy()
         target[2, 3] += 0.01
         robot.move_linear(target, speed_m_s=0.1)
-        # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol
+        # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol.
+        # A controller gives its RTDE input registers to one client at a time, and ours keeps the
+        # watchdog of its control script fed through them: the adapter lets go of the controller first.
+        robot.close()
         subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, timeout=60, check=True)
+        robot.connect()
         wait_for(lambda: robot.state().metadata["safety_mode"] == "protective_stop", 2.0)
         assert robot.state().mode == "protective_stop"
         target[2, 3] += 0.01
