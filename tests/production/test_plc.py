@@ -10,11 +10,11 @@ from typing import Any
 import yaml
 from pymodbus.client import ModbusTcpClient
 
-from bench.production_cell import production_config, serve, teach_recipe
+from bench.production_cell import production_config, teach_recipe
 from cellctl.plc import modbus_server as mb
 from cellctl.plc.production import COUNTERS, ENDED, RESULTS, STATES
 from cellctl.plc.requests import TEXT_MOTION_OFF
-from cellctl.served import stop_served
+from cellctl.served import start_served, stop_served
 from tests.drivers.peers import free_port
 
 UNIT = 1
@@ -76,7 +76,7 @@ def plc_config(tmp: Path, allow_motion: bool) -> tuple[Path, int]:
 
 def test_a_plc_starts_a_run_reads_its_counters_and_stops_the_next(tmp_path: Path) -> None:
     path, port = plc_config(tmp_path, allow_motion=True)
-    served = serve(tmp_path, path)
+    served = start_served(tmp_path, path)
     try:
         teach_recipe(served.client(timeout_s=60))
         with ModbusTcpClient("127.0.0.1", port=port, timeout=5) as client:
@@ -105,7 +105,7 @@ def test_a_plc_starts_a_run_reads_its_counters_and_stops_the_next(tmp_path: Path
 
 def test_without_allow_motion_the_plc_cannot_start_a_run(tmp_path: Path) -> None:
     path, port = plc_config(tmp_path, allow_motion=False)
-    served = serve(tmp_path, path)
+    served = start_served(tmp_path, path)
     try:
         with ModbusTcpClient("127.0.0.1", port=port, timeout=5) as client:
             refused = command(client, 4, 1, 201, count=1)
@@ -125,7 +125,7 @@ def test_a_plc_runs_production_over_opc_ua(tmp_path: Path) -> None:
     port = free_port()
     cfg["plc"] = {"opcua": {"enabled": True, "host": "127.0.0.1", "port": port}, "allow_motion": True}
     path.write_text(yaml.safe_dump(cfg))
-    served = serve(tmp_path, path)
+    served = start_served(tmp_path, path)
     try:
         teach_recipe(served.client(timeout_s=60))
 

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended
-from cellctl.served import Served, stop_served
+from bench.production_cell import production_config, slot_error, teach_recipe, wait_ended
+from cellctl.served import Served, start_served, stop_served
 
 
 @pytest.fixture()
 def served4(tmp_path: Path) -> Iterator[Served]:
-    served = serve(tmp_path, production_config(tmp_path, count=4))
+    served = start_served(tmp_path, production_config(tmp_path, count=4))
     try:
         yield served
     finally:
@@ -55,7 +55,7 @@ def test_a_run_empties_the_area_into_the_grid(served4: Served) -> None:
 
 
 def test_grip_failures_are_retried_and_counted(tmp_path: Path) -> None:
-    served = serve(tmp_path, production_config(tmp_path, count=3, scene={"gripper": {"fail_probability": 0.5}}))
+    served = start_served(tmp_path, production_config(tmp_path, count=3, scene={"gripper": {"fail_probability": 0.5}}))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http, gripper={"grip_width_mm": 30.0, "settle_s": 0.05,
@@ -75,7 +75,7 @@ def test_grip_failures_are_retried_and_counted(tmp_path: Path) -> None:
 def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path) -> None:
     unreachable = [{"x_mm": 640.0, "y_mm": 40.0, "angle_deg": 30.0},
                    {"x_mm": 640.0, "y_mm": -50.0, "angle_deg": -100.0}]  # beyond the envelope's x = 615 mm
-    served = serve(tmp_path, production_config(tmp_path, count=1, scene={"unreachable": unreachable}))
+    served = start_served(tmp_path, production_config(tmp_path, count=1, scene={"unreachable": unreachable}))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http)

@@ -7,15 +7,15 @@ from pathlib import Path
 
 from playwright.sync_api import Browser, expect
 
-from bench.production_cell import production_config, serve, teach_recipe
-from cellctl.served import stop_served
+from bench.production_cell import production_config, teach_recipe
+from cellctl.served import start_served, stop_served
 from tests.ui.conftest import SHOTS
 
 WAIT_MS = 90_000
 
 
 def test_a_run_started_from_the_page_counts_up_to_the_end(tmp_path: Path, browser: Browser) -> None:
-    served = serve(tmp_path, production_config(tmp_path, count=3))
+    served = start_served(tmp_path, production_config(tmp_path, count=3))
     try:
         teach_recipe(served.client(timeout_s=60))
         page = browser.new_page(viewport={"width": 1440, "height": 1100})
