@@ -81,6 +81,8 @@ def _range(prop: dict[str, Any]) -> str:
 
 
 def _default(prop: dict[str, Any]) -> str:
+    if "x-default" in prop:  # a parameter whose absence is not "from the config" says what it means
+        return str(prop["x-default"])
     if "default" not in prop or prop["default"] is None:
         return "from the config"
     return json.dumps(prop["default"])

@@ -79,7 +79,8 @@ class Params(BaseModel):
     target_z_mm: float | None = Field(None, ge=-1e4, le=1e4,
                                       description="dof 4: the plate origin's height in the robot base frame, mm "
                                                   "(eye-to-hand: at the start pose); it fixes what a robot turning "
-                                                  "only about z cannot observe")
+                                                  "only about z cannot observe",
+                                      json_schema_extra={"x-default": "none (dof 4 needs it)"})
 
 
 def run(services: Services, ctx: JobContext) -> dict[str, Any]:
