@@ -321,6 +321,17 @@ class ProductionRun:
 
     def _pick_and_place(self, cand: Candidate, picture: Picture, d: Durations, t_cycle: float) -> Prefetch | None:
         r, plan, c = self.s.recipe, cand.plan, self.status.counters
+        # The place is checked before the pick: a full pattern or a refused place pose ends the run
+        # with the part where it lies, not in the gripper.
+        slot = self._next_slot
+        if r.place is None:
+            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
+                            "(docs/production.md)")
+        n_slots = r.place.slot_count()
+        if n_slots is not None and slot >= n_slots:
+            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
+                            "(PUT /production/slot)")
+        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
         d.add("gripper", self.gripper.open())
         self._move(plan.T_pick_approach, "pre-pick", d)
         self._move(plan.T_pick, "pick", d)
@@ -344,15 +355,6 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
-        slot = self._next_slot
-        if r.place is None:
-            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
-                            "(docs/production.md)")
-        n_slots = r.place.slot_count()
-        if n_slots is not None and slot >= n_slots:
-            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
-                            "(PUT /production/slot)")
-        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
         def next_picture() -> Prefetch:
             return Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id, self.robot,
                             tool_yaw(T_place))

@@ -92,3 +92,25 @@ def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path)
         assert states == ["placed", "in_area", "in_area"]
     finally:
         stop_served(served)
+
+
+def test_a_full_place_grid_fails_the_run_saying_so_and_the_slot_can_be_reset(tmp_path: Path) -> None:
+    served = start_served(tmp_path, production_config(tmp_path, count=2))
+    try:
+        http = served.client(timeout_s=60)
+        grid = {"kind": "grid", "origin_ur": [0.33, -0.23, 0.006, 0.0, 0.0, 0.0], "rows": 1, "cols": 1,
+                "pitch_mm": [55.0, -45.0]}
+        teach_recipe(http, place=grid)
+        http.post("/production/start", json={"recipe_id": 1})
+        end = wait_ended(http)
+        assert end["state"] == "failed" and end["ended_because"] == "failed", end
+        assert end["counters"]["placed"] == 1 and "full" in end["error"], end
+        parts = http.get("/sim/truth").json()["parts"]
+        assert sorted(p["state"] for p in parts) == ["in_area", "placed"]  # checked before the pick
+        reset = http.put("/production/slot", json={"recipe_id": 1, "next_slot": 0})
+        assert reset.status_code == 200 and reset.json()["next_slot"] == 0
+        assert http.get("/production").json()["next_slot"] == 0
+        opened = http.post("/production/gripper/open", params={"recipe_id": 1})
+        assert opened.status_code == 200 and opened.json()["holding"] is False
+    finally:
+        stop_served(served)
