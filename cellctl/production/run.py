@@ -47,8 +47,9 @@ log = logging.getLogger(__name__)
 
 State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
 Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
-VIEW_MARGIN_MM = 100.0
-"""The arm counts as out of a fixed camera's view when nothing within this of its tool centre is in the image."""
+VIEW_MARGIN_MM = 60.0
+"""The arm counts as out of a fixed camera's view when nothing within this of its tool centre (the
+gripper and the part it holds) is in the image."""
 SEARCH_RETRIES = 2
 """A search that timed out with nothing found is repeated this many times before the run fails."""
 SAME_PART_MM = 8.0
