@@ -6,7 +6,7 @@ routine moved it), and a NOT OK verdict: state ``succeeded`` with ``verdict_ok: 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
@@ -42,9 +42,14 @@ def test_a_failure_says_what_failed_then_what_was_done() -> None:
 
 def test_a_not_ok_verdict_is_its_own_outcome() -> None:
     jobs = JobManager()
-    results = [{"calibration_id": 7, "verdict": {"ok": False, "problems": [{"code": "too_few_views"}]}},
-               {"calibration_id": 8, "verdict": {"ok": True, "problems": []}}, {"passed": False}, {"n": 1}]
-    ended = [_ended(jobs, jobs.start("x", lambda ctx, r=r: r, {}, "t").id) for r in results]
+    results: list[dict[str, Any]] = [
+        {"calibration_id": 7, "verdict": {"ok": False, "problems": [{"code": "too_few_views"}]}},
+        {"calibration_id": 8, "verdict": {"ok": True, "problems": []}}, {"passed": False}, {"n": 1}]
+
+    def returning(result: dict[str, Any]) -> Callable[[JobContext], dict[str, Any]]:
+        return lambda _ctx: result
+
+    ended = [_ended(jobs, jobs.start("x", returning(r), {}, "t").id) for r in results]
     assert [j.state for j in ended] == ["succeeded"] * 4
     assert [j.public()["verdict_ok"] for j in ended] == [False, True, False, None]
     assert "NOT OK: too_few_views; stored as calibration 7 (not activated)" in ended[0].message
