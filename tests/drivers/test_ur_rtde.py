@@ -37,6 +37,7 @@ SETTINGS = {
     "connect_timeout_s": 5.0,
     "reconnect_wait_s": 4.0,  # the default 2.5 s, widened: a fresh worker boots slowly on the loaded machine
     "state_max_age_s": 0.2,  # the default 0.1 s, widened for a loaded 2-core test machine
+    "watchdog_min_frequency_hz": 4.0,  # the default 10 Hz, widened likewise (the kill tests below run 10 Hz)
     "stall_timeout_s": 0.5,
     "command_timeout_s": 5.0,
     "reconnect_initial_s": 0.2,
