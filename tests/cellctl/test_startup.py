@@ -138,7 +138,7 @@ def test_the_first_grab_after_serve_on_a_cold_cache_is_a_png(tmp_path: Path) -> 
         first = httpx.get(served.base_url + "/health", timeout=10).json()
         with served.client(timeout_s=300) as c:
             r = c.get("/cameras/cam0/image")
-        assert r.status_code == 200, r.text
+        assert r.status_code == 200, (r.text, (tmp_path / "serve.log").read_text()[-3000:])
         assert r.headers["content-type"] == "image/png" and r.content.startswith(PNG_MAGIC)
         deadline = time.monotonic() + 600
         while (body := httpx.get(served.base_url + "/health", timeout=10).json())["status"] != "ok":
@@ -147,11 +147,11 @@ def test_the_first_grab_after_serve_on_a_cold_cache_is_a_png(tmp_path: Path) -> 
             time.sleep(0.5)
     finally:
         stop_served(served)
+    log = (tmp_path / "serve.log").read_text()
     # compiling the renderer alone takes seconds: the first /health came before it was done
     assert first["status"] == "starting" and RENDERER in first["waiting_for"], first
-    assert "warm_up_failed" not in body and body["ready_after_s"] > 0
+    assert "warm_up_failed" not in body and body["ready_after_s"] > 0, (body, log[-3000:])
     assert list(cache.iterdir()), "nothing was cached in NUMBA_CACHE_DIR"
-    log = (tmp_path / "serve.log").read_text()
     assert sum("service ready in" in line for line in log.splitlines()) == 1, log[-3000:]
 
 
