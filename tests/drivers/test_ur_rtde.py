@@ -241,6 +241,20 @@ class TestAgainstOneEmulator:
         robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
         assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
 
+    def test_a_second_control_client_is_refused_while_the_adapter_holds_the_controller(
+            self, shared_robot: URRTDERobot) -> None:
+        """A controller gives an RTDE input register to one client: a second ur_rtde control interface
+        (which would write our command and watchdog register) is refused, as on a real controller."""
+        robot = shared_robot
+        target = robot.state().T_base_tool.copy()
+        target[2, 3] += 0.005
+        robot.move_linear(target, speed_m_s=0.1)  # our control connection is up, its watchdog armed
+        out = subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, text=True, timeout=60)
+        assert out.returncode != 0 and "already in use" in out.stderr, out.stderr[-500:]
+        assert robot.state().metadata["safety_mode"] == "normal"
+        target[2, 3] -= 0.005
+        robot.move_linear(target, speed_m_s=0.1)  # ours still works
+
     def test_close_and_connect_again(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot
         """The cell closes a failed device and connects it again later: the adapter must allow that."""
