@@ -21,8 +21,8 @@ observed in the state stream, so ``stop()`` can interrupt them.
 
 **When the service dies, the arm stops.** Before every move the control worker arms the
 controller's RTDE watchdog (``setWatchdog(watchdog_min_frequency_hz)``) and then kicks it from its
-own process; when the kicks stop for 1/f s (the service killed, its workers with it, or hung) the
-controller stops the control script and the arm halts.
+own process; when the kicks stop for 1/f s (the service killed, its workers with it) the controller
+stops the control script and the arm halts. A service that hangs but lives keeps kicking.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ class URRTDESettings(BaseModel):
     watchdog_min_frequency_hz: float = Field(
         10.0, ge=1.0, le=50.0,
         description="the controller's RTDE watchdog, armed for every move: with no update from us for "
-        "1/f s (the service died or hangs) the controller stops the arm",
+        "1/f s (the service died) the controller stops the arm",
     )
 
 
