@@ -241,7 +241,7 @@ class JobManager:
             job.state = "cancelled"
             if isinstance(exc, InputTimedOut):
                 job.error = f"{exc}: the step was abandoned"
-            job.message = f"cancelled ({job.error or exc}); {_aftermath(ctx)}"
+            job.message = f"{f'cancelled: {job.error}' if job.error else exc}; {_aftermath(ctx)}"
         except RobotStopped as exc:
             job.state = "stopped"
             job.error = f"{exc}"

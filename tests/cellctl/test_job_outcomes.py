@@ -37,6 +37,14 @@ def test_a_failure_says_what_failed_then_what_was_done() -> None:
                         "nothing was stored"
     b = _ended(jobs, jobs.start("x", moved, {}, "t").id)
     assert b.message.startswith("failed: hand-eye cannot be solved; the robot was stopped")
+
+    def waits(ctx: JobContext) -> dict[str, Any]:
+        ctx.sleep(30.0)
+        return {}
+
+    c = jobs.start("x", waits, {}, "t")
+    jobs.cancel(c.id)
+    assert _ended(jobs, c.id).message == "cancelled on request; the robot was not moved and nothing was stored"
     assert a.public()["verdict_ok"] is None and b.public()["verdict_ok"] is None
 
 
