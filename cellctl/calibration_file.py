@@ -127,7 +127,7 @@ def _check_handeye(data: dict[str, Any], source: str) -> list[str]:
 
     setup = data.get("setup")
     names = {"eye-in-hand": ("T_tool_cam", "T_base_target"), "eye-to-hand": ("T_base_cam", "T_tool_target")}
-    if setup not in names:
+    if not isinstance(setup, str) or setup not in names:
         raise CalibrationFileError(f"{source}: setup must be eye-in-hand or eye-to-hand, got {setup!r}")
     for name in names[setup]:
         if name not in data:

@@ -83,7 +83,7 @@ def _step(t: Any, part: str | int) -> Any:
         if isinstance(m, type) and issubclass(m, BaseModel):
             if isinstance(part, str) and part in m.model_fields:
                 return m.model_fields[part].annotation
-            if part == m.__name__:  # pydantic names the union member it tried
+            if part == m.__name__ or part in _tags(m):  # pydantic names the union member it tried
                 return m
         origin = typing.get_origin(m)
         args = typing.get_args(m)
@@ -92,3 +92,9 @@ def _step(t: Any, part: str | int) -> Any:
         if origin in (dict, Mapping) and isinstance(part, str) and len(args) == 2:
             return args[1]
     return None
+
+
+def _tags(m: type[BaseModel]) -> set[Any]:
+    """The values of ``m``'s ``Literal`` fields: a discriminated union's loc names its member by them."""
+    return {v for f in m.model_fields.values() if typing.get_origin(f.annotation) is typing.Literal
+            for v in typing.get_args(f.annotation)}

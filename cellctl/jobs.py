@@ -8,6 +8,12 @@ routine's ``on_end`` hooks run (routines use one to halt the robot). A routine t
 robot owns its motion for its whole run (``ctx.motion``, taken when it is started); a robot Stop
 aborts it: its next move or ``check_cancelled`` raises ``RobotStopped`` and the job ends
 ``stopped`` with nothing stored.
+
+A job that ends ``succeeded`` carries ``verdict_ok``: whether its result passed (a calibration's
+``verdict.ok``, verify's ``passed``; None when the routine gives no verdict). A NOT OK verdict is
+no failure of the job (the result is stored, to be looked at), but it is no success of the cell
+either: ``cellctl job run --follow`` exits 3 for it. A job's end message says what happened first,
+then what was done about it, and says the robot was stopped only when the routine had moved it.
 """
 
 from __future__ import annotations
@@ -81,8 +87,13 @@ class Job:
             "id": self.id, "name": self.name, "state": self.state, "progress": round(self.progress, 4),
             "message": self.message, "result": self.result, "error": self.error, "started_by": self.started_by,
             "params": self.params, "created_s": self.created_s, "finished_s": self.finished_s,
-            "waiting_for": self.waiting_for, "events": len(self.events),
+            "waiting_for": self.waiting_for, "events": len(self.events), "verdict_ok": self.verdict_ok,
         }
+
+    @property
+    def verdict_ok(self) -> bool | None:
+        """Whether a succeeded job's result passed (None: still running, ended otherwise, or no verdict)."""
+        return result_verdict_ok(self.result) if self.state == "succeeded" else None
 
     def _emit(self, kind: str, data: dict[str, Any]) -> None:
         with self._changed:
@@ -105,6 +116,8 @@ class JobContext:
         self.motion = motion
         """The robot motion this routine owns (taken when it was started), or None."""
         self.on_end: list[Callable[[], None]] = []
+        self.moved = False
+        """True once the routine has commanded a move (its end message then says the robot was stopped)."""
 
     @property
     def params(self) -> dict[str, Any]:
@@ -160,6 +173,34 @@ class JobContext:
             job.waiting_for = None
 
 
+def result_verdict_ok(result: dict[str, Any] | None) -> bool | None:
+    """A routine result's verdict: ``verdict.ok`` (calibrations), ``passed`` (verify); None: it has none."""
+    if not isinstance(result, dict):
+        return None
+    verdict = result.get("verdict")
+    if isinstance(verdict, dict) and isinstance(verdict.get("ok"), bool):
+        return bool(verdict["ok"])
+    passed = result.get("passed")
+    return passed if isinstance(passed, bool) else None
+
+
+def _not_ok_words(result: dict[str, Any]) -> str:
+    verdict = result.get("verdict")
+    if isinstance(verdict, dict):
+        codes = [str(p.get("code")) for p in verdict.get("problems") or [] if isinstance(p, dict)]
+        stored = f"stored as calibration {result['calibration_id']} (not activated); " if "calibration_id" in result \
+            else ""
+        return f"{', '.join(codes) or 'no problems listed'}; {stored}see the result's verdict for what to do"
+    return "the check did not pass; see the result"
+
+
+def _aftermath(ctx: JobContext) -> str:
+    """What was done about a failed or cancelled routine: the robot only when the routine moved it."""
+    if ctx.moved:
+        return "the robot was stopped where it was and nothing was stored"
+    return "the robot was not moved and nothing was stored"
+
+
 class JobManager:
     """Starts routines in threads and keeps their jobs (the newest ``MAX_FINISHED_JOBS``)."""
 
@@ -194,12 +235,13 @@ class JobManager:
             job.result = result
             job.state = "succeeded"
             job.progress = 1.0
-            job.message = "done"
+            ok = result_verdict_ok(result)
+            job.message = "done" if ok is not False else "done, but the verdict is NOT OK: " + _not_ok_words(result)
         except JobCancelled as exc:
             job.state = "cancelled"
-            job.message = "cancelled; the robot was stopped and nothing was stored"
             if isinstance(exc, InputTimedOut):
                 job.error = f"{exc}: the step was abandoned"
+            job.message = f"{f'cancelled: {job.error}' if job.error else exc}; {_aftermath(ctx)}"
         except RobotStopped as exc:
             job.state = "stopped"
             job.error = f"{exc}"
@@ -208,7 +250,7 @@ class JobManager:
             log.warning("job %s (%s) failed: %s", job.id, job.name, exc, exc_info=not isinstance(exc, ValueError))
             job.state = "failed"
             job.error = f"{exc}"
-            job.message = "failed; the robot was stopped and nothing was stored"
+            job.message = f"failed: {exc}; {_aftermath(ctx)}"
         finally:
             for hook in ctx.on_end:
                 try:

@@ -42,10 +42,10 @@ RENDERER = "renderer kernels"
 MATCHER = "matcher kernels"
 CALIBRATION = "calibration kernels"
 
-READY_WAIT_S = 90.0
+READY_WAIT_S = 180.0
 """How long a request that needs a warm-up (a camera image) waits for it before answering 503
-``starting``; on a warm cache the whole start-up takes 1-3 s, on a cold one up to a minute or two
-under load."""
+``starting``. On a warm cache the whole start-up takes 1-3 s; on a cold one the renderer alone is
+~10 s of CPU, 25 s of wall time at a load of 18 on this 2-core machine and over 90 s at 30."""
 
 
 def warm_renderer(cameras: Iterable[SimCamera] = ()) -> None:

@@ -65,6 +65,7 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
     return None
 
 
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: absent with -p no:xdist
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: ``CELLCTL_TEST_WORKERS`` if set, no workers for one file or one test (the run
     stays in this process and starts at once), else ``WORKERS``."""

@@ -19,7 +19,9 @@ def register(sub: Any) -> None:
     d = csub.add_parser("default", help="print the built-in virtual cell's cell.yaml")
     d.add_argument("--scene", choices=sorted(DEFAULT_SCENES), default="virtual-cell",
                    help="virtual-cell: the README tour's cell (eye-in-hand camera, two parts); production: a fixed "
-                        "camera over a pick area of parts, a place grid and a sim gripper (docs/production.md)")
+                        "camera over a pick area of parts, a place grid and a sim gripper (docs/production.md); "
+                        "fixed-camera: a camera fixed over a circle plate and a tool feature, for jog-to-mark with "
+                        "its tool-centre step (docs/routines/jog-to-mark.md)")
     d.set_defaults(func=print_default)
     c = csub.add_parser("check", help="validate a cell.yaml and print its devices")
     c.add_argument("--config", required=True)
@@ -46,7 +48,8 @@ def register(sub: Any) -> None:
     rm.set_defaults(func=remove_token)
 
 
-DEFAULT_SCENES = {"virtual-cell": "data/virtual-cell.yaml", "production": "data/production-cell.yaml"}
+DEFAULT_SCENES = {"virtual-cell": "data/virtual-cell.yaml", "production": "data/production-cell.yaml",
+                  "fixed-camera": "data/fixed-camera-cell.yaml"}
 
 
 def print_default(args: argparse.Namespace) -> None:

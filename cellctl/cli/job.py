@@ -18,6 +18,8 @@ from typing import Any, TextIO
 from cellctl.cli.output import CommandError, emit
 from cellctl.paths import data_dir
 
+VERDICT_NOT_OK_EXIT = 3
+"""``job run --follow``: the job succeeded but its verdict is NOT OK (1: it failed, was cancelled or stopped)."""
 URL_HELP = "the service's base URL (default: $CELLCTL_URL or http://127.0.0.1:8080)"
 TOKEN_HELP = ("bearer token (default: $CELLCTL_TOKEN, else the session-token file of a local lab service "
               "started without tokens)")
@@ -79,6 +81,8 @@ def _range(prop: dict[str, Any]) -> str:
 
 
 def _default(prop: dict[str, Any]) -> str:
+    if "x-default" in prop:  # a parameter whose absence is not "from the config" says what it means
+        return str(prop["x-default"])
     if "default" not in prop or prop["default"] is None:
         return "from the config"
     return json.dumps(prop["default"])
@@ -97,7 +101,9 @@ def register(sub: Any) -> None:
     r.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="routine parameter (JSON value or plain string); repeatable, e.g. --param views=14")
     r.add_argument("--follow", action="store_true",
-                   help="show progress on stderr until the job ends (and ask before each operator step)")
+                   help="show progress on stderr until the job ends (and ask before each operator step); exits 0 when "
+                        "it succeeded with an ok verdict (or none), 1 when it failed, was cancelled or stopped, 3 "
+                        "when it succeeded but its verdict is NOT OK (the result is stored, not activated)")
     _service_args(r)
     r.add_argument("--out", dest="out_json", help="also write the final job JSON to this file")
     r.set_defaults(func=run)
@@ -175,6 +181,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         emit(final, args.out_json)
         raise CommandError(f"job {final['id']} ({final['name']}) {final['state']}: {final.get('error') or ''}",
                            exit_code=1)
+    if final.get("verdict_ok") is False:  # done, but the result did not pass: exit 3 (docs/cli.md)
+        emit(final, args.out_json)
+        raise CommandError(f"job {final['id']} ({final['name']}) {final['message']}", exit_code=VERDICT_NOT_OK_EXIT)
     return final
 
 
@@ -237,7 +246,8 @@ def _follow(http: Any, job_id: str, progress: Progress | None = None) -> None:
                         raise CommandError("no terminal input to record with; cancel the job or record over HTTP")
                     _check(http.post(f"/jobs/{job_id}/record"))
                 elif event == "state":
-                    error = f" ({data['error']})" if data.get("error") else ""
+                    shown = str(data.get("message") or "")
+                    error = f" ({data['error']})" if data.get("error") and str(data["error"]) not in shown else ""
                     out.line(f"{data.get('state')}: {data.get('message')}{error}")
                     return
 

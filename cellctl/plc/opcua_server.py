@@ -25,6 +25,8 @@ Methods
     BadRequestNotAllowed, "robot stopped: an engineer must resume it").
     ``VerifyCalibration() -> (Passed: Boolean, DriftPx: Double, DriftMm: Double)`` (DriftMm is NaN
     with no active hand-eye calibration). A drifted calibration is ``Passed = false``, not an error.
+    Production (``cellctl.plc.opcua_production``): ``StartProduction(RecipeId, Count) -> RunId``,
+    ``PauseProduction()``, ``ResumeProduction()``, ``StopProduction()`` and ``Production*`` variables.
 
 Failures are OPC UA status codes (the message in ``LastError``): unknown recipe BadNotFound,
 recipe number outside 0..65535 BadOutOfRange, a wrong argument type BadInvalidArgument, no
@@ -53,6 +55,7 @@ from asyncua import Node, Server, ua
 
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
 from cellctl.plc.modbus_server import is_loopback
+from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
     TEXT_CANNOT_PICK,
@@ -189,6 +192,8 @@ class OpcUaPlcServer:
         self._motion_watch: asyncio.Task[None] | None = None
         self._call_lock = asyncio.Lock()
         self._pending_refresh: asyncio.Task[None] | None = None
+        self._production_vars: dict[str, Node] = {}
+        self._production_shown: dict[str, Any] = {}
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -246,6 +251,7 @@ class OpcUaPlcServer:
             [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
             [*pick_outputs,
              _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
+        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed)
         await cell.add_method(
             idx, "VerifyCalibration", self._verify, [],
             [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
@@ -321,6 +327,7 @@ class OpcUaPlcServer:
                     await self._set("RobotLatched", now[0])
                     await self._set("RobotMotionOwner", now[1])
                     shown = now
+                await refresh_production(self._production_vars, self.services, self._production_shown)
             except Exception:  # noqa: BLE001 - the watch keeps running; the variables stay as they were
                 log.exception("OPC UA robot motion status failed")
             await asyncio.sleep(MOTION_POLL_S)
@@ -338,6 +345,9 @@ class OpcUaPlcServer:
         # Device and calibration status are refreshed after the answer, not before it.
         self._pending_refresh = asyncio.get_running_loop().create_task(self._refresh())
         return out
+
+    def _failed(self, out: Outcome) -> ua.StatusCode:
+        return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
 
     async def _pick(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
         return await self._pick_request(recipe, move=False)

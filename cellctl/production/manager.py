@@ -108,6 +108,12 @@ class ProductionManager:
         out["totals"] = {k: totals.get(k, 0) + int(v) for k, v in out["counters"].items()}
         return out
 
+    def running(self, recipe_id: int | None = None) -> list[ProductionRun]:
+        """The runs that have not ended (of ``recipe_id`` when given)."""
+        with self._lock:
+            runs = list(self._runs.values())
+        return [r for r in runs if not r.ended and (recipe_id is None or r.s.recipe_id == recipe_id)]
+
     def resume(self, robot_id: str | None = None) -> ProductionRun:
         run = self.run(robot_id)
         if run.robot.motion.latched:
@@ -119,8 +125,7 @@ class ProductionManager:
     def open_gripper(self, recipe_id: int) -> dict[str, Any]:
         """Open the recipe's gripper by hand (refused while a run owns its robot)."""
         recipe = Recipe.model_validate(self.services.store.get_recipe(recipe_id).data)
-        with self._lock:
-            busy = [r for r in self._runs.values() if not r.ended]
+        busy = self.running()
         if busy:
             raise ProductionRunning(f"production run {busy[0].status.run_id} is running; stop it first")
         gripper = Gripper(self.services, recipe.gripper)

@@ -47,8 +47,11 @@ log = logging.getLogger(__name__)
 
 State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
 Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
-VIEW_MARGIN_MM = 100.0
-"""The arm counts as out of a fixed camera's view when nothing within this of its tool centre is in the image."""
+VIEW_MARGIN_MM = 60.0
+"""The arm counts as out of a fixed camera's view when nothing within this of its tool centre (the
+gripper and the part it holds) is in the image."""
+SEARCH_RETRIES = 2
+"""A search that timed out with nothing found is repeated this many times before the run fails."""
 SAME_PART_MM = 8.0
 """A match this close to a part tried before is that part (for retries and skips)."""
 
@@ -208,8 +211,19 @@ class ProductionRun:
                 self._move_to_capture()
                 picture = self._picture()
                 waited = picture.took_s
+            for _ in range(SEARCH_RETRIES):
+                if picture.candidates or not picture.timed_out:
+                    break
+                # Nothing found in a search that ran out of time is not an empty area: look again.
+                log.warning("production run %s: the search timed out with nothing found; looking again",
+                            self.status.run_id)
+                picture = self._picture()
+                waited += picture.took_s
             d.add("vision", waited)
             self.session.check()
+            if not picture.candidates and picture.timed_out:
+                raise PickError(f"the search ran out of its time ({self.s.recipe.search.timeout_s} s) "
+                                f"{SEARCH_RETRIES + 1} times with nothing found: raise the recipe's search.timeout_s")
             if not picture.candidates:
                 self.status.counters.empty_area += 1
                 self._record("empty", picture=picture, detail=picture.reason or "nothing found")
@@ -308,6 +322,17 @@ class ProductionRun:
 
     def _pick_and_place(self, cand: Candidate, picture: Picture, d: Durations, t_cycle: float) -> Prefetch | None:
         r, plan, c = self.s.recipe, cand.plan, self.status.counters
+        # The place is checked before the pick: a full pattern or a refused place pose ends the run
+        # with the part where it lies, not in the gripper.
+        slot = self._next_slot
+        if r.place is None:
+            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
+                            "(docs/production.md)")
+        n_slots = r.place.slot_count()
+        if n_slots is not None and slot >= n_slots:
+            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
+                            "(PUT /production/slot)")
+        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
         d.add("gripper", self.gripper.open())
         self._move(plan.T_pick_approach, "pre-pick", d)
         self._move(plan.T_pick, "pick", d)
@@ -331,15 +356,6 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
-        slot = self._next_slot
-        if r.place is None:
-            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
-                            "(docs/production.md)")
-        n_slots = r.place.slot_count()
-        if n_slots is not None and slot >= n_slots:
-            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
-                            "(PUT /production/slot)")
-        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
         def next_picture() -> Prefetch:
             return Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id, self.robot,
                             tool_yaw(T_place))

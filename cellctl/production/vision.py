@@ -44,6 +44,8 @@ class Picture:
     calibration: dict[str, Any]
     took_s: float
     found: int = 0
+    timed_out: bool = False
+    """The search ran out of its time budget (``search.timeout_s``): what it found may not be all."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -69,7 +71,7 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     if device is not None and device.clearance_mm is not None:
         _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
-                   time.monotonic() - t0, len(cands))
+                   time.monotonic() - t0, len(cands), bool(answer.get("timed_out")))
 
 
 def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
@@ -85,9 +87,9 @@ def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
 
 
 def out_of_view(mapping: ActiveMapping, T_base_tool: Any, margin_mm: float) -> bool:
-    """True when nothing within ``margin_mm`` of the tool (and what it holds) can be in the fixed
-    camera's image: a ring of points around the tool, at its height and down to the working plane,
-    all project outside the image (through the active eye-to-hand calibration)."""
+    """True when nothing within ``margin_mm`` of the tool centre (the gripper and the part it holds)
+    can be in the fixed camera's image: a disc of points around it, at its height, all project
+    outside the image (through the active eye-to-hand calibration)."""
     cam = mapping.camera
     if mapping.kind != "handeye" or mapping.calib.get("setup") != "eye-to-hand" or cam is None:
         return False
@@ -96,9 +98,7 @@ def out_of_view(mapping: ActiveMapping, T_base_tool: Any, margin_mm: float) -> b
     a = np.linspace(0.0, 2 * math.pi, 16, endpoint=False)
     ring = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]) * margin_mm * 1e-3
     pts = np.concatenate([p + ring, p + ring * 0.5, [p]])
-    low = pts.copy()
-    low[:, 2] = min(p[2], 0.0)
-    uv = cam.project(g.transform_points(T_cam_base, np.concatenate([pts, low])))
+    uv = cam.project(g.transform_points(T_cam_base, pts))
     inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5)
               & (uv[:, 1] >= -0.5) & (uv[:, 1] <= cam.height - 0.5))
     return not bool(inside.any())

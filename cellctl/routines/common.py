@@ -195,6 +195,7 @@ def reachable(robot: Robot, poses: list[Mat4]) -> tuple[list[Mat4], int]:
 def move(services: Services, ctx: JobContext, robot: RobotBase, T: Mat4, speed_m_s: float, why: str) -> None:
     """A checked linear move in the routine's motion session, audited under the job's caller."""
     ctx.check_cancelled()
+    ctx.moved = True
     audited_move(services.store, ctx.started_by, robot, T, speed_m_s, why, ctx.motion)
 
 

@@ -6,7 +6,9 @@ the robot's own checks (envelope, tool cone, speed) in the routine's motion sess
 move is skipped with its reason. Once ``stations`` good stations cover the rotation and distance
 goals, the hand-eye is solved; while its verdict is not ok and the ``max_stations`` budget lasts,
 stations are added and it is solved again. The result says what coverage is still missing. Uses
-the active camera calibration of the camera; stores, does not activate.
+the active camera calibration of the camera; stores, does not activate. With ``dof: 4`` (a robot
+that only turns the tool about base z) the stations turn and shift instead of tilting, and the
+plate's height ``target_z_mm`` fixes what such motion cannot observe (``handeye_dof4_capture``).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from cellctl.routines.common import (
     stop_robot_on_end,
     target_pose,
 )
+from cellctl.routines.handeye_dof4_capture import run_dof4, store_dof4
 from cellctl.routines.station_plan import Coverage, StationPlanner
 from cellctl.services import Services
 from drivers.base import MotionRejected
@@ -69,6 +72,15 @@ class Params(BaseModel):
     speed_m_s: float | None = Field(None, ge=0.001, le=2.0, description="tool speed, m/s, 0.001-2 "
                                                                     "(default: calibration.speed_m_s)")
     note: str = Field("", max_length=500, description="note stored with the calibration")
+    dof: Literal[4, 6] = Field(6, description="6: the robot turns the tool freely (stations tilt about the plate); "
+                                              "4: a SCARA, delta or top-down robot that only turns the tool about "
+                                              "the base z axis (stations turn about z by up to max_spin_deg and "
+                                              "move in x, y, z; max_tilt_deg is not used); needs target_z_mm")
+    target_z_mm: float | None = Field(None, ge=-1e4, le=1e4,
+                                      description="dof 4: the plate origin's height in the robot base frame, mm "
+                                                  "(eye-to-hand: at the start pose); it fixes what a robot turning "
+                                                  "only about z cannot observe",
+                                      json_schema_extra={"x-default": "none (dof 4 needs it)"})
 
 
 def run(services: Services, ctx: JobContext) -> dict[str, Any]:
@@ -103,10 +115,13 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
                            "again")
     if first.T_base_tool is None:
         raise RoutineError("the start view has no robot pose; the robot must report its pose")
+    speed = p.speed_m_s or defaults.speed_m_s
+    if p.dof == 4:
+        he, caps4, counts4 = run_dof4(services, ctx, p, setup, camera, target, cam, robot, first, good, speed)
+        return store_dof4(services, ctx, p, he, caps4, tname, active.id, camera_id, robot_id, counts4)
     planner = StationPlanner(setup, camera, target, first.T_base_tool, target_pose(camera, target, first.detection),
                              robot.limits.check_pose, p.max_tilt_deg, p.max_spin_deg, p.distance_range)
     caps: list[Capture] = [first]
-    speed = p.speed_m_s or defaults.speed_m_s
     camera_ok = (active.result.get("verdict") or {}).get("ok")
     camera_cov = camera_covariance(active.result, camera.model)
     tried, rejected = 1, 0

@@ -75,7 +75,8 @@ export async function robotLoop(session) {
         $("#robot-resume").hidden = !s.latched || !has("engineer");
         $("#robot-state").dataset.xMm = String(p.x_m * 1e3);
         $("#robot-status").textContent = "";
-        setBadge(`${state.robotId} ${s.moving ? "moving" : s.mode}`, true);
+        await showLatch(s.latched, session);
+        if (!s.latched) setBadge(`${state.robotId} ${s.moving ? "moving" : s.mode}`, true);
       } catch (e) {
         $("#robot-status").textContent = `robot ${state.robotId} unavailable: ${e.message}`;
         setBadge(`${state.robotId} unavailable`, false);
@@ -91,6 +92,61 @@ function setBadge(text, ok) {
   b.className = `badge ${ok ? "ok" : "bad"}`;
 }
 
+// The latch shows in the header on every tab (robotLoop runs whatever the tab): the badge says who
+// stopped the robot, and an engineer gets Resume beside the header's Stop.
+async function showLatch(latched, session) {
+  $("#header-resume").hidden = !latched || !has("engineer");
+  document.body.dataset.latched = latched ? "yes" : "no";
+  if (!latched) return;
+  let by = "";
+  try {
+    const m = await api("GET", `/robots/${encodeURIComponent(state.robotId)}/motion`);
+    if (session !== state.session) return;
+    by = m.latched_by ? ` by ${m.latched_by}` : "";
+  } catch (_) { /* the badge still says latched */ }
+  setBadge(`${state.robotId} STOPPED${by}: latched, no motion until an engineer resumes`, false);
+  $("#robot-badge").classList.add("latched");
+}
+
+async function resumeRobot(status) {
+  try {
+    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/resume`);
+    status("resumed: the robot may move again");
+  } catch (e) { status(`resume failed: ${e.message}`); }
+}
+
+$("#header-resume").addEventListener("click", () => resumeRobot((t) => { $("#robot-badge").title = t; }));
+
+// ---------------------------------------------------------------- named poses (engineer)
+
+export async function loadPoses(robotId) {
+  const robots = await api("GET", "/robots");
+  const id = robotId || state.robotId || (robots[0] && robots[0].id);  // at log-in the devices load meanwhile
+  const robot = robots.find((r) => r.id === id);
+  const names = Object.keys((robot && robot.poses) || {});
+  $("#pose-select").replaceChildren(...names.map((n) => new Option(n, n)));
+  $("#pose-go").disabled = names.length === 0;
+  $("#pose-go").title = names.length ? "a checked linear move to the named pose (POST /robots/{id}/move)"
+    : "this robot has no named poses (robots.<id>.poses in cell.yaml)";
+}
+
+$("#pose-go").addEventListener("click", async () => {
+  const name = $("#pose-select").value;
+  if (!name) return;
+  const status = $("#pose-status");
+  status.textContent = `moving to ${name}…`;
+  status.className = "muted";
+  try {
+    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/move`, { named_pose: name, speed_m_s: 0.1 });
+    status.textContent = `at ${name}`;
+  } catch (e) {
+    status.textContent = `move to ${name} failed: ${e.code}: ${e.message}`;
+    status.className = "error";
+  }
+});
+document.addEventListener("cellctl:login", () => { loadPoses().catch(() => {}); });
+$("#robot-select").addEventListener("change", (e) => { loadPoses(e.target.value).catch(() => {}); });
+
 $("#robot-stop").addEventListener("click", async () => {
   try {
     await api("POST", `/robots/${encodeURIComponent(state.robotId)}/stop`);
@@ -98,9 +154,4 @@ $("#robot-stop").addEventListener("click", async () => {
   } catch (e) { $("#robot-status").textContent = `stop failed: ${e.message}`; }
 });
 
-$("#robot-resume").addEventListener("click", async () => {
-  try {
-    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/resume`);
-    $("#robot-status").textContent = "resumed: the robot may move again";
-  } catch (e) { $("#robot-status").textContent = `resume failed: ${e.message}`; }
-});
+$("#robot-resume").addEventListener("click", () => resumeRobot((t) => { $("#robot-status").textContent = t; }));

@@ -5,6 +5,7 @@ import { refreshCalibrations } from "./calib.js";
 import { refreshRecipes } from "./pick.js";
 import "./wizard.js";
 import "./routines.js";
+import "./production.js";
 
 async function login(token) {
   const who = await api("GET", "/auth/whoami", undefined, { token });

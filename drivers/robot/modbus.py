@@ -195,7 +195,7 @@ class ModbusRobot(RobotBase):
                 # an outage counts once, from the first failed poll or stale read until the next good poll
                 reason = (str(exc) if isinstance(exc, (DeviceUnavailable, DeviceOperationError))
                           else f"robot {self.robot_id}: unexpected {type(exc).__name__} while polling: {exc}")
-                if self._outages.down(reason):
+                if self._outages.down(reason):  # a request that failed: the controller is lost, not late
                     self._controller_dropped(reason)  # mid-sequence: latched as a Stop latches
                 with self._io_lock:
                     self._client.close()
@@ -242,9 +242,7 @@ class ModbusRobot(RobotBase):
             )
         age = now - s.host_time_s
         if age > self.config.state_max_age_s:
-            reason = self._outages.reason or f"state older than {self.config.state_max_age_s} s"
-            if self._outages.down(reason):
-                self._controller_dropped(reason)
+            self._outages.down(self._outages.reason or f"state older than {self.config.state_max_age_s} s")
             raise DeviceUnavailable(
                 f"robot {self.robot_id}: newest state is {age:.2f} s old (limit "
                 f"{self.config.state_max_age_s} s): {self._outages.reason or 'no answer'}; reconnecting"

@@ -21,8 +21,8 @@ observed in the state stream, so ``stop()`` can interrupt them.
 
 **When the service dies, the arm stops.** Before every move the control worker arms the
 controller's RTDE watchdog (``setWatchdog(watchdog_min_frequency_hz)``) and then kicks it from its
-own process; when the kicks stop for 1/f s (the service killed, its workers with it, or hung) the
-controller stops the control script and the arm halts.
+own process; when the kicks stop for 1/f s (the service killed, its workers with it) the controller
+stops the control script and the arm halts. A service that hangs but lives keeps kicking.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ class URRTDESettings(BaseModel):
     watchdog_min_frequency_hz: float = Field(
         10.0, ge=1.0, le=50.0,
         description="the controller's RTDE watchdog, armed for every move: with no update from us for "
-        "1/f s (the service died or hangs) the controller stops the arm",
+        "1/f s (the service died) the controller stops the arm",
     )
 
 
@@ -184,7 +184,7 @@ class URRTDERobot(RobotBase):
     def health(self) -> DeviceHealth:
         """Availability, outage and reconnect counts, the last outage's duration, the newest sample's age."""
         age = self._link.buffer.age_s()
-        available = age is not None and age <= self.config.state_max_age_s
+        available = age is not None and age <= self.config.state_max_age_s and not self._link.failure
         if not available:
             self._link.note_staleness()
         return self._link.outages.health(available, reason=self._unavailable_reason(age),
@@ -203,12 +203,13 @@ class URRTDERobot(RobotBase):
 
     # -- state ------------------------------------------------------------------------------------------
     def state(self) -> RobotState:
-        """The newest sample; ``DeviceUnavailable`` when it is older than ``state_max_age_s``."""
+        """The newest sample; ``DeviceUnavailable`` when it is older than ``state_max_age_s`` or the state
+        worker has lost the controller (its last samples are no news)."""
         if not self._link.running:
             raise DeviceUnavailable(f"robot {self.robot_id}: not connected (call connect())")
         s = self._link.buffer.snapshot()
         age = None if s is None else time.time() - s.host_time_s
-        if s is None or age is None or age > self.config.state_max_age_s:
+        if s is None or age is None or age > self.config.state_max_age_s or self._link.failure:
             self._link.note_staleness()
             raise DeviceUnavailable(f"robot {self.robot_id}: {self._unavailable_reason(age)}")
         pose = np.array(s.pose)
@@ -257,7 +258,10 @@ class URRTDERobot(RobotBase):
         return ur_pose_to_transform(np.asarray(pose, dtype=np.float64))
 
     def _require_ready(self) -> RobotState:
-        st = self.state()
+        st = self._state_while_moving()
+        while st is None:  # a late sample; a lost link raises within stall_timeout_s
+            time.sleep(0.005)
+            st = self._state_while_moving()
         if st.metadata["safety_mode"] != "normal":
             raise DeviceOperationError(
                 f"robot {self.robot_id} is in {st.metadata['safety_mode']}; clear it on the pendant or with "
@@ -318,25 +322,42 @@ class URRTDERobot(RobotBase):
             why = str(exc)
         return f"robot {self.robot_id}: the controller refused {op} ({why}); check the pendant for errors"
 
+    def _state_while_moving(self) -> RobotState | None:
+        """The newest state; None in a short gap of the stream (a late sample, the worker streaming): a
+        move is not abandoned for it. A lost link (worker failed, or silent ``stall_timeout_s``) raises."""
+        try:
+            return self.state()
+        except DeviceUnavailable:
+            age = self._link.buffer.age_s()
+            if self._link.failure or age is None or age > self.config.stall_timeout_s:
+                raise
+            return None
+
     def _wait_arrival(self, arrived: Callable[[RobotState], bool], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
-            s = self.state()
+            s = self._state_while_moving()  # first: a lost controller answers as lost, not as a failed stop
             if self._motion_aborted() and not self._stop_requested.is_set():
-                self._stop()  # a Stop raced the command (it came before the move was sent)
+                try:
+                    self._stop()  # a Stop raced the command, or a dropout latched the robot
+                except DriverError:
+                    self._state_while_moving()  # the controller is gone: say so (DeviceUnavailable)
+                    raise
             if self._stop_requested.is_set():
                 raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
-            if s.metadata["safety_mode"] != "normal":
+            if s is None:
+                pass  # a late sample: the deadline below still holds
+            elif s.metadata["safety_mode"] != "normal":
                 raise DeviceOperationError(
                     f"robot {self.robot_id}: {s.metadata['safety_mode']} during the move; "
                     "inspect the cell, then unlock_protective_stop()"
                 )
-            if not s.metadata["program_running"]:
+            elif not s.metadata["program_running"]:
                 raise DeviceOperationError(
                     f"robot {self.robot_id}: the control script stopped during the move "
                     "(target unreachable, stopped on the pendant, or its RTDE watchdog expired)"
                 )
-            if arrived(s) and not s.moving:
+            elif arrived(s) and not s.moving:
                 return
             if time.monotonic() > deadline:
                 try:

@@ -2,10 +2,11 @@
 
 ``StateLink`` runs the state worker (``ur_rtde_worker.state_worker``) under a supervisor thread
 that restarts a dead or silent worker with exponential back-off and counts the outages (telling
-``on_outage`` when one begins). ``ControlLink`` sends one request at a time to the control worker
-with a deadline and kills a worker that misses it (the worker kicks the controller's RTDE watchdog
-between requests). Every worker process is started by the supervisor thread (a long-lived thread:
-the workers' ``PR_SET_PDEATHSIG`` follows the thread that started them).
+``on_outage`` when a worker that streamed dies or stalls: the controller is lost, not a late
+sample). ``ControlLink`` sends one request at a time to the control worker with a deadline and
+kills a worker that misses it (the worker kicks the controller's RTDE watchdog between requests).
+Every worker process is started by the supervisor thread (a long-lived thread: the workers'
+``PR_SET_PDEATHSIG`` follows the thread that started them).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ class StateLink:
         self.robot_id = robot_id
         self.config = config
         self.on_outage = on_outage
-        """Called with the reason when an outage begins (in whichever thread noticed it)."""
+        """Called (in the supervisor thread) with the reason when a streaming worker dies or stalls."""
         self._ctx = ctx
         self.buffer = StateBuffer(ctx)
         self.outages = Outages()
@@ -106,9 +107,9 @@ class StateLink:
 
     # -- freshness -----------------------------------------------------------------------------------
     def fresh_age(self) -> float | None:
-        """Age (s) of the newest sample when it is fresh, else None."""
+        """Age (s) of the newest sample when it is fresh (and its worker has not lost the controller), else None."""
         age = self.buffer.age_s()
-        return age if age is not None and age <= self.config.state_max_age_s else None
+        return age if age is not None and age <= self.config.state_max_age_s and not self.failure else None
 
     def note_staleness(self) -> None:
         """Open an outage (counted once) when the newest sample is too old; the supervisor closes it."""
@@ -117,8 +118,7 @@ class StateLink:
             stale_since = time.monotonic() - (age - self.config.state_max_age_s)
             reason = self.reason or (f"no new RTDE state from {self.config.host} for {age:.2f} s "
                                      f"(limit {self.config.state_max_age_s:g} s)")
-            if self.outages.down(reason, since_s=stale_since) and self.on_outage is not None:
-                self.on_outage(reason)
+            self.outages.down(reason, since_s=stale_since)
 
     @property
     def failure(self) -> str:
@@ -166,6 +166,14 @@ class StateLink:
                 log.exception("robot %s: RTDE supervisor round failed", self.robot_id)
         self._kill_worker()
 
+    def _lost(self) -> None:
+        """The worker is dead or stalled: restart it later; a stream that had worked is a lost controller."""
+        self._kill_worker()
+        self._backoff.schedule()
+        if self._streaming and self.on_outage is not None:
+            self._streaming = False
+            self.on_outage(self.reason)
+
     def _check_worker(self) -> None:
         now = time.monotonic()
         seq = self.buffer.seq
@@ -187,12 +195,10 @@ class StateLink:
                 return
             self.reason = (f"no RTDE data from {self.config.host} for {silent_s:.1f} s "
                            "(controller frozen or network down)")
-            self._kill_worker()
-            self._backoff.schedule()
+            self._lost()
         elif proc is not None:
             self.reason = self.buffer.error or f"RTDE worker for {self.config.host} exited"
-            self._kill_worker()
-            self._backoff.schedule()
+            self._lost()
         if self._proc is None and self._backoff.due():
             self.outages.reconnected()
             self._start_worker()

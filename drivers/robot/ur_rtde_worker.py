@@ -13,7 +13,7 @@ The control worker arms the controller's **RTDE watchdog** before every move (``
 the control script stops, and the arm with it, when no input update arrives within 1/f s) and
 then kicks it (``kickWatchdog``) several times per period for as long as the control script runs
 (the script keeps a watchdog until it stops). The kicks come from this process, so when the
-service dies (its workers with it, above) or hangs the kicks stop and the controller halts the arm.
+service dies (its workers with it, above) the kicks stop and the controller halts the arm.
 
 Kept free of numpy/scipy/pydantic imports so that a worker starts in well under a second: a
 reconnect after an outage is one new process. (``spawn`` also imports the parent's main script in

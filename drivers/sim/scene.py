@@ -24,7 +24,8 @@ from drivers.sim.production_spec import ProductionSpec
 
 SCENE_FORMAT_VERSION = 1
 BUILTIN_SCENE = Path(__file__).with_name("scenes") / "virtual-cell.yaml"
-BUILTIN_SCENES = {"production": Path(__file__).with_name("scenes") / "production.yaml"}
+BUILTIN_SCENES = {"production": Path(__file__).with_name("scenes") / "production.yaml",
+                  "fixed-camera": Path(__file__).with_name("scenes") / "virtual-cell-fixed-camera.yaml"}
 """Scenes a sim device's ``scene`` setting may name instead of giving a path."""
 
 

@@ -182,3 +182,42 @@ def test_store_add_cli(tmp_path: Path, files: dict[str, Any]) -> None:
     assert r.returncode == 2 and "rms_px is not a finite number" in r.stderr
     r = run_cli("store", "add", str(tmp_path / "missing.json"), "--config", str(cfg))
     assert r.returncode == 2 and "missing.json" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_random_garbage_in_a_calibration_file_is_always_a_typed_refusal() -> None:
+    """Values of every JSON type put into good files: a CalibrationFileError (422) or acceptance, never
+    another exception (which the service would answer as a 500)."""
+    import contextlib
+    import random
+
+    from cellctl.calibration_file import CalibrationFileError, check_calibration
+
+    rng = random.Random(7)
+    keys = ["K", "model", "width", "height", "dist", "H", "setup", "T_tool_cam", "T_base_target", "camera",
+            "verdict", "dof", "covariance", "rms_mm", "loo_rms_mm", "notes", "affine", "reflection"]
+
+    def value(depth: int = 0) -> Any:
+        kind = rng.randrange(7 if depth < 3 else 5)
+        if kind == 0:
+            return rng.choice([0, 1, -1, 1e308, 3, 10**30, True, None])
+        if kind == 1:
+            return rng.choice(["", "opencv5", "eye-in-hand", "affine", "x"])
+        if kind == 2:
+            return [[rng.random() for _ in range(rng.choice([3, 4]))] for _ in range(rng.choice([3, 4]))]
+        if kind in (3, 4):
+            return rng.random() * 1e3
+        if kind == 5:
+            return [value(depth + 1) for _ in range(rng.randrange(4))]
+        return {rng.choice(keys): value(depth + 1) for _ in range(rng.randrange(6))}
+
+    eye = np.eye(4).tolist()
+    good = [{**CAM.to_dict()}, {"setup": "eye-in-hand", "T_tool_cam": eye, "T_base_target": eye},
+            {"model": "affine", "H": np.eye(3).tolist()}]
+    for _ in range(3000):
+        data: Any = json.loads(json.dumps(rng.choice(good)))
+        for _ in range(rng.randrange(1, 3)):
+            data[rng.choice(keys)] = value()
+        if rng.random() < 0.1:
+            data = value()
+        with contextlib.suppress(CalibrationFileError):
+            check_calibration(data, rng.choice([None, "camera", "handeye", "npoint"]))

@@ -82,6 +82,18 @@ def test_an_unknown_key_lists_the_accepted_keys(app: AppCell) -> None:
     assert r.status_code == 422 and "body.forced: unknown key (accepted: force)" in r.text
 
 
+def test_an_unknown_key_in_a_tagged_section_lists_that_kind_s_keys(app: AppCell) -> None:
+    place = {"kind": "grid", "origin_ur": [0.4, 0, 0.1, 3.14, 0, 0], "rows": 2, "cols": 2, "pitch_mm": [10, 10],
+             "pitch": 1}
+    r = app.client.post("/recipes", json={"recipe_id": 1, "recipe": {"name": "x", "models": [], "plane_z_mm": 0,
+                                                                      "place": place}}, headers=app.auth())
+    assert r.status_code == 422
+    assert ("body.recipe.place.grid.pitch: unknown key (accepted: kind, origin_ur, rows, cols, pitch_mm, layers, "
+            "layer_mm, approach_height_mm)") in r.json()["error"]["message"]
+    r = app.client.post("/production/start", json={"recipe_id": 1, "cnt": 2}, headers=app.auth())
+    assert r.status_code == 422 and "body.cnt: unknown key (accepted: recipe_id, count," in r.text
+
+
 def test_an_unknown_routine_parameter_lists_the_parameters(app: AppCell) -> None:
     r = app.client.post("/routines/verify", json={"tolerance": 2}, headers=app.auth())
     assert r.status_code == 422

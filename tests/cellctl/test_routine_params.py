@@ -99,7 +99,7 @@ def test_follow_into_a_file_writes_whole_lines(served: Served, tmp_path: Path) -
                             "--token", served.token, "--param", "target=" + "no-such-target-" * 8],
                            stdout=subprocess.PIPE, stderr=err, text=True, timeout=120, stdin=subprocess.DEVNULL)
     text = log.read_text()
-    assert r.returncode == 1
+    assert r.returncode == 2  # refused at once (the config has no such target): one whole line
     assert "\r" not in text and "\033" not in text
     assert ("no target '" + "no-such-target-" * 8 + "'") in text  # the reason, whole (> 80 columns)
     assert any(len(line) > 120 for line in text.splitlines())

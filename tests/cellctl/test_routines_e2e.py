@@ -229,12 +229,12 @@ def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
     assert "100.0%" in r.stderr and "succeeded" in r.stderr
 
 
-def test_cli_job_run_exits_non_zero_when_the_job_fails(served: Served) -> None:
+def test_cli_job_run_exits_non_zero_when_the_routine_is_refused(served: Served) -> None:
+    """A target the config lacks is refused at once (422, no job): exit 2, one line naming it."""
     r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
                         "--token", served.token, "--param", "target=nosuch"],
                        capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
-    assert r.returncode == 1
-    assert json.loads(r.stdout)["state"] == "failed"
+    assert r.returncode == 2 and r.stdout == ""
     assert "no target 'nosuch'" in r.stderr
 
 

@@ -111,6 +111,17 @@ def _state(http: httpx.Client) -> dict[str, Any] | None:
     return r.json() if r.status_code == 200 else None
 
 
+def _moved(http: httpx.Client, box: dict[str, Any], emulator: Emulator, moved: Callable[[], bool]) -> bool:
+    """True once ``moved()``; a move request that has already answered fails the test with its answer."""
+    if moved():
+        return True
+    if "response" in box or "error" in box:
+        answer = box.get("response")
+        raise AssertionError(f"the move answered before it got under way: "
+                             f"{answer.text if answer is not None else box['error']!r}\n{emulator.log()[-1500:]}")
+    return False
+
+
 def _move_in_thread(http: httpx.Client, pose_ur: dict[str, float], speed_m_s: float) -> dict[str, Any]:
     """POST the move in a thread; the box gets its response (or the exception) when it returns."""
     box: dict[str, Any] = {}
@@ -140,8 +151,9 @@ def test_the_arm_halts_within_the_watchdog_period_when_the_service_is_killed(
                 return float(receiver.getActualTCPPose()[0])
 
             x0 = x_m()
-            _move_in_thread(http, target, SPEED_M_S)
-            wait_for(lambda: x_m() - x0 > 0.06, 20.0, "the arm 60 mm (1.2 s) into the move")
+            box = _move_in_thread(http, target, SPEED_M_S)
+            wait_for(lambda: _moved(http, box, emulator, lambda: x_m() - x0 > 0.06), 30.0,
+                     "the arm 60 mm (1.2 s) into the move")
             x_kill = x_m()
             t_kill = time.monotonic()
             os.kill(served.process.pid, signal.SIGKILL)
@@ -175,7 +187,12 @@ def test_a_controller_that_drops_out_mid_move_latches_the_robot_until_resumed(
     with served.client(timeout_s=60) as http:
         start = wait_for(lambda: _state(http), 20.0, "the robot's state")["pose_ur"]
         box = _move_in_thread(http, {**start, "x_m": start["x_m"] + 0.1}, SPEED_M_S)
-        wait_for(lambda: (s := _state(http)) and s["pose_ur"]["x_m"] - start["x_m"] > 0.01, 20.0, "the move")
+
+        def under_way() -> bool:
+            s = _state(http)
+            return s is not None and s["pose_ur"]["x_m"] - start["x_m"] > 0.01
+
+        wait_for(lambda: _moved(http, box, emulator, under_way), 30.0, "the move")
         emulator.kill()
         box["thread"].join(timeout=30)
         r = box["response"]

@@ -166,7 +166,8 @@ class TestAgainstOneSimulator:
         th = threading.Thread(target=move)
         th.start()
         wait_for(lambda: robot.state().moving, 2.0)
-        time.sleep(0.3)
+        # Stop once it has gone 25 mm (about 0.25 s at 0.1 m/s), wherever the loaded machine's clock is.
+        wait_for(lambda: robot.state().T_base_tool[1, 3] - start[1, 3] > 0.025, 10.0)
         robot.stop()
         th.join(timeout=5)
         assert errors and isinstance(errors[0], RobotStopped)

@@ -117,7 +117,10 @@ def _ur(slow: bool) -> Rig:
     except BaseException:
         lock.__exit__(None, None, None)
         raise
+    # watchdog 4 Hz: the default 10 Hz, widened for a loaded 2-core test machine (tests/cellctl/test_ur_faults.py
+    # and the kill tests of test_ur_rtde.py run the default)
     settings = {"host": "127.0.0.1", "connect_timeout_s": 10.0, "state_max_age_s": 0.2, "stall_timeout_s": 0.5,
+                "watchdog_min_frequency_hz": 4.0,
                 "command_timeout_s": 5.0, "reconnect_initial_s": 0.2, "reconnect_max_s": 1.0}
     robot = URRTDERobot("ur0", settings, _limits((-355.0, -133.0, 465.0), slack_s=0.5 if slow else 5.0))
     rig = Rig("ur_rtde", robot, drop=peer.kill, restore=lambda: _restart(peer))

@@ -37,6 +37,7 @@ SETTINGS = {
     "connect_timeout_s": 5.0,
     "reconnect_wait_s": 4.0,  # the default 2.5 s, widened: a fresh worker boots slowly on the loaded machine
     "state_max_age_s": 0.2,  # the default 0.1 s, widened for a loaded 2-core test machine
+    "watchdog_min_frequency_hz": 4.0,  # the default 10 Hz, widened likewise (the kill tests below run 10 Hz)
     "stall_timeout_s": 0.5,
     "command_timeout_s": 5.0,
     "reconnect_initial_s": 0.2,
@@ -223,8 +224,12 @@ class TestAgainstOneEmulator:
         target = robot.state().T_base_tool.copy()
         target[2, 3] += 0.01
         robot.move_linear(target, speed_m_s=0.1)
-        # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol
+        # another ur_rtde client (the pendant's stand-in) triggers a protective stop through the protocol.
+        # A controller gives its RTDE input registers to one client at a time, and ours keeps the
+        # watchdog of its control script fed through them: the adapter lets go of the controller first.
+        robot.close()
         subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, timeout=60, check=True)
+        robot.connect()
         wait_for(lambda: robot.state().metadata["safety_mode"] == "protective_stop", 2.0)
         assert robot.state().mode == "protective_stop"
         target[2, 3] += 0.01
@@ -235,6 +240,20 @@ class TestAgainstOneEmulator:
         wait_for(lambda: robot.state().metadata["safety_mode"] == "normal", 2.0)
         robot.move_linear(target, speed_m_s=0.1)  # the control script is uploaded again by itself
         assert abs(robot.state().T_base_tool[2, 3] - target[2, 3]) < 0.2e-3
+
+    def test_a_second_control_client_is_refused_while_the_adapter_holds_the_controller(
+            self, shared_robot: URRTDERobot) -> None:
+        """A controller gives an RTDE input register to one client: a second ur_rtde control interface
+        (which would write our command and watchdog register) is refused, as on a real controller."""
+        robot = shared_robot
+        target = robot.state().T_base_tool.copy()
+        target[2, 3] += 0.005
+        robot.move_linear(target, speed_m_s=0.1)  # our control connection is up, its watchdog armed
+        out = subprocess.run([sys.executable, "-c", PROTECTIVE_STOP], capture_output=True, text=True, timeout=60)
+        assert out.returncode != 0 and "already in use" in out.stderr, out.stderr[-500:]
+        assert robot.state().metadata["safety_mode"] == "normal"
+        target[2, 3] -= 0.005
+        robot.move_linear(target, speed_m_s=0.1)  # ours still works
 
     def test_close_and_connect_again(self, shared_robot: URRTDERobot) -> None:
         robot = shared_robot

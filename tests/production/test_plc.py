@@ -14,8 +14,8 @@ from cellctl.plc import modbus_server as mb
 from cellctl.plc.production import COUNTERS, ENDED, RESULTS, STATES
 from cellctl.plc.requests import TEXT_MOTION_OFF
 from tests.drivers.peers import free_port
-from tests.support.production_cell import production_config, serve, teach_recipe
-from tests.support.served import stop_served
+from tests.support.production_cell import production_config, teach_recipe
+from tests.support.served import start_served, stop_served
 
 UNIT = 1
 
@@ -76,7 +76,7 @@ def plc_config(tmp: Path, allow_motion: bool) -> tuple[Path, int]:
 
 def test_a_plc_starts_a_run_reads_its_counters_and_stops_the_next(tmp_path: Path) -> None:
     path, port = plc_config(tmp_path, allow_motion=True)
-    served = serve(tmp_path, path)
+    served = start_served(tmp_path, path)
     try:
         teach_recipe(served.client(timeout_s=60))
         with ModbusTcpClient("127.0.0.1", port=port, timeout=5) as client:
@@ -105,11 +105,59 @@ def test_a_plc_starts_a_run_reads_its_counters_and_stops_the_next(tmp_path: Path
 
 def test_without_allow_motion_the_plc_cannot_start_a_run(tmp_path: Path) -> None:
     path, port = plc_config(tmp_path, allow_motion=False)
-    served = serve(tmp_path, path)
+    served = start_served(tmp_path, path)
     try:
         with ModbusTcpClient("127.0.0.1", port=port, timeout=5) as client:
             refused = command(client, 4, 1, 201, count=1)
             assert refused["status"] & mb.ERROR and refused["error_text"] == TEXT_MOTION_OFF, refused
             assert refused["run_id"] == 0
+    finally:
+        stop_served(served)
+
+
+def test_a_plc_runs_production_over_opc_ua(tmp_path: Path) -> None:
+    import asyncio
+
+    from asyncua import Client, ua
+
+    path = production_config(tmp_path, count=3)
+    cfg = yaml.safe_load(path.read_text())
+    port = free_port()
+    cfg["plc"] = {"opcua": {"enabled": True, "host": "127.0.0.1", "port": port}, "allow_motion": True}
+    path.write_text(yaml.safe_dump(cfg))
+    served = start_served(tmp_path, path)
+    try:
+        teach_recipe(served.client(timeout_s=60))
+
+        async def run() -> None:
+            async with Client(f"opc.tcp://127.0.0.1:{port}/cellctl/", timeout=30) as client:
+                idx = await client.get_namespace_index("urn:cellctl")
+                cell = await client.nodes.objects.get_child(f"{idx}:Cell")
+
+                async def var(name: str) -> Any:
+                    return await (await cell.get_child(f"{idx}:{name}")).read_value()
+
+                assert await var("ProductionRunId") == 0
+                run_id = await cell.call_method(f"{idx}:StartProduction", ua.Variant(1, ua.VariantType.Int32),
+                                                ua.Variant(2, ua.VariantType.Int32))
+                assert run_id >= 1
+                deadline = time.monotonic() + 90
+                while await var("ProductionState") != "complete":
+                    assert time.monotonic() < deadline, await var("ProductionState")
+                    await asyncio.sleep(0.2)
+                assert await var("ProductionEndedBecause") == "count_reached"
+                assert await var("ProductionPlaced") == 2 and await var("ProductionNextSlot") == 2
+                assert await var("ProductionLastResult") == "placed"
+                assert 0 <= await var("ProductionLastSigmaMm") < 1.0
+                second = await cell.call_method(f"{idx}:StartProduction", ua.Variant(1, ua.VariantType.Int32),
+                                                ua.Variant(0, ua.VariantType.Int32))
+                assert second == run_id + 1
+                await cell.call_method(f"{idx}:StopProduction")
+                while await var("ProductionEndedBecause") == "":
+                    assert time.monotonic() < deadline
+                    await asyncio.sleep(0.2)
+                assert await var("ProductionState") == "stopped"
+
+        asyncio.run(run())
     finally:
         stop_served(served)

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended
-from tests.support.served import Served, stop_served
+from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended
+from tests.support.served import Served, start_served, stop_served
 
 
 @pytest.fixture()
 def served4(tmp_path: Path) -> Iterator[Served]:
-    served = serve(tmp_path, production_config(tmp_path, count=4))
+    served = start_served(tmp_path, production_config(tmp_path, count=4))
     try:
         yield served
     finally:
@@ -55,7 +55,7 @@ def test_a_run_empties_the_area_into_the_grid(served4: Served) -> None:
 
 
 def test_grip_failures_are_retried_and_counted(tmp_path: Path) -> None:
-    served = serve(tmp_path, production_config(tmp_path, count=3, scene={"gripper": {"fail_probability": 0.5}}))
+    served = start_served(tmp_path, production_config(tmp_path, count=3, scene={"gripper": {"fail_probability": 0.5}}))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http, gripper={"grip_width_mm": 30.0, "settle_s": 0.05,
@@ -75,7 +75,7 @@ def test_grip_failures_are_retried_and_counted(tmp_path: Path) -> None:
 def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path) -> None:
     unreachable = [{"x_mm": 640.0, "y_mm": 40.0, "angle_deg": 30.0},
                    {"x_mm": 640.0, "y_mm": -50.0, "angle_deg": -100.0}]  # beyond the envelope's x = 615 mm
-    served = serve(tmp_path, production_config(tmp_path, count=1, scene={"unreachable": unreachable}))
+    served = start_served(tmp_path, production_config(tmp_path, count=1, scene={"unreachable": unreachable}))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http)
@@ -90,5 +90,27 @@ def test_only_unreachable_parts_end_none_pickable_not_area_empty(tmp_path: Path)
         assert "2 not pickable" in last["detail"] and "envelope" in last["detail"], last
         states = [p["state"] for p in http.get("/sim/truth").json()["parts"]]
         assert states == ["placed", "in_area", "in_area"]
+    finally:
+        stop_served(served)
+
+
+def test_a_full_place_grid_fails_the_run_saying_so_and_the_slot_can_be_reset(tmp_path: Path) -> None:
+    served = start_served(tmp_path, production_config(tmp_path, count=2))
+    try:
+        http = served.client(timeout_s=60)
+        grid = {"kind": "grid", "origin_ur": [0.33, -0.23, 0.006, 0.0, 0.0, 0.0], "rows": 1, "cols": 1,
+                "pitch_mm": [55.0, -45.0]}
+        teach_recipe(http, place=grid)
+        http.post("/production/start", json={"recipe_id": 1})
+        end = wait_ended(http)
+        assert end["state"] == "failed" and end["ended_because"] == "failed", end
+        assert end["counters"]["placed"] == 1 and "full" in end["error"], end
+        parts = http.get("/sim/truth").json()["parts"]
+        assert sorted(p["state"] for p in parts) == ["in_area", "placed"]  # checked before the pick
+        reset = http.put("/production/slot", json={"recipe_id": 1, "next_slot": 0})
+        assert reset.status_code == 200 and reset.json()["next_slot"] == 0
+        assert http.get("/production").json()["next_slot"] == 0
+        opened = http.post("/production/gripper/open", params={"recipe_id": 1})
+        assert opened.status_code == 200 and opened.json()["holding"] is False
     finally:
         stop_served(served)

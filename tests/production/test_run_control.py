@@ -6,8 +6,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tests.support.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended, wait_for
-from tests.support.served import stop_served
+from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended, wait_for
+from tests.support.served import start_served, stop_served
 
 
 def truth_parts(http: Any) -> list[dict[str, Any]]:
@@ -16,7 +16,7 @@ def truth_parts(http: Any) -> list[dict[str, Any]]:
 
 
 def test_a_stop_with_a_part_held_latches_keeps_it_gripped_and_ends_the_run_stopped(tmp_path: Path) -> None:
-    served = serve(tmp_path, production_config(tmp_path, count=4, time_scale=0.5))
+    served = start_served(tmp_path, production_config(tmp_path, count=4, time_scale=0.5))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http)
@@ -47,7 +47,7 @@ def test_a_stop_with_a_part_held_latches_keeps_it_gripped_and_ends_the_run_stopp
 
 
 def test_pause_waits_after_the_cycle_and_resume_goes_on(tmp_path: Path) -> None:
-    served = serve(tmp_path, production_config(tmp_path, count=3))
+    served = start_served(tmp_path, production_config(tmp_path, count=3))
     try:
         http = served.client(timeout_s=60)
         teach_recipe(http)
@@ -69,7 +69,7 @@ def test_pause_waits_after_the_cycle_and_resume_goes_on(tmp_path: Path) -> None:
 
 def test_at_real_time_the_slot_counter_survives_a_restart(tmp_path: Path) -> None:
     config = production_config(tmp_path, count=3, time_scale=1.0)
-    served = serve(tmp_path, config)
+    served = start_served(tmp_path, config)
     try:
         http = served.client(timeout_s=60)
         recipe = teach_recipe(http)
@@ -92,7 +92,7 @@ def test_at_real_time_the_slot_counter_survives_a_restart(tmp_path: Path) -> Non
             assert err[0] < 1.0 and err[1] < 1.0, err
     finally:
         stop_served(served)
-    served = serve(tmp_path, config)
+    served = start_served(tmp_path, config)
     try:
         http = served.client(timeout_s=60)
         st = http.get("/production").json()

@@ -70,8 +70,24 @@ def store_truth(config_path: Path, scene_path: Path) -> None:
         store.activate(h.id, "test")
 
 
-def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> dict[str, Any]:
-    """Move clear of the view, teach the clear part from a live frame, store the production recipe."""
+def pick_area_roi(truth: dict[str, Any], margin_mm: float = 35.0) -> list[float]:
+    """The pick area (grown by ``margin_mm``, at the parts' top face) as an image ROI ``[u, v, w, h]``."""
+    from calibration import geometry as g
+    from calibration.io import camera_from_json
+
+    cam = camera_from_json(truth["camera"], "truth")
+    area, z = truth["pick_area"], truth["part"]["thickness_mm"]
+    corners = [[x, y, z] for x in (area["x_mm"][0] - margin_mm, area["x_mm"][1] + margin_mm)
+               for y in (area["y_mm"][0] - margin_mm, area["y_mm"][1] + margin_mm)]
+    uv = cam.project(g.transform_points(g.invert(np.array(truth["T_base_cam"])), np.array(corners) * 1e-3))
+    lo = np.maximum(uv.min(axis=0), 0.0)
+    hi = np.minimum(uv.max(axis=0), [cam.width - 1.0, cam.height - 1.0])
+    return [float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])]
+
+
+def teach_recipe(http: httpx.Client, recipe_id: int = 1, search_roi: bool = False, **overrides: Any) -> dict[str, Any]:
+    """Move clear of the view, teach the clear part from a live frame, store the production recipe
+    (``search_roi``: search the pick area's part of the image only, as a cell's recipe would)."""
     r = http.post("/robots/robot0/move", json={"pose_ur": dict(zip(("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"),
                                                                  CLEAR_POSE_UR, strict=True)), "speed_m_s": 0.5})
     if r.status_code != 200:
@@ -85,10 +101,12 @@ def teach_recipe(http: httpx.Client, recipe_id: int = 1, **overrides: Any) -> di
     recipe: dict[str, Any] = {
         "name": "bracket", "models": [model.json()], "plane_z_mm": 6.0, "grasp_z_mm": 0.0,
         "approach_height_mm": 40.0, "speed_m_s": 0.5, "capture_pose_ur": CLEAR_POSE_UR,
-        "search": {"max_count": 40, "min_score": 0.7},
+        "search": {"max_count": 40, "min_score": 0.7, "timeout_s": 5.0},
         "gripper": {"grip_width_mm": 30.0, "settle_s": 0.05, "device": {"io_id": "gripper0", "kind": "robotiq_2f"}},
         "place": truth["place_grid"],
     }
+    if search_roi:
+        recipe["search"]["roi"] = pick_area_roi(truth)
     recipe.update(overrides)
     saved = http.post("/recipes", json={"recipe_id": recipe_id, "recipe": recipe})
     if saved.status_code != 201:

@@ -317,6 +317,8 @@ def test_stop_from_the_page_latches_and_only_an_engineer_resumes(cell: tuple[Ser
     page.click("#robot-stop")
     expect(page.locator("#rs-latched")).to_contain_text("latched by Stop")
     expect(page.locator("#robot-resume")).to_be_hidden()  # an operator may stop, not resume
+    expect(page.locator("#robot-badge")).to_contain_text("STOPPED")  # the header shows the latch
+    expect(page.locator("#header-resume")).to_be_hidden()
     page.screenshot(path=str(SHOTS / "operator-robot-latched.png"), full_page=True)
     page.close()
     page, errors2 = new_page(browser, served)

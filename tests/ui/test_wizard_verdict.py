@@ -90,12 +90,8 @@ def test_the_wizard_shows_the_verdict(served: Served, browser: Browser, marks_mm
 
 
 def test_the_tool_centre_needs_a_fixed_camera(served: Served) -> None:
-    """The built-in cell's camera rides on the tool: the turn is refused before anything moves."""
+    """The built-in cell's camera rides on the tool: the turn is refused at once (409, no job), before it moves."""
     with served.client() as http:
         r = http.post("/routines/jog-to-mark", json={"tool_centre": True})
-        assert r.status_code == 202, r.text
-        deadline = time.monotonic() + 30
-        while (job := http.get(f"/jobs/{r.json()['id']}").json())["state"] == "running":
-            assert time.monotonic() < deadline
-            time.sleep(0.1)
-    assert job["state"] == "failed" and "needs a fixed camera" in job["error"], job
+    assert r.status_code == 409 and r.json()["error"]["code"] == "wrong_setup", r.text
+    assert "needs a fixed camera" in r.json()["error"]["message"]

@@ -15,6 +15,8 @@ from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Engineer, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.calibration_file import CalibrationFileError
+from cellctl.calibration_file import add_calibration as add_calibration_file
 from cellctl.store import NotFound, NothingToRollBack
 from cellctl.strict_types import Bool
 
@@ -91,11 +93,8 @@ def add_calibration(services: ServicesDep, who: Engineer,
     the answer is the stored version's summary with the file's verdict (``verdict_ok``: null when
     the file has none) and ``activated: false``. Activate it with ``POST /calibrations/{id}/activate``.
     """
-    from cellctl.calibration_file import CalibrationFileError
-    from cellctl.calibration_file import add_calibration as add
-
     try:
-        return add(services.store, services.config, data, who.name, kind, camera_id, robot_id, note,
+        return add_calibration_file(services.store, services.config, data, who.name, kind, camera_id, robot_id, note,
                    source="the body")
     except CalibrationFileError as exc:
         raise ApiError(422, exc.code, str(exc)) from None

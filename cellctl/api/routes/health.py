@@ -39,6 +39,6 @@ async def health(cell: CellDep, request: Request) -> dict[str, Any]:
     services = getattr(request.app.state, "services", None)
     problem = getattr(services.store, "problem", None) if services is not None else None
     body["store"] = {"available": problem is None, "reason": problem}
-    if problem and not waiting:
+    if problem:  # a store that is down outranks a warm-up still running: it needs an engineer
         body["status"] = "store_unavailable"
     return body

@@ -19,6 +19,7 @@ from cellctl.api.errors import ApiError
 from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import JobInputError, TooManyJobs
 from cellctl.routines import HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines.preflight import PreflightRefused, preflight
 from cellctl.strict_types import Num
 
 router = APIRouter(tags=["jobs"], route_class=EdgeRoute)
@@ -38,6 +39,9 @@ class JobPublic(BaseModel):
     finished_s: float | None
     waiting_for: dict[str, Any] | None
     events: int
+    verdict_ok: bool | None = None
+    """A succeeded job's verdict (a calibration's verdict.ok, verify's passed); false: NOT OK (the state stays
+    succeeded: the result is there to be looked at); null: running, ended otherwise, or no verdict."""
 
 
 class RecordInput(BaseModel):
@@ -90,10 +94,15 @@ def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, An
     module = routine(name)
     try:
         # Strict in JSON terms: a number is a JSON number (not true or "0.4"); JSON integers are fine floats.
-        module.Params.model_validate_json(json.dumps(params or {}), strict=True)
+        checked = module.Params.model_validate_json(json.dumps(params or {}), strict=True)
     except ValidationError as exc:
         msg = format_validation_errors(exc, with_input=False, model=module.Params)
         raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
+    try:
+        # What the config and the store decide is answered now, not by a job that fails a moment later.
+        preflight(services, name, checked)
+    except PreflightRefused as exc:
+        raise ApiError(exc.status, exc.code, f"routine {name}: {exc}") from None
     motion = None
     robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
     # A routine that measures with the robot still owns it too (when the cell has it), without moving it.

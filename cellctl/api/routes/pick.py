@@ -79,8 +79,8 @@ def save_recipe(body: RecipeInput, services: ServicesDep, who: Engineer) -> dict
         body.recipe.part_models()
     except ModelFileError as exc:
         raise ApiError(422, "invalid_model", str(exc)) from None
+    # The store audits the save in the same transaction (recipe.save, recipe:<id>): once, never here again.
     r = services.store.save_recipe(body.recipe_id, body.recipe.name, body.recipe.model_dump(mode="json"), who.name)
-    services.store.audit(who.name, "recipe.save", str(body.recipe_id), {"version": r.version, "name": r.name}, "ok")
     return {"recipe_id": r.recipe_id, "version": r.version, "name": r.name}
 
 

@@ -147,7 +147,7 @@ def set_slot(body: SlotInput, services: ServicesDep, who: Engineer) -> dict[str,
         raise ApiError(422, "invalid_slot", f"recipe {body.recipe_id}'s place pattern has {n} slots (0..{n - 1}); "
                                             f"next_slot {body.next_slot} is beyond it")
     manager = _manager(services)
-    running = [r for r in manager._runs.values() if not r.ended and r.s.recipe_id == body.recipe_id]
+    running = manager.running(body.recipe_id)
     if running:
         raise ApiError(409, "production_running", f"production run {running[0].status.run_id} places recipe "
                                                   f"{body.recipe_id}'s parts now; stop it before setting the slot")

@@ -18,6 +18,8 @@ class Controller:
     t_start: float = field(default_factory=time.monotonic)
     arm: Arm = field(default_factory=Arm)
     script: ControlScript = field(default_factory=ControlScript)
+    input_owners: dict[str, object] = field(default_factory=dict)
+    """The RTDE connection that set up each input variable (its only writer while it is connected)."""
 
     def robot_status_bits(self) -> int:
         return (1 if self.arm.powered else 0) | (2 if self.script.program_running else 0)

@@ -2,7 +2,9 @@
 
 Protocol version ``V``, controller version ``v``, output/input recipe setup ``O``/``I``, start
 ``S``, pause ``P`` and data packages ``U``; big-endian; outputs at up to the controller's rate
-(500 Hz, an e-Series controller, version 5.11). Variable names and types are the controller's.
+(500 Hz, an e-Series controller, version 5.11). Variable names and types are the controller's. An
+input variable has one writer: the client that set it up first, until it disconnects (``IN_USE``
+to the others), so a second control client cannot write the first one's command register.
 """
 
 from __future__ import annotations
@@ -171,6 +173,9 @@ class RtdeConnection:
             pass
         finally:
             self.alive = False
+            with self.ctrl.lock:  # its input variables are free for another client
+                for name in [n for n, owner in self.ctrl.input_owners.items() if owner is self]:
+                    del self.ctrl.input_owners[name]
             with contextlib.suppress(OSError):
                 self.sock.close()
 
@@ -200,13 +205,22 @@ class RtdeConnection:
         self.send(b"O", bytes([1]) + ",".join(types).encode())
 
     def _setup_inputs(self, payload: bytes) -> None:
+        """An input recipe; a variable another live client has set up answers ``IN_USE`` (one writer each)."""
         names = [n for n in payload.decode("ascii", "replace").split(",") if n]
-        types = [VARIABLE_TYPES.get(n, "NOT_FOUND") for n in names]
         recipe_id = len(self.input_recipes) + 1
-        in_use = any(t == "NOT_FOUND" for t in types)
-        if not in_use:
+        with self.ctrl.lock:
+            owners = self.ctrl.input_owners
+            types = ["IN_USE" if owners.get(n, self) is not self else VARIABLE_TYPES.get(n, "NOT_FOUND")
+                     for n in names]
+            refused = any(t in ("NOT_FOUND", "IN_USE") for t in types)
+            if not refused:
+                owners.update(dict.fromkeys(names, self))
+        if "IN_USE" in types:
+            log.warning("RTDE input recipe refused: %s in use by another client",
+                        ", ".join(n for n, t in zip(names, types, strict=True) if t == "IN_USE"))
+        if not refused:
             self.input_recipes[recipe_id] = (names, ">" + "".join(_STRUCT[t] for t in types))
-        self.send(b"I", bytes([0 if in_use else recipe_id]) + ",".join(types).encode())
+        self.send(b"I", bytes([0 if refused else recipe_id]) + ",".join(types).encode())
 
     def _receive_inputs(self, payload: bytes) -> None:
         recipe = self.input_recipes.get(payload[0])

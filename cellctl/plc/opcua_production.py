@@ -1,0 +1,131 @@
+"""Production in the OPC UA address space: methods to start, pause, resume and stop a run, and the
+run's state as variables of ``Cell`` (docs/plc-opcua.md).
+
+Methods (the same requests as Modbus commands 4..7, :func:`cellctl.plc.production.execute_production`):
+``StartProduction(RecipeId: Int32, Count: Int32) -> RunId: Int32`` (only with
+``plc.allow_motion: true``), ``PauseProduction()``, ``ResumeProduction()``, ``StopProduction()``.
+Failures are the status codes of the pick methods (``STATUS_OF_TEXT``).
+
+Variables (read-only, refreshed every 0.1 s, from memory): ``ProductionRunId`` Int32 (0: none yet),
+``ProductionState`` and ``ProductionEndedBecause`` String (REST's words; empty while running),
+``ProductionPicked``, ``ProductionPlaced``, ``ProductionGripFailures``, ``ProductionRetries``,
+``ProductionSkipped``, ``ProductionEmptyArea``, ``ProductionUnreachable``, ``ProductionNextSlot``
+Int32, ``ProductionLastResult`` String, ``ProductionCycleMedianMs``, ``ProductionLastSigmaMm``,
+``ProductionLastSigmaDeg`` Double (NaN: not known).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from asyncua import Node, ua
+
+from cellctl.plc.production import (
+    CMD_PRODUCTION_PAUSE,
+    CMD_PRODUCTION_RESUME,
+    CMD_PRODUCTION_START,
+    CMD_PRODUCTION_STOP,
+    COUNTERS,
+    execute_production,
+)
+from cellctl.plc.requests import Outcome
+from cellctl.production.manager import existing_manager
+from cellctl.services import Services
+
+_COUNTER_NAMES = {"picked": "ProductionPicked", "placed": "ProductionPlaced", "grip_failures": "ProductionGripFailures",
+                  "retries": "ProductionRetries", "skipped": "ProductionSkipped", "empty_area": "ProductionEmptyArea",
+                  "unreachable": "ProductionUnreachable"}
+VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
+    ("ProductionRunId", 0, ua.VariantType.Int32),
+    ("ProductionState", "", ua.VariantType.String),
+    ("ProductionEndedBecause", "", ua.VariantType.String),
+    *((_COUNTER_NAMES[k], 0, ua.VariantType.Int32) for k in COUNTERS),
+    ("ProductionNextSlot", 0, ua.VariantType.Int32),
+    ("ProductionLastResult", "", ua.VariantType.String),
+    ("ProductionCycleMedianMs", math.nan, ua.VariantType.Double),
+    ("ProductionLastSigmaMm", math.nan, ua.VariantType.Double),
+    ("ProductionLastSigmaDeg", math.nan, ua.VariantType.Double),
+)
+
+Call = Callable[[Callable[[], Outcome]], Awaitable[Outcome]]
+Fail = Callable[[Outcome], Any]
+
+
+def production_values(services: Services) -> dict[str, Any]:
+    """The variables' values now (from memory; no store access)."""
+    manager = existing_manager(services)
+    snap = None if manager is None else manager.snapshot()
+    if snap is None:
+        return {}
+    last = snap["last"] or {}
+    unc = last.get("uncertainty") or {}
+    sig = [s for s in (unc.get("sigma_mm") or []) if s is not None]
+    median, sigma_deg = snap["cycle_median_ms"], unc.get("sigma_yaw_deg")
+    out: dict[str, Any] = {
+        "ProductionRunId": int(snap["run_id"]), "ProductionState": snap["state"],
+        "ProductionEndedBecause": snap["ended_because"] or "", "ProductionNextSlot": int(snap["next_slot"]),
+        "ProductionLastResult": str(last.get("result") or ""),
+        "ProductionCycleMedianMs": math.nan if median is None else float(median),
+        "ProductionLastSigmaMm": max(sig) if sig else math.nan,
+        "ProductionLastSigmaDeg": math.nan if sigma_deg is None else float(sigma_deg)}
+    for k in COUNTERS:
+        out[_COUNTER_NAMES[k]] = int(snap["counters"][k])
+    return out
+
+
+def _int(v: ua.Variant | None) -> int | None:
+    value = v.Value if isinstance(v, ua.Variant) else None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+async def add_production(cell: Node, idx: int, services: Services, call: Call, fail: Fail) -> dict[str, Node]:
+    """Add the production methods and variables to ``Cell``; the variables' nodes by name."""
+    nodes = {name: await cell.add_variable(idx, name, value, vtype) for name, value, vtype in VARIABLES}
+
+    def arg(name: str, vtype: ua.VariantType, description: str) -> ua.Argument:
+        a = ua.Argument()
+        a.Name = name
+        a.DataType = ua.NodeId(ua.Int32(vtype.value))
+        a.ValueRank = -1
+        a.Description = ua.LocalizedText(description)
+        return a
+
+    async def start(parent: ua.NodeId, recipe: ua.Variant | None = None, count: ua.Variant | None = None) -> Any:
+        r, c = _int(recipe), _int(count)
+        if r is None or c is None or c < 0:
+            return ua.StatusCode(ua.UInt32(ua.StatusCodes.BadInvalidArgument))
+        out = await call(lambda: execute_production(services, CMD_PRODUCTION_START, r, c, "plc:opcua"))
+        if not out.ok:
+            return fail(out)
+        manager = existing_manager(services)
+        snap = None if manager is None else manager.snapshot()
+        return [ua.Variant(0 if snap is None else int(snap["run_id"]), ua.VariantType.Int32)]
+
+    def simple(command: int) -> Callable[[ua.NodeId], Awaitable[Any]]:
+        async def method(parent: ua.NodeId) -> Any:
+            out = await call(lambda: execute_production(services, command, 0, 0, "plc:opcua"))
+            return fail(out) if not out.ok else []
+
+        return method
+
+    await cell.add_method(idx, "StartProduction", start,
+                          [arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535"),
+                           arg("Count", ua.VariantType.Int32, "parts to place; 0: until the area is empty")],
+                          [arg("RunId", ua.VariantType.Int32, "the run's id")])
+    for name, command in (("PauseProduction", CMD_PRODUCTION_PAUSE), ("ResumeProduction", CMD_PRODUCTION_RESUME),
+                          ("StopProduction", CMD_PRODUCTION_STOP)):
+        await cell.add_method(idx, name, simple(command), [], [])
+    return nodes
+
+
+async def refresh_production(nodes: dict[str, Node], services: Services, shown: dict[str, Any]) -> None:
+    """Write the variables that changed since ``shown`` (updated in place)."""
+    types = {name: vtype for name, _, vtype in VARIABLES}
+    for name, value in production_values(services).items():
+        if shown.get(name) == value or (isinstance(value, float) and math.isnan(value)
+                                        and isinstance(shown.get(name), float) and math.isnan(shown[name])):
+            continue
+        await nodes[name].write_value(ua.DataValue(ua.Variant(value, types[name])))
+        shown[name] = value
