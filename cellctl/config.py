@@ -326,7 +326,7 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
             except ImportError as exc:
                 raise ConfigError(f"{source}: {path}.kind: the adapter cannot be loaded ({exc})") from None
             except ValidationError as exc:
-                settings = adapter_class(category, getattr(cfg, section)[device_id].kind).Settings
+                settings = adapter_class(category, getattr(cfg, section)[device_id].kind).Settings  # type: ignore[attr-defined]
                 text = format_validation_errors(exc, prefix=path + ".settings", model=settings)
                 raise ConfigError(f"{source}: {text}") from None
     return cfg
