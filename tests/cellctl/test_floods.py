@@ -279,6 +279,26 @@ def test_slow_bodies_time_out_as_client_errors_and_stop_is_not_delayed(cell: tup
     assert counted(after, "500") == counted(before, "500")
 
 
+def test_a_client_that_leaves_mid_body_is_counted_as_a_client_error(cell: tuple[Served, dict[str, str]]) -> None:
+    """Issue 21: each client that dropped its connection mid-body was logged and counted as a 500."""
+    served, tokens = cell
+    host, port = served.base_url.removeprefix("http://").split(":")
+    with served.client(tokens["viewer"]) as http:
+        before = http.get("/metrics").text
+        for _ in range(5):
+            with socket.create_connection((host, int(port)), timeout=10) as s:
+                s.sendall(b"POST /map HTTP/1.1\r\nHost: cell\r\nContent-Type: application/json\r\n"
+                          b"Authorization: Bearer " + tokens["viewer"].encode()
+                          + b"\r\nContent-Length: 1000\r\n\r\n{\"u_px\": 1")  # and gone
+
+        def counted_all() -> str | None:
+            text = http.get("/metrics").text
+            return text if counted(text, "499") - counted(before, "499") >= 5 else None
+
+        after = wait_until(counted_all, 30.0, "five 499s counted")
+    assert after is not None and counted(after, "500") == counted(before, "500")
+
+
 def counted(metrics_text: str, status: str) -> float:
     """Requests counted with ``status`` in the latency histogram (any route)."""
     return sum(float(line.rsplit(" ", 1)[1]) for line in metrics_text.splitlines()
