@@ -127,7 +127,7 @@ def main() -> None:
         f"Machine: {cpu_model()}. `bench/production.py --parts {a.parts} --seeds {' '.join(map(str, a.seeds))}`; "
         "peer: the same run with the picture taken after the robot is back (`overlap: false`). Truth: "
         "`GET /sim/truth` (each placed part against its nearest slot). The calibrations are the scene's truth; "
-        "the recipe searches the pick area's part of the image. Load average at the start: "
+        "the recipe searches the pick area's part of the image. Load average when the table was written: "
         f"{os.getloadavg()[0]:.1f} (other sessions' tests share the 2 cores).",
         "",
         table(results),

@@ -315,7 +315,7 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
     try:
         cfg = CellConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{source}: {format_validation_errors(exc)}") from None
+        raise ConfigError(f"{source}: {format_validation_errors(exc, model=CellConfig)}") from None
     for section, category in _SECTIONS.items():
         for device_id in getattr(cfg, section):
             path = f"{section}.{device_id}"
@@ -326,7 +326,9 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
             except ImportError as exc:
                 raise ConfigError(f"{source}: {path}.kind: the adapter cannot be loaded ({exc})") from None
             except ValidationError as exc:
-                raise ConfigError(f"{source}: {format_validation_errors(exc, prefix=path + '.settings')}") from None
+                settings = adapter_class(category, getattr(cfg, section)[device_id].kind).Settings  # type: ignore[attr-defined]
+                text = format_validation_errors(exc, prefix=path + ".settings", model=settings)
+                raise ConfigError(f"{source}: {text}") from None
     return cfg
 
 

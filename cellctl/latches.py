@@ -53,7 +53,8 @@ class LatchKeeper:
         self._waiters: list[tuple[int, concurrent.futures.Future[bool]]] = []
         self._closing = False
         self._failing = False
-        """The store refused the newest write (retried): a waiter is answered False at once, not after its timeout."""
+        """The store refused the newest write: it is retried every ``RETRY_S``, and each refusal answers
+        the waiters of that moment False (a Stop's answer does not wait out its whole timeout)."""
         self._thread: threading.Thread | None = None
 
     # -- start-up --------------------------------------------------------------------------------
@@ -112,7 +113,7 @@ class LatchKeeper:
         with self._cond:
             if self._written >= self._issued:
                 fut.set_result(True)
-            elif self._closing or self._failing:
+            elif self._closing:
                 fut.set_result(False)
             else:
                 self._waiters.append((self._issued, fut))

@@ -122,3 +122,16 @@ def test_accepted_keys_walks_lists_dicts_and_unions(tmp_path: Path) -> None:
     assert accepted_keys(Outer, ("by_name", "x")) == ["a", "b_mm"]
     assert accepted_keys(Outer, ("maybe",)) == ["a", "b_mm"]
     assert accepted_keys(Outer, ("nothing",)) is None
+
+
+def test_an_unknown_key_in_cell_yaml_lists_the_accepted_keys() -> None:
+    data = yaml.safe_load(default_config_text())
+    data["robots"]["robot0"]["pose"] = {"home": [0.4, 0.0, 0.55, 3.14159265, 0.0, 0.0]}
+    with pytest.raises(ConfigError) as err:
+        parse_config(data)
+    assert "robots.robot0.pose: unknown key (accepted: kind, settings, envelope," in str(err.value)
+    assert "poses)" in str(err.value)
+    data = yaml.safe_load(default_config_text())
+    data["cameras"]["cam0"]["settings"]["colour"] = "red"
+    with pytest.raises(ConfigError, match=r"cameras\.cam0\.settings\.colour: unknown key \(accepted: scene, "):
+        parse_config(data)
