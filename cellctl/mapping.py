@@ -34,6 +34,14 @@ class ActiveMapping:
     camera: CameraModel | None
     camera_calibration_id: int | None
 
+    @property
+    def camera_on_arm(self) -> bool:
+        """True when the camera rides on the arm: an eye-in-hand hand-eye, or an N-point map taken at a
+        capture pose. Its frames then depend on where the robot is."""
+        if self.kind == "handeye":
+            return bool(self.calib.get("setup") == "eye-in-hand")
+        return self.calib.get("capture_pose_ur") is not None
+
     def map(self, uv_px: NDArray[np.float64], plane_z_mm: float | None,
             T_base_tool_capture: NDArray[np.float64] | None, with_uncertainty: bool = True) -> RobotPoint:
         if self.kind == "handeye":

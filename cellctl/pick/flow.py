@@ -47,7 +47,16 @@ def run_pick(services: Services, recipe_id: int, camera_id: str | None = None, m
             raise PickError(f"the robot is {off} from recipe {recipe_id}'s capture pose: the parts would be "
                             "seen from the wrong place; move it there, or pick with move: true (which goes there "
                             "first)")
-        return _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
+        if not active_mapping(services, _camera_of(services, recipe, camera_id), robot_id, recipe.calibration,
+                              recipe.plane_z_mm is not None).camera_on_arm:
+            return _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
+        # A camera on the arm measures only while the arm stands still: hold it (RobotBusy while another
+        # caller moves it), so the frame and the pose read with it belong together.
+        still = robot.motion.begin(who, f"pick of recipe {recipe_id}: locating", still=True)
+        try:
+            return _locate(services, recipe_id, stored.version, recipe, camera_id, robot)
+        finally:
+            robot.motion.end(still)
     with robot.motion_session(who, f"pick of recipe {recipe_id}") as session:
         T_capture = _capture_pose(recipe)
         if T_capture is not None and _off_pose(robot, T_capture) is not None:
@@ -90,11 +99,15 @@ def _off_pose(robot: RobotBase, T_capture: NDArray[np.float64]) -> str | None:
     return f"{d_mm:.1f} mm, {a_deg:.2f} deg"
 
 
+def _camera_of(services: Services, recipe: Recipe, camera_id: str | None) -> str:
+    """The camera a pick looks through: the request's, else the recipe's, else the config's calibration camera."""
+    return camera_id or recipe.camera_id or services.config.calibration.camera
+
+
 def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str | None,
             robot: RobotBase) -> dict[str, Any]:
     t0 = time.perf_counter()
-    d = services.config.calibration
-    cam_id = camera_id or recipe.camera_id or d.camera
+    cam_id = _camera_of(services, recipe, camera_id)
     robot_id = robot.robot_id
     models = recipe.part_models()
     mapping = active_mapping(services, cam_id, robot_id, recipe.calibration, recipe.plane_z_mm is not None)

@@ -51,10 +51,8 @@ class Picture:
 
 def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
     """True when the active calibration says the camera rides on the arm (eye-in-hand)."""
-    mapping = active_mapping(services, camera_id, robot_id, recipe.calibration, recipe.plane_z_mm is not None)
-    if mapping.kind == "handeye":
-        return bool(mapping.calib.get("setup") == "eye-in-hand")
-    return mapping.calib.get("capture_pose_ur") is not None
+    return active_mapping(services, camera_id, robot_id, recipe.calibration,
+                          recipe.plane_z_mm is not None).camera_on_arm
 
 
 def take_picture(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str,

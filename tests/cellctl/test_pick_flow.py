@@ -23,6 +23,7 @@ from cellctl.pick.flow import PickError, Recipe, fold_yaw, run_pick
 from cellctl.pick.model import teach
 from cellctl.services import Services
 from cellctl.store import open_store
+from drivers.base import RobotBusy
 from drivers.sim.world import SimWorld, world_for
 
 SEED = 11
@@ -185,3 +186,18 @@ def test_the_recipe_carries_the_matchers_search_options(services: Services) -> N
 
     with pytest.raises(ValidationError, match="scale_range"):
         Recipe.model_validate({**tuned.model_dump(mode="json"), "search": {"scale_range": [1.2, 0.9]}})
+
+
+def test_locating_through_a_camera_on_the_arm_holds_the_robot_still(services: Services) -> None:
+    """POST /pick without move grabs a frame and reads the pose it was taken from: with the camera on the
+    arm, another caller's move in between would pair them wrongly, so the locate holds the robot."""
+    teach_bracket(services)
+    robot = services.cell.robot("robot0").ensure_open()
+    mover = robot.motion.begin("engineer", "another caller's move")
+    try:
+        with pytest.raises(RobotBusy):
+            run_pick(services, 1)
+    finally:
+        robot.motion.end(mover)
+    assert run_pick(services, 1)["picks"]  # free again: located as before
+    assert robot.motion.status()["owner"] is None  # the hold ended with the locate
