@@ -20,6 +20,8 @@ from typing import Any, Final, Literal, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
+
 ModelName = Literal["opencv5", "opencv8", "division"]
 MODEL_NAMES: Final[tuple[str, ...]] = ("opencv5", "opencv8", "division")
 N_DIST: Final[dict[str, int]] = {"opencv5": 5, "opencv8": 8, "division": 1}
@@ -27,7 +29,7 @@ N_DIST: Final[dict[str, int]] = {"opencv5": 5, "opencv8": 8, "division": 1}
 Points2 = NDArray[np.float64]
 
 
-class CameraModelError(ValueError):
+class CameraModelError(CalibrationError):
     """A camera model description is malformed (unknown model, wrong coefficient count, ...)."""
 
 

@@ -18,6 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from calibration import CalibrationError
+
 Mat4 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]
 Vec = NDArray[np.float64]
@@ -25,7 +27,7 @@ Vec = NDArray[np.float64]
 _ORTHONORMAL_TOL: Final = 1e-6
 
 
-class PoseError(ValueError):
+class PoseError(CalibrationError):
     """A pose is not a valid rigid transform (wrong shape, not orthonormal, not finite)."""
 
 

@@ -21,12 +21,14 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
+
 MM: Final = 1e-3
 
 FloatArray = NDArray[np.float64]
 
 
-class TargetError(ValueError):
+class TargetError(CalibrationError):
     """A target description is missing a field, has an unknown one, or a nonsensical value."""
 
 

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.detect.conic import circle_centre_bias_px, conic_centres_normalized
 from calibration.detect.quality import image_quality
 from calibration.detect.tool_spot import Spot, SpotNotFound, find_spot
@@ -37,7 +38,7 @@ __all__ = [
 ]
 
 
-class DetectionError(ValueError):
+class DetectionError(CalibrationError):
     """The input to detection is unusable: empty/corrupt image, or a target that has no image pattern."""
 
 

@@ -26,12 +26,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
+
 SATURATION_DN: Final = 250.0
 RING_MAX_FRACTION: Final = 0.5
 MIN_AREA_PX: Final = 4
 
 
-class SpotNotFound(ValueError):
+class SpotNotFound(CalibrationError):
     """No single spot (saturated and ringed by dark) in the image; the message says what was seen."""
 
 

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 from calibration.geometry import invert
 
@@ -35,7 +36,7 @@ OUTLIER_FLOOR: Final = 3.0
 Mat4 = NDArray[np.float64]
 
 
-class HandEyeError(ValueError):
+class HandEyeError(CalibrationError):
     """The data cannot give a trustworthy hand-eye calibration; the message says why and what to do."""
 
 

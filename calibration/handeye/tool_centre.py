@@ -28,6 +28,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
 from calibration.geometry import make_transform
 from calibration.npoint import NPointResult, apply_h
 
@@ -39,7 +40,7 @@ FLANGE_TOLERANCE_MM: Final = 0.5
 RECOMMENDED_ANGLES: Final = 7
 
 
-class ToolCentreError(ValueError):
+class ToolCentreError(CalibrationError):
     """The rotations cannot give a tool centre (too few angles, too short an arc...); says why."""
 
 

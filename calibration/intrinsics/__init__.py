@@ -78,8 +78,8 @@ from calibration.intrinsics.results import (
     MIN_VIEWS,
     POINT_OUTLIER_SIGMAS,
     VIEW_OUTLIER_FACTOR,
-    CalibrationError,
     CrossValidationError,
+    IntrinsicsError,
     IntrinsicsResult,
     ViewResult,
 )
@@ -96,7 +96,7 @@ from calibration.intrinsics.uncertainty import (
 
 __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
-    "VIEW_OUTLIER_FACTOR", "CalibrationError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
+    "VIEW_OUTLIER_FACTOR", "IntrinsicsError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "coverage_counts", "covered_points", "cross_validate",
     "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations",

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.intrinsics.results import MIN_VIEWS, CalibrationError, CrossValidationError, IntrinsicsResult
+from calibration.intrinsics.results import MIN_VIEWS, CrossValidationError, IntrinsicsError, IntrinsicsResult
 from calibration.intrinsics.solver import calibrate
 from calibration.intrinsics.uncertainty import (
     covered_points,
@@ -32,7 +32,7 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     the usable views or a fold cannot be calibrated.
     """
     if k < 2:
-        raise CalibrationError("cross-validation needs k >= 2 folds")
+        raise IntrinsicsError("cross-validation needs k >= 2 folds")
     found = [d for d in detections if d.found]
     if full is None:
         if len(found) < MIN_VIEWS * k:  # before spending a full calibration on it
@@ -49,7 +49,7 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
         try:
             fold_res.append(calibrate(usable[f::k], target, model, image_size=full.camera.size,
                                       drop_outliers=drop_outliers))
-        except CalibrationError as exc:
+        except IntrinsicsError as exc:
             raise CrossValidationError(f"fold {f + 1} of {k} ({len(usable[f::k])} views) cannot be calibrated "
                                        f"({exc}); use a smaller k") from exc
     pairs = []

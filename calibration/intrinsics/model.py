@@ -12,7 +12,7 @@ from calibration.camera_model import CameraModel, ModelName, distort_normalized
 from calibration.intrinsics import kernels
 from calibration.intrinsics.results import (
     F64,
-    CalibrationError,
+    IntrinsicsError,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -153,7 +153,7 @@ def levenberg_marquardt(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[
     r = p.residuals(c, R, t)
     cost = cost_of(r)
     if not np.isfinite(cost):
-        raise CalibrationError("the initial estimate puts target points behind the camera or outside "
+        raise IntrinsicsError("the initial estimate puts target points behind the camera or outside "
                                "the lens model's range; check the target description")
     lam = 1e-3
     it = 0

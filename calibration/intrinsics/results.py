@@ -8,6 +8,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 
 F64 = NDArray[np.float64]
@@ -25,11 +26,11 @@ JACKKNIFE_MIN_COVER: Final = 3
 """The jackknife is compared with the analytic covariance on cells at least this many views saw."""
 
 
-class CalibrationError(ValueError):
+class IntrinsicsError(CalibrationError):
     """The data cannot produce a calibration (too few views or points, degenerate geometry)."""
 
 
-class CrossValidationError(CalibrationError):
+class CrossValidationError(IntrinsicsError):
     """Cross-validation cannot run on these data (k too large for the usable views, a fold fails);
     the calibration itself may still be fine."""
 

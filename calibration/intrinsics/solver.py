@@ -23,7 +23,7 @@ from calibration.intrinsics.results import (
     JACKKNIFE_MIN_VIEWS,
     MIN_POINTS_PER_VIEW,
     MIN_VIEWS,
-    CalibrationError,
+    IntrinsicsError,
     IntrinsicsResult,
     fin,
 )
@@ -64,20 +64,20 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
     scale the analytic covariance up when the jackknife's value is larger.
 
-    Raises CalibrationError with a message saying what to do when the data cannot determine
+    Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
     """
     t0 = time.perf_counter()
     if model not in MODEL_NAMES:
-        raise CalibrationError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
+        raise IntrinsicsError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
     views, results, size = collect_views(detections, target, image_size)
     if len(views) < MIN_VIEWS:
-        raise CalibrationError(f"only {len(views)} usable view(s) of the target; a calibration needs "
+        raise IntrinsicsError(f"only {len(views)} usable view(s) of the target; a calibration needs "
                                f"at least {MIN_VIEWS} (10-20 recommended, tilted 20-45 deg about both axes)")
     n_par = 4 + N_DIST[model]
     n_obs = 2 * sum(len(v.X) for v in views)
     if n_obs <= n_par + 6 * len(views):
-        raise CalibrationError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
+        raise IntrinsicsError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
     p, c, R, t, iters = solve_views(model, size, views, target)
     p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
     floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
@@ -102,7 +102,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
                 keep_R.append(R[k])
                 keep_t.append(t[k])
             if len(kept) < MIN_VIEWS:
-                raise CalibrationError(f"only {len(kept)} views left after dropping outliers; "
+                raise IntrinsicsError(f"only {len(kept)} views left after dropping outliers; "
                                        f"need at least {MIN_VIEWS}")
             views = kept
             start = (c, np.array(keep_R), np.array(keep_t))

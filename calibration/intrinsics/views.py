@@ -22,7 +22,7 @@ from calibration.intrinsics.results import (
     MIN_POINTS_PER_VIEW,
     POINT_OUTLIER_SIGMAS,
     VIEW_OUTLIER_FACTOR,
-    CalibrationError,
+    IntrinsicsError,
     ViewResult,
 )
 from calibration.observations import Detection, effective_sigmas, point_weights
@@ -56,21 +56,21 @@ class ViewData:
 def collect_views(detections: Sequence[Detection], target: Target,
              image_size: tuple[int, int] | None) -> tuple[list[ViewData], list[ViewResult], tuple[int, int]]:
     if isinstance(target, Points3D):
-        raise CalibrationError("calib intrinsics needs a planar target (chessboard, charuco, circle_plate, "
+        raise IntrinsicsError("calib intrinsics needs a planar target (chessboard, charuco, circle_plate, "
                                "circle_grid); for a 3D target use calib dlt")
     tp = target.points()
     where = {int(i): k for k, i in enumerate(tp.ids)}
     found = [d for d in detections if d.found]
     if detections and not found:
         reasons = sorted({d.reason for d in detections if d.reason})
-        raise CalibrationError(
+        raise IntrinsicsError(
             f"the target ({target.describe()}) was found in none of the {len(detections)} images"
             + (f" ({reasons[0]})" if reasons else "")
             + "; is the target file the one in the images (type, size, rows and columns)?")
     sizes = [d.image_size for d in found if d.image_size != (0, 0)]
     if image_size is None:
         if not sizes:
-            raise CalibrationError("image size unknown: no detection carries it; pass image_size")
+            raise IntrinsicsError("image size unknown: no detection carries it; pass image_size")
         # The most common size wins; views of another size are reported as not used.
         image_size = max(set(sizes), key=sizes.count)
     views: list[ViewData] = []
@@ -89,7 +89,7 @@ def collect_views(detections: Sequence[Detection], target: Target,
         ids = np.asarray(d.ids, dtype=np.int64).reshape(-1)
         bad = [int(i) for i in ids if int(i) not in where]
         if bad:
-            raise CalibrationError(f"{d.image}: point ids {bad[:5]} do not exist on the target "
+            raise IntrinsicsError(f"{d.image}: point ids {bad[:5]} do not exist on the target "
                                    f"({target.describe()}); wrong target file?")
         use_ell = isinstance(target, CirclePlate) and d.uv_ellipse is not None
         uv = np.asarray(d.uv_ellipse if use_ell else d.uv, dtype=np.float64).reshape(-1, 2)
@@ -129,10 +129,10 @@ def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64,
     try:
         K = cv2.initCameraMatrix2D(obj, img, size, 1.0)
     except cv2.error as exc:
-        raise CalibrationError(f"closed-form initialisation failed ({exc.err}); are the views degenerate "
+        raise IntrinsicsError(f"closed-form initialisation failed ({exc.err}); are the views degenerate "
                                "(all parallel to each other)?") from exc
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
-        raise CalibrationError("closed-form initialisation failed: the views do not determine a focal "
+        raise IntrinsicsError("closed-form initialisation failed: the views do not determine a focal "
                                "length (all views parallel? tilt the target between views)")
     # initCameraMatrix2D forces fx == fy from the mean; a wild value means degenerate views.
     R = np.empty((len(views), 3, 3))
@@ -142,7 +142,7 @@ def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64,
         if not ok:
             ok, rv, tv = cv2.solvePnP(v.X, v.uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
-            raise CalibrationError(f"{v.image}: no initial pose (points degenerate?)")
+            raise IntrinsicsError(f"{v.image}: no initial pose (points degenerate?)")
         R[k] = exp_so3(rv.ravel())
         t[k] = tv.ravel()
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), R, t

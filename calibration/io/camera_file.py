@@ -12,11 +12,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel, CameraModelError
 from calibration.geometry import PoseError, as_transform
 
 
-class CameraFileError(ValueError):
+class CameraFileError(CalibrationError):
     """A camera or pose file is missing, not JSON, or lacks a required key."""
 
 

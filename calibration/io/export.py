@@ -21,10 +21,11 @@ import cv2
 import numpy as np
 import yaml
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 
 
-class ExportError(ValueError):
+class ExportError(CalibrationError):
     """A model cannot be expressed in the requested format, or an import file is malformed."""
 
 

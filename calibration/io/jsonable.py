@@ -16,8 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from calibration import CalibrationError
 
-class NonFiniteError(ValueError):
+
+class NonFiniteError(CalibrationError):
     """A result holds NaN or infinity where JSON needs a finite number."""
 
 

@@ -21,13 +21,14 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.geometry import ur_pose_to_transform
 
 POSE_COLUMNS: Final[tuple[str, ...]] = ("image", "x", "y", "z", "rx", "ry", "rz")
 PAIR_COLUMNS: Final[tuple[str, ...]] = ("u_px", "v_px", "x_mm", "y_mm")
 
 
-class RobotPoseFileError(ValueError):
+class RobotPoseFileError(CalibrationError):
     """A poses.csv / pairs.csv file is missing, malformed or inconsistent."""
 
 

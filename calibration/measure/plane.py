@@ -10,11 +10,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform
 
 
-class PlaneError(ValueError):
+class PlaneError(CalibrationError):
     """A pixel's ray misses the plane (parallel, or the plane lies behind the camera)."""
 
 

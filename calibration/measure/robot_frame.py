@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform, make_transform, rotvec_to_matrix, ur_pose_to_transform
 from calibration.npoint import NPointResult
@@ -29,7 +30,7 @@ from calibration.npoint import NPointResult
 DEFAULT_NPOINT_PIXEL_SIGMA_PX = 0.1
 
 
-class MappingError(ValueError):
+class MappingError(CalibrationError):
     """The pixel cannot be mapped (wrong inputs for this calibration, ray misses the plane...)."""
 
 

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 
 MODELS: Final[tuple[str, ...]] = ("similarity", "affine", "homography")
@@ -44,7 +45,7 @@ SELECTION_TOLERANCE: Final = 1.25
 F64 = NDArray[np.float64]
 
 
-class NPointError(ValueError):
+class NPointError(CalibrationError):
     """The N-point pairs cannot give a mapping (too few, duplicate or collinear marks, bad model)."""
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from calibration import CalibrationError
 from calibration.camera_model import N_DIST, CameraModel
 from calibration.geometry import make_transform
 from calibration.intrinsics import (
@@ -41,7 +42,7 @@ COPLANAR_RATIO: Final = 1e-3
 """Points are coplanar when the smallest spread (singular value) is below this fraction of the largest."""
 
 
-class DLTError(ValueError):
+class DLTError(CalibrationError):
     """The points cannot determine a camera (too few, coplanar, inconsistent)."""
 
 

@@ -19,13 +19,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from calibration import CalibrationError
 from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3, make_transform
 
 F64 = NDArray[np.float64]
 
 
-class PoseEstimationError(ValueError):
+class PoseEstimationError(CalibrationError):
     """Too few or degenerate points for a pose."""
 
 

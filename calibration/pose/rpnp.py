@@ -30,13 +30,15 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration import CalibrationError
+
 F64 = NDArray[np.float64]
 
 MIN_POINTS: Final = 4
 _EXACT_PAIR_LIMIT: Final = 300
 
 
-class RPnPError(ValueError):
+class RPnPError(CalibrationError):
     """The points cannot give an RPnP pose (too few, collinear, mismatched); the message says why."""
 
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration import CalibrationError
 from calibration.report import camera as rc
 from calibration.report.svg import Axes, bars, esc, fmt
 from calibration.targets import Target, target_from_dict
@@ -26,7 +27,7 @@ td.num{text-align:right;font-variant-numeric:tabular-nums}.note{color:#555;font-
 .thumb.rejected{opacity:.6}.plots{display:flex;flex-wrap:wrap;gap:12px}"""
 
 
-class ReportError(ValueError):
+class ReportError(CalibrationError):
     """The stored calibration lacks what its report needs; the message says what."""
 
 

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration import CalibrationError
 from calibration.targets import Charuco, Chessboard, CircleGrid, CirclePlate, PlanarTarget, Points3D, Target
 
 MM_PER_INCH: Final = 25.4
@@ -35,7 +36,7 @@ MARGIN_MM: Final = 5.0
 FORMATS: Final = (".svg", ".pdf", ".png")
 
 
-class TargetPrintError(ValueError):
+class TargetPrintError(CalibrationError):
     """The target cannot be printed as asked (3D target, unknown format, absurd resolution)."""
 
 

@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3, make_transform
-from calibration.intrinsics import CalibrationError
+from calibration.intrinsics import IntrinsicsError
 from calibration.observations import Detection
 from calibration.targets import Target
 
@@ -66,7 +66,7 @@ def plan_views(camera: CameraModel, target: Target, n_views: int, rng: np.random
                 break
             reach *= 0.93
     if len(poses) < n_views:
-        raise CalibrationError("could not plan the requested views: the target does not fit the image")
+        raise IntrinsicsError("could not plan the requested views: the target does not fit the image")
     return poses
 
 

@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     dets = _detections(args, target)
     try:
         res = intrinsics.calibrate(dets, target, args.model, drop_outliers=args.drop_outliers)
-    except intrinsics.CalibrationError as exc:
+    except intrinsics.IntrinsicsError as exc:
         raise CommandError(f"calibration failed: {exc}") from exc
     out = res.to_json()
     out["target"] = target.describe()

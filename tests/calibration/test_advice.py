@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.intrinsics import CalibrationError, CrossValidationError, calibrate, cross_validate
+from calibration.intrinsics import CrossValidationError, IntrinsicsError, calibrate, cross_validate
 from calibration.observations import Detection
 from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard
@@ -84,7 +84,7 @@ def test_view_of_another_size_rejected_with_reason() -> None:
 def test_wrong_target_is_named() -> None:
     dets = [Detection(f"v{k}.png", False, reason="no 9x6 chessboard found", image_size=(640, 480))
             for k in range(6)]
-    with pytest.raises(CalibrationError, match="found in none of the 6 images") as err:
+    with pytest.raises(IntrinsicsError, match="found in none of the 6 images") as err:
         calibrate(dets, Chessboard(9, 6, 25.0), "opencv5")
     assert "target file" in str(err.value) and "image_size" not in str(err.value)
 

@@ -7,7 +7,7 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.detect import circle_centre_bias_px
-from calibration.intrinsics import CalibrationError, calibrate, covered_points, cross_validate, projection_difference
+from calibration.intrinsics import IntrinsicsError, calibrate, covered_points, cross_validate, projection_difference
 from calibration.observations import Detection
 from calibration.synthetic import plan_views, synthetic_detections
 from calibration.targets import Chessboard, CirclePlate, Points3D
@@ -66,7 +66,7 @@ def test_noise_free_data_is_exact() -> None:
 
 
 def test_one_view_is_refused() -> None:
-    with pytest.raises(CalibrationError, match="at least 3"):
+    with pytest.raises(IntrinsicsError, match="at least 3"):
         calibrate(_data("opencv5", 0)[:1], BOARD, "opencv5")
 
 
@@ -82,7 +82,7 @@ def test_all_views_parallel_are_flagged() -> None:
     dets = synthetic_detections(cam, BOARD, poses, 0.1, rng)
     try:
         res = calibrate(dets, BOARD, "opencv5")
-    except CalibrationError as exc:
+    except IntrinsicsError as exc:
         assert "parallel" in str(exc) or "tilt" in str(exc)
         return
     codes = {p["code"] for p in res.verdict["problems"]}
@@ -97,7 +97,7 @@ def test_too_few_points_per_view_is_refused() -> None:
     dets = _data("opencv5", 0, n_views=5)
     for d in dets:
         d.ids, d.uv = d.ids[:4], d.uv[:4]
-    with pytest.raises(CalibrationError, match="usable view"):
+    with pytest.raises(IntrinsicsError, match="usable view"):
         calibrate(dets, BOARD, "opencv5")
     dets = _data("opencv5", 0, n_views=5)
     dets[0].ids, dets[0].uv = dets[0].ids[:4], dets[0].uv[:4]
@@ -107,12 +107,12 @@ def test_too_few_points_per_view_is_refused() -> None:
 
 def test_bad_inputs_have_clear_messages() -> None:
     dets = _data("opencv5", 0, n_views=4)
-    with pytest.raises(CalibrationError, match="unknown model"):
+    with pytest.raises(IntrinsicsError, match="unknown model"):
         calibrate(dets, BOARD, "fisheye")
-    with pytest.raises(CalibrationError, match="planar target"):
+    with pytest.raises(IntrinsicsError, match="planar target"):
         calibrate(dets, Points3D({i: (float(i), float(i % 2), float(i % 3)) for i in range(6)}), "opencv5")
     dets[0].ids = dets[0].ids + 1000
-    with pytest.raises(CalibrationError, match="do not exist on the target"):
+    with pytest.raises(IntrinsicsError, match="do not exist on the target"):
         calibrate(dets, BOARD, "opencv5")
 
 
@@ -164,7 +164,7 @@ def test_cross_validation_matches_uncertainty_for_the_right_model() -> None:
     cv = cross_validate(dets, BOARD, "division", k=2)
     assert cv["k"] == 2 and len(cv["pairs"]) == 1
     assert cv["projection_difference_rms_px"] < 4 * cv["expected_from_uncertainty_px"]
-    with pytest.raises(CalibrationError, match="too few"):
+    with pytest.raises(IntrinsicsError, match="too few"):
         cross_validate(dets[:5], BOARD, "division", k=2)
 
 
