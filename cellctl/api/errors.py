@@ -2,9 +2,10 @@
 
 A device that is unreachable answers 503 with ``{"available": false, "reason": ...}`` (INTERFACES
 §5); bad input answers 4xx with a machine-readable code and a human message; never a 500 for
-anything a caller or a device did. Only the project's own error types map to a 4xx; anything
-else (a builtin ``KeyError``, a numpy ``ValueError``) is a bug: 500 with the request id, logged
-with its traceback.
+anything a caller or a device did. Only the project's own error types map to a 4xx: the libraries'
+roots (``CalibrationError``, ``VisionError``, ``DriverError``) and cellctl's typed errors
+(``OWN_ERRORS``); anything else (a builtin ``KeyError``, a numpy ``ValueError``) is a bug: 500
+with the request id, logged with its traceback.
 """
 
 from __future__ import annotations
@@ -16,10 +17,25 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from calibration import CalibrationError
+from cellctl.calibration_file import CalibrationFileError
+from cellctl.cell import UnknownDevice
+from cellctl.config import ConfigError
 from cellctl.errors_format import format_validation_errors
+from cellctl.jobs import JobInputError
 from cellctl.logging_setup import request_id_var
-from cellctl.store.errors import StoreUnavailable
+from cellctl.mapping import NoCalibration
+from cellctl.pick.recipe import PickError
+from cellctl.production.manager import NoRun
+from cellctl.routines.common import RoutineError
+from cellctl.routines.preflight import PreflightRefused
+from cellctl.store.errors import StoreError, StoreUnavailable
 from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected, RobotBusy, RobotStopped
+from drivers.recording import RecordingError
+from drivers.sim.imaging import ImagingError, RenderError
+from drivers.sim.kinematics import OutOfReach
+from drivers.sim.scene import SceneError
+from vision.errors import VisionError
 
 log = logging.getLogger(__name__)
 
@@ -113,12 +129,18 @@ def install_error_handlers(app: FastAPI) -> None:
         return internal_error(request, exc)
 
 
-OWN_PACKAGES = frozenset({"cellctl", "drivers", "calibration", "vision"})
+OWN_ERRORS: tuple[type[Exception], ...] = (
+    CalibrationError, VisionError, DriverError,
+    # the virtual cell's input errors (a scene, a render, a reach), not device faults
+    RecordingError, RenderError, ImagingError, OutOfReach, SceneError,
+    CalibrationFileError, ConfigError, JobInputError, NoCalibration, PickError, RoutineError,
+    PreflightRefused, StoreError, UnknownDevice, NoRun)
+"""The project's own typed errors: their messages are written for people, so they may be a 4xx."""
 
 
 def is_own_error(exc: BaseException) -> bool:
-    """True for the project's own typed errors (their messages are written for people)."""
-    return type(exc).__module__.split(".", 1)[0] in OWN_PACKAGES
+    """True for the project's own typed errors (by type, never by the module that defines it)."""
+    return isinstance(exc, OWN_ERRORS)
 
 
 def _with_notes(exc: BaseException) -> str:
