@@ -62,8 +62,11 @@ def test_every_typed_value_or_lookup_error_of_ours_is_mapped() -> None:
             if not m.name.endswith("__main__"):
                 importlib.import_module(m.name)
 
-    def subclasses(c: type) -> list[type]:
-        return [s for sub in c.__subclasses__() for s in (sub, *subclasses(sub))]
+    def subclasses(c: type[Exception]) -> list[type[Exception]]:
+        found: list[type[Exception]] = []
+        for sub in c.__subclasses__():
+            found += [sub, *subclasses(sub)]
+        return found
 
     ours = {c for base in (ValueError, LookupError) for c in subclasses(base)
             if c.__module__.split(".")[0] in ("cellctl", "drivers", "calibration", "vision")}
