@@ -59,12 +59,15 @@ def _box(lo_hi: tuple[float, float]) -> str:
     return f"[{lo_hi[0]:g}, {lo_hi[1]:g}]"
 
 
-def pixel_problem(u_px: float, v_px: float, size: tuple[int, int] | None, camera_id: str) -> str | None:
-    """A pixel outside the camera's image ((0, 0) is the centre of the top-left pixel) cannot be mapped."""
+def pixel_problem(u_px: float, v_px: float, size: tuple[int, int] | None, camera_id: str,
+                  names: tuple[str, str] = ("u_px", "v_px")) -> str | None:
+    """A pixel outside the camera's image ((0, 0) is the centre of the top-left pixel) cannot be mapped.
+
+    ``names``: what the caller's front end calls the two coordinates (the REST body's by default)."""
     if size is None:
         return None
     w, h = size
-    for name, value, n in (("u_px", u_px, w), ("v_px", v_px, h)):
+    for name, value, n in ((names[0], u_px, w), (names[1], v_px, h)):
         if not -0.5 <= value <= n - 0.5:
             return (f"{name} = {value:g} is outside camera {camera_id}'s {w}x{h} image (-0.5 .. {n - 0.5:g}; "
                     "(0, 0) is the centre of the top-left pixel)")

@@ -31,7 +31,18 @@ DEFAULT_NPOINT_PIXEL_SIGMA_PX = 0.1
 
 
 class MappingError(CalibrationError):
-    """The pixel cannot be mapped (wrong inputs for this calibration, ray misses the plane...)."""
+    """The pixel cannot be mapped (wrong inputs for this calibration, ray misses the plane...).
+
+    The message says what is wrong; ``inputs`` names the arguments of ``pixel_to_robot`` at fault
+    (``plane_z_mm``, ``robot_pose``, ``camera``) and ``need`` what to do with them: ``"give"``
+    (missing), ``"leave out"`` (this calibration does not use it) or ``"check"`` (it does not fit).
+    A front end words its hint from these in its own names (a command-line flag, a body field).
+    """
+
+    def __init__(self, message: str, inputs: tuple[str, ...] = (), need: str = "") -> None:
+        super().__init__(message)
+        self.inputs = inputs
+        self.need = need
 
 
 @dataclass
@@ -68,11 +79,11 @@ def _ray_plane(camera: CameraModel, T_base_cam: NDArray[np.float64], uv: NDArray
     d = T_base_cam[:3, :3] @ (camera.unproject(uv.reshape(1, 2))[0] if ray_cam is None else ray_cam)
     o = T_base_cam[:3, 3]
     if abs(d[2]) < 1e-9 * np.linalg.norm(d):
-        raise MappingError("the pixel's ray is parallel to the working plane; check --plane-z-mm and the calibration")
+        raise MappingError("the pixel's ray is parallel to the working plane", ("plane_z_mm",), "check")
     s = (z_m - o[2]) / d[2]
     if s <= 0:
-        raise MappingError(f"the working plane z = {z_m * 1e3:g} mm lies behind the camera for this pixel; check "
-                           "--plane-z-mm (base frame, mm) and, eye-in-hand, --robot-pose")
+        raise MappingError(f"the working plane z = {z_m * 1e3:g} mm lies behind the camera for this pixel",
+                           ("plane_z_mm", "robot_pose"), "check")
     return np.asarray(o + s * d, dtype=np.float64)
 
 
@@ -119,15 +130,15 @@ def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, pl
     if setup == "eye-in-hand":
         X = _matrix(calib, "T_tool_cam")
         if robot_pose is None:
-            raise MappingError("eye-in-hand: the robot pose at capture is needed (--robot-pose x,y,z,rx,ry,rz, "
-                               "metres and rotation vector as UR reports it)")
+            raise MappingError("eye-in-hand: the robot pose at capture is needed", ("robot_pose",), "give")
         rp = np.asarray(robot_pose, dtype=np.float64)
         G = ur_pose_to_transform(rp) if rp.size == 6 else as_transform(rp, "robot pose")
         G = _systematic_corrected(calib, G)
     elif setup == "eye-to-hand":
         X = _matrix(calib, "T_base_cam")
         if robot_pose is not None:
-            raise MappingError("eye-to-hand: the camera is fixed, the robot pose is not used; leave --robot-pose out")
+            raise MappingError("eye-to-hand: the camera is fixed, the robot pose is not used", ("robot_pose",),
+                               "leave out")
         G = np.eye(4)
     else:
         raise MappingError(f"not a hand-eye calibration: setup is {setup!r} (eye-in-hand or eye-to-hand)")
@@ -200,13 +211,13 @@ def pixel_to_robot(calib: dict[str, Any], uv_px: ArrayLike, *, camera: CameraMod
         if cam is None and "camera" in calib:
             cam = CameraModel.from_dict(calib["camera"])
         if cam is None:
-            raise MappingError("hand-eye mapping needs the camera model: give --camera cam.json")
+            raise MappingError("hand-eye mapping needs the camera model", ("camera",), "give")
         if plane_z_mm is None:
-            raise MappingError("hand-eye mapping needs the working plane's height: give --plane-z-mm Z "
-                               "(base frame, mm)")
+            raise MappingError("hand-eye mapping needs the working plane's height", ("plane_z_mm",), "give")
         return map_handeye(calib, uv_px, cam, float(plane_z_mm), robot_pose, pixel_sigma_px)
     if "H" in calib and "model" in calib:
         if robot_pose is not None:
-            raise MappingError("an n-point calibration maps pixels of a fixed camera; --robot-pose is not used")
+            raise MappingError("an n-point calibration maps pixels of a fixed camera, the robot pose is not used",
+                               ("robot_pose",), "leave out")
         return map_npoint(calib, uv_px, camera, plane_z_mm, pixel_sigma_px)
     raise MappingError("not a calibration this command knows: expected np.json (model, H) or he.json (setup, ...)")

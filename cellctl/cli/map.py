@@ -16,7 +16,13 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.cli.output import CommandError
+from cellctl.hints import mapping_message
 from cellctl.numbers import pixel_problem, pose_ur_problem
+
+# The mapping library's inputs as this command's options (its messages name the library's arguments).
+FLAGS = {"plane_z_mm": "--plane-z-mm Z (base frame, mm)", "camera": "--camera cam.json",
+         "robot_pose": "--robot-pose x,y,z,rx,ry,rz (metres and rotation vector as UR reports it)"}
+FLAGS_TO_CHECK = {"plane_z_mm": "--plane-z-mm (base frame, mm)", "robot_pose": "--robot-pose (eye-in-hand)"}
 
 
 def register(sub: Any) -> None:
@@ -36,7 +42,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from calibration.io import read_json
-    from calibration.measure import pixel_to_robot
+    from calibration.measure import MappingError, pixel_to_robot
 
     path = Path(args.calib)
     calib = read_json(path, "a calibration file (np.json or he.json)", CommandError)
@@ -57,11 +63,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if problem:
             raise CommandError(problem + "; e.g. --robot-pose 0.4,0,0.55,3.1416,0,0")
     size = _image_size(calib, camera)
-    problem = pixel_problem(args.u, args.v, size, "the calibrated camera")
+    problem = pixel_problem(args.u, args.v, size, "the calibrated camera", names=("U", "V"))
     if problem:
-        raise CommandError(problem.replace("u_px", "U").replace("v_px", "V"))
-    out = pixel_to_robot(calib, [args.u, args.v], camera=camera, plane_z_mm=args.plane_z_mm, robot_pose=pose,
-                         pixel_sigma_px=args.pixel_sigma_px).to_json()
+        raise CommandError(problem)
+    try:
+        out = pixel_to_robot(calib, [args.u, args.v], camera=camera, plane_z_mm=args.plane_z_mm, robot_pose=pose,
+                             pixel_sigma_px=args.pixel_sigma_px).to_json()
+    except MappingError as exc:
+        raise CommandError(mapping_message(exc, FLAGS_TO_CHECK if exc.need == "check" else FLAGS)) from None
     out["u_px"], out["v_px"] = args.u, args.v
     # The same key and shape as the REST answer of POST /map: [x, y, z] in mm (z absent for a 2-D map).
     sig = out.get("sigma", {})

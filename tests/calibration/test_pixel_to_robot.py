@@ -58,8 +58,9 @@ def test_handeye_point_within_uncertainty(calibrated) -> None:
 
 def test_handeye_needs_plane_and_pose(calibrated) -> None:
     sim, he = calibrated
-    with pytest.raises(MappingError, match="plane-z-mm"):
+    with pytest.raises(MappingError, match="working plane's height") as err:
         pixel_to_robot(he, [800, 600])
+    assert (err.value.inputs, err.value.need) == (("plane_z_mm",), "give") and "--" not in str(err.value)
     if sim.setup == "eye-in-hand":
         with pytest.raises(MappingError, match="robot pose at capture"):
             pixel_to_robot(he, [800, 600], plane_z_mm=0.0)

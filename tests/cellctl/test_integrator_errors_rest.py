@@ -80,9 +80,21 @@ def test_unknown_recipe_names_the_route_not_a_function(served: tuple[AppCell, in
 
 
 def test_mapping_messages_name_body_fields_not_cli_flags() -> None:
-    from cellctl.api.routes.map import rest_words
+    """The library names its own arguments; POST /map words the hint with its body fields, the CLI with flags."""
+    from calibration.measure import MappingError, pixel_to_robot
+    from cellctl.api.routes.map import FIELDS
+    from cellctl.cli.map import FLAGS
+    from cellctl.hints import mapping_message
 
-    msg = rest_words("hand-eye mapping needs the working plane's height: give --plane-z-mm Z (base frame, mm)")
-    assert "--" not in msg and "plane_z_mm" in msg
-    msg = rest_words("eye-in-hand: the robot pose at capture is needed (--robot-pose x,y,z,rx,ry,rz, m and rad)")
-    assert "--" not in msg and "robot_pose_ur [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]" in msg
+    calib = {"setup": "eye-in-hand", "camera": CAM.to_dict(), "T_tool_cam": np.eye(4).tolist()}
+    with pytest.raises(MappingError) as plane:
+        pixel_to_robot(calib, [800, 600])
+    with pytest.raises(MappingError) as pose:
+        pixel_to_robot(calib, [800, 600], plane_z_mm=0.0)
+    assert (plane.value.inputs, pose.value.inputs) == (("plane_z_mm",), ("robot_pose",))
+    assert "--" not in str(plane.value) + str(pose.value)
+    msg = mapping_message(plane.value, FIELDS)
+    assert msg == "hand-eye mapping needs the working plane's height: give plane_z_mm (base frame, mm)"
+    msg = mapping_message(pose.value, FIELDS)
+    assert "--" not in msg and "give robot_pose_ur [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]" in msg
+    assert mapping_message(plane.value, FLAGS).endswith("give --plane-z-mm Z (base frame, mm)")

@@ -53,6 +53,7 @@ def test_map_eye_in_hand(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     # missing robot pose: one clear line, exit 2
     r = run_process("map", "--calib", str(he), "--plane-z-mm", "0", "100", "100")  # the entry point once
     assert r.returncode == 2 and "robot pose at capture" in r.stderr and "Traceback" not in r.stderr
+    assert "give --robot-pose x,y,z,rx,ry,rz" in r.stderr  # the CLI words the library's hint with its flag
     r = run_cli("map", "--calib", str(he), "--plane-z-mm", "0", "--robot-pose", "1,2,3",
                         "100", "100")
     assert r.returncode == 2 and "six numbers" in r.stderr

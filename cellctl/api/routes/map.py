@@ -14,11 +14,16 @@ from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.hints import mapping_message
 from cellctl.mapping import NoCalibration, active_mapping, npoint_pose_check
 from cellctl.numbers import pixel_problem, point_problem, pose_envelope_problem, pose_ur_problem
 from cellctl.strict_types import Num
 
 router = APIRouter(tags=["map"], route_class=EdgeRoute)
+
+# The mapping library's inputs as this route's body fields (its messages name the library's arguments).
+FIELDS = {"plane_z_mm": "plane_z_mm (base frame, mm)", "camera": "the camera's calibration (activate one)",
+          "robot_pose": "robot_pose_ur [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]"}
 
 
 class MapInput(BaseModel):
@@ -93,8 +98,10 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
     warning = npoint_pose_check(mapping, T)
     try:
         pt = mapping.map(np.array([body.u_px, body.v_px]), body.plane_z_mm, T)
-    except (MappingError, NoCalibration) as exc:
-        raise ApiError(422, "cannot_map", rest_words(str(exc))) from None
+    except MappingError as exc:
+        raise ApiError(422, "cannot_map", mapping_message(exc, FIELDS)) from None
+    except NoCalibration as exc:
+        raise ApiError(422, "cannot_map", str(exc)) from None
     z = float(pt.xyz_mm[2])
     problem = point_problem([float(c) for c in pt.xyz_mm], [float(c) for c in pt.sigma_mm],
                             z_may_be_unknown=mapping.kind == "npoint" and body.plane_z_mm is None)
@@ -104,16 +111,3 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
             "sigma_mm": [float(s) for s in pt.sigma_mm], "calibration_kind": mapping.kind,
             "calibration_id": mapping.calibration_id, "robot_pose_source": source, "warning": warning}
 
-
-# The mapping library speaks to the command line; a REST caller names the body's fields instead.
-_CLI_TO_REST = (("--plane-z-mm Z", "plane_z_mm"), ("--plane-z-mm", "plane_z_mm"),
-                ("--robot-pose x,y,z,rx,ry,rz", "robot_pose_ur [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad]"),
-                ("--robot-pose", "robot_pose_ur"), ("give --camera cam.json", "activate the camera's calibration"),
-                ("--camera", "the camera's active calibration"))
-
-
-def rest_words(message: str) -> str:
-    """``message`` with the CLI's flags replaced by the ``POST /map`` body fields they stand for."""
-    for cli, rest in _CLI_TO_REST:
-        message = message.replace(cli, rest)
-    return message
