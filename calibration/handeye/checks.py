@@ -173,8 +173,7 @@ def check_motion(setup: str, G: Sequence[Mat4], C: Sequence[Mat4]
             f"degenerate motion: all relative rotations are about nearly one axis (axis spread {spread:.2f} deg, "
             f"axis ≈ {np.round(principal, 3).tolist()} in the {'base' if setup == 'eye-to-hand' else 'tool'} "
             f"frame); the hand-eye translation along it is undetermined. Add poses that rotate "
-            f"15-30 deg about a second axis (spread >= {WARN_AXIS_SPREAD_DEG:g} deg recommended) or, for a "
-            "SCARA / top-down-only cell, use `cellctl calib handeye --dof 4 --target-z-mm Z`.")
+            f"15-30 deg about a second axis (spread >= {WARN_AXIS_SPREAD_DEG:g} deg recommended).", alternative="dof4")
     if spread < WARN_AXIS_SPREAD_DEG:
         problems.append(Problem("low_axis_spread",
                                 f"rotation axes span only {spread:.1f} deg; the result is weakly determined — "

@@ -37,7 +37,16 @@ Mat4 = NDArray[np.float64]
 
 
 class HandEyeError(CalibrationError):
-    """The data cannot give a trustworthy hand-eye calibration; the message says why and what to do."""
+    """The data cannot give a trustworthy hand-eye calibration; the message says why and what to do.
+
+    ``alternative``: another solver of this library that suits the data when the cell moves that
+    way (``"dof4"``: the 4-DOF solver, for a SCARA or a top-down-only cell, given the target's
+    height), or ``""``. A front end words the way to it (a command, a routine's parameter).
+    """
+
+    def __init__(self, message: str, alternative: str = "") -> None:
+        super().__init__(message)
+        self.alternative = alternative
 
 
 class ConventionError(HandEyeError):

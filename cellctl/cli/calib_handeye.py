@@ -200,9 +200,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except HandEyeError as exc:
         from calibration.handeye import is_dof4
 
-        if "--dof 4" not in str(exc) and is_dof4(list(poses.T_base_tool)):
+        if is_dof4(list(poses.T_base_tool)):
             raise CommandError(f"{exc} — these poses turn the tool only about the base z axis: calibrate them "
                                "with --dof 4 --target-z-mm Z (Z: the target origin's height, base frame, mm)") from exc
+        if exc.alternative == "dof4":
+            raise CommandError(f"{exc} For a SCARA / top-down-only cell, use `cellctl calib handeye --dof 4 "
+                               "--target-z-mm Z` (Z: the target origin's height, base frame, mm).") from exc
         raise
     out = result.to_json()
     _warn(out)

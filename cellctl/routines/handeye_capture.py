@@ -13,7 +13,6 @@ plate's height ``target_z_mm`` fixes what such motion cannot observe (``handeye_
 
 from __future__ import annotations
 
-import re
 from typing import Any, Literal
 
 import numpy as np
@@ -42,6 +41,9 @@ from drivers.base import MotionRejected
 
 RESOLVE_EVERY = 2
 """After a verdict that is not ok, solve again once this many more stations are in."""
+DOF4_HINT = (" For a SCARA / top-down-only cell, run handeye-capture with dof 4 and target_z_mm (the plate "
+             "origin's height in the robot base frame, mm).")
+"""The routine's way to the solver's alternative (``HandEyeError.alternative == "dof4"``)."""
 
 
 class Params(BaseModel):
@@ -143,7 +145,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
                                        camera_verdict_ok=camera_ok, camera_covariance=camera_cov)
             failure = ""
         except HandEyeError as exc:
-            result, failure = None, rest_words(str(exc))
+            result, failure = None, str(exc) + (DOF4_HINT if exc.alternative == "dof4" else "")
 
     while True:
         cov = planner.coverage(p.stations)
@@ -228,11 +230,6 @@ def camera_covariance(cam_json: dict[str, Any], model: str) -> NDArray[np.float6
     full = np.zeros((len(want), len(want)))
     full[np.ix_(idx, idx)] = cov
     return full
-
-
-def rest_words(message: str) -> str:
-    """A solver message without the CLI options it names (a REST caller has no command line)."""
-    return re.sub(r",? or,? for [^.;]*`cellctl [^`]*`", "", message).strip()
 
 
 def _store(services: Services, ctx: JobContext, p: Params, result: HandEyeResult, caps: list[Capture],
