@@ -68,8 +68,8 @@ def test_service_logs_json_lines_with_request_id(served: Served) -> None:
     assert rec["duration_ms"] > 0
     assert any(r.get("request_id") == made and r["path"] == "/health" for r in records)
     # start-up records (no request) have no request id
-    ready = [r for r in records if r["logger"] == "cellctl.api.app" and "ready" in r["message"]]
-    assert ready and "request_id" not in ready[0]
+    opened = [r for r in records if r["logger"] == "cellctl.api.app" and " open: " in r["message"]]
+    assert opened and "request_id" not in opened[0]
 
 
 def test_request_id_reaches_logs_written_inside_a_route() -> None:

@@ -220,12 +220,16 @@ def test_one_motion_owner_for_routines_moves_and_picks(http: httpx.Client) -> No
                            ("/pick", {"recipe_id": 1, "move": True})):
             r = http.post(path, json=body)
             assert r.status_code == 409 and r.json()["error"]["code"] == "robot_busy", (path, r.text)
-        assert http.post("/pick", json={"recipe_id": 1}).status_code == 200  # looking needs no motion
+        # Looking needs no motion, but this cell's camera rides on the arm: a frame taken while the routine
+        # moves it would be paired with the wrong pose, so locating waits for the robot (issue 21 item 5).
+        r = http.post("/pick", json={"recipe_id": 1})
+        assert r.status_code == 409 and r.json()["error"]["code"] == "robot_busy", r.text
     finally:
         http.delete(f"/jobs/{job_id}")
         assert _wait_job(http, job_id)["state"] == "cancelled"
     r = http.get("/robots/robot0/motion").json()
     assert r["owner"] is None and not r["latched"]
+    assert http.post("/pick", json={"recipe_id": 1}).status_code == 200  # the robot free: located as before
 
 
 @pytest.mark.parametrize(("body", "field"), [

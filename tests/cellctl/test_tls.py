@@ -16,6 +16,7 @@ import yaml
 from cellctl.cli import main
 from cellctl.config import default_config_text
 from tests.conftest import CELLCTL, free_port
+from tests.support.wait import wait_until
 
 
 def make_cert(folder: Path, name: str = "cell") -> tuple[Path, Path]:
@@ -69,7 +70,8 @@ def test_health_over_https(https_cell: tuple[str, Path], certs: tuple[Path, Path
     ctx = ssl.create_default_context(cafile=str(certs[0]))
     with httpx.Client(verify=ctx, timeout=10) as c:
         r = c.get(base + "/health")
-        assert r.status_code == 200 and r.json()["status"] == "ok"
+        assert r.status_code == 200 and r.json()["status"] in ("starting", "ok")
+        wait_until(lambda: c.get(base + "/health").json()["status"] == "ok", 300, "the warm-up's end over HTTPS")
         token = next((tmp / "data").glob("*.session-token")).read_text().strip()
         r = c.get(base + "/robots/robot0/state", headers={"Authorization": f"Bearer {token}"})
         assert r.status_code == 200
