@@ -182,6 +182,7 @@ class ProductionRun:
             self.done.set()
 
     def _end(self, state: State, ended: Ended, error: str | None = None) -> None:
+        self._writer.flush()  # a client that sees the run ended finds every cycle record stored
         with self._cond:
             self.status.state = state
             self.status.ended_because = ended
