@@ -100,10 +100,16 @@ class Job:
             self.events.append(Event(len(self.events), time.time(), kind, data))
             self._changed.notify_all()
 
+    @property
+    def closed(self) -> bool:
+        """True once the job's last event, its end ``state``, is out: nothing follows it. (``state`` leaves
+        ``running`` a moment earlier, while the end hooks run.)"""
+        return bool(self.events) and self.events[-1].kind == "state"
+
     def events_after(self, seq: int, timeout_s: float) -> list[Event]:
         """Events with ``seq`` greater than the given one, waiting up to ``timeout_s`` for one."""
         with self._changed:
-            if len(self.events) <= seq + 1 and self.state == "running":
+            if len(self.events) <= seq + 1 and not self.closed:
                 self._changed.wait(timeout_s)
             return self.events[seq + 1 :]
 

@@ -208,7 +208,7 @@ async def job_events(job_id: str, request: Request, services: ServicesDep, _: Vi
             for ev in events:
                 seq = ev.seq
                 yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(ev.data)}\n\n"
-            if job.state != "running" and seq >= len(job.events) - 1:
+            if job.closed and seq >= len(job.events) - 1:  # the end state was sent: the stream is whole
                 return
             if await request.is_disconnected():
                 return
