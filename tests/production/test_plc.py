@@ -120,8 +120,7 @@ def test_a_plc_runs_production_over_opc_ua(tmp_path: Path) -> None:
 
     from asyncua import Client, ua
 
-    # 6 parts: the second run (until the area is empty) still has 4 when the Stop comes, however slow the
-    # client's calls are on a loaded machine (with 1 left it could empty the area first and end complete)
+    # 6 parts: the second run (until the area is empty) still has parts when the Stop comes
     path = production_config(tmp_path, count=6)
     cfg = yaml.safe_load(path.read_text())
     port = free_port()
@@ -154,6 +153,10 @@ def test_a_plc_runs_production_over_opc_ua(tmp_path: Path) -> None:
                 second = await cell.call_method(f"{idx}:StartProduction", ua.Variant(1, ua.VariantType.Int32),
                                                 ua.Variant(0, ua.VariantType.Int32))
                 assert second == run_id + 1
+                # The variables refresh every 0.1 s: until they show the second run they read the first's end.
+                while await var("ProductionRunId") != second:
+                    assert time.monotonic() < deadline
+                    await asyncio.sleep(0.05)
                 await cell.call_method(f"{idx}:StopProduction")
                 while await var("ProductionEndedBecause") == "":
                     assert time.monotonic() < deadline
