@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.loop_thread import LoopThread
+from drivers.peers.modbus_serving import ServedModbus
 
 VACUUM, BLOW_OFF, CLOSE, OPEN = 0, 1, 2, 3
 VACUUM_SWITCH, CLOSED_ON_PART = 0, 1
@@ -66,8 +66,7 @@ class ModbusGripperSim:
         self.host, self.port, self.device_id = host, port, device_id
         self.io = GripperIO(rise_s=rise_s, part_present=part_present)
         self._lock = threading.Lock()
-        self._server: ModbusTcpServer | None = None
-        self._loop_thread = LoopThread("modbus-gripper-sim")
+        self._serving = ServedModbus("modbus-gripper-sim")
 
     def set_part(self, present: bool) -> None:
         with self._lock:
@@ -97,19 +96,13 @@ class ModbusGripperSim:
         return None
 
     def start(self) -> ModbusGripperSim:
-        async def serve() -> None:
-            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port))
-            await self._server.serve_forever(background=True)
-
-        try:
-            self._loop_thread.start(serve, timeout_s=10.0)
-        except Exception as exc:  # noqa: BLE001 - one clear error for every way the server fails to start
-            raise OSError(f"Modbus gripper simulator cannot listen on {self.host}:{self.port}: {exc}") from exc
+        self._serving.start(
+            lambda: ModbusTcpServer(self._device(), address=(self.host, self.port)),
+            f"Modbus gripper simulator cannot listen on {self.host}:{self.port}")
         return self
 
     def stop(self) -> None:
-        server = self._server
-        self._loop_thread.stop(server.shutdown if server is not None else None, timeout_s=5.0)
+        self._serving.stop()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -43,8 +43,8 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers import modbus_codec
-from drivers.loop_thread import LoopThread
 from drivers.modbus_codec import WordOrder
+from drivers.peers.modbus_serving import ServedModbus
 
 ACTUAL_POSE = 0
 TARGET_POSE = 20
@@ -177,8 +177,7 @@ class ModbusRobotSim:
         self.robot = _Robot(watchdog_s=watchdog_s, speed_override=speed_override)
         self._lock = threading.Lock()
         self._hr: list[int] = [0] * 64  # the client-visible copy of what the client wrote
-        self._server: ModbusTcpServer | None = None
-        self._loop_thread = LoopThread("modbus-robot-sim")
+        self._serving = ServedModbus("modbus-robot-sim")
 
     def _device(self) -> SimDevice:
         bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
@@ -249,19 +248,13 @@ class ModbusRobotSim:
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> ModbusRobotSim:
-        async def serve() -> None:
-            self._server = ModbusTcpServer(self._device(), address=(self.host, self.port))
-            await self._server.serve_forever(background=True)
-
-        try:
-            self._loop_thread.start(serve, timeout_s=10.0)
-        except Exception as exc:  # noqa: BLE001 - one clear error for every way the server fails to start
-            raise OSError(f"Modbus robot simulator cannot listen on {self.host}:{self.port}: {exc}") from exc
+        self._serving.start(
+            lambda: ModbusTcpServer(self._device(), address=(self.host, self.port)),
+            f"Modbus robot simulator cannot listen on {self.host}:{self.port}")
         return self
 
     def stop(self) -> None:
-        server = self._server
-        self._loop_thread.stop(server.shutdown if server is not None else None, timeout_s=5.0)
+        self._serving.stop()
 
 
 def run(

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.loop_thread import LoopThread
+from drivers.peers.modbus_serving import ServedModbus
 
 OUT_BASE = 1000
 IN_BASE = 2000
@@ -112,8 +112,7 @@ class GripperSim:
         self.port, self.device_id, self.baudrate = port, device_id, baudrate
         self.model = GripperModel(object_at=object_at)
         self._lock = threading.Lock()
-        self._server: ModbusSerialServer | None = None
-        self._loop_thread = LoopThread("gripper-sim")
+        self._serving = ServedModbus("gripper-sim")
 
     async def _action(
         self,
@@ -150,19 +149,13 @@ class GripperSim:
         )
 
     def start(self) -> GripperSim:
-        async def serve() -> None:
-            self._server = ModbusSerialServer(self._device(), port=self.port, baudrate=self.baudrate, timeout=0.5)
-            await self._server.serve_forever(background=True)
-
-        try:
-            self._loop_thread.start(serve, timeout_s=10.0)
-        except Exception as exc:  # noqa: BLE001 - one clear error for every way the server fails to start
-            raise OSError(f"gripper simulator could not open {self.port}: {exc}") from exc
+        self._serving.start(
+            lambda: ModbusSerialServer(self._device(), port=self.port, baudrate=self.baudrate, timeout=0.5),
+            f"gripper simulator could not open {self.port}")
         return self
 
     def stop(self) -> None:
-        server = self._server
-        self._loop_thread.stop(server.shutdown if server is not None else None, timeout_s=5.0)
+        self._serving.stop()
 
 
 def main(argv: list[str] | None = None) -> None:
