@@ -133,7 +133,7 @@ def test_the_first_grab_after_serve_on_a_cold_cache_is_a_png(tmp_path: Path) -> 
     """The README's tour on a fresh machine without set-up's warm-up: an empty numba cache."""
     cache = tmp_path / "numba-cache"
     cache.mkdir()
-    served = start_served(tmp_path, extra_env={"NUMBA_CACHE_DIR": str(cache)}, timeout_s=300)
+    served = start_served(tmp_path, extra_env={"NUMBA_CACHE_DIR": str(cache)}, timeout_s=300, ready=False)
     try:  # start_served returns as soon as /health answers at all
         first = httpx.get(served.base_url + "/health", timeout=10).json()
         with served.client(timeout_s=300) as c:

@@ -15,6 +15,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+from tests.support.ports import free_port  # noqa: F401  (the peers' tests import it from here)
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -170,14 +172,6 @@ class MjpegServer:
             self._thread.join(timeout=5)
             self.server = None
             time.sleep(self.period_s * 3)
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 class GarbageServer:

@@ -11,13 +11,14 @@ import glob
 import os
 import pwd
 import shutil
-import socket
 import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import psycopg
+
+from tests.support.ports import free_port
 
 SUPERUSER = "postgres"
 
@@ -28,12 +29,6 @@ def pg_bin_dir() -> Path:
         raise RuntimeError("PostgreSQL server binaries not found under /usr/lib/postgresql/*/bin; "
                            "install Debian's postgresql package (deploy/install-system-deps.sh)")
     return Path(dirs[-1])
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class PostgresCluster:
@@ -70,7 +65,7 @@ class PostgresCluster:
             raise RuntimeError(f"initdb failed: {r.stderr.strip()[-2000:]}")
         last = ""
         for _ in range(3):  # the port may be taken between choosing and binding
-            self.port = _free_port()
+            self.port = free_port()
             r = self._pg_ctl_start()
             if r.returncode == 0:
                 self._wait_ready()

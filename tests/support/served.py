@@ -7,7 +7,6 @@ support, not part of the installed product). Only 127.0.0.1 is used.
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -17,13 +16,9 @@ from typing import Any
 
 import httpx
 
+from tests.support.ports import free_port
+
 CELLCTL = str(Path(sys.executable).with_name("cellctl"))
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -41,8 +36,9 @@ class Served:
 
 
 def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str] | None = None,
-                 token: str | None = None, timeout_s: float = 60.0) -> Served:
-    """Start ``cellctl serve`` on a free port and wait until /health answers."""
+                 token: str | None = None, timeout_s: float = 60.0, ready: bool = True) -> Served:
+    """Start ``cellctl serve`` on a free port and wait until /health answers, and with ``ready``
+    until it no longer says ``starting`` (its warm-up is done: what a user waits for)."""
     port = free_port()
     env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp / "data"), **(extra_env or {})}
     cmd = [CELLCTL, "serve", "--host", "127.0.0.1", "--port", str(port)]
@@ -56,16 +52,21 @@ def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str
         if proc.poll() is not None:
             raise RuntimeError(f"cellctl serve exited: {(tmp / 'serve.log').read_text()}")
         try:
-            if httpx.get(base + "/health", timeout=2.0).status_code == 200:
+            health = httpx.get(base + "/health", timeout=2.0)
+            if health.status_code == 200 and not (ready and health.json().get("status") == "starting"):
                 break
         except httpx.HTTPError:
-            time.sleep(0.2)
+            pass
+        time.sleep(0.2)
     else:
         proc.kill()
         raise RuntimeError(f"cellctl serve did not start: {(tmp / 'serve.log').read_text()}")
     if token is None:
         token_files = list((tmp / "data").glob("*.session-token"))
-        token = token_files[0].read_text().strip() if token_files else ""
+        if not token_files:  # what answered is not ours (free_port reserves ports so it cannot be)
+            proc.kill()
+            raise RuntimeError(f"{base} answers, but not as the service started in {tmp}: no session token")
+        token = token_files[0].read_text().strip()
     return Served(proc, base, token, tmp / "data")
 
 
