@@ -1,8 +1,15 @@
 """Pixel → robot point through the cell's *active* calibrations (used by ``/map`` and picking).
 
-Preference: an active hand-eye calibration (with the camera's active intrinsics) when a working
-plane height is known; else an active N-point map. Eye-in-hand needs the robot pose at capture:
-given, or read from the robot now (and said so).
+Preference: an active hand-eye calibration when a working plane height is known; else an active
+N-point map. Eye-in-hand needs the robot pose at capture: given, or read from the robot now (and
+said so).
+
+A hand-eye maps through **the camera it was solved with** (``he.json["camera"]``, the jointly
+refined intrinsics when ``intrinsics_refined``), not through the camera's active intrinsics
+calibration: the solution fits the pixels through that camera only (calibration/io/handeye_camera.py).
+Only a hand-eye file that carries no camera (older, or made elsewhere) maps through the active
+camera calibration. Activating a camera calibration that differs from the hand-eye's is guarded
+(``POST /calibrations/{id}/activate``, ``handeye_camera_mismatch``).
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from calibration.camera_model import CameraModel
-from calibration.io import camera_from_json
+from calibration.io import CameraFileError, camera_from_json, camera_mismatch, handeye_camera, handeye_start_camera
 from calibration.measure import RobotPoint, map_handeye, map_npoint
 from cellctl.services import Services
 
@@ -33,6 +40,10 @@ class ActiveMapping:
     calib: dict[str, Any]
     camera: CameraModel | None
     camera_calibration_id: int | None
+    """The camera calibration the mapping's camera comes from (a hand-eye's: the one it started from)."""
+    camera_source: str = "none"
+    """Where ``camera`` comes from: ``"handeye"`` (the camera the hand-eye was solved with),
+    ``"camera_calibration"`` (the active intrinsics: a hand-eye file without a camera) or ``"none"``."""
 
     @property
     def camera_on_arm(self) -> bool:
@@ -65,21 +76,75 @@ def active_camera(services: Services, camera_id: str) -> tuple[Any, CameraModel]
 
 def active_mapping(services: Services, camera_id: str, robot_id: str, prefer: str = "auto",
                    plane_z_known: bool = True) -> ActiveMapping:
+    """The active calibration that maps ``camera_id``'s pixels to ``robot_id``'s base frame.
+
+    A hand-eye maps through its own camera (module docstring); without one, through the active
+    camera calibration."""
     store = services.store
-    cam_cal = store.active("camera", camera_id, None)
     he = store.active("handeye", camera_id, robot_id)
     npc = store.active("npoint", camera_id, robot_id)
-    use_he = he is not None and cam_cal is not None and prefer in ("auto", "handeye") and plane_z_known
+    he_camera = None
+    if he is not None:
+        try:
+            he_camera = handeye_camera(he.result, f"hand-eye calibration {he.id}")
+        except CameraFileError as exc:
+            raise NoCalibration(str(exc)) from None
+    cam_cal = store.active("camera", camera_id, None) if he is not None and he_camera is None else None
+    use_he = (he is not None and (he_camera is not None or cam_cal is not None) and prefer in ("auto", "handeye")
+              and plane_z_known)
     if prefer == "handeye" and not use_he:
         raise NoCalibration(f"no active hand-eye + camera calibration for {camera_id}/{robot_id}"
                             + ("" if plane_z_known else " (or no plane_z_mm given)"))
-    if use_he and he is not None and cam_cal is not None:
+    if use_he and he is not None:
+        if he_camera is not None:
+            start_id = he.result.get("camera_calibration_id")
+            return ActiveMapping("handeye", he.id, he.result, he_camera,
+                                 start_id if isinstance(start_id, int) else None, "handeye")
+        assert cam_cal is not None
         return ActiveMapping("handeye", he.id, he.result, camera_from_json(cam_cal.result, f"calibration {cam_cal.id}"),
-                             cam_cal.id)
+                             cam_cal.id, "camera_calibration")
     if npc is not None and prefer in ("auto", "npoint"):
         return ActiveMapping("npoint", npc.id, npc.result, None, None)
     raise NoCalibration(f"no active calibration maps camera {camera_id} to robot {robot_id}: run and activate "
                         "jog-to-mark (N-point), or intrinsics-capture + handeye-capture")
+
+
+def handeye_camera_conflicts(services: Services, camera_record: Any) -> list[str]:
+    """Why activating ``camera_record`` (a camera calibration) disagrees with an active hand-eye of
+    its camera, one sentence per hand-eye; empty when none does.
+
+    A hand-eye agrees when it started from this very calibration (``camera_calibration_id``), or
+    when this camera maps within tolerance like the camera it started from or the one it carries.
+    A hand-eye that carries its camera keeps mapping through it either way; one that carries none
+    would map through the new intrinsics with an X solved through others."""
+    try:
+        new = camera_from_json(camera_record.result, f"calibration {camera_record.id}")
+    except CameraFileError:
+        return []
+    out = []
+    for robot_id in sorted(services.config.robots):
+        he = services.store.active("handeye", camera_record.camera_id, robot_id)
+        if he is None or he.result.get("camera_calibration_id") == camera_record.id:
+            continue
+        try:
+            own = handeye_camera(he.result)
+        except CameraFileError:
+            own = None
+        start = handeye_start_camera(he.result)
+        started = he.result.get("camera_calibration_id")
+        known = [c for c in (start, own) if c is not None]
+        if not known and not isinstance(started, int):
+            continue  # a hand-eye file that says nothing of its camera: nothing to compare with
+        if any(camera_mismatch(c, new, "it") is None for c in known):
+            continue
+        why = (camera_mismatch(start or own, new, f"camera calibration {camera_record.id}")  # type: ignore[arg-type]
+               if known else f"it was solved with camera calibration {started}")
+        keeps = ("it keeps mapping through the camera it was solved with" if own is not None else
+                 "it would map through these intrinsics with a hand-eye solved through others")
+        out.append(f"the active hand-eye calibration {he.id} ({camera_record.camera_id}/{robot_id}) was solved with "
+                   f"other intrinsics: {why}; {keeps}. Redo the hand-eye with this camera calibration "
+                   "(POST /routines/handeye-capture) and activate it")
+    return out
 
 
 def npoint_pose_check(mapping: ActiveMapping, T_base_tool_now: NDArray[np.float64] | None,

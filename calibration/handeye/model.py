@@ -122,6 +122,9 @@ class HandEyeResult:
     error_model: dict[str, Any] = field(default_factory=dict)
     """Which robot error model was used and how each candidate predicted held-out stations."""
     intrinsics_refined: bool = False
+    camera_initial: CameraModel | None = None
+    """The camera the solve started from (given), kept when the intrinsics were refined: ``camera``
+    is then the one to map through, and this one says which intrinsics calibration it began with."""
     camera_uncertainty: str = "none"
     """How the camera's covariance entered ``cov_X``/``cov_Z``: ``"prior"`` (joint intrinsics
     refinement with the camera's covariance as its prior), ``"propagated"`` (intrinsics held fixed,
@@ -195,5 +198,7 @@ class HandEyeResult:
             "intrinsics_refined": self.intrinsics_refined,
             "time_s": self.time_s,
             **({"camera": self.camera.to_dict()} if self.camera is not None else {}),
+            **({"camera_initial": self.camera_initial.to_dict()}
+               if self.intrinsics_refined and self.camera_initial is not None else {}),
             "verdict": {"ok": not errors, "problems": [p.to_json() for p in self.problems]},
         }

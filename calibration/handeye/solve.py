@@ -112,6 +112,7 @@ def calibrate_handeye(
         robot_noise=noise, stations=station_json, consistency={"rot_deg": stats(rot), "trans_mm": stats(tr)},
         init=init_info, problems=problems, pairs=pair_info, corrections=d, camera=cam,
         error_model=model_info, intrinsics_refined=intr, camera_uncertainty=camera_unc,
+        camera_initial=camera if intr else None,
     )
     if with_loo:
         result.loo = fit.loo

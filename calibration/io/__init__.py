@@ -1,7 +1,8 @@
 """Files in and out: camera files (``cam.json``, pose files), robot pose and pair CSVs, camera
 exports (OpenCV, ROS, HALCON), results to JSON, and reading the files a user names with typed errors.
 
-Modules: ``camera_file``, ``robot_poses``, ``export``, ``jsonable``, ``files``.
+Modules: ``camera_file``, ``handeye_camera`` (the camera a hand-eye was solved with), ``robot_poses``,
+``export``, ``jsonable``, ``files``.
 Everything public is exported here: ``from calibration.io import X`` is the interface.
 """
 
@@ -17,6 +18,13 @@ from calibration.io.export import (
     write_ros_yaml,
 )
 from calibration.io.files import read_json, read_text, read_yaml, yaml_error_text
+from calibration.io.handeye_camera import (
+    SAME_CAMERA_TOLERANCE_PX,
+    camera_difference_px,
+    camera_mismatch,
+    handeye_camera,
+    handeye_start_camera,
+)
 from calibration.io.jsonable import NonFiniteError, dumps, to_jsonable
 from calibration.io.robot_poses import (
     PAIR_COLUMNS,
@@ -30,7 +38,8 @@ from calibration.io.robot_poses import (
 )
 
 __all__ = [
-    "PAIR_COLUMNS", "POSE_COLUMNS", "CameraFileError", "ExportError", "NonFiniteError", "RobotPoseFileError",
+    "PAIR_COLUMNS", "POSE_COLUMNS", "SAME_CAMERA_TOLERANCE_PX", "camera_difference_px", "camera_mismatch",
+    "handeye_camera", "handeye_start_camera", "CameraFileError", "ExportError", "NonFiniteError", "RobotPoseFileError",
     "RobotPoses", "camera_from_json", "dumps", "halcon_cam_par", "read_camera", "read_halcon_cam_par", "read_json",
     "read_opencv_yaml", "read_pairs_csv", "read_pose", "read_poses_csv", "read_ros_yaml", "read_text", "read_yaml",
     "ros_camera_info", "to_jsonable", "write_camera", "write_opencv_yaml", "write_pairs_csv", "write_poses_csv",

@@ -7,6 +7,11 @@ calibrated image are refused.
 Works with an N-point map (``np.json``) or a hand-eye calibration (``he.json``; needs the working
 plane's height ``--plane-z-mm`` in the base frame and, eye-in-hand, ``--robot-pose`` at capture
 in UR's form ``x,y,z,rx,ry,rz`` (metres, rotation vector in radians)).
+
+A hand-eye maps through the camera it was solved with (``he.json["camera"]``: the jointly refined
+intrinsics when the solve refined them). ``--camera`` is for a he.json without a camera; with a
+he.json that carries one it is refused (exit 2, the reason in one line) unless it is the same
+camera within ``calibration.io.SAME_CAMERA_TOLERANCE_PX``.
 """
 
 from __future__ import annotations
@@ -30,7 +35,8 @@ def register(sub: Any) -> None:
         "map", help="pixel -> robot-frame point (mm) with 1-sigma uncertainty",
         description="Map an image point through np.json (n-point) or he.json (hand-eye) to the robot base frame.")
     p.add_argument("--calib", required=True, help="np.json or he.json")
-    p.add_argument("--camera", help="cam.json (hand-eye; default: the camera stored in he.json)")
+    p.add_argument("--camera", help="cam.json (only for a he.json without its own camera; a he.json maps through "
+                                    "the camera it was solved with, and another one is refused)")
     p.add_argument("--plane-z-mm", type=float, help="working-plane height in the robot base frame, mm")
     p.add_argument("--robot-pose", help="eye-in-hand: T_base_tool at capture as x,y,z,rx,ry,rz (m, rad)")
     p.add_argument("--pixel-sigma-px", type=float, help="pixel noise of the query point, 1-sigma (px)")
@@ -51,6 +57,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from calibration.io import read_camera
 
         camera = read_camera(args.camera)[0]
+        _check_own_camera(calib, camera, args.camera, str(path))
     pose = None
     if args.robot_pose is not None:
         try:
@@ -76,6 +83,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sig = out.get("sigma", {})
     out["sigma_mm"] = [sig[k] for k in ("x_mm", "y_mm", "z_mm") if k in sig]
     return out
+
+
+def _check_own_camera(calib: dict[str, Any], camera: Any, camera_path: str, calib_path: str) -> None:
+    """Refuse a ``--camera`` that is not the camera the hand-eye in ``calib`` was solved with."""
+    from calibration.io import CameraFileError, camera_mismatch, handeye_camera
+
+    if "setup" not in calib:  # an n-point map: its --camera only removes distortion
+        return
+    try:
+        own = handeye_camera(calib, calib_path)
+    except CameraFileError as exc:
+        raise CommandError(str(exc)) from None
+    if own is None:
+        return
+    why = camera_mismatch(own, camera, f"--camera {camera_path}")
+    if why is not None:
+        refined = " (it refined the intrinsics jointly)" if calib.get("intrinsics_refined") else ""
+        raise CommandError(f"{calib_path} carries the camera it was solved with{refined} and maps only through it: "
+                           f"{why}; leave --camera out, or solve the hand-eye again with this camera")
 
 
 def _image_size(calib: dict[str, Any], camera: Any) -> tuple[int, int] | None:

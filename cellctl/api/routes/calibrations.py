@@ -17,6 +17,7 @@ from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.calibration_file import CalibrationFileError
 from cellctl.calibration_file import add_calibration as add_calibration_file
+from cellctl.mapping import handeye_camera_conflicts
 from cellctl.store import NotFound, NothingToRollBack
 from cellctl.strict_types import Bool
 
@@ -39,6 +40,7 @@ class CalibrationSummaryPublic(BaseModel):
     note: str
     created_s: float
     active: bool
+    warning: str | None = None
 
 
 class RollbackInput(BaseModel):
@@ -113,13 +115,18 @@ def get_calibration(cal_id: CalId, services: ServicesDep, _: Viewer,
 
 @router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic,
              responses={409: {"description": "verdict_not_ok: the calibration's verdict is not ok; the message "
-                                             "names the problems; send {\"force\": true} to activate anyway"}})
+                                             "names the problems; handeye_camera_mismatch: a camera calibration "
+                                             "that differs from the one an active hand-eye was solved with; send "
+                                             "{\"force\": true} to activate anyway (the answer's warning says so)"}})
 def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
              body: Annotated[ActivateInput | None, Body()] = None) -> dict[str, Any]:
     """Make this calibration the active one of its camera (and robot).
 
     A calibration whose verdict is not ok is refused with 409 ``verdict_not_ok`` unless the body
     says ``{"force": true}``; a forced activation is written to the audit log with the problems.
+    A camera calibration whose intrinsics differ from those an active hand-eye of the camera was
+    solved with is refused the same way (409 ``handeye_camera_mismatch``: the hand-eye must be
+    redone); forced, the answer's ``warning`` says so.
     """
     rec = _get(services, cal_id)
     force = body is not None and body.force
@@ -133,8 +140,21 @@ def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
         log.warning("calibration %d activated by %s although its verdict is not ok: %s", cal_id, who.name, listed)
         services.store.audit(who.name, "calibration.force_activate", f"calibration:{cal_id}",
                              {"problems": problems}, "forced: verdict not ok")
+    conflicts = handeye_camera_conflicts(services, rec) if rec.kind == "camera" else []
+    if conflicts:
+        listed = "; ".join(conflicts)
+        if not force:
+            raise ApiError(409, "handeye_camera_mismatch",
+                           f"calibration {cal_id}'s intrinsics differ from those an active hand-eye was solved with "
+                           f"({listed}); send {{\"force\": true}} to activate it anyway")
+        log.warning("camera calibration %d activated by %s although it differs from the active hand-eye's: %s",
+                    cal_id, who.name, listed)
+        services.store.audit(who.name, "calibration.force_activate", f"calibration:{cal_id}",
+                             {"handeye_camera_mismatch": conflicts}, "forced: differs from the hand-eye's camera")
     rec = services.store.activate(cal_id, who.name)
     summary: dict[str, Any] = rec.summary().to_dict()
+    if conflicts:
+        summary["warning"] = "hand-eye must be redone: " + "; ".join(conflicts)
     return summary
 
 
