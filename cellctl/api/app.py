@@ -23,6 +23,7 @@ from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
+from cellctl.production.manager import shutdown_manager
 from cellctl.services import Services
 from cellctl.warmup import service_startup
 
@@ -66,6 +67,9 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         try:
             yield
         finally:
+            # A production run in progress ends stopped, its robot halted and its records written,
+            # before the PLC and the devices go.
+            await run_in_threadpool(shutdown_manager, services)
             await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
             metrics.detach(app.state.metrics)
