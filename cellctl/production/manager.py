@@ -7,6 +7,7 @@ run on that robot already (``ProductionRunning``).
 
 from __future__ import annotations
 
+import logging
 import threading
 from typing import Any
 
@@ -17,6 +18,7 @@ from cellctl.services import Services
 from cellctl.store.production import ProductionStore
 from drivers.base import RobotBase, RobotStopped
 
+log = logging.getLogger(__name__)
 
 class ProductionRunning(RuntimeError):
     """A production run already owns the robot."""
@@ -39,6 +41,7 @@ class ProductionManager:
         self._runs: dict[str, ProductionRun] = {}
         self._last: ProductionRun | None = None
         self._lock = threading.Lock()
+        self._closed = False
 
     def start(self, recipe_id: int, count: int, who: str, robot_id: str | None = None, camera_id: str | None = None,
               overlap: bool = True) -> ProductionRun:
@@ -62,6 +65,8 @@ class ProductionManager:
         if finishing is not None and finishing.status.ended_because is not None:
             finishing.done.wait(10.0)  # it has ended: its last writes and the robot's release follow at once
         with self._lock:
+            if self._closed:
+                raise ProductionRunning("the service is shutting down: no production run starts now")
             current = self._runs.get(rid)
             if current is not None and not current.ended:
                 raise ProductionRunning(f"production run {current.status.run_id} already runs on robot {rid} "
@@ -132,14 +137,24 @@ class ProductionManager:
         gripper.open()
         return {"holding": gripper.holding()}
 
-    def shutdown(self, timeout_s: float = 10.0) -> None:
+    def shutdown(self, reason: str = "the service is shutting down", timeout_s: float = 10.0) -> list[int]:
+        """End every run now (the service stops): each robot halted (not latched), each run ended
+        ``stopped`` with ``reason``, its records written; later starts are refused. The runs ended."""
         with self._lock:
-            runs = list(self._runs.values())
+            self._closed = True
+            runs = [r for r in self._runs.values() if not r.ended]
         for run in runs:
-            run.stop()
-            run.robot.halt()
+            try:
+                run.abort(reason)
+            except Exception:  # noqa: BLE001 - every run is still asked to end; the halt's failure is logged
+                log.exception("production run %s: halting robot %s at shutdown failed", run.status.run_id,
+                              run.robot.robot_id)
         for run in runs:
             run.join(timeout_s)
+            if not run.ended:
+                log.error("production run %s did not end within %.0f s of the shutdown", run.status.run_id,
+                          timeout_s)
+        return [r.status.run_id for r in runs]
 
 
 _MANAGERS: dict[int, tuple[Services, ProductionManager]] = {}
@@ -161,3 +176,13 @@ def manager_for(services: Services) -> ProductionManager:
             entry = (services, ProductionManager(services))
             _MANAGERS[id(services)] = entry
         return entry[1]
+
+
+def shutdown_manager(services: Services, reason: str = "the service is shutting down") -> list[int]:
+    """At the service's end: stop the service's runs now (``ProductionManager.shutdown``) and forget
+    its manager. The ids of the runs it ended (none when no manager was made)."""
+    with _MANAGERS_LOCK:
+        entry = _MANAGERS.pop(id(services), None)
+    if entry is None or entry[0] is not services:
+        return []
+    return entry[1].shutdown(reason)

@@ -82,6 +82,8 @@ class RunStatus:
     state: State = "running"
     ended_because: Ended | None = None
     error: str | None = None
+    stop_reason: str | None = None
+    """Why a ``stopped`` run stopped (a Stop, an operator's stop, the service shutting down)."""
     counters: Counters = field(default_factory=Counters)
     times: CycleTimes = field(default_factory=CycleTimes)
 
@@ -97,6 +99,7 @@ class ProductionRun:
         self._cond = threading.Condition()
         self._pause = False
         self._stop = False
+        self._abort_reason: str | None = None
         self._n = 0
         self._tried: list[_Tried] = []
         self._unreachable: list[np.ndarray] = []
@@ -133,12 +136,26 @@ class ProductionRun:
                 self.status.state = "running"
             self._cond.notify_all()
 
-    def stop(self) -> None:
+    def stop(self, reason: str = "stopped by an operator (after the cycle in progress)") -> None:
         with self._cond:
             self._stop = True
+            if self.status.stop_reason is None:
+                self.status.stop_reason = reason
             if self.status.state in ("running", "pausing", "paused"):
                 self.status.state = "stopping"
             self._cond.notify_all()
+
+    def abort(self, reason: str) -> None:
+        """End the run now (the service is shutting down): the motion session is aborted and the robot
+        halted without a latch; the run ends ``stopped`` with ``reason``; a held part stays gripped."""
+        self._abort_reason = reason
+        self.stop(reason)
+        self.session.abort(reason)
+        try:
+            self.robot.halt()
+        finally:
+            with self._cond:
+                self._cond.notify_all()
 
     def join(self, timeout_s: float | None = None) -> None:
         self._thread.join(timeout_s)
@@ -152,7 +169,7 @@ class ProductionRun:
         return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
                 "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
                 "next_slot": self.store.next_slot(st.recipe_id) if self.ended else self._next_slot,
-                "error": st.error, "cycles": self._n}
+                "error": st.error, "stop_reason": st.stop_reason, "cycles": self._n}
 
     def snapshot(self) -> dict[str, Any]:
         """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
@@ -168,8 +185,9 @@ class ProductionRun:
             state: State = "stopped" if ended == "stopped" else "complete"
             self._end(state, ended)
         except RobotStopped as exc:
-            # The emergency path: halted and latched already; the gripper keeps what it holds.
-            self._record("stopped", detail=str(exc))
+            # The emergency path (or the service's shutdown): halted already; the gripper keeps what it holds.
+            self.status.stop_reason = self._abort_reason or str(exc)
+            self._record("stopped", detail=self.status.stop_reason)
             self._end("stopped", "stopped", None)
         except Exception as exc:  # noqa: BLE001 - the run ends failed, saying why; the robot is halted
             log.exception("production run %s failed", self.status.run_id)
@@ -194,7 +212,7 @@ class ProductionRun:
     def _summary(self) -> dict[str, Any]:
         st = self.status
         return {"counters": st.counters.as_dict(), "cycle_ms": st.times.summary(), "error": st.error,
-                "cycles": self._n}
+                "stop_reason": st.stop_reason, "cycles": self._n}
 
     def _cycles(self) -> Ended:
         self._move_to_capture()
