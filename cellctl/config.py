@@ -255,6 +255,17 @@ class PlcConfig(_Strict):
         return None
 
 
+class ProductionConfig(_Strict):
+    """Production runs (docs/production.md): where the frames of failed cycles are kept, and how many."""
+
+    failure_frames_dir: str | None = None
+    """Folder of the kept frames of failed cycles; default: ``<data dir>/production/<cell_id>/failures``."""
+    failure_frames_max_count: int = Field(500, ge=0, le=1_000_000)
+    """Kept failure frames over all runs; beyond it the oldest are deleted (0: keep none)."""
+    failure_frames_max_mb: float = Field(1000.0, ge=0, le=1_000_000)
+    """Their total size on disk, MB (10^6 bytes); beyond it the oldest are deleted."""
+
+
 class CellConfig(_Strict):
     format_version: int = CONFIG_FORMAT_VERSION
     cell_id: str = Field("cell", pattern=r"^[A-Za-z0-9_.-]+$")
@@ -269,6 +280,7 @@ class CellConfig(_Strict):
     calibration: CalibrationDefaults = CalibrationDefaults()
     plc: PlcConfig = PlcConfig()
     """PLC-native front ends (Modbus TCP, OPC UA); both off unless enabled."""
+    production: ProductionConfig = ProductionConfig()
     _source: Path | None = PrivateAttr(None)
     """The file this config was read from (None: built in); the service re-reads its tokens on change."""
 
