@@ -48,7 +48,7 @@ def _ur(raw: NDArray[np.float64], rot_scale: float = 1.0, trans_scale: float = 1
 
 _HYPOTHESES: Final[dict[str, tuple[str, str]]] = {
     "inverted": ("the robot poses inverted (T_tool_base instead of T_base_tool)",
-                 "invert each robot pose — or, if the poses are right, use the other --setup "
+                 "invert each robot pose — or, if the poses are right, solve with the other setup "
                  "(eye-in-hand data solved as eye-to-hand looks exactly like inverted poses)"),
     "mm": ("the robot positions read as millimetres",
            "poses.csv needs metres (UR's TCP pose form): divide x, y, z by 1000"),

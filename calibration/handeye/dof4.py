@@ -222,7 +222,8 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
     if setup not in SETUPS:
         raise HandEyeError(f"setup must be one of {SETUPS}, got {setup!r}")
     if not (np.isfinite(target_z_mm) and abs(target_z_mm) < 1e5):
-        raise HandEyeError(f"--target-z-mm must be a finite height in mm (base frame), got {target_z_mm}")
+        raise HandEyeError(f"the target origin's height target_z_mm must be a finite height in mm (base frame), "
+                           f"got {target_z_mm}")
     if not (target_z_sigma_mm >= 0 and np.isfinite(target_z_sigma_mm)):
         raise HandEyeError("the target height's uncertainty must be >= 0 mm")
     noise = robot_noise or RobotNoise()

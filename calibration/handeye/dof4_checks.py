@@ -35,9 +35,9 @@ def check_dof4_motion(G: Sequence[Mat4], G_ref: Mat4, max_tilt_deg: float) -> di
     worst = int(np.argmax(tilts))
     if tilts[worst] > max_tilt_deg:
         raise HandEyeError(
-            f"--dof 4 needs poses that differ only by a turn about the base z axis (SCARA, top-down), but station "
-            f"{worst}'s tool z axis is tilted {tilts[worst]:.2f} deg against the first pose's (limit "
-            f"{max_tilt_deg:g} deg): calibrate this data with the 6-DOF solver (leave out --dof 4)")
+            f"the 4-DOF solver needs poses that differ only by a turn about the base z axis (SCARA, top-down), but "
+            f"station {worst}'s tool z axis is tilted {tilts[worst]:.2f} deg against the first pose's (limit "
+            f"{max_tilt_deg:g} deg): these poses need the 6-DOF solver", alternative="dof6")
     R0 = G_ref[:3, :3]
     theta = np.degrees([np.arctan2((g[:3, :3] @ R0.T)[1, 0], (g[:3, :3] @ R0.T)[0, 0]) for g in G])
     span = float(np.ptp(theta)) if len(theta) else 0.0

@@ -37,7 +37,13 @@ FORMATS: Final = (".svg", ".pdf", ".png")
 
 
 class TargetPrintError(CalibrationError):
-    """The target cannot be printed as asked (3D target, unknown format, absurd resolution)."""
+    """The target cannot be printed as asked (3D target, unknown format, absurd resolution).
+
+    ``inputs``: the arguments at fault (``"dpi"``), for a front end to name its own way."""
+
+    def __init__(self, message: str, inputs: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.inputs = inputs
 
 
 @dataclass(frozen=True)
@@ -253,12 +259,12 @@ def to_image(target: Target, dpi: float) -> NDArray[np.uint8]:
     """
     t = _require_planar(target)
     if not 10 <= dpi <= 2400:
-        raise TargetPrintError(f"dpi must be between 10 and 2400, got {dpi:g}")
+        raise TargetPrintError(f"dpi must be between 10 and 2400, got {dpi:g}", inputs=("dpi",))
     W, H, ox, oy = _page(t)
     px_per_mm = dpi / MM_PER_INCH
     w, h = int(round(W * px_per_mm)), int(round(H * px_per_mm))
     if w * h > 100e6:
-        raise TargetPrintError(f"{w}x{h} pixels is too large; lower --dpi")
+        raise TargetPrintError(f"{w}x{h} pixels is too large; lower the resolution (dpi {dpi:g})", inputs=("dpi",))
     n = 4
     shift = 4
     big = np.full((h * n, w * n), 255, dtype=np.uint8)

@@ -17,11 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any
 
 from cellctl.cli.output import CommandError
+from cellctl.hints import CLI, handeye_message
 
 log = logging.getLogger("cellctl.calib.handeye")
 
@@ -185,9 +187,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.dof == 4:
         from calibration.handeye import calibrate_handeye_dof4
 
-        out = calibrate_handeye_dof4(args.setup, poses.T_base_tool, detections, camera, target, args.target_z_mm,
-                                     noise, target_z_sigma_mm=args.target_z_sigma_mm, sigma_px=_pixel_sigma(args),
-                                     leave_one_out=not args.no_loo).to_json()
+        if not math.isfinite(args.target_z_mm):
+            raise CommandError(f"--target-z-mm must be a finite height in mm (base frame), got {args.target_z_mm}")
+        try:
+            out = calibrate_handeye_dof4(args.setup, poses.T_base_tool, detections, camera, target, args.target_z_mm,
+                                         noise, target_z_sigma_mm=args.target_z_sigma_mm,
+                                         sigma_px=_pixel_sigma(args), leave_one_out=not args.no_loo).to_json()
+        except HandEyeError as exc:
+            raise CommandError(handeye_message(exc, CLI)) from exc
         _warn(out)
         return out
     try:
@@ -203,10 +210,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if is_dof4(list(poses.T_base_tool)):
             raise CommandError(f"{exc} — these poses turn the tool only about the base z axis: calibrate them "
                                "with --dof 4 --target-z-mm Z (Z: the target origin's height, base frame, mm)") from exc
-        if exc.alternative == "dof4":
-            raise CommandError(f"{exc} For a SCARA / top-down-only cell, use `cellctl calib handeye --dof 4 "
-                               "--target-z-mm Z` (Z: the target origin's height, base frame, mm).") from exc
-        raise
+        raise CommandError(handeye_message(exc, CLI)) from exc
     out = result.to_json()
     _warn(out)
     return out

@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from calibration.report import write_target
+from calibration.report import TargetPrintError, write_target
 from calibration.targets import load_target
+from cellctl.cli.output import CommandError
+from cellctl.hints import target_print_message
 
 
 def register(sub: Any) -> None:
@@ -25,4 +27,7 @@ def register(sub: Any) -> None:
 
 
 def run_render(args: argparse.Namespace) -> dict[str, Any]:
-    return write_target(load_target(args.target), args.out, args.dpi)
+    try:
+        return write_target(load_target(args.target), args.out, args.dpi)
+    except TargetPrintError as exc:
+        raise CommandError(target_print_message(exc, {"dpi": "--dpi"})) from exc

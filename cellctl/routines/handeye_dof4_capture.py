@@ -25,6 +25,7 @@ from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.handeye import HandEyeError, calibrate_handeye_dof4
 from calibration.targets import Target
+from cellctl.hints import ROUTINE, handeye_message
 from cellctl.jobs import JobContext
 from cellctl.routines.common import Capture, RoutineError, capture, detection_inputs, move, target_pose
 from cellctl.services import Services
@@ -84,7 +85,7 @@ def run_dof4(services: Services, ctx: JobContext, p: Any, setup: str, camera: Ca
                                         p.target_z_mm).to_json()
             failure = ""
         except HandEyeError as exc:
-            he, failure = None, str(exc)
+            he, failure = None, handeye_message(exc, ROUTINE)
 
     solved_at = 0
     for purpose, T in candidates:

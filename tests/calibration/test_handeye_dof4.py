@@ -83,8 +83,9 @@ def test_refusals_say_why() -> None:
     s = simulate_scara("eye-in-hand", 8, np.random.default_rng(2), camera=CAM, target=BOARD, robot_noise=NOISE)
     tilted = list(s.G_recorded)
     tilted[3] = make_transform(Rotation.from_rotvec([0.1, 0, 0]).as_matrix() @ tilted[3][:3, :3], tilted[3][:3, 3])
-    with pytest.raises(HandEyeError, match="station 3's tool z axis is tilted 5.7.*leave out --dof 4"):
+    with pytest.raises(HandEyeError, match="station 3's tool z axis is tilted 5.7.*need the 6-DOF solver") as tilt:
         calibrate_handeye_dof4("eye-in-hand", tilted, s.detections, CAM, BOARD, s.target_z_mm, NOISE)
+    assert tilt.value.alternative == "dof6"  # the front ends word the way there (cellctl/hints.py)
     with pytest.raises(HandEyeError, match="at least 3 stations"):
         calibrate_handeye_dof4("eye-in-hand", s.G_recorded[:2], s.detections[:2], CAM, BOARD, 12.0, NOISE)
     with pytest.raises(HandEyeError, match="finite height"):
