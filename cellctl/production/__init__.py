@@ -2,7 +2,9 @@
 
 - ``gripper``: open, close, check the grip, release (Robotiq 2F / sim gripper, vacuum, parallel);
 - ``place``: place poses from the recipe's place section, the part's yaw and the gripper's symmetry;
-- ``slots``, ``records``: the next free slot and the cycle records (stored: ``cellctl.store.production``);
-- ``counters``: a run's counters and cycle times;
-- ``cycle``: one cycle's steps; ``run``: the run's state machine (one per robot).
+- the next free slot, the runs and the cycle records are stored (``cellctl.store.production``);
+- ``records``: a run's counters, cycle times and cycle records; ``frames``: failed cycles' frames on disk;
+- ``choice``: which part a cycle picks (retries, skips, unreachable parts);
+- ``vision``: a cycle's picture (and the next one, taken while the robot places);
+- ``run``: the run's cycles and state machine (one per robot); ``manager``: the runs of a service.
 """

@@ -12,6 +12,7 @@ import threading
 from typing import Any
 
 from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.frames import FailureFrames
 from cellctl.production.gripper import Gripper
 from cellctl.production.run import ProductionRun, RunSettings
 from cellctl.services import Services
@@ -38,6 +39,7 @@ class ProductionManager:
     def __init__(self, services: Services) -> None:
         self.services = services
         self.store = ProductionStore(services.store.engine, services.store.cell_id)
+        self.failure_frames = FailureFrames.for_config(services.config)
         self._runs: dict[str, ProductionRun] = {}
         self._last: ProductionRun | None = None
         self._lock = threading.Lock()
@@ -76,7 +78,7 @@ class ProductionManager:
                 run_id = self.store.new_run(recipe_id, rid, who)
                 run = ProductionRun(self.services, self.store,
                                     RunSettings(recipe_id, stored.version, recipe, rid, cid, count, overlap, who),
-                                    robot, session, run_id)
+                                    robot, session, run_id, self.failure_frames)
             except BaseException:
                 robot.motion.end(session)
                 raise

@@ -26,8 +26,9 @@ from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.motion import halt_after_failure, outcome, pose_ur
 from cellctl.pick.pose import pose_json
 from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.choice import Choice
+from cellctl.production.frames import KEPT_RESULTS, FailureFrames
 from cellctl.production.gripper import Gripper
-from cellctl.production.place import Plan
 from cellctl.production.records import Counters, CycleTimes, Durations, clean
 from cellctl.production.vision import (
     Candidate,
@@ -52,8 +53,6 @@ VIEW_MARGIN_MM = 60.0
 gripper and the part it holds) is in the image."""
 SEARCH_RETRIES = 2
 """A search that timed out with nothing found is repeated this many times before the run fails."""
-SAME_PART_MM = 8.0
-"""A match this close to a part tried before is that part (for retries and skips)."""
 
 
 @dataclass
@@ -66,12 +65,6 @@ class RunSettings:
     count: int
     overlap: bool
     who: str
-
-
-@dataclass
-class _Tried:
-    xy_mm: np.ndarray
-    failures: int = 0
 
 
 @dataclass
@@ -92,8 +85,10 @@ class ProductionRun:
     """One run in its own thread (``start``); ``pause``/``resume``/``stop`` are safe from any thread."""
 
     def __init__(self, services: Services, store: ProductionStore, settings: RunSettings, robot: RobotBase,
-                 session: MotionSession, run_id: int) -> None:
+                 session: MotionSession, run_id: int, failure_frames: FailureFrames | None = None) -> None:
         self.services, self.store, self.s, self.robot, self.session = services, store, settings, robot, session
+        self.failure_frames = failure_frames
+        """Where the frames of failed cycles are kept (None: they are not kept beyond the frame cache)."""
         self.status = RunStatus(run_id, settings.recipe_id, settings.robot_id)
         self.gripper = Gripper(services, settings.recipe.gripper)
         self._cond = threading.Condition()
@@ -101,8 +96,8 @@ class ProductionRun:
         self._stop = False
         self._abort_reason: str | None = None
         self._n = 0
-        self._tried: list[_Tried] = []
-        self._unreachable: list[np.ndarray] = []
+        device = settings.recipe.gripper.device
+        self._choice = Choice(device.retries if device is not None else 0)
         self._writer = Writer(f"production-{run_id}-store")
         self._next_slot = store.next_slot(settings.recipe_id)
         self._mapping: ActiveMapping | None = None
@@ -241,15 +236,17 @@ class ProductionRun:
             d.add("vision", waited)
             self.session.check()
             if not picture.candidates and picture.timed_out:
-                raise PickError(f"the search ran out of its time ({self.s.recipe.search.timeout_s} s) "
-                                f"{SEARCH_RETRIES + 1} times with nothing found: raise the recipe's search.timeout_s")
+                why = (f"the search ran out of its time ({self.s.recipe.search.timeout_s} s) {SEARCH_RETRIES + 1} "
+                       "times with nothing found: raise the recipe's search.timeout_s")
+                self._record("vision_failed", picture=picture, detail=why)
+                raise PickError(why)
             if not picture.candidates:
                 self.status.counters.empty_area += 1
                 self._record("empty", picture=picture, detail=picture.reason or "nothing found")
                 return "area_empty"
-            cand = self._choose(picture)
+            cand = self._choice.choose(picture, self.status.counters)
             if cand is None:
-                self._record("none_pickable", picture=picture, detail=self._why_none(picture))
+                self._record("none_pickable", picture=picture, detail=self._choice.why_none(picture))
                 return "none_pickable"
             prefetch = self._pick_and_place(cand, picture, d, t_cycle)
 
@@ -275,37 +272,6 @@ class ProductionRun:
     def _store_state(self) -> None:
         state, summary = self.status.state, clean(self._summary())
         self._writer.put(lambda: self.store.update_run(self.status.run_id, state, None, summary))
-
-    def _choose(self, picture: Picture) -> Candidate | None:
-        """The best-scoring pickable part; the unreachable ones are counted once each per run."""
-        device = self.s.recipe.gripper.device
-        retries = device.retries if device is not None else 0
-        chosen = None
-        for c in picture.candidates:
-            if c.plan.problem is not None:
-                xy = c.plan.T_base_part[:2, 3] * 1e3
-                if not any(float(np.linalg.norm(xy - seen)) < SAME_PART_MM for seen in self._unreachable):
-                    self._unreachable.append(xy)
-                    self.status.counters.unreachable += 1
-                continue
-            tried = self._tried_at(c.plan)
-            if chosen is None and (tried is None or tried.failures <= retries):
-                chosen = c
-        return chosen
-
-    def _why_none(self, picture: Picture) -> str:
-        problems = [c.plan.problem for c in picture.candidates if c.plan.problem]
-        skipped = len(picture.candidates) - len(problems)
-        parts = []
-        if problems:
-            parts.append(f"{len(problems)} not pickable ({problems[0]})")
-        if skipped:
-            parts.append(f"{skipped} skipped after failed grips")
-        return f"{len(picture.candidates)} part(s) found, none pickable: " + "; ".join(parts)
-
-    def _tried_at(self, plan: Plan) -> _Tried | None:
-        xy = plan.T_base_part[:2, 3] * 1e3
-        return next((t for t in self._tried if float(np.linalg.norm(t.xy_mm - xy)) < SAME_PART_MM), None)
 
     # -- one cycle --------------------------------------------------------------------------------
     def _move(self, T: np.ndarray, why: str, d: Durations) -> None:
@@ -360,16 +326,11 @@ class ProductionRun:
         self._move(plan.T_pick_approach, "post-pick", d)
         if not check.held:
             c.grip_failures += 1
-            tried = self._tried_at(plan)
-            if tried is None:
-                tried = _Tried(plan.T_base_part[:2, 3] * 1e3)
-                self._tried.append(tried)
-            tried.failures += 1
-            retries = r.gripper.device.retries if r.gripper.device else 0
-            if tried.failures > retries:
+            failures = self._choice.grip_failed(plan)
+            if failures > self._choice.retries:
                 c.skipped += 1
                 self._record("skipped", cand, picture, d=d, detail=f"{check.detail}; skipped after "
-                             f"{tried.failures} failed grips", t_cycle=t_cycle)
+                             f"{failures} failed grips", t_cycle=t_cycle)
             else:
                 c.retries += 1
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
@@ -420,6 +381,23 @@ class ProductionRun:
             "calibration": None if picture is None else picture.calibration,
             "found": None if picture is None else picture.found, "detail": detail,
         }
+        kept = None
+        if result in KEPT_RESULTS and picture is not None and picture.frame_id is not None \
+                and self.failure_frames is not None:
+            try:  # taken now: the frame cache may drop it before the writer gets to it
+                kept = self.services.frames.get(int(picture.frame_id))
+            except KeyError:
+                log.warning("production run %s: the frame of cycle %s left the cache before it was kept",
+                            self.status.run_id, self._n)
+        rec["frame_kept"] = kept is not None
         record = clean(rec)
         self.last_record = record
-        self._writer.put(lambda: self.store.add_cycle(self.status.run_id, record))
+        run_id, n, frames = self.status.run_id, self._n, self.failure_frames
+
+        def write() -> None:
+            out = record
+            if kept is not None and frames is not None and not frames.keep(run_id, n, kept, record):
+                out = {**record, "frame_kept": False}
+            self.store.add_cycle(run_id, out)
+
+        self._writer.put(write)

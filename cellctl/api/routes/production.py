@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import cv2
 from fastapi import APIRouter, Path, Query
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
@@ -20,6 +21,7 @@ from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.cell import UnknownDevice
 from cellctl.mapping import NoCalibration
+from cellctl.pick.frames import annotate
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning, manager_for
 from cellctl.production.records import to_csv
@@ -133,6 +135,37 @@ def cycles(run_id: Annotated[int, Path(ge=1, le=2**62)], services: ServicesDep, 
         return PlainTextResponse(to_csv(records), media_type="text/csv",
                                  headers={"Content-Disposition": f'attachment; filename="run-{run_id}-cycles.csv"'})
     return records
+
+
+@router.get("/runs/{run_id}/cycles/{n}/frame.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}, 404: {}})
+def cycle_frame(run_id: Annotated[int, Path(ge=1, le=2**62)], n: Annotated[int, Path(ge=1, le=2**31)],
+                services: ServicesDep, _: Viewer,
+                annotated: Annotated[bool, Query(description="draw the matches (false: the pixels as grabbed)")]
+                = True) -> Response:
+    """The picture cycle ``n`` of the run chose from: a failed cycle's from disk (kept, within the
+    cell's bounds), any other from the service's last frames while it is among them; 404
+    ``unknown_frame`` when it is not kept."""
+    manager = _manager(services)
+    try:
+        record = next((r for r in manager.store.cycles(run_id) if int(r["n"]) == n), None)
+    except NotFound:
+        record = None
+    if record is None:
+        raise ApiError(404, "unknown_cycle", f"run {run_id} has no cycle {n} (GET /production/runs/{run_id}/cycles)")
+    try:
+        if record.get("frame_kept"):
+            frame = manager.failure_frames.load(run_id, n)
+        elif record.get("frame_id") is not None:
+            frame = services.frames.get(int(record["frame_id"]))
+        else:
+            raise KeyError(f"cycle {n} of run {run_id} took no picture")
+    except KeyError as exc:
+        raise ApiError(404, "unknown_frame", f"cycle {n}'s frame is not kept: {exc.args[0]}") from None
+    ok, buf = cv2.imencode(".png", annotate(frame) if annotated else frame.pixels)
+    if not ok:
+        raise ApiError(500, "encode_failed", "the frame could not be encoded")
+    return Response(buf.tobytes(), media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
 @router.put("/slot", responses={404: {}, 409: {}, 422: {}})
