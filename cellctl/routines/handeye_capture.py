@@ -44,6 +44,8 @@ RESOLVE_EVERY = 2
 DOF4_HINT = (" For a SCARA / top-down-only cell, run handeye-capture with dof 4 and target_z_mm (the plate "
              "origin's height in the robot base frame, mm).")
 """The routine's way to the solver's alternative (``HandEyeError.alternative == "dof4"``)."""
+CARRIED_MIN_TURN_DEG = 5.0
+"""A station whose tool turned at least this much from the start must turn the plate in the camera's view."""
 
 
 class Params(BaseModel):
@@ -171,8 +173,11 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         c = capture(cam, robot, target, f"station{tried:02d}", ctx)
         ok = good(c) and c.T_base_tool is not None
         if ok and c.T_base_tool is not None:
+            T_cam_target = target_pose(camera, target, c.detection)
+            check_carried(first.T_base_tool, target_pose(camera, target, first.detection), c.T_base_tool,
+                          T_cam_target, setup, cand.purpose)
             caps.append(c)
-            planner.observe(c.T_base_tool, target_pose(camera, target, c.detection), cand.purpose)
+            planner.observe(c.T_base_tool, T_cam_target, cand.purpose)
         else:
             rejected += 1
             planner.failed_at(cand.T_base_tool)
@@ -197,6 +202,31 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
                    "candidates_left_out": left_out, "returned_to_start": not returned,
                    "camera_covariance_used": camera_cov is not None,
                    **({"warning": returned} if returned else {})})
+
+
+def check_carried(T_base_tool0: NDArray[np.float64], T_cam_target0: NDArray[np.float64],
+                  T_base_tool: NDArray[np.float64], T_cam_target: NDArray[np.float64], setup: str,
+                  purpose: str) -> None:
+    """Refuse stations where the plate, seen from the camera, did not turn as the tool turned.
+
+    Whichever the robot carries (the camera or the plate), the plate turns in the camera's frame
+    by the tool's angle (hand-eye's AX = XB keeps rotation angles). When the tool turned by at least
+    ``CARRIED_MIN_TURN_DEG`` and the plate by less than half of that, the robot carries neither: a
+    plate lying still in front of a fixed camera has no hand-eye (jog-to-mark maps that camera).
+    """
+    tool_deg = _angle_deg(np.linalg.inv(T_base_tool0) @ T_base_tool)
+    plate_deg = _angle_deg(np.linalg.inv(T_cam_target0) @ T_cam_target)
+    if tool_deg >= CARRIED_MIN_TURN_DEG and plate_deg < 0.5 * tool_deg:
+        where = ("the plate must ride on the tool, facing the camera" if setup == "eye-to-hand"
+                 else "the camera must ride on the tool")
+        raise RoutineError(f"the tool turned {tool_deg:.1f} deg from the start pose ({purpose}) but the plate, seen "
+                           f"from the camera, turned {plate_deg:.1f} deg: the robot carries neither the camera nor "
+                           f"the plate, and {where} (setup: {setup}). A camera fixed over a plate that lies still is "
+                           "mapped to the robot with jog-to-mark (POST /routines/jog-to-mark)")
+
+
+def _angle_deg(T: NDArray[np.float64]) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _ok(result: HandEyeResult) -> bool:

@@ -1,9 +1,12 @@
 """``intrinsics-capture`` with the robot: views planned from what was seen, until the verdict is ok.
 
 The views come from ``ViewPlanner`` (probe shifts, the four image corners in a closed loop, tilts
-about both camera axes, other distances). After ``views`` good views the camera is calibrated;
-while its verdict is not ok and the ``max_views`` budget lasts, views that address the verdict's
-problems are added and it is calibrated again. The result says which coverage is still missing.
+about both camera axes, other distances); with ``calibration.setup: eye-to-hand`` (a fixed camera,
+the plate on the tool) from ``FixedCameraViewPlanner``, which moves the plate instead of the camera.
+After ``views`` good views the camera is calibrated; while its verdict is not ok and the
+``max_views`` budget lasts, views that address the verdict's problems are added and it is
+calibrated again. A shift probe that does not move the plate in the image ends the routine: the
+robot carries neither the camera nor the plate. The result says which coverage is still missing.
 """
 
 from __future__ import annotations
@@ -18,8 +21,12 @@ from calibration.targets import Target
 from cellctl.jobs import JobContext
 from cellctl.routines.common import Capture, RoutineError, approximate_camera, capture, move, pivot_point, target_pose
 from cellctl.routines.view_plan import Mat4, ViewPlanner
+from cellctl.routines.view_plan_fixed import FixedCameraViewPlanner
 from cellctl.services import Services
 from drivers.base import CameraBase, MotionRejected, RobotBase
+
+STILL_PLATE_FRACTION = 0.01
+"""A shift probe must move the plate by at least this fraction of the image width (it aims at ~0.15)."""
 
 
 class CaptureParams(Protocol):
@@ -46,14 +53,21 @@ class PlannedCapture:
         if first.T_base_tool is None:
             raise RoutineError("the start view has no robot pose; the robot must report its pose")
         w, h = first.frame.size
-        approx = approximate_camera(w, h)
-        T_cam_target = target_pose(approx, target, first.detection)
+        self.approx = approximate_camera(w, h)
+        T_cam_target = target_pose(self.approx, target, first.detection)
         centre = target.points().xyz_m.mean(axis=0)
         distance = float((T_cam_target[:3, :3] @ centre + T_cam_target[:3, 3])[2])
-        self.planner = ViewPlanner(first.T_base_tool, first.detection.uv, (w, h),
-                                   pivot_point(first.T_base_tool, T_cam_target, target), distance,
-                                   params.max_tilt_deg, frame_scale=_frame_scale(target))
-        self.planner.observe(first.T_base_tool, first.detection.uv, True, "start")
+        self.fixed_camera = services.config.calibration.setup == "eye-to-hand"
+        self.planner: ViewPlanner
+        if self.fixed_camera:
+            self.planner = FixedCameraViewPlanner(first.T_base_tool, first.detection.uv, (w, h), centre, distance,
+                                                  params.max_tilt_deg, frame_scale=_frame_scale(target),
+                                                  centre_target_m=centre)
+        else:
+            self.planner = ViewPlanner(first.T_base_tool, first.detection.uv, (w, h),
+                                       pivot_point(first.T_base_tool, T_cam_target, target), distance,
+                                       params.max_tilt_deg, frame_scale=_frame_scale(target))
+        self.planner.observe(first.T_base_tool, first.detection.uv, True, "start", T_cam_target)
 
     def run(self) -> tuple[Any, int]:
         """Capture, calibrate, and add views until the verdict is ok or the budget is spent."""
@@ -94,13 +108,27 @@ class PlannedCapture:
             move(self.services, self.ctx, self.robot, T, self.speed, f"intrinsics-capture {purpose}")
             c = capture(self.cam, self.robot, self.target, f"view{self.attempts:02d}", self.ctx)
             ok = self.good(c)
-            self.planner.observe(T, c.detection.uv, ok, purpose)
+            self.planner.observe(T, c.detection.uv, ok, purpose,
+                                 target_pose(self.approx, self.target, c.detection) if ok else None)
+            if ok and purpose.startswith("probe ") and not purpose.startswith("probe tilt"):
+                self._check_moved(c, purpose)
             if ok:
                 self.caps.append(c)
             else:
                 self.rejected += 1
             self.ctx.report(self._progress(), f"view {self.attempts} ({purpose}): "
                             + ("ok" if ok else f"rejected ({c.detection.reason or 'too few points'})"))
+
+    def _check_moved(self, c: Capture, purpose: str) -> None:
+        """A shift probe that leaves the plate where it was: the robot does not move what the camera sees."""
+        moved_px = float(np.linalg.norm(c.detection.uv.mean(axis=0) - self.first.detection.uv.mean(axis=0)))
+        if moved_px < STILL_PLATE_FRACTION * self.first.frame.size[0]:
+            where = ("the plate must be on the tool, facing the camera (calibration.setup: eye-to-hand)"
+                     if self.fixed_camera else "the camera must be on the tool (calibration.setup: eye-in-hand)")
+            raise RoutineError(f"the plate moved {moved_px:.1f} px in the image when the robot moved ({purpose}): "
+                               f"the robot neither carries the plate nor the camera; {where}. A plate that lies "
+                               "still in front of a fixed camera is calibrated with mode: operator (present it "
+                               "by hand in each view)")
 
     def _progress(self) -> float:
         return min(0.9, len(self.caps) / max(self.p.views, 1) * 0.9)

@@ -50,6 +50,8 @@ class Seen:
     uv: NDArray[np.float64]
     good: bool
     purpose: str
+    T_cam_target: Mat4 | None = None
+    """The plate's pose in the camera frame from a rough camera (a planning estimate), when known."""
 
 
 @dataclass
@@ -71,10 +73,15 @@ class ViewPlanner:
     seen: list[Seen] = field(default_factory=list)
     J_px_per_m: NDArray[np.float64] | None = None
     corner_poses: dict[str, Mat4] = field(default_factory=dict)
+    scene_sign = -1.0
+    """The guessed sign of the plate's image motion for a tool shift: a camera on the tool moved by +x sees
+    the plate move by -u (a fixed camera that faces the tool sees it move with the tool: +1)."""
 
     # -- what has been seen ------------------------------------------------------------------------
-    def observe(self, T: Mat4, uv: NDArray[np.float64], good: bool, purpose: str) -> None:
-        self.seen.append(Seen(T.copy(), np.asarray(uv, dtype=np.float64).reshape(-1, 2), good, purpose))
+    def observe(self, T: Mat4, uv: NDArray[np.float64], good: bool, purpose: str,
+                T_cam_target: Mat4 | None = None) -> None:
+        self.seen.append(Seen(T.copy(), np.asarray(uv, dtype=np.float64).reshape(-1, 2), good, purpose,
+                              None if T_cam_target is None else np.array(T_cam_target, dtype=np.float64)))
         if good and purpose.startswith("corner "):
             name = purpose.split(" ", 1)[1]
             if name in self.covered_corners_of(uv):
@@ -99,10 +106,11 @@ class ViewPlanner:
         probe_m = PROBE_FRACTION * w * self.distance_m / (1.1 * w)  # ~0.15 w in pixels with a 50-deg lens guess
         off_centre = self.uv0.mean(axis=0) - 0.5 * np.asarray(self.image_size, dtype=np.float64)
         for axis in (0, 1):
-            # Probe towards the image centre (a camera shift of +x moves the scene by -u, as a guess).
-            step = probe_m * (1.0 if off_centre[axis] >= 0 else -1.0)
+            # Probe towards the image centre (the sign of the scene's motion is a guess: ``scene_sign``).
+            step = probe_m * (1.0 if off_centre[axis] * self.scene_sign <= 0 else -1.0)
             yield f"probe {'xy'[axis]}", self._shifted(self.T0, step * np.eye(2)[axis])
             self._learn_jacobian(axis, step)
+        yield from self._after_probes()
         for name in list(CORNERS):
             if name in self.missing_corners():
                 yield from self._reach_corner(name)
@@ -116,6 +124,10 @@ class ViewPlanner:
         for scale, axis in ((0.85, 0), (1.15, 1)):
             T = self._along_view(self.T0, (scale - 1.0) * self.distance_m)
             yield f"distance x{scale:.2f}", self._tilted(T, axis, 0.7 * tilt)
+
+    def _after_probes(self) -> Iterator[tuple[str, Mat4]]:
+        """More probes once the shifts are measured (a camera on the tool needs none)."""
+        yield from ()
 
     def more(self, missing: list[str], round_k: int) -> Iterator[tuple[str, Mat4]]:
         """Views that address what the verdict still misses (``missing``: its problem codes)."""
@@ -161,15 +173,16 @@ class ViewPlanner:
         last = self.seen[-1] if self.seen else None
         if self.J_px_per_m is None:
             f_guess = 1.1 * self.image_size[0]
-            # Moving the camera by +x moves the scene by -u: the guess until probes measure it.
-            self.J_px_per_m = -np.eye(2) * f_guess / self.distance_m
+            # The guess until probes measure it (see ``scene_sign``).
+            self.J_px_per_m = self.scene_sign * np.eye(2) * f_guess / self.distance_m
         if last is not None and last.good and len(last.uv):
             self.J_px_per_m[:, axis] = (last.uv.mean(axis=0) - self.uv0.mean(axis=0)) / probe_m
 
     def _shift_for(self, delta_px: NDArray[np.float64]) -> NDArray[np.float64]:
-        J = self.J_px_per_m if self.J_px_per_m is not None else -np.eye(2) * 1.1 * self.image_size[0] / self.distance_m
+        guess = self.scene_sign * np.eye(2) * 1.1 * self.image_size[0] / self.distance_m
+        J = self.J_px_per_m if self.J_px_per_m is not None else guess
         if abs(np.linalg.det(J)) < 1e-9 * float(np.abs(J).max() ** 2 + 1e-300):
-            J = -np.eye(2) * 1.1 * self.image_size[0] / self.distance_m
+            J = guess
         return np.asarray(np.linalg.solve(J, delta_px), dtype=np.float64)
 
     @staticmethod
@@ -178,8 +191,7 @@ class ViewPlanner:
         T[:3, 3] += T0[:3, 0] * shift_m[0] + T0[:3, 1] * shift_m[1]
         return T
 
-    @staticmethod
-    def _along_view(T0: Mat4, dz_m: float) -> Mat4:
+    def _along_view(self, T0: Mat4, dz_m: float) -> Mat4:
         T = T0.copy()
         T[:3, 3] -= T0[:3, 2] * dz_m  # the view axis is the tool's z: positive dz moves away
         return T
