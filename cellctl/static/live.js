@@ -74,11 +74,15 @@ export async function robotLoop(session) {
         $("#rs-latched").className = s.latched ? "error" : "";
         $("#robot-resume").hidden = !s.latched || !has("engineer");
         $("#robot-state").dataset.xMm = String(p.x_m * 1e3);
-        $("#robot-status").textContent = "";
+        if ($("#robot-status").dataset.unavailable) {  // clear only our own outage note: a Stop's or a
+          $("#robot-status").textContent = "";          // resume's answer stays until the next click
+          delete $("#robot-status").dataset.unavailable;
+        }
         await showLatch(s.latched, session);
         if (!s.latched) setBadge(`${state.robotId} ${s.moving ? "moving" : s.mode}`, true);
       } catch (e) {
         $("#robot-status").textContent = `robot ${state.robotId} unavailable: ${e.message}`;
+        $("#robot-status").dataset.unavailable = "yes";
         setBadge(`${state.robotId} unavailable`, false);
       }
     }

@@ -326,6 +326,7 @@ def test_stop_from_the_page_latches_and_only_an_engineer_resumes(cell: tuple[Ser
     log_in(page, tokens["engineer"])
     expect(page.locator("#robot-resume")).to_be_visible()
     page.click("#robot-resume")
+    expect(page.locator("#robot-status")).to_contain_text("resumed")  # else it shows why resume failed
     expect(page.locator("#rs-latched")).to_have_text("no")
     expect(page.locator("#robot-resume")).to_be_hidden()
     with served.client(tokens["engineer"]) as http:
