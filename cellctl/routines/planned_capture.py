@@ -126,7 +126,7 @@ class PlannedCapture:
             where = ("the plate must be on the tool, facing the camera (calibration.setup: eye-to-hand)"
                      if self.fixed_camera else "the camera must be on the tool (calibration.setup: eye-in-hand)")
             raise RoutineError(f"the plate moved {moved_px:.1f} px in the image when the robot moved ({purpose}): "
-                               f"the robot neither carries the plate nor the camera; {where}. A plate that lies "
+                               f"the robot carries neither the camera nor the plate, and {where}. A plate that lies "
                                "still in front of a fixed camera is calibrated with mode: operator (present it "
                                "by hand in each view)")
 
