@@ -15,50 +15,26 @@ from typing import Any
 import numpy as np
 
 from bench.handeye_common import BOARD, CAM, PEERS, loo_px, peer_fit, plain_refinement
+from bench.handeye_real import eth_set
 from calibration.camera_model import CameraModel
-from calibration.geometry import invert, make_transform, quaternion_to_matrix
+from calibration.geometry import invert, make_transform
 from calibration.handeye import RobotNoise, calibrate_handeye, make_stations, predict_cam_target, transform_error_deg_mm
 from calibration.observations import Detection
 from calibration.synthetic import simulate_handeye
-from calibration.targets import Chessboard
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "handeye_ethz_robot_arm_sr300"
 STATED = RobotNoise(0.05, 0.01)
 
 
-def _slerp_pose(t: np.ndarray, rows: np.ndarray) -> list[np.ndarray]:
-    from scipy.spatial.transform import Rotation, Slerp
-
-    ts = rows[:, 0]
-    sl = Slerp(ts, Rotation.from_quat(rows[:, 4:8]))
-    pos = np.column_stack([np.interp(t, ts, rows[:, k]) for k in (1, 2, 3)])
-    R = sl(t).as_matrix()
-    return [make_transform(R[k], pos[k]) for k in range(len(t))]
-
-
 def eth_real(quick: bool) -> dict[str, Any] | None:
-    """ETH ASL robot arm + SR300: each measured camera pose turned into virtual detections of a 6x6
-    grid (pitch 40 mm) through the SR300 IR model; LOO target position miss (mm) per method."""
-    robot_f = DATA / "robot_arm_complete_bag_color_and_ir_base_link_sr300_hinge.csv"
-    cam_f = DATA / "robot_arm_complete_bag_color_and_ir_target_ir.csv"
-    if not (robot_f.is_file() and cam_f.is_file()):
-        return None
-    rob = np.loadtxt(robot_f, delimiter=",")
-    cam = np.loadtxt(cam_f, delimiter=",")
-    dt = -0.02  # the published time offset (robot_t = cam_t + dt), SOURCE.txt
+    """ETH ASL robot arm + SR300 (bench/handeye_real.py ``eth_set``: each measured camera pose turned
+    into virtual detections of a 6x6 grid, pitch 40 mm, through the SR300 IR model); LOO target
+    position miss (mm) per method."""
     step = 60 if quick else 40
-    sel = cam[::step]
-    sel = sel[(sel[:, 0] + dt > rob[0, 0]) & (sel[:, 0] + dt < rob[-1, 0])]
-    G = _slerp_pose(sel[:, 0] + dt, rob)
-    sr300 = CameraModel("opencv5", 640, 480, np.array([[471.845, 0, 316.850], [0, 471.686, 237.389], [0, 0, 1]]),
-                        np.array([-0.15024, -0.00326, -0.00126, -0.00042, 0.0]))
-    grid = Chessboard(6, 6, 40.0)
-    tp = grid.points()
-    dets = []
-    for k, r in enumerate(sel):
-        C = invert(make_transform(quaternion_to_matrix(r[4:8]), r[1:4]))
-        uv = sr300.project(tp.xyz_m @ C[:3, :3].T + C[:3, 3])
-        dets.append(Detection(f"t{k:03d}", bool(np.all(np.isfinite(uv))), tp.ids.copy(), uv, image_size=(640, 480)))
+    rs = eth_set(step)
+    if rs is None:
+        return None
+    G, dets, sr300, grid = rs.G, rs.detections, rs.camera, rs.target
     setup = "eye-in-hand"
     t0 = time.perf_counter()
     res = calibrate_handeye(setup, G, dets, sr300, grid, RobotNoise(0.5, 0.1), sigma_px=0.3, leave_one_out=True)
