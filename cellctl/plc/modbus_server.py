@@ -7,7 +7,7 @@ are protocol addresses, 0-based (the "4x" reference is 40001 + address). Unmappe
 writes to the read-only block answer exception 02 (illegal data address); other unit ids
 exception 0B.
 
-Register map (version 3; full description with the handshake in docs/plc-modbus.md)::
+Register map (version 4; full description with the handshake in docs/plc-modbus.md)::
 
     address  dir  meaning
     0        W    COMMAND: 0 idle (no-op, answered at once), 1 pick (recipe in 1), 2 verify calibration,
@@ -49,6 +49,9 @@ Register map (version 3; full description with the handshake in docs/plc-modbus.
     174-202  R    PRODUCTION: the production run's state, live on every read (docs/plc-modbus.md):
                   run id, state, ended_because, counters, next slot, the last cycle's result, slot,
                   cycle time and 1-sigma uncertainty
+    203      R    SIGMA_SEQ: the sequence of the answer 204..235 belong to (= ECHO_SEQ once posted)
+    204+4k   R    pick k's 1-sigma (k = 0..7, as 30+10k): +0..1 position (largest axis), int32 in um;
+                  +2..3 angle, int32 in 0.001 degree; -1 when not known
 
 int32 values are two registers, **big-endian words: high word first**, two's complement.
 
@@ -86,6 +89,7 @@ from cellctl.plc.requests import (
     execute_pick,
     execute_verify,
     failure,
+    pick_sigma,
     robot_motion_status,
 )
 from cellctl.services import Services
@@ -93,7 +97,7 @@ from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
-MAP_VERSION = 3
+MAP_VERSION = 4
 COMMAND, RECIPE, SEQUENCE, COUNT = 0, 1, 2, 3
 STATUS, ECHO_SEQ, ACTIVE_SEQ, ERROR_CODE, ERROR_TEXT = 10, 11, 12, 13, 14
 RESULT_COMMAND, PICKS_REPORTED, PICKS_FOUND, VERIFY_PASSED, REFUSED_SEQ = 15, 16, 17, 18, 19
@@ -105,7 +109,10 @@ MESSAGE = PICKS + PICK_STRIDE * MAX_PICKS  # 110
 MESSAGE_REGS = 64
 PRODUCTION = MESSAGE + MESSAGE_REGS  # 174: the production block (live on every read)
 PRODUCTION_REGS = 29
-END = PRODUCTION + PRODUCTION_REGS  # 203: first address after the map
+SIGMA_SEQ = PRODUCTION + PRODUCTION_REGS  # 203: the per-pick uncertainty block (map version 4)
+PICK_SIGMA = SIGMA_SEQ + 1  # 204 + 4k: pick k's position and angle 1-sigma
+SIGMA_STRIDE = 4
+END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: first address after the map
 READ_ONLY = STATUS
 
 BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
@@ -241,7 +248,7 @@ class ModbusPlcServer:
         self._image[HEARTBEAT] = int(time.monotonic() * 10) & 0xFFFF
         self._image[STATUS] = (self._image[STATUS] & ~LIVE_BITS) | self._robot_bits()
         try:
-            self._image[PRODUCTION:END] = production_words(self.services)
+            self._image[PRODUCTION:SIGMA_SEQ] = production_words(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the run's state
             log.exception("reading the production run's state failed")
         registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
@@ -306,6 +313,13 @@ class ModbusPlcServer:
             img[base + 6 : base + 8] = int32_words(p["gripper_yaw_deg"] * 1000)
             img[base + 8] = max(0, min(1000, int(round(float(p["score"]) * 1000))))
             img[base + 9] = 1 if p["reachable"] else 0
+        img[SIGMA_SEQ:END] = [0] + [0xFFFF] * (END - PICK_SIGMA)  # -1: not known
+        for k, p in enumerate(picks):
+            sigma_mm, sigma_deg = pick_sigma(p)
+            base = PICK_SIGMA + SIGMA_STRIDE * k
+            img[base : base + 2] = int32_words(-1 if sigma_mm is None else sigma_mm * 1000)
+            img[base + 2 : base + 4] = int32_words(-1 if sigma_deg is None else sigma_deg * 1000)
+        img[SIGMA_SEQ] = seq
         v = out.verify or {}
         drift_px, drift_mm = v.get("drift_px"), v.get("drift_mm")
         img[DRIFT_PX : DRIFT_PX + 2] = int32_words(drift_px * 1000 if drift_px is not None else -1)

@@ -8,6 +8,8 @@ Variables (read-only, refreshed every second and after every call)
     ``CellId`` String, ``RobotAvailable`` Boolean, ``CameraAvailable`` Boolean,
     ``ActiveCameraCalibrationId`` / ``ActiveHandEyeCalibrationId`` Int64 (0: none),
     ``Busy`` Boolean, ``LastPickCount`` Int32, ``LastPickLatencyMs`` Double,
+    ``LastPickSigmaMm`` / ``LastPickSigmaDeg`` Double[] (the last Pick's picks in Poses' order: position
+    1-sigma, largest axis, mm / yaw 1-sigma, degrees; NaN when not known; set before Pick returns),
     ``LastErrorCode`` Int32 (the error-text index of cellctl.plc.requests.ERROR_TEXTS, 0 = none),
     ``LastError`` String (the one-line message, empty when the last call succeeded).
     Live (checked every 0.1 s): ``RobotLatched`` Boolean (the cell's robot is stopped until an
@@ -72,6 +74,7 @@ from cellctl.plc.requests import (
     Outcome,
     execute_pick,
     execute_verify,
+    pick_sigma,
     robot_motion_status,
 )
 from cellctl.services import Services
@@ -106,6 +109,8 @@ _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("Busy", False, ua.VariantType.Boolean),
     ("LastPickCount", 0, ua.VariantType.Int32),
     ("LastPickLatencyMs", 0.0, ua.VariantType.Double),
+    ("LastPickSigmaMm", [], ua.VariantType.Double),
+    ("LastPickSigmaDeg", [], ua.VariantType.Double),
     ("LastErrorCode", 0, ua.VariantType.Int32),
     ("LastError", "", ua.VariantType.String),
     ("RobotLatched", False, ua.VariantType.Boolean),
@@ -374,6 +379,9 @@ class OpcUaPlcServer:
             reachable.append(bool(p["reachable"]))
         await self._set("LastPickCount", len(out.picks))
         await self._set("LastPickLatencyMs", out.latency_ms)
+        sigmas = [pick_sigma(p) for p in out.picks]
+        await self._set("LastPickSigmaMm", [math.nan if mm is None else mm for mm, _ in sigmas])
+        await self._set("LastPickSigmaDeg", [math.nan if deg is None else deg for _, deg in sigmas])
         answer = [ua.Variant(len(out.picks), ua.VariantType.Int32),
                   ua.Variant([float(x) for x in poses], ua.VariantType.Double),
                   ua.Variant(reachable, ua.VariantType.Boolean)]

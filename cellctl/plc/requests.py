@@ -115,6 +115,16 @@ class Outcome:
         return ERROR_TEXTS[self.text_index][0]
 
 
+def pick_sigma(pick: dict[str, Any]) -> tuple[float | None, float | None]:
+    """A pick's 1-sigma uncertainty: position (mm, its largest axis in the base frame) and yaw (deg);
+    None when not known (a pick answer's ``uncertainty``)."""
+    unc = pick.get("uncertainty") or {}
+    sig = [float(s) for s in (unc.get("sigma_mm") or []) if s is not None and math.isfinite(float(s))]
+    deg = unc.get("sigma_yaw_deg")
+    return (max(sig) if sig else None,
+            float(deg) if deg is not None and math.isfinite(float(deg)) else None)
+
+
 def failure(text_index: int, message: str | None = None) -> Outcome:
     return Outcome(False, text_index, message or ERROR_TEXTS[text_index][1])
 
