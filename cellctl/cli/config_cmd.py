@@ -22,6 +22,10 @@ def register(sub: Any) -> None:
                         "camera over a pick area of parts, a place grid and a sim gripper (docs/production.md); "
                         "fixed-camera: a camera fixed over a circle plate and a tool feature, for jog-to-mark with "
                         "its tool-centre step (docs/routines/jog-to-mark.md)")
+    d.add_argument("--motion-time-scale", type=_time_scale, default=None, metavar="S",
+                   help="set the simulated robot's motion_time_scale (and a sim gripper's time_scale) in the printed "
+                        "config: 1 real time, 0.25 four times faster, 0 instantaneous moves (default: the scene's, "
+                        "real time)")
     d.set_defaults(func=print_default)
     c = csub.add_parser("check", help="validate a cell.yaml and print its devices")
     c.add_argument("--config", required=True)
@@ -59,9 +63,42 @@ def print_default(args: argparse.Namespace) -> None:
 
     scene = getattr(args, "scene", "virtual-cell")
     if scene == "virtual-cell":
-        sys.stdout.write(default_config_text())
+        text = default_config_text()
     else:
-        sys.stdout.write(resources.files("cellctl").joinpath(DEFAULT_SCENES[scene]).read_text())
+        text = resources.files("cellctl").joinpath(DEFAULT_SCENES[scene]).read_text()
+    scale = getattr(args, "motion_time_scale", None)
+    sys.stdout.write(text if scale is None else with_time_scale(text, scale))
+
+
+def _time_scale(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; give 0-10 (1: real time)") from None
+    if not 0.0 <= value <= 10.0:
+        raise argparse.ArgumentTypeError(f"{text} is out of range; give 0-10 (1: real time, 0: instantaneous)")
+    return value
+
+
+def with_time_scale(text: str, scale: float) -> str:
+    """``text`` (a cell.yaml) with every sim robot's ``motion_time_scale`` and every sim gripper's
+    ``time_scale`` set to ``scale``; comments and order kept."""
+    import io
+
+    from ruamel.yaml import YAML
+
+    y = YAML()  # round-trip
+    y.indent(mapping=2, sequence=4, offset=2)
+    y.width = 4096
+    y.representer.add_representer(type(None), lambda r, _: r.represent_scalar("tag:yaml.org,2002:null", "null"))
+    data = y.load(text)
+    for group, kind, key in (("robots", "sim", "motion_time_scale"), ("io", "sim_gripper", "time_scale")):
+        for dev in (data.get(group) or {}).values():
+            if dev.get("kind") == kind:
+                dev.setdefault("settings", {})[key] = scale
+    out = io.StringIO()
+    y.dump(data, out)
+    return out.getvalue()
 
 
 def check(args: argparse.Namespace) -> dict[str, Any]:
