@@ -64,7 +64,12 @@ class ProductionParts:
         self.spec = spec
         self.table_z_m = table_z_m
         self._lock = threading.RLock()
-        self._rng = np.random.default_rng([seed, 0x6717])
+        fault_seed = [seed, spec.scatter.seed] if spec.gripper.fail_seed is None else [spec.gripper.fail_seed]
+        self._rng = np.random.default_rng([*fault_seed, 0x6717])
+        """The gripper's fault stream (one draw per close on a part while ``fail_probability`` > 0)."""
+        self.closes_on_part = 0
+        self.faults = 0
+        """Closes on a part so far, and how many of them the fault stream made fail (``GET /sim/truth``)."""
         self._outline = np.asarray(spec.part.outline_mm, dtype=np.float64)
         self._samples = _sample_points(spec.part.outline_mm, spec.part.holes_mm)
         self.parts: list[SimPart] = [SimPart(k, "in_area", T) for k, T in enumerate(self._scatter())]
@@ -131,7 +136,9 @@ class ProductionParts:
             off = abs((dyaw + sym / 2) % sym - sym / 2)
             if off > gs.tolerance_deg:
                 return GripOutcome(None, f"the fingers are {off:.1f} deg off part {best.id}'s grip axis")
+            self.closes_on_part += 1
             if gs.fail_probability > 0 and self._rng.uniform() < gs.fail_probability:
+                self.faults += 1
                 return GripOutcome(None, f"part {best.id} slipped from the fingers as they closed (simulated)")
             best.T_tool_part = g.invert(T_base_tool_true) @ best.T_base_part
             best.state = "held"

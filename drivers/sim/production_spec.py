@@ -121,7 +121,11 @@ class SimGripperSpec(_Strict):
     actuation_s: float = Field(0.15, ge=0, le=10)
     """Time to close or open (scaled like the robot's moves by the sim gripper's time scale)."""
     fail_probability: float = Field(0.0, ge=0, le=1)
-    """A close on a part slips off it (closes empty) with this probability."""
+    """A close on a part slips off it (closes empty) with this probability: each close on a part draws
+    once from the fault stream (independent draws, seeded: ``fail_seed``)."""
+    fail_seed: int | None = Field(None, ge=0)
+    """The fault stream's seed; default the scene's ``seed`` with the scatter's, so that every scatter
+    (a bench's seeds) draws its own faults and the same scene always draws the same."""
     slip_accel_m_s2: float | None = Field(None, gt=0, le=1000)
     """A held part slips out at a move whose start acceleration reaches this (none: never)."""
     accel_ramp_s: float = Field(0.1, gt=0, le=10)

@@ -147,5 +147,6 @@ def production_truth(parts: ProductionParts, camera: CameraModel, T_base_cam: ND
         "place_area": spec.place_area.model_dump(mode="json"),
         "part": spec.part.model_dump(mode="json"),
         "gripper": {"closed": parts.closed, "holding": None if held is None else held.id,
-                    "width_mm": parts.width_mm()},
+                    "width_mm": parts.width_mm(), "closes_on_part": parts.closes_on_part,
+                    "faults": parts.faults},
     }
