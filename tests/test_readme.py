@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import math
 import os
 import re
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 
+from calibration import geometry as g
 from tests.conftest import REPO, free_port
 
 README = (REPO / "README.md").read_text()
 BLOCKS = re.findall(r"```bash\n(.*?)```", README, flags=re.S)
+_PRODUCTION = README[README.index("### A production run"):]
+_PRODUCTION = _PRODUCTION[:_PRODUCTION.index("\n#", 1)]
+PRODUCTION_BLOCKS = re.findall(r"```bash\n(.*?)```", _PRODUCTION, flags=re.S)
+"""The tour's production run: its own cell and service (``test_the_production_tour_runs_as_written``)."""
+TOUR_BLOCKS = [b for b in BLOCKS[2:] if b not in PRODUCTION_BLOCKS]
 
 
 def test_readme_opens_with_the_two_commands() -> None:
@@ -27,8 +37,8 @@ def test_readme_opens_with_the_two_commands() -> None:
 
 
 def tour_script(port: int) -> str:
-    """The README's tour blocks, pointed at ``port`` instead of the documented 8080."""
-    tour = "\n".join(BLOCKS[2:])
+    """The README's tour blocks (but the production run's), pointed at ``port`` instead of the documented 8080."""
+    tour = "\n".join(TOUR_BLOCKS)
     assert "127.0.0.1:8080" in tour  # the README shows the default address; the test moves it
     script = tour.replace("127.0.0.1:8080", f"127.0.0.1:{port}")
     assert "8080" not in script, "a tour command names port 8080 in a form this test cannot move"
@@ -103,3 +113,76 @@ def test_the_tour_runs_as_written_twice_on_one_store(tmp_path: Path) -> None:
     assert len({cam1, he1, cam2, he2}) == 4 and cam2 > cam1 and he2 > he1
     active_ids = {int(c["id"]) for c in active.json() if c["active"]}
     assert {cam2, he2} <= active_ids and not {cam1, he1} & active_ids
+
+
+def _serve(cmd: str, cwd: Path, env: dict[str, str], base: str, token_file: Path) -> subprocess.Popen[bytes]:
+    """Start ``cmd`` (a README serve line) and wait until it answers on ``base`` and wrote its token."""
+    log = (cwd / "serve.log").open("wb")
+    server = subprocess.Popen(cmd, shell=True, cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                              start_new_session=True)
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            if token_file.is_file() and httpx.get(base + "/health", timeout=2).status_code == 200:
+                return server
+        except httpx.HTTPError:
+            pass
+        if server.poll() is not None or time.monotonic() > deadline:
+            os.killpg(server.pid, 15)
+            raise AssertionError(f"the service did not come up on {base}:\n" + (cwd / "serve.log").read_text())
+        time.sleep(0.3)
+
+
+def _slot_errors(truth: dict[str, Any]) -> list[tuple[int, float, float]]:
+    """Each placed part's slot with its position (mm) and angle (deg) error against that slot's pose."""
+    grid = truth["place_grid"]
+    T_origin = g.ur_pose_to_transform(grid["origin_ur"])
+    slots = [T_origin @ g.make_transform(np.eye(3), [c * grid["pitch_mm"][0] * 1e-3, r * grid["pitch_mm"][1] * 1e-3,
+                                                     0.0])
+             for r in range(grid["rows"]) for c in range(grid["cols"])]
+    out = []
+    for part in truth["parts"]:
+        if part["state"] == "placed":
+            T = np.array(part["T_base_part"])
+            k = min(range(len(slots)), key=lambda i: float(np.linalg.norm(slots[i][:3, 3] - T[:3, 3])))
+            rot, trans = g.transform_error(T, slots[k])
+            out.append((k, trans * 1e3, math.degrees(rot)))
+    return sorted(out)
+
+
+@pytest.mark.timeout(600)  # about a minute with the README's motion time scale 0.25
+def test_the_production_tour_runs_as_written(tmp_path: Path) -> None:
+    """The production run of the tour: its config line, its serve line (on a free port of its own, with
+    its own HOME), then every command of the section as written; the production cell is calibrated by
+    its own routines (both verdicts ok), and the run places three parts into the first three slots."""
+    (tmp_path / ".venv").symlink_to(REPO / ".venv")
+    config_line, serve_line = PRODUCTION_BLOCKS[0].strip().splitlines()
+    assert serve_line.startswith(".venv/bin/cellctl serve --config production.yaml") and "--port 8081" in serve_line
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "CELLCTL_"))}
+    env["HOME"] = str(tmp_path)
+    subprocess.run(["bash", "-c", "set -euo pipefail\n" + config_line], cwd=tmp_path, env=env, check=True, timeout=60)
+    assert "motion_time_scale: 0.25" in (tmp_path / "production.yaml").read_text()
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    token_file = tmp_path / ".local" / "share" / "cellctl" / "production-cell.session-token"
+    server = _serve(serve_line.replace("8081", str(port)), tmp_path, env, base, token_file)
+    try:
+        script = "\n".join(PRODUCTION_BLOCKS[1:]).replace("127.0.0.1:8081", f"127.0.0.1:{port}")
+        assert "8081" not in script and "8080" not in script, "a production command names a port this test cannot move"
+        r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=500)
+        assert r.returncode == 0, f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
+    finally:
+        os.killpg(server.pid, 15)
+        server.wait(timeout=30)
+    for name in ("p-intrinsics.json", "p-handeye.json"):
+        job = json.loads((tmp_path / name).read_text())
+        assert job["state"] == "succeeded" and job["verdict_ok"] is True, (name, job["result"])
+    run = json.loads((tmp_path / "p-production.json").read_text())
+    assert run["state"] == "complete" and run["ended_because"] == "count_reached", run
+    assert run["counters"]["placed"] == 3 and run["next_slot"] == 3, run
+    rows = list(csv.DictReader((tmp_path / "p-cycles.csv").read_text().splitlines()))
+    assert [(row["result"], row["slot"]) for row in rows] == [("placed", "0"), ("placed", "1"), ("placed", "2")]
+    errors = _slot_errors(json.loads((tmp_path / "p-truth.json").read_text()))
+    assert [k for k, _, _ in errors] == [0, 1, 2], errors
+    assert all(mm < 1.0 and deg < 1.0 for _, mm, deg in errors), errors
