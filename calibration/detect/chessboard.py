@@ -18,16 +18,20 @@ A board with an inner corner closer to the image border than ``MIN_BORDER_SQUARE
 localized reliably (OpenCV's sector detector still "finds" such boards, e.g. Udacity's
 calibration4.jpg).
 
-Sub-pixel accuracy: our own saddle-point refinement (``refine_saddle``: a weighted quadratic
-surface fitted to the lightly smoothed image around each corner, moved to its saddle point,
-iterated). bench/detection.py measures it: on rendered 9x6 boards at noise 2 / blur 0.7 it
-halves the RMS error of ``findChessboardCornersSB`` even with ``CALIB_CB_ACCURACY`` (which we
-therefore leave off: it costs four times the time and adds nothing after our refinement) and
-beats ``findChessboardCorners`` + ``cornerSubPix`` (numbers in bench/results/detection.md). It
-is skipped where squares are too small for its window, and a corner whose refinement does not
-converge to a saddle (or would move it more than ``SADDLE_MAX_MOVE_PX``) keeps OpenCV's position.
-Each corner carries its 1-sigma uncertainty from the image
-structure and noise in its window (``calibration.detect.precision``).
+Sub-pixel accuracy, in two steps of our own:
+
+1. a saddle-point fit (``refine_saddle_converged``: a weighted quadratic surface fitted to the
+   lightly smoothed image in a ±3 px window, moved to its saddle point, iterated) brings
+   OpenCV's sector-detector positions (1-1.4 px off on blurred outer corners) close;
+2. a point-symmetry refinement (``calibration.detect.corner_symmetry``) over a window of half
+   each corner's own square, so each edge contributes a stretch of its length: the ±3 px saddle
+   window saw too little of edges running near the pixel axes (issue 26: 0.08 px error there).
+
+bench/detection.py and bench/intrinsics_heldout.py measure them against ``findChessboardCornersSB``
+with ``CALIB_CB_ACCURACY``. Both steps are skipped where squares are too small, and a corner
+whose refinement does not converge (or would move it more than ``SADDLE_MAX_MOVE_PX`` from
+OpenCV's position) keeps the previous position. Each corner carries its 1-sigma uncertainty
+from the image structure and noise in its refinement window (``calibration.detect.precision``).
 """
 
 from __future__ import annotations
@@ -36,6 +40,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.detect.corner_symmetry import (
+    WEIGHT_SIGMA_FRACTION,
+    half_windows_px,
+    local_square_px,
+    refine_symmetric,
+)
 from calibration.detect.precision import CORNER_WINDOW_SIGMA_PX, gradient_sigma_px
 from calibration.observations import Detection
 from calibration.targets import Chessboard
@@ -200,13 +210,24 @@ def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: s
                          "the image")
     G = canonical_order(grey, G, cols, rows)
     uv = G.reshape(-1, 2)
+    window_sigma = np.full(len(uv), CORNER_WINDOW_SIGMA_PX)
     if saddle_refinement:
         square_px = float(np.median(np.hypot(*np.diff(G, axis=1).reshape(-1, 2).T)))
         if square_px >= 4 * SADDLE_HALF_WINDOW:  # the window must see only this corner's four squares
             refined, converged = refine_saddle_converged(grey, uv, SADDLE_HALF_WINDOW)
             moved = np.hypot(*(refined - uv).T)
+            start = uv
             uv = np.where((converged & (moved < SADDLE_MAX_MOVE_PX))[:, None], refined, uv)
+            # then the point-symmetry refinement over a window sized by each corner's own square
+            hw = half_windows_px(grey.shape, uv, local_square_px(uv.reshape(G.shape)))
+            sym, sym_ok = refine_symmetric(grey, uv, hw)
+            use = sym_ok & (np.hypot(*(sym - start).T) < SADDLE_MAX_MOVE_PX)
+            uv = np.where(use[:, None], sym, uv)
+            window_sigma = np.where(use, WEIGHT_SIGMA_FRACTION * hw, CORNER_WINDOW_SIGMA_PX)
     ids = target.points().ids
-    sigma = gradient_sigma_px(grey, uv, CORNER_WINDOW_SIGMA_PX)
+    sigma = np.empty(len(uv))
+    for ws in np.unique(window_sigma):
+        sel = window_sigma == ws
+        sigma[sel] = gradient_sigma_px(grey, uv[sel], float(ws))
     return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64),
                      uv_sigma_px=sigma)

@@ -14,8 +14,10 @@ The estimate, from each point's own local fit window:
   unweighted, the gradient bound slightly better, so the detector reports the latter.
 
 The image noise ``s_n`` is Immerkær's estimator (the response to a 3x3 Laplacian-difference
-kernel that cancels planes and edges to first order), made robust with the median, over the
-detection's bounding box, floored at the 8-bit quantisation (1/sqrt(12) grey).
+kernel that cancels planes and edges to first order), made robust by averaging only the smallest
+80 % of the responses (a truncated half-normal mean: continuous, where a median of 8-bit
+responses is an integer and took levels 0.25 grey apart), over the detection's bounding box,
+floored at the 8-bit quantisation (1/sqrt(12) grey).
 
 The numbers are estimates of the random part only; the solvers use them as *relative* weights
 (``calibration.observations.point_weights``) and estimate the overall scale from the residuals.
@@ -34,6 +36,10 @@ MAX_SIGMA_PX = 10.0
 """Cap of a reported point uncertainty (a point whose window carries no structure)."""
 CORNER_WINDOW_SIGMA_PX = 2.1
 """Gaussian window of the corner estimate: the saddle refinement's (half window 3 px, sigma 0.7 x 3)."""
+NOISE_FRACTION = 0.8
+"""The noise estimate averages this fraction of the smallest |responses| (the rest: edges, corners)."""
+_LOW_MEAN_OF_HALF_NORMAL = 0.5586
+"""Mean of the smallest 80 % of |N(0, 1)| draws: 2 (phi(0) - phi(1.2816)) / 0.8."""
 _IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], dtype=np.float32)
 
 
@@ -49,9 +55,12 @@ def image_noise_grey(grey: NDArray[np.uint8], uv: FloatArray, pad_px: int = 10) 
     roi = grey[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
     if min(roi.shape) < 3:
         return QUANTISATION_GREY
-    resp = np.abs(cv2.filter2D(roi, cv2.CV_32F, _IMMERKAER)[1:-1, 1:-1])
-    # sum of squares of the kernel is 36; the median of |N(0, s)| is 0.6745 s
-    sigma = float(np.median(resp)) / 0.6745 / 6.0
+    resp = np.sort(np.abs(cv2.filter2D(roi, cv2.CV_32F, _IMMERKAER)[1:-1, 1:-1]).ravel())
+    # The kernel's sum of squares is 36. A median of 8-bit responses is an integer (the estimate
+    # took a few levels 0.25 grey apart: issue 26), so the mean of the smallest NOISE_FRACTION of
+    # the responses is used: as robust to the edges' large responses, and continuous.
+    low = resp[: max(1, int(NOISE_FRACTION * resp.size))]
+    sigma = float(np.mean(low, dtype=np.float64)) / _LOW_MEAN_OF_HALF_NORMAL / 6.0
     return max(sigma, QUANTISATION_GREY)
 
 
