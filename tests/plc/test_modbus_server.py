@@ -1,4 +1,4 @@
-"""The Modbus TCP server of a served virtual cell, driven by a pymodbus client acting as the PLC."""
+"""The Modbus TCP server of the virtual cell (the app in this process), driven by a pymodbus client as the PLC."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from cellctl.plc.requests import (
     TEXT_UNKNOWN_COMMAND,
     TEXT_UNKNOWN_RECIPE,
 )
-from tests.plc.conftest import RECIPE, PlcCell
+from tests.plc.conftest import RECIPE, PlcApp, PlcCell
 
 UNIT = 1
 _seq = [100]
@@ -65,7 +65,7 @@ class Answer:
                       picks)
 
 
-def plc(cell: PlcCell) -> ModbusTcpClient:
+def plc(cell: PlcApp | PlcCell) -> ModbusTcpClient:
     client = ModbusTcpClient("127.0.0.1", port=cell.modbus_port, timeout=5, retries=0)
     assert client.connect()
     return client
@@ -109,8 +109,8 @@ def test_register_encodings_round_trip() -> None:
     assert len(mb.ascii_words("x" * 500)) == mb.MESSAGE_REGS
 
 
-def test_plc_picks_and_reads_the_pose_against_truth(plc_cell: PlcCell) -> None:
-    with plc(plc_cell) as client:
+def test_plc_picks_and_reads_the_pose_against_truth(plc_app: PlcApp) -> None:
+    with plc(plc_app) as client:
         seq = next_seq()
         request(client, mb.CMD_PICK, RECIPE, seq)
         # Once the write is answered the request is running: BUSY, and DONE/ERROR are clear.
@@ -122,14 +122,14 @@ def test_plc_picks_and_reads_the_pose_against_truth(plc_cell: PlcCell) -> None:
     assert a.error_code == 0 and a.error_text == 0 and a.command == mb.CMD_PICK
     assert a.reported >= 1 and a.found >= a.reported
     best = a.picks[0]
-    assert math.hypot(best["x_mm"] - plc_cell.part_x_mm, best["y_mm"] - plc_cell.part_y_mm) < 0.5
+    assert math.hypot(best["x_mm"] - plc_app.part_x_mm, best["y_mm"] - plc_app.part_y_mm) < 0.5
     assert abs(best["z_mm"] - 5.0) < 0.011  # the recipe's grasp height above the table
     assert abs(best["yaw_deg"]) <= 90.0 and best["reachable"] == 1 and best["score"] >= 0.6
     assert a.latency_ms > 0
 
 
-def test_plc_verifies_the_calibration(plc_cell: PlcCell) -> None:
-    with plc(plc_cell) as client:
+def test_plc_verifies_the_calibration(plc_app: PlcApp) -> None:
+    with plc(plc_app) as client:
         seq = next_seq()
         request(client, mb.CMD_VERIFY, 0, seq)
         a = wait_answer(client, seq)
@@ -138,8 +138,8 @@ def test_plc_verifies_the_calibration(plc_cell: PlcCell) -> None:
     assert a.reported == 0
 
 
-def test_plc_that_writes_garbage_gets_errors_never_a_dead_server(plc_cell: PlcCell) -> None:
-    with plc(plc_cell) as client:
+def test_plc_that_writes_garbage_gets_errors_never_a_dead_server(plc_app: PlcApp) -> None:
+    with plc(plc_app) as client:
         seq = next_seq()
         request(client, 99, RECIPE, seq)  # no such command: answered at once
         a = read_answer(client)
@@ -170,24 +170,24 @@ def test_plc_that_writes_garbage_gets_errors_never_a_dead_server(plc_cell: PlcCe
 
     # Bytes that are not Modbus at all, then a half frame and a hang-up.
     for junk in (b"\xde\xad\xbe\xef" * 64, b"GET / HTTP/1.1\r\n\r\n", b"\x00\x01\x00\x00\x00\x06\x01\x03"):
-        with socket.create_connection(("127.0.0.1", plc_cell.modbus_port), timeout=5) as s:
+        with socket.create_connection(("127.0.0.1", plc_app.modbus_port), timeout=5) as s:
             s.sendall(junk)
             time.sleep(0.05)
-    with plc(plc_cell) as client:
+    with plc(plc_app) as client:
         seq = next_seq()
         request(client, mb.CMD_IDLE, 0, seq)  # the no-op request: answered at once
         a = read_answer(client)
         assert a.echo == seq and a.status == mb.DONE and a.error_code == 0 and message(client) == ""
 
 
-def test_plc_that_disconnects_mid_handshake_reads_the_result_after_reconnecting(plc_cell: PlcCell) -> None:
+def test_plc_that_disconnects_mid_handshake_reads_the_result_after_reconnecting(plc_app: PlcApp) -> None:
     seq = next_seq()
-    client = plc(plc_cell)
+    client = plc(plc_app)
     request(client, mb.CMD_PICK, RECIPE, seq)
     client.close()  # gone before the answer
 
     # Meanwhile another PLC connection writes a new request: refused while busy, flagged, not applied.
-    with plc(plc_cell) as other:
+    with plc(plc_app) as other:
         busy = read_answer(other)
         assert busy.status & mb.BUSY and busy.active == seq
         r = other.write_registers(mb.COMMAND, [mb.CMD_PICK, RECIPE, seq + 1000], device_id=UNIT)
@@ -197,10 +197,10 @@ def test_plc_that_disconnects_mid_handshake_reads_the_result_after_reconnecting(
         seq_reg = other.read_holding_registers(mb.SEQUENCE, count=1, device_id=UNIT).registers[0]
         assert seq_reg == seq
 
-    with plc(plc_cell) as again:  # the PLC is back
+    with plc(plc_app) as again:  # the PLC is back
         a = wait_answer(again, seq)
         assert a.status & mb.DONE and not a.status & mb.BUSY and a.reported >= 1
-        assert math.hypot(a.picks[0]["x_mm"] - plc_cell.part_x_mm, a.picks[0]["y_mm"] - plc_cell.part_y_mm) < 0.5
+        assert math.hypot(a.picks[0]["x_mm"] - plc_app.part_x_mm, a.picks[0]["y_mm"] - plc_app.part_y_mm) < 0.5
         assert a.status & mb.REFUSED  # kept until the next accepted request
         seq2 = next_seq() + 1000
         request(again, mb.CMD_IDLE, 0, seq2)
@@ -208,8 +208,8 @@ def test_plc_that_disconnects_mid_handshake_reads_the_result_after_reconnecting(
         assert a2.echo == seq2 and a2.status == mb.DONE  # REFUSED cleared
 
 
-def test_other_unit_ids_are_answered_gateway_no_response(plc_cell: PlcCell) -> None:
-    with plc(plc_cell) as client:
+def test_other_unit_ids_are_answered_gateway_no_response(plc_app: PlcApp) -> None:
+    with plc(plc_app) as client:
         r = client.read_holding_registers(mb.STATUS, count=1, device_id=UNIT + 1)
         assert isinstance(r, ExceptionResponse) and r.exception_code == 0x0B
         assert not read_answer(client).status & 0xFFF0  # still serving unit 1

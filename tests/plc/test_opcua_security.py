@@ -2,7 +2,9 @@
 
 Without a trust list asyncua accepts any self-signed client certificate, which could then call
 ``Pick``; the service must say how to trust one instead of starting open. Certificates are made
-here (``make_cert``); the service is the real ``cellctl serve`` process on loopback.
+here (``make_cert``). The refusal without a trust list runs the real ``cellctl serve`` process (the
+entry point: exit code, one line on stderr); the empty trust list runs the same ``main`` in this
+process (``tests.support.cli.run_cli``: the same exit and output, without a new interpreter).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import yaml
 from cellctl.config import ConfigError, default_config_text, parse_config
 from tests.conftest import CELLCTL, free_port
 from tests.plc.test_opcua_server import make_cert
+from tests.support.cli import run_cli
 
 HOW_TO_TRUST = "copy the client's application certificate there"
 
@@ -71,7 +74,8 @@ def test_serve_refuses_to_start_with_an_empty_trusted_directory(tmp_path: Path) 
     empty.mkdir()
     (empty / "README.txt").write_text("put the PLC's certificate here\n")
     path, opcua_port, http_port = secure_config(tmp_path, trusted=empty)
-    done = serve(tmp_path, path, http_port)
+    env = {"CELLCTL_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin"}
+    done = run_cli("serve", "--config", str(path), "--port", str(http_port), env=env)
     assert done.returncode != 0
     assert "holds no certificate" in done.stderr and HOW_TO_TRUST in done.stderr, done.stderr[-2000:]
     assert "Traceback" not in done.stderr

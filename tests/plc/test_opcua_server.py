@@ -1,7 +1,7 @@
-"""The OPC UA server of a served virtual cell, called by an asyncua client over loopback.
+"""The OPC UA server of the virtual cell (the app in this process), called by an asyncua client over loopback.
 
-Security None (the lab) on the shared served cell; Basic256Sha256 SignAndEncrypt with self-signed
-certificates made here (server certificate and a trusted client certificate) on a second one.
+Security None (the lab) on the module's cell (``plc_app``); Basic256Sha256 SignAndEncrypt with
+self-signed certificates made here (server certificate and a trusted client certificate) on a second one.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from cellctl.plc.opcua_server import NAMESPACE, POSE_STRIDE
 from cellctl.plc.requests import TEXT_NONE, TEXT_UNKNOWN_RECIPE
-from tests.conftest import stop_served
-from tests.plc.conftest import RECIPE, PlcCell, start_plc_cell
+from tests.plc.conftest import RECIPE, PlcApp, PlcCell
+from tests.support.served_plc import in_process_plc
 
 CLIENT_URI = "urn:cellctl:test-plc"
 # A Pick on the virtual cell renders a frame (~3 s on a loaded 2-core machine); asyncua's server
@@ -60,7 +60,7 @@ async def read(cell: Node, idx: int, name: str) -> Any:
     return await (await cell.get_child(f"{idx}:{name}")).read_value()
 
 
-def check_pick(result: list[Any], cell: PlcCell) -> int:
+def check_pick(result: list[Any], cell: PlcApp | PlcCell) -> int:
     count, poses, reachable = result
     assert count >= 1 and len(poses) == POSE_STRIDE * count and len(reachable) == count
     x_mm, y_mm, z_mm, rx, ry, rz, yaw_deg, score = poses[:POSE_STRIDE]
@@ -70,17 +70,17 @@ def check_pick(result: list[Any], cell: PlcCell) -> int:
     return int(count)
 
 
-def test_pick_verify_and_status_with_security_none(plc_cell: PlcCell) -> None:
+def test_pick_verify_and_status_with_security_none(plc_app: PlcApp) -> None:
     async def run() -> None:
-        async with Client(plc_cell.opcua_url, **CLIENT_OPTIONS) as client:
+        async with Client(plc_app.opcua_url, **CLIENT_OPTIONS) as client:
             cell, idx = await cell_node(client)
             assert await read(cell, idx, "CellId") == "virtual-cell"
             assert await read(cell, idx, "RobotAvailable") is True
-            assert await read(cell, idx, "ActiveCameraCalibrationId") == plc_cell.camera_calibration_id
-            assert await read(cell, idx, "ActiveHandEyeCalibrationId") == plc_cell.handeye_calibration_id
+            assert await read(cell, idx, "ActiveCameraCalibrationId") == plc_app.camera_calibration_id
+            assert await read(cell, idx, "ActiveHandEyeCalibrationId") == plc_app.handeye_calibration_id
 
             count = check_pick(await cell.call_method(f"{idx}:Pick", ua.Variant(RECIPE, ua.VariantType.Int32)),
-                               plc_cell)
+                               plc_app)
             assert await read(cell, idx, "LastPickCount") == count
             assert await read(cell, idx, "LastPickLatencyMs") > 0
             assert await read(cell, idx, "LastErrorCode") == TEXT_NONE and await read(cell, idx, "LastError") == ""
@@ -110,21 +110,18 @@ def test_pick_verify_and_status_with_security_none(plc_cell: PlcCell) -> None:
 
 
 @pytest.fixture(scope="module")
-def secure_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[PlcCell, Path]]:
+def secure_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[PlcApp, Path]]:
     tmp = tmp_path_factory.mktemp("plc-secure")
     pki = tmp / "pki"
     server_cert, server_key = make_cert(pki / "server", "cellctl", "urn:cellctl:virtual-cell", server=True)
     make_cert(pki / "trusted", "plc", CLIENT_URI, server=False, key_folder=pki / "keys")
-    cell = start_plc_cell(tmp, modbus=False, opcua={
-        "security": "basic256sha256", "cert": str(server_cert), "key": str(server_key),
-        "trusted_client_certs": str(pki / "trusted")})
-    try:
+    with in_process_plc(tmp, modbus=False, opcua={
+            "security": "basic256sha256", "cert": str(server_cert), "key": str(server_key),
+            "trusted_client_certs": str(pki / "trusted")}) as cell:
         yield cell, pki
-    finally:
-        stop_served(cell.served)
 
 
-def test_pick_and_verify_with_basic256sha256(secure_cell: tuple[PlcCell, Path]) -> None:
+def test_pick_and_verify_with_basic256sha256(secure_cell: tuple[PlcApp, Path]) -> None:
     cell_info, pki = secure_cell
 
     async def run() -> None:
@@ -147,7 +144,7 @@ def test_pick_and_verify_with_basic256sha256(secure_cell: tuple[PlcCell, Path]) 
     asyncio.run(run())
 
 
-def test_basic256sha256_refuses_plain_and_untrusted_clients(secure_cell: tuple[PlcCell, Path]) -> None:
+def test_basic256sha256_refuses_plain_and_untrusted_clients(secure_cell: tuple[PlcApp, Path]) -> None:
     cell_info, pki = secure_cell
     stranger_cert, stranger_key = make_cert(pki / "untrusted", "stranger", "urn:cellctl:stranger", server=False)
 

@@ -1,8 +1,9 @@
-"""A PLC pick WITH robot motion against the motion owner and the Stop latch, on a served virtual cell.
+"""A PLC pick WITH robot motion against the motion owner and the Stop latch, on the virtual cell.
 
-The cell (true calibrations, recipe 1 = the bracket, ``plc.allow_motion: true``) is served by
-``cellctl serve`` with its real-time virtual robot; the PLC is a pymodbus client (command 3) and an
-asyncua client (``PickAndMove``); Stop, resume and the competing moves are REST calls over loopback.
+The cell (true calibrations, recipe 1 = the bracket, ``plc.allow_motion: true``) is the app in this
+process with its real-time virtual robot (``tests.support.served_plc.in_process_plc``); the PLC is a
+pymodbus client (command 3) and an asyncua client (``PickAndMove``) on loopback; Stop, resume and the
+competing moves are REST calls to the app.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import math
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -30,10 +32,10 @@ from cellctl.plc.requests import (
     TEXT_ROBOT_BUSY,
     TEXT_ROBOT_STOPPED,
 )
-from tests.conftest import Served, free_port, start_served, stop_served
-from tests.plc.conftest import RECIPE, PlcCell, prepare_cell
+from tests.plc.conftest import RECIPE, PlcApp
 from tests.plc.test_modbus_server import UNIT, Answer, message, next_seq, read_answer, request, wait_answer
 from tests.plc.test_opcua_server import CLIENT_OPTIONS, cell_node, read
+from tests.support.served_plc import in_process_plc
 
 
 async def settled(node: Any, idx: int, name: str, expected: Any, timeout_s: float = 15.0) -> bool:
@@ -51,19 +53,19 @@ APPROACH_MM = 40.0 + 5.0  # the recipe's approach height above its grasp height 
 
 
 class MotionCell:
-    """The served cell, its PLC ports and a REST client with the engineer's token."""
+    """The cell (``plc.allow_motion: true``), its PLC ports and a REST client with the engineer's token."""
 
     def __init__(self, tmp: Path) -> None:
-        self.modbus_port, self.opcua_port = free_port(), free_port()
-        plc = {"allow_motion": True,
-               "modbus": {"enabled": True, "host": "127.0.0.1", "port": self.modbus_port, "unit_id": UNIT},
-               "opcua": {"enabled": True, "host": "127.0.0.1", "port": self.opcua_port}}
-        path, facts = prepare_cell(tmp, plc)
-        self.part_x_mm, self.part_y_mm = facts["part_x_mm"], facts["part_y_mm"]
-        self.served: Served = start_served(tmp, config=path, timeout_s=120.0)
-        self.opcua_url = f"opc.tcp://127.0.0.1:{self.opcua_port}/cellctl/"
-        self.http = self.served.client(timeout_s=60.0)
-        self.home = self.pose_ur()
+        self._stack = ExitStack()
+        try:
+            cell = self._stack.enter_context(in_process_plc(tmp, allow_motion=True))
+            self.modbus_port, self.opcua_port, self.opcua_url = cell.modbus_port, cell.opcua_port, cell.opcua_url
+            self.part_x_mm, self.part_y_mm = cell.part_x_mm, cell.part_y_mm
+            self.http = self._stack.enter_context(cell.http())
+            self.home = self.pose_ur()
+        except BaseException:
+            self._stack.close()
+            raise
 
     def pose_ur(self) -> dict[str, float]:
         r = self.http.get("/robots/robot0/state")
@@ -98,8 +100,7 @@ class MotionCell:
                 and abs(p["z_m"] * 1e3 - APPROACH_MM) < 1.0)
 
     def close(self) -> None:
-        self.http.close()
-        stop_served(self.served)
+        self._stack.close()
 
 
 @pytest.fixture(scope="module")
@@ -242,11 +243,10 @@ def test_opcua_pick_and_move_obeys_owner_and_latch(at_home: MotionCell) -> None:
     asyncio.run(run())
 
 
-def test_pick_with_motion_is_off_unless_the_config_allows_it(plc_cell: PlcCell) -> None:
-    client = ModbusTcpClient("127.0.0.1", port=plc_cell.modbus_port, timeout=5, retries=0)
+def test_pick_with_motion_is_off_unless_the_config_allows_it(plc_app: PlcApp) -> None:
+    client = ModbusTcpClient("127.0.0.1", port=plc_app.modbus_port, timeout=5, retries=0)
     assert client.connect()
-    with client, httpx.Client(base_url=plc_cell.served.base_url, timeout=30.0,
-                              headers={"Authorization": f"Bearer {plc_cell.served.token}"}) as http:
+    with client, plc_app.http() as http:
         before = http.get("/robots/robot0/state").json()["pose_ur"]
         a, msg = modbus_pick_move(client)
         assert a.status & mb.ERROR and (a.error_code, a.error_text) == (CLASS_SETUP, TEXT_MOTION_OFF), a
@@ -254,7 +254,7 @@ def test_pick_with_motion_is_off_unless_the_config_allows_it(plc_cell: PlcCell) 
         assert http.get("/robots/robot0/state").json()["pose_ur"] == pytest.approx(before, abs=1e-6)
 
     async def opcua() -> None:
-        async with Client(plc_cell.opcua_url, **CLIENT_OPTIONS) as c:
+        async with Client(plc_app.opcua_url, **CLIENT_OPTIONS) as c:
             node, idx = await cell_node(c)
             with pytest.raises(UaStatusCodeError) as e:
                 await node.call_method(f"{idx}:PickAndMove", ua.Variant(RECIPE, ua.VariantType.Int32))

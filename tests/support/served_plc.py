@@ -1,16 +1,23 @@
-"""A served virtual cell with its PLC servers on: the true calibrations active, the bracket taught.
+"""A virtual cell with its PLC servers on: the true calibrations active, the bracket taught.
 
-The store is prepared before ``cellctl serve`` starts (the virtual cell's true camera and hand-eye
+The store is prepared before the cell starts (the virtual cell's true camera and hand-eye
 calibrations, activated; recipe 1 = the bracket taught from a rendered frame), so whoever drives
-it — the PLC tests, ``bench/plc.py``, an integrator's own PLC check — measures the PLC front ends
-and the pick pipeline, not a calibration routine. Loopback only.
+it measures the PLC front ends and the pick pipeline, not a calibration routine. Two ways to run
+it, the same PLC servers (Modbus TCP, OPC UA) on free loopback ports either way:
+
+- ``in_process_plc``: the app in this process (``tests.support.app``), its lifespan starting
+  the PLC servers; the PLC tests use it (no interpreter to start, no imports or warm-up to pay again);
+- ``start_plc_cell``: ``cellctl serve`` as a child process, for ``bench/plc.py`` and an
+  integrator's own PLC check.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -22,6 +29,11 @@ from cellctl.pick.model import teach
 from cellctl.store import open_store
 from drivers.sim.world import world_for
 from tests.support.served import Served, free_port, start_served
+
+if TYPE_CHECKING:  # the app is imported when a cell starts, not when a test module is collected
+    import httpx
+
+    from tests.support.app import AppCell
 
 SEED = 11
 RECIPE = 1
@@ -80,8 +92,47 @@ def prepare_cell(tmp: Path, plc: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
 def start_plc_cell(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool = True) -> PlcCell:
     """Prepare the store, then start ``cellctl serve`` with both PLC servers on free loopback ports."""
     modbus_port, opcua_port = free_port(), free_port()
-    plc = {"modbus": {"enabled": modbus, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1},
-           "opcua": {"enabled": True, "host": "127.0.0.1", "port": opcua_port, **(opcua or {})}}
-    path, facts = prepare_cell(tmp, plc)
+    path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus))
     served = start_served(tmp, config=path, timeout_s=120.0)
     return PlcCell(served, modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", **facts)
+
+
+@dataclass
+class PlcApp:
+    """The same cell as ``PlcCell``, its app in this process (``app``) instead of a served process."""
+
+    app: AppCell
+    modbus_port: int
+    opcua_port: int
+    opcua_url: str
+    part_x_mm: float
+    part_y_mm: float
+    camera_calibration_id: int
+    handeye_calibration_id: int
+
+    def http(self) -> httpx.Client:
+        """A REST client with the engineer's token, on the app's running lifespan."""
+        return self.app.http()
+
+
+def plc_section(modbus_port: int, opcua_port: int, opcua: dict[str, Any] | None = None, modbus: bool = True,
+                allow_motion: bool = False) -> dict[str, Any]:
+    """cell.yaml's ``plc`` section: both servers on 127.0.0.1 at the given ports (unit id 1)."""
+    plc: dict[str, Any] = {"modbus": {"enabled": modbus, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1},
+                           "opcua": {"enabled": True, "host": "127.0.0.1", "port": opcua_port, **(opcua or {})}}
+    if allow_motion:
+        plc["allow_motion"] = True
+    return plc
+
+
+@contextmanager
+def in_process_plc(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool = True,
+                        allow_motion: bool = False) -> Iterator[PlcApp]:
+    """Prepare the store, then run the app in this process with both PLC servers on free loopback ports
+    (``allow_motion``: ``plc.allow_motion``, the PLC's picks with robot motion)."""
+    from tests.support.app import in_process_cell
+
+    modbus_port, opcua_port = free_port(), free_port()
+    path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus, allow_motion))
+    with in_process_cell(tmp, config=path) as app:
+        yield PlcApp(app, modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", **facts)
