@@ -1,6 +1,11 @@
-"""Typed routine parameters on a served virtual cell: ``GET /routines`` and OpenAPI carry each
+"""Typed routine parameters on the virtual cell: ``GET /routines`` and OpenAPI carry each
 routine's JSON schema (units, defaults); bad values name the field; an abandoned interactive step
-times out and cancels the job; ``job run --follow`` into a file writes whole lines, no ``\\r``."""
+times out and cancels the job; ``job run --follow`` into a file writes whole lines, no ``\\r``.
+
+The cell is the app served by uvicorn from a thread of this process (``served_in_thread``): a real
+HTTP server for ``cellctl job run --url`` (run as its console script, the command's entry-point
+test), without a ``cellctl serve`` process to start; ``job run --help`` runs in-process (``run_cli``).
+"""
 
 from __future__ import annotations
 
@@ -11,22 +16,21 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import CELLCTL
+from tests.support.app import ThreadServed, served_in_thread
+from tests.support.cli import run_cli
 
 ROUTINES = ("handeye-capture", "intrinsics-capture", "jog-to-mark", "verify")
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
-    s = start_served(tmp_path_factory.mktemp("params"))
-    try:
-        yield s
-    finally:
-        stop_served(s)
+def http_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ThreadServed]:
+    with served_in_thread(tmp_path_factory.mktemp("params")) as cell:
+        yield cell
 
 
-def test_routines_list_their_parameter_schemas(served: Served) -> None:
-    with served.client() as http:
+def test_routines_list_their_parameter_schemas(http_cell: ThreadServed) -> None:
+    with http_cell.client() as http:
         listed = http.get("/routines").json()
     assert [r["name"] for r in listed] == list(ROUTINES)
     by_name = {r["name"]: r for r in listed}
@@ -42,8 +46,8 @@ def test_routines_list_their_parameter_schemas(served: Served) -> None:
             assert prop.get("description"), f"{r['name']}.{key} has no description"
 
 
-def test_openapi_documents_each_routine_body(served: Served) -> None:
-    with served.client() as http:
+def test_openapi_documents_each_routine_body(http_cell: ThreadServed) -> None:
+    with http_cell.client() as http:
         spec = http.get("/openapi.json").json()
         listed = {r["name"]: r["params_schema"] for r in http.get("/routines").json()}
     for name in ROUTINES:
@@ -57,24 +61,24 @@ def test_openapi_documents_each_routine_body(served: Served) -> None:
 
 @pytest.mark.parametrize(("body", "field"), [({"views": "many"}, "views"), ({"max_tilt_deg": 90}, "max_tilt_deg"),
                                              ({"viewz": 3}, "viewz"), ({"speed_m_s": -1}, "speed_m_s")])
-def test_bad_parameters_name_the_field(served: Served, body: dict[str, object], field: str) -> None:
-    with served.client() as http:
+def test_bad_parameters_name_the_field(http_cell: ThreadServed, body: dict[str, object], field: str) -> None:
+    with http_cell.client() as http:
         r = http.post("/routines/intrinsics-capture", json=body)
     assert r.status_code == 422
     err = r.json()["error"]
     assert err["code"] == "invalid_params" and field in err["message"] and "GET /routines" in err["message"]
 
 
-def test_non_json_and_non_object_bodies_are_refused(served: Served) -> None:
-    with served.client() as http:
+def test_non_json_and_non_object_bodies_are_refused(http_cell: ThreadServed) -> None:
+    with http_cell.client() as http:
         r = http.post("/routines/verify", content=b"{not json", headers={"Content-Type": "application/json"})
         assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_params"
         r = http.post("/routines/verify", json=[1, 2])
         assert r.status_code == 422 and "JSON object" in r.json()["error"]["message"]
 
 
-def test_abandoned_jog_to_mark_times_out_and_cancels(served: Served) -> None:
-    with served.client() as http:
+def test_abandoned_jog_to_mark_times_out_and_cancels(http_cell: ThreadServed) -> None:
+    with http_cell.client() as http:
         r = http.post("/routines/jog-to-mark", json={"marks": 4, "step_timeout_s": 1.5})
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]
@@ -92,11 +96,11 @@ def test_abandoned_jog_to_mark_times_out_and_cancels(served: Served) -> None:
         assert cals == []
 
 
-def test_follow_into_a_file_writes_whole_lines(served: Served, tmp_path: Path) -> None:
+def test_follow_into_a_file_writes_whole_lines(http_cell: ThreadServed, tmp_path: Path) -> None:
     log = tmp_path / "follow.log"
     with log.open("w") as err:
-        r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
-                            "--token", served.token, "--param", "target=" + "no-such-target-" * 8],
+        r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", http_cell.base_url,
+                            "--token", http_cell.token, "--param", "target=" + "no-such-target-" * 8],
                            stdout=subprocess.PIPE, stderr=err, text=True, timeout=120, stdin=subprocess.DEVNULL)
     text = log.read_text()
     assert r.returncode == 2  # refused at once (the config has no such target): one whole line
@@ -106,7 +110,7 @@ def test_follow_into_a_file_writes_whole_lines(served: Served, tmp_path: Path) -
 
 
 def test_job_run_help_lists_parameters_with_units() -> None:
-    r = subprocess.run([CELLCTL, "job", "run", "--help"], capture_output=True, text=True, timeout=60)
+    r = run_cli("job", "run", "--help")
     assert r.returncode == 0, r.stderr
     out = r.stdout
     for name in ROUTINES:
