@@ -7,7 +7,11 @@ along the pose's x), in the robot base frame, UR form (metres, rotation vector i
 - ``grid``: slot ``k = l*R*C + r*C + c`` (0-based, row-major, then layer) at
   ``T_origin @ Trans(c*px, r*py, l*h)`` (mm in the origin's frame).
 
-A place found by vision (``located``) is not built yet: a recipe naming it is refused.
+- ``located``: a place found by vision in the same picture as the parts: a second taught model
+  (``model``, e.g. a fixture or a tray) is searched; its pose (its taught reference point mapped
+  onto ``plane_z_mm``, its taught x axis) is ``T_base_fixture``, and slot ``k`` is
+  ``T_base_fixture @ T_origin @ Trans(c*px, r*py, l*h)`` with ``origin_ur`` in the fixture's frame
+  (a grid of ``rows`` x ``cols`` x ``layers`` as above; 1 x 1 x 1 by default: one place).
 
 The gripper's device (``GripperDevice``) names a configured ``io`` device and how to drive and
 check it: ``robotiq_2f`` (a Robotiq 2F gripper or the virtual cell's ``sim_gripper``: the
@@ -26,6 +30,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from calibration import geometry as g
+from cellctl.pick.model_schema import PartModelDoc
 from cellctl.strict_types import Count, Num
 
 UR = tuple[Num, Num, Num, Num, Num, Num]
@@ -99,7 +104,42 @@ class GridPlace(_Strict):
         return g.ur_pose_to_transform(list(self.origin_ur)) @ g.make_transform(np.eye(3), offset)
 
 
-PlaceSection = Annotated[FixedPlace | GridPlace, Field(discriminator="kind")]
+class LocatedPlace(_Strict):
+    kind: Literal["located"]
+    model: PartModelDoc = Field(description="the fixture's model, taught like a part (POST /pick/teach's answer)")
+    plane_z_mm: Num = Field(ge=-10_000, le=10_000, description="height of the fixture's top face in the base "
+                                                               "frame, mm (where its model is mapped)")
+    min_score: Num = Field(0.6, ge=0.3, le=1, description="lowest score the fixture is found with")
+    roi: tuple[Num, Num, Num, Num] | None = Field(None, description="search region of the fixture's reference "
+                                                                     "point [u, v, w, h], image px; none: all")
+    origin_ur: UR = Field(description="slot 0's pose in the fixture's frame (its reference point, taught x "
+                                      "axis), UR form (m, rad): where the part's reference point goes")
+    rows: Count = Field(1, ge=1, le=1000)
+    cols: Count = Field(1, ge=1, le=1000)
+    pitch_mm: tuple[Num, Num] = Field((0.0, 0.0), description="[px, py] in the origin's frame, mm")
+    layers: Count = Field(1, ge=1, le=1000)
+    layer_mm: Num = Field(0.0, ge=0, le=1000)
+    approach_height_mm: Num | None = Field(None, ge=0, le=1000)
+
+    @field_validator("origin_ur")
+    @classmethod
+    def _pose(cls, v: UR) -> UR:
+        return _metres(v, "origin_ur")
+
+    def slot_count(self) -> int:
+        return self.rows * self.cols * self.layers
+
+    def T_slot_in_fixture(self, k: int) -> NDArray[np.float64]:
+        """Slot ``k``'s pose in the fixture's frame, 4x4 metres."""
+        grid = GridPlace(kind="grid", origin_ur=self.origin_ur, rows=self.rows, cols=self.cols,
+                         pitch_mm=self.pitch_mm, layers=self.layers, layer_mm=self.layer_mm)
+        return grid.T_slot(k)
+
+    def T_slot(self, k: int) -> NDArray[np.float64]:
+        raise ValueError("a located place's slots are found with the fixture in each picture (T_slot_in_fixture)")
+
+
+PlaceSection = Annotated[FixedPlace | GridPlace | LocatedPlace, Field(discriminator="kind")]
 
 
 class GripperDevice(_Strict):

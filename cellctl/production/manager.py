@@ -50,7 +50,7 @@ class ProductionManager:
         stored = self.services.store.get_recipe(recipe_id)
         recipe = Recipe.model_validate(stored.data)
         if recipe.place is None:
-            raise PickError(f"recipe {recipe_id} has no place section: production needs one (fixed or grid; "
+            raise PickError(f"recipe {recipe_id} has no place section: production needs one (fixed, grid or located; "
                             "docs/production.md)")
         if recipe.gripper.device is None:
             raise PickError(f"recipe {recipe_id}'s gripper names no device (gripper.device): production must grip "

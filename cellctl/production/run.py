@@ -24,12 +24,12 @@ import numpy as np
 
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.motion import halt_after_failure, outcome, pose_ur
-from cellctl.pick.pose import pose_json
+from cellctl.pick.place import LocatedPlace
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.choice import Choice
 from cellctl.production.frames import KEPT_RESULTS, FailureFrames
 from cellctl.production.gripper import Gripper
-from cellctl.production.records import Counters, CycleTimes, Durations, clean
+from cellctl.production.records import Counters, CycleTimes, Durations, clean, seen_fields
 from cellctl.production.vision import (
     Candidate,
     Picture,
@@ -101,8 +101,11 @@ class ProductionRun:
         self._writer = Writer(f"production-{run_id}-store")
         self._next_slot = store.next_slot(settings.recipe_id)
         self._mapping: ActiveMapping | None = None
-        if settings.overlap and camera_on_arm(services, settings.camera_id, settings.robot_id, settings.recipe):
-            settings.overlap = False  # a camera on the arm sees from the capture pose only: part of the cycle
+        if settings.overlap and (isinstance(settings.recipe.place, LocatedPlace) or camera_on_arm(
+                services, settings.camera_id, settings.robot_id, settings.recipe)):
+            # A camera on the arm sees from the capture pose only, and a located place is in the camera's
+            # view (the arm over it hides it): the picture is part of the cycle.
+            settings.overlap = False
         if settings.overlap:
             mapping = active_mapping(services, settings.camera_id, settings.robot_id, settings.recipe.calibration,
                                      settings.recipe.plane_z_mm is not None)
@@ -317,7 +320,15 @@ class ProductionRun:
         if n_slots is not None and slot >= n_slots:
             raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
                             "(PUT /production/slot)")
-        T_place, T_place_app = plan.place(r, r.place.T_slot(slot), self.robot.limits)
+        if isinstance(r.place, LocatedPlace):
+            if picture.T_base_fixture is None:
+                why = (picture.fixture or {}).get("reason") or "the place's fixture was not found"
+                self._record("vision_failed", cand, picture, detail=why)
+                raise PickError(f"{why}; the part is left where it lies")
+            T_slot = picture.T_base_fixture @ r.place.T_slot_in_fixture(slot)
+        else:
+            T_slot = r.place.T_slot(slot)
+        T_place, T_place_app = plan.place(r, T_slot, self.robot.limits)
         d.add("gripper", self.gripper.open())
         self._move(plan.T_pick_approach, "pre-pick", d)
         self._move(plan.T_pick, "pick", d)
@@ -372,14 +383,7 @@ class ProductionRun:
         rec: dict[str, Any] = {
             "n": self._n, "t": time.time(), "run_id": self.status.run_id, "result": result, "slot": slot,
             "recipe_id": self.s.recipe_id, "recipe_version": self.s.recipe_version,
-            "score": None if cand is None else float(cand.match["score"]),
-            "pick_pose": None if cand is None else pose_json(cand.plan.T_pick),
-            "place_pose": None if T_place is None else pose_json(T_place),
-            "uncertainty": None if cand is None else {"sigma_mm": cand.plan.sigma_mm,
-                                                      "sigma_yaw_deg": cand.plan.sigma_yaw_deg},
-            "durations_ms": durations, "frame_id": None if picture is None else picture.frame_id,
-            "calibration": None if picture is None else picture.calibration,
-            "found": None if picture is None else picture.found, "detail": detail,
+            **seen_fields(cand, picture, T_place), "durations_ms": durations, "detail": detail,
         }
         kept = None
         if result in KEPT_RESULTS and picture is not None and picture.frame_id is not None \

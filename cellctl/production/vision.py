@@ -20,10 +20,15 @@ import numpy as np
 from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.flow import _locate
+from cellctl.pick.place import LocatedPlace
 from cellctl.pick.recipe import Recipe
+from cellctl.production.fixture import locate_fixture, slots_in_base
 from cellctl.production.place import Plan, plan_part
 from cellctl.services import Services
 from drivers.base import RobotBase
+
+IN_SLOT_MM = 8.0
+"""A part found this close to a located place's slot lies in it (placed): it is not a candidate."""
 
 
 @dataclass
@@ -47,6 +52,10 @@ class Picture:
     timed_out: bool = False
     """The search ran out of its time budget (``search.timeout_s``): what it found may not be all."""
     extra: dict[str, Any] = field(default_factory=dict)
+    T_base_fixture: Any = None
+    """A located place: the fixture found in this picture (4x4, metres); None when not found or not located."""
+    fixture: dict[str, Any] | None = None
+    """A located place: the fixture's match (score, pixels) or why it was not found."""
 
 
 def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
@@ -65,11 +74,21 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     cands = []
     for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
         cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    T_fixture, fixture = None, None
+    if isinstance(recipe.place, LocatedPlace) and answer.get("frame_id") is not None:
+        # The fixture in the same frame; the parts already in its slots are placed, not to be picked.
+        pixels = services.frames.get(int(answer["frame_id"])).pixels
+        T_fixture, fixture = locate_fixture(recipe.place, pixels, mapping, T_capture)
+        if T_fixture is not None:
+            slots = [T[:2, 3] * 1e3 for T in slots_in_base(recipe.place, T_fixture)]
+            cands = [c for c in cands if min(float(np.linalg.norm(c.plan.T_base_part[:2, 3] * 1e3 - xy))
+                                             for xy in slots) >= IN_SLOT_MM]
     device = recipe.gripper.device
     if device is not None and device.clearance_mm is not None:
         _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
-                   time.monotonic() - t0, len(cands), bool(answer.get("timed_out")))
+                   time.monotonic() - t0, len(cands), bool(answer.get("timed_out")), T_base_fixture=T_fixture,
+                   fixture=fixture)
 
 
 def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:

@@ -181,7 +181,8 @@ class ProductionParts:
         part.T_tool_part = None
         if slipped:
             part.state = "dropped"
-        elif self.spec.place_area.contains(x_mm, y_mm):
+        elif self.spec.place_area.contains(x_mm, y_mm) or (self.spec.fixture is not None
+                                                             and self.spec.fixture.contains(x_mm, y_mm)):
             part.state = "placed"
         elif self.spec.pick_area.contains(x_mm, y_mm):
             part.state = "in_area"

@@ -132,6 +132,41 @@ class SimGripperSpec(_Strict):
     """The arm reaches a move's speed in this time: its acceleration is speed / ramp."""
 
 
+class FixtureSpec(_Strict):
+    """A nest plate lying on the table, for a place found by vision (a recipe's ``located`` place):
+    a flat plate (its outline, in its own frame, mm) with pockets through it (``holes_mm``) that a
+    part drops into; ``slots_mm`` are the pockets' centres, where a placed part's reference point goes."""
+
+    outline_mm: list[tuple[float, float]] = Field(min_length=3)
+    holes_mm: list[list[tuple[float, float]]] = []
+    slots_mm: list[tuple[float, float]] = Field(min_length=1)
+    x_mm: float
+    y_mm: float
+    angle_deg: float = 0.0
+    height_mm: float = Field(1.0, gt=0, le=50)
+    """The plate's thickness: its top face is this far above the table (a placed part lies on the table)."""
+    reflectance: float = Field(0.45, ge=0, le=1)
+
+    def T_base_fixture(self, table_z_m: float) -> list[list[float]]:
+        """The plate's frame on its top face (4x4, metres): origin at (x_mm, y_mm), x axis at angle_deg."""
+        a = math.radians(self.angle_deg)
+        return [[math.cos(a), -math.sin(a), 0.0, self.x_mm * 1e-3],
+                [math.sin(a), math.cos(a), 0.0, self.y_mm * 1e-3],
+                [0.0, 0.0, 1.0, table_z_m + self.height_mm * 1e-3], [0.0, 0.0, 0.0, 1.0]]
+
+    def contains(self, x_mm: float, y_mm: float) -> bool:
+        """True when the base-frame point lies on the plate (its outline, pockets included)."""
+        a = math.radians(self.angle_deg)
+        dx, dy = x_mm - self.x_mm, y_mm - self.y_mm
+        u, v = math.cos(a) * dx + math.sin(a) * dy, -math.sin(a) * dx + math.cos(a) * dy
+        inside = False
+        pts = self.outline_mm
+        for (x0, y0), (x1, y1) in zip(pts, [*pts[1:], pts[0]], strict=True):
+            if (y0 > v) != (y1 > v) and u < x0 + (v - y0) * (x1 - x0) / (y1 - y0):
+                inside = not inside
+        return inside
+
+
 class ProductionSpec(_Strict):
     """Parts as objects: a seeded scatter over the pick area, a place area and grid, a gripper."""
 
@@ -143,6 +178,8 @@ class ProductionSpec(_Strict):
     unreachable: list[FixedPartSpec] = []
     """Parts lying where the cell's robot cannot reach them (outside its envelope), in the camera's view."""
     gripper: SimGripperSpec = SimGripperSpec()
+    fixture: FixtureSpec | None = None
+    """A nest plate for a place found by vision (none: the scene has none)."""
 
     def part_radius_mm(self) -> float:
         return max(math.hypot(p[0], p[1]) for p in self.part.outline_mm)

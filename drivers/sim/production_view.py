@@ -114,6 +114,15 @@ def production_objects(parts: ProductionParts, T_cam_base: NDArray[np.float64],
         T_base_top = g.make_transform(np.eye(3), [0.0, 0.0, parts.top_z_mm * 1e-3])
         lying_shade = _Lying(spec.outline_mm, spec.holes_mm, spec.reflectance, lying, extent)
         objs.append(PlanarObject(T_cam_base @ T_base_top, lying_shade, extent))
+    fixture = parts.spec.fixture
+    if fixture is not None:  # the nest plate: a plane at its top face, the table seen through its pockets
+        outline = [list(p) for p in fixture.outline_mm]
+        holes = [[list(p) for p in h] for h in fixture.holes_mm]
+        fpoly = np.asarray(outline, dtype=np.float64) * 1e-3
+        fbox = (float(fpoly[:, 0].min()), float(fpoly[:, 1].min()), float(fpoly[:, 0].max()),
+                float(fpoly[:, 1].max()))
+        shade = functools.partial(_reflectance, outline, holes, fixture.reflectance)
+        objs.append(PlanarObject(T_cam_base @ np.array(fixture.T_base_fixture(parts.table_z_m)), shade, fbox))
     return objs
 
 
@@ -146,7 +155,28 @@ def production_truth(parts: ProductionParts, camera: CameraModel, T_base_cam: ND
         "pick_area": spec.pick_area.model_dump(mode="json"),
         "place_area": spec.place_area.model_dump(mode="json"),
         "part": spec.part.model_dump(mode="json"),
+        **({} if spec.fixture is None else {"fixture": fixture_truth(parts, camera, T_cam_base)}),
         "gripper": {"closed": parts.closed, "holding": None if held is None else held.id,
                     "width_mm": parts.width_mm(), "closes_on_part": parts.closes_on_part,
                     "faults": parts.faults},
     }
+
+
+def fixture_truth(parts: ProductionParts, camera: CameraModel, T_cam_base: NDArray[np.float64]) -> dict[str, Any]:
+    """The nest plate's true frame (on its top face), its image box, and each pocket's slot: where a
+    placed part's pose (its reference point on its top face) is when it lies centred in the pocket."""
+    fixture = parts.spec.fixture
+    assert fixture is not None
+    T_fix = np.array(fixture.T_base_fixture(parts.table_z_m))
+    pts = np.array([[x * 1e-3, y * 1e-3, 0.0] for x, y in fixture.outline_mm])
+    uv = camera.project(g.transform_points(T_cam_base @ T_fix, pts))
+    roi = None
+    if np.all(np.isfinite(uv)):
+        lo, hi = np.maximum(uv.min(axis=0), -0.5), np.minimum(uv.max(axis=0), [camera.width - 0.5, camera.height - 0.5])
+        roi = None if np.any(hi <= lo) else [float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])]
+    slots = []
+    for x, y in fixture.slots_mm:
+        T = T_fix @ g.make_transform(np.eye(3), [x * 1e-3, y * 1e-3, 0.0])
+        T[2, 3] = parts.top_z_mm * 1e-3  # a part in the pocket lies on the table
+        slots.append(T.tolist())
+    return {"T_base_fixture": T_fix.tolist(), "roi_px": roi, "slots": slots}
