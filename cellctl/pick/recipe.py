@@ -112,8 +112,8 @@ class Recipe(BaseModel):
         None, description="robot pose to take the picture from, UR form [x_m, y_m, z_m, rx_rad, ry_rad, rz_rad] "
                           "(metres, rotation vector in radians); taught with the part, usually read from the robot")
     gripper: GripperSettings = GripperSettings()
-    place: PlaceSection | None = Field(None, description="where picked parts go (fixed, grid or located; docs/production.md); "
-                                                         "none: the recipe only picks")
+    place: PlaceSection | None = Field(None, description="where picked parts go (fixed, grid or located; "
+                                                         "docs/production.md); none: the recipe only picks")
     tool_centre_offset_mm: tuple[Mm, Mm] | None = Field(
         None, description="the gripper's centre from the flange axis, as `cellctl calib tcp` reports it "
                           "(offset_mm: tool x/y along base x/y at tool rz = 0), mm; the pick poses then put "
