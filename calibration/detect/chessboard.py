@@ -195,8 +195,10 @@ def refine_saddle_converged(grey: NDArray[np.uint8], uv: FloatArray, half_window
 
 
 def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: str = "",
-                      saddle_refinement: bool = True) -> Detection:
-    """Inner corners of ``target`` in ``grey`` with target-frame ids, or a reason why not."""
+                      saddle_refinement: bool = True, symmetry_refinement: bool = True) -> Detection:
+    """Inner corners of ``target`` in ``grey`` with target-frame ids, or a reason why not.
+
+    ``symmetry_refinement=False``: the saddle fit alone (the detector before issue 26; benches)."""
     cols, rows = target.cols, target.rows
     h, w = grey.shape
     G = find_corners_opencv(grey, cols, rows)
@@ -213,11 +215,12 @@ def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: s
     window_sigma = np.full(len(uv), CORNER_WINDOW_SIGMA_PX)
     if saddle_refinement:
         square_px = float(np.median(np.hypot(*np.diff(G, axis=1).reshape(-1, 2).T)))
+        start = uv
         if square_px >= 4 * SADDLE_HALF_WINDOW:  # the window must see only this corner's four squares
             refined, converged = refine_saddle_converged(grey, uv, SADDLE_HALF_WINDOW)
             moved = np.hypot(*(refined - uv).T)
-            start = uv
             uv = np.where((converged & (moved < SADDLE_MAX_MOVE_PX))[:, None], refined, uv)
+        if square_px >= 4 * SADDLE_HALF_WINDOW and symmetry_refinement:
             # then the point-symmetry refinement over a window sized by each corner's own square
             hw = half_windows_px(grey.shape, uv, local_square_px(uv.reshape(G.shape)))
             sym, sym_ok = refine_symmetric(grey, uv, hw)
