@@ -23,7 +23,7 @@ from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
-from cellctl.production.manager import shutdown_manager
+from cellctl.production.manager import forget_manager, shutdown_manager
 from cellctl.services import Services
 from cellctl.warmup import service_startup
 
@@ -72,6 +72,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
             await run_in_threadpool(shutdown_manager, services)
             await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
+            forget_manager(services)
             metrics.detach(app.state.metrics)
 
     app = FastAPI(

@@ -181,10 +181,16 @@ def manager_for(services: Services) -> ProductionManager:
 
 
 def shutdown_manager(services: Services, reason: str = "the service is shutting down") -> list[int]:
-    """At the service's end: stop the service's runs now (``ProductionManager.shutdown``) and forget
-    its manager. The ids of the runs it ended (none when no manager was made)."""
+    """At the service's end: stop the service's runs now (``ProductionManager.shutdown``); the manager
+    stays registered and refuses new starts (a PLC command arriving meanwhile) until
+    ``forget_manager``. The ids of the runs it ended (none when no manager was made)."""
+    manager = existing_manager(services)
+    return [] if manager is None else manager.shutdown(reason)
+
+
+def forget_manager(services: Services) -> None:
+    """Drop the service's manager (after the service has closed)."""
     with _MANAGERS_LOCK:
-        entry = _MANAGERS.pop(id(services), None)
-    if entry is None or entry[0] is not services:
-        return []
-    return entry[1].shutdown(reason)
+        entry = _MANAGERS.get(id(services))
+        if entry is not None and entry[0] is services:
+            del _MANAGERS[id(services)]
