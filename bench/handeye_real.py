@@ -34,13 +34,14 @@ import numpy as np
 
 from bench.handeye_common import loo_px, peer_fit, plain_refinement
 from calibration.camera_model import CameraModel
-from calibration.geometry import invert, make_transform, quaternion_to_matrix
+from calibration.geometry import exp_so3, invert, make_transform, quaternion_to_matrix
 from calibration.handeye import (
     ERROR_MODELS,
     OPENCV_METHODS,
     RobotNoise,
     Station,
     calibrate_handeye,
+    find_outlier_stations,
     make_stations,
 )
 from calibration.observations import Detection
@@ -133,7 +134,34 @@ def evaluate(rs: RealSet) -> dict[str, Any]:
     for name, fit in fits.items():
         t0 = time.perf_counter()
         rows[name] = {**loo_px(rs.setup, st, rs.camera, fit), "cpu_s": time.perf_counter() - t0}
-    return {"set": rs, "n": len(st), "n_total": len(rs.detections), "rows": rows}
+    return {"set": rs, "n": len(st), "n_total": len(rs.detections), "rows": rows, "outlier": outlier_check(rs)}
+
+
+def outlier_check(rs: RealSet, k: int = 5, seed: int = 1) -> dict[str, Any]:
+    """Station ``k``'s recorded pose moved 12 mm / 1.9° (random directions) — the real UR5e outlier of
+    issue 26: does the screw-invariant check (``find_outlier_stations``) flag it, and the consensus
+    check of the solution (``calibration.handeye.consensus``)? Without leave-one-out (flags only),
+    and on the clean set for the false flags."""
+    rng = np.random.default_rng(seed)
+    axis, d = rng.normal(size=3), rng.normal(size=3)
+    G = [g.copy() for g in rs.G]
+    G[k] = make_transform(exp_so3(np.radians(1.9) * axis / np.linalg.norm(axis)) @ G[k][:3, :3],
+                          G[k][:3, 3] + 0.012 * d / np.linalg.norm(d))
+    out: dict[str, Any] = {}
+    for name, poses in (("clean", rs.G), ("moved", G)):
+        stations, _ = make_stations(poses, rs.detections, rs.camera, rs.target)
+        screw, _ = find_outlier_stations(rs.setup, [s.G for s in stations], [s.C for s in stations])
+        res = calibrate_handeye(rs.setup, poses, rs.detections, rs.camera, rs.target, rs.noise, sigma_px=rs.sigma_px,
+                                leave_one_out=False, error_model="fixed_prior")
+        px = np.array([p["consensus_rms_px"] for p in res.stations])
+        names = [p["image"] for p in res.stations]
+        moved = rs.detections[k].image
+        out[name] = {"screw": [stations[i].image for i in screw],
+                     "consensus": [p["image"] for p in res.stations if p["off_consensus"]],
+                     "ratio": float(px[names.index(moved)] / np.median(px)) if moved in names else float("nan"),
+                     "max_other": float(max(r for n, r in zip(names, px / np.median(px), strict=True) if n != moved))}
+    out["image"] = rs.detections[k].image
+    return out
 
 
 def table(results: list[dict[str, Any]]) -> str:
@@ -152,6 +180,15 @@ def table(results: list[dict[str, Any]]) -> str:
                 label = f"cellctl, error model {name}"
             out.append(f"| {r['set'].name} | {label} | {v['px']:.2f} | {v['mm']:.2f} | {v['px'] / plain:.2f} |")
         d = rows["default"]["px"]
+        o = r.get("outlier")
+        if o is not None:
+            m, c = o["moved"], o["clean"]
+            verdicts.append(
+                f"{r['set'].name}, station {o['image']} moved 12 mm / 1.9°: the screw-invariant check flags "
+                f"{m['screw'] or 'nothing'}, the consensus check {m['consensus'] or 'nothing'} (its miss "
+                f"{m['ratio']:.1f}x the median station's, the others ≤ {m['max_other']:.1f}x; threshold 5x). "
+                "On the clean set: screw "
+                f"{c['screw'] or 'nothing'}, consensus {c['consensus'] or 'nothing'} (largest {c['max_other']:.1f}x).")
         verdicts.append(f"{r['set'].name}: {r['n']} of {r['n_total']} stations ({r['set'].note}); default "
                         f"{d:.2f} px vs plain refinement {plain:.2f} px = {d / plain:.2f}x: "
                         f"**{'met' if d <= plain else 'MISSED'}** (target ≤ 1).")

@@ -43,7 +43,8 @@ whitened problem, scaled up by the reduced χ² when the data are noisier than s
 translation distance sqrt(trace Σ_v), 1-σ.
 
 Modules: ``model`` (types, limits, errors), ``frames`` (frame algebra, station poses),
-``closed_form`` (AX = XB closed forms), ``checks`` (conventions, motion, outliers), ``joint``
+``closed_form`` (AX = XB closed forms), ``checks`` (conventions, motion, outliers), ``consensus``
+(stations far off the solution's consensus, left out when held-out prediction agrees), ``joint``
 (the joint refinement, optionally with the intrinsics and a systematic robot error),
 ``error_model`` (the robot error model chosen by leave-one-out prediction), ``solve``
 (``calibrate_handeye``).
@@ -58,6 +59,12 @@ Everything public is exported here: ``from calibration.handeye import X`` is the
 
 from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
 from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, relative_motions, solve_pairs, stats
+from calibration.handeye.consensus import (
+    CONSENSUS_FACTOR,
+    confirmed_by_held_out,
+    consensus_misses,
+    off_consensus,
+)
 from calibration.handeye.dof4 import (
     DEFAULT_TARGET_Z_SIGMA_MM,
     HandEyeDof4Result,
@@ -117,6 +124,7 @@ from calibration.handeye.tool_centre import (
 )
 
 __all__ = [
+    "CONSENSUS_FACTOR", "confirmed_by_held_out", "consensus_misses", "off_consensus",
     "DEFAULT_TARGET_Z_SIGMA_MM", "DEFAULT_TRACKER", "ERROR_MODELS", "JointOptions", "choose_model", "fit_model",
     "MAX_PAIR_ANGLE_DEG", "MIN_ANGLES", "MIN_ARC_DEG", "MIN_AXIS_SPREAD_DEG", "MIN_PAIR_ANGLE_DEG", "MIN_STATIONS",
     "OPENCV_METHODS", "OUTLIER_FACTOR", "OUTLIER_FLOOR", "RECOMMENDED_ANGLES", "RECOMMENDED_STATIONS", "SETUPS",

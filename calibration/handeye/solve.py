@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from calibration.camera_model import CameraModel
 from calibration.handeye.checks import check_conventions, check_motion, find_outlier_stations
 from calibration.handeye.closed_form import axxb_residuals, opencv_handeye, solve_pairs, stats
+from calibration.handeye.consensus import confirmed_by_held_out, consensus_misses, off_consensus
 from calibration.handeye.error_model import ERROR_MODELS, choose_model
 from calibration.handeye.frames import (
     make_stations,
@@ -89,6 +90,20 @@ def calibrate_handeye(
     options = JointOptions(intrinsics=intr, camera_covariance=cov_c)
     with_loo = leave_one_out and len(stations) > MIN_STATIONS
     fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
+    misses = consensus_misses(fit.job, fit.res, stations)
+    flagged = off_consensus(misses)
+    dropped = confirmed_by_held_out(flagged, fit.loo.get("per_pose", [])) if with_loo and drop_outliers else []
+    if len(stations) - len(dropped) <= MIN_STATIONS:
+        dropped = []
+    problems += _consensus_problems(stations, misses, flagged, dropped, with_loo and drop_outliers)
+    if dropped:
+        stations = [s for k, s in enumerate(stations) if k not in dropped]
+        misses = [m for k, m in enumerate(misses) if k not in dropped]
+        kept, motion_info, _ = check_motion(setup, [s.G for s in stations], [s.C for s in stations])
+        pair_info = {**motion_info, "conventions": pair_info.get("conventions")}
+        candidates, init_info, X0, Z0 = _closed_forms(setup, stations, camera, kept)
+        with_loo = leave_one_out and len(stations) > MIN_STATIONS
+        fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
     job, res, noise = fit.job, fit.res, fit.noise
     if fit.name == "estimated_iid":
         problems.append(Problem("robot_noise_estimated",
@@ -105,6 +120,9 @@ def calibrate_handeye(
         cov_X, cov_Z, camera_unc = cov_X + dX, cov_Z + dZ, "propagated"
     cam = job.camera_at(res.x)
     station_json, rms_px, d = _station_report(job, res, stations, sigma_px)
+    for k, m in enumerate(misses):
+        station_json[k]["consensus_rms_px"] = m["rms_px"]
+        station_json[k]["off_consensus"] = k in flagged and not dropped
     rot, tr = axxb_residuals(kept, X)
     result = HandEyeResult(
         setup=setup,  # type: ignore[arg-type]
@@ -122,6 +140,34 @@ def calibrate_handeye(
             station_json[k]["loo_rms_px"] = e["rms_px"]
     result.time_s = time.perf_counter() - t_start
     return result
+
+
+def _consensus_problems(stations: Sequence[Station], misses: Sequence[dict[str, Any]], flagged: Sequence[int],
+                        dropped: Sequence[int], judged: bool) -> list[Problem]:
+    """The warning naming the stations far off the consensus, and whether they were left out
+    (``judged``: held-out prediction was run and dropping allowed)."""
+    if not flagged:
+        return []
+
+    def said(k: int) -> str:
+        m = misses[k]
+        return (f"{stations[k].image} (#{k}: {m['rms_px']:.1f} px, {m['trans_mm']:.1f} mm / {m['rot_deg']:.2f} deg "
+                "from what the others predict)")
+    out = []
+    if dropped:
+        out.append(Problem(
+            "station_off_consensus",
+            "station(s) " + ", ".join(said(k) for k in dropped) + " lie far off the consensus of the others, and a "
+            "calibration without them cannot predict them either: left out of the solution. Check those robot "
+            "poses (a pose recorded before the robot settled, a wrong row) or capture them again."))
+    kept = [k for k in flagged if k not in dropped]
+    if kept:
+        out.append(Problem(
+            "station_off_consensus",
+            "station(s) " + ", ".join(said(k) for k in kept) + " lie far off the consensus of the others; kept ("
+            + ("a calibration without them predicts them within the spread of the others" if judged else
+               "no leave-one-out run to confirm them") + "). Check those robot poses, or capture them again."))
+    return out
 
 
 def _models(error_model: str, estimate_robot_noise: bool, leave_one_out: bool) -> list[str]:
