@@ -8,19 +8,27 @@
 #     HTTPS certificate (documented place: /etc/cellctl/tls/cert.pem and key.pem);
 #   - /var/lib/cellctl (store, session token) owned by cellctl;
 #   - /etc/systemd/system/cellctl.service (deploy/cellctl.service, ExecStart under PREFIX), then
-#     `systemctl daemon-reload` and `systemctl enable cellctl` when systemd runs this system.
+#     `systemctl daemon-reload` and `systemctl enable cellctl` when systemd runs this system;
+#   - the compiled loops (renderer, matcher, calibration solver) warmed into numba's cache, the
+#     unit's NUMBA_CACHE_DIR (/var/lib/cellctl/numba-cache), as the service user: `cellctl warm-up`,
+#     about a minute of CPU, so the service's first start, frame and calibration do not compile.
 # Re-running upgrades the copy and the venv and keeps the config and the data.
 #
 # Usage: sudo deploy/install.sh [--prefix DIR] [--root DIR] [--python PY] [--no-deps] [--no-aravis] [--postgres]
+#                               [--no-warm-up]
 #   --root DIR   install into the tree DIR (a chroot, an image, a test tree) instead of /: every
 #                path above lives under DIR, the user is created in DIR/etc/passwd when that file
 #                exists, and systemctl is never called. The venv's scripts then name DIR in their
-#                first line: such a tree is for inspection or for running install.sh inside it.
+#                first line: such a tree is for inspection or for running install.sh inside it. The
+#                warm-up is skipped (numba keys its cache by the modules' paths, which differ inside
+#                DIR); the command to run on the target is printed.
 #   --no-deps    install cellctl alone into the venv, without its dependencies (tests; systems
 #                where the dependencies come another way)
 #   --no-aravis  leave out the GigE Vision binding (PyGObject; needs deploy/install-system-deps.sh)
 #   --postgres   add the PostgreSQL driver (psycopg) for a plant-wide store (store.url:
 #                postgresql+psycopg://...); the default SQLite store needs nothing
+#   --no-warm-up skip `cellctl warm-up` (the service then compiles on its first start: /health
+#                says `starting` for a minute or more)
 # Debian packages the cell needs (Aravis, socat, ...): deploy/install-system-deps.sh (run it first).
 set -euo pipefail
 
@@ -30,6 +38,7 @@ PY=${PYTHON:-python3}
 DEPS=1
 ARAVIS=1
 POSTGRES=0
+WARM=1
 SERVICE_USER=cellctl
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 ARGS="$*"
@@ -45,6 +54,7 @@ while [ $# -gt 0 ]; do
     --no-deps) DEPS=0; shift ;;
     --no-aravis) ARAVIS=0; shift ;;
     --postgres) POSTGRES=1; shift ;;
+    --no-warm-up) WARM=0; shift ;;
     -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) die "unknown option $1; see --help" ;;
   esac
@@ -68,6 +78,9 @@ fi
 "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null ||
   die "cellctl needs Python >= 3.11; $PY is $("$PY" --version 2>&1 || echo missing) (try --python python3.11)"
 [ -f "$SRC/pyproject.toml" ] && [ -d "$SRC/cellctl" ] || die "run this script from a cellctl checkout ($SRC is not one)"
+# numba's cache: the unit's own setting, so that the warm-up fills the folder the service reads
+NUMBA_CACHE=$(sed -n 's/^Environment=NUMBA_CACHE_DIR=//p' "$SRC/deploy/cellctl.service")
+case "$NUMBA_CACHE" in /var/lib/cellctl/*) ;; *) die "deploy/cellctl.service sets no NUMBA_CACHE_DIR under /var/lib/cellctl" ;; esac
 
 at() { printf '%s%s' "$ROOT" "$1"; }  # a system path inside the install root
 DEST=$(at "$PREFIX")
@@ -135,8 +148,8 @@ else
   own rootgroup "$CONFIG"
   say "wrote $CONFIG (the virtual cell; deploy/examples/real-cell.yaml shows a real one)"
 fi
-install -d -m 0750 "$(at /var/lib/cellctl)"
-own user "$(at /var/lib/cellctl)"
+install -d -m 0750 "$(at /var/lib/cellctl)" "$(at "$NUMBA_CACHE")"
+own user "$(at /var/lib/cellctl)" "$(at "$NUMBA_CACHE")"
 
 # -- the unit -----------------------------------------------------------------------------------------
 install -d -m 0755 "$(at /etc/systemd/system)"
@@ -151,5 +164,20 @@ if [ -z "$ROOT" ] && [ -d /run/systemd/system ]; then
 else
   say "systemd does not run here${ROOT:+ (--root $ROOT)}: skipped daemon-reload and enable; on the target" \
       "run: systemctl daemon-reload && systemctl enable --now cellctl"
+fi
+# -- the compiled loops --------------------------------------------------------------------------------
+WARM_CMD=(env "NUMBA_CACHE_DIR=$NUMBA_CACHE" CELLCTL_DATA_DIR=/var/lib/cellctl "$PREFIX/.venv/bin/cellctl" warm-up)
+if [ "$WARM" -eq 0 ]; then
+  say "skipped the warm-up (--no-warm-up): the service compiles on its first start; to do it now run:" \
+      "runuser -u $SERVICE_USER -- ${WARM_CMD[*]}"
+elif [ -n "$ROOT" ]; then
+  say "skipped the warm-up (--root): numba's cache is keyed by the modules' paths, which differ inside $ROOT;" \
+      "on the target run: runuser -u $SERVICE_USER -- ${WARM_CMD[*]}"
+else
+  say "compiling the renderer's, matcher's and solver's loops into $NUMBA_CACHE (about a minute of CPU)"
+  AS=()
+  [ -n "$OWNER" ] && AS=(runuser -u "$SERVICE_USER" --)
+  (cd /var/lib/cellctl && "${AS[@]}" "${WARM_CMD[@]}" >/dev/null) ||
+    die "cellctl warm-up failed (its output is above); fix it, or re-run with --no-warm-up to compile on first start"
 fi
 say "done: $PREFIX/.venv/bin/cellctl serve --config /etc/cellctl/cell.yaml"

@@ -119,6 +119,24 @@ def test_unit_is_installed_for_the_prefix_and_verifies(installed: Installed) -> 
     assert "skipped daemon-reload and enable" in installed.result.stderr
 
 
+NUMBA_CACHE = "/var/lib/cellctl/numba-cache"
+"""Where the service's compiled loops are cached: the unit's NUMBA_CACHE_DIR, which install.sh warms."""
+
+
+def test_the_numba_cache_is_the_units_and_its_warm_up_is_named(installed: Installed) -> None:
+    unit = (REPO / "deploy" / "cellctl.service").read_text().splitlines()
+    assert f"Environment=NUMBA_CACHE_DIR={NUMBA_CACHE}" in unit  # the folder the service reads
+    cache = installed.at(NUMBA_CACHE).stat()
+    uid, gid = passwd_entry(installed.root, "cellctl")[2:4] if AS_ROOT else (str(os.geteuid()), str(os.getegid()))
+    assert stat.S_IMODE(cache.st_mode) == 0o750 and (cache.st_uid, cache.st_gid) == (int(uid), int(gid))
+    # a --root tree is not warmed (numba keys its cache by the modules' paths): the command is named
+    said = installed.result.stderr
+    assert "skipped the warm-up (--root)" in said, said
+    assert (f"runuser -u cellctl -- env NUMBA_CACHE_DIR={NUMBA_CACHE} CELLCTL_DATA_DIR=/var/lib/cellctl "
+            f"{PREFIX}/.venv/bin/cellctl warm-up") in said, said
+    assert not any(installed.at(NUMBA_CACHE).iterdir())
+
+
 def test_bad_invocations_say_what_to_do(tmp_path: Path) -> None:
     cases = [
         (["--prefix", "relative/dir"], "--prefix must be an absolute path"),
@@ -132,3 +150,4 @@ def test_bad_invocations_say_what_to_do(tmp_path: Path) -> None:
     assert not list(tmp_path.iterdir())  # nothing was installed by a refused run
     r = subprocess.run(["bash", str(INSTALL), "--help"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "--root DIR" in r.stdout and "Usage:" in r.stdout
+    assert "--no-warm-up" in r.stdout and "cellctl warm-up" in r.stdout

@@ -64,6 +64,8 @@ def test_unit_is_hardened_and_runs_the_service(tmp_path: Path) -> None:
     for key, value in expected.items():
         assert d.get(key) == [value], (key, d.get(key))
     assert "CELLCTL_DATA_DIR=/var/lib/cellctl" in d["Environment"]
+    # numba's cache in the state directory (the service may write nothing else; install.sh warms it)
+    assert "NUMBA_CACHE_DIR=/var/lib/cellctl/numba-cache" in d["Environment"]
     # systemd's own exposure rating of the unit (offline: no running systemd needed), 0 best .. 10 worst
     root = unit_root(tmp_path, UNIT.read_text())
     r = subprocess.run([systemd_analyze(), "security", "--offline=yes", f"--root={root}",
