@@ -1,46 +1,63 @@
-"""End-to-end: ``cellctl serve`` as a real process, a real HTTP client, the virtual cell's truth."""
+"""End to end: the service's routes with a real HTTP client, checked against the virtual cell's truth.
+
+The routes run on the app in this process (``tests.support.app.in_process_cell``: the same routes,
+middleware and lifespan as ``cellctl serve``); ``cellctl sim truth`` runs in-process too
+(``run_cli``). One test keeps the real ``cellctl serve`` process (``served_virtual_cell``): that it
+starts, listens, refuses a missing token and sends a frame over a socket (slow: a new interpreter).
+"""
 
 from __future__ import annotations
 
-import subprocess
+import json
+from collections.abc import Iterator
+from pathlib import Path
 
 import cv2
+import httpx
 import numpy as np
+import pytest
 
 from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.targets import target_from_dict
-from tests.conftest import CELLCTL, Served
+from tests.conftest import Served
+from tests.support.app import AppCell, in_process_cell
+from tests.support.cli import run_cli
 
 
-def test_health_is_open(served_virtual_cell: Served) -> None:
-    import httpx
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[AppCell]:
+    with in_process_cell(tmp_path_factory.mktemp("e2e")) as app:
+        yield app
 
-    r = httpx.get(served_virtual_cell.base_url + "/health")
+
+@pytest.fixture()
+def http(cell: AppCell) -> Iterator[httpx.Client]:
+    """A client with the engineer's token."""
+    with cell.http() as client:
+        yield client
+
+
+def test_health_is_open(cell: AppCell) -> None:
+    r = cell.client.get("/health")
     assert r.status_code == 200
     assert r.json()["cameras"] == {"cam0": True}
 
 
-def test_routes_need_a_token(served_virtual_cell: Served) -> None:
-    import httpx
-
-    base = served_virtual_cell.base_url
-    assert httpx.get(base + "/cameras").status_code == 401
-    r = httpx.get(base + "/robots/robot0/state", headers={"Authorization": "Bearer wrong"})
+def test_routes_need_a_token(cell: AppCell) -> None:
+    assert cell.client.get("/cameras").status_code == 401
+    r = cell.client.get("/robots/robot0/state", headers={"Authorization": "Bearer wrong"})
     assert r.status_code == 401
     assert r.json()["error"]["code"] == "unauthorized"
 
 
-def test_image_shows_the_plate_where_truth_says(served_virtual_cell: Served) -> None:
-    with served_virtual_cell.client() as http:
-        r = http.get("/cameras/cam0/image")
-        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-        img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
-        assert img is not None
-    truth = subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout
-    import json
-
-    t = json.loads(truth)
+def check_plate_where_truth_says(png: bytes, tmp: Path) -> None:
+    """Each mark of the plate in ``png`` is a dark disk centred on its true projection."""
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img is not None
+    truth = run_cli("sim", "truth", env={"CELLCTL_DATA_DIR": str(tmp / "data"), "PATH": "/usr/bin:/bin"})
+    assert truth.returncode == 0, truth.stderr
+    t = json.loads(truth.stdout)
     cam = CameraModel.from_dict(t["camera"])
     plate = t["targets"]["plate"]
     target = target_from_dict(plate["target"])
@@ -58,15 +75,19 @@ def test_image_shows_the_plate_where_truth_says(served_virtual_cell: Served) -> 
         assert np.hypot(cu - u, cv - v) < 0.5  # centroid of a tilted, noisy disk: bias < 0.5 px
 
 
-def test_jpeg_by_accept_header(served_virtual_cell: Served) -> None:
-    with served_virtual_cell.client() as http:
-        r = http.get("/cameras/cam0/image", headers={"Accept": "image/jpeg"})
-        assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
+def test_image_shows_the_plate_where_truth_says(http: httpx.Client, tmp_path: Path) -> None:
+    r = http.get("/cameras/cam0/image")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    check_plate_where_truth_says(r.content, tmp_path)
 
 
-def test_robot_state_in_ur_form_and_4x4(served_virtual_cell: Served) -> None:
-    with served_virtual_cell.client() as http:
-        r = http.get("/robots/robot0/state")
+def test_jpeg_by_accept_header(http: httpx.Client) -> None:
+    r = http.get("/cameras/cam0/image", headers={"Accept": "image/jpeg"})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
+
+
+def test_robot_state_in_ur_form_and_4x4(http: httpx.Client) -> None:
+    r = http.get("/robots/robot0/state")
     assert r.status_code == 200
     s = r.json()
     T = np.array(s["T_base_tool"])
@@ -77,8 +98,19 @@ def test_robot_state_in_ur_form_and_4x4(served_virtual_cell: Served) -> None:
     assert s["age_s"] < 1.0
 
 
-def test_unknown_device_is_404_with_code(served_virtual_cell: Served) -> None:
-    with served_virtual_cell.client() as http:
-        r = http.get("/cameras/nope/image")
+def test_unknown_device_is_404_with_code(http: httpx.Client) -> None:
+    r = http.get("/cameras/nope/image")
     assert r.status_code == 404
     assert r.json()["error"]["code"] == "unknown_camera"
+
+
+def test_the_served_process_answers_over_a_socket(served_virtual_cell: Served, tmp_path: Path) -> None:
+    """``cellctl serve`` itself: /health open, a route without a token 401, the frame a PNG of the truth."""
+    base = served_virtual_cell.base_url
+    r = httpx.get(base + "/health")
+    assert r.status_code == 200 and r.json()["cameras"] == {"cam0": True}
+    assert httpx.get(base + "/cameras").status_code == 401
+    with served_virtual_cell.client() as client:
+        r = client.get("/cameras/cam0/image")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    check_plate_where_truth_says(r.content, tmp_path)
