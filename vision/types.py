@@ -70,6 +70,11 @@ class SearchParams:
     """Also search the mirror image of the model (a flat part lying face down)."""
     min_visible: float = 0.5
     """A pose whose model lies more than this fraction inside the image is scored on its visible points."""
+    min_surround: float = 0.2
+    """How far the seen edges must enclose the part's centre, as a fraction of how far the whole model
+    does (``vision.shape.verify``: 1 seen all round, about 0 for a half): at 0.2 a piece of the part
+    (its half) is not answered as the part, a part up to about a third hidden is; 0 answers fragments
+    down to a half, -1 switches the check off."""
 
     def __post_init__(self) -> None:
         ms = _finite("min_score", self.min_score)
@@ -110,6 +115,9 @@ class SearchParams:
                                 "(e.g. 0.9..1.1)")
         if not 0.1 <= _finite("min_visible", self.min_visible) <= 1.0:
             raise SettingsError(f"min_visible {self.min_visible:g} must be a fraction 0.1..1")
+        if not -1.0 <= _finite("min_surround", self.min_surround) <= 1.0:
+            raise SettingsError(f"min_surround {self.min_surround:g} must be -1..1 (1: seen all round the centre, "
+                                "0: a half, -1: no check)")
 
 
 @dataclass
@@ -134,7 +142,7 @@ class Match:
     """1-sigma of the reference point's position (px, the larger axis), from the same fit."""
     scores: dict[str, float] = field(default_factory=dict)
     """The verification's scores (``vision.shape.verify``): ``edge`` (= ``score``), ``coverage``,
-    ``polarity``, ``contrast``, ``missing_features``, ``unclaimed``."""
+    ``polarity``, ``contrast``, ``missing_features``, ``surround``, ``unclaimed``."""
 
     def as_dict(self) -> dict[str, Any]:
         return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,

@@ -2,10 +2,12 @@
 angle's reported 1-sigma against the spread of repeated finds.
 
 Look-alikes of the taught part, where nothing may be found at the default settings: its mirror
-image (face down), the part without one of its holes, and its halves. A half that holds more than
-``min_score`` of the model's contour is what a part that much hidden looks like (the bench's
-occlusion pastes background beyond a straight cut, which renders exactly that): it may be found, but
-only as what it is, a part of which that fraction is seen, so a recipe asking more finds nothing.
+image (face down), the part without one of its holes, and its halves (cut through the reference
+point, and through the middle of its area). A half is rejected by ``surround``: its seen edges lie
+on one side of the part's centre; a part 30 % hidden behind a straight cut still surrounds it and is
+found. (A half and a part half hidden by an occluder the colour of the background are the same
+image: the share hidden decides, and ``min_surround`` sets it.) Any half's score is at most the
+share of the contour it holds, so a recipe asking more finds nothing in any case.
 Then touching identical parts (both found, no ghost between them), every match's scores, and the
 angle's 1-sigma: actual error over reported within 0.5-2.
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -38,13 +41,32 @@ def model_of(name: str) -> shape.ShapeModel:
     return _MODELS[name]
 
 
+HALF_CUTS_DEG = range(0, 360, 45)
+
+
 def _look_alikes() -> list[tuple[str, str]]:
     out = []
     for name in ("bracket", "flange"):
         part = ps.PARTS[name]()
         out.append((name, "mirrored"))
         out += [(name, f"without-hole-{k}") for k in range(len(part.holes))]
+        out += [(name, f"half-{a}") for a in HALF_CUTS_DEG]
+        out += [(name, f"middle-half-{a}") for a in HALF_CUTS_DEG]
     return out
+
+
+def centred(part: ps.PartShape) -> ps.PartShape:
+    """The part with its reference point moved to the middle of its area (the centroid of outline
+    less holes): its halves are then cut through the middle."""
+    def moments(p: np.ndarray) -> tuple[float, np.ndarray]:
+        m = cv2.moments(p.astype(np.float32))
+        return float(m["m00"]), np.array([m["m10"], m["m01"]])
+    area, first = moments(part.outer)
+    for h in part.holes:
+        a, f = moments(h)
+        area, first = area - a, first - f
+    c = first / area
+    return ps.PartShape(part.name, part.outer - c, tuple(h - c for h in part.holes))
 
 
 def _distractor(name: str, kind: str) -> ps.PartShape:
@@ -53,6 +75,8 @@ def _distractor(name: str, kind: str) -> ps.PartShape:
         return ps.mirrored_part(part)
     if kind.startswith("without-hole-"):
         return ps.part_without_hole(part, int(kind.rsplit("-", 1)[1]))
+    if kind.startswith("middle-half-"):
+        return ps.part_half(centred(part), float(kind.rsplit("-", 1)[1]))
     return ps.part_half(part, float(kind.rsplit("-", 1)[1]))
 
 
@@ -67,6 +91,44 @@ def test_look_alikes_are_not_found(name: str, kind: str) -> None:
             # the search saw the part; the verification says what is wrong with it
             assert res.rejected and all("missing" in r.reason for r in res.rejected[:4])
             assert res.reason() is not None and "verification" in str(res.reason())
+        for r in res.rejected:
+            # each rejected candidate carries every score, so a user sees why
+            assert set(r.scores) >= {"edge", "coverage", "polarity", "contrast", "missing_features", "surround"}
+            if "half" in kind and r.reason.startswith("its seen edges lie on one side"):
+                assert r.scores["surround"] < SearchParams().min_surround
+                assert f"min_surround {math.floor(r.scores['surround'] * 100) / 100:g} would answer it" in r.reason
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_part_30_percent_hidden_still_surrounds_its_centre(seed: int) -> None:
+    """The bench's occlusion (background pasted beyond a straight cut at a random angle) hiding 30 %
+    of the part's area: every instance found, its ``surround`` above the default bar, which a half
+    stays below."""
+    part = ps.part_bracket()
+    model = model_of("bracket")
+    rng = np.random.default_rng(40 + seed)
+    inst = [ps.Instance(part, 330.0 + 300.0 * k, 300.0 + 330.0 * (k % 2), float(rng.uniform(-180, 180)), 0.3)
+            for k in range(3)]
+    img, truth = ps.render(inst, ps.SceneStyle(noise_sigma=2.0, clutter=10), rng)
+    res = shape.find(model, img)
+    for t in truth:
+        near = [m for m in res.matches if math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) < 1.0]
+        assert near, (t, res.reason(), [(r.score, r.scores) for r in res.rejected])
+        assert near[0].scores["surround"] >= SearchParams().min_surround + 0.05, near[0].scores
+
+
+def test_min_surround_answers_a_half_when_asked() -> None:
+    """The setting the rejection names answers the half (its score: the share of the contour it holds)."""
+    model = model_of("bracket")
+    img = ps.distractor_scene(ps.part_half(ps.part_bracket(), 180.0), np.random.default_rng(100))
+    res = shape.find(model, img)
+    assert res.matches == []
+    halves = [r for r in res.rejected if "min_surround" in r.reason]
+    assert halves, [r.reason for r in res.rejected]
+    r = halves[0]
+    asked = shape.find(model, img, SearchParams(min_surround=math.floor(r.scores["surround"] * 100) / 100))
+    assert any(math.hypot(m.u_px - r.u_px, m.v_px - r.v_px) < 1.0 for m in asked.matches)
+    assert all(m.score < 0.6 for m in asked.matches)
 
 
 def _share(model: shape.ShapeModel, half: ps.PartShape) -> float:
@@ -108,10 +170,11 @@ def test_touching_identical_parts_are_both_found(gap_px: float, turn_deg: float)
     for t in truth:
         assert any(math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) < 0.5 for m in res.matches)
     for m in res.matches:
-        assert set(m.scores) >= {"edge", "coverage", "polarity", "contrast", "missing_features", "unclaimed"}
+        assert set(m.scores) >= {"edge", "coverage", "polarity", "contrast", "missing_features", "surround",
+                                 "unclaimed"}
         assert m.scores["edge"] == pytest.approx(m.score, abs=1e-4)
         assert m.scores["coverage"] >= 0.9 and m.scores["polarity"] > 0.9 and m.scores["contrast"] > 1.0
-        assert m.scores["missing_features"] == 0
+        assert m.scores["missing_features"] == 0 and m.scores["surround"] > 0.9
         d = m.as_dict()
         assert d["scores"] == m.scores and d["sigma_angle_deg"] and d["sigma_angle_deg"] > 0
 

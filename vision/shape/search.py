@@ -15,7 +15,8 @@
 4. **Verification** (``verify.verify``, in the final suppression ``_verified``): a second look at each
    refined pose (coverage of the model's features, contrast polarity along its chains, contrast over
    the image's noise, a feature missing where nothing hides it, edges already claimed by a better
-   match); a candidate that fails is not answered but listed in ``FindResult.rejected`` with why.
+   match, the seen edges around the part's centre); a candidate that fails is not answered but
+   listed in ``FindResult.rejected`` with why.
 
 The score (``score.direction_score``, HALCON's metric in our words) is the edge-direction
 agreement at the final pose averaged over the model points that lie inside the image: each point
@@ -320,7 +321,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
             lower = max(math.floor(r.score * 100) / 100, MIN_SCORE_FLOOR)  # the hint's min_score
-            why = verify(lm, r.q, r.detail, r.grad_noise, lower, r.score).rejected_because
+            why = verify(lm, r.q, r.detail, r.grad_noise, lower, r.score, sp.min_surround).rejected_because
             best.verdict = why or "pass"
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()
@@ -349,7 +350,8 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
         if r.detail is None or r.q is None or r.n is None:
             final.append(mt)  # (not reached: every level-0 refinement carries its detail)
             continue
-        vd = verify(levels[mt.mirrored], r.q, r.detail, r.grad_noise, sp.min_score, mt.score)
+        vd = verify(levels[mt.mirrored], r.q, r.detail, r.grad_noise, sp.min_score, mt.score,
+                    sp.min_surround)
         why = vd.rejected_because
         if why is None:
             seen = (r.detail.agree > 0) & r.detail.visible

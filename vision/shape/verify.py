@@ -23,6 +23,15 @@ image, not a number fitted to a data set:
   quarter seen, inside the region the seen points span, where the image shows no edge above its
   noise: nothing hides it there, so the part lacks it (an occluder, a shadow or a neighbour would
   show an edge of its own). Any such feature rejects the match.
+- ``surround``: how far the model's centre (the centroid of its points) lies inside the convex hull
+  of the evidenced points (seen with a seen neighbour along their chain, or outside the image: the
+  border hides them), over how far it lies inside the hull of the whole model. A part is evidenced around
+  its centre: 1 when seen all round, about 0 for its half (every seen edge on one side of a line
+  through the centre), negative for less. A match needs ``SearchParams.min_surround`` (0.2): on a
+  round part a straight cut that leaves less hides more than 37 % of its area, so a half (50 %) is
+  not answered as the part, a part 30 % hidden is (0.3 and more on the bench's occlusions). A
+  half is a part half hidden by an occluder the colour of the background: the image is the same,
+  so it is the share hidden that decides, and ``min_surround 0`` answers such fragments.
 - ``unclaimed`` (in ``search.find``'s suppression): the score counting only the seen points that no
   better match's contour covers; below ``min_score`` the match is a ghost of better ones.
 """
@@ -52,6 +61,8 @@ of texture in the teach image)."""
 MISSING_SEEN_MAX = 0.25
 FLAT_SHARE = 0.8
 """A feature is absent when at least this share of its unseen points has no edge above the noise."""
+SURROUND_MIN = 0.2
+"""Default ``SearchParams.min_surround``: see ``surround`` above."""
 LINK_SPACINGS = 2.5
 """Model points closer than this many typical spacings (median nearest neighbour) are neighbours on
 a chain: the model keeps a spread-out subset, whose gaps along an edge reach twice the spacing."""
@@ -98,7 +109,7 @@ class Verdict:
 
 
 def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_score: float,
-           score: float) -> Verdict:
+           score: float, min_surround: float = SURROUND_MIN) -> Verdict:
     """The checks of a match whose level-0 model points lie at ``q`` (image pixels)."""
     f = features(lm)
     seen = (detail.agree > 0) & detail.visible
@@ -126,6 +137,13 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     missing = (_missing(f, q, seen, seen_region, vis, detail.gmax, grad_noise, np.flatnonzero(maybe))
                if maybe.any() else [])
     scores["missing_features"] = float(len(missing))
+    # evidenced: seen points with a seen neighbour along their chain (a lone agreement in clutter does
+    # not stretch the hull), and the points outside the image (the border hides them)
+    linked = np.zeros(n_pts, bool)
+    linked[a[both]] = True
+    linked[b[both]] = True
+    surround = _surround(q, linked | ~vis, f.pairs)
+    scores["surround"] = round(surround, 4)
     if score < min_score:
         return Verdict(scores, f"score {score:.2f} < min_score {min_score:g}")
     if coverage < min_score:
@@ -142,7 +160,44 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
         x, y = missing[0]
         return Verdict(scores, f"a feature of the part is missing at ({x:.0f}, {y:.0f}): no edge there, "
                                "and nothing hides it")
+    # last: the other checks passed, so the setting it names would answer the match
+    if surround < min_surround:
+        return Verdict(scores, f"its seen edges lie on one side of the part's centre (surround {surround:.2f} "
+                               f"< min_surround {min_surround:g}): a piece of the part, e.g. its half, or the part "
+                               f"more than about 40 % hidden; min_surround {math.floor(surround * 100) / 100:g} "
+                               "would answer it")
     return Verdict(scores, None)
+
+
+SURROUND_DIRECTIONS = 72
+"""Directions (5 deg apart) in which ``_surround`` measures how far the evidence reaches."""
+SURROUND_SPECK = 0.025
+"""Evidence in runs (linked along the model's chains) of fewer than this share of the model's points
+(at least 3) does not count: a clutter edge touching the model's contour for a few points."""
+
+
+def _surround(q: F64, evidenced: NDArray[np.bool_], pairs: NDArray[np.int64]) -> float:
+    """How far the evidenced points reach around the centroid of ``q`` (all model points at the pose,
+    image px), as the inset of the centre in their convex hull (the least reach over
+    ``SURROUND_DIRECTIONS``) over the whole model's: 1 when seen all round (clipped), about 0 for a
+    half, negative when the centre lies outside. Only runs of evidence along the chains (``pairs``)
+    of at least ``SURROUND_SPECK`` of the points count."""
+    n = len(q)
+    a, b = pairs[:, 0], pairs[:, 1]
+    both = evidenced[a] & evidenced[b]
+    g = coo_matrix((np.ones(int(both.sum()), np.int8), (a[both], b[both])), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    size = np.bincount(lab, minlength=1)
+    keep = evidenced & (size[lab] >= max(3, int(math.ceil(SURROUND_SPECK * n))))
+    d = q - q.mean(axis=0)
+    t = np.arange(SURROUND_DIRECTIONS) * (2 * math.pi / SURROUND_DIRECTIONS)
+    proj = d @ np.stack([np.cos(t), np.sin(t)])
+    full = float(proj.max(axis=0).min())
+    if full <= 1e-6:
+        return 1.0  # the model's points lie on a line: no inside to be surrounded
+    if not keep.any():
+        return -1.0
+    return float(np.clip(proj[keep].max(axis=0).min() / full, -1.0, 1.0))
 
 
 def _missing(f: Features, q: F64, seen: NDArray[np.bool_], region: NDArray[np.bool_], vis: NDArray[np.bool_],
