@@ -74,8 +74,19 @@ def test_a_located_place_follows_the_fixture_where_it_lies(tmp_path: Path) -> No
     a.mkdir()
     b.mkdir()
     with in_process_cell(a, production_config(a, count=2, scene=scene(TAUGHT_AT))) as cell:
-        recipe = teach_recipe(cell.http())
+        http = cell.http()
+        recipe = teach_recipe(http)
         recipe["place"] = teach_located_place(cell)
+        # A fixture not found (here: a score no match reaches) fails the run before any pick, saying so.
+        unseen = {**recipe, "place": {**recipe["place"], "min_score": 1.0}}
+        assert http.post("/recipes", json={"recipe_id": 2, "recipe": unseen}).status_code == 201
+        assert http.post("/production/start", json={"recipe_id": 2}).status_code == 202
+        end = wait_ended(http)
+        assert end["state"] == "failed" and "fixture was not found" in end["error"], end
+        assert end["counters"]["picked"] == 0 and {p["state"] for p in http.get("/sim/truth").json()["parts"]} == {
+            "in_area"}
+        last = http.get(f"/production/runs/{end['run_id']}/cycles").json()[-1]
+        assert last["result"] == "vision_failed" and last["frame_kept"] is True, last
     with in_process_cell(b, production_config(b, count=2, scene=scene(MOVED_TO))) as cell:
         http = cell.http()
         assert http.post("/recipes", json={"recipe_id": 1, "recipe": recipe}).status_code == 201
