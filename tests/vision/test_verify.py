@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import pytest
 
+from bench.pick import middle_half
 from tests.support import pick_scenes as ps
 from vision import shape
 from vision.types import SearchParams
@@ -55,20 +55,6 @@ def _look_alikes() -> list[tuple[str, str]]:
     return out
 
 
-def centred(part: ps.PartShape) -> ps.PartShape:
-    """The part with its reference point moved to the middle of its area (the centroid of outline
-    less holes): its halves are then cut through the middle."""
-    def moments(p: np.ndarray) -> tuple[float, np.ndarray]:
-        m = cv2.moments(p.astype(np.float32))
-        return float(m["m00"]), np.array([m["m10"], m["m01"]])
-    area, first = moments(part.outer)
-    for h in part.holes:
-        a, f = moments(h)
-        area, first = area - a, first - f
-    c = first / area
-    return ps.PartShape(part.name, part.outer - c, tuple(h - c for h in part.holes))
-
-
 def _distractor(name: str, kind: str) -> ps.PartShape:
     part = ps.PARTS[name]()
     if kind == "mirrored":
@@ -76,7 +62,7 @@ def _distractor(name: str, kind: str) -> ps.PartShape:
     if kind.startswith("without-hole-"):
         return ps.part_without_hole(part, int(kind.rsplit("-", 1)[1]))
     if kind.startswith("middle-half-"):
-        return ps.part_half(centred(part), float(kind.rsplit("-", 1)[1]))
+        return middle_half(part, float(kind.rsplit("-", 1)[1]))
     return ps.part_half(part, float(kind.rsplit("-", 1)[1]))
 
 
