@@ -42,6 +42,7 @@ def test_failed_cycles_keep_their_frames_on_disk_bounded_and_served(tmp_path: Pa
         placed = [c["n"] for c in cycles if c["result"] == "placed"]
         assert len(failed) >= 1 + 2, [c["result"] for c in cycles]  # grip failures and the final 'empty'
         assert all(c["frame_kept"] == (c["result"] != "placed") for c in cycles), cycles
+        assert cycles[0]["frame_url"] == f"/production/runs/{run_id}/cycles/1/frame.png"
         # On disk: the newest KEEP failures, each a PNG and its JSON (record and matches).
         kept = sorted(p.stem for p in frames_dir.glob("*.png"))
         assert kept == [f"run{run_id:09d}-cycle{n:06d}" for n in failed[-KEEP:]], kept

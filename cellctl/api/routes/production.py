@@ -131,6 +131,9 @@ def cycles(run_id: Annotated[int, Path(ge=1, le=2**62)], services: ServicesDep, 
     except NotFound as exc:
         raise ApiError(404, "unknown_run", str(exc)) from None
     records = store.cycles(run_id)
+    for r in records:  # where its picture is served (404 there once a placed cycle's has left the cache)
+        r["frame_url"] = (f"/production/runs/{run_id}/cycles/{r['n']}/frame.png"
+                          if r.get("frame_kept") or r.get("frame_id") is not None else None)
     if format == "csv":
         return PlainTextResponse(to_csv(records), media_type="text/csv",
                                  headers={"Content-Disposition": f'attachment; filename="run-{run_id}-cycles.csv"'})
