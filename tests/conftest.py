@@ -88,7 +88,8 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 SLOW_LIST = Path(__file__).with_name("slow.txt")
 E2E_HINTS = ("start_served(", "served_virtual_cell", "start_plc_cell(", "plc_cell", "uvicorn")
-PEER_HINTS = ("PeerProcess", "netns", "postgres", "socat", "arv-fake", "ur_emulator", "Aravis")
+PEER_HINTS = ("PeerProcess", "netns", "postgres", "socat", "arv-fake", "ur_emulator", "Aravis",
+              "pymodbus.client", "from asyncua")  # the last two: a PLC client against the cell's PLC servers
 _module_text: dict[Path, str] = {}
 
 

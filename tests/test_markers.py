@@ -11,6 +11,7 @@ from tests.conftest import REPO, SLOW_LIST, kinds_of, slow_tests
 KINDS = {"unit", "peer", "e2e", "browser", "slow"}
 # Spelled in pieces: the module scan of tests/conftest.py must not take this file for a peer or e2e test.
 SERVED, START, PEER, PG = "served" + "_virtual_cell", "start" + "_served(tmp)", "Peer" + "Process", "post" + "gres"
+MODBUS_CLIENT, OPCUA_CLIENT = "from pymodbus" + ".client import ModbusTcpClient", "from " + "asyncua import Client"
 
 
 def test_the_markers_are_registered() -> None:
@@ -28,6 +29,9 @@ def test_kinds_by_path_fixture_and_module() -> None:
         == {"peer"}
     assert kinds_of("store/test_store.py", ["store_url", PG], "") == {"peer"}
     assert kinds_of("test_readme.py", ["tmp_path"], "") == {"e2e"}
+    # a PLC client against the PLC servers of the app in this process: a peer, not a served process
+    assert kinds_of("plc/test_modbus_server.py", ["plc_app"], MODBUS_CLIENT) == {"peer"}
+    assert kinds_of("plc/test_opcua_server.py", ["plc_app"], OPCUA_CLIENT) == {"peer"}
     assert kinds_of("calibration/test_pnp.py", ["tmp_path"], "import numpy as np") == {"unit"}
 
 
