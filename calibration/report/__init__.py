@@ -1,10 +1,12 @@
 """Calibration reports and printable targets.
 
 Modules: ``html`` (``calibration_report``: the one HTML report of a camera, hand-eye or N-point
-calibration, for the CLI and the service; ``report_json``), ``camera`` (the camera part, rebuilt
-from ``cam.json`` and the detections), ``svg`` (the inline-SVG plots), ``write`` (``write_report``:
-the report file the CLI writes after an intrinsics calibration), ``target_print`` (a target at true
-scale as SVG, PDF or PNG). Everything public is exported here: ``from calibration.report import X``
+calibration, for the CLI and the service; ``report_json``), ``camera`` (the camera part's data,
+rebuilt from ``cam.json`` and the detections) and ``camera_plots`` (its figures), ``handeye`` and
+``npoint`` (those parts), ``plots`` (matplotlib figures as inline SVG, the good/bad colour
+``Band``), ``page`` (the page, tables, rounding), ``write`` (``write_report``: the report file the
+CLI writes after an intrinsics calibration), ``target_print`` (a target at true scale as SVG, PDF
+or PNG). Everything public is exported here: ``from calibration.report import X``
 is the interface.
 """
 

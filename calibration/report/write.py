@@ -15,7 +15,8 @@ import numpy as np
 
 from calibration.intrinsics import IntrinsicsResult
 from calibration.report import camera as rc
-from calibration.report.html import camera_html, page
+from calibration.report.html import camera_html
+from calibration.report.page import page
 
 THUMB_WIDTH_PX = 340  # twice the drawn width (sharp on high-DPI screens)
 

@@ -4,6 +4,7 @@ px anchored to the limits, the summary's figures rounded and equal to the plotte
 from __future__ import annotations
 
 import re
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -34,12 +35,14 @@ def test_large_set_is_binned_and_scaled_to_the_limits(tmp_path: Path) -> None:
     svg = residuals.group(0)
     assert "binned" in svg and "colourbar" in svg
     # Binned: one mean arrow per cell, not one per point.
-    arrows = re.search(r'<path d="([^"]*)" stroke="#000"', svg)
-    assert arrows is not None and 0 < arrows.group(1).count("M") <= 16 * 12
+    arrows = re.findall(r'<path [^>]*class="mean-arrows"', svg)
+    assert 0 < len(arrows) <= 16 * 12
     # The uncertainty colour bar runs from 0 to twice the verdict's limit, the limit marked on it.
     unc = re.search(r'<svg class="plot uncertainty".*?</svg>', html, re.S)
     assert unc is not None
-    ticks = [float(t) for t in re.findall(r'<text class="tick" x="6\d\d"[^>]*>([0-9.]+)</text>', unc.group(0))]
+    bar = ET.fromstring(unc.group(0)).find(".//{*}g[@class='colourbar-axis']")
+    assert bar is not None and float(bar.get("data-top", "nan")) == 2 * MAX_PROJECTION_RMS_PX
+    ticks = [float(t.text or "nan") for t in bar.iterfind(".//{*}text[@class='tick']")]
     assert ticks and max(ticks) == 2 * MAX_PROJECTION_RMS_PX
     assert ">limit</text>" in unc.group(0)
     # The summary's numbers are the result's, rounded to 3 significant figures.
