@@ -6,11 +6,12 @@ this process's user + system time plus that of the children it waited for (``get
 phase (set-up, call, teardown), and each worker's collection. Children still running (a session's
 served cell, a PostgreSQL cluster) are counted when they are reaped, not per test.
 
-    CELLCTL_TEST_CPU_DIR=/tmp/cpu .venv/bin/pytest -q -m "not slow" -p tests.support.cpu_report
+    CELLCTL_TEST_CPU_DIR=/tmp/cpu .venv/bin/python -m pytest -q -m "not slow" -p tests.support.cpu_report
     .venv/bin/python -m tests.support.cpu_report /tmp/cpu          # the summary, tests over 1 s of CPU
 
+(``python -m pytest``: it puts the repository on ``sys.path`` before ``-p`` imports the plugin.)
 Without ``CELLCTL_TEST_CPU_DIR`` the plugin records nothing. Each process (xdist worker) writes
-``cpu-<worker>.jsonl`` there.
+``cpu-<worker>.jsonl`` there; its collection is counted from the plugin's import (after pytest's own).
 """
 
 from __future__ import annotations
