@@ -303,3 +303,25 @@ def test_magnitudes_are_the_bilinear_gradient_magnitudes() -> None:
     want = np.hypot(bilinear(gx, q[:, 0], q[:, 1]), bilinear(gy, q[:, 0], q[:, 1]))
     got = kernels.magnitudes(np.ascontiguousarray(np.dstack([gx, gy])), q)
     assert np.allclose(got, want, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_run_sizes_equal_scipys_components(seed: int) -> None:
+    """The verification's runs of evidence (``run_sizes``, union-find) are scipy's connected
+    components of the pairs whose both ends are evidenced, counted over the evidenced points."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(seed)
+    n = 300
+    a = rng.integers(0, n, 400).astype(np.int64)
+    b = ((a + rng.integers(1, 4, 400)) % n).astype(np.int64)  # chain-like links
+    ev = rng.uniform(size=n) < 0.7
+    got = sk.run_sizes(n, a, b, ev)
+    both = ev[a] & ev[b]
+    _, lab = connected_components(coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n)),
+                                  directed=False)
+    size = np.bincount(lab[ev], minlength=n)
+    want = np.where(ev, size[lab], 0)
+    assert np.array_equal(got, want)
+    assert got[~ev].sum() == 0 and got[ev].min() >= 1

@@ -50,6 +50,7 @@ from scipy.sparse.csgraph import connected_components
 from vision.image import F64
 from vision.shape.model import CHAIN_MAX_TURN_DEG, LevelModel
 from vision.shape.score import SCORE_MAX_ANGLE_DEG, PointDetail
+from vision.shape.search_kernels import run_sizes
 
 POLARITY_MIN = 0.75
 """The most a match's polarity coherence is asked: halfway between a part's (1 but for a few
@@ -183,12 +184,8 @@ def _surround(q: F64, evidenced: NDArray[np.bool_], pairs: NDArray[np.int64]) ->
     half, negative when the centre lies outside. Only runs of evidence along the chains (``pairs``)
     of at least ``SURROUND_SPECK`` of the points count."""
     n = len(q)
-    a, b = pairs[:, 0], pairs[:, 1]
-    both = evidenced[a] & evidenced[b]
-    g = coo_matrix((np.ones(int(both.sum()), np.int8), (a[both], b[both])), shape=(n, n))
-    _, lab = connected_components(g, directed=False)
-    size = np.bincount(lab, minlength=1)
-    keep = evidenced & (size[lab] >= max(3, int(math.ceil(SURROUND_SPECK * n))))
+    size = run_sizes(n, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]), evidenced)
+    keep = size >= max(3, int(math.ceil(SURROUND_SPECK * n)))
     d = q - q.mean(axis=0)
     t = np.arange(SURROUND_DIRECTIONS) * (2 * math.pi / SURROUND_DIRECTIONS)
     proj = d @ np.stack([np.cos(t), np.sin(t)])
