@@ -52,14 +52,25 @@ SHARED_CELLS = ("plc_cell", "served_virtual_cell")
 """Session fixtures that serve a cell: their tests share one worker, so the cell starts once."""
 
 
+NOT_UR = frozenset({"sim", "modbus", "replay"})
+"""Robot adapters of the contract tests that need no UR emulator: their cases run on any worker."""
+
+
+def _other_adapter(item: pytest.Item) -> bool:
+    """A case of a UR module parametrized with another adapter (``[sim]``, ``[modbus]``, ``[replay]``)."""
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    return any(isinstance(v, str) and v in NOT_UR for v in params.values())
+
+
 def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | None:
     """The worker group of a test under ``--dist loadgroup``, or None to balance it freely.
 
-    The UR emulator's tests share one group (fixed ports); the tests of a shared served cell share
+    The UR emulator's tests share one group (fixed ports; a UR module's cases of another robot adapter
+    are balanced freely, their peers listen on free ports); the tests of a shared served cell share
     its group; a module with a module-scoped fixture (a served cell, a capture) stays on one worker
     so that the fixture runs once, not once per worker its tests land on.
     """
-    if "ur_emulator" in module_text:
+    if "ur_emulator" in module_text and not _other_adapter(item):
         return UR_GROUP
     names = set(getattr(item, "fixturenames", ()))
     for name in SHARED_CELLS:

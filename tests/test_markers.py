@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import tomllib
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
 
-from tests.conftest import REPO, SLOW_LIST, kinds_of, slow_tests
+from tests.conftest import REPO, SLOW_LIST, UR_GROUP, kinds_of, slow_tests, xdist_group_of
 
 KINDS = {"unit", "peer", "e2e", "browser", "slow"}
 # Spelled in pieces: the module scan of tests/conftest.py must not take this file for a peer or e2e test.
@@ -47,3 +49,16 @@ def test_the_slow_list_parses_and_names_tests_that_exist() -> None:
 def test_this_test_got_its_marker(request: pytest.FixtureRequest) -> None:
     assert request.node.get_closest_marker("unit") is not None
     assert request.node.get_closest_marker("slow") is None
+
+
+def test_only_the_ur_cases_of_a_ur_module_share_the_emulators_worker() -> None:
+    def case(adapter: str) -> Any:
+        return SimpleNamespace(callspec=SimpleNamespace(params={"rig": adapter}), fixturenames=["rig", "tmp_path"])
+
+    text = PEER + '("drivers.peers.ur' + '_emulator")'
+    assert xdist_group_of(case("ur_rtde"), "drivers/test_robot_contract.py", text) == UR_GROUP
+    for adapter in ("sim", "modbus", "replay"):
+        assert xdist_group_of(case(adapter), "drivers/test_robot_contract.py", text) is None
+    plain: Any = SimpleNamespace(fixturenames=["tmp_path"])  # not parametrized: a UR test
+    assert xdist_group_of(plain, "drivers/test_ur_rtde.py", text) == UR_GROUP
+    assert xdist_group_of(plain, "drivers/test_motion.py", "import numpy") is None
