@@ -105,7 +105,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     cam_json["target"] = tname
     record = services.store.save_calibration(
         "camera", camera_id, None, cam_json,
-        {"target": services.config.targets[tname], "views": detection_inputs(caps)},
+        {"target": services.config.targets[tname], "views": detection_inputs(caps),
+         "capture": {"views_tried": len(caps) + skipped, "views_rejected": skipped}},  # the report's counts
         creator=ctx.started_by, note=p.note or f"intrinsics-capture, {len(caps)} views")
     return {"calibration_id": record.id, "version": record.version, "kind": "camera", "camera_id": camera_id,
             "views_used": len(caps), "views_rejected": skipped, "rms_px": cam_json.get("rms_px"),

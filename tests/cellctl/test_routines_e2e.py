@@ -85,6 +85,17 @@ def test_intrinsics_capture_recovers_the_camera(calibrated: dict[str, Any], trut
     assert res["activated"] is False
 
 
+def test_the_report_counts_the_views_as_the_job_did(served: Served, calibrated: dict[str, Any]) -> None:
+    """The job's views_rejected (shots the capture dropped before calibrating) is the report's."""
+    res = calibrated["intrinsics"]
+    with served.client(timeout_s=60) as http:
+        figures = http.get(f"/calibrations/{res['calibration_id']}/report", params={"format": "json"}).json()
+        page = http.get(f"/calibrations/{res['calibration_id']}/report").text
+    tried = res["views_used"] + res["views_rejected"]
+    assert figures["capture"] == {"views_tried": tried, "views_rejected": res["views_rejected"]}
+    assert f"<td class='num'>{tried} / {res['views_rejected']}</td>" in page
+
+
 def test_handeye_capture_recovers_T_tool_cam(calibrated: dict[str, Any], truth: dict[str, Any]) -> None:
     res = calibrated["handeye"]
     rot, trans = g.transform_error(np.array(res["T_tool_cam"]), np.array(truth["T_tool_cam"]))
