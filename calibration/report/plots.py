@@ -104,15 +104,16 @@ def _finite(x: ArrayLike) -> F64:
 
 
 @contextmanager
-def canvas(width_px: float, height_px: float, layout: Literal["constrained"] | None = "constrained"
-           ) -> Iterator[Figure]:
+def canvas(width_px: float, height_px: float, layout: Literal["constrained"] | None = "constrained",
+           rc: dict[str, Any] | None = None) -> Iterator[Figure]:
     """A new figure of ``width_px`` x ``height_px`` CSS pixels with the report's style; draw and call
     :func:`svg` inside the block. ``layout=None``: the caller places the axes (:func:`fixed_axes`),
-    which saves the layout's extra drawing pass on figures full of text."""
+    which saves the layout's extra drawing pass on figures full of text. ``rc``: settings on top of
+    the report's (a PDF's font embedding)."""
     import matplotlib
     from matplotlib.figure import Figure
 
-    with _LOCK, matplotlib.rc_context(cast(Any, _RC)):
+    with _LOCK, matplotlib.rc_context(cast(Any, {**_RC, **(rc or {})})):
         yield Figure(figsize=(width_px / 72.0, height_px / 72.0), layout=layout)
 
 

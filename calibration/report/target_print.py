@@ -5,8 +5,9 @@ against its ``reflectance`` (the renderer's source) in the tests, so a printed p
 one and the detector always agree.
 
 - **SVG**: ``width``/``height`` in ``mm`` and a ``viewBox`` in millimetres: exact size.
-- **PDF**: a one-page PDF 1.4 written here (no dependency), MediaBox in points of 1/72 inch,
-  drawn in millimetres through the page's transformation matrix: exact size.
+- **PDF**: one page by matplotlib's PDF backend, MediaBox in points of 1/72 inch, drawn in
+  millimetres (the figure is the page, its one axes fills it): exact size; the caption's font
+  embedded.
 - **PNG**: the same shapes filled at 4x ``dpi`` and area-averaged (anti-aliased), with the
   resolution recorded in a ``pHYs`` chunk (pixels per metre), written here with zlib.
 
@@ -17,11 +18,12 @@ that scales the page shows up at once.
 
 from __future__ import annotations
 
+import io
 import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import cv2
 import numpy as np
@@ -195,59 +197,50 @@ def _xml(text: str) -> str:
     return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 
-def _pdf_text(text: str) -> str:
-    return text.replace("\\", "\\\\").replace("(", "\\(").replace(")", "\\)")
-
-
-def _circle_path(cx: float, cy: float, r: float) -> str:
-    k = 0.5522847498 * r
-    return (f"{cx + r:.4f} {cy:.4f} m "
-            f"{cx + r:.4f} {cy + k:.4f} {cx + k:.4f} {cy + r:.4f} {cx:.4f} {cy + r:.4f} c "
-            f"{cx - k:.4f} {cy + r:.4f} {cx - r:.4f} {cy + k:.4f} {cx - r:.4f} {cy:.4f} c "
-            f"{cx - r:.4f} {cy - k:.4f} {cx - k:.4f} {cy - r:.4f} {cx:.4f} {cy - r:.4f} c "
-            f"{cx + k:.4f} {cy - r:.4f} {cx + r:.4f} {cy - k:.4f} {cx + r:.4f} {cy:.4f} c h f")
-
-
 def to_pdf(target: Target) -> bytes:
-    """The target as a one-page PDF at true scale (MediaBox in points, drawing in millimetres)."""
+    """The target as a one-page PDF at true scale, drawn by matplotlib's PDF backend.
+
+    The page is the figure: ``W x H`` mm (MediaBox in points of 1/72 inch), one axes filling it in
+    millimetres, y down, no margins; the black shapes are one filled path each kind, without
+    outline (a stroke would grow them). The caption's font is embedded (a TrueType subset)."""
+    from matplotlib.patches import PathPatch, Rectangle
+    from matplotlib.path import Path as MplPath
+
+    from calibration.report.plots import canvas
+
     t = _require_planar(target)
     W, H, ox, oy = _page(t)
     pt = 72.0 / MM_PER_INCH
-    ops = [f"{pt:.6f} 0 0 {-pt:.6f} 0 {H * pt:.4f} cm", "0 g"]  # y down, millimetres
+    paths = []
     for s in shapes_mm(t):
         if isinstance(s, Rect):
-            ops.append(f"{s.x + ox:.4f} {s.y + oy:.4f} {s.w:.4f} {s.h:.4f} re f")
+            paths.append(MplPath.unit_rectangle().transformed(_mm(s.w, s.h, s.x + ox, s.y + oy)))
         elif isinstance(s, Circle):
-            ops.append(_circle_path(s.cx + ox, s.cy + oy, s.r))
+            paths.append(MplPath.unit_circle().transformed(_mm(s.r, s.r, s.cx + ox, s.cy + oy)))
         else:
-            (fx, fy), *rest = s.points
-            path = f"{fx + ox:.4f} {fy + oy:.4f} m " + " ".join(f"{x + ox:.4f} {y + oy:.4f} l" for x, y in rest)
-            ops.append(path + " h f")
+            paths.append(MplPath(np.array([(x + ox, y + oy) for x, y in s.points] + [(0.0, 0.0)]), closed=True))
     cy = H - CAPTION_MM / 2
     bar = _scale_bar_mm(W)
-    ops.append(f"{MARGIN_MM:.4f} {cy - 2.5:.4f} {bar:.4f} 1 re f")
-    text = _pdf_text(f"{caption(t)} | bar above = {bar:g} mm")
-    ops.append(f"BT /F1 2.5 Tf 1 0 0 -1 {MARGIN_MM:.4f} {cy + 2.5:.4f} Tm ({text}) Tj ET")
-    content = "\n".join(ops).encode("latin-1", errors="replace")
-    objects = [
-        b"<< /Type /Catalog /Pages 2 0 R >>",
-        b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
-        (f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {W * pt:.4f} {H * pt:.4f}] "
-         "/Resources << /Font << /F1 5 0 R >> >> /Contents 4 0 R >>").encode(),
-        b"<< /Length %d >>\nstream\n" % len(content) + content + b"\nendstream",
-        b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica >>",
-    ]
-    out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
-    offsets = []
-    for i, body in enumerate(objects, start=1):
-        offsets.append(len(out))
-        out += b"%d 0 obj\n" % i + body + b"\nendobj\n"
-    xref = len(out)
-    out += b"xref\n0 %d\n0000000000 65535 f \n" % (len(objects) + 1)
-    for off in offsets:
-        out += b"%010d 00000 n \n" % off
-    out += b"trailer\n<< /Size %d /Root 1 0 R >>\nstartxref\n%d\n%%%%EOF\n" % (len(objects) + 1, xref)
-    return bytes(out)
+    with canvas(W * pt, H * pt, layout=None, rc={"pdf.fonttype": 42}) as fig:
+        ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+        ax.set_axis_off()
+        ax.set_xlim(0.0, W)
+        ax.set_ylim(H, 0.0)
+        ax.add_patch(PathPatch(MplPath.make_compound_path(*paths), facecolor="#000", lw=0))
+        ax.add_patch(Rectangle((MARGIN_MM, cy - 2.5), bar, 1.0, facecolor="#000", lw=0))
+        ax.text(MARGIN_MM, cy + 2.5, f"{caption(t)} | bar above = {bar:g} mm", fontsize=2.5 * pt,
+                family="sans-serif", va="baseline")
+        buf = io.BytesIO()
+        fig.savefig(buf, format="pdf", metadata={"Creator": None, "Producer": None, "CreationDate": None},
+                    facecolor="white")
+    return buf.getvalue()
+
+
+def _mm(sx: float, sy: float, tx: float, ty: float) -> Any:
+    """The affine that scales a unit shape by (sx, sy) and moves it to (tx, ty), millimetres."""
+    from matplotlib.transforms import Affine2D
+
+    return Affine2D().scale(sx, sy).translate(tx, ty)
 
 
 def to_image(target: Target, dpi: float) -> NDArray[np.uint8]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import zlib
 from pathlib import Path
 
 import cv2
@@ -68,16 +69,45 @@ def test_svg_and_pdf_sizes_are_exact() -> None:
     assert f'width="{w_mm:.4f}mm" height="{h_mm:.4f}mm" viewBox="0 0 {w_mm:.4f} {h_mm:.4f}"' in svg
     assert svg.count("<circle") == 20
     pdf = to_pdf(t)
-    m = re.search(rb"/MediaBox \[0 0 ([0-9.]+) ([0-9.]+)\]", pdf)
+    m = re.search(rb"/MediaBox \[ ?0 0 ([0-9.]+) ([0-9.]+) ?\]", pdf)
     assert m is not None
     assert abs(float(m.group(1)) - w_mm / 25.4 * 72) < 1e-3 and abs(float(m.group(2)) - h_mm / 25.4 * 72) < 1e-3
     # the cross-reference table points at each object
     xref = int(re.search(rb"startxref\n(\d+)", pdf).group(1))  # type: ignore[union-attr]
     assert pdf[xref : xref + 4] == b"xref"
     offsets = [int(o) for o in re.findall(rb"(\d{10}) 00000 n", pdf)]
-    assert len(offsets) == 5
+    assert len(offsets) >= 5
     for i, off in enumerate(offsets, start=1):
         assert pdf[off:].startswith(b"%d 0 obj" % i)
+    # drawn at true scale: 20 circles of 10 mm at a 20 mm pitch, in points of 1/72 inch
+    pt = 72.0 / 25.4
+    circles = [s for s in _pdf_subpaths(pdf) if s[1]]
+    assert len(circles) == 20
+    boxes = np.array([[*p.min(axis=0), *p.max(axis=0)] for p, _ in circles])
+    assert np.allclose(boxes[:, 2] - boxes[:, 0], 10.0 * pt, atol=1e-3)
+    assert np.allclose(boxes[:, 3] - boxes[:, 1], 10.0 * pt, atol=1e-3)
+    xs = np.unique(np.round((boxes[:, 0] + boxes[:, 2]) / 2, 3))
+    assert len(xs) == 5 and np.allclose(np.diff(xs), 20.0 * pt, atol=1e-3)
+    assert b"/FontFile2" in pdf  # the caption's font travels with the file
+    # a chessboard's squares: every one of them, 25 mm wide and high, at its place on the page
+    quads = [p for p, curved in _pdf_subpaths(to_pdf(Chessboard(9, 6, 25.0))) if not curved and len(p) == 4]
+    squares = [p for p in quads if np.allclose(np.ptp(p, axis=0), 25.0 * pt, atol=1e-3)]
+    assert len(squares) == sum(1 for j in range(-1, 6) for i in range(-1, 9) if (i + j) % 2 == 0)
+    assert len(quads) == len(squares) + 2  # and the page's white and the scale bar
+
+
+def _pdf_subpaths(pdf: bytes) -> list[tuple[np.ndarray, bool]]:
+    """The filled subpaths of a PDF's (deflated) content streams: their points, and whether they curve."""
+    out = []
+    for m in re.finditer(rb"stream\r?\n(.*?)\r?\nendstream", pdf, re.S):
+        try:
+            ops = zlib.decompress(m.group(1)).decode("latin-1")
+        except zlib.error:
+            continue
+        for sub in re.findall(r"(\S+ \S+ m\n(?:(?:\S+ )+[lc]\n)+h)", ops):
+            nums = [float(x) for x in re.findall(r"-?\d+\.?\d*", sub)]
+            out.append((np.array(nums).reshape(-1, 2), " c\n" in sub))
+    return out
 
 
 def test_png_records_its_dpi(tmp_path: Path) -> None:

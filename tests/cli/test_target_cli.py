@@ -31,7 +31,9 @@ def test_render_each_format(tmp_path: Path) -> None:
     assert re.search(r'width="135\.0000mm" height="145\.0000mm"', svg)
     assert "check: mark centres (0,0) to (0,6) = 75.00 mm" in svg
     pdf = (tmp_path / "plate.pdf").read_bytes()
-    assert pdf.startswith(b"%PDF-1.4") and b"/MediaBox [0 0 382.6772 411.0236]" in pdf
+    box = re.search(rb"/MediaBox \[ ?0 0 ([0-9.]+) ([0-9.]+) ?\]", pdf)  # 135 x 145 mm in points
+    assert pdf.startswith(b"%PDF-1.4") and box is not None
+    assert abs(float(box.group(1)) - 382.6772) < 1e-3 and abs(float(box.group(2)) - 411.0236) < 1e-3
     assert abs(png_dpi((tmp_path / "plate.png").read_bytes()) - 200) < 0.05  # type: ignore[operator]
 
 
