@@ -75,8 +75,9 @@ def _px_figure(st: list[Station], loo: float | None) -> str:
     title = "Per station: fit RMS (bars) and held-out prediction (black marks)"
     with pl.canvas(pl.bars_width_px(len(st)), 320) as fig:
         ax = fig.subplots()
-        pl.named_bars(ax, [s.name for s in st], [s.rms_px for s in st], RESIDUAL_BAND, "bar px")
         held = [s.heldout_px for s in st]
+        pl.named_bars(ax, [s.name for s in st], [s.rms_px for s in st], RESIDUAL_BAND, "bar px",
+                      note=not any(math.isfinite(h) for h in held))
         if any(math.isfinite(h) for h in held):
             marks = ax.scatter(range(len(st)), held, marker="_", s=120, lw=2.5, color="#000", zorder=4,
                                label="held-out prediction")

@@ -209,9 +209,11 @@ def band_rules(ax: Axes, band: Band, horizontal: bool = True) -> None:
     rule(band.bad, color="#d73027", lw=1.0, ls="--", label=f"{band.bad_label} {band.bad:g} {band.unit}")
 
 
-def named_bars(ax: Axes, names: Sequence[str], values: Sequence[float], band: Band, classes: str = "bar") -> None:
+def named_bars(ax: Axes, names: Sequence[str], values: Sequence[float], band: Band, classes: str = "bar",
+               note: bool = True) -> None:
     """One bar per name, coloured on ``band``; the names on the x axis; each bar tagged with its
-    ``data-name`` and ``data-value`` (the number plotted)."""
+    ``data-name`` and ``data-value`` (the number plotted). ``note``: say so when every bar is below
+    the good limit (the axis, fitted to the bars, then leaves the band out)."""
     v = np.asarray([x if x is not None and math.isfinite(x) else math.nan for x in values], dtype=np.float64)
     colours = band.rgb(v, v)
     bars = ax.bar(np.arange(len(v)), np.nan_to_num(v), color=colours, width=0.8, zorder=2)
@@ -223,7 +225,7 @@ def named_bars(ax: Axes, names: Sequence[str], values: Sequence[float], band: Ba
     top = float(np.nanmax(v)) if np.any(np.isfinite(v)) else 1.0
     ax.set_ylim(0.0, max(top, 1e-9) * 1.15)
     band_rules(ax, band)
-    if top < band.good:
+    if note and top < band.good:
         ax.text(0.99, 0.97, f"all below the {band.good_label} limit {band.good:g} {band.unit}",
                 transform=ax.transAxes, ha="right", va="top", fontsize=7.5, color="#1b7837")
 
