@@ -131,7 +131,8 @@ def report_json(kind: str, result: dict[str, Any], inputs: dict[str, Any] | None
         found = _camera_inputs(inputs or {}, result)
         views, target = found or ([], None)
         return rc.build(result, views, target, inputs=inputs or {}).to_json()
-    keys = {"handeye": ("setup", "rms_px", "quality", "uncertainty", "poses", "verdict"),
+    keys = {"handeye": ("setup", "method", "dof", "rms_px", "quality", "uncertainty", "poses", "leave_one_out",
+                        "verdict"),
             "npoint": ("model", "rms_mm", "loo_rms_mm", "residuals_mm", "verdict")}.get(kind, ())
     out = {k: result[k] for k in keys if k in result}
     if isinstance(out.get("uncertainty"), dict):

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from calibration.camera_model import CameraModel
-from calibration.handeye import RobotNoise, calibrate_handeye, calibrate_handeye_dof4
+from calibration.handeye import RobotNoise, calibrate_handeye, calibrate_handeye_dof4, calibrate_handeye_measured
 from calibration.intrinsics import calibrate
 from calibration.report import calibration_report, report_json
 from calibration.report import camera as rc
 from calibration.report.camera_plots import RADIUS_BINS, RESIDUAL_BAND, radius_figure, view_bars
 from calibration.report.html import camera_summary
 from calibration.report.plots import Band, short_name
-from calibration.synthetic import plan_views, simulate_handeye, simulate_scara, synthetic_detections
+from calibration.synthetic import perturb_pose, plan_views, simulate_handeye, simulate_scara, synthetic_detections
 from calibration.targets import Chessboard
 
 CAM = CameraModel("opencv5", 1280, 960, np.array([[1100.0, 0, 641], [0, 1100.0, 479], [0, 0, 1]]),
@@ -165,6 +165,24 @@ def test_dof4_stations_come_from_its_leave_one_out() -> None:
     assert [mm[str(p["image"])] for p in per_pose] == pytest.approx([p["position_mm"] for p in per_pose], rel=1e-5)
     assert [deg[str(p["image"])] for p in per_pose] == pytest.approx([p["rotation_deg"] for p in per_pose],
                                                                      rel=1e-5)
+    figures = report_json("handeye", res)  # the JSON carries the same per-station figures
+    assert figures["dof"] == 4 and figures["leave_one_out"]["per_pose"] == per_pose
+
+
+def test_a_measured_frame_shows_each_stations_own_solution() -> None:
+    """A measured target frame has no held-out solve: each station's own solution against the joint one."""
+    noise = RobotNoise(0.03, 0.005)
+    rng = np.random.default_rng(9)
+    s = simulate_handeye("eye-in-hand", 4, rng, camera=CAM, target=BOARD, robot_noise=noise)
+    res = calibrate_handeye_measured("eye-in-hand", s.G_recorded, s.detections, CAM, BOARD,
+                                     perturb_pose(s.Z_true, rng, noise), noise, noise).to_json()
+    html = calibration_report("handeye", res)
+    mm, deg = _station_bars(html, "heldout", "mm"), _station_bars(html, "heldout", "deg")
+    assert [mm[str(p["image"])] for p in res["poses"]] == pytest.approx(
+        [p["single_station_diff_mm"] for p in res["poses"]], rel=1e-5)
+    assert [deg[str(p["image"])] for p in res["poses"]] == pytest.approx(
+        [p["single_station_diff_deg"] for p in res["poses"]], rel=1e-5)
+    assert "position difference (mm)" in html and "plot corrections" not in html  # no robot correction here
 
 
 def test_the_capture_rejections_are_the_jobs() -> None:
