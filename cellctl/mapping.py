@@ -9,7 +9,8 @@ refined intrinsics when ``intrinsics_refined``), not through the camera's active
 calibration: the solution fits the pixels through that camera only (calibration/io/handeye_camera.py).
 Only a hand-eye file that carries no camera (older, or made elsewhere) maps through the active
 camera calibration. Activating a camera calibration that differs from the hand-eye's is guarded
-(``POST /calibrations/{id}/activate``, ``handeye_camera_mismatch``).
+(``POST /calibrations/{id}/activate``: a ``warning`` that the hand-eye must be redone, or 409
+``handeye_camera_mismatch`` when the hand-eye carries no camera and its mapping would change).
 """
 
 from __future__ import annotations
@@ -109,14 +110,24 @@ def active_mapping(services: Services, camera_id: str, robot_id: str, prefer: st
                         "jog-to-mark (N-point), or intrinsics-capture + handeye-capture")
 
 
-def handeye_camera_conflicts(services: Services, camera_record: Any) -> list[str]:
-    """Why activating ``camera_record`` (a camera calibration) disagrees with an active hand-eye of
-    its camera, one sentence per hand-eye; empty when none does.
+@dataclass(frozen=True)
+class HandEyeCameraConflict:
+    """An active hand-eye solved with other intrinsics than a camera calibration being activated."""
+
+    message: str
+    """What differs and what to do (one sentence)."""
+    changes_mapping: bool
+    """True when the hand-eye carries no camera of its own: it would map through the new intrinsics
+    with an X solved through others (the activation guard refuses that unless forced). False: it
+    keeps mapping through its own camera and only needs redoing."""
+
+
+def handeye_camera_conflicts(services: Services, camera_record: Any) -> list[HandEyeCameraConflict]:
+    """The active hand-eyes of ``camera_record``'s camera (a camera calibration about to be
+    activated) that were solved with other intrinsics; empty when none was.
 
     A hand-eye agrees when it started from this very calibration (``camera_calibration_id``), or
-    when this camera maps within tolerance like the camera it started from or the one it carries.
-    A hand-eye that carries its camera keeps mapping through it either way; one that carries none
-    would map through the new intrinsics with an X solved through others."""
+    when this camera maps within tolerance like the camera it started from or the one it carries."""
     try:
         new = camera_from_json(camera_record.result, f"calibration {camera_record.id}")
     except CameraFileError:
@@ -137,13 +148,16 @@ def handeye_camera_conflicts(services: Services, camera_record: Any) -> list[str
             continue  # a hand-eye file that says nothing of its camera: nothing to compare with
         if any(camera_mismatch(c, new, "it") is None for c in known):
             continue
-        why = (camera_mismatch(start or own, new, f"camera calibration {camera_record.id}")  # type: ignore[arg-type]
-               if known else f"it was solved with camera calibration {started}")
+        ref = start or own
+        why = (camera_mismatch(ref, new, f"camera calibration {camera_record.id}") if ref is not None
+               else f"it was solved with camera calibration {started}")
         keeps = ("it keeps mapping through the camera it was solved with" if own is not None else
-                 "it would map through these intrinsics with a hand-eye solved through others")
-        out.append(f"the active hand-eye calibration {he.id} ({camera_record.camera_id}/{robot_id}) was solved with "
-                   f"other intrinsics: {why}; {keeps}. Redo the hand-eye with this camera calibration "
-                   "(POST /routines/handeye-capture) and activate it")
+                 "it carries no camera of its own and would map through these intrinsics with a hand-eye solved "
+                 "through others")
+        out.append(HandEyeCameraConflict(
+            f"the active hand-eye calibration {he.id} ({camera_record.camera_id}/{robot_id}) was solved with other "
+            f"intrinsics: {why}; {keeps}. Redo the hand-eye with this camera calibration (handeye-capture) and "
+            "activate it", own is None))
     return out
 
 

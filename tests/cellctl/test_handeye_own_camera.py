@@ -4,9 +4,10 @@ The virtual cell's data (calibration.synthetic, with truth): an eye-in-hand hand
 a stale camera file (fx 1 % high) and solved with the intrinsics refined jointly. The store holds
 the stale camera calibration (active) and the hand-eye (active); the service's mapping (``POST
 /map``, the pick poses through ``active_mapping``) must land on the truth, where mapping through the
-stale camera (what the service did before) misses by millimetres. A camera calibration that differs
-from the hand-eye's is refused on activation (409 ``handeye_camera_mismatch``) unless forced, and
-``cellctl map --camera`` refuses a camera other than the hand-eye's.
+stale camera (what the service did before) misses by millimetres. Activating a camera calibration
+that differs from the hand-eye's answers a warning that the hand-eye must be redone (409
+``handeye_camera_mismatch`` unless forced when the hand-eye carries no camera, as its mapping would
+change), and ``cellctl map --camera`` refuses a camera other than the hand-eye's.
 """
 
 from __future__ import annotations
@@ -143,28 +144,39 @@ def test_activating_a_different_camera_says_the_hand_eye_must_be_redone(cell: Ce
     uv = PIXELS[0]
     P_mm = _truth_on_plane(cell.T_base_cam_true, uv) * 1e3
     with cell.app.http() as http:
+        # the hand-eye carries its camera: the new intrinsics are activated (recalibrating starts with
+        # them), the answer says the hand-eye must be redone, and the mapping does not move
         r = http.post(f"/calibrations/{cell.ids['other']}/activate")
-        assert r.status_code == 409, r.text
-        err = r.json()["error"]
-        assert err["code"] == "handeye_camera_mismatch"
-        assert f"hand-eye calibration {cell.ids['handeye']}" in err["message"] and "Redo the hand-eye" in err["message"]
-        assert '"force": true' in err["message"]
-        assert http.get(f"/calibrations/{cell.ids['stale']}").json()["active"] is True  # nothing changed
-        # the hand-eye's own camera, stored as a camera calibration, is the same camera: no objection
-        r = http.post(f"/calibrations/{cell.ids['own']}/activate")
-        assert r.status_code == 200 and r.json()["warning"] is None, r.text
-        # the one it started from is accepted too (it is the hand-eye's camera_calibration_id)
-        r = http.post(f"/calibrations/{cell.ids['stale']}/activate")
-        assert r.status_code == 200 and r.json()["warning"] is None, r.text
-        r = http.post(f"/calibrations/{cell.ids['other']}/activate", json={"force": True})
         assert r.status_code == 200, r.text
-        assert r.json()["active"] is True and "hand-eye must be redone" in r.json()["warning"]
-        forced = [e for e in http.get("/audit").json() if e["action"] == "calibration.force_activate"]
-        assert forced and "handeye_camera_mismatch" in forced[-1]["detail"]
-        # forced or not, the hand-eye keeps mapping through its own camera
+        warning = r.json()["warning"]
+        assert "hand-eye must be redone" in warning and f"hand-eye calibration {cell.ids['handeye']}" in warning
+        assert "keeps mapping through the camera it was solved with" in warning
         r = http.post("/map", json={"u_px": uv[0], "v_px": uv[1], "plane_z_mm": float(P_mm[2]), "robot_pose_ur": pose})
         got = np.array([r.json()[k] for k in ("x_mm", "y_mm", "z_mm")])
         assert np.linalg.norm(got - P_mm) < OWN_TOLERANCE_MM
+        # the one it started from (its camera_calibration_id) and its own camera stored as a camera
+        # calibration are the same camera: no warning
+        for key in ("stale", "own"):
+            r = http.post(f"/calibrations/{cell.ids[key]}/activate")
+            assert r.status_code == 200 and r.json()["warning"] is None, r.text
+        # a hand-eye file without a camera of its own would map through the new intrinsics: refused
+        he_json = cell.he.to_json()
+        for key in ("camera", "camera_initial"):
+            he_json.pop(key)
+        he_json["verdict"]["ok"] = True
+        r = http.post("/calibrations", json={**he_json, "camera_calibration_id": cell.ids["stale"]})
+        assert r.status_code == 201, r.text
+        assert http.post(f"/calibrations/{r.json()['id']}/activate").status_code == 200
+        r = http.post(f"/calibrations/{cell.ids['other']}/activate")
+        assert r.status_code == 409, r.text
+        err = r.json()["error"]
+        assert err["code"] == "handeye_camera_mismatch" and "carries no camera of its own" in err["message"]
+        assert '"force": true' in err["message"]
+        assert http.get(f"/calibrations/{cell.ids['own']}").json()["active"] is True  # nothing changed
+        r = http.post(f"/calibrations/{cell.ids['other']}/activate", json={"force": True})
+        assert r.status_code == 200 and "hand-eye must be redone" in r.json()["warning"], r.text
+        forced = [e for e in http.get("/audit").json() if e["action"] == "calibration.force_activate"]
+        assert forced and "handeye_camera_mismatch" in forced[-1]["detail"]
 
 
 def _write(path: Path, data: dict[str, Any]) -> str:

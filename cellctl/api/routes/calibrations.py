@@ -116,8 +116,8 @@ def get_calibration(cal_id: CalId, services: ServicesDep, _: Viewer,
 @router.post("/{cal_id}/activate", response_model=CalibrationSummaryPublic,
              responses={409: {"description": "verdict_not_ok: the calibration's verdict is not ok; the message "
                                              "names the problems; handeye_camera_mismatch: a camera calibration "
-                                             "that differs from the one an active hand-eye was solved with; send "
-                                             "{\"force\": true} to activate anyway (the answer's warning says so)"}})
+                                             "that differs from the one an active hand-eye without a camera of its "
+                                             "own was solved with; send {\"force\": true} to activate anyway"}})
 def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
              body: Annotated[ActivateInput | None, Body()] = None) -> dict[str, Any]:
     """Make this calibration the active one of its camera (and robot).
@@ -125,8 +125,10 @@ def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
     A calibration whose verdict is not ok is refused with 409 ``verdict_not_ok`` unless the body
     says ``{"force": true}``; a forced activation is written to the audit log with the problems.
     A camera calibration whose intrinsics differ from those an active hand-eye of the camera was
-    solved with is refused the same way (409 ``handeye_camera_mismatch``: the hand-eye must be
-    redone); forced, the answer's ``warning`` says so.
+    solved with is activated with a ``warning`` that the hand-eye must be redone (the hand-eye keeps
+    mapping through the camera it carries); when that hand-eye carries no camera of its own, its
+    mapping would change, and the activation is refused the same way (409
+    ``handeye_camera_mismatch``) unless forced.
     """
     rec = _get(services, cal_id)
     force = body is not None and body.force
@@ -141,20 +143,22 @@ def activate(cal_id: CalId, services: ServicesDep, who: Engineer,
         services.store.audit(who.name, "calibration.force_activate", f"calibration:{cal_id}",
                              {"problems": problems}, "forced: verdict not ok")
     conflicts = handeye_camera_conflicts(services, rec) if rec.kind == "camera" else []
-    if conflicts:
-        listed = "; ".join(conflicts)
+    blocking = [c.message for c in conflicts if c.changes_mapping]
+    if blocking:
+        listed = "; ".join(blocking)
         if not force:
             raise ApiError(409, "handeye_camera_mismatch",
                            f"calibration {cal_id}'s intrinsics differ from those an active hand-eye was solved with "
                            f"({listed}); send {{\"force\": true}} to activate it anyway")
-        log.warning("camera calibration %d activated by %s although it differs from the active hand-eye's: %s",
-                    cal_id, who.name, listed)
         services.store.audit(who.name, "calibration.force_activate", f"calibration:{cal_id}",
-                             {"handeye_camera_mismatch": conflicts}, "forced: differs from the hand-eye's camera")
+                             {"handeye_camera_mismatch": blocking}, "forced: differs from the hand-eye's camera")
+    if conflicts:
+        log.warning("camera calibration %d activated by %s although an active hand-eye was solved with other "
+                    "intrinsics: %s", cal_id, who.name, "; ".join(c.message for c in conflicts))
     rec = services.store.activate(cal_id, who.name)
     summary: dict[str, Any] = rec.summary().to_dict()
     if conflicts:
-        summary["warning"] = "hand-eye must be redone: " + "; ".join(conflicts)
+        summary["warning"] = "the hand-eye must be redone: " + "; ".join(c.message for c in conflicts)
     return summary
 
 
