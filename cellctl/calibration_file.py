@@ -144,11 +144,17 @@ def _check_handeye(data: dict[str, Any], source: str) -> list[str]:
     dof = data.get("dof", 6)
     if dof not in (4, 6) or isinstance(dof, bool):
         raise CalibrationFileError(f"{source}: dof must be 4 or 6, got {dof!r}")
-    if "camera" in data:
-        try:
-            camera_from_json(data["camera"], f"{source}: camera")
-        except CameraFileError as exc:
-            raise CalibrationFileError(str(exc)) from None
+    for key in ("camera", "camera_initial"):
+        if key in data:
+            try:
+                camera_from_json(data[key], f"{source}: {key}")
+            except CameraFileError as exc:
+                raise CalibrationFileError(str(exc)) from None
+    if data.get("intrinsics_refined") is True and "camera" not in data:
+        # the solution fits the pixels through the refined camera only (calibration/io/handeye_camera.py)
+        raise CalibrationFileError(f"{source}: the hand-eye refined the intrinsics (intrinsics_refined: true) but "
+                                   "carries no camera; it maps only through the camera it was solved with: give "
+                                   "the he.json as cellctl calib handeye wrote it")
     return []
 
 

@@ -163,6 +163,7 @@ def test_activating_a_different_camera_says_the_hand_eye_must_be_redone(cell: Ce
         he_json = cell.he.to_json()
         for key in ("camera", "camera_initial"):
             he_json.pop(key)
+        he_json["intrinsics_refined"] = False  # an older file, solved with fixed intrinsics
         he_json["verdict"]["ok"] = True
         r = http.post("/calibrations", json={**he_json, "camera_calibration_id": cell.ids["stale"]})
         assert r.status_code == 201, r.text
@@ -205,3 +206,16 @@ def test_cellctl_map_refuses_another_camera(cell: Cell, tmp_path: Path) -> None:
         assert r.returncode == 0, r.stderr
         out = json.loads(r.stdout)
         assert np.linalg.norm(np.array([out["x_mm"], out["y_mm"], out["z_mm"]]) - P_mm) < OWN_TOLERANCE_MM
+
+
+def test_a_hand_eye_file_that_refined_the_intrinsics_must_carry_its_camera(cell: Cell) -> None:
+    he = cell.he.to_json()
+    he.pop("camera")
+    with cell.app.http() as http:
+        r = http.post("/calibrations", json=he)
+        assert r.status_code == 422, r.text
+        message = r.json()["error"]["message"]
+        assert "intrinsics_refined" in message and "carries no camera" in message
+        bad = {**cell.he.to_json(), "camera_initial": {"model": "opencv5"}}
+        r = http.post("/calibrations", json=bad)
+        assert r.status_code == 422 and "camera_initial" in r.json()["error"]["message"], r.text
