@@ -16,20 +16,19 @@ def _bubbles(xy: Any, mags: Any) -> str:
     """Residual bubbles at the marks' robot positions (area by length), with a scale legend."""
     top = max(float(mags.max()), 1e-6)
     title = "Residuals at the marks (robot frame)"
-    with pl.canvas(560, 420) as fig:
-        ax = fig.subplots()
+    with pl.canvas(560, 420, layout=None) as fig:
+        ax, _ = pl.fixed_axes(fig, right_px=130)
         colours = POSITION_BAND.rgb(mags, mags)
         dots = ax.scatter(xy[:, 0], xy[:, 1], s=900.0 * mags / top, c=colours, alpha=0.7, edgecolors="#24527a")
         pl.tag(dots, "bubble", values=" ".join(f"{m:.4g}" for m in mags))
         for m in (top, top / 4):
             ax.scatter([], [], s=900.0 * m / top, color="#bbb", edgecolors="#24527a", label=f"{fmt(m)} mm")
-        legend = ax.legend(title="residual", loc="upper left", bbox_to_anchor=(1.02, 1.0), labelspacing=2.0,
-                           borderpad=1.2)
+        legend = fig.legend(title="residual", loc="upper right", labelspacing=2.0, borderpad=1.2)
         pl.tag(legend, "legend")
-        pad = max(float(np.ptp(xy[:, 0])), float(np.ptp(xy[:, 1])), 1.0) * 0.15
+        pad = max(float(np.ptp(xy[:, 0])), float(np.ptp(xy[:, 1])), 1.0) * 0.15  # room for the largest bubble
         ax.set_xlim(float(xy[:, 0].min()) - pad, float(xy[:, 0].max()) + pad)
         ax.set_ylim(float(xy[:, 1].min()) - pad, float(xy[:, 1].max()) + pad)
-        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_aspect("equal", adjustable="box", anchor="W")  # millimetres alike on both axes
         ax.set(title=title, xlabel="x (mm)", ylabel="y (mm)")
         return pl.svg(fig, "plot bubbles", title)
 
