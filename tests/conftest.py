@@ -83,6 +83,35 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
     return None
 
 
+class XdistGroupIds:
+    """Puts each test's ``xdist_group`` in its node id (``path::test@group``), which is how xdist's
+    ``--dist loadgroup`` scheduler sees groups. xdist 3.8 does it by setting ``item._nodeid``, which
+    pytest 9.2 no longer reads (a node id is ``item._id`` there), so without this no group held: a
+    module's module-scoped cell started once per worker its tests landed on. Runs last; does nothing
+    where xdist's own suffix is already there."""
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
+        if not getattr(config.option, "loadgroup", False):
+            return
+        for item in items:
+            names = {str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                     for m in item.iter_markers("xdist_group")}
+            group = "_".join(sorted(names))
+            if not group or item.nodeid.endswith("@" + group):
+                continue
+            if hasattr(item, "_id"):
+                from _pytest.nodeid import NodeId  # pytest >= 9.2
+
+                item._id = NodeId.parse(f"{item.nodeid}@{group}")
+            else:
+                setattr(item, "_nodeid", f"{item.nodeid}@{group}")  # noqa: B010 (xdist before pytest 9.2)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.pluginmanager.register(XdistGroupIds(), "cellctl-xdist-group-ids")
+
+
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: absent with -p no:xdist
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: ``CELLCTL_TEST_WORKERS`` if set, no workers for one file or one test (the run
@@ -123,6 +152,7 @@ def kinds_of(rel_path: str, fixturenames: Iterable[str], module_text: str) -> se
     return kinds or {"unit"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the xdist_group marks (it runs first otherwise)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     slow = slow_tests(SLOW_LIST.read_text().splitlines()) if SLOW_LIST.exists() else set()
     root = Path(__file__).parent

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import tomllib
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
-from tests.conftest import REPO, SLOW_LIST, UR_GROUP, kinds_of, slow_tests, xdist_group_of
+from tests.conftest import REPO, SLOW_LIST, UR_GROUP, XdistGroupIds, kinds_of, slow_tests, xdist_group_of
 
 KINDS = {"unit", "peer", "e2e", "browser", "slow"}
 # Spelled in pieces: the module scan of tests/conftest.py must not take this file for a peer or e2e test.
@@ -62,3 +62,17 @@ def test_only_the_ur_cases_of_a_ur_module_share_the_emulators_worker() -> None:
     plain: Any = SimpleNamespace(fixturenames=["tmp_path"])  # not parametrized: a UR test
     assert xdist_group_of(plain, "drivers/test_ur_rtde.py", text) == UR_GROUP
     assert xdist_group_of(plain, "drivers/test_motion.py", "import numpy") is None
+
+
+def test_a_group_reaches_the_node_id_the_scheduler_splits() -> None:
+    """xdist's loadgroup scheduler groups by the ``@group`` suffix of node ids (not by the mark itself)."""
+    from xdist.scheduler.loadgroup import LoadGroupScheduling
+
+    mark = pytest.mark.xdist_group("cellctl/test_x.py").mark
+    item: Any = SimpleNamespace(nodeid="tests/cellctl/test_x.py::test_y[1]", _id=None,
+                                iter_markers=lambda name: [mark] if name == "xdist_group" else [])
+    loose: Any = SimpleNamespace(nodeid="tests/a.py::test_b", _id=None, iter_markers=lambda name: [])
+    XdistGroupIds().pytest_collection_modifyitems(cast(Any, SimpleNamespace(option=SimpleNamespace(loadgroup=True))),
+                                                  [item, loose])
+    assert str(item._id) == "tests/cellctl/test_x.py::test_y[1]@cellctl/test_x.py" and loose._id is None
+    assert LoadGroupScheduling._split_scope(cast(Any, None), str(item._id)) == "cellctl/test_x.py"
