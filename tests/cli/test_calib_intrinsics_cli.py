@@ -53,7 +53,8 @@ def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> No
     est = CameraModel.from_dict(cam)
     assert projection_difference(est, TRUTH)["rms_px"] < 0.5
     html = rep.read_text()
-    assert html.count('<svg class="plot') == 6 and "Projection uncertainty" in html
+    assert html.count('<svg class="plot') == 7 and "Projection uncertainty" in html  # 7: residuals against the radius
+    assert html.count('<svg class="plot radius"') == 1
     assert html.count("<figure class='thumb") == 8 and html.count("data:image/jpeg;base64,") == 8
     from calibration.io import read_opencv_yaml
 
