@@ -27,7 +27,10 @@ image, not a number fitted to a data set:
   of the evidenced points (seen with a seen neighbour along their chain, or outside the image: the
   border hides them), over how far it lies inside the hull of the whole model. A part is evidenced around
   its centre: 1 when seen all round, about 0 for its half (every seen edge on one side of a line
-  through the centre), negative for less. A match needs ``SearchParams.min_surround`` (0.2): on a
+  through the centre), negative for less. A match whose contour lies in features at least half
+  seen but for less than ``MISSING_MIN_FRACTION`` (its coverage) lacks no piece and is not judged by
+  it (a small part's sparse fit sits on one side within its chains). Otherwise a match needs
+  ``SearchParams.min_surround`` (0.2): on a
   round part a straight cut that leaves less hides more than 37 % of its area, so a half (50 %) is
   not answered as the part, a part 30 % hidden is (0.3 and more on the bench's occlusions). A
   half is a part half hidden by an occluder the colour of the background: the image is the same,
@@ -161,8 +164,10 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
         x, y = missing[0]
         return Verdict(scores, f"a feature of the part is missing at ({x:.0f}, {y:.0f}): no edge there, "
                                "and nothing hides it")
-    # last: the other checks passed, so the setting it names would answer the match
-    if surround < min_surround:
+    # last: the other checks passed, so the setting it names would answer the match. A match whose
+    # features are all at least half seen but for specks (< MISSING_MIN_FRACTION of the contour) lacks
+    # no piece: its seen points may sit on one side within each chain (a small part's sparse fit)
+    if surround < min_surround and 1.0 - coverage >= MISSING_MIN_FRACTION:
         return Verdict(scores, f"its seen edges lie on one side of the part's centre (surround {surround:.2f} "
                                f"< min_surround {min_surround:g}): a piece of the part, e.g. its half, or the part "
                                f"more than about 40 % hidden; min_surround {math.floor(surround * 100) / 100:g} "
