@@ -32,7 +32,7 @@ image, not a number fitted to a data set:
   it (a small part's sparse fit sits on one side within its chains). Otherwise a match needs
   ``SearchParams.min_surround`` (0.2): on a
   round part a straight cut that leaves less hides more than 37 % of its area, so a half (50 %) is
-  not answered as the part, a part 30 % hidden is (0.3 and more on the bench's occlusions). A
+  not answered as the part, a part 30 % hidden is (0.28 and more on the bench's occlusions). A
   half is a part half hidden by an occluder the colour of the background: the image is the same,
   so it is the share hidden that decides, and ``min_surround 0`` answers such fragments.
 - ``unclaimed`` (in ``search.find``'s suppression): the score counting only the seen points that no
