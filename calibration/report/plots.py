@@ -171,13 +171,18 @@ def _apply_tag(el: ET.Element, spec: str, images: dict[str, bytes]) -> None:
     el.set("class", unquote(classes))
     for k, v in data.items():
         el.set(f"data-{k}", unquote(v))
-    for child in el.iter():
+    for child in el.iter():  # the element itself too: an image carries its tag as its own id
         if child is not el and child.tag in _SHAPES and "class" not in child.attrib:
             child.set("class", unquote(classes))
-            if child.tag == f"{{{SVG_NS}}}image" and unquote(data.get("src", "")) in images:
-                jpeg = base64.b64encode(images[unquote(data["src"])]).decode()
-                child.set(f"{{{XLINK_NS}}}href", f"data:image/jpeg;base64,{jpeg}")
-                child.set("preserveAspectRatio", "none")
+        if child.tag == f"{{{SVG_NS}}}image" and unquote(data.get("src", "")) in images:
+            jpeg = base64.b64encode(images[unquote(data["src"])]).decode()
+            child.set(f"{{{XLINK_NS}}}href", f"data:image/jpeg;base64,{jpeg}")
+            child.set("preserveAspectRatio", "none")
+            if child.get("transform", "").startswith("scale(1 -1)"):
+                # matplotlib stores its PNG rows bottom-up and flips them back; the JPEG is top-down:
+                # the same box, [y, y + height] once flipped, is [-y, -y + height] unflipped
+                child.set("y", f"{-float(child.get('y', '0')):g}")
+                del child.attrib["transform"]
 
 
 def colourbar(fig: Figure, ax: Axes, band: Band, data: ArrayLike, cax: Axes | None = None) -> None:

@@ -4,6 +4,7 @@ in mm and degrees equal to the result's, and the capture's rejected count as the
 
 from __future__ import annotations
 
+import base64
 import re
 import xml.etree.ElementTree as ET
 from typing import Any
@@ -16,7 +17,7 @@ from calibration.handeye import RobotNoise, calibrate_handeye, calibrate_handeye
 from calibration.intrinsics import calibrate
 from calibration.report import calibration_report, report_json
 from calibration.report import camera as rc
-from calibration.report.camera_plots import RADIUS_BINS, RESIDUAL_BAND, radius_figure, view_bars
+from calibration.report.camera_plots import RADIUS_BINS, RESIDUAL_BAND, radius_figure, thumbnails, view_bars
 from calibration.report.html import camera_summary
 from calibration.report.plots import Band, short_name
 from calibration.synthetic import perturb_pose, plan_views, simulate_handeye, simulate_scara, synthetic_detections
@@ -183,6 +184,28 @@ def test_a_measured_frame_shows_each_stations_own_solution() -> None:
     assert [deg[str(p["image"])] for p in res["poses"]] == pytest.approx(
         [p["single_station_diff_deg"] for p in res["poses"]], rel=1e-5)
     assert "position difference (mm)" in html and "plot corrections" not in html  # no robot correction here
+
+
+def test_a_thumbnail_keeps_its_jpeg_upright_under_the_residuals() -> None:
+    """The page keeps the small JPEG it was given (not a re-encoded PNG), drawn upright over the view's box."""
+    import cv2
+
+    photo = np.zeros((480, 640), np.uint8)
+    photo[240:] = 255  # dark above, bright below: upside down would swap them
+    jpeg = bytes(cv2.imencode(".jpg", photo)[1])
+    cam = CameraModel("opencv5", 640, 480, np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]]), np.zeros(5))
+    uv = np.array([[100.0, 100.0], [500.0, 400.0]])
+    view = rc.ViewData("v.jpg", True, 0.2, uv=uv, residuals_px=np.full((2, 2), 0.1), thumbnail=jpeg)
+    rep = rc.CameraReport(cam, {}, [view], np.ones((12, 16), dtype=np.int64), np.zeros((12, 16)))
+    figure = re.search(r"<svg class=\"thumb\".*?</svg>", thumbnails(rep), re.S)
+    assert figure is not None
+    svg = ET.fromstring(figure.group(0))
+    image = svg.find(".//{*}image")
+    assert image is not None and image.get("class") == "photo" and "transform" not in image.attrib
+    href = image.get("{http://www.w3.org/1999/xlink}href", "")
+    assert href == "data:image/jpeg;base64," + base64.b64encode(jpeg).decode()
+    box = [float(image.get(k, "nan")) for k in ("x", "y", "width", "height")]
+    assert box == pytest.approx([0.0, 0.0, float(svg.get("width", "0")), float(svg.get("height", "0"))], abs=1.0)
 
 
 def test_the_capture_rejections_are_the_jobs() -> None:
