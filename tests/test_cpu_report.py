@@ -26,8 +26,12 @@ def test_summary_adds_the_phases_and_names_the_tests_over_the_limit(tmp_path: Pa
             {"id": "t.py::b", "phase": "call", "cpu_s": 0.2, "wall_s": 9.0},
             {"id": "TOTAL", "phase": "all", "cpu_s": 7.5}]
     (tmp_path / "cpu-gw0.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    # the controller: its children are the workers (counted in their files), only its own CPU adds
+    (tmp_path / "cpu-main.jsonl").write_text(json.dumps({"id": "TOTAL", "phase": "all", "cpu_s": 9.0,
+                                                         "own_cpu_s": 1.5}) + "\n")
     text = summary(tmp_path, over_s=1.0)
-    assert "collection CPU s each: 5.0" in text and "total CPU s (all processes, reaped children included): 7.5" in text
+    assert "workers: 1; collection CPU s each: 5.0" in text
+    assert "total CPU s (workers with their reaped children, and the controller): 9.0" in text
     assert "tests: 2, their CPU s: 1.5" in text
     assert "1.30  t.py::a" in text and "t.py::b" not in text.split("over 1.0 s of CPU:")[1]
 

@@ -31,13 +31,16 @@ import pytest
 ENV = "CELLCTL_TEST_CPU_DIR"
 
 
-def cpu_s() -> float:
-    """User + system CPU seconds of this process and of its reaped children."""
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+def cpu_s(children: bool = True) -> float:
+    """User + system CPU seconds of this process and (``children``) of its reaped children."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    if not children:
+        return own.ru_utime + own.ru_stime
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-_START_CPU_S = cpu_s()
+_START_CPU_S, _START_OWN_CPU_S = cpu_s(), cpu_s(children=False)
 _out: list[IO[str]] = []
 
 
@@ -79,22 +82,33 @@ def pytest_runtest_teardown(item: pytest.Item) -> Iterator[None]:
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
-    _write({"id": "TOTAL", "phase": "all", "cpu_s": cpu_s() - _START_CPU_S})
+    _write({"id": "TOTAL", "phase": "all", "cpu_s": cpu_s() - _START_CPU_S,
+            "own_cpu_s": cpu_s(children=False) - _START_OWN_CPU_S})
+
+
+def rows_of(path: Path) -> list[dict[str, Any]]:
+    """The records of one process's file."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def summary(folder: Path, over_s: float = 1.0) -> str:
     """Collection and total CPU per worker, CPU of the tests, and the tests over ``over_s`` of CPU."""
-    rows = [json.loads(line) for f in sorted(folder.glob("cpu-*.jsonl")) for line in f.open() if line.strip()]
+    rows = [r for f in sorted(folder.glob("cpu-*.jsonl")) for r in rows_of(f)]
     if not rows:
         raise SystemExit(f"no cpu-*.jsonl in {folder}: run pytest with {ENV}={folder} -p tests.support.cpu_report")
-    collect = [r["cpu_s"] for r in rows if r["id"] == "COLLECTION"]
-    totals = [r["cpu_s"] for r in rows if r["id"] == "TOTAL"]
+    files = sorted(folder.glob("cpu-*.jsonl"))
+    workers = [f for f in files if f.name != "cpu-main.jsonl"] or files  # -n 0: the main process alone
+    ends = {f: [r for r in rows_of(f) if r["id"] in ("COLLECTION", "TOTAL")] for f in files}
+    collect = [r["cpu_s"] for f in workers for r in ends[f] if r["id"] == "COLLECTION"]
+    totals = [r["cpu_s"] for f in workers for r in ends[f] if r["id"] == "TOTAL"]
+    # the controller's own CPU: its reaped children are the workers, already counted
+    totals += [r.get("own_cpu_s", 0.0) for f in files if f not in workers for r in ends[f] if r["id"] == "TOTAL"]
     per_test: Counter[str] = Counter()
     for r in rows:
         if r["phase"] in ("setup", "call", "teardown"):
             per_test[r["id"]] += r["cpu_s"]
-    lines = [f"processes: {len(collect)}; collection CPU s each: {', '.join(f'{c:.1f}' for c in collect)}",
-             f"total CPU s (all processes, reaped children included): {sum(totals):.1f}",
+    lines = [f"workers: {len(workers)}; collection CPU s each: {', '.join(f'{c:.1f}' for c in collect)}",
+             f"total CPU s (workers with their reaped children, and the controller): {sum(totals):.1f}",
              f"tests: {len(per_test)}, their CPU s: {sum(per_test.values()):.1f}",
              f"tests over {over_s} s of CPU:"]
     lines += [f"  {c:6.2f}  {name}" for name, c in per_test.most_common() if c > over_s]
