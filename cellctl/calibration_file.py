@@ -151,7 +151,7 @@ def _check_handeye(data: dict[str, Any], source: str) -> list[str]:
             except CameraFileError as exc:
                 raise CalibrationFileError(str(exc)) from None
     if data.get("intrinsics_refined") is True and "camera" not in data:
-        # the solution fits the pixels through the refined camera only (calibration/io/handeye_camera.py)
+        # the solution fits the pixels through the refined camera only (calibration/io/solved_camera.py)
         raise CalibrationFileError(f"{source}: the hand-eye refined the intrinsics (intrinsics_refined: true) but "
                                    "carries no camera; it maps only through the camera it was solved with: give "
                                    "the he.json as cellctl calib handeye wrote it")

@@ -6,7 +6,7 @@ said so).
 
 A hand-eye maps through **the camera it was solved with** (``he.json["camera"]``, the jointly
 refined intrinsics when ``intrinsics_refined``), not through the camera's active intrinsics
-calibration: the solution fits the pixels through that camera only (calibration/io/handeye_camera.py).
+calibration: the solution fits the pixels through that camera only (calibration/io/solved_camera.py).
 Only a hand-eye file that carries no camera (older, or made elsewhere) maps through the active
 camera calibration. Activating a camera calibration that differs from the hand-eye's is guarded
 (``POST /calibrations/{id}/activate``: a ``warning`` that the hand-eye must be redone, or 409

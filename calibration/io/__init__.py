@@ -1,7 +1,7 @@
 """Files in and out: camera files (``cam.json``, pose files), robot pose and pair CSVs, camera
 exports (OpenCV, ROS, HALCON), results to JSON, and reading the files a user names with typed errors.
 
-Modules: ``camera_file``, ``handeye_camera`` (the camera a hand-eye was solved with), ``robot_poses``,
+Modules: ``camera_file``, ``solved_camera`` (the camera a hand-eye was solved with), ``robot_poses``,
 ``export``, ``jsonable``, ``files``.
 Everything public is exported here: ``from calibration.io import X`` is the interface.
 """
@@ -18,13 +18,6 @@ from calibration.io.export import (
     write_ros_yaml,
 )
 from calibration.io.files import read_json, read_text, read_yaml, yaml_error_text
-from calibration.io.handeye_camera import (
-    SAME_CAMERA_TOLERANCE_PX,
-    camera_difference_px,
-    camera_mismatch,
-    handeye_camera,
-    handeye_start_camera,
-)
 from calibration.io.jsonable import NonFiniteError, dumps, to_jsonable
 from calibration.io.robot_poses import (
     PAIR_COLUMNS,
@@ -35,6 +28,13 @@ from calibration.io.robot_poses import (
     read_poses_csv,
     write_pairs_csv,
     write_poses_csv,
+)
+from calibration.io.solved_camera import (
+    SAME_CAMERA_TOLERANCE_PX,
+    camera_difference_px,
+    camera_mismatch,
+    handeye_camera,
+    handeye_start_camera,
 )
 
 __all__ = [
