@@ -184,9 +184,10 @@ def run(n: int, seed: int, with_baseline: bool, first_processes: int = 3) -> str
 
 
 LOOK_ALIKE_SEEDS = 2
-CHECKS = (("score", "score"), ("coverage", "coverage"), ("flips", "polarity"), ("noise", "contrast"),
-          ("missing", "missing"), ("one side", "surround"), ("better matches", "unclaimed"))
-"""Words of a rejection's reason (``vision/shape/verify.py``) and the check they name."""
+CHECKS = (("bunch", "coverage"), ("flips", "polarity"), ("noise", "contrast"), ("missing", "missing"),
+          ("one side", "surround"), ("better matches", "unclaimed"), ("score", "score"))
+"""Words of a rejection's reason (``vision/shape/verify.py``) and the check they name, the first that
+occurs (every reason that names min_score says 'score': that one last)."""
 
 
 def middle_half(part: pick_scenes.PartShape, angle_deg: float) -> pick_scenes.PartShape:
