@@ -96,14 +96,15 @@ def calibrate_handeye(
     if len(stations) - len(dropped) <= MIN_STATIONS:
         dropped = []
     problems += _consensus_problems(stations, misses, flagged, dropped, with_loo and drop_outliers)
+    off = {stations[k].image for k in flagged if k not in dropped}
     if dropped:
         stations = [s for k, s in enumerate(stations) if k not in dropped]
-        misses = [m for k, m in enumerate(misses) if k not in dropped]
         kept, motion_info, _ = check_motion(setup, [s.G for s in stations], [s.C for s in stations])
         pair_info = {**motion_info, "conventions": pair_info.get("conventions")}
         candidates, init_info, X0, Z0 = _closed_forms(setup, stations, camera, kept)
         with_loo = leave_one_out and len(stations) > MIN_STATIONS
         fit, model_info = choose_model(setup, stations, camera, sigma_px, noise, X0, Z0, options, models, with_loo)
+        misses = consensus_misses(fit.job, fit.res, stations)
     job, res, noise = fit.job, fit.res, fit.noise
     if fit.name == "estimated_iid":
         problems.append(Problem("robot_noise_estimated",
@@ -122,7 +123,7 @@ def calibrate_handeye(
     station_json, rms_px, d = _station_report(job, res, stations, sigma_px)
     for k, m in enumerate(misses):
         station_json[k]["consensus_rms_px"] = m["rms_px"]
-        station_json[k]["off_consensus"] = k in flagged and not dropped
+        station_json[k]["off_consensus"] = stations[k].image in off
     rot, tr = axxb_residuals(kept, X)
     result = HandEyeResult(
         setup=setup,  # type: ignore[arg-type]

@@ -112,3 +112,6 @@ def test_held_out_prediction_confirms_and_the_station_is_left_out() -> None:
     msg = [p.message for p in res.problems if p.code == "station_off_consensus"]
     assert len(msg) == 1 and "left out of the solution" in msg[0]
     assert len(res.loo["per_pose"]) == len(G) - 1  # the quality figure is that of the solution without it
+    # the consensus figures are those of the solution without it: every remaining station within the spread
+    misses = [p["consensus_rms_px"] for p in res.stations]
+    assert not any(p["off_consensus"] for p in res.stations) and max(misses) < 5 * float(np.median(misses))
