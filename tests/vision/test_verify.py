@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -189,3 +190,31 @@ def test_the_angle_sigma_is_honest(noise: float) -> None:
     # sigma_px is the larger axis's: against the larger axis's spread
     pratio = float(np.std(perr, axis=0, ddof=1).max()) / float(np.median(psig))
     assert 0.5 <= pratio <= 2.0, (pratio, perr, psig)
+
+
+def _heap(dx: float, dy: float, turn_deg: float, seed: int) -> tuple[np.ndarray, ps.Truth, ps.Truth]:
+    """A bracket with a second one lying on it, offset by (dx, dy) px and turned, in another grey (a
+    part on a part shows its outline: its edge over the lower one)."""
+    part = ps.part_bracket()
+    img = np.full((960, 1280), 90.0, np.float32)
+    lower = ps.Instance(part, 500.0, 480.0, 0.0)
+    upper = ps.Instance(part, 500.0 + dx, 480.0 + dy, turn_deg)
+    for inst, grey in ((lower, 190.0), (upper, 140.0)):
+        alpha, (x0, y0) = ps.coverage([inst.image_points(part.outer)], [inst.image_points(h) for h in part.holes],
+                                      img.shape)
+        win = img[y0:y0 + alpha.shape[0], x0:x0 + alpha.shape[1]]
+        win *= 1.0 - alpha
+        win += alpha * grey
+    img = cv2.GaussianBlur(img, (0, 0), 0.7) + np.random.default_rng(seed).normal(0, 2.0, img.shape).astype(np.float32)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), ps.truth_of(lower, None), ps.truth_of(upper, None)
+
+
+@pytest.mark.parametrize(("dx", "dy", "turn_deg"), [(0.0, 80.0, 90.0), (30.0, 70.0, 0.0), (30.0, 70.0, 30.0)])
+def test_a_part_under_another_is_found(dx: float, dy: float, turn_deg: float) -> None:
+    """The lower part's hole under the upper part is hidden by a better match, not missing: both are
+    found, and nothing else."""
+    img, lower, upper = _heap(dx, dy, turn_deg, 1)
+    res = shape.find(model_of("bracket"), img)
+    assert len(res.matches) == 2, [(r.score, r.reason) for r in res.rejected]
+    for t in (lower, upper):
+        assert any(math.hypot(m.u_px - t.u_px, m.v_px - t.v_px) < 1.0 for m in res.matches)

@@ -50,7 +50,7 @@ from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
-from vision.shape.verify import Contour, claimed, contour_of, verify
+from vision.shape.verify import Contour, claimed, contour_of, hidden_by, verify
 from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, Rejected, SearchParams
 
 TOP_STEP_FACTOR = 1.8
@@ -351,7 +351,7 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
             final.append(mt)  # (not reached: every level-0 refinement carries its detail)
             continue
         vd = verify(levels[mt.mirrored], r.q, r.detail, r.grad_noise, sp.min_score, mt.score,
-                    sp.min_surround)
+                    sp.min_surround, hidden_by(r.q, contours))
         why = vd.rejected_because
         if why is None:
             seen = (r.detail.agree > 0) & r.detail.visible

@@ -113,8 +113,11 @@ class Verdict:
 
 
 def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_score: float,
-           score: float, min_surround: float = SURROUND_MIN) -> Verdict:
-    """The checks of a match whose level-0 model points lie at ``q`` (image pixels)."""
+           score: float, min_surround: float = SURROUND_MIN, hidden: NDArray[np.bool_] | None = None) -> Verdict:
+    """The checks of a match whose level-0 model points lie at ``q`` (image pixels); ``hidden``: its
+    points that lie on a better match (``hidden_by``): something hides them, so they are neither
+    missing nor absent from around the centre."""
+    hid = hidden if hidden is not None else np.zeros(len(q), bool)
     f = features(lm)
     seen = (detail.agree > 0) & detail.visible
     vis = detail.visible
@@ -138,7 +141,7 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     # the region seen: the hull of the features at least half seen (a stray agreement in clutter beyond
     # an occluder's edge does not stretch it over the hidden part)
     seen_region = seen & half_seen[f.labels]
-    missing = (_missing(f, q, seen, seen_region, vis, detail.gmax, grad_noise, np.flatnonzero(maybe))
+    missing = (_missing(f, q, seen, seen_region, vis, detail.gmax, grad_noise, np.flatnonzero(maybe), hid)
                if maybe.any() else [])
     scores["missing_features"] = float(len(missing))
     # evidenced: seen points with a seen neighbour along their chain (a lone agreement in clutter does
@@ -146,7 +149,7 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     linked = np.zeros(n_pts, bool)
     linked[a[both]] = True
     linked[b[both]] = True
-    surround = _surround(q, linked | ~vis, f.pairs)
+    surround = _surround(q, linked | ~vis | hid, f.pairs)
     scores["surround"] = round(surround, 4)
     if score < min_score:
         return Verdict(scores, f"score {score:.2f} < min_score {min_score:g}")
@@ -203,14 +206,16 @@ def _surround(q: F64, evidenced: NDArray[np.bool_], pairs: NDArray[np.int64]) ->
 
 
 def _missing(f: Features, q: F64, seen: NDArray[np.bool_], region: NDArray[np.bool_], vis: NDArray[np.bool_],
-             gmax: F64, grad_noise: float, ks: NDArray[np.int64]) -> list[tuple[float, float]]:
+             gmax: F64, grad_noise: float, ks: NDArray[np.int64],
+             hidden: NDArray[np.bool_]) -> list[tuple[float, float]]:
     """Centres (image px) of the features ``ks`` (large, mostly unseen) that are absent where nothing
-    could hide them: no edge above the noise, inside the hull of the ``region`` points."""
+    could hide them: no edge above the noise, not on a better match (``hidden``), inside the hull of
+    the ``region`` points."""
     if np.count_nonzero(region) < 3:
         return []
     hull = cv2.convexHull(q[region].astype(np.float32))
     out = []
-    flat = gmax < grad_noise
+    flat = (gmax < grad_noise) & ~hidden
     for k in ks.tolist():
         idx = np.flatnonzero((f.labels == k) & vis)
         unseen = idx[~seen[idx]]
@@ -226,6 +231,24 @@ def _missing(f: Features, q: F64, seen: NDArray[np.bool_], region: NDArray[np.bo
 
 Contour = tuple[float, float, float, F64, F64]
 """A kept match's contour: centre x, y and radius (px), points and normals at its pose."""
+
+
+def hidden_by(q: F64, others: list[Contour]) -> NDArray[np.bool_]:
+    """Which of a candidate's model points ``q`` (image px) lie inside the convex hull of a kept
+    (better) match's points: a part lying on it hides them (parts in a heap)."""
+    out = np.zeros(len(q), bool)
+    if not others:
+        return out
+    c = q.mean(axis=0)
+    rad = float(np.sqrt(((q - c) ** 2).sum(axis=1).max()))
+    for ox, oy, orad, qo, _ in others:
+        if (ox - c[0]) ** 2 + (oy - c[1]) ** 2 > (rad + orad) ** 2:
+            continue
+        h = cv2.convexHull(qo.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        e = np.roll(h, -1, axis=0) - h  # edges of the convex polygon, in order
+        cross = e[None, :, 0] * (q[:, None, 1] - h[None, :, 1]) - e[None, :, 1] * (q[:, None, 0] - h[None, :, 0])
+        out |= (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return out
 
 
 def contour_of(q: F64, n: F64) -> Contour:
