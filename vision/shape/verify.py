@@ -22,7 +22,9 @@ image, not a number fitted to a data set:
 - ``missing``: a feature of at least ``MISSING_MIN_FRACTION`` of the model's points, less than a
   quarter seen, inside the region the seen points span, where the image shows no edge above its
   noise: nothing hides it there, so the part lacks it (an occluder, a shadow or a neighbour would
-  show an edge of its own). Any such feature rejects the match.
+  show an edge of its own). Any such feature rejects the match. Points inside a better match's
+  hull (``hidden_by``: a part lying on this one) are hidden: neither missing, nor absent for
+  ``surround``.
 - ``surround``: how far the model's centre (the centroid of its points) lies inside the convex hull
   of the evidenced points (seen with a seen neighbour along their chain, or outside the image: the
   border hides them), over how far it lies inside the hull of the whole model. A part is evidenced around
