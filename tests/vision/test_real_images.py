@@ -236,7 +236,8 @@ def test_empty_and_constant_images_answer_no_match(img: np.ndarray) -> None:
     ({"angle_start_deg": float("inf")}, "angle_start_deg"), ({"roi": (0, 0, 0, 10)}, "roi"),
     ({"polarity": "both"}, "polarity"), ({"greediness": 2.0}, "greediness"),
     ({"scale_min": 1.1, "scale_max": 1.2}, "scale"), ({"max_overlap": -0.1}, "max_overlap"),
-    ({"timeout_s": -1.0}, "timeout_s"),
+    ({"timeout_s": -1.0}, "timeout_s"), ({"min_surround": 1.5}, "min_surround"),
+    ({"min_surround": float("nan")}, "min_surround"),
 ])
 def test_absurd_settings_are_refused_by_the_matcher(kw: dict[str, object], says: str) -> None:
     with pytest.raises(SettingsError, match=says):
