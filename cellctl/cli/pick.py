@@ -81,7 +81,7 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
                       roi=_roi(args.search_roi, "--search-roi"),
                       timeout_s=None if args.timeout_ms is None else args.timeout_ms / 1000.0,
                       polarity=args.polarity, greediness=args.greediness, mirrored=args.mirrored,
-                      scale_min=scale[0], scale_max=scale[1])
+                      scale_min=scale[0], scale_max=scale[1], min_surround=args.min_surround)
     out: list[dict[str, Any]] = []
     if any(m.shape is not None for m in models):
         shape.warm_up()  # once per process, so each image's time_ms is its own search
@@ -144,6 +144,9 @@ def register(sub: Any) -> None:
                    help="shape: also search sizes MIN..MAX of the taught one (e.g. 0.9,1.1; default: 1,1)")
     f.add_argument("--greediness", type=float, default=0.9,
                    help="shape: 0 (safe, slower) .. 1 (fast, may miss weak parts); default 0.9")
+    f.add_argument("--min-surround", type=float, default=0.2,
+                   help="shape: how far the seen edges must enclose the part's centre (1: all round, ~0: a "
+                        "half; default 0.2 refuses halves; -1: no check)")
     f.add_argument("--timeout-ms", type=float, default=None, help="answer with what was found so far")
     f.add_argument("--strict-size", action="store_true",
                    help="refuse images of another size than the teach image")

@@ -126,7 +126,8 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
     search = SearchParams(min_score=sp.min_score, max_count=sp.max_count, angle_start_deg=sp.angle_start_deg,
                           angle_extent_deg=sp.angle_extent_deg, roi=sp.roi, timeout_s=sp.timeout_s,
                           polarity=sp.polarity, greediness=sp.greediness, scale_min=sp.scale_range[0],
-                          scale_max=sp.scale_range[1], mirrored=sp.mirrored, max_overlap=sp.max_overlap)
+                          scale_max=sp.scale_range[1], mirrored=sp.mirrored, max_overlap=sp.max_overlap,
+                          min_surround=sp.min_surround)
     found = recognize(models, frame.pixels, search)
     t_find = time.perf_counter()
     current_yaw = math.atan2(T_capture[1, 0], T_capture[0, 0])

@@ -55,6 +55,8 @@ class SearchSettings(BaseModel):
                                              "[0.9, 1.1]; [1, 1]: none")
     mirrored: Bool = Field(False, description="also find the part face down (mirrored)")
     max_overlap: Num = Field(0.5, ge=0, le=1, description="largest overlap of two matches' boxes, 0..1")
+    min_surround: Num = Field(0.2, ge=-1, le=1, description="how far the seen edges must enclose the part's "
+                              "centre (1 all round, ~0 a half; 0.2 refuses halves; -1: no check)")
 
     @field_validator("scale_range")
     @classmethod

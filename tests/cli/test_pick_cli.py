@@ -142,3 +142,23 @@ def test_strict_size_refuses_other_image_sizes(files: Files) -> None:
     r = run("pick", "find", "--strict-size", "--model", str(d / "s.json"), str(d / "small.png"))
     assert r.returncode == 2 and "600x400" in r.stderr and "640x480" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_a_half_of_the_part_is_refused_unless_min_surround_allows_it(tmp_path: Path) -> None:
+    """The rejection names `min_surround`; the CLI's `--min-surround` is that setting."""
+    teach, roi = synth.teach_scene(synth.part_bracket(), np.random.default_rng(1))
+    cv2.imwrite(str(tmp_path / "teach.png"), teach)
+    model = tmp_path / "bracket.json"
+    r = run("pick", "teach", "--image", str(tmp_path / "teach.png"), "--roi", ",".join(f"{x:g}" for x in roi),
+            "--out", str(model))
+    assert r.returncode == 0, r.stderr
+    half = synth.distractor_scene(synth.part_half(synth.part_bracket(), 180.0), np.random.default_rng(100))
+    cv2.imwrite(str(tmp_path / "halves.png"), half)
+    found = {}
+    for surround in ("0.2", "-1"):
+        r = run("pick", "find", "--model", str(model), str(tmp_path / "halves.png"), "--min-surround", surround)
+        assert r.returncode == 0, r.stderr
+        found[surround] = json.loads(r.stdout)[0]["matches"]
+    assert found["0.2"] == [] and found["-1"], found
+    r = run("pick", "find", "--model", str(model), str(tmp_path / "halves.png"), "--min-surround", "2")
+    assert r.returncode != 0 and "min_surround 2 must be -1..1" in r.stderr and "Traceback" not in r.stderr
