@@ -228,9 +228,6 @@ def detect_chessboard(grey: NDArray[np.uint8], target: Chessboard, image_name: s
             uv = np.where(use[:, None], sym, uv)
             window_sigma = np.where(use, WEIGHT_SIGMA_FRACTION * hw, CORNER_WINDOW_SIGMA_PX)
     ids = target.points().ids
-    sigma = np.empty(len(uv))
-    for ws in np.unique(window_sigma):
-        sel = window_sigma == ws
-        sigma[sel] = gradient_sigma_px(grey, uv[sel], float(ws))
+    sigma = gradient_sigma_px(grey, uv, window_sigma)
     return Detection(image_name, True, ids=ids.copy(), uv=np.ascontiguousarray(uv, dtype=np.float64),
                      uv_sigma_px=sigma)

@@ -64,10 +64,11 @@ def image_noise_grey(grey: NDArray[np.uint8], uv: FloatArray, pad_px: int = 10) 
     return max(sigma, QUANTISATION_GREY)
 
 
-def gradient_sigma_px(grey: NDArray[np.uint8], uv: FloatArray, window_sigma_px: float,
+def gradient_sigma_px(grey: NDArray[np.uint8], uv: FloatArray, window_sigma_px: float | FloatArray,
                       smooth_sigma_px: float = 1.0) -> FloatArray:
     """(N,) 1-sigma position uncertainty (px, per axis, RMS of the two) of points ``uv`` located
-    from the image structure in a Gaussian window of ``window_sigma_px`` around each."""
+    from the image structure in a Gaussian window of ``window_sigma_px`` around each (one for all
+    points or one per point)."""
     pts = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
         return np.zeros(0)
@@ -75,6 +76,17 @@ def gradient_sigma_px(grey: NDArray[np.uint8], uv: FloatArray, window_sigma_px: 
     img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), smooth_sigma_px)
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    ws = np.broadcast_to(np.asarray(window_sigma_px, dtype=np.float64), (len(pts),))
+    out = np.empty(len(pts))
+    for w in np.unique(ws):
+        sel = ws == w
+        out[sel] = _window_sigma(gx, gy, pts[sel], float(w), noise)
+    return out
+
+
+def _window_sigma(gx: NDArray[np.float32], gy: NDArray[np.float32], pts: FloatArray, window_sigma_px: float,
+                  noise: float) -> FloatArray:
+    """``gradient_sigma_px`` for points sharing one window, from the image gradients (grey / px)."""
     # Large windows (big blobs) are sampled on a coarser lattice; each sample then stands for
     # step² pixels (and keeps cv2.remap's maps under its 32767-column limit).
     step = max(1.0, window_sigma_px / 3.0)
