@@ -151,11 +151,18 @@ $("#pose-go").addEventListener("click", async () => {
 document.addEventListener("cellctl:login", () => { loadPoses().catch(() => {}); });
 $("#robot-select").addEventListener("change", (e) => { loadPoses(e.target.value).catch(() => {}); });
 
-$("#robot-stop").addEventListener("click", async () => {
+// Stop works from the first moment after log-in: until the robot list has loaded (nothing is
+// selected yet) it stops every robot of the cell — stopping too much is safe, a lost Stop is not.
+async function stopRobot() {
+  const status = (t) => { $("#robot-status").textContent = t; $("#robot-badge").title = t; };
   try {
-    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/stop`);
-    $("#robot-status").textContent = "stop sent";
-  } catch (e) { $("#robot-status").textContent = `stop failed: ${e.message}`; }
-});
+    const ids = state.robotId ? [state.robotId] : (await api("GET", "/robots")).map((r) => r.id);
+    await Promise.all(ids.map((id) => api("POST", `/robots/${encodeURIComponent(id)}/stop`)));
+    status(`stop sent to ${ids.join(", ")}`);
+  } catch (e) { status(`stop failed: ${e.code}: ${e.message}`); }
+}
+
+$("#robot-stop").addEventListener("click", stopRobot);
+$("#header-stop").addEventListener("click", stopRobot);
 
 $("#robot-resume").addEventListener("click", () => resumeRobot((t) => { $("#robot-status").textContent = t; }));

@@ -87,11 +87,3 @@ $("#prod-form").addEventListener("submit", (ev) => {
 $("#prod-pause").addEventListener("click", () => act("/production/pause"));
 $("#prod-resume").addEventListener("click", () => act("/production/resume"));
 $("#prod-stop").addEventListener("click", () => act("/production/stop"));
-$("#header-stop").addEventListener("click", async () => {
-  if (!state.robotId) return;
-  try {
-    await api("POST", `/robots/${encodeURIComponent(state.robotId)}/stop`);
-  } catch (e) {
-    message(`Stop: ${e.code}: ${e.message}`, true);
-  }
-});

@@ -315,7 +315,8 @@ def test_stop_from_the_page_latches_and_only_an_engineer_resumes(cell: tuple[Ser
     served, tokens = cell
     page, errors = new_page(browser, served)
     log_in(page, tokens["operator"])
-    page.click("#robot-stop")
+    page.click("#robot-stop")  # at once: the robot list may still be loading, and Stop must work then too
+    expect(page.locator("#robot-status")).to_contain_text("stop sent")  # else it shows why Stop failed
     expect(page.locator("#rs-latched")).to_contain_text("latched by Stop")
     expect(page.locator("#robot-resume")).to_be_hidden()  # an operator may stop, not resume
     expect(page.locator("#robot-badge")).to_contain_text("STOPPED")  # the header shows the latch
