@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import geometry as g
+from calibration.io import handeye_camera
 from calibration.pose import estimate_pose
 from cellctl.jobs import JobContext
 from cellctl.mapping import active_camera
@@ -49,6 +50,11 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         raise RoutineError(f"camera {camera_id} has no active calibration to verify")
     cam_cal, camera = found
     he_cal = services.store.active("handeye", camera_id, robot_id)
+    # A hand-eye that refined the intrinsics maps through its own camera: its drift is measured
+    # through that camera too (the active intrinsics may be a later, different calibration).
+    he_camera = handeye_camera(he_cal.result, f"hand-eye calibration {he_cal.id}") if he_cal is not None else None
+    if he_camera is not None:
+        camera = he_camera
     cam, robot = devices(services, camera_id, robot_id if he_cal is not None else None)
     ctx.report(0.2, "capturing the plate")
     c = capture(cam, robot, target, "verify", ctx)
@@ -57,6 +63,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     X = detected_points_m(target, c.detection)
     measured = estimate_pose(camera, X, c.detection.uv)
     out: dict[str, Any] = {"camera_calibration_id": cam_cal.id, "n_points": len(X),
+                           "camera_source": "handeye" if he_camera is not None else "camera_calibration",
                            "pose_rms_px": measured.rms_px, "tolerance_px": tol_px, "tolerance_mm": tol_mm}
     if he_cal is None or c.T_base_tool is None:
         out["drift_px"] = measured.rms_px

@@ -113,6 +113,7 @@ def test_verify_passes_with_active_calibrations(served: Served, calibrated: dict
     res = job["result"]
     assert res["passed"] is True
     assert res["handeye_calibration_id"] == calibrated["handeye"]["calibration_id"]
+    assert res["camera_source"] == "handeye"  # measured through the camera the hand-eye maps through
     assert res["drift_px"] < 0.5 and res["drift_mm"] < 0.3
 
 
