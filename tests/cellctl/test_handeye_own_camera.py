@@ -219,3 +219,21 @@ def test_a_hand_eye_file_that_refined_the_intrinsics_must_carry_its_camera(cell:
         bad = {**cell.he.to_json(), "camera_initial": {"model": "opencv5"}}
         r = http.post("/calibrations", json=bad)
         assert r.status_code == 422 and "camera_initial" in r.json()["error"]["message"], r.text
+
+
+def test_a_hand_eye_alone_asks_for_the_plane_height(cell: Cell, tmp_path: Path) -> None:
+    """No camera calibration active: the hand-eye maps through its own camera, so a request without
+    plane_z_mm is told to give it (422), not that no calibration maps (409)."""
+    db = tmp_path / "store.db"
+    cfg = tmp_path / "cell.yaml"
+    cfg.write_text(default_config_text().replace("path: null ", f"path: {db} "))
+    he_json = cell.he.to_json()
+    he_json["verdict"]["ok"] = True
+    with Store(sqlite_url(db), "virtual-cell") as store:
+        store.activate(store.save_calibration("handeye", "cam0", "robot0", he_json, {}, "test").id, "test")
+    pose = transform_to_ur_pose(cell.T_base_tool).tolist()
+    with in_process_cell(tmp_path, config=cfg) as app, app.http() as http:
+        r = http.post("/map", json={"u_px": 800, "v_px": 600, "robot_pose_ur": pose})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "plane_z_mm_required", r.text
+        r = http.post("/map", json={"u_px": 800, "v_px": 600, "plane_z_mm": 0.0, "robot_pose_ur": pose})
+        assert r.status_code == 200 and r.json()["calibration_kind"] == "handeye", r.text

@@ -70,8 +70,11 @@ def map_pixel(body: MapInput, services: ServicesDep, _: Viewer) -> dict[str, Any
         mapping = active_mapping(services, camera_id, robot_id, body.calibration, body.plane_z_mm is not None)
     except NoCalibration as exc:
         store = services.store
-        if (body.plane_z_mm is None and store.active("handeye", camera_id, robot_id) is not None
-                and store.active("camera", camera_id, None) is not None):
+        he = store.active("handeye", camera_id, robot_id)
+        # A hand-eye maps through its own camera, else through the active camera calibration.
+        he_can_map = he is not None and (he.result.get("camera") is not None
+                                         or store.active("camera", camera_id, None) is not None)
+        if body.plane_z_mm is None and he_can_map:
             raise ApiError(422, "plane_z_mm_required",
                            f"the active hand-eye calibration of {camera_id}/{robot_id} maps a pixel to a ray; "
                            "give plane_z_mm, the height of the working plane in the robot base frame (mm), "
