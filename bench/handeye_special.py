@@ -273,6 +273,104 @@ def e2h_spread_rows(n_stations: tuple[int, ...] = (14, 28), n_seeds: int = 20) -
     return rows
 
 
+HELDOUT_SEEDS = range(200, 220)
+HELDOUT_HEADING = "## 4-DOF on held-out sets: mapping against the true calibration (issue 26 item 4)"
+
+
+def dof4_heldout_rows(n_stations: tuple[int, ...] = (14, 28), seeds: range = HELDOUT_SEEDS,
+                      n_heldout: int = 10) -> list[dict[str, Any]]:
+    """Issue 26 item 4: solve on one SCARA set, then map a *held-out* set (same cell, same X and Z,
+    its own poses and images, ``n_heldout`` stations) onto the target plane through the solved and
+    through the *true* calibration, with the held-out set's recorded (noisy) robot poses; the ratio
+    of the two RMS errors (mm, base-frame x/y against the true points). Also the calibration's own
+    part (solved vs true on the same pixels) against its reported 1σ on the plane."""
+    rows = []
+    noise = RobotNoise(0.02, 0.01)
+    for setup in ("eye-in-hand", "eye-to-hand"):
+        name = "T_tool_cam" if setup == "eye-in-hand" else "T_base_cam"
+        for n in n_stations:
+            for seed in seeds:
+                s = simulate_scara(setup, n, np.random.default_rng(seed), camera=CAM, target=BOARD, robot_noise=noise)
+                ho = simulate_scara(setup, n_heldout, np.random.default_rng([seed, 26]), camera=CAM, target=BOARD,
+                                    robot_noise=noise)
+                t0 = time.perf_counter()
+                res = calibrate_handeye_dof4(setup, s.G_recorded, s.detections, CAM, BOARD, s.target_z_mm, noise,
+                                             leave_one_out=False)
+                dt = time.perf_counter() - t0
+                he = res.to_json()
+                truth = {**he, name: s.X_true.tolist()}
+                e_est: list[float] = []
+                e_true: list[float] = []
+                d: list[float] = []
+                sig: list[float] = []
+                for G, det, P in zip(ho.G_recorded, ho.detections, ho.points_base_true, strict=True):
+                    pose = G if setup == "eye-in-hand" else None
+                    for j in range(0, len(P), 2):
+                        z = P[j, 2] * 1e3
+                        a = map_handeye(he, det.uv[j], CAM, z, pose, pixel_sigma_px=0.0)
+                        b = map_handeye(truth, det.uv[j], CAM, z, pose, with_uncertainty=False).xyz_mm
+                        e_est.append(float(np.linalg.norm(a.xyz_mm[:2] - P[j, :2] * 1e3)))
+                        e_true.append(float(np.linalg.norm(b[:2] - P[j, :2] * 1e3)))
+                        d.append(float(np.linalg.norm(a.xyz_mm[:2] - b[:2])))
+                        sig.append(float(np.hypot(a.sigma_mm[0], a.sigma_mm[1])))
+                rot, xy, zz = _err(res.X, s.X_true)
+                rows.append({"setup": setup, "n": n, "seed": seed, "ratio": _rms(e_est) / _rms(e_true),
+                             "map": _rms(e_est), "map_true": _rms(e_true), "calib": _rms(d), "calib_sigma": _rms(sig),
+                             "rot": rot, "xy": xy, "z": zz, "time_s": dt,
+                             "codes": sorted({q["code"] for q in he["verdict"]["problems"]})})
+    return rows
+
+
+def dof4_heldout_table(rows: list[dict[str, Any]], median_target: float = 1.2,
+                       worst_target: float = 1.5) -> list[str]:
+    """The held-out section: per setup and station count, median and worst ratio against the targets."""
+    L = ["", HELDOUT_HEADING, "",
+         f"Seeds {rows[0]['seed']}-{rows[-1]['seed']} ({len({x['seed'] for x in rows})} per row), "
+         "robot noise 0.02 mm / 0.01° per axis, pixel noise 0.05 px, the target height exact (as "
+         "`--target-z-mm` states it). Each seed: "
+         "solve on its stations, then map every second corner of a held-out set of 10 stations (the same cell, "
+         "its own poses and images) onto the target plane through the solved calibration and through the "
+         "TRUE calibration, both with the held-out set's recorded robot poses. 'ratio' = RMS map error of the "
+         "solved ÷ that of the true calibration. 'calibration part' = solved vs true on the same pixels; "
+         "'its 1σ' = the solver's reported uncertainty propagated to the plane (`map_handeye`). Targets: "
+         f"median ≤ {median_target}x, worst ≤ {worst_target}x.", "",
+         "| setup | stations | seeds | median ratio | worst ratio | target | true calib map mm (RMS) | "
+         "solved map mm (RMS) | calibration part mm (RMS) | its 1σ mm (RMS) | actual/reported | rot ° (worst) | "
+         "x/y mm (worst) | s (median) |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for setup in ("eye-in-hand", "eye-to-hand"):
+        for n in sorted({x["n"] for x in rows}):
+            r = [x for x in rows if x["setup"] == setup and x["n"] == n]
+            if not r:
+                continue
+            ratio = np.array([x["ratio"] for x in r])
+            med, worst = float(np.median(ratio)), float(ratio.max())
+            ok = med <= median_target and worst <= worst_target
+            verdict = "met" if ok else "**MISSED** (" + ", ".join(
+                ([f"median {med:.2f}"] if med > median_target else []) +
+                ([f"worst {worst:.2f}, {int(np.sum(ratio > worst_target))} of {len(r)} seeds over"]
+                 if worst > worst_target else [])) + ")"
+            cal, sig = _rms([x["calib"] for x in r]), _rms([x["calib_sigma"] for x in r])
+            L.append(f"| {setup} | {n} | {len(r)} | {med:.2f} | {worst:.2f} | {verdict} | "
+                     f"{_rms([x['map_true'] for x in r]):.4f} | {_rms([x['map'] for x in r]):.4f} | {cal:.4f} | "
+                     f"{sig:.4f} | {cal / sig:.2f} | {max(x['rot'] for x in r):.4f} | {max(x['xy'] for x in r):.3f} | "
+                     f"{np.median([x['time_s'] for x in r]):.1f} |")
+    return L
+
+
+def splice_section(text: str, heading: str, section: list[str]) -> str:
+    """Replace the section under ``heading`` (up to the next '## ') in ``text``, or insert it before
+    '## Rows for bench/results/handeye.md' (else at the end)."""
+    body = "\n".join(section).strip("\n") + "\n"
+    if heading in text:
+        start = text.index(heading)
+        nxt = text.find("\n## ", start + len(heading))
+        return text[:start] + body + ("" if nxt < 0 else "\n" + text[nxt + 1:])
+    anchor = text.find("## Rows for bench/results/handeye.md")
+    if anchor < 0:
+        return text.rstrip("\n") + "\n\n" + body
+    return text[:anchor] + body + "\n" + text[anchor:]
+
+
 def _spread_note(rows: list[dict[str, Any]]) -> str:
     out = []
     for n in sorted({x["n"] for x in rows}):
@@ -439,11 +537,23 @@ def report(d4: list[dict[str, Any]], tc: list[dict[str, Any]], me: list[dict[str
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "handeye_special.md"))
+    ap.add_argument("--heldout-only", action="store_true",
+                    help="run only the 4-DOF held-out section (issue 26 item 4) and replace it in --out")
     args = ap.parse_args()
     t0, c0 = time.perf_counter(), time.process_time()
+    if args.heldout_only:
+        sec = dof4_heldout_table(dof4_heldout_rows())
+        wall, cpu_s = time.perf_counter() - t0, time.process_time() - c0
+        sec += ["", f"    .venv/bin/python bench/handeye_special.py --heldout-only  ({wall:.0f} s wall, {cpu_s:.0f} s "
+                    f"CPU, load average {os.getloadavg()[0]:.1f}, {cpu_model()})"]
+        out = Path(args.out)
+        out.write_text(splice_section(out.read_text() if out.exists() else "", HELDOUT_HEADING, sec))
+        print("\n".join(sec))
+        return
     d4, tc, me = dof4_rows(), tcp_rows(), measured_rows()
     tr = tcp_rendered_rows()
     text = report(d4, tc, me, e2h_spread_rows(), tr)
+    text = splice_section(text, HELDOUT_HEADING, dof4_heldout_table(dof4_heldout_rows()))
     cpu = cpu_model()
     text += (f"\nRun: {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU, load average "
              f"{os.getloadavg()[0]:.1f} at the end, {cpu} (the per-seed 's' column is wall time).\n")

@@ -302,7 +302,8 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
                                    f"{'base' if setup == 'eye-in-hand' else 'tool'} z axis"],
              "unseen_direction_X": gauge_X.tolist(), "unseen_direction_Z": gauge_Z.tolist(),
              "observed": ["rotation of the camera about z", "tilt between tool and camera (rotation about x, y)",
-                          "x/y translation"]}
+                          "x/y translation"],
+             "not_determined_by_data": unseen_by_data(setup, [s.C for s in stations], target_z_sigma_mm)}
     errors = [p for p in problems if p["severity"] == "error"]
     out: dict[str, Any] = {
         "setup": setup, "dof": 4, names[0]: X.tolist(), names[1]: Z.tolist(),
@@ -328,6 +329,34 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
         "verdict": {"ok": not errors, "problems": problems},
     }
     return HandEyeDof4Result(setup, X, Z, cov_X, cov_Z, out)
+
+
+def unseen_by_data(setup: str, C: Sequence[Mat4], target_z_sigma_mm: float) -> dict[str, Any]:
+    """What 4-DOF stations cannot determine, what it costs a mapping, and what to add to determine it.
+
+    ``C``: the stations' ``T_cam_target`` (metres). A height error ``dz`` of the target moves the camera by
+    ``dz`` along the unseen direction: pixels mapped onto a plane given on its own (``plane_z_mm``)
+    then scale by ``dz / working distance`` about the point under the camera, i.e. ``r dz / d`` mm at
+    ``r`` mm from it (base x/y); pixels mapped onto the target's own stated plane are unaffected."""
+    d_mm = float(1e3 * np.median([c[2, 3] for c in C])) if len(C) else float("nan")
+    cam = "the camera's height on the tool (T_tool_cam along the tool z axis)" if setup == "eye-in-hand" else \
+        "the fixed camera's height (T_base_cam along the base z axis)"
+    return {
+        "parameter": cam,
+        "why": "turns about one vertical axis and x/y/z moves show the same images when the camera and the "
+               "target shift together along that axis, so the images fix only their sum; target_z_mm fixes it",
+        "tool_offset": "the tool's own offset (TCP) along its z axis is not seen by the camera at all: pick "
+                       "heights rely on the robot's TCP setting (calib tcp measures its x/y only)",
+        "working_distance_mm": d_mm,
+        "map_error_mm_per_mm_of_height_at_100mm_from_nadir": 100.0 / d_mm if d_mm > 0 else float("nan"),
+        "from_target_z_sigma_mm_at_100mm_from_nadir": 100.0 * target_z_sigma_mm / d_mm if d_mm > 0 else float("nan"),
+        "to_determine_it": ["measure the target's height target_z_mm with the tool tip touching the plate "
+                            "(a calibrated TCP) and state its uncertainty (target_z_sigma_mm)",
+                            "or add 3+ stations with the tool tilted 15-30 deg about x and y and solve 6-DOF "
+                            "(only on an arm that can tilt)",
+                            "map onto the target's own plane (plane_z_mm = target_z_mm) where the height "
+                            "error cancels"],
+    }
 
 
 def _leave_one_out(setup: str, stations: Sequence[Station4], camera: CameraModel, sigma_px: float,
