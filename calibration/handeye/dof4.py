@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
 from calibration.geometry import as_transform, invert, make_transform, rotation_angle
+from calibration.handeye.dof4_budget import budget_problem, mapping_budget
 from calibration.handeye.dof4_checks import check_dof4_motion, pair_residuals
 from calibration.handeye.model import HandEyeError, RobotNoise
 from calibration.handeye.stations import StationProblem
@@ -269,6 +270,10 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
         raise HandEyeError("the 4-DOF refinement is singular: turn the tool more and move it in x/y") from exc
     scale = max(1.0, chi2)
     cov_X = np.asarray(cov[:6, :6] * scale, dtype=np.float64)
+    budget = mapping_budget(setup, [s.G for s in stations], [s.C for s in stations], [s.obj for s in stations],
+                            X0, Z0, cov_X.copy(), camera, sigma_px, noise)
+    if (bp := budget_problem(budget)) is not None:
+        problems.append(bp)
     cov_X[3:, 3:] += (target_z_sigma_mm * 1e-3) ** 2 * np.outer(gauge_X, gauge_X)
     cov_Z = np.zeros((6, 6))
     cov_Z[:3, :3] = cov[6:9, 6:9] * scale
@@ -321,7 +326,7 @@ def calibrate_handeye_dof4(setup: str, T_base_tool: Sequence[ArrayLike], detecti
         "robot_noise": {"sigma_mm": noise.sigma_mm, "sigma_deg": noise.sigma_deg, "estimated": False,
                         "model": "per axis, base frame: position N(0, sigma_mm^2), orientation Exp(w) with "
                                  "w ~ N(0, sigma_deg^2)"},
-        "motion": motion, "poses": poses,
+        "motion": motion, "poses": poses, "mapping_budget": budget,
         "leave_one_out": (_leave_one_out(setup, stations, camera, sigma_px, noise, X, Z, gauge_Z)
                           if leave_one_out and len(stations) > MIN_STATIONS else {}),
         "init": {"closed_form_diff_to_refined_deg": init_rot, "closed_form_diff_to_refined_mm": init_mm},
