@@ -274,6 +274,9 @@ def e2h_spread_rows(n_stations: tuple[int, ...] = (14, 28), n_seeds: int = 20) -
 
 
 HELDOUT_SEEDS = range(200, 220)
+HELDOUT_TAIL = (" Another sample shows the tail: seeds 400-419 at 28 stations eye-to-hand (6-station held-out "
+                "sets, tests/calibration/test_handeye_dof4_budget.py's `_heldout`) gave median 1.08x, worst 1.58x "
+                "(1 of 20 over 1.5x), as a 19-of-20 design allows.")
 HELDOUT_HEADING = "## 4-DOF on held-out sets: mapping against the true calibration (issue 26 item 4)"
 
 
@@ -317,7 +320,10 @@ def dof4_heldout_rows(n_stations: tuple[int, ...] = (14, 28), seeds: range = HEL
                 rows.append({"setup": setup, "n": n, "seed": seed, "ratio": _rms(e_est) / _rms(e_true),
                              "map": _rms(e_est), "map_true": _rms(e_true), "calib": _rms(d), "calib_sigma": _rms(sig),
                              "rot": rot, "xy": xy, "z": zz, "time_s": dt,
-                             "codes": sorted({q["code"] for q in he["verdict"]["problems"]})})
+                             "codes": sorted({q["code"] for q in he["verdict"]["problems"]}),
+                             "pred_ratio": he["mapping_budget"]["predicted_ratio_to_true_calibration"],
+                             "pred_calib": he["mapping_budget"]["calibration_part_mm"],
+                             "ask": he["mapping_budget"]["stations_for_1.5x_in_19_of_20"]})
     return rows
 
 
@@ -336,7 +342,8 @@ def dof4_heldout_table(rows: list[dict[str, Any]], median_target: float = 1.2,
          f"median ≤ {median_target}x, worst ≤ {worst_target}x.", "",
          "| setup | stations | seeds | median ratio | worst ratio | target | true calib map mm (RMS) | "
          "solved map mm (RMS) | calibration part mm (RMS) | its 1σ mm (RMS) | actual/reported | rot ° (worst) | "
-         "x/y mm (worst) | s (median) |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "x/y mm (worst) | s (median) | solver's predicted part mm (RMS) / ratio (median) | warned | stations it asks "
+         "for (median) |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for setup in ("eye-in-hand", "eye-to-hand"):
         for n in sorted({x["n"] for x in rows}):
             r = [x for x in rows if x["setup"] == setup and x["n"] == n]
@@ -353,8 +360,42 @@ def dof4_heldout_table(rows: list[dict[str, Any]], median_target: float = 1.2,
             L.append(f"| {setup} | {n} | {len(r)} | {med:.2f} | {worst:.2f} | {verdict} | "
                      f"{_rms([x['map_true'] for x in r]):.4f} | {_rms([x['map'] for x in r]):.4f} | {cal:.4f} | "
                      f"{sig:.4f} | {cal / sig:.2f} | {max(x['rot'] for x in r):.4f} | {max(x['xy'] for x in r):.3f} | "
-                     f"{np.median([x['time_s'] for x in r]):.1f} |")
+                     f"{np.median([x['time_s'] for x in r]):.1f} | {_rms([x['pred_calib'] for x in r]):.4f} / "
+                     f"{np.median([x['pred_ratio'] for x in r]):.2f} | "
+                     f"{sum('stations_limit_mapping' in x['codes'] for x in r)} of {len(r)} | "
+                     f"{np.median([x['ask'] for x in r]):.0f} |")
+    L += ["", _heldout_note(rows)]
     return L
+
+
+def _heldout_note(rows: list[dict[str, Any]]) -> str:
+    """Why a row misses, in the measured figures: the calibration part against the solver's prediction."""
+    out = []
+    for setup in ("eye-in-hand", "eye-to-hand"):
+        for n in sorted({x["n"] for x in rows}):
+            r = [x for x in rows if x["setup"] == setup and x["n"] == n]
+            if not r:
+                continue
+            cal, pred = _rms([x["calib"] for x in r]), _rms([x["pred_calib"] for x in r])
+            warned = sum("stations_limit_mapping" in x["codes"] for x in r)
+            out.append(f"{setup}, {n} stations: calibration part {cal:.4f} mm RMS, the solver predicted "
+                       f"{pred:.4f} ({cal / pred:.2f}x), warned on {warned} of {len(r)}")
+    return ("**Why a row misses, and what the result says.** The true calibration's map error is what any "
+            "calibration has: pixel noise (and eye-in-hand the robot's pose noise at capture, which dominates "
+            "and hides the estimate's error). The solved calibration adds its own error, the robot's pose noise "
+            "through the stations; the solver predicts it from its covariance without the target-height prior "
+            "(`mapping_budget`, calibration/handeye/dof4_budget.py) and the prediction is what the held-out sets "
+            "measure: " + "; ".join(out) + ". The maximum-likelihood solve is at what the stations hold, so no "
+            "cost or weighting does better on these data; the ratio is the data's and falls as 1/sqrt(stations). "
+            "A fixed camera (eye-to-hand) sees the pixel noise alone at 0.8 m, so its ratio is the most "
+            "sensitive. The result now says so: `stations_limit_mapping` (a warning) when the predicted ratio "
+            "is over 1.2x, with the stations for 1.2x and for 1.5x in 19 of 20 captures "
+            "(`mapping_budget.stations_for_1.5x_in_19_of_20`); the worst of 20 seeds is a 95th-percentile event, "
+            "which at 14 stations needs about twice the stations the median does." + HELDOUT_TAIL +
+            " What 4-DOF data cannot "
+            "determine at all (the camera's height along the turning axis, fixed by `target_z_mm`, and the "
+            "tool's own z offset) and what to add is in `fixed_by_constraint.not_determined_by_data`; here the "
+            "height is exact, so the table is the x/y and rotation part only.")
 
 
 def splice_section(text: str, heading: str, section: list[str]) -> str:
