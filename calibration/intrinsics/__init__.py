@@ -86,7 +86,9 @@ from calibration.intrinsics.results import (
 from calibration.intrinsics.solver import calibrate
 from calibration.intrinsics.uncertainty import (
     cell_grid,
+    cell_point_means,
     coverage_counts,
+    covered_point_means,
     covered_points,
     projection_difference,
     projection_jacobians,
@@ -97,7 +99,8 @@ from calibration.intrinsics.uncertainty import (
 __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
     "VIEW_OUTLIER_FACTOR", "IntrinsicsError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
-    "camera_from_vector", "cell_grid", "coverage_counts", "covered_points", "cross_validate",
+    "camera_from_vector", "cell_grid", "cell_point_means", "coverage_counts", "covered_point_means",
+    "covered_points", "cross_validate",
     "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations",
     "uncertainty_summary",

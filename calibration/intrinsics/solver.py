@@ -138,7 +138,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
         all_uv.append(v.uv)
     rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
     coverage = coverage_counts(size, np.vstack(all_uv))
-    unc, umap = uncertainty_summary(camera, cov, coverage)
+    points_uv = np.vstack(all_uv)
+    unc, umap = uncertainty_summary(camera, cov, coverage, points_uv)
     unc["projection_rms_analytic_px"] = unc["projection_rms_px"]
     unc["inflation"] = 1.0
     if jackknife and len(views) >= JACKKNIFE_MIN_VIEWS:
@@ -157,7 +158,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             # comparing both on the same cells (see _robustly_covered).
             f = j / a_same
             cov = cov * f**2
-            unc, umap = uncertainty_summary(camera, cov, coverage)
+            unc, umap = uncertainty_summary(camera, cov, coverage, points_uv)
             unc["inflation"] = f
         unc["projection_rms_analytic_px"] = a
         unc["projection_rms_jackknife_px"] = fin(j)

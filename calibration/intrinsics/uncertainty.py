@@ -48,6 +48,24 @@ def coverage_counts(size: tuple[int, int], uv: F64, nx: int = 16) -> NDArray[np.
     return cnt
 
 
+def cell_point_means(size: tuple[int, int], uv: F64, nx: int = 16) -> F64:
+    """(K, 2) mean pixel position of the observed points ``uv`` in each image cell that holds any,
+    cells in row-major order (the order of ``coverage_counts(...) > 0``)."""
+    w, h = size
+    _, nx, ny = cell_grid(size, nx)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not len(uv):
+        return np.zeros((0, 2))
+    ix = np.clip((uv[:, 0] + 0.5) * nx / w, 0, nx - 1).astype(int)
+    iy = np.clip((uv[:, 1] + 0.5) * ny / h, 0, ny - 1).astype(int)
+    cell = iy * nx + ix
+    n = np.bincount(cell, minlength=nx * ny).astype(np.float64)
+    su = np.bincount(cell, weights=uv[:, 0], minlength=nx * ny)
+    sv = np.bincount(cell, weights=uv[:, 1], minlength=nx * ny)
+    k = n > 0
+    return np.column_stack([su[k] / n[k], sv[k] / n[k]])
+
+
 def projection_jacobians(camera: CameraModel, pts_px: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
     """For the rays through ``pts_px``: (2N, n_intr) d(pixel)/d(intrinsics), (2N, 3)
     d(pixel)/d(camera rotation) and a validity mask (N,)."""
@@ -104,9 +122,15 @@ def named_points(size: tuple[int, int]) -> dict[str, tuple[float, float]]:
             "bottom": (w / 2, h), "left": (0.0, h / 2), "right": (w, h / 2)}
 
 
-def uncertainty_summary(camera: CameraModel, cov: F64, coverage: NDArray[np.int64]
-                        ) -> tuple[dict[str, Any], F64]:
-    """The ``uncertainty`` block of ``cam.json`` and the per-cell map."""
+def uncertainty_summary(camera: CameraModel, cov: F64, coverage: NDArray[np.int64],
+                        points_px: F64 | None = None) -> tuple[dict[str, Any], F64]:
+    """The ``uncertainty`` block of ``cam.json`` and the per-cell map (at the cells' centres).
+
+    With the observed points ``points_px`` (px) the covered region's RMS (``projection_rms_px``)
+    is taken at the mean of the points in each covered cell, not at its centre: a cell the data
+    only touch has its centre outside them, and there a flexible model's linearised uncertainty
+    extrapolates (the rational model on 6 views reported 38.5 px in one such cell, 0.17-0.20 px in
+    the others, for an actual error of 0.035 px)."""
     grid, nx, ny = cell_grid(camera.size, coverage.shape[1])
     covered = coverage.reshape(-1) > 0
     named = named_points(camera.size)
@@ -115,13 +139,17 @@ def uncertainty_summary(camera: CameraModel, cov: F64, coverage: NDArray[np.int6
     s = projection_uncertainty(camera, cov, pts, fit)
     s_grid, s_named = s[: len(grid)], dict(zip(named, s[len(grid):], strict=True))
     s_whole = projection_uncertainty(camera, cov, grid, np.ones(len(grid), dtype=bool))
+    s_cov = s_grid[covered]
+    if points_px is not None and len(points_px):
+        at = cell_point_means(camera.size, points_px, coverage.shape[1])
+        s_cov = projection_uncertainty(camera, cov, at, np.ones(len(at), dtype=bool))
 
     def rms(a: F64) -> float:
         a = a[np.isfinite(a)]
         return float(np.sqrt(np.mean(a * a))) if a.size else float("nan")
 
     summary = {
-        "projection_rms_px": fin(rms(s_grid[covered])),
+        "projection_rms_px": fin(rms(s_cov)),
         "projection_rms_whole_image_px": fin(rms(s_whole)),
         "projection_max_px": fin(float(np.nanmax(s_grid)) if np.any(np.isfinite(s_grid)) else float("nan")),
         "centre_px": fin(float(s_named["centre"])),
@@ -131,7 +159,9 @@ def uncertainty_summary(camera: CameraModel, cov: F64, coverage: NDArray[np.int6
         "covered_fraction": float(covered.mean()),
         "method": "intrinsics covariance (marginalised over poses) propagated through projection of "
                   "rays through a pixel grid, best camera rotation compensated over the covered cells; "
-                  "1-sigma RMS length of the pixel error",
+                  "1-sigma RMS length of the pixel error" + ("; the covered region's RMS at the mean of the "
+                                                             "points in each covered cell" if points_px is not None
+                                                             else ""),
     }
     return summary, s_grid.reshape(ny, nx)
 
@@ -232,3 +262,11 @@ def covered_points(result: IntrinsicsResult) -> F64:
     """Centres of the image cells the calibration data covered (for ``projection_difference``)."""
     grid, _, _ = cell_grid(result.camera.size, result.coverage.shape[1])
     return grid[result.coverage.reshape(-1) > 0]
+
+
+def covered_point_means(result: IntrinsicsResult) -> F64:
+    """Mean position (px) of the calibration's points in each covered image cell: where
+    ``uncertainty["projection_rms_px"]`` is evaluated (compare an actual error there)."""
+    uv = [v.uv for v in result.views if v.used and len(v.uv)]
+    return cell_point_means(result.camera.size, np.vstack(uv) if uv else np.zeros((0, 2)),
+                            result.coverage.shape[1])

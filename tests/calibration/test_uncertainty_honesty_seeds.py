@@ -3,7 +3,7 @@ reported 1-sigma projection uncertainty matches the actual projection error over
 
 Method under test (``calibrate``): the intrinsics covariance is ``s² (JᵀWJ)⁻¹`` marginalised over
 the views' poses, with ``s²`` the weighted residual variance (residuals in px, weights from the
-detector's per-view precision), propagated to pixels over the covered cells with the best camera
+detector's per-view precision), propagated to pixels at the points' mean in each covered cell with the best camera
 rotation compensated; it assumes the corner errors are independent between points, with variance
 proportional to the inverse weight. One seed's actual/reported is a single draw dominated by a few
 parameter directions (it scattered 0.01-3.9 on 16 seeds), so the check pools seeds: the RMS of
@@ -21,7 +21,7 @@ import pytest
 
 from calibration.camera_model import CameraModel
 from calibration.detect import detect
-from calibration.intrinsics import calibrate, covered_points, projection_difference
+from calibration.intrinsics import calibrate, covered_point_means, projection_difference
 from calibration.observations import Detection
 from calibration.synthetic import plan_views
 from calibration.targets import Chessboard
@@ -56,7 +56,7 @@ def test_reported_uncertainty_matches_actual_error_over_seeds() -> None:
                 for k, T in enumerate(poses)]
         assert all(d.found for d in dets), [d.reason for d in dets if not d.found]
         res = calibrate(dets, BOARD, "opencv5")
-        act.append(projection_difference(res.camera, truth, covered_points(res))["rms_px"])
+        act.append(projection_difference(res.camera, truth, covered_point_means(res))["rms_px"])
         rep.append(res.uncertainty["projection_rms_px"])
         # control: the same views, true corners plus independent Gaussian errors at our corners' level
         errors = [_truth_errors(d, truth, T) for d, T in zip(dets, poses, strict=True)]
@@ -65,7 +65,7 @@ def test_reported_uncertainty_matches_actual_error_over_seeds() -> None:
             ctrl = [dataclasses.replace(d, uv=d.uv - e + crng.normal(0.0, float(np.sqrt(np.mean(e * e))), e.shape))
                     for d, e in zip(dets, errors, strict=True)]
             rc = calibrate(ctrl, BOARD, "opencv5", jackknife=False)
-            act_c.append(projection_difference(rc.camera, truth, covered_points(rc))["rms_px"])
+            act_c.append(projection_difference(rc.camera, truth, covered_point_means(rc))["rms_px"])
             rep_c.append(rc.uncertainty["projection_rms_px"])
     a, r, ac, rc_ = (np.asarray(x) for x in (act, rep, act_c, rep_c))
     pooled = float(np.sqrt(np.mean(a * a) / np.mean(r * r)))
