@@ -33,7 +33,7 @@ def robotiq(tmp_path: Path) -> Iterator[Services]:
     peer = PeerProcess("drivers.peers.robotiq_gripper", "--port", str(pair.b), "--object-at", "200",
                        ready_text="gripper simulator on").start()
     svc = services_with(tmp_path, {"grip": {"kind": "robotiq_gripper",
-                                            "settings": {"port": str(pair.a), "timeout_s": 0.5}}})
+                                            "settings": {"port": str(pair.a), "timeout_s": 2.0}}})
     try:
         yield svc
     finally:
@@ -68,7 +68,7 @@ def dio(tmp_path: Path) -> Iterator[tuple[Services, ModbusGripperSim]]:
     port = free_port()
     sim = ModbusGripperSim(port=port, rise_s=0.05).start()
     svc = services_with(tmp_path, {"block": {"kind": "modbus", "settings": {"host": "127.0.0.1", "port": port,
-                                                                            "timeout_s": 0.5}}})
+                                                                            "timeout_s": 2.0}}})
     try:
         yield svc, sim
     finally:
