@@ -248,7 +248,7 @@ def uncertainty_figure(rep: CameraReport) -> str:
     return svg + (f"<p class='note'>colour: green within the verdict's limit {fmt(band.good)} px (shaded over "
                   f"this map's values), yellow to orange up to {fmt(band.bad)} px, red beyond; black contour: the "
                   "valid region (uncertainty within the limit); blue: the covered region. Method: the intrinsics' "
-                  "covariance from the calibration's normal equations (view poses marginalised), scaled by the "
+                  "spread from the calibration's normal equations (view poses marginalised), scaled by the "
                   "weighted residual variance and propagated to pixels with the best camera rotation compensated; it "
                   "assumes independent point errors whose variance follows each view's detection precision (a "
                   "view-level jackknife raises it when the views disagree by more).</p>")
