@@ -177,6 +177,8 @@ def state_worker(host: str, frequency_hz: float, buffer: StateBuffer, stop: Any,
         receiver.disconnect()
 
 
+SCRIPT_START_S = 3.0
+"""How long a re-uploaded control script may take to start before a move is sent anyway."""
 KICKS_PER_WATCHDOG_PERIOD = 5
 """Kicks sent per watchdog period (1/f): a few late or lost ones do not stop the arm."""
 
@@ -208,7 +210,11 @@ class _Clients:
         elif not self.ctrl.isProgramRunning():
             self.watchdog_armed = False
             self.ctrl.reuploadScript()
-            time.sleep(0.3)
+            # Wait for the script to run (a fixed 0.3 s was too short on a loaded machine: the next
+            # move was refused); past the deadline the move goes out and is refused with the reason.
+            deadline = time.monotonic() + SCRIPT_START_S
+            while not self.ctrl.isProgramRunning() and time.monotonic() < deadline:
+                time.sleep(0.02)
         return self.ctrl
 
     def _armed_control(self) -> Any:
