@@ -27,6 +27,7 @@ from fastapi.testclient import TestClient
 from cellctl.api.app import create_app
 from cellctl.auth import hash_token, new_token
 from cellctl.config import Role, load_config
+from tests.support.served import Reachable
 
 
 @dataclass
@@ -88,17 +89,8 @@ def in_process_cell(tmp: Path, config: Path | None = None, token: str | None = N
             yield AppCell(client, token, data)
 
 
-@dataclass
-class ThreadServed:
+class ThreadServed(Reachable):
     """The app served by uvicorn from a thread of this process: its base URL, engineer token, data dir."""
-
-    base_url: str
-    token: str
-    data_dir: Path
-
-    def client(self, token: str | None = None, timeout_s: float = 20.0) -> httpx.Client:
-        headers = {"Authorization": f"Bearer {token or self.token}"}
-        return httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout_s)
 
 
 @contextmanager

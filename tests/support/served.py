@@ -22,10 +22,9 @@ CELLCTL = str(Path(sys.executable).with_name("cellctl"))
 
 
 @dataclass
-class Served:
-    """A ``cellctl serve`` process on loopback, with its base URL and engineer token."""
+class Reachable:
+    """A service on loopback: its base URL, engineer token and data dir, and a client for it."""
 
-    process: subprocess.Popen[bytes]
     base_url: str
     token: str
     data_dir: Path
@@ -33,6 +32,13 @@ class Served:
     def client(self, token: str | None = None, timeout_s: float = 20.0) -> httpx.Client:
         headers = {"Authorization": f"Bearer {token or self.token}"}
         return httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout_s)
+
+
+@dataclass
+class Served(Reachable):
+    """A ``cellctl serve`` process on loopback, with its base URL and engineer token."""
+
+    process: subprocess.Popen[bytes]
 
 
 def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str] | None = None,
@@ -67,7 +73,7 @@ def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str
             proc.kill()
             raise RuntimeError(f"{base} answers, but not as the service started in {tmp}: no session token")
         token = token_files[0].read_text().strip()
-    return Served(proc, base, token, tmp / "data")
+    return Served(base, token, tmp / "data", proc)
 
 
 def stop_served(served: Served) -> None:

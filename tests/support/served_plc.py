@@ -40,10 +40,9 @@ RECIPE = 1
 
 
 @dataclass
-class PlcCell:
-    """A served cell with Modbus TCP and OPC UA on loopback ports, and the facts the tests check against."""
+class PlcFacts:
+    """A cell's Modbus TCP and OPC UA loopback ports, and the facts the tests check against."""
 
-    served: Served
     modbus_port: int
     opcua_port: int
     opcua_url: str
@@ -51,6 +50,13 @@ class PlcCell:
     part_y_mm: float
     camera_calibration_id: int
     handeye_calibration_id: int
+
+
+@dataclass
+class PlcCell(PlcFacts):
+    """A served cell with Modbus TCP and OPC UA on loopback ports, and the facts the tests check against."""
+
+    served: Served
 
 
 def prepare_cell(tmp: Path, plc: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
@@ -94,21 +100,14 @@ def start_plc_cell(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool 
     modbus_port, opcua_port = free_port(), free_port()
     path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus))
     served = start_served(tmp, config=path, timeout_s=120.0)
-    return PlcCell(served, modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", **facts)
+    return PlcCell(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", served=served, **facts)
 
 
 @dataclass
-class PlcApp:
+class PlcApp(PlcFacts):
     """The same cell as ``PlcCell``, its app in this process (``app``) instead of a served process."""
 
     app: AppCell
-    modbus_port: int
-    opcua_port: int
-    opcua_url: str
-    part_x_mm: float
-    part_y_mm: float
-    camera_calibration_id: int
-    handeye_calibration_id: int
 
     def http(self) -> httpx.Client:
         """A REST client with the engineer's token, on the app's running lifespan."""
@@ -135,4 +134,4 @@ def in_process_plc(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool 
     modbus_port, opcua_port = free_port(), free_port()
     path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus, allow_motion))
     with in_process_cell(tmp, config=path) as app:
-        yield PlcApp(app, modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", **facts)
+        yield PlcApp(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", app=app, **facts)
