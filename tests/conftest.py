@@ -27,6 +27,7 @@ DATA = REPO / "tests" / "data"
 """Real images and measurements copied into the repository, each folder with SOURCE.txt and LICENSE.txt."""
 
 
+from tests.support.schedule import DEFAULT_S, DURATIONS, longest_units_first, read_durations  # noqa: E402
 from tests.support.served import CELLCTL, Served, free_port, start_served, stop_served  # noqa: E402, F401
 
 
@@ -170,3 +171,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         group = xdist_group_of(item, rel, _module_text[path])
         if group is not None and item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(group))
+    if getattr(config.option, "loadgroup", False):  # xdist's work order: the longest units first
+        seconds = read_durations(DURATIONS.read_text().splitlines()) if DURATIONS.exists() else {}
+        items[:] = longest_units_first(items, _work_unit, lambda item: seconds.get(item.nodeid, DEFAULT_S))
+
+
+def _work_unit(item: pytest.Item) -> str:
+    """What xdist hands a worker at once: the test's group, or the test alone."""
+    marks = sorted(str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                   for m in item.iter_markers("xdist_group"))
+    return "@" + "_".join(marks) if marks else item.nodeid
