@@ -5,6 +5,7 @@ load them instead of compiling (``cellctl.warmup``)."""
 from __future__ import annotations
 
 import argparse
+import os
 from typing import Any
 
 
@@ -15,14 +16,19 @@ def register(sub: Any) -> None:
                     "solver's numba loops, and prints the seconds each took and where the cache is. About a "
                     "minute of CPU on a cold cache, a few seconds once cached. The cache is beside each module "
                     "(__pycache__) unless NUMBA_CACHE_DIR names another folder; a service must see the same one.")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="N",
+                   help="compile up to N parts at once, each in its own process (default: the number of CPUs)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from numba.core import config
 
+    from cellctl.cli.output import CommandError
     from cellctl.warmup import warm_all
 
-    seconds = warm_all()
+    if args.jobs < 1:
+        raise CommandError(f"--jobs must be 1 or more (parts compiled at once), not {args.jobs}")
+    seconds = warm_all(jobs=args.jobs)
     cache: str = getattr(config, "CACHE_DIR", "")  # numba's reading of NUMBA_CACHE_DIR (set at import)
     return {"seconds": seconds, "numba_cache": cache or "__pycache__ beside each module"}

@@ -129,6 +129,14 @@ def test_warm_up_command_loads_every_part_and_says_where_the_cache_is(capsys: py
     assert out["numba_cache"] == (os.environ.get("NUMBA_CACHE_DIR") or "__pycache__ beside each module")
 
 
+def test_warm_up_command_in_this_process_and_a_bad_job_count(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--jobs 1`` warms here (the parts are then loaded in this process); 0 jobs is refused by name."""
+    assert main(["warm-up", "--jobs", "1"]) == 0
+    assert set(json.loads(capsys.readouterr().out)["seconds"]) == {RENDERER, MATCHER, CALIBRATION}
+    assert main(["warm-up", "--jobs", "0"]) == 2
+    assert "--jobs must be 1 or more" in capsys.readouterr().err
+
+
 def test_the_first_grab_after_serve_on_a_cold_cache_is_a_png(tmp_path: Path) -> None:
     """The README's tour on a fresh machine without set-up's warm-up: an empty numba cache."""
     cache = tmp_path / "numba-cache"
