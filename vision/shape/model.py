@@ -13,9 +13,12 @@ edges within ``ROI_BORDER_PX`` of the ROI border or ``IMAGE_BORDER_PX`` of the i
 left out (the border cuts them, or the pyramid made them of reflected pixels). A run is a coherent
 chain (``coherent_chains``): neighbouring gradient maxima joined only along the edge and where the
 direction turns little, so texture does not merge into long networks. When there are more edge
-points than the model uses, long chains of good contrast (the part's outline) go first
-(``_priority``). Normals keep their sign (dark to bright), so the search can hold edges to their
-polarity. Own code: OpenCV's Canny links texture the same way and selects nothing by length.
+points than the model uses, the spacing between the points it keeps grows over every kept edge
+alike (a short feature, such as a small hole, keeps its share: filling the budget with the best
+chains first lost a bracket's small hole, bench/results/pick_real.md, 2026-12-04/05); of two points
+closer than the spacing, the one of the longer, stronger chain stays (``_priority``). Normals
+keep their sign (dark to bright), so the search can hold edges to their polarity. Own code:
+OpenCV's Canny links texture the same way and selects nothing by length.
 """
 
 from __future__ import annotations
@@ -279,10 +282,10 @@ def _centroid_refine(img: U8, pts: F64, nrm: F64, mag: F64, length: NDArray[np.i
 
 
 def _priority(mag: F64, length: NDArray[np.int64], full_len: float) -> F64:
-    """Which edges the model keeps first when it has more than it can use: long coherent chains
-    of good contrast (a part's outline) before short ones (texture, scratches, highlights): the
-    contrast relative to the ROI's strong edges times the chain's length relative to ``full_len``,
-    each capped at 1."""
+    """Which of two edge points closer than the model's spacing stays (``_spread_subset``): the one
+    on a long coherent chain of good contrast (a part's outline) before one on a short chain
+    (texture, scratches, highlights): the contrast relative to the ROI's strong edges times the
+    chain's length relative to ``full_len``, each capped at 1."""
     ref = max(float(np.percentile(mag, 90)), 1e-9) if len(mag) else 1.0
     return np.minimum(mag / ref, 1.0) * np.minimum(length / max(full_len, 1.0), 1.0)
 
