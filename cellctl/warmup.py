@@ -1,4 +1,5 @@
-"""Start-up work: the compiled loops (numba) that frames, searches and calibrations run on.
+"""Start-up work: the compiled loops (numba) that frames, searches and calibrations run on, and the
+plotting library of the calibration reports (matplotlib).
 
 Loading them from numba's disk cache takes a second or two per process; compiling them on a cold
 cache takes about a minute of CPU (renderer ~10 s, matcher ~20 s, calibration solver ~20 s on this
@@ -7,13 +8,15 @@ cache takes about a minute of CPU (renderer ~10 s, matcher ~20 s, calibration so
 - ``cellctl serve`` runs :func:`service_startup`'s tasks on one background thread as soon as its
   devices are open (numba compiles one function at a time anyway, so the order says what is ready
   first: the renderer, which the first ``GET /cameras/{id}/image`` needs, then the matcher, then
-  the calibration solver). ``GET /health`` says ``starting`` with what it is ``waiting_for`` until
-  they are done, then ``ok``; the service logs one line with the time it took. Requests are not
-  refused meanwhile: a camera image waits (up to ``READY_WAIT_S``) for its camera's warm-up before
-  the device deadline starts, and a search waits for the matcher's loops before its ``timeout_s``
-  starts (``vision.shape.warm_up``); everything else is served at once.
+  the calibration solver). ``GET /health`` says ``starting``
+  with what it is ``waiting_for`` until they are done, then ``ok``; the service logs one line
+  with the time it took. Requests are not refused meanwhile: a camera image waits (up to
+  ``READY_WAIT_S``) for its camera's warm-up before the device deadline starts, and a search
+  waits for the matcher's loops before its ``timeout_s`` starts (``vision.shape.warm_up``);
+  everything else is served at once.
 - ``cellctl warm-up`` (run by ``deploy/setup.sh``) compiles everything into numba's disk cache, so
-  a fresh clone's first frame, first search and first calibration load instead of compiling.
+  a fresh clone's first frame, first search and first calibration load instead of compiling, and
+  draws one report figure, which on a fresh machine builds matplotlib's font cache.
 
 Where the compiled code is cached: beside each module (``__pycache__/*.nbi``, ``*.nbc``), or in
 ``NUMBA_CACHE_DIR`` when it is set (the systemd unit sets ``/var/lib/cellctl/numba-cache``, as
@@ -43,6 +46,7 @@ log = logging.getLogger(__name__)
 RENDERER = "renderer kernels"
 MATCHER = "matcher kernels"
 CALIBRATION = "calibration kernels"
+REPORT = "report plots"
 
 READY_WAIT_S = 180.0
 """How long a request that needs a warm-up (a camera image) waits for it before answering 503
@@ -103,6 +107,25 @@ def warm_calibration() -> None:
             for model in ("opencv5", "opencv8", "division"):
                 calibrate(dets, board, model)
         _CALIBRATION_WARM.set()
+
+
+_REPORT_WARM = threading.Event()
+
+
+def warm_report() -> None:
+    """Import matplotlib and draw one small report figure (once per process). On a fresh machine the
+    first import builds matplotlib's font cache (in ``MPLCONFIGDIR``, default ``~/.cache/matplotlib``),
+    which ``cellctl warm-up`` thereby does at set-up instead of the first calibration report; a
+    process that calls it also has the plotting library loaded (1.4-2.9 s on this machine)."""
+    if _REPORT_WARM.is_set():
+        return
+    from calibration.report.plots import canvas, fixed_axes, svg
+
+    with canvas(120, 80, layout=None) as fig:
+        ax, _ = fixed_axes(fig)
+        ax.plot([0.0, 1.0], [0.0, 1.0])
+        svg(fig, "warm-up", "warm-up")
+    _REPORT_WARM.set()
 
 
 # -- the service's start-up ---------------------------------------------------------------------------
@@ -178,7 +201,8 @@ class Startup:
 
 def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
     """The start-up work of a service on ``cell``: the renderer when it has a simulated camera
-    (each open one also inverts its lens), the matcher and the calibration solver."""
+    (each open one also inverts its lens), the matcher and the calibration solver. Not matplotlib: its
+    import (1-3 s of CPU) would be paid by every start, and only a report needs it."""
     sims = [slot for slot in cell.cameras.values() if isinstance(slot.device, SimCamera)]
 
     def renderer() -> None:  # with no sim camera open yet, the loops alone (its lens when it opens)
@@ -193,9 +217,10 @@ def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
     return Startup([*tasks, (MATCHER, matcher), (CALIBRATION, warm_calibration)], since_s)
 
 
-_PARTS: dict[str, Callable[[], None]] = {RENDERER: warm_renderer, MATCHER: warm_matcher, CALIBRATION: warm_calibration}
-_LONGEST_FIRST = (MATCHER, CALIBRATION, RENDERER)
-"""The parts by their compile time on a cold cache (matcher ~20 s, solver ~20 s, renderer ~10 s of CPU)."""
+_PARTS: dict[str, Callable[[], None]] = {RENDERER: warm_renderer, MATCHER: warm_matcher, CALIBRATION: warm_calibration,
+                                         REPORT: warm_report}
+_LONGEST_FIRST = (MATCHER, CALIBRATION, RENDERER, REPORT)
+"""The parts by their time on a cold cache (matcher ~20 s, solver ~20 s, renderer ~10 s of CPU, report ~3 s)."""
 
 
 def _warm_part(name: str) -> float:
@@ -206,8 +231,8 @@ def _warm_part(name: str) -> float:
 
 
 def warm_all(jobs: int = 1) -> dict[str, float]:
-    """Compile (or load) every compiled loop of the renderer, matcher and calibration solver;
-    seconds per part. What ``cellctl warm-up`` runs.
+    """Compile (or load) every compiled loop of the renderer, matcher and calibration solver, and
+    load the reports' plotting library; seconds per part. What ``cellctl warm-up`` runs.
 
     ``jobs`` 1 warms them in this process (they are then loaded here); more compiles each part in its
     own process, up to ``jobs`` at once, the longest first: on a cold cache the minute of CPU then takes

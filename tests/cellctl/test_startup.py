@@ -25,7 +25,7 @@ from fastapi import FastAPI
 
 from cellctl.api.routes import cameras
 from cellctl.cli import main
-from cellctl.warmup import CALIBRATION, MATCHER, RENDERER, Startup
+from cellctl.warmup import CALIBRATION, MATCHER, RENDERER, REPORT, Startup
 from tests.conftest import REPO, start_served, stop_served
 from tests.support.app import AppCell, in_process_cell
 
@@ -124,7 +124,7 @@ def test_a_failed_warm_up_is_listed_and_the_service_still_becomes_ready(cell: Ap
 def test_warm_up_command_loads_every_part_and_says_where_the_cache_is(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["warm-up"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out["seconds"]) == {RENDERER, MATCHER, CALIBRATION}
+    assert set(out["seconds"]) == {RENDERER, MATCHER, CALIBRATION, REPORT}
     assert all(s >= 0 for s in out["seconds"].values())
     assert out["numba_cache"] == (os.environ.get("NUMBA_CACHE_DIR") or "__pycache__ beside each module")
 
@@ -132,9 +132,18 @@ def test_warm_up_command_loads_every_part_and_says_where_the_cache_is(capsys: py
 def test_warm_up_command_in_this_process_and_a_bad_job_count(capsys: pytest.CaptureFixture[str]) -> None:
     """``--jobs 1`` warms here (the parts are then loaded in this process); 0 jobs is refused by name."""
     assert main(["warm-up", "--jobs", "1"]) == 0
-    assert set(json.loads(capsys.readouterr().out)["seconds"]) == {RENDERER, MATCHER, CALIBRATION}
+    assert set(json.loads(capsys.readouterr().out)["seconds"]) == {RENDERER, MATCHER, CALIBRATION, REPORT}
     assert main(["warm-up", "--jobs", "0"]) == 2
     assert "--jobs must be 1 or more" in capsys.readouterr().err
+
+
+def test_warming_the_report_plots_loads_matplotlibs_svg_backend_in_this_process() -> None:
+    """What the first report would otherwise pay (matplotlib's import, its SVG backend)."""
+    code = ("import sys; from cellctl.warmup import warm_report; "
+            "assert 'matplotlib' not in sys.modules; warm_report(); "
+            "assert 'matplotlib.backends.backend_svg' in sys.modules; print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
 
 
 def test_the_first_grab_after_serve_on_a_cold_cache_is_a_png(tmp_path: Path) -> None:
