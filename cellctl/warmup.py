@@ -119,12 +119,9 @@ def warm_report() -> None:
     process that calls it also has the plotting library loaded (1.4-2.9 s on this machine)."""
     if _REPORT_WARM.is_set():
         return
-    from calibration.report.plots import canvas, fixed_axes, svg
+    from calibration.report import warm_up
 
-    with canvas(120, 80, layout=None) as fig:
-        ax, _ = fixed_axes(fig)
-        ax.plot([0.0, 1.0], [0.0, 1.0])
-        svg(fig, "warm-up", "warm-up")
+    warm_up()
     _REPORT_WARM.set()
 
 

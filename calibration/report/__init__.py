@@ -12,6 +12,7 @@ is the interface.
 
 from calibration.report.camera import MAX_VECTORS
 from calibration.report.html import ReportError, calibration_report, report_json
+from calibration.report.plots import warm_up
 from calibration.report.target_print import (
     FORMATS,
     MM_PER_INCH,
@@ -28,6 +29,6 @@ from calibration.report.write import write_report
 
 __all__ = [
     "FORMATS", "MAX_VECTORS", "MM_PER_INCH", "ReportError", "TargetPrintError", "calibration_report",
-    "page_origin_px", "png_bytes", "png_dpi", "report_json", "to_image", "to_pdf", "to_svg", "write_report",
-    "write_target",
+    "page_origin_px", "png_bytes", "png_dpi", "report_json", "to_image", "to_pdf", "to_svg", "warm_up",
+    "write_report", "write_target",
 ]

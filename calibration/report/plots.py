@@ -297,3 +297,12 @@ def image_axes(ax: Axes, size: tuple[int, int], title: str = "", ticks: bool = T
     else:
         ax.set_xticks([])
         ax.set_yticks([])
+
+
+def warm_up() -> None:
+    """Import matplotlib and draw one small figure as SVG: what a process's first report would pay
+    (the import, the SVG backend and, on a fresh machine, matplotlib's font cache)."""
+    with canvas(120, 80, layout=None) as fig:
+        ax, _ = fixed_axes(fig)
+        ax.plot([0.0, 1.0], [0.0, 1.0])
+        svg(fig, "warm-up", "warm-up")
