@@ -113,6 +113,7 @@ async function showLatch(latched, session) {
 }
 
 async function resumeRobot(status) {
+  if (!state.robotId) { status("resume: the robot list is still loading, try again"); return; }
   try {
     await api("POST", `/robots/${encodeURIComponent(state.robotId)}/resume`);
     status("resumed: the robot may move again");
@@ -148,7 +149,13 @@ $("#pose-go").addEventListener("click", async () => {
     status.className = "error";
   }
 });
-document.addEventListener("cellctl:login", () => { loadPoses().catch(() => {}); });
+// Resume shows only once the robot's state says it is latched (robotLoop), and only to an engineer:
+// not by role at log-in, before any robot is known (a click then had no robot to resume).
+document.addEventListener("cellctl:login", () => {
+  $("#robot-resume").hidden = true;
+  $("#header-resume").hidden = true;
+  loadPoses().catch(() => {});
+});
 $("#robot-select").addEventListener("change", (e) => { loadPoses(e.target.value).catch(() => {}); });
 
 // Stop works from the first moment after log-in: until the robot list has loaded (nothing is
