@@ -34,6 +34,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -235,6 +236,39 @@ def measured_rows() -> list[dict[str, Any]]:
     return rows
 
 
+@dataclass
+class _MapErrors:
+    """Per mapped corner (mm, base-frame x/y): the solved calibration's error against the true point,
+    the true calibration's, solved vs true on the same pixels, and the solved one's reported 1σ (and
+    that of ``he_alt``, when given)."""
+
+    est: list[float] = field(default_factory=list)
+    true: list[float] = field(default_factory=list)
+    calib: list[float] = field(default_factory=list)
+    sigma: list[float] = field(default_factory=list)
+    sigma_alt: list[float] = field(default_factory=list)
+
+
+def _map_against_truth(he: dict[str, Any], truth: dict[str, Any], detections: list[Any], points_base: list[Any],
+                       poses: list[Any], step: int, he_alt: dict[str, Any] | None = None) -> _MapErrors:
+    """Map every ``step``-th corner of each station onto the target plane through ``he`` and through
+    ``truth`` (the station's robot pose: eye-in-hand; None: eye-to-hand), with no pixel noise in the 1σ."""
+    m = _MapErrors()
+    for pose, det, P in zip(poses, detections, points_base, strict=True):
+        for j in range(0, len(P), step):
+            z = P[j, 2] * 1e3
+            a = map_handeye(he, det.uv[j], CAM, z, pose, pixel_sigma_px=0.0)
+            b = map_handeye(truth, det.uv[j], CAM, z, pose, with_uncertainty=False).xyz_mm
+            m.est.append(float(np.linalg.norm(a.xyz_mm[:2] - P[j, :2] * 1e3)))
+            m.true.append(float(np.linalg.norm(b[:2] - P[j, :2] * 1e3)))
+            m.calib.append(float(np.linalg.norm(a.xyz_mm[:2] - b[:2])))
+            m.sigma.append(float(np.hypot(a.sigma_mm[0], a.sigma_mm[1])))
+            if he_alt is not None:
+                c = map_handeye(he_alt, det.uv[j], CAM, z, pose, pixel_sigma_px=0.0).sigma_mm
+                m.sigma_alt.append(float(np.hypot(c[0], c[1])))
+    return m
+
+
 def e2h_spread_rows(n_stations: tuple[int, ...] = (14, 28), n_seeds: int = 20) -> list[dict[str, Any]]:
     """Eye-to-hand 4-DOF over more seeds: the mapping ratio's spread, and the calibration's own part
     of the map error (estimate vs true calibration on the same pixels) against its reported 1σ."""
@@ -252,24 +286,10 @@ def e2h_spread_rows(n_stations: tuple[int, ...] = (14, 28), n_seeds: int = 20) -
             cov = np.array(he["uncertainty"]["covariance"])
             cov[3:, 3:] -= (DEFAULT_TARGET_Z_SIGMA_MM * 1e-3) ** 2 * np.diag([0.0, 0.0, 1.0])
             he_st = {**he, "uncertainty": {**he["uncertainty"], "covariance": cov.tolist()}}
-            e_est: list[float] = []
-            e_true: list[float] = []
-            d: list[float] = []
-            sig: list[float] = []
-            sig_st: list[float] = []
-            for det, P in zip(s.detections, s.points_base_true, strict=True):
-                for j in range(0, len(P), 4):
-                    z = P[j, 2] * 1e3
-                    a = map_handeye(he, det.uv[j], CAM, z, None, pixel_sigma_px=0.0)
-                    b = map_handeye(truth, det.uv[j], CAM, z, None, with_uncertainty=False).xyz_mm
-                    e_est.append(float(np.linalg.norm(a.xyz_mm[:2] - P[j, :2] * 1e3)))
-                    e_true.append(float(np.linalg.norm(b[:2] - P[j, :2] * 1e3)))
-                    d.append(float(np.linalg.norm(a.xyz_mm[:2] - b[:2])))
-                    sig.append(float(np.hypot(a.sigma_mm[0], a.sigma_mm[1])))
-                    c = map_handeye(he_st, det.uv[j], CAM, z, None, pixel_sigma_px=0.0).sigma_mm
-                    sig_st.append(float(np.hypot(c[0], c[1])))
-            rows.append({"n": n, "seed": seed, "ratio": _rms(e_est) / _rms(e_true), "pix": _rms(e_true),
-                         "calib": _rms(d), "calib_sigma": _rms(sig), "calib_sigma_st": _rms(sig_st)})
+            m = _map_against_truth(he, truth, s.detections, s.points_base_true, [None] * len(s.detections), 4,
+                                   he_alt=he_st)
+            rows.append({"n": n, "seed": seed, "ratio": _rms(m.est) / _rms(m.true), "pix": _rms(m.true),
+                         "calib": _rms(m.calib), "calib_sigma": _rms(m.sigma), "calib_sigma_st": _rms(m.sigma_alt)})
     return rows
 
 
@@ -302,23 +322,12 @@ def dof4_heldout_rows(n_stations: tuple[int, ...] = (14, 28), seeds: range = HEL
                 dt = time.perf_counter() - t0
                 he = res.to_json()
                 truth = {**he, name: s.X_true.tolist()}
-                e_est: list[float] = []
-                e_true: list[float] = []
-                d: list[float] = []
-                sig: list[float] = []
-                for G, det, P in zip(ho.G_recorded, ho.detections, ho.points_base_true, strict=True):
-                    pose = G if setup == "eye-in-hand" else None
-                    for j in range(0, len(P), 2):
-                        z = P[j, 2] * 1e3
-                        a = map_handeye(he, det.uv[j], CAM, z, pose, pixel_sigma_px=0.0)
-                        b = map_handeye(truth, det.uv[j], CAM, z, pose, with_uncertainty=False).xyz_mm
-                        e_est.append(float(np.linalg.norm(a.xyz_mm[:2] - P[j, :2] * 1e3)))
-                        e_true.append(float(np.linalg.norm(b[:2] - P[j, :2] * 1e3)))
-                        d.append(float(np.linalg.norm(a.xyz_mm[:2] - b[:2])))
-                        sig.append(float(np.hypot(a.sigma_mm[0], a.sigma_mm[1])))
+                poses = list(ho.G_recorded) if setup == "eye-in-hand" else [None] * len(ho.detections)
+                m = _map_against_truth(he, truth, ho.detections, ho.points_base_true, poses, 2)
                 rot, xy, zz = _err(res.X, s.X_true)
-                rows.append({"setup": setup, "n": n, "seed": seed, "ratio": _rms(e_est) / _rms(e_true),
-                             "map": _rms(e_est), "map_true": _rms(e_true), "calib": _rms(d), "calib_sigma": _rms(sig),
+                rows.append({"setup": setup, "n": n, "seed": seed, "ratio": _rms(m.est) / _rms(m.true),
+                             "map": _rms(m.est), "map_true": _rms(m.true), "calib": _rms(m.calib),
+                             "calib_sigma": _rms(m.sigma),
                              "rot": rot, "xy": xy, "z": zz, "time_s": dt,
                              "codes": sorted({q["code"] for q in he["verdict"]["problems"]}),
                              "pred_ratio": he["mapping_budget"]["predicted_ratio_to_true_calibration"],
