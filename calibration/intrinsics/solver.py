@@ -137,8 +137,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             vr.reason = "outlier view: RMS > 3x the median view RMS (drop_outliers removes it)"
         all_uv.append(v.uv)
     rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
-    coverage = coverage_counts(size, np.vstack(all_uv))
     points_uv = np.vstack(all_uv)
+    coverage = coverage_counts(size, points_uv)
     unc, umap = uncertainty_summary(camera, cov, coverage, points_uv)
     unc["projection_rms_analytic_px"] = unc["projection_rms_px"]
     unc["inflation"] = 1.0

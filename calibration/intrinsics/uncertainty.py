@@ -36,29 +36,28 @@ def cell_grid(size: tuple[int, int], nx: int = 16) -> tuple[F64, int, int]:
     return np.column_stack([uu.ravel(), vv.ravel()]), nx, ny
 
 
-def coverage_counts(size: tuple[int, int], uv: F64, nx: int = 16) -> NDArray[np.int64]:
-    """(ny, nx) number of observed points in each image cell."""
+def _cells_of(size: tuple[int, int], uv: F64, nx: int) -> tuple[NDArray[np.int64], int, int]:
+    """The row-major index of the image cell (of :func:`cell_grid`) each point ``uv`` (px) lies in."""
     w, h = size
     _, nx, ny = cell_grid(size, nx)
-    cnt = np.zeros((ny, nx), dtype=np.int64)
-    if len(uv):
-        ix = np.clip((uv[:, 0] + 0.5) * nx / w, 0, nx - 1).astype(int)
-        iy = np.clip((uv[:, 1] + 0.5) * ny / h, 0, ny - 1).astype(int)
-        np.add.at(cnt, (iy, ix), 1)
-    return cnt
+    ix = np.clip((uv[:, 0] + 0.5) * nx / w, 0, nx - 1).astype(np.int64)
+    iy = np.clip((uv[:, 1] + 0.5) * ny / h, 0, ny - 1).astype(np.int64)
+    return iy * nx + ix, nx, ny
+
+
+def coverage_counts(size: tuple[int, int], uv: F64, nx: int = 16) -> NDArray[np.int64]:
+    """(ny, nx) number of observed points in each image cell."""
+    cell, nx, ny = _cells_of(size, np.asarray(uv, dtype=np.float64).reshape(-1, 2), nx)
+    return np.bincount(cell, minlength=nx * ny).astype(np.int64).reshape(ny, nx)
 
 
 def cell_point_means(size: tuple[int, int], uv: F64, nx: int = 16) -> F64:
     """(K, 2) mean pixel position of the observed points ``uv`` in each image cell that holds any,
     cells in row-major order (the order of ``coverage_counts(...) > 0``)."""
-    w, h = size
-    _, nx, ny = cell_grid(size, nx)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if not len(uv):
         return np.zeros((0, 2))
-    ix = np.clip((uv[:, 0] + 0.5) * nx / w, 0, nx - 1).astype(int)
-    iy = np.clip((uv[:, 1] + 0.5) * ny / h, 0, ny - 1).astype(int)
-    cell = iy * nx + ix
+    cell, nx, ny = _cells_of(size, uv, nx)
     n = np.bincount(cell, minlength=nx * ny).astype(np.float64)
     su = np.bincount(cell, weights=uv[:, 0], minlength=nx * ny)
     sv = np.bincount(cell, weights=uv[:, 1], minlength=nx * ny)
