@@ -8,12 +8,11 @@ cache takes about a minute of CPU (renderer ~10 s, matcher ~20 s, calibration so
 - ``cellctl serve`` runs :func:`service_startup`'s tasks on one background thread as soon as its
   devices are open (numba compiles one function at a time anyway, so the order says what is ready
   first: the renderer, which the first ``GET /cameras/{id}/image`` needs, then the matcher, then
-  the calibration solver). ``GET /health`` says ``starting``
-  with what it is ``waiting_for`` until they are done, then ``ok``; the service logs one line
-  with the time it took. Requests are not refused meanwhile: a camera image waits (up to
-  ``READY_WAIT_S``) for its camera's warm-up before the device deadline starts, and a search
-  waits for the matcher's loops before its ``timeout_s`` starts (``vision.shape.warm_up``);
-  everything else is served at once.
+  the calibration solver). ``GET /health`` says ``starting`` with what it is ``waiting_for`` until
+  they are done, then ``ok``; the service logs one line with the time it took. Requests are not
+  refused meanwhile: a camera image waits (up to ``READY_WAIT_S``) for its camera's warm-up before
+  the device deadline starts, and a search waits for the matcher's loops before its ``timeout_s``
+  starts (``vision.shape.warm_up``); everything else is served at once.
 - ``cellctl warm-up`` (run by ``deploy/setup.sh``) compiles everything into numba's disk cache, so
   a fresh clone's first frame, first search and first calibration load instead of compiling, and
   draws one report figure, which on a fresh machine builds matplotlib's font cache.
@@ -109,20 +108,14 @@ def warm_calibration() -> None:
         _CALIBRATION_WARM.set()
 
 
-_REPORT_WARM = threading.Event()
-
-
 def warm_report() -> None:
-    """Import matplotlib and draw one small report figure (once per process). On a fresh machine the
-    first import builds matplotlib's font cache (in ``MPLCONFIGDIR``, default ``~/.cache/matplotlib``),
-    which ``cellctl warm-up`` thereby does at set-up instead of the first calibration report; a
-    process that calls it also has the plotting library loaded (1.4-2.9 s on this machine)."""
-    if _REPORT_WARM.is_set():
-        return
+    """Import matplotlib and draw one small report figure. On a fresh machine the first import builds
+    matplotlib's font cache (in ``MPLCONFIGDIR``, default ``~/.cache/matplotlib``), which ``cellctl
+    warm-up`` thereby does at set-up instead of the first calibration report; a process that calls it
+    also has the plotting library loaded (1.4-2.9 s on this machine)."""
     from calibration.report import warm_up
 
     warm_up()
-    _REPORT_WARM.set()
 
 
 # -- the service's start-up ---------------------------------------------------------------------------
@@ -214,10 +207,10 @@ def service_startup(cell: Cell, since_s: float | None = None) -> Startup:
     return Startup([*tasks, (MATCHER, matcher), (CALIBRATION, warm_calibration)], since_s)
 
 
-_PARTS: dict[str, Callable[[], None]] = {RENDERER: warm_renderer, MATCHER: warm_matcher, CALIBRATION: warm_calibration,
-                                         REPORT: warm_report}
-_LONGEST_FIRST = (MATCHER, CALIBRATION, RENDERER, REPORT)
-"""The parts by their time on a cold cache (matcher ~20 s, solver ~20 s, renderer ~10 s of CPU, report ~3 s)."""
+_PARTS: dict[str, Callable[[], None]] = {MATCHER: warm_matcher, CALIBRATION: warm_calibration,
+                                         RENDERER: warm_renderer, REPORT: warm_report}
+"""What ``cellctl warm-up`` warms, the longest first on a cold cache (matcher ~20 s, solver ~20 s,
+renderer ~10 s of CPU, report ~3 s): the order parallel jobs start them in."""
 
 
 def _warm_part(name: str) -> float:
@@ -238,5 +231,5 @@ def warm_all(jobs: int = 1) -> dict[str, float]:
     if jobs <= 1:
         return {name: _warm_part(name) for name in _PARTS}
     with ProcessPoolExecutor(max_workers=min(jobs, len(_PARTS)), mp_context=get_context("spawn")) as pool:
-        futures = {name: pool.submit(_warm_part, name) for name in _LONGEST_FIRST}
-        return {name: futures[name].result() for name in _PARTS}
+        futures = {name: pool.submit(_warm_part, name) for name in _PARTS}
+        return {name: f.result() for name, f in futures.items()}
