@@ -84,6 +84,12 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
     return None
 
 
+def group_of(item: pytest.Item) -> str:
+    """The test's ``xdist_group`` as xdist names it (its marks' names sorted, joined by ``_``), or ""."""
+    names = {str(m.args[0] if m.args else m.kwargs.get("name", "default")) for m in item.iter_markers("xdist_group")}
+    return "_".join(sorted(names))
+
+
 class XdistGroupIds:
     """Puts each test's ``xdist_group`` in its node id (``path::test@group``), which is how xdist's
     ``--dist loadgroup`` scheduler sees groups. xdist 3.8 does it by setting ``item._nodeid``, which
@@ -96,9 +102,7 @@ class XdistGroupIds:
         if not getattr(config.option, "loadgroup", False):
             return
         for item in items:
-            names = {str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-                     for m in item.iter_markers("xdist_group")}
-            group = "_".join(sorted(names))
+            group = group_of(item)
             if not group or item.nodeid.endswith("@" + group):
                 continue
             if hasattr(item, "_id"):
@@ -178,6 +182,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 def _work_unit(item: pytest.Item) -> str:
     """What xdist hands a worker at once: the test's group, or the test alone."""
-    marks = sorted(str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-                   for m in item.iter_markers("xdist_group"))
-    return "@" + "_".join(marks) if marks else item.nodeid
+    group = group_of(item)
+    return "@" + group if group else item.nodeid
