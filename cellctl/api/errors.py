@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from calibration import CalibrationError
+from cellctl.api.request_id import safe_request_id
 from cellctl.calibration_file import CalibrationFileError
 from cellctl.cell import UnknownDevice
 from cellctl.config import ConfigError
@@ -150,7 +151,7 @@ def _with_notes(exc: BaseException) -> str:
 
 def internal_error(request: Request, exc: BaseException) -> JSONResponse:
     """A bug: 500 with the request id, the traceback in the log (never dressed as a 4xx)."""
-    rid = request_id_var.get() or request.headers.get("x-request-id") or "-"
+    rid = request_id_var.get() or safe_request_id(request.headers.get("x-request-id") or "") or "-"
     log.error("unexpected error (request %s)", rid, exc_info=(type(exc), exc, exc.__traceback__))
     return JSONResponse(status_code=500, content=error_body(
         "internal_error", f"{type(exc).__name__}: {exc} (a cellctl bug; report it with request id {rid})"),

@@ -1,8 +1,9 @@
 """Per-request bookkeeping: a request id, the latency metric and one access-log line.
 
 A pure ASGI middleware (not Starlette's ``BaseHTTPMiddleware``), so server-sent event streams pass
-through untouched. The request id is the caller's ``X-Request-Id`` when it is a sane token
-(letters, digits, ``._:-``, at most 128 characters), otherwise a fresh random one; it is echoed in
+through untouched. The request id is the caller's ``X-Request-Id`` when it is safe to echo and log
+(``cellctl.api.request_id``: letters, digits, ``._:-``, at most 64 characters, no credential in it),
+otherwise a fresh random one; it is echoed in
 the response's ``X-Request-Id`` header and set in ``cellctl.logging_setup.request_id_var`` for every
 log record written while the request is served. Latency runs from the request's arrival to the
 last byte of the response (for an SSE stream: until the stream ends).
@@ -26,9 +27,7 @@ runs its blocking work in its route's pool (``cellctl.api.pools``: Stop, resume,
 from __future__ import annotations
 
 import logging
-import re
 import time
-import uuid
 from typing import Any
 
 import anyio
@@ -61,25 +60,16 @@ from cellctl.api.guards import (
     too_large_text,
 )
 from cellctl.api.pools import OFF_LOOP_BYTES, Pools, pool_var, run_blocking
+from cellctl.api.request_id import incoming_request_id, new_request_id
 from cellctl.logging_setup import request_id_var
 from cellctl.metrics import CellMetrics
 
 access_log = logging.getLogger("cellctl.access")
 
 REQUEST_ID_HEADER = "X-Request-Id"
-_SANE_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 UNMATCHED = "unmatched"
 EDGE = "edge"
 """The route label of a request the edge guards answered (never routed)."""
-
-
-def incoming_request_id(scope: Scope) -> str | None:
-    """The caller's request id if it is safe to log and echo, else None."""
-    for name, value in scope.get("headers", ()):
-        if name.lower() == b"x-request-id":
-            text = value.decode("latin-1").strip()
-            return text if _SANE_ID.match(text) else None
-    return None
 
 
 def route_template(scope: Scope) -> str:
@@ -137,7 +127,7 @@ class RequestMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        rid = incoming_request_id(scope) or uuid.uuid4().hex
+        rid = incoming_request_id(scope) or new_request_id()
         token = request_id_var.set(rid)
         start = time.perf_counter()
         status = 500  # what the caller gets when the app raises before answering

@@ -7,6 +7,10 @@ contours in image pixels, the reason when nothing was found) and the cycle's rec
 named ``run<run_id>-cycle<n>`` (zero-padded: their names sort oldest first). The folder is
 bounded (``cell.yaml`` ``production:``): when a new frame takes it over the count or the size, the
 oldest frames are deleted first, so the newest failures are the ones kept.
+
+A frame shows the plant's parts and its record the cell's poses: files are written 0600 in folders
+0700 (``cellctl.store.files``), whatever the process umask; a failures folder of ours found more open
+(an older cellctl made it 0755) is tightened to 0700 when the next frame is written.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 from cellctl.config import CellConfig
 from cellctl.paths import data_dir
 from cellctl.pick.frames import StoredFrame
+from cellctl.store.files import open_private, private_dir
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +73,7 @@ class FailureFrames:
                 "record": record}
         try:
             with self._lock:
-                self.root.mkdir(parents=True, exist_ok=True)
+                _private_folder(self.root)
                 _write_atomic(self.root / f"{name}.json", json.dumps(meta, allow_nan=False).encode())
                 _write_atomic(self.root / f"{name}.png", png.tobytes())
                 self._prune()
@@ -124,8 +129,18 @@ def _size(path: Path) -> int:
         return 0
 
 
+def _private_folder(root: Path) -> None:
+    """``root`` and its missing parents made 0700; ``root`` itself tightened to 0700 when this user owns it."""
+    private_dir(root)
+    st = root.stat()
+    if st.st_uid == os.geteuid() and st.st_mode & 0o077:
+        os.chmod(root, 0o700)
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to a new 0600 file and rename it over ``path`` (a reader never sees half a frame)."""
     tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as f:
+    tmp.unlink(missing_ok=True)
+    with os.fdopen(open_private(tmp), "wb") as f:
         f.write(data)
     os.replace(tmp, path)
