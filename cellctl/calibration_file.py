@@ -5,7 +5,8 @@ intrinsics`` / ``calib import`` / ``calib dlt`` (camera), ``calib handeye`` (han
 included) or ``calib npoint`` (n-point) wrote. The kind is recognised from the keys (or given),
 and the file is read by the calibration package's own readers (``camera_from_json``,
 ``as_transform``, ``NPointResult.from_json``), so what is stored is what the service can use.
-Every number must be finite and the sizes sane. A file of another kind (a target description,
+Every number must be finite and the sizes sane, and a camera must be able to project its own image
+and a covariance be one (``cellctl.calibration_checks``). A file of another kind (a target description,
 detections, a pose, a tool centre, a part model, a cell config) is named, with what to give instead.
 """
 
@@ -118,7 +119,29 @@ def _check_camera(data: dict[str, Any], source: str) -> list[str]:
     if not (0 <= camera.cx <= camera.width and 0 <= camera.cy <= camera.height):
         raise CalibrationFileError(f"{source}: the principal point ({camera.cx:g}, {camera.cy:g}) px lies outside "
                                    f"the {camera.width}x{camera.height} image; K is [[fx,0,cx],[0,fy,cy],[0,0,1]]")
-    return []
+    notes = _projects(camera, source)
+    params = data.get("parameters")
+    if isinstance(params, dict) and "covariance" in params:
+        _covariance(params["covariance"], f"{source}: parameters.covariance")
+    return notes
+
+
+def _projects(camera: Any, source: str) -> list[str]:
+    from cellctl.calibration_checks import CheckFailed, check_intrinsics
+
+    try:
+        return check_intrinsics(camera.K, camera.dist, camera.model, camera.width, camera.height)
+    except CheckFailed as exc:
+        raise CalibrationFileError(f"{source}: {exc}") from None
+
+
+def _covariance(value: Any, what: str) -> None:
+    from cellctl.calibration_checks import CheckFailed, check_covariance
+
+    try:
+        check_covariance(value, what)
+    except CheckFailed as exc:
+        raise CalibrationFileError(str(exc)) from None
 
 
 def _check_handeye(data: dict[str, Any], source: str) -> list[str]:
@@ -141,21 +164,26 @@ def _check_handeye(data: dict[str, Any], source: str) -> list[str]:
         if float(abs(T[:3, 3]).max()) > MAX_TRANSLATION_M:
             raise CalibrationFileError(f"{source}: {name}'s translation {T[:3, 3].tolist()} is beyond "
                                        f"{MAX_TRANSLATION_M:g} m; hand-eye files are in metres")
+    notes: list[str] = []
     dof = data.get("dof", 6)
     if dof not in (4, 6) or isinstance(dof, bool):
         raise CalibrationFileError(f"{source}: dof must be 4 or 6, got {dof!r}")
     for key in ("camera", "camera_initial"):
         if key in data:
             try:
-                camera_from_json(data[key], f"{source}: {key}")
+                camera = camera_from_json(data[key], f"{source}: {key}")
             except CameraFileError as exc:
                 raise CalibrationFileError(str(exc)) from None
+            notes += _projects(camera, f"{source}: {key}")
+    uncertainty = data.get("uncertainty")
+    if isinstance(uncertainty, dict) and "covariance" in uncertainty:
+        _covariance(uncertainty["covariance"], f"{source}: uncertainty.covariance")
     if data.get("intrinsics_refined") is True and "camera" not in data:
         # the solution fits the pixels through the refined camera only (calibration/io/solved_camera.py)
         raise CalibrationFileError(f"{source}: the hand-eye refined the intrinsics (intrinsics_refined: true) but "
                                    "carries no camera; it maps only through the camera it was solved with: give "
                                    "the he.json as cellctl calib handeye wrote it")
-    return []
+    return notes
 
 
 def _check_npoint(data: dict[str, Any], source: str) -> list[str]:
@@ -175,6 +203,8 @@ def _check_npoint(data: dict[str, Any], source: str) -> list[str]:
     if not (math.isfinite(det) and abs(det) > 1e-12) or float(abs(A).max()) > MAX_NPOINT_SCALE_MM_PER_PX:
         raise CalibrationFileError(f"{source}: H does not map the image onto a plane (its 2x2 part {A.tolist()} is "
                                    "singular or its scale unreasonable); calibrate again with cellctl calib npoint")
+    if "covariance" in data:
+        _covariance(data["covariance"], f"{source}: covariance")
     return []
 
 

@@ -26,6 +26,7 @@ from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import JobInputError
 from cellctl.logging_setup import request_id_var
 from cellctl.mapping import NoCalibration
+from cellctl.pick.pose import UnusableCalibration
 from cellctl.pick.recipe import PickError
 from cellctl.production.manager import NoRun
 from cellctl.routines.common import RoutineError
@@ -79,6 +80,11 @@ def install_error_handlers(app: FastAPI) -> None:
         log.error("store unavailable: %s", exc)
         return JSONResponse(status_code=503, content={"available": False, "reason": str(exc),
                                                       **error_body("store_unavailable", str(exc))})
+
+    @app.exception_handler(UnusableCalibration)
+    async def _unusable(_: Request, exc: UnusableCalibration) -> JSONResponse:
+        # the stored, active calibration is at fault, not the request: a conflict with the cell's state
+        return JSONResponse(status_code=409, content=error_body("calibration_unusable", str(exc)))
 
     @app.exception_handler(MotionRejected)
     async def _rejected(_: Request, exc: MotionRejected) -> JSONResponse:

@@ -41,6 +41,25 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+MAX_SLOTS = 10_000
+"""Slots of one grid at most (rows x cols x layers): no tray or pallet holds more."""
+MIN_PITCH_MM = 1.0
+"""Neighbouring slots at least this far apart (a pitch of 0 puts every part in one place)."""
+
+
+def _grid_sane(rows: int, cols: int, layers: int, pitch_mm: tuple[float, float], layer_mm: float) -> None:
+    """Refuse a degenerate grid: too many slots, or two slots in one place."""
+    n = rows * cols * layers
+    if n > MAX_SLOTS:
+        raise ValueError(f"the grid has {n} slots ({rows} rows x {cols} cols x {layers} layers), more than "
+                         f"{MAX_SLOTS}: give the tray's real rows, cols and layers")
+    for count, value, what in ((cols, pitch_mm[0], "pitch_mm[0] (between columns)"),
+                               (rows, pitch_mm[1], "pitch_mm[1] (between rows)"), (layers, layer_mm, "layer_mm")):
+        if count > 1 and abs(value) < MIN_PITCH_MM:
+            raise ValueError(f"{what} is {value:g} mm with {count} of them: slots closer than {MIN_PITCH_MM:g} mm "
+                             "put parts into one another; give the tray's pitch in mm")
+
+
 def _metres(v: UR, what: str) -> UR:
     if any(abs(x) > 20.0 for x in v[:3]):
         raise ValueError(f"{what} translation {list(v[:3])} looks like millimetres: the UR form is in metres "
@@ -90,6 +109,11 @@ class GridPlace(_Strict):
             raise ValueError(f"pitch_mm {list(v)} is more than 10 m")
         return v
 
+    @model_validator(mode="after")
+    def _sane(self) -> GridPlace:
+        _grid_sane(self.rows, self.cols, self.layers, self.pitch_mm, self.layer_mm)
+        return self
+
     def slot_count(self) -> int:
         return self.rows * self.cols * self.layers
 
@@ -125,6 +149,11 @@ class LocatedPlace(_Strict):
     @classmethod
     def _pose(cls, v: UR) -> UR:
         return _metres(v, "origin_ur")
+
+    @model_validator(mode="after")
+    def _sane(self) -> LocatedPlace:
+        _grid_sane(self.rows, self.cols, self.layers, self.pitch_mm, self.layer_mm)
+        return self
 
     def slot_count(self) -> int:
         return self.rows * self.cols * self.layers

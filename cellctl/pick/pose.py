@@ -26,14 +26,24 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.mapping import ActiveMapping
-from cellctl.pick.recipe import Recipe
+from cellctl.pick.recipe import PickError, Recipe
 from vision.image import wrap_deg
 
 AXIS_PROBE_PX = 25.0
 
 
+class UnusableCalibration(PickError):
+    """The active calibration maps a found part to no pose (a non-finite number): the service answers 409
+    ``calibration_unusable`` naming it; activate another version (a calibration stored before the store's
+    checks, or damaged, can do this; ``POST /calibrations`` refuses such files now)."""
+
+
 def fold_yaw(yaw: float, symmetry: float, near: float) -> float:
     """The yaw equivalent under the gripper's ``symmetry`` (radians) closest to ``near``."""
+    if not (math.isfinite(yaw) and math.isfinite(symmetry) and symmetry > 0 and math.isfinite(near)):
+        raise UnusableCalibration(f"the part's yaw ({yaw:g} rad) or the tool's ({near:g} rad) is not a finite number: "
+                                  "the active calibration cannot map this image; activate another calibration "
+                                  "version (GET /calibrations)")
     k = round((near - yaw) / symmetry)
     out = yaw + k * symmetry
     return math.atan2(math.sin(out), math.cos(out))
@@ -49,6 +59,9 @@ def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_
     p0 = mapping.map(np.array([u, v]), z_plane, T_capture)
     p1 = mapping.map(np.array([u + AXIS_PROBE_PX * math.cos(a), v - AXIS_PROBE_PX * math.sin(a)]),
                      z_plane, T_capture, with_uncertainty=False)
+    if not (np.isfinite(p0.xyz_mm).all() and np.isfinite(p1.xyz_mm).all()):
+        raise UnusableCalibration(f"the active calibration maps the part found at ({u:.1f}, {v:.1f}) px to no point "
+                                  "(not a finite number): activate another calibration version (GET /calibrations)")
     d = p1.xyz_mm[:2] - p0.xyz_mm[:2]
     part_yaw = math.atan2(d[1], d[0])
     c, s = math.cos(part_yaw), math.sin(part_yaw)

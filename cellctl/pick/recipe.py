@@ -26,8 +26,11 @@ class PickError(ValueError):
 # Bounds of numbers a recipe may hold (the edge refuses the rest with 422 naming the field).
 MAX_COORD_MM = 1e5
 """Lengths and heights, mm: nothing in a work cell is 100 m away."""
-MIN_SCORE_FLOOR = 0.05
-"""Below this a match score accepts noise as parts and the search tries every position."""
+MIN_SCORE_FLOOR = 0.3
+"""Below this a match score accepts noise (or the edge of whatever lies there) as a part, and the search tries
+every position: a production cell would pick at shadows."""
+MAX_NAME_CHARS = 200
+"""A recipe's name is a label an operator reads on a panel, not a document."""
 MIN_SPEED_M_S = 0.001
 """A pick slower than 1 mm/s cannot be supervised (and would outlast any move deadline)."""
 
@@ -69,8 +72,9 @@ class SearchSettings(BaseModel):
     @classmethod
     def _min_score(cls, v: float) -> float:
         if not v >= MIN_SCORE_FLOOR:
-            raise ValueError(f"min_score {v:g} is below {MIN_SCORE_FLOOR}: so low a score takes noise for parts and "
-                             "makes the search try every position; use 0.3..0.9 (default 0.6)")
+            raise ValueError(f"min_score {v:g} is below {MIN_SCORE_FLOOR:g}, the least a cell allows: at scores like "
+                             "0.05 the search takes noise and the edges of whatever lies there for parts and tries "
+                             "every position; use 0.3..0.9 (default 0.6)")
         return v
 
 
@@ -92,7 +96,7 @@ class Recipe(BaseModel):
     """What to pick and how (stored versioned in the store under a PLC recipe number)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    name: str
+    name: str = Field(min_length=1, max_length=MAX_NAME_CHARS, description=f"a label, 1-{MAX_NAME_CHARS} characters")
     models: list[PartModelDoc] = Field(min_length=1, max_length=16,
                                      description="part models (cellctl pick teach output)")
     camera_id: str | None = None

@@ -18,6 +18,8 @@ from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, Recipe, run_pick
+from cellctl.pick.pose import UnusableCalibration
+from cellctl.pick.recipe_limits import RecipeOutsideCell, check_recipe_for_cell
 from cellctl.pick.frames import annotate
 from cellctl.pick.model import ModelFileError
 from cellctl.store import NotFound
@@ -79,6 +81,10 @@ def save_recipe(body: RecipeInput, services: ServicesDep, who: Engineer) -> dict
         body.recipe.part_models()
     except ModelFileError as exc:
         raise ApiError(422, "invalid_model", str(exc)) from None
+    try:
+        check_recipe_for_cell(body.recipe, services.config)
+    except RecipeOutsideCell as exc:
+        raise ApiError(422, "recipe_outside_cell", str(exc)) from None
     # The store audits the save in the same transaction (recipe.save, recipe:<id>): once, never here again.
     r = services.store.save_recipe(body.recipe_id, body.recipe.name, body.recipe.model_dump(mode="json"), who.name)
     return {"recipe_id": r.recipe_id, "version": r.version, "name": r.name}
@@ -125,6 +131,8 @@ async def pick(body: PickInput, services: ServicesDep, who: Operator) -> dict[st
         raise ApiError(404, "unknown_recipe", _no_recipe(services, body.recipe_id)) from None
     except NoCalibration as exc:
         raise ApiError(409, "no_active_calibration", str(exc)) from None
+    except UnusableCalibration as exc:
+        raise ApiError(409, "calibration_unusable", str(exc)) from None
     except (PickError, ModelFileError, ValidationError) as exc:
         raise ApiError(422, "cannot_pick", str(exc)) from None
     log.info("pick recipe %d: %d picks, trigger-to-answer %.1f ms", body.recipe_id, len(answer["picks"]),

@@ -1,0 +1,74 @@
+"""A recipe checked against the cell it is saved for: what the cell's robot allows, before it is stored.
+
+``POST /recipes`` refuses (422 ``recipe_outside_cell``) a recipe that could only fail when run
+(issue 34): a ``speed_m_s`` above the robot's ``max_linear_speed_m_s`` (cell.yaml), or a place that
+puts the tool outside the robot's envelope or tool cone — a fixed place's pose, or any corner
+slot of a grid (first and last row, column and layer), each with its approach above it. The
+tool's pose at a slot is the recipe's grasp applied to the part's pose there (as a run computes it,
+``cellctl.production.place``); a located place moves with its fixture and is checked at each pick.
+"""
+
+from __future__ import annotations
+
+from itertools import product
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration import geometry as g
+from calibration.handeye import flange_pose_for_feature, tool_offset_vector
+from cellctl.config import CellConfig
+from cellctl.pick.place import FixedPlace, GridPlace
+from cellctl.pick.recipe import PickError, Recipe
+from drivers.base import MotionRejected
+
+
+class RecipeOutsideCell(PickError):
+    """The recipe asks what the cell's robot does not allow; the message names the value and the limit."""
+
+
+def check_recipe_for_cell(recipe: Recipe, config: CellConfig) -> None:
+    """Raise :class:`RecipeOutsideCell` when ``recipe`` asks more than the cell's robot allows."""
+    robot_id = recipe.robot_id or config.calibration.robot
+    robot = config.robots.get(robot_id) if robot_id else None
+    if robot is None:
+        return  # no robot to move: the pick answers poses only (and an unknown robot is refused when used)
+    limits = robot.limits()
+    if recipe.speed_m_s > limits.max_linear_speed_m_s:
+        raise RecipeOutsideCell(f"speed_m_s {recipe.speed_m_s:g} is above robot {robot_id}'s max_linear_speed_m_s "
+                                f"{limits.max_linear_speed_m_s:g} m/s (cell.yaml): give at most that")
+    place = recipe.place
+    if isinstance(place, FixedPlace):
+        slots = [(0, "the place pose")]
+    elif isinstance(place, GridPlace):
+        slots = [(l_ * place.rows * place.cols + r * place.cols + c, f"slot (row {r}, col {c}, layer {l_})")
+                 for l_, r, c in sorted(set(product({0, place.layers - 1}, {0, place.rows - 1}, {0, place.cols - 1})))]
+    else:
+        return
+    height_mm = recipe.approach_height_mm if place.approach_height_mm is None else place.approach_height_mm
+    grip = _part_grip(recipe)
+    for k, what in slots:
+        T_place = _flange(recipe, place.T_slot(k) @ grip)
+        T_app = T_place.copy()
+        T_app[2, 3] += height_mm * 1e-3
+        for T, which in ((T_place, "place"), (T_app, "pre-place")):
+            try:
+                limits.check_pose(T)
+            except MotionRejected as exc:
+                raise RecipeOutsideCell(f"place: the tool's {which} pose at {what} is refused by robot {robot_id}: "
+                                        f"{exc}") from None
+
+
+def _part_grip(recipe: Recipe) -> NDArray[np.float64]:
+    """``T_part_grip`` at the recipe's grasp yaw (the symmetric grasps differ by a turn about z only)."""
+    R0 = g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    ox, oy = recipe.grasp_offset_mm
+    return g.make_transform(g.rotvec_to_matrix([0.0, 0.0, np.radians(recipe.grasp_yaw_deg)]) @ R0,
+                            [ox * 1e-3, oy * 1e-3, recipe.grasp_z_mm * 1e-3])
+
+
+def _flange(recipe: Recipe, T_grip: NDArray[np.float64]) -> NDArray[np.float64]:
+    if recipe.tool_centre_offset_mm is None:
+        return T_grip
+    R0 = g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    return flange_pose_for_feature(T_grip, tool_offset_vector(recipe.tool_centre_offset_mm, R0))
