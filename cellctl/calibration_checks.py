@@ -25,6 +25,8 @@ from typing import Any, Final
 
 import numpy as np
 
+from cellctl.calibration_file import CalibrationFileError
+
 MAX_FOCAL_PX: Final = 1e6
 MAX_ASPECT: Final = 5.0
 """fy / fx (and fx / fy) at most this."""
@@ -37,8 +39,8 @@ CORE: Final = 0.5
 """The share of the image's width and height (around its centre) that a camera must map both ways."""
 
 
-class CheckFailed(ValueError):
-    """A check failed; the message says what and what to do (the caller wraps it in its own error)."""
+class CheckFailed(CalibrationFileError):
+    """A check failed; the message says what and what to do (the caller adds which file and field)."""
 
 
 def check_intrinsics(K_in: Any, dist_in: Any, model: str, width: int, height: int) -> list[str]:

@@ -50,6 +50,15 @@ class HttpConfig(_Strict):
     """Open event streams per token; more are refused with 429."""
     body_timeout_s: float = Field(5.0, gt=0, le=600)
     """A request body must arrive whole within this many seconds of its headers; a slower one is refused with 408."""
+    header_timeout_s: float = Field(10.0, gt=0, le=600)
+    """A request's headers must arrive whole within this many seconds of the connection (or of the previous
+    answer on a kept-alive connection); a slower connection is closed (``cellctl.api.connections``)."""
+    max_connections: int = Field(4096, ge=16, le=1_000_000)
+    """Open HTTP connections at most; the service lowers it further to keep descriptors in reserve
+    (``cellctl.api.connections.FD_RESERVE`` below the open-files limit). Over it, the oldest connection
+    that is not being served is closed to admit the new one, so Stop always gets in."""
+    max_connections_per_address: int = Field(256, ge=1, le=1_000_000)
+    """Open HTTP connections per client address at most (over it: that address's oldest idle one is closed)."""
 
     @model_validator(mode="after")
     def _tls_pair(self) -> HttpConfig:

@@ -6,13 +6,28 @@ of the HTTP request being served (set by ``cellctl.api.middleware`` in ``request
 extras given with ``log.info(..., extra={...})``. A traceback goes into ``exc``, as one string, so
 a record never spans lines. ``cellctl serve`` picks text when stderr is a terminal and JSON
 otherwise (under systemd, in a container, piped to a file), unless ``--log-format`` says.
+
+What a flood of clients makes happen must not flood the log (issue 34: 53-94 MB in 20 s while
+the process was out of descriptors). Two filters sit on the handler:
+
+- :class:`RepeatFilter`: the same message (logger, level, format string) is written at most
+  ``REPEAT_MAX`` (20) times per ``REPEAT_WINDOW_S`` (10 s); the rest are counted, and the first one
+  after the window says how many were left out (``"... (and 1234 more like this in the last 10 s)"``,
+  with ``suppressed`` as an extra).
+- :class:`ClientNoiseFilter`: a record caused by a client's garbage or a vanished peer (a reset
+  connection, a TLS handshake of junk, an invalid HTTP request) or by the process running out of
+  descriptors carries no traceback: its exception's type and text are appended to the message.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import ssl
 import sys
+import threading
+import time
 from contextvars import ContextVar
 from datetime import UTC, datetime
 from typing import Any, Literal, TextIO
@@ -67,6 +82,79 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out, default=str, ensure_ascii=False)
 
 
+REPEAT_MAX = 20
+REPEAT_WINDOW_S = 10.0
+_MAX_KEYS = 4096
+
+
+class RepeatFilter(logging.Filter):
+    """At most ``max_per_window`` records of one message per ``window_s``; the rest counted, then summarised."""
+
+    def __init__(self, max_per_window: int = REPEAT_MAX, window_s: float = REPEAT_WINDOW_S) -> None:
+        super().__init__()
+        self.max_per_window = max_per_window
+        self.window_s = window_s
+        self._seen: dict[tuple[str, int, str], list[float]] = {}  # key -> [window start, written, left out]
+        self._lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, record.levelno, str(record.msg))
+        now = time.monotonic()
+        with self._lock:
+            entry = self._seen.get(key)
+            if entry is None or now - entry[0] >= self.window_s:
+                left_out = int(entry[2]) if entry is not None else 0
+                if entry is None and len(self._seen) >= _MAX_KEYS:
+                    self._forget(now)
+                self._seen[key] = [now, 1, 0]
+                if left_out:
+                    record.msg = f"{record.msg} (and {left_out} more like this in the last {self.window_s:g} s)"
+                    record.suppressed = left_out
+                return True
+            if entry[1] < self.max_per_window:
+                entry[1] += 1
+                return True
+            entry[2] += 1
+            return False
+
+    def _forget(self, now: float) -> None:
+        """Drop the keys whose window has passed (a bounded table, whatever the messages)."""
+        for k in [k for k, e in self._seen.items() if now - e[0] >= self.window_s]:
+            del self._seen[k]
+        while len(self._seen) >= _MAX_KEYS:
+            self._seen.pop(next(iter(self._seen)))
+
+
+def _client_noise() -> tuple[type[BaseException], ...]:
+    kinds: list[type[BaseException]] = [ConnectionError, ssl.SSLError, TimeoutError]
+    try:
+        import h11
+
+        kinds.append(h11.RemoteProtocolError)
+    except ImportError:  # pragma: no cover - uvicorn brings h11
+        pass
+    return tuple(kinds)
+
+
+_NOISE = _client_noise()
+_OUT_OF_DESCRIPTORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+
+
+class ClientNoiseFilter(logging.Filter):
+    """No traceback for what a client (or descriptor exhaustion) caused: the exception in one phrase instead."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        info = record.exc_info
+        exc = info[1] if info else None
+        if exc is not None and (isinstance(exc, _NOISE) or (isinstance(exc, OSError)
+                                                           and exc.errno in _OUT_OF_DESCRIPTORS)):
+            record.msg = f"{record.getMessage()} ({type(exc).__name__}: {exc})"
+            record.args = None
+            record.exc_info = None
+            record.exc_text = None
+        return True
+
+
 def default_format(stream: TextIO | None = None) -> LogFormat:
     """Text on a terminal, JSON otherwise."""
     s = stream if stream is not None else sys.stderr
@@ -85,6 +173,8 @@ def configure_logging(fmt: LogFormat | None = None, level: int | str = logging.I
     """
     fmt = fmt or default_format(stream)
     handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler.addFilter(RepeatFilter())  # keyed by the format string, before the next one rewrites it
+    handler.addFilter(ClientNoiseFilter())
     handler.addFilter(RequestIdFilter())
     if fmt == "json":
         handler.setFormatter(JsonFormatter())
