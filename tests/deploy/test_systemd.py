@@ -59,6 +59,7 @@ def test_unit_is_hardened_and_runs_the_service(tmp_path: Path) -> None:
         "User": "cellctl", "Group": "cellctl", "ProtectSystem": "strict", "ProtectHome": "yes",
         "NoNewPrivileges": "yes", "PrivateTmp": "yes", "ReadWritePaths": "/var/lib/cellctl",
         "StateDirectory": "cellctl", "Restart": "on-failure", "CapabilityBoundingSet": "",
+        "LimitNOFILE": "65536",  # issue 34: the default 1,024 let idle connections starve Stop
         "ExecStart": f"{EXEC} serve --config /etc/cellctl/cell.yaml", "WantedBy": "multi-user.target",
     }
     for key, value in expected.items():
