@@ -19,7 +19,12 @@ In one run, on this machine:
 - **Stop, resume, state and /health** of the same cell, idle and under a no-token flood of
   ~7.8 MB ``1e300`` bodies and a slow-body flood of 50 connections (``bench/safety_floods.py``).
 
-Run: ``.venv/bin/python bench/safety.py [--tries 20] [--out bench/results/safety.md]`` (~3-4 min).
+- **Stop while thousands of connections are held** (issue 34; ``bench/safety_exhaustion.py``): 5,000
+  slow-header HTTP and 2,000 idle Modbus connections, and 5,000 slow-header ones against a service
+  at 1,024 descriptors; Stop's latency on a new connection and the log's growth.
+
+Run: ``.venv/bin/python bench/safety.py [--tries 20] [--out bench/results/safety.md]`` (~5 min);
+``--only exhaustion`` runs the last part alone and replaces its section in ``--out``.
 """
 
 from __future__ import annotations
@@ -48,6 +53,9 @@ import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
+from bench.safety_exhaustion import measure as measure_exhaustion  # noqa: E402
+from bench.safety_exhaustion import section as exhaustion_section  # noqa: E402
+from bench.safety_exhaustion import splice  # noqa: E402
 from bench.safety_floods import StopLoad  # noqa: E402
 from bench.safety_floods import measure as measure_stop_floods  # noqa: E402
 from bench.safety_floods import table as stop_table  # noqa: E402
@@ -413,7 +421,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tries", type=int, default=20)
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "safety.md"))
+    ap.add_argument("--only", choices=("all", "exhaustion"), default="all")
     args = ap.parse_args(argv)
+    command = "bench/safety.py" + (" --only exhaustion" if args.only == "exhaustion" else "")
+    exhaustion = exhaustion_section(measure_exhaustion(min(args.tries, 10)), f".venv/bin/python {command}")
+    if args.only == "exhaustion":
+        out = Path(args.out)
+        text = splice(out.read_text() if out.exists() else "# Safety bench\n", exhaustion)
+        out.write_text(text)
+        print(exhaustion)
+        return 0
     t0 = time.perf_counter()
     load_before = os.getloadavg()[0]
     virtual = virtual_robot(args.tries)
@@ -426,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
         ur = f"{type(exc).__name__}: {exc}"
         print(f"UR emulator failed: {ur}", flush=True)
     floods, stop_loads = health_floods(max(args.tries, 10))
-    text = report(virtual, ur, floods, stop_loads, time.perf_counter() - t0, load_before)
+    text = splice(report(virtual, ur, floods, stop_loads, time.perf_counter() - t0, load_before), exhaustion)
     Path(args.out).write_text(text)
     print(text)
     return 0

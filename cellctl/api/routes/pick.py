@@ -18,10 +18,10 @@ from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, Recipe, run_pick
-from cellctl.pick.pose import UnusableCalibration
-from cellctl.pick.recipe_limits import RecipeOutsideCell, check_recipe_for_cell
 from cellctl.pick.frames import annotate
 from cellctl.pick.model import ModelFileError
+from cellctl.pick.pose import UnusableCalibration
+from cellctl.pick.recipe_limits import RecipeOutsideCell, check_recipe_for_cell
 from cellctl.store import NotFound
 from cellctl.strict_types import Bool, Count, Num
 
