@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from cellctl import metrics
+from cellctl.arm_view import arm_view
 from cellctl.mapping import active_mapping, npoint_pose_check
 from cellctl.motion import audited_move, halt_after_failure
 from cellctl.pick.frames import match_contours
@@ -131,8 +132,12 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
     found = recognize(models, frame.pixels, search)
     t_find = time.perf_counter()
     current_yaw = math.atan2(T_capture[1, 0], T_capture[0, 0])
+    # A fixed camera sees the arm (and the plate it may carry) where it stood at the grab: a match there is
+    # the arm's, not a part (cellctl.arm_view).
+    arm = arm_view(mapping, T_capture, services.config)
+    matches = [r for r in found.matches if arm is None or not arm.covers(r.u_px, r.v_px)]
     picks = []
-    for r in found.matches[: sp.max_count]:
+    for r in matches[: sp.max_count]:
         pp = pick_pose(mapping, recipe, r.u_px, r.v_px, r.angle_deg, T_capture, current_yaw, r.sigma_angle_deg)
         reason = None
         try:
@@ -159,5 +164,6 @@ def _locate(services: Services, recipe_id: int, version: int, recipe: Recipe, ca
         "latency_ms": {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3,
                        "total": (t_done - t0) * 1e3},
         "moved": False,
+        "arm_in_view": arm.what if arm is not None and arm.share_of(sp.roi) > 0 else None,
     }
     return answer

@@ -41,9 +41,9 @@ CMD_PRODUCTION_START, CMD_PRODUCTION_PAUSE, CMD_PRODUCTION_RESUME, CMD_PRODUCTIO
 PRODUCTION_COMMANDS = (CMD_PRODUCTION_START, CMD_PRODUCTION_PAUSE, CMD_PRODUCTION_RESUME, CMD_PRODUCTION_STOP)
 
 STATES = {"running": 1, "pausing": 2, "paused": 3, "stopping": 4, "stopped": 5, "complete": 6, "failed": 7}
-ENDED = {"count_reached": 1, "area_empty": 2, "none_pickable": 3, "stopped": 4, "failed": 5}
+ENDED = {"count_reached": 1, "area_empty": 2, "none_pickable": 3, "stopped": 4, "failed": 5, "not_recognized": 7}
 RESULTS = {"placed": 1, "grip_failed": 2, "skipped": 3, "empty": 4, "none_pickable": 5, "stopped": 6,
-           "vision_failed": 7}
+           "vision_failed": 7, "not_recognized": 8}
 COUNTERS = ("picked", "placed", "grip_failures", "retries", "skipped", "empty_area", "unreachable")
 
 

@@ -32,7 +32,7 @@ from cellctl.store.files import open_private, private_dir
 
 log = logging.getLogger(__name__)
 
-KEPT_RESULTS = frozenset({"grip_failed", "skipped", "empty", "none_pickable", "vision_failed"})
+KEPT_RESULTS = frozenset({"grip_failed", "skipped", "empty", "none_pickable", "vision_failed", "not_recognized"})
 """Cycle results whose frame is kept on disk: the failures, and ``empty`` (an area called empty
 while parts lie there is a vision failure only its frame shows)."""
 

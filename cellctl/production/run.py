@@ -2,8 +2,10 @@
 
 One run per robot; it owns the robot's motion session for its whole life (a second mover gets
 ``RobotBusy``). Each cycle decides from a fresh picture: nothing found ends the run
-``area_empty``; parts found but none pickable (every pose outside the envelope or the tool's cone,
-or every part skipped after its grip failed ``retries`` times) ends it ``none_pickable``. A failed
+``area_empty`` when the picture shows no object either, ``not_recognized`` when it does (parts the
+model does not match: ``cellctl.production.occupancy``); parts found but none pickable (every pose
+outside the envelope or the tool's cone, or every part skipped after its grip failed ``retries``
+times) ends it ``none_pickable``. A failed
 grip retreats empty and the part is tried again from a fresh picture.
 
 States: ``running`` -> ``pausing`` (pause asked: the cycle finishes) -> ``paused`` -> ``running``;
@@ -29,6 +31,7 @@ from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.choice import Choice
 from cellctl.production.frames import KEPT_RESULTS, FailureFrames
 from cellctl.production.gripper import Gripper
+from cellctl.production.occupancy import not_recognized_detail
 from cellctl.production.records import Counters, CycleTimes, Durations, clean, seen_fields
 from cellctl.production.vision import (
     Candidate,
@@ -47,7 +50,7 @@ from drivers.base import MotionSession, RobotBase, RobotStopped
 log = logging.getLogger(__name__)
 
 State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
-Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
+Ended = Literal["count_reached", "area_empty", "none_pickable", "not_recognized", "stopped", "failed"]
 VIEW_MARGIN_MM = 60.0
 """The arm counts as out of a fixed camera's view when nothing within this of its tool centre (the
 gripper and the part it holds) is in the image."""
@@ -243,6 +246,12 @@ class ProductionRun:
                        "times with nothing found: raise the recipe's search.timeout_s")
                 self._record("vision_failed", picture=picture, detail=why)
                 raise PickError(why)
+            if not picture.candidates and picture.occupancy is not None and picture.occupancy.occupied:
+                # Nothing matched, yet the picture shows objects: parts the model does not recognise, not an
+                # empty area (cellctl.production.occupancy); a refill call would be wrong.
+                why = not_recognized_detail(picture.occupancy, picture.reason)
+                self._record("not_recognized", picture=picture, detail=why)
+                return "not_recognized"
             if not picture.candidates:
                 self.status.counters.empty_area += 1
                 self._record("empty", picture=picture, detail=picture.reason or "nothing found")

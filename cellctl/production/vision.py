@@ -18,11 +18,13 @@ from typing import Any
 import numpy as np
 
 from calibration import geometry as g
+from cellctl.arm_view import arm_view
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.flow import _locate
 from cellctl.pick.place import LocatedPlace
 from cellctl.pick.recipe import Recipe
 from cellctl.production.fixture import locate_fixture, slots_in_base
+from cellctl.production.occupancy import Occupancy, occupancy, part_sides_px
 from cellctl.production.place import Plan, plan_part
 from cellctl.services import Services
 from drivers.base import RobotBase
@@ -56,6 +58,10 @@ class Picture:
     """A located place: the fixture found in this picture (4x4, metres); None when not found or not located."""
     fixture: dict[str, Any] | None = None
     """A located place: the fixture's match (score, pixels) or why it was not found."""
+    arm: str | None = None
+    """What of the arm the picture showed in the search region (its matches there were dropped); None: none."""
+    occupancy: Occupancy | None = None
+    """With no candidate: the objects the picture shows anyway (``cellctl.production.occupancy``)."""
 
 
 def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
@@ -74,6 +80,7 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     cands = []
     for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
         cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    cands, arm, occupied = _what_it_sees(services, answer, mapping, recipe, cands)
     T_fixture, fixture = None, None
     if isinstance(recipe.place, LocatedPlace) and answer.get("frame_id") is not None:
         # The fixture in the same frame; the parts already in its slots are placed, not to be picked.
@@ -88,7 +95,28 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
         _neighbours(cands, device.clearance_mm)
     return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
                    time.monotonic() - t0, len(cands), bool(answer.get("timed_out")), T_base_fixture=T_fixture,
-                   fixture=fixture)
+                   fixture=fixture, arm=arm, occupancy=occupied)
+
+
+def _what_it_sees(services: Services, answer: dict[str, Any], mapping: ActiveMapping, recipe: Recipe,
+                  cands: list[Candidate]) -> tuple[list[Candidate], str | None, Occupancy | None]:
+    """The candidates outside the arm's region (a fixed camera: ``cellctl.arm_view``, at the pose the picture
+    was taken at), what of the arm was in view, and, when no candidate is left, whether the picture still
+    shows objects (``cellctl.production.occupancy``)."""
+    pose = answer.get("capture_pose") or {}
+    arm = None
+    if pose and answer.get("frame_id") is not None:
+        T = g.ur_pose_to_transform([pose["x_mm"] * 1e-3, pose["y_mm"] * 1e-3, pose["z_mm"] * 1e-3,
+                                    pose["rx_rad"], pose["ry_rad"], pose["rz_rad"]])
+        arm = arm_view(mapping, T, services.config)
+    if arm is not None:
+        cands = [c for c in cands if not arm.covers(float(c.match["u_px"]), float(c.match["v_px"]))]
+    occupied = None
+    if not cands and answer.get("frame_id") is not None:
+        pixels = services.frames.get(int(answer["frame_id"])).pixels
+        occupied = occupancy(pixels, recipe.search.roi, part_sides_px(recipe.models),
+                             arm.mask if arm is not None else None)
+    return cands, (arm.what if arm is not None and arm.share_of(recipe.search.roi) > 0 else None), occupied
 
 
 def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:

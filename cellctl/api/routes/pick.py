@@ -16,6 +16,7 @@ from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Engineer, Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.arm_view import arm_view_now
 from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, Recipe, run_pick
 from cellctl.pick.frames import annotate
@@ -105,6 +106,13 @@ async def teach(body: TeachInput, services: ServicesDep, _: Engineer,
     if cam_id not in services.cell.cameras:
         raise ApiError(404, "unknown_camera", f"no camera {cam_id!r}")
     frame = await run_in_threadpool(lambda: services.cell.camera(cam_id).ensure_open().grab(timeout_s=5.0))
+    arm = await run_in_threadpool(arm_view_now, services, cam_id)
+    share = arm.share_of(body.roi) if arm is not None else 0.0
+    if arm is not None and share > 0.0:
+        # A model taught on the arm's image finds the arm (issue 34); the arm is where the robot says it is.
+        raise ApiError(409, "arm_in_view", f"{arm.what} cover {share:.0%} of the ROI in camera {cam_id}'s image "
+                                           "(projected through the active hand-eye at the robot's pose): move the "
+                                           "robot out of the camera's view and teach again")
     try:
         check_roi(body.roi, frame.size)
         model = await run_in_threadpool(teach_model, frame.pixels, body.roi, mode=body.mode, name=body.name)
