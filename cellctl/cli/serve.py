@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> None:
     if http.tls_cert is None and not http.is_loopback():
         log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
                     http.host)
-    from cellctl.api.connections import guarded_protocol, raise_open_files_limit
+    from cellctl.api.app import guarded_protocol, raise_open_files_limit
 
     soft = raise_open_files_limit()  # descriptors for many clients; a cap and a reserve below (api/connections.py)
     protocol = guarded_protocol(http, soft)
