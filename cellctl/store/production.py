@@ -18,6 +18,7 @@ import sqlalchemy as sa
 
 from cellctl.store.backends import WRITE_OPTION
 from cellctl.store.errors import NotFound, StoreError
+from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
 
 metadata = sa.MetaData()
 
@@ -77,7 +78,7 @@ class ProductionStore:
                 with conn.begin():
                     yield conn
         except sa.exc.DBAPIError as exc:
-            raise StoreError(f"store: production tables: {str(exc).splitlines()[0]}") from exc
+            raise self._failed(exc) from exc
 
     @contextmanager
     def _read(self) -> Iterator[sa.Connection]:
@@ -85,7 +86,13 @@ class ProductionStore:
             with self._engine.connect() as conn, conn.begin():
                 yield conn
         except sa.exc.DBAPIError as exc:
-            raise StoreError(f"store: production tables: {str(exc).splitlines()[0]}") from exc
+            raise self._failed(exc) from exc
+
+    def _failed(self, exc: sa.exc.DBAPIError) -> StoreError:
+        """The typed error of a database error: damaged or unavailable (503 ``store_unavailable``), as the store's."""
+        url = self._engine.url
+        where = f"{url.database} (production tables)" if url.database else "production tables"
+        return store_error(exc, where, self._engine.dialect.name, DEFAULT_RECOVERY)
 
     # -- slots ------------------------------------------------------------------------------------
     def next_slot(self, recipe_id: int) -> int:
