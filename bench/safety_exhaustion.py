@@ -27,6 +27,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import httpx
 import yaml
@@ -103,10 +104,14 @@ class Exhaustion:
     name: str
     stop_ms: list[float] = field(default_factory=list)
     health_ms: list[float] = field(default_factory=list)
+    connect_ms: list[float] = field(default_factory=list)
+    idle_stop_ms: list[float] = field(default_factory=list)
+    idle_health_ms: list[float] = field(default_factory=list)
+    load: tuple[float, float] = (0.0, 0.0)
     failures: list[str] = field(default_factory=list)
     log_bytes: int = 0
     fds_max: int = 0
-    flood: dict[str, object] = field(default_factory=dict)
+    flood: dict[str, Any] = field(default_factory=dict)
     note: str = ""
 
 
@@ -161,6 +166,7 @@ def _fds(pid: int) -> int:
 
 
 def _timed(fn: object) -> tuple[float, str | None]:
+    """(ms, problem) of one request (problem: None when it answered 200)."""
     t0 = time.perf_counter()
     try:
         r = fn()  # type: ignore[operator]
@@ -168,6 +174,24 @@ def _timed(fn: object) -> tuple[float, str | None]:
     except httpx.HTTPError as exc:
         problem = type(exc).__name__
     return (time.perf_counter() - t0) * 1e3, problem
+
+
+def _round(base: str, port: int, op: dict[str, str], eng: dict[str, str]
+           ) -> tuple[tuple[float, str | None], tuple[float, str | None], float]:
+    """One Stop and one /health, each on a new connection, then a resume; and a bare TCP connect's time (ms)."""
+    import socket
+
+    t0 = time.perf_counter()
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=30):
+            connect_ms = (time.perf_counter() - t0) * 1e3
+    except OSError:
+        connect_ms = float("nan")
+    stop = _timed(lambda: httpx.post(base + "/robots/robot0/stop", headers=op, timeout=30))
+    health = _timed(lambda: httpx.get(base + "/health", timeout=30))
+    with contextlib.suppress(httpx.HTTPError):
+        httpx.post(base + "/robots/robot0/resume", headers=eng, timeout=30)
+    return stop, health, connect_ms
 
 
 def run_one(name: str, n_http: int, n_modbus: int, tries: int, nofile: int | None, ramp_s: float = 12.0,
@@ -178,6 +202,14 @@ def run_one(name: str, n_http: int, n_modbus: int, tries: int, nofile: int | Non
         proc, base, modbus_port, tokens, log = _serve(tmp, nofile)
         port = int(base.rsplit(":", 1)[1])
         try:
+            op = {"Authorization": f"Bearer {tokens['operator']}"}
+            eng = {"Authorization": f"Bearer {tokens['engineer']}"}
+            row.load = (os.getloadavg()[0], 0.0)
+            for _ in range(tries):  # the idle baseline, in the same run: the machine is shared
+                stop, health, _ = _round(base, port, op, eng)
+                row.idle_stop_ms.append(stop[0])
+                row.idle_health_ms.append(health[0])
+                time.sleep(0.5)
             log_before = log.stat().st_size
             hold_s = ramp_s + tries * every_s + 3.0
             flood = subprocess.Popen(["nice", "-n", "19", sys.executable, "-c", FLOOD, str(port), str(modbus_port),
@@ -187,21 +219,16 @@ def run_one(name: str, n_http: int, n_modbus: int, tries: int, nofile: int | Non
             while time.monotonic() < t_end:
                 row.fds_max = max(row.fds_max, _fds(proc.pid))
                 time.sleep(0.5)
-            op = {"Authorization": f"Bearer {tokens['operator']}"}
-            eng = {"Authorization": f"Bearer {tokens['engineer']}"}
             for _ in range(tries):
-                ms, problem = _timed(lambda: httpx.post(base + "/robots/robot0/stop", headers=op, timeout=30))
-                row.stop_ms.append(ms)
-                if problem:
-                    row.failures.append(f"stop: {problem}")
-                ms, problem = _timed(lambda: httpx.get(base + "/health", timeout=30))
-                row.health_ms.append(ms)
-                if problem:
-                    row.failures.append(f"health: {problem}")
-                with contextlib.suppress(httpx.HTTPError):
-                    httpx.post(base + "/robots/robot0/resume", headers=eng, timeout=30)
+                stop, health, connect_ms = _round(base, port, op, eng)
+                row.stop_ms.append(stop[0])
+                row.health_ms.append(health[0])
+                row.connect_ms.append(connect_ms)
+                row.failures += [f"stop: {stop[1]}"] if stop[1] else []
+                row.failures += [f"health: {health[1]}"] if health[1] else []
                 row.fds_max = max(row.fds_max, _fds(proc.pid))
                 time.sleep(every_s)
+            row.load = (row.load[0], os.getloadavg()[0])
             out, err = flood.communicate(timeout=hold_s + 60)
             row.flood = json.loads(out.decode().strip().splitlines()[-1]) if out.strip() else {"error": err[-300:]}
             row.log_bytes = log.stat().st_size - log_before
@@ -222,11 +249,12 @@ def measure(tries: int) -> list[Exhaustion]:
 
 
 def table(rows: list[Exhaustion]) -> list[str]:
-    lines = ["| load | Stop tries | Stop median / max ms | all Stops within 0.3 s | /health median / max ms | "
-             "failures | log growth | service's descriptors, max | what the flood got |", "|" + " --- |" * 9]
+    lines = ["| load | Stop tries | Stop median / max ms | all Stops within 0.3 s | idle Stop median ms | "
+             "/health median / max ms (idle median) | TCP connect median ms | failures | log growth | "
+             "service's descriptors, max | load average start / end | what the flood got |", "|" + " --- |" * 12]
     for r in rows:
         f = r.flood
-        peak = f.get("peak_open", {}) if isinstance(f, dict) else {}
+        peak: dict[str, Any] = f.get("peak_open") or {}
         got = (f"HTTP: {f.get('http_opened', 0)} opened, {f.get('http_closed_by_server', 0)} closed by the service, "
                f"peak {peak.get('http', 0)} open; Modbus: {f.get('modbus_opened', 0)} opened, "
                f"{f.get('modbus_closed_by_server', 0)} closed, peak {peak.get('modbus', 0)} open; "
@@ -234,10 +262,12 @@ def table(rows: list[Exhaustion]) -> list[str]:
         within = all(ms <= TARGET_S * 1e3 for ms in r.stop_ms) and not r.failures
         lines.append(
             f"| {r.name} | {len(r.stop_ms)} | {statistics.median(r.stop_ms):.1f} / {max(r.stop_ms):.1f} | "
-            f"{'yes' if within else 'no'} | {statistics.median(r.health_ms):.1f} / {max(r.health_ms):.1f} | "
+            f"{'yes' if within else 'no'} | {statistics.median(r.idle_stop_ms):.1f} | "
+            f"{statistics.median(r.health_ms):.1f} / {max(r.health_ms):.1f} "
+            f"({statistics.median(r.idle_health_ms):.1f}) | {statistics.median(r.connect_ms):.1f} | "
             f"{len(r.failures)}{': ' + ', '.join(sorted(set(r.failures))) if r.failures else ''} | "
             f"{r.log_bytes / 1e3:.1f} kB ({'within' if r.log_bytes <= LOG_TARGET_BYTES else 'over'} 1 MB) | "
-            f"{r.fds_max} | {got} |")
+            f"{r.fds_max} | {r.load[0]:.1f} / {r.load[1]:.1f} | {got} |")
     return lines
 
 

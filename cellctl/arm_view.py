@@ -112,9 +112,15 @@ def _plate_corners(calib: dict[str, Any], config: Any) -> NDArray[np.float64] | 
         r = 0.1  # a plate of unknown size: 10 cm around its origin
         return np.array([[x, y, 0.0] for x in (-r, r) for y in (-r, r)])
     try:
-        x0, y0, x1, y1 = target_from_dict(desc, f"targets.{name}").extent_m()
+        target = target_from_dict(desc, f"targets.{name}")
     except (TargetError, ValueError):
         return None
+    extent = getattr(target, "extent_m", None)  # a 3D target has none: its points' box instead
+    if extent is not None:
+        x0, y0, x1, y1 = extent()
+    else:
+        xyz = target.points().xyz_m
+        x0, y0, x1, y1 = float(xyz[:, 0].min()), float(xyz[:, 1].min()), float(xyz[:, 0].max()), float(xyz[:, 1].max())
     m = PLATE_MARGIN_MM * 1e-3
     return np.array([[x, y, 0.0] for x in (x0 - m, x1 + m) for y in (y0 - m, y1 + m)])
 

@@ -67,7 +67,7 @@ def test_a_camera_that_cannot_project_its_image_is_refused(cell: tuple[AppCell, 
 
 def test_a_handeye_with_a_negative_covariance_is_refused(cell: tuple[AppCell, dict[str, Any], dict[str, Any]]) -> None:
     app, _, _ = cell
-    he = {"setup": "eye-in-hand", "T_tool_cam": np.eye(4).tolist(), "T_base_target": np.eye(4).tolist(),
+    he: dict[str, Any] = {"setup": "eye-in-hand", "T_tool_cam": np.eye(4).tolist(), "T_base_target": np.eye(4).tolist(),
           "uncertainty": {"covariance": (-np.eye(6) * 1e-6).tolist()}}
     with app.http() as http:
         r = http.post("/calibrations", json=he)

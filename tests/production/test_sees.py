@@ -54,7 +54,8 @@ def test_a_teach_with_the_arm_in_view_is_refused_then_accepted_clear_of_it(cell:
     else:
         pytest.fail("no part's ROI was refused with the plate over the pick area")
     assert http.post("/robots/robot0/move", json={"pose_ur": pose(CLEAR_POSE_UR), "speed_m_s": 0.5}).status_code == 200
-    assert http.post("/pick/teach", json={"roi": [u - 12, v - 12, w + 24, h + 24], "name": "bracket"}).status_code == 200
+    taught = http.post("/pick/teach", json={"roi": [u - 12, v - 12, w + 24, h + 24], "name": "bracket"})
+    assert taught.status_code == 200, taught.text
 
 
 @pytest.mark.slow
@@ -62,7 +63,8 @@ def test_a_pick_picture_with_the_arm_in_view_drops_the_matches_on_the_arm(cell: 
     http = cell.http()
     recipe = teach_recipe(http)  # taught clear of the view
     # A fixed camera's recipe need not name a capture pose: the picture is taken wherever the arm is.
-    assert http.post("/recipes", json={"recipe_id": 3, "recipe": {**recipe, "capture_pose_ur": None}}).status_code == 201
+    saved = http.post("/recipes", json={"recipe_id": 3, "recipe": {**recipe, "capture_pose_ur": None}})
+    assert saved.status_code == 201, saved.text
     assert http.post("/robots/robot0/move", json={"pose_ur": pose(HOME_UR), "speed_m_s": 0.5}).status_code == 200
     clear = http.post("/pick", json={"recipe_id": 3})
     assert clear.status_code == 200, clear.text
