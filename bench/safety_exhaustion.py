@@ -1,12 +1,14 @@
 """Exhaustion rows of the safety bench (issue 34): Stop while thousands of connections are held open.
 
 A ``cellctl serve`` of the virtual cell with the Modbus server on; a flood process (nice 19, its
-own open-files limit raised) holds ``http`` slow-header HTTP connections — each sends half a
-request line and then nothing, from 20 loopback source addresses (127.0.0.2-21), and opens a new
-one 1 s after the server closes it, as a patient attacker would — and ``modbus`` idle Modbus TCP
-connections (connect, send nothing, reconnect when closed). While it holds them (after a ramp-up),
-a fresh client times ``POST /robots/robot0/stop`` (operator) and ``GET /health`` on new connections,
-then resumes; the service's log growth and its open descriptors (sampled) are reported.
+own open-files limit raised, one plain loop over non-blocking sockets) holds ``http`` slow-header
+HTTP connections — each sends half a request line and then nothing, from 20 loopback source
+addresses (127.0.0.2-21), and opens a new one 1 s after the server closes it, as a patient
+attacker would — and ``modbus`` idle Modbus TCP connections (connect, send nothing, reconnect 1 s
+after the server closes one). While it holds them (after a ramp-up), a fresh client times
+``POST /robots/robot0/stop`` (operator) and ``GET /health`` on new connections, then resumes; the
+service's log growth and its open descriptors (sampled) are reported, with an idle baseline of
+the same calls in the same run (the machine is shared).
 
 Rows: the service at the unit's ``LimitNOFILE`` (65,536, or this machine's hard limit) with both
 floods, and at the 1,024 descriptors the unit had before (HTTP flood alone, started under
@@ -40,61 +42,59 @@ TARGET_S = 0.3
 LOG_TARGET_BYTES = 1_000_000
 
 FLOOD = r"""
-import asyncio, json, resource, socket, sys, time
+import json, resource, socket, sys, time
 http_port, modbus_port, n_http, n_modbus, hold_s = (int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]),
                                                     int(sys.argv[4]), float(sys.argv[5]))
 soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
 resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 stats = {"http_opened": 0, "http_closed_by_server": 0, "modbus_opened": 0, "modbus_closed_by_server": 0,
-         "connect_failed": 0}
-open_now = {"http": 0, "modbus": 0}
+         "connect_failed": 0, "peak_open": {"http": 0, "modbus": 0}}
+slots = [("http", http_port, f"127.0.0.{2 + i % 20}") for i in range(n_http)]
+slots += [("modbus", modbus_port, "127.0.0.1") for _ in range(n_modbus)]
+conns = [None] * len(slots)      # an open socket, or None
+retry_at = [0.0] * len(slots)    # when a closed slot may connect again (1 s after it was closed)
 
-async def slot(kind, port, source, first, end):
-    await asyncio.sleep(first)
-    while time.monotonic() < end:
-        try:
-            reader, writer = await asyncio.wait_for(asyncio.open_connection("127.0.0.1", port,
-                                                                            local_addr=(source, 0)), 5)
-        except (OSError, asyncio.TimeoutError):
-            stats["connect_failed"] += 1
-            await asyncio.sleep(1.0)
+def connect(i):
+    kind, port, source = slots[i]
+    s = socket.socket()
+    s.settimeout(2.0)
+    try:
+        s.bind((source, 0))
+        s.connect(("127.0.0.1", port))
+        if kind == "http":
+            s.sendall(b"GET /health HTT")  # half a request line, then nothing
+        s.setblocking(False)
+    except OSError:
+        s.close()
+        stats["connect_failed"] += 1
+        retry_at[i] = time.monotonic() + 1.0
+        return
+    conns[i] = s
+    stats[kind + "_opened"] += 1
+
+end = time.monotonic() + hold_s
+while time.monotonic() < end:
+    now = time.monotonic()
+    for i, s in enumerate(conns):
+        if s is None:
+            if now >= retry_at[i] and time.monotonic() < end:
+                connect(i)
             continue
-        stats[kind + "_opened"] += 1
-        open_now[kind] += 1
         try:
-            if kind == "http":
-                writer.write(b"GET /health HTT")
-            left = end - time.monotonic()
-            if left > 0:
-                try:
-                    data = await asyncio.wait_for(reader.read(1), left)
-                    if data == b"":
-                        stats[kind + "_closed_by_server"] += 1
-                except asyncio.TimeoutError:
-                    pass
+            closed = s.recv(1) == b""
+        except BlockingIOError:
+            closed = False
         except OSError:
-            stats[kind + "_closed_by_server"] += 1
-        finally:
-            open_now[kind] -= 1
-            writer.close()
-        await asyncio.sleep(1.0)
-
-async def report(end):
-    peak = {"http": 0, "modbus": 0}
-    while time.monotonic() < end:
-        for k in peak:
-            peak[k] = max(peak[k], open_now[k])
-        await asyncio.sleep(0.2)
-    stats["peak_open"] = peak
-
-async def main():
-    end = time.monotonic() + hold_s
-    tasks = [slot("http", http_port, f"127.0.0.{2 + i % 20}", i * 0.001, end) for i in range(n_http)]
-    tasks += [slot("modbus", modbus_port, "127.0.0.1", i * 0.001, end) for i in range(n_modbus)]
-    tasks.append(report(end))
-    await asyncio.gather(*tasks)
-
-asyncio.run(main())
+            closed = True
+        if closed:
+            s.close()
+            conns[i] = None
+            stats[slots[i][0] + "_closed_by_server"] += 1
+            retry_at[i] = now + 1.0
+    for kind in ("http", "modbus"):
+        n = sum(1 for i, s in enumerate(conns) if s is not None and slots[i][0] == kind)
+        stats["peak_open"][kind] = max(stats["peak_open"][kind], n)
+    time.sleep(0.2)
 print(json.dumps(stats))
 """
 
