@@ -38,15 +38,26 @@ MIN_DEPTH_M = 0.05
 
 @dataclass(frozen=True)
 class ArmView:
-    """The arm's region in one camera image (``mask``: True where the arm may be)."""
+    """The arm's region in one camera image: a convex outline (image pixels)."""
 
-    mask: NDArray[np.bool_]
+    hull_px: NDArray[np.float32]
+    """The outline's corners, ``(N, 2)`` pixels (may reach beyond the image)."""
+    size: tuple[int, int]
+    """The image's ``(width, height)``."""
     what: str
     """What the region holds, in words ("the tool", "the tool and the calibration plate it carries")."""
 
+    @property
+    def mask(self) -> NDArray[np.bool_]:
+        """True where the arm may be, ``(height, width)``."""
+        w, h = self.size
+        mask = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(mask, np.round(self.hull_px).astype(np.int32), 1)
+        return mask.astype(bool)
+
     def share_of(self, roi: tuple[float, float, float, float] | list[float] | None) -> float:
         """The share (0..1) of the rectangle ``roi`` ``[u, v, w, h]`` (None: the whole image) the arm covers."""
-        h_img, w_img = self.mask.shape
+        w_img, h_img = self.size
         if roi is None:
             u0, v0, u1, v1 = 0, 0, w_img, h_img
         else:
@@ -58,9 +69,7 @@ class ArmView:
         return float(self.mask[v0:v1, u0:u1].mean())
 
     def covers(self, u_px: float, v_px: float) -> bool:
-        h_img, w_img = self.mask.shape
-        u, v = int(round(u_px)), int(round(v_px))
-        return 0 <= u < w_img and 0 <= v < h_img and bool(self.mask[v, u])
+        return cv2.pointPolygonTest(self.hull_px.reshape(-1, 1, 2), (float(u_px), float(v_px)), False) >= 0
 
 
 def arm_view(mapping: Any, T_base_tool: Any, config: Any = None) -> ArmView | None:
@@ -92,11 +101,10 @@ def arm_view(mapping: Any, T_base_tool: Any, config: Any = None) -> ArmView | No
         return None
     big = 4.0 * max(cam.width, cam.height)  # keep cv2's int32 pixels sane; the hull is clipped by the image
     hull = cv2.convexHull(np.clip(uv, -big, big).astype(np.float32)).reshape(-1, 2)
-    mask = np.zeros((cam.height, cam.width), np.uint8)
-    cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
-    if not mask.any():
-        return None
-    return ArmView(mask.astype(bool), what)
+    lo, hi = hull.min(axis=0), hull.max(axis=0)
+    if hi[0] < 0 or hi[1] < 0 or lo[0] > cam.width - 1 or lo[1] > cam.height - 1:
+        return None  # the outline lies wholly outside the image
+    return ArmView(hull, (int(cam.width), int(cam.height)), what)
 
 
 def _plate_corners(calib: dict[str, Any], config: Any) -> NDArray[np.float64] | None:

@@ -10,9 +10,10 @@ otherwise (under systemd, in a container, piped to a file), unless ``--log-forma
 What a flood of clients makes happen must not flood the log (issue 34: 53-94 MB in 20 s while
 the process was out of descriptors). Two filters sit on the handler:
 
-- :class:`RepeatFilter`: the same message (logger, level, format string) is written at most
-  ``REPEAT_MAX`` (20) times per ``REPEAT_WINDOW_S`` (10 s); the rest are counted, and the first one
-  after the window says how many were left out (``"... (and 1234 more like this in the last 10 s)"``,
+- :class:`RepeatFilter`: the same message (logger, level and, for warnings and errors, the format
+  string — for information, the text) is written at most ``REPEAT_MAX`` (20) times per
+  ``REPEAT_WINDOW_S`` (10 s); the rest are counted, and the first one after the window says how
+  many were left out (``"... (and 1234 more like this in the last 10 s)"``,
   with ``suppressed`` as an extra).
 - :class:`ClientNoiseFilter`: a record caused by a client's garbage or a vanished peer (a reset
   connection, a TLS handshake of junk, an invalid HTTP request) or by the process running out of
@@ -98,7 +99,10 @@ class RepeatFilter(logging.Filter):
         self._lock = threading.Lock()
 
     def filter(self, record: logging.LogRecord) -> bool:
-        key = (record.name, record.levelno, str(record.msg))
+        # Warnings and errors by their format string (a flood's "refused: %s" lines are one message);
+        # information by its text (each access-log line differs; only exact repeats are counted).
+        text = str(record.msg) if record.levelno >= logging.WARNING else record.getMessage()
+        key = (record.name, record.levelno, text)
         now = time.monotonic()
         with self._lock:
             entry = self._seen.get(key)

@@ -167,6 +167,10 @@ def test_a_repeated_message_is_counted_then_summarised() -> None:
     summary = rec()
     assert f.filter(summary)
     assert "997 more like this" in summary.getMessage() and summary.suppressed == 997  # type: ignore[attr-defined]
+    # Information lines (the access log) are counted only when they repeat word for word.
+    access = [logging.LogRecord("cellctl.access", logging.INFO, __file__, 1, "%s %s %d %.1f ms",
+                                ("GET", "/health", 200, 1.0 + k), None) for k in range(100)]
+    assert all(f.filter(r) for r in access)
 
 
 def test_a_clients_garbage_logs_no_traceback() -> None:
