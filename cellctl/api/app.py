@@ -11,7 +11,7 @@ from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
 from cellctl import __version__, metrics
-from cellctl.api.connections import guarded_protocol, raise_open_files_limit
+from cellctl.api.connections import ACCEPT_BACKLOG, guarded_protocol, raise_open_files_limit
 from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
 from cellctl.api.pools import Pools
@@ -30,7 +30,7 @@ from cellctl.warmup import service_startup
 
 log = logging.getLogger(__name__)
 
-__all__ = ["create_app", "guarded_protocol", "raise_open_files_limit"]
+__all__ = ["ACCEPT_BACKLOG", "create_app", "guarded_protocol", "raise_open_files_limit"]
 """``cellctl serve`` (the one door from the CLI) builds the app and its HTTP protocol from here."""
 
 

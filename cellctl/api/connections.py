@@ -16,7 +16,8 @@ the process, and a new Stop could not connect. The service's HTTP protocol
 - keeps :data:`FD_RESERVE` descriptors of the process's open-files limit (``RLIMIT_NOFILE``) out of
   the cap's reach, for what the answers themselves need (the store, devices, the PLC servers, the
   log). ``cellctl serve`` raises its soft limit towards the hard one at start
-  (:func:`raise_open_files_limit`); the systemd unit sets ``LimitNOFILE``.
+  (:func:`raise_open_files_limit`); the systemd unit sets ``LimitNOFILE``. The listening backlog
+  is :data:`ACCEPT_BACKLOG` (256), so a burst of connections accepted at once stays within the reserve.
 
 Closed connections are counted (:class:`ConnectionGuard` ``.closed``), never logged one by one.
 """
@@ -39,6 +40,11 @@ FD_RESERVE = 512
 WANTED_OPEN_FILES = 65_536
 """The soft open-files limit ``cellctl serve`` asks for at start (at most the hard limit)."""
 MIN_CONNECTIONS = 16
+ACCEPT_BACKLOG = FD_RESERVE // 2
+"""The listening socket's backlog (uvicorn's default is 2,048). asyncio accepts up to this many
+connections per wake-up, each a descriptor, before the protocol can close one over the cap: the
+backlog bounds that overshoot to half the reserve (at 1,024 descriptors a 2,048 backlog ran the
+process out of them, and ``accept()`` then paused for a second)."""
 
 
 def open_files_limit() -> tuple[int, int]:

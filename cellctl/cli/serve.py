@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> None:
     if http.tls_cert is None and not http.is_loopback():
         log.warning("serving plain HTTP on %s: tokens cross the network in clear; set http.tls_cert/tls_key",
                     http.host)
-    from cellctl.api.app import guarded_protocol, raise_open_files_limit
+    from cellctl.api.app import ACCEPT_BACKLOG, guarded_protocol, raise_open_files_limit
 
     soft = raise_open_files_limit()  # descriptors for many clients; a cap and a reserve below (api/connections.py)
     protocol = guarded_protocol(http, soft)
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> None:
     # Our handler formats uvicorn's records too (log_config=None); the middleware writes the access
     # log with the request id, so uvicorn's own access log is off.
     uvicorn.run(app, host=http.host, port=http.port, log_level="info", log_config=None, access_log=False,
-                ssl_certfile=http.tls_cert, ssl_keyfile=http.tls_key, http=protocol)
+                ssl_certfile=http.tls_cert, ssl_keyfile=http.tls_key, http=protocol, backlog=ACCEPT_BACKLOG)
 
 
 def _check_ports(config: CellConfig) -> None:
