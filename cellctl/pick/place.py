@@ -47,17 +47,21 @@ MIN_PITCH_MM = 1.0
 """Neighbouring slots at least this far apart (a pitch of 0 puts every part in one place)."""
 
 
-def _grid_sane(rows: int, cols: int, layers: int, pitch_mm: tuple[float, float], layer_mm: float) -> None:
-    """Refuse a degenerate grid: too many slots, or two slots in one place."""
+def grid_problem(rows: int, cols: int, layers: int, pitch_mm: tuple[float, float], layer_mm: float) -> str | None:
+    """Why a grid is degenerate (too many slots, or two slots in one place); None when it is not.
+
+    Checked when a recipe is saved (``cellctl.pick.recipe_limits``), not by the models themselves: a
+    place section may be built step by step (a located place is found before its pitch is known)."""
     n = rows * cols * layers
     if n > MAX_SLOTS:
-        raise ValueError(f"the grid has {n} slots ({rows} rows x {cols} cols x {layers} layers), more than "
-                         f"{MAX_SLOTS}: give the tray's real rows, cols and layers")
+        return (f"the grid has {n} slots ({rows} rows x {cols} cols x {layers} layers), more than {MAX_SLOTS}: "
+                "give the tray's real rows, cols and layers")
     for count, value, what in ((cols, pitch_mm[0], "pitch_mm[0] (between columns)"),
                                (rows, pitch_mm[1], "pitch_mm[1] (between rows)"), (layers, layer_mm, "layer_mm")):
         if count > 1 and abs(value) < MIN_PITCH_MM:
-            raise ValueError(f"{what} is {value:g} mm with {count} of them: slots closer than {MIN_PITCH_MM:g} mm "
-                             "put parts into one another; give the tray's pitch in mm")
+            return (f"{what} is {value:g} mm with {count} of them: slots closer than {MIN_PITCH_MM:g} mm put parts "
+                    "into one another; give the tray's pitch in mm")
+    return None
 
 
 def _metres(v: UR, what: str) -> UR:
@@ -109,11 +113,6 @@ class GridPlace(_Strict):
             raise ValueError(f"pitch_mm {list(v)} is more than 10 m")
         return v
 
-    @model_validator(mode="after")
-    def _sane(self) -> GridPlace:
-        _grid_sane(self.rows, self.cols, self.layers, self.pitch_mm, self.layer_mm)
-        return self
-
     def slot_count(self) -> int:
         return self.rows * self.cols * self.layers
 
@@ -149,11 +148,6 @@ class LocatedPlace(_Strict):
     @classmethod
     def _pose(cls, v: UR) -> UR:
         return _metres(v, "origin_ur")
-
-    @model_validator(mode="after")
-    def _sane(self) -> LocatedPlace:
-        _grid_sane(self.rows, self.cols, self.layers, self.pitch_mm, self.layer_mm)
-        return self
 
     def slot_count(self) -> int:
         return self.rows * self.cols * self.layers

@@ -1,9 +1,11 @@
 """A recipe checked against the cell it is saved for: what the cell's robot allows, before it is stored.
 
 ``POST /recipes`` refuses (422 ``recipe_outside_cell``) a recipe that could only fail when run
-(issue 34): a ``speed_m_s`` above the robot's ``max_linear_speed_m_s`` (cell.yaml), or a place that
-puts the tool outside the robot's envelope or tool cone — a fixed place's pose, or any corner
-slot of a grid (first and last row, column and layer), each with its approach above it. The
+(issue 34): a degenerate grid (``cellctl.pick.place.grid_problem``: over 10,000 slots, or
+neighbouring slots closer than 1 mm), a ``speed_m_s`` above the robot's ``max_linear_speed_m_s``
+(cell.yaml), or a place that puts the tool outside the robot's envelope or tool cone — a fixed
+place's pose, or any corner slot of a grid (first and last row, column and layer), each with its
+approach above it. The
 tool's pose at a slot is the recipe's grasp applied to the part's pose there (as a run computes it,
 ``cellctl.production.place``); a located place moves with its fixture and is checked at each pick.
 """
@@ -18,7 +20,7 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.config import CellConfig
-from cellctl.pick.place import FixedPlace, GridPlace
+from cellctl.pick.place import FixedPlace, GridPlace, LocatedPlace, grid_problem
 from cellctl.pick.recipe import PickError, Recipe
 from drivers.base import MotionRejected
 
@@ -29,6 +31,11 @@ class RecipeOutsideCell(PickError):
 
 def check_recipe_for_cell(recipe: Recipe, config: CellConfig) -> None:
     """Raise :class:`RecipeOutsideCell` when ``recipe`` asks more than the cell's robot allows."""
+    place = recipe.place
+    if isinstance(place, GridPlace | LocatedPlace):
+        problem = grid_problem(place.rows, place.cols, place.layers, place.pitch_mm, place.layer_mm)
+        if problem is not None:
+            raise RecipeOutsideCell(f"place: {problem}")
     robot_id = recipe.robot_id or config.calibration.robot
     robot = config.robots.get(robot_id) if robot_id else None
     if robot is None:
@@ -37,7 +44,6 @@ def check_recipe_for_cell(recipe: Recipe, config: CellConfig) -> None:
     if recipe.speed_m_s > limits.max_linear_speed_m_s:
         raise RecipeOutsideCell(f"speed_m_s {recipe.speed_m_s:g} is above robot {robot_id}'s max_linear_speed_m_s "
                                 f"{limits.max_linear_speed_m_s:g} m/s (cell.yaml): give at most that")
-    place = recipe.place
     if isinstance(place, FixedPlace):
         slots = [(0, "the place pose")]
     elif isinstance(place, GridPlace):
