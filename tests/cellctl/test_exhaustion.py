@@ -10,8 +10,10 @@ the header deadline), and the log must stay small. The 5,000-connection figures 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import random
 import resource
 import socket
 import time
@@ -117,6 +119,26 @@ def test_a_kept_alive_connection_is_served_then_held_to_the_header_deadline(cell
         t0 = time.monotonic()
         assert s.recv(65536) == b""  # closed by the server
         assert time.monotonic() - t0 < HEADER_TIMEOUT_S + 2.0
+
+
+def test_garbage_from_clients_logs_no_traceback_and_little_else(cell: tuple[Served, str, Path]) -> None:
+    served, _, log_path = cell
+    host, port = served.base_url.removeprefix("http://").split(":")
+    before = log_path.stat().st_size
+    rng = random.Random(34)
+    for k in range(200):
+        with socket.create_connection((host, int(port)), timeout=5) as s:
+            junk = (b"\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03" if k % 2 else
+                    bytes(rng.randrange(256) for _ in range(200))) + b"\r\n\r\n"
+            with contextlib.suppress(OSError):
+                s.sendall(junk)
+                s.recv(4096)
+    assert httpx.get(served.base_url + "/health", timeout=10.0).status_code == 200
+    with log_path.open("rb") as f:
+        f.seek(before)
+        grown = f.read().decode(errors="replace")
+    assert "Traceback" not in grown and '"exc"' not in grown, grown[-2000:]
+    assert len(grown) < 20_000, len(grown)  # 200 junk requests: counted and summarised, not 200 lines each
 
 
 class FakeConn:
