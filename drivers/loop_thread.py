@@ -17,8 +17,10 @@ import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from drivers.errors import DriverError
 
-class LoopNotRunning(RuntimeError):
+
+class LoopNotRunning(DriverError, RuntimeError):
     """``call`` on a loop thread that was not started or has stopped."""
 
 
