@@ -26,6 +26,12 @@ def pose_ur(T: NDArray[np.float64]) -> list[float]:
     return [float(v) for v in g.transform_to_ur_pose(T)]
 
 
+def pose_json(T: NDArray[np.float64]) -> dict[str, float]:
+    """A pose as the answers give it: ``x_mm``, ``y_mm``, ``z_mm`` and the rotation vector in radians."""
+    x, y, z, rx, ry, rz = (float(v) for v in g.transform_to_ur_pose(T))
+    return {"x_mm": x * 1e3, "y_mm": y * 1e3, "z_mm": z * 1e3, "rx_rad": rx, "ry_rad": ry, "rz_rad": rz}
+
+
 def outcome(exc: BaseException) -> str:
     """The audit outcome of a failed move."""
     kind = ("refused" if isinstance(exc, MotionRejected | RobotBusy) else

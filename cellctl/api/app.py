@@ -60,6 +60,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         except BaseException as exc:
             log.error("the PLC servers cannot start: %s", exc)
             await run_in_threadpool(services.close)
+            await run_in_threadpool(app.state.startup.stop)
             raise
         try:
             yield
@@ -69,6 +70,7 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
             await run_in_threadpool(services.stop_production)
             await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
+            await run_in_threadpool(app.state.startup.stop)
 
     app = FastAPI(
         title="cellctl",

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from cellctl.mapping import ActiveMapping, active_mapping, npoint_pose_check
 from cellctl.pick.frames import match_contours
-from cellctl.pick.pose import Grasp, PartPose, grasp, part_pose, pose_json
+from cellctl.pick.pose import grasp, part_pose, pose_json
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.services import Services
 from drivers.base import MotionRejected, RobotBase
@@ -32,42 +32,31 @@ Mat4 = NDArray[np.float64]
 
 @dataclass
 class PickCandidate:
-    """One found part, computed once: the match, its pose, the grasp, and whether the robot may go there."""
+    """One found part, computed once: the match, its pose, the grasp, and whether the robot may go there.
+
+    Plain values (no computed properties): whoever takes the candidate further (production's place)
+    reads them without coming back into ``cellctl.pick``."""
 
     match: Recognition
-    part: PartPose
-    grip: Grasp
+    T_base_part: Mat4
+    """The part's reference point on the plane, its taught x axis along x (4x4, metres, base frame)."""
+    sigma_mm: list[float]
+    """The reference point's 1-sigma (x, y, z), mm."""
+    sigma_yaw_deg: float | None
+    """The part's yaw 1-sigma (the match's own angle sigma), degrees; None when the search gave none."""
+    base_yaw_deg: float
+    """The part's taught x axis in the base frame, degrees."""
+    T_part_grip: Mat4
+    """The gripper centre in the part's frame (the recipe's grasp, folded to the tool's nearest yaw)."""
+    T_grip_flange: Mat4
+    """The commanded flange in the gripper centre's frame (identity without a tool centre offset)."""
+    T_pick: Mat4
+    T_approach: Mat4
+    gripper_yaw_deg: float
     refused: tuple[str, str] | None = None
     """(which pose, why) when the pick or its approach is outside the robot's envelope; None: reachable."""
     problem: str | None = None
     """Why this part is not to be picked (a refused pose; production adds a neighbour too close); None: it may be."""
-
-    @property
-    def T_base_part(self) -> Mat4:
-        return self.part.T_base_part
-
-    @property
-    def T_pick(self) -> Mat4:
-        return self.grip.T_pick
-
-    @property
-    def T_approach(self) -> Mat4:
-        return self.grip.T_approach
-
-    @property
-    def T_part_grip(self) -> Mat4:
-        return self.grip.T_part_grip
-
-    @property
-    def sigma_mm(self) -> list[float]:
-        """The part's reference point 1-sigma (x, y, z), mm."""
-        return self.part.sigma_mm
-
-    @property
-    def sigma_yaw_deg(self) -> float | None:
-        """The part's yaw 1-sigma (the match's own angle sigma), degrees; None when the search gave none."""
-        s = float(self.match.sigma_angle_deg)
-        return s if math.isfinite(s) else None
 
     @property
     def reachable(self) -> bool:
@@ -77,9 +66,8 @@ class PickCandidate:
         """The pick answer's entry for this part (``POST /pick``, the PLC's picks)."""
         return {**self.match.as_dict(), "pick_pose": pose_json(self.T_pick),
                 "approach_pose": pose_json(self.T_approach), "T_base_tool": self.T_pick.tolist(),
-                "part_yaw_deg": wrap_deg(self.match.angle_deg),
-                "base_yaw_deg": math.degrees(self.part.base_yaw_rad),
-                "gripper_yaw_deg": math.degrees(self.grip.gripper_yaw_rad),
+                "part_yaw_deg": wrap_deg(self.match.angle_deg), "base_yaw_deg": self.base_yaw_deg,
+                "gripper_yaw_deg": self.gripper_yaw_deg,
                 "uncertainty": {"sigma_mm": self.sigma_mm, "sigma_yaw_deg": self.sigma_yaw_deg},
                 "reachable": self.reachable, "not_reachable_reason": None if self.refused is None else self.refused[1]}
 
@@ -98,7 +86,10 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
             refused = (what, str(exc))
             break
     problem = None if refused is None else f"the {refused[0]} pose is refused: {refused[1]}"
-    return PickCandidate(match, part, grip, refused, problem)
+    sigma_yaw = float(match.sigma_angle_deg)
+    return PickCandidate(match, part.T_base_part, part.sigma_mm, sigma_yaw if math.isfinite(sigma_yaw) else None,
+                         math.degrees(part.base_yaw_rad), grip.T_part_grip, grip.T_grip_flange, grip.T_pick,
+                         grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem)
 
 
 @dataclass

@@ -31,12 +31,16 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.mapping import ActiveMapping
+from cellctl.motion import pose_json
 from cellctl.pick.recipe import Recipe
 from vision.image import wrap_deg
 
 Mat4 = NDArray[np.float64]
 
 AXIS_PROBE_PX = 25.0
+
+__all__ = ["AXIS_PROBE_PX", "Grasp", "PartPose", "flange_pose", "fold_yaw", "grasp", "grip_to_flange", "part_pose",
+           "pick_pose", "pose_json"]
 
 
 def fold_yaw(yaw: float, symmetry: float, near: float) -> float:
@@ -82,9 +86,20 @@ class Grasp:
     the tool (``T_base_tool``, metres; the flange's when the recipe has a ``tool_centre_offset_mm``)."""
 
     T_part_grip: Mat4
+    T_grip_flange: Mat4
+    """The flange in the gripper centre's frame (identity without a ``tool_centre_offset_mm``): the
+    commanded pose of a grip at ``T`` is ``T @ T_grip_flange``, at the pick and at the place alike."""
     T_pick: Mat4
     T_approach: Mat4
     gripper_yaw_rad: float
+
+
+def grip_to_flange(recipe: Recipe) -> Mat4:
+    """``T_grip_flange``: the flange pose that puts the gripper's centre at ``T`` is ``T @ T_grip_flange``."""
+    if recipe.tool_centre_offset_mm is None:
+        return np.eye(4)
+    R0 = g.rotvec_to_matrix(recipe.tool_rotvec_rad)
+    return flange_pose_for_feature(np.eye(4), tool_offset_vector(recipe.tool_centre_offset_mm, R0))
 
 
 def flange_pose(recipe: Recipe, T_grip: Mat4) -> Mat4:
@@ -108,7 +123,7 @@ def grasp(recipe: Recipe, part: PartPose, near_yaw: float) -> Grasp:
     T_pick = flange_pose(recipe, part.T_base_part @ T_part_grip)
     T_approach = T_pick.copy()
     T_approach[2, 3] += recipe.approach_height_mm * 1e-3
-    return Grasp(T_part_grip, T_pick, T_approach, yaw)
+    return Grasp(T_part_grip, grip_to_flange(recipe), T_pick, T_approach, yaw)
 
 
 def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
@@ -125,7 +140,3 @@ def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_
             "sigma_mm": part.sigma_mm,
             "sigma_yaw_deg": float(sigma_angle_deg) if math.isfinite(sigma_angle_deg) else None}
 
-
-def pose_json(T: NDArray[np.float64]) -> dict[str, float]:
-    x, y, z, rx, ry, rz = (float(v) for v in g.transform_to_ur_pose(T))
-    return {"x_mm": x * 1e3, "y_mm": y * 1e3, "z_mm": z * 1e3, "rx_rad": rx, "ry_rad": ry, "rz_rad": rz}

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_valid
 from cellctl.errors import CellctlError
 from cellctl.pick.model import PartModel
 from cellctl.pick.model_schema import PartModelDoc
-from cellctl.pick.place import GripperDevice, PlaceSection
+from cellctl.production.config import GripperDevice, PlaceSection
 from cellctl.strict_types import Bool, Count, Num
 
 

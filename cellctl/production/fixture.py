@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 
 from cellctl.mapping import ActiveMapping
 from cellctl.pick.model import PartModel
-from cellctl.pick.place import LocatedPlace
 from cellctl.pick.pose import part_pose
+from cellctl.production.config import LocatedPlace
 from vision.recognize import recognize
 from vision.types import SearchParams
 

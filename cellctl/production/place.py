@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.pick.candidate import PickCandidate
-from cellctl.pick.pose import flange_pose
 from cellctl.pick.recipe import Recipe
 from drivers.base import MotionLimits, MotionRejected
 
@@ -25,7 +24,7 @@ Mat4 = NDArray[np.float64]
 def place_poses(recipe: Recipe, cand: PickCandidate, T_slot: Mat4, limits: MotionLimits) -> tuple[Mat4, Mat4]:
     """(place, place approach) poses of the tool for the part ``cand`` at ``T_slot``; MotionRejected when
     refused."""
-    T_place = flange_pose(recipe, T_slot @ cand.T_part_grip)
+    T_place = T_slot @ cand.T_part_grip @ cand.T_grip_flange
     height_mm = recipe.approach_height_mm
     if recipe.place is not None and recipe.place.approach_height_mm is not None:
         height_mm = recipe.place.approach_height_mm

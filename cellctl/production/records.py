@@ -82,7 +82,7 @@ class Durations:
 def seen_fields(cand: Any, picture: Any, T_place: Any) -> dict[str, Any]:
     """A cycle record's fields from what it saw and did: the chosen part (``PickCandidate``), the
     picture (``vision.Picture``) and the place pose (4x4, metres); None where there is none."""
-    from cellctl.pick.pose import pose_json
+    from cellctl.motion import pose_json
 
     return {
         "score": None if cand is None else float(cand.match.score),

@@ -26,9 +26,9 @@ from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.motion import audited_move, halt_after_failure
 from cellctl.pick.candidate import PickCandidate
-from cellctl.pick.place import LocatedPlace
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.choice import Choice
+from cellctl.production.config import LocatedPlace
 from cellctl.production.frames import KEPT_RESULTS, FailureFrames
 from cellctl.production.gripper import Gripper
 from cellctl.production.place import place_poses

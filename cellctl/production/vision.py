@@ -25,8 +25,8 @@ import numpy as np
 from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.candidate import PickCandidate, locate
-from cellctl.pick.place import LocatedPlace
 from cellctl.pick.recipe import Recipe
+from cellctl.production.config import LocatedPlace
 from cellctl.production.fixture import locate_fixture, slots_in_base
 from cellctl.services import Services
 from drivers.base import RobotBase
