@@ -108,10 +108,8 @@ class Located:
     timed_out: bool
     rejected: list[dict[str, Any]] = field(default_factory=list)
     latency_ms: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def calibration(self) -> dict[str, Any]:
-        return {"kind": self.mapping.kind, "id": self.mapping.calibration_id}
+    calibration: dict[str, Any] = field(default_factory=dict)
+    """The calibration that mapped the matches: ``{"kind", "id"}``."""
 
     def answer(self) -> dict[str, Any]:
         """The pick answer (``POST /pick``; the PLC front ends read the same)."""
@@ -169,4 +167,5 @@ def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, cam
     services.metrics.observe_pick(t_done - t0, [c.match.score for c in cands])
     return Located(recipe_id, version, cam_id, robot.robot_id, mapping, T_capture, cands, frame_id, reason,
                    found.timed_out, [x.as_dict() for x in found.rejected],
-                   {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3, "total": (t_done - t0) * 1e3})
+                   {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3, "total": (t_done - t0) * 1e3},
+                   {"kind": mapping.kind, "id": mapping.calibration_id})
