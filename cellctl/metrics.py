@@ -83,9 +83,11 @@ class CellMetrics:
         self.attached = True
 
     def detach(self) -> None:
-        """Forget the cell and record nothing more (the service's close); the registry keeps its counts."""
+        """Forget the cell and record nothing more (the service's close); the registry keeps its counts.
+        A camera's ``settings()`` still being asked is waited for (``SETTINGS_TIMEOUT_S`` each)."""
         self.devices.cell = None
         self.attached = False
+        self.devices.join(SETTINGS_TIMEOUT_S)
 
     def observe_request(self, method: str, route: str, status: int, duration_s: float) -> None:
         self.request_duration.labels(method, route, str(status)).observe(duration_s)
@@ -125,6 +127,17 @@ class DeviceCollector(Collector):
         self.cell: Cell | None = None
         self._pending: dict[str, threading.Thread] = {}
         self._lock = threading.Lock()
+
+    def join(self, timeout_s: float) -> None:
+        """Wait for the ``settings()`` calls in progress (each thread is bounded by its device's answer: a
+        device that hangs keeps its one thread, never more, and it is logged)."""
+        with self._lock:
+            pending = list(self._pending.values())
+            self._pending.clear()
+        for thread in pending:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("%s: the camera's settings() call has not returned; its thread stays", thread.name)
 
     def describe(self) -> Iterable[Metric]:
         return []  # the series depend on the cell; describe nothing so registration never scrapes
