@@ -1,7 +1,7 @@
 """A recipe checked against the cell it is saved for: what the cell's robot allows, before it is stored.
 
 ``POST /recipes`` refuses (422 ``recipe_outside_cell``) a recipe that could only fail when run
-(issue 34): a degenerate grid (``cellctl.pick.place.grid_problem``: over 10,000 slots, or
+(issue 34): a degenerate grid (``cellctl.production.config.grid_problem``: over 10,000 slots, or
 neighbouring slots closer than 1 mm), a ``speed_m_s`` above the robot's ``max_linear_speed_m_s``
 (cell.yaml), or a place that puts the tool outside the robot's envelope or tool cone — a fixed
 place's pose, or any corner slot of a grid (first and last row, column and layer), each with its
@@ -18,10 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.handeye import flange_pose_for_feature, tool_offset_vector
 from cellctl.config import CellConfig
-from cellctl.pick.place import FixedPlace, GridPlace, LocatedPlace, grid_problem
+from cellctl.pick.pose import flange_pose
 from cellctl.pick.recipe import PickError, Recipe
+from cellctl.production.config import FixedPlace, GridPlace, LocatedPlace, grid_problem
 from drivers.base import MotionRejected
 
 
@@ -54,7 +54,7 @@ def check_recipe_for_cell(recipe: Recipe, config: CellConfig) -> None:
     height_mm = recipe.approach_height_mm if place.approach_height_mm is None else place.approach_height_mm
     grip = _part_grip(recipe)
     for k, what in slots:
-        T_place = _flange(recipe, place.T_slot(k) @ grip)
+        T_place = flange_pose(recipe, place.T_slot(k) @ grip)
         T_app = T_place.copy()
         T_app[2, 3] += height_mm * 1e-3
         for T, which in ((T_place, "place"), (T_app, "pre-place")):
@@ -71,10 +71,3 @@ def _part_grip(recipe: Recipe) -> NDArray[np.float64]:
     ox, oy = recipe.grasp_offset_mm
     return g.make_transform(g.rotvec_to_matrix([0.0, 0.0, np.radians(recipe.grasp_yaw_deg)]) @ R0,
                             [ox * 1e-3, oy * 1e-3, recipe.grasp_z_mm * 1e-3])
-
-
-def _flange(recipe: Recipe, T_grip: NDArray[np.float64]) -> NDArray[np.float64]:
-    if recipe.tool_centre_offset_mm is None:
-        return T_grip
-    R0 = g.rotvec_to_matrix(recipe.tool_rotvec_rad)
-    return flange_pose_for_feature(T_grip, tool_offset_vector(recipe.tool_centre_offset_mm, R0))
