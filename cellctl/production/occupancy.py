@@ -47,9 +47,11 @@ class Occupancy:
         return {"objects": self.objects, "min_extent_px": round(self.min_extent_px, 1), "boxes_px": self.boxes_px}
 
 
-def occupancy(pixels: NDArray[Any], roi: Any, part_sides_px: list[float], arm_mask: NDArray[np.bool_] | None
-              ) -> Occupancy:
-    """The objects in ``roi`` (``[u, v, w, h]`` or None: the whole image) outside ``arm_mask``."""
+def occupancy(pixels: NDArray[Any], roi: Any, part_sides_px: list[float], arm_mask: NDArray[np.bool_] | None,
+              known_px: list[tuple[float, float, float]] | None = None) -> Occupancy:
+    """The objects in ``roi`` (``[u, v, w, h]`` or None: the whole image) outside ``arm_mask`` and outside the
+    discs ``known_px`` (``(u, v, radius)``: what the picture's search did recognise — parts in a located
+    place's slots, the fixture itself)."""
     img = pixels if pixels.ndim == 2 else cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
         img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
@@ -71,6 +73,11 @@ def occupancy(pixels: NDArray[Any], roi: Any, part_sides_px: list[float], arm_ma
     if arm_mask is not None:
         arm = cv2.dilate(arm_mask[v0:v1, u0:u1].astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         edges &= ~arm
+    if known_px:
+        seen = np.zeros(edges.shape, np.uint8)
+        for u, v, r in known_px:
+            cv2.circle(seen, (int(round(u - u0)), int(round(v - v0))), int(np.ceil(r)), 1, -1)
+        edges &= seen == 0
     grouped = cv2.dilate(edges.astype(np.uint8), np.ones((5, 5), np.uint8))
     n, _, stats, _ = cv2.connectedComponentsWithStats(grouped, connectivity=8)
     boxes = []
@@ -80,6 +87,13 @@ def occupancy(pixels: NDArray[Any], roi: Any, part_sides_px: list[float], arm_ma
             boxes.append([x + u0, y + v0, w, h])
     boxes.sort(key=lambda b: -b[2] * b[3])
     return Occupancy(len(boxes), min_extent, boxes[:20])
+
+
+def model_radius_px(model: Any) -> float:
+    """Half the diagonal of a model's teach ROI (a recipe's ``models`` entry or a place's ``model``), pixels:
+    the disc any turn of the taught part covers around its reference point."""
+    roi = getattr(getattr(model, "teach", None), "roi", None)
+    return 0.5 * float(np.hypot(roi[2], roi[3])) if roi is not None else 0.0
 
 
 def part_sides_px(models: list[Any]) -> list[float]:

@@ -28,7 +28,7 @@ from cellctl.pick.candidate import PickCandidate, locate
 from cellctl.pick.recipe import Recipe
 from cellctl.production.config import LocatedPlace
 from cellctl.production.fixture import locate_fixture, slots_in_base
-from cellctl.production.occupancy import Occupancy, occupancy, part_sides_px
+from cellctl.production.occupancy import Occupancy, model_radius_px, occupancy, part_sides_px
 from cellctl.services import Services
 from drivers.base import RobotBase
 
@@ -93,8 +93,12 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     if not cands:
         # Nothing to pick: does the picture show objects anyway (parts nothing matched), or is the area empty?
         arm = located.arm
+        r_part = max((model_radius_px(m) for m in recipe.models), default=0.0)
+        known = [(float(c.match.u_px), float(c.match.v_px), r_part) for c in located.candidates]
+        if isinstance(recipe.place, LocatedPlace) and fixture is not None and "u_px" in fixture:
+            known.append((float(fixture["u_px"]), float(fixture["v_px"]), model_radius_px(recipe.place.model)))
         occupied = occupancy(services.frames.get(located.frame_id).pixels, recipe.search.roi,
-                             part_sides_px(recipe.models), arm.mask if arm is not None else None)
+                             part_sides_px(recipe.models), arm.mask if arm is not None else None, known)
     return Picture(cands, located.frame_id, located.reason, located.calibration, time.monotonic() - t0, len(cands),
                    located.timed_out, T_base_fixture=T_fixture, fixture=fixture, arm=located.arm_in_view,
                    occupancy=occupied)
