@@ -188,7 +188,7 @@ class ModbusServerConfig(_Strict):
     """Modbus unit (device) id the server answers to; 0 answers every unit id."""
     idle_timeout_s: float = Field(60.0, gt=0, le=86400)
     """A connection that sends nothing for this long is closed (a PLC polls far more often)."""
-    max_connections_per_address: int = Field(8, ge=1, le=10000)
+    max_connections_per_address: int = Field(16, ge=1, le=10000)
     """Connections at once from one client address; more are closed at once (a PLC needs one or two)."""
     max_connections: int = Field(64, ge=1, le=100000)
     """Connections at once in all; more are closed at once, so no client can use up the service's descriptors."""

@@ -44,10 +44,12 @@ _ONE_SERVER = threading.Lock()
 def _cpppo() -> Any:
     """cpppo's modules, imported on first use (2.5 s; its loggers quietened first)."""
     for name in ("enip", "cpppo", "parser", "network"):
-        quiet(name)
+        logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger(name).level))
     import cpppo
     from cpppo.server.enip import device, logix, parser
 
+    for name in ("enip", "cpppo", "parser", "network"):
+        quiet(name)  # after the import: its loggers exist now
     return cpppo, device, logix, parser
 
 

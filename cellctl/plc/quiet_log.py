@@ -10,12 +10,14 @@ front ends' own rate-limited warning.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 
 WINDOW_S = 10.0
 BURST = 5
 MAX_CHARS = 240
+_DIGITS = re.compile(r"[0-9]+")
 
 
 class _Limiter:
@@ -55,7 +57,8 @@ class QuietFilter(logging.Filter):
         except Exception:  # noqa: BLE001 - a bad format string in a library's record
             text = str(record.msg)
         first = (text.strip().splitlines() or [""])[0][:MAX_CHARS]
-        ok, dropped = self._limiter.allow(f"{record.name}:{first[:60]}")
+        # The same kind of message with other numbers in it (a protocol id, a length) is one key.
+        ok, dropped = self._limiter.allow(f"{record.name}:{_DIGITS.sub('#', first)[:40]}")
         if not ok:
             return False
         record.msg = first + (f" (and {dropped} more like it in the last {self._limiter.window_s:.0f} s)"
@@ -72,12 +75,16 @@ _install_lock = threading.Lock()
 
 
 def quiet(logger_name: str, level: int = logging.WARNING) -> None:
-    """Put a :class:`QuietFilter` on a library's logger (once) and raise its level to at least ``level``."""
+    """Put a :class:`QuietFilter` on a library's logger and on every child logger it has made so far (a
+    logger's filters do not apply to its children's records), and raise its level to at least ``level``."""
     with _install_lock:
         logger = logging.getLogger(logger_name)
-        if logger_name not in _installed:
-            logger.addFilter(QuietFilter())
-            _installed.add(logger_name)
+        names = [logger_name] + [n for n in list(logging.root.manager.loggerDict)
+                                 if n.startswith(logger_name + ".")]
+        for name in names:
+            if name not in _installed:
+                logging.getLogger(name).addFilter(QuietFilter())
+                _installed.add(name)
         if logger.getEffectiveLevel() < level:
             logger.setLevel(level)
 
