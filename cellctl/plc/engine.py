@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -138,6 +139,8 @@ class FrontEnd:
     last_answer: dict[str, Any] | None = None
     last_outcome: Outcome | None = None
     """The last answer, kept until this front end's next request."""
+    clients_of: Callable[[], int] | None = None
+    """For a front end whose library keeps the connections: how many there are now (instead of ``clients``)."""
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def client_connected(self) -> None:
@@ -149,9 +152,15 @@ class FrontEnd:
             self.clients = max(0, self.clients - 1)
 
     def status(self) -> dict[str, Any]:
+        clients = self.clients
+        if self.clients_of is not None:
+            try:
+                clients = int(self.clients_of())
+            except Exception:  # noqa: BLE001 - a count for a status page; the front end may be stopping
+                clients = 0
         with self._lock:
             return {"enabled": True, "address": f"{self.host}:{self.port}", "host": self.host, "port": self.port,
-                    "clients": self.clients, "requests": self.requests, "refused_busy": self.refused_busy,
+                    "clients": clients, "requests": self.requests, "refused_busy": self.refused_busy,
                     "last_request": self.last_request, "last_answer": self.last_answer}
 
 

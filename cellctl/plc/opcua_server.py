@@ -271,6 +271,8 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
+        if self._front is not None:  # connected clients for GET /plc/status (asyncua keeps the list)
+            self._front.clients_of = lambda: len(server.bserver.clients) if server.bserver is not None else 0
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
         self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
