@@ -233,6 +233,9 @@ def test_idle_modbus_connections_are_closed(tmp_path_factory: pytest.TempPathFac
         for s in socks:
             s.close()
         server.stop()
+        from cellctl.plc.engine import forget_engine
+
+        forget_engine(server.services)
 
 
 def _services_server(tmp_path_factory: pytest.TempPathFactory, cls: type, cfg: object) -> mb.ModbusPlcServer:
