@@ -131,7 +131,8 @@ class FrontEnd:
     host: str
     port: int
     motion: bool
-    """Whether its requests can move the robot (pick with motion, production start/resume)."""
+    """Whether a client it does not authenticate could move the robot through it (pick with motion, production
+    start/resume): such a front end beyond loopback needs the zone decision."""
     clients: int = 0
     requests: int = 0
     refused_busy: int = 0
@@ -182,8 +183,9 @@ class Engine:
 
     # -- front ends ---------------------------------------------------------------------------------
     def register(self, name: str, host: str, port: int, motion: bool = True) -> FrontEnd:
-        """Announce a front end listening on ``host:port``; refuses (``OSError``) a non-loopback address for
-        a front end that can move the robot while ``plc.allow_motion`` is on without ``plc.insecure_plc_network``."""
+        """Announce a front end listening on ``host:port``; refuses (``OSError``) a non-loopback address for a
+        front end through which an unauthenticated client could move the robot (``motion``) while
+        ``plc.allow_motion`` is on, without ``plc.insecure_plc_network``. Registering a name again replaces it."""
         plc = self.services.config.plc
         if motion and plc.allow_motion and not plc.insecure_plc_network and not is_loopback_host(host):
             raise OSError(f"plc.allow_motion with the PLC {name} front end on {host} (not loopback): it does not "

@@ -18,7 +18,9 @@ by the request engine (``cellctl.plc.engine``), which runs every front end's req
 
 Connections: at most ``max_connections`` at once and ``max_connections_per_address`` from one
 address (more are closed at once); one silent for ``idle_timeout_s`` is closed; a frame that cannot
-be decoded closes its connection with one rate-limited log line, never a traceback.
+be decoded closes its connection with one rate-limited log line, never a traceback. The requests'
+work is paced (``cellctl.plc.pacing``) so that a client polling as fast as it is answered cannot
+take the interpreter from Stop.
 
 The server runs in its own thread with its own event loop; requests run in the engine's worker
 thread, so a slow pick never delays register reads.
@@ -52,6 +54,7 @@ from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests 
     words_ascii,
     words_int32,
 )
+from cellctl.plc.pacing import Pacer
 from cellctl.plc.production import production_words
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
@@ -140,7 +143,10 @@ class _Connection(ServerRequestHandler):  # type: ignore[misc]
             self.server_send(response, self.last_addr)
             return
         try:
+            t0 = await self.plc.pacer.wait()
+            self.last_pdu = pdu  # the request this call was scheduled for, whatever came meanwhile
             await super().handle_request()
+            self.plc.pacer.done(t0)
         except Exception as exc:  # noqa: BLE001 - never a traceback for a client's request
             client_mistake(log, "failed Modbus requests", "PLC Modbus: a request from %s failed (%s); connection "
                            "closed", self.peer, type(exc).__name__)
@@ -180,6 +186,8 @@ class ModbusPlcServer:
         self.refused = 0
         self.closed_idle = 0
         self.closed_over_cap = 0
+        self.pacer = Pacer()
+        """Bounds the share of the interpreter the clients' requests take (``cellctl.plc.pacing``)."""
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> ModbusPlcServer:

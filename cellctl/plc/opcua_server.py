@@ -55,7 +55,7 @@ from typing import Any
 from asyncua import Node, Server, ua
 
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
-from cellctl.plc.engine import FrontEnd, Kind, Request, engine_for
+from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
@@ -199,13 +199,17 @@ class OpcUaPlcServer:
         self._pending_refresh: asyncio.Task[None] | None = None
         self._production_vars: dict[str, Node] = {}
         self._front: FrontEnd | None = None
+        self._engine: Engine = engine_for(services)
         self._production_shown: dict[str, Any] = {}
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
         # asyncua logs every standard node it adds at INFO: thousands of lines per start.
         logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
-        self._front = engine_for(self.services).register("opcua", self.config.host, self.config.port)
+        # With security, clients are authenticated by certificate: no zone decision needed beyond loopback.
+        self._engine = engine_for(self.services)
+        self._front = self._engine.register("opcua", self.config.host, self.config.port,
+                                            motion=self.config.security == "none")
         self._thread.start(self._serve, timeout_s=60.0)
         log.info("PLC OPC UA server at %s (security %s)", self.url, self.config.security)
         if self.services.config.plc.allow_motion:
@@ -226,7 +230,7 @@ class OpcUaPlcServer:
 
         self._thread.stop(shutdown, timeout_s=15.0)
         self._executor.shutdown(wait=True, cancel_futures=True)
-        engine_for(self.services).unregister("opcua")
+        self._engine.unregister("opcua")
 
     async def _serve(self) -> None:
         cfg = self.config
@@ -348,9 +352,8 @@ class OpcUaPlcServer:
         async with self._call_lock:
             await self._set("Busy", True)
             try:
-                if self._front is None:
-                    self._front = engine_for(self.services).register("opcua", self.config.host, self.config.port)
-                out = await asyncio.wrap_future(engine_for(self.services).submit(self._front, request, "plc:opcua"))
+                assert self._front is not None, "start() registers the front end"
+                out = await asyncio.wrap_future(self._engine.submit(self._front, request, "plc:opcua"))
             finally:
                 await self._set("Busy", False)
         await self._set("LastErrorCode", out.text_index)

@@ -32,6 +32,7 @@ from typing import Any
 from calibration import geometry as g
 from cellctl.config import RobotSocketConfig
 from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
+from cellctl.plc.pacing import Pacer
 from cellctl.plc.production import production_values
 from cellctl.plc.quiet_log import client_mistake
 from cellctl.plc.requests import (
@@ -98,6 +99,7 @@ class RobotSocketServer:
         self._tasks: set[asyncio.Task[None]] = set()
         self.clients = 0
         self.refused_clients = 0
+        self._pacer = Pacer()
 
     def start(self) -> RobotSocketServer:
         # The socket never moves the robot: no zone key needed for its address.
@@ -173,7 +175,9 @@ class RobotSocketServer:
                     await self._send_and_close(writer, err(TEXT_UNKNOWN_COMMAND, f"line longer than {MAX_LINE} "
                                                                                  f"bytes; {HELP}"))
                     break
+                t0 = await self._pacer.wait()
                 answer = await self._answer(raw)
+                self._pacer.done(t0)
                 writer.write((answer + "\r\n").encode("ascii", "replace"))
                 await writer.drain()
         except (ConnectionError, asyncio.CancelledError):
