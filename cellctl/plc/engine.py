@@ -342,30 +342,17 @@ def plc_status(services: Services) -> dict[str, Any]:
     return engine.status() if engine is not None else status_of(services, {}, None)
 
 
-_ENGINES: dict[int, tuple[Services, Engine]] = {}
-_ENGINES_LOCK = threading.Lock()
-
-
 def engine_for(services: Services) -> Engine:
-    """The service's request engine (made on first use; :func:`forget_engine` closes it)."""
-    with _ENGINES_LOCK:
-        entry = _ENGINES.get(id(services))
-        if entry is None or entry[0] is not services:
-            entry = (services, Engine(services))
-            _ENGINES[id(services)] = entry
-        return entry[1]
+    """The service's request engine (``services.plc_engine``: made on first use)."""
+    return services.plc_engine
 
 
 def existing_engine(services: Services) -> Engine | None:
-    with _ENGINES_LOCK:
-        entry = _ENGINES.get(id(services))
-    return entry[1] if entry is not None and entry[0] is services else None
+    """The service's request engine if one was made (memory only)."""
+    engine: Engine | None = getattr(services, "_plc_engine", None)
+    return engine
 
 
 def forget_engine(services: Services) -> None:
-    """Close and forget the service's engine (at the end of the service, after its front ends stopped)."""
-    with _ENGINES_LOCK:
-        entry = _ENGINES.pop(id(services), None)
-    if entry is not None and entry[0] is services:
-        entry[1].close()
-
+    """Close the service's engine (at the end of the service, after its front ends stopped)."""
+    services.close_plc_engine()
