@@ -68,8 +68,8 @@ def one_block(faults: list[tuple[str, str, float]], parts: int, time_scale: floa
                     cycles = http.get(f"/production/runs/{end['run_id']}/cycles").json()
                     landed = str(cycles[-1].get("phase") or phase)
                 else:
-                    os.kill(served.proc.pid, signal.SIGKILL if kind == "kill9" else signal.SIGTERM)
-                    served.proc.wait(60)
+                    os.kill(served.process.pid, signal.SIGKILL if kind == "kill9" else signal.SIGTERM)
+                    served.process.wait(60)
                     served = None
                     served = start_served(tmp, config)
                     http = served.client(timeout_s=60)
