@@ -113,13 +113,14 @@ def main() -> int:
         rows += one_block(block, parts=len(block) + 3, time_scale=args.time_scale, seed=3 + b)
     wall = time.monotonic() - t0
     faults = [r for r in rows if r["kind"] in KINDS and r["landed"] != "(run ended)"]
+    kinds = ", ".join(f"{n} {k}" for k, n in sorted(Counter(r["kind"] for r in faults).items()))
     lines = [
         "# Production: exactly once under faults at random instants",
         "",
         f"`.venv/bin/python bench/production_faults.py --faults {args.faults} --per-block {args.per_block} "
         f"--time-scale {args.time_scale} --seed {args.seed}` — {cpu_model()}, {wall:.0f} s wall.",
         "",
-        f"**{len(faults)} faults** ({', '.join(f'{n} {k}' for k, n in sorted(Counter(r['kind'] for r in faults).items()))}); "
+        f"**{len(faults)} faults** ({kinds}); "
         f"**double placements: {sum(r['double'] for r in rows)}**, **unaccounted parts: "
         f"{sum(r['unaccounted'] for r in rows)}**.",
         "",

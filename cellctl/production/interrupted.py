@@ -54,7 +54,8 @@ def end_interrupted_runs(store: Store, owners: Mapping[str, MotionOwner]) -> lis
                   "recipe_id": run["recipe_id"], "detail": why + (
                       f"; slot {slot} is in doubt until an engineer confirms it" if slot is not None else "")}
         store.add_cycle(run_id, record)
-        summary = {k: run.get(k) for k in ("counters", "cycle_ms", "error", "stop_reason", "cycles") if k in run}
+        summary: dict[str, Any] = {k: run.get(k) for k in ("counters", "cycle_ms", "error", "stop_reason", "cycles")
+                                   if k in run}
         summary.update({"stop_reason": why, "cycles": n, "interrupted": {"phase": phase, "state": run["state"],
                                                                          "slot_in_doubt": slot}})
         store.update_run(run_id, "interrupted", "interrupted", summary, ended=True)

@@ -19,8 +19,6 @@ import sqlalchemy as sa
 
 import cellctl
 from cellctl.store import schema as S
-from cellctl.store.latches import LatchRows
-from cellctl.store.production import ProductionRows
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
     CorruptRecord,
@@ -33,6 +31,8 @@ from cellctl.store.errors import (
     StoreUnavailable,
 )
 from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
+from cellctl.store.latches import LatchRows
+from cellctl.store.production import ProductionRows
 from cellctl.store.records import (
     CALIBRATION_KINDS,
     AuditEntry,
