@@ -203,7 +203,7 @@ class ProductionRun:
             # The emergency path (or the service's shutdown): halted already; the gripper keeps what it holds.
             self.status.stop_reason = self._abort_reason or str(exc)
             slot = self._settle_claim(self.status.stop_reason)
-            self._record("stopped", detail=self.status.stop_reason, **slot)
+            self._record("stopped", detail=self.status.stop_reason, **{"phase": self.phase, **slot})
             self._end("stopped", "stopped", None)
         except Exception as exc:  # noqa: BLE001 - the run ends failed, saying why; the robot is halted
             log.exception("production run %s failed", self.status.run_id)

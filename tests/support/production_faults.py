@@ -118,15 +118,31 @@ def recover(http: httpx.Client, grid: GridPlace, recipe_id: int = 1) -> set[int]
     return confirmed
 
 
-def wait_phase(http: httpx.Client, phase: str, cycle_at_least: int = 1, timeout_s: float = 60.0,
-               poll_s: float = 0.002) -> dict[str, Any]:
-    """Poll ``GET /production`` until the run is at ``phase`` (of cycle ``cycle_at_least`` or later)."""
+def wait_phase(http: httpx.Client, phase: str, timeout_s: float = 60.0, poll_s: float = 0.002,
+               slow_poll_s: float = 0.03) -> dict[str, Any]:
+    """Poll ``GET /production`` until the run is at ``phase``: slowly until the phase before it, then
+    every ``poll_s`` (the short phases last tens of milliseconds)."""
+    before = PHASES[PHASES.index(phase) - 1] if PHASES.index(phase) > 0 else None
+    near = before is None
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         st: dict[str, Any] = http.get("/production").json()
-        if st.get("phase") == phase and int(st.get("cycles") or 0) + 1 >= cycle_at_least:
+        if st.get("phase") == phase:
             return st
         if st.get("ended_because") is not None:
             raise AssertionError(f"the run ended before phase {phase}: {st}")
-        time.sleep(poll_s)
+        near = near or st.get("phase") == before
+        time.sleep(poll_s if near else slow_poll_s)
     raise TimeoutError(f"phase {phase} not reached in {timeout_s} s")
+
+
+def wait_run_phase(run: Any, phase: str, timeout_s: float = 60.0) -> None:
+    """As :func:`wait_phase` for a run of this process (``ProductionRun.phase``)."""
+    before = PHASES[PHASES.index(phase) - 1] if PHASES.index(phase) > 0 else None
+    near = before is None
+    deadline = time.monotonic() + timeout_s
+    while run.phase != phase:
+        assert not run.ended, f"the run ended before {phase}"
+        assert time.monotonic() < deadline, f"phase {phase} not reached"
+        near = near or run.phase == before
+        time.sleep(0.0005 if near else 0.02)
