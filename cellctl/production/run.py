@@ -307,8 +307,7 @@ class ProductionRun:
         slot, self._claim = self._claim, None
         if slot is None:
             return {}
-        if self._released:
-            self.store.placed_in_slot(self.s.recipe_id, slot, self.status.run_id)
+        if self._released:  # the record resolves the claim (one transaction, queued before the 'stopped' one)
             self._placed(slot, f"placed; the run then stopped while leaving the slot ({why})")
             return {}
         detail = {"phase": self.phase, "why": why, "held": self._holding(),
@@ -329,10 +328,10 @@ class ProductionRun:
         """Count and record the cycle whose part was let go in ``slot``."""
         self.status.counters.placed += 1
         if self._cycle is None:
-            self._record("placed", slot=slot, detail=detail)
+            self._record("placed", slot=slot, detail=detail, resolves=slot)
             return
         cand, picture, T_place = self._cycle
-        self._record("placed", cand, picture, slot=slot, T_place=T_place, detail=detail)
+        self._record("placed", cand, picture, slot=slot, T_place=T_place, detail=detail, resolves=slot)
 
     def _store_state(self) -> None:
         state, summary = self.status.state, clean(self._summary())
@@ -444,22 +443,19 @@ class ProductionRun:
         self._released = True
         self._at("leaving", store=True, holding=False)
         self._move(T_place_app, "post-place", d)
-        if self._claim is not None:
-            self._claim = None
-            run_id, recipe_id = self.status.run_id, self.s.recipe_id
-            self._writer.put(lambda: self.store.placed_in_slot(recipe_id, slot, run_id))
+        claimed, self._claim = self._claim, None  # resolved by the placed record (one transaction)
         self._at("between")
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
         self.status.times.add(durations)
         self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle,
-                     durations=durations)
+                     durations=durations, resolves=claimed)
         return prefetch
 
     def _record(self, result: str, cand: Candidate | None = None, picture: Picture | None = None,
                 slot: int | None = None, T_place: np.ndarray | None = None, d: Durations | None = None,
                 detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None,
-                **extra: Any) -> None:
+                resolves: int | None = None, **extra: Any) -> None:
         self._n += 1
         if durations is None and d is not None and t_cycle is not None:
             durations = d.as_ms(time.monotonic() - t_cycle)
@@ -479,12 +475,12 @@ class ProductionRun:
         rec["frame_kept"] = kept is not None
         record = clean(rec)
         self.last_record = record
-        run_id, n, frames = self.status.run_id, self._n, self.failure_frames
+        run_id, n, frames, recipe_id = self.status.run_id, self._n, self.failure_frames, self.s.recipe_id
 
         def write() -> None:
             out = record
             if kept is not None and frames is not None and not frames.keep(run_id, n, kept, record):
                 out = {**record, "frame_kept": False}
-            self.store.add_cycle(run_id, out)
+            self.store.add_cycle(run_id, out, None if resolves is None else (recipe_id, resolves))
 
         self._writer.put(write)

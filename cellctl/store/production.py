@@ -228,11 +228,17 @@ class ProductionRows:
         return out
 
     # -- cycles ------------------------------------------------------------------------------------
-    def add_cycle(self, run_id: int, record: dict[str, Any]) -> None:
+    def add_cycle(self, run_id: int, record: dict[str, Any], placed: tuple[int, int] | None = None) -> None:
+        """Store a cycle's record; ``placed`` (recipe id, slot): the record of the part let go in that slot,
+        which resolves the run's claim of it in the same transaction (a kill leaves both or neither)."""
         with self._write() as conn:
             conn.execute(S.production_cycles.insert().values(
                 cell_id=self.cell_id, run_id=run_id, n=int(record["n"]), t=float(record["t"]),
                 result=str(record["result"]), record_json=json.dumps(record, allow_nan=False)))
+            if placed is not None:
+                c = S.slot_claims.c
+                conn.execute(S.slot_claims.delete().where(c.cell_id == self.cell_id, c.recipe_id == placed[0],
+                                                          c.slot == placed[1], c.run_id == run_id))
 
     def cycles(self, run_id: int) -> list[dict[str, Any]]:
         """The run's cycle records, oldest first."""
