@@ -24,7 +24,6 @@ from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
 from cellctl.production.interrupted import end_interrupted_runs
-from cellctl.production.manager import forget_manager, manager_for, shutdown_manager
 from cellctl.services import Services
 from cellctl.warmup import service_startup
 
@@ -48,11 +47,11 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         # A production run the service did not end (killed) ends `interrupted` now, its robot latched.
         await run_in_threadpool(end_interrupted_runs, store, owners)
         latches.start()
-        services = Services(config, cell, store, JobManager(), latches=latches)
-        await run_in_threadpool(manager_for, services)  # REST and the PLC show the last stored run at once
+        services = Services(config, cell, store, JobManager(), latches=latches, metrics=app.state.metrics)
+        # The production manager now: REST and the PLC show the last stored run at once.
+        await run_in_threadpool(lambda: services.production)
         app.state.cell = cell
         app.state.services = services
-        metrics.attach(app.state.metrics, services)
         await run_in_threadpool(cell.open_all)
         # The compiled loops (renderer, matcher, solver) load in the background; /health says
         # `starting` until they have, and a camera image waits for its camera's (cellctl.warmup).
@@ -67,18 +66,17 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         except BaseException as exc:
             log.error("the PLC servers cannot start: %s", exc)
             await run_in_threadpool(services.close)
-            metrics.detach(app.state.metrics)
+            await run_in_threadpool(app.state.startup.stop)
             raise
         try:
             yield
         finally:
             # A production run in progress ends stopped, its robot halted and its records written,
             # before the PLC and the devices go.
-            await run_in_threadpool(shutdown_manager, services)
+            await run_in_threadpool(services.stop_production)
             await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
-            forget_manager(services)
-            metrics.detach(app.state.metrics)
+            await run_in_threadpool(app.state.startup.stop)
 
     app = FastAPI(
         title="cellctl",
