@@ -31,7 +31,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import cpu_model  # noqa: E402
-from cellctl.pick.place import GridPlace  # noqa: E402
+from cellctl.production.config import GridPlace  # noqa: E402
 from tests.support.production_cell import production_config, teach_recipe, wait_ended  # noqa: E402
 from tests.support.production_faults import PHASES, books, recover, wait_phase  # noqa: E402
 from tests.support.served import Served, start_served, stop_served  # noqa: E402

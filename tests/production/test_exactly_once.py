@@ -16,7 +16,7 @@ import httpx
 import pytest
 from fastapi import FastAPI
 
-from cellctl.pick.place import GridPlace
+from cellctl.production.config import GridPlace
 from cellctl.production.manager import existing_manager
 from tests.support.app import in_process_cell
 from tests.support.production_cell import production_config, teach_recipe, wait_ended

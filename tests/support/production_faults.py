@@ -19,7 +19,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from cellctl.pick.place import GridPlace
+from cellctl.production.config import GridPlace
 
 PHASES = ("to_pick", "closing", "lifting", "carrying", "over_slot", "releasing", "leaving", "between")
 SLOT_TOL_MM = 5.0
