@@ -88,6 +88,8 @@ class IntrinsicsResult:
     """(ny, nx) 1-sigma projection uncertainty at each cell centre (rotation compensated)."""
     iterations: int = 0
     time_s: float = 0.0
+    board_warp: dict[str, Any] | None = None
+    """The target's solved warp (``calibrate(board_warp=True)``): heights (mm) and their 1-sigma."""
 
     @property
     def param_sigmas(self) -> dict[str, float]:
@@ -110,6 +112,8 @@ class IntrinsicsResult:
         out["n_views_used"] = sum(v.used for v in self.views)
         out["n_points_used"] = int(sum(v.n_points for v in self.views if v.used))
         out["solver"] = {"iterations": self.iterations, "time_s": round(self.time_s, 3)}
+        if self.board_warp is not None:
+            out["board_warp"] = self.board_warp
         return out
 
 
