@@ -29,13 +29,13 @@ from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 
-MODEL_IDS = {"opencv5": 0, "opencv8": 1, "division": 2}
+MODEL_IDS = {"opencv5": 0, "opencv8": 1, "division": 2, "fisheye4": 3}
 
 
 @njit(cache=True)
 def _n_lens(model: int) -> int:
     """Number of lens parameters (fx, fy, cx, cy and the distortion) of a model id."""
-    return 9 if model == 0 else (12 if model == 1 else 5)
+    return 9 if model == 0 else (12 if model == 1 else (5 if model == 2 else 8))
 
 
 @njit(cache=True)
@@ -81,6 +81,34 @@ def _point(model: int, c: F64, R: F64, t: F64, X: F64, out_dc: F64, out_dP: F64)
         dyy = s + 2.0 * y * y * kappa * g
         out_dc[0, 4] = fx * x * r2 * g
         out_dc[1, 4] = fy * y * r2 * g
+    elif model == 3:
+        # Kannala-Brandt: xd = s x with s = theta_d / r, theta = atan(r)
+        r = np.sqrt(r2)
+        th = np.arctan(r)
+        t2 = th * th
+        k1, k2, k3, k4 = c[4], c[5], c[6], c[7]
+        poly = 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+        dthd = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+        if r > 1e-7:
+            s = th * poly / r
+            # g = (ds/dr) / r, ds/dr = (dthd / (1 + r^2) - s) / r
+            g = (dthd / (1.0 + r2) - s) / r2
+            ir = 1.0 / r
+        else:   # the series at the axis: s = 1 + (k1 - 1/3) r^2 + ...
+            s = 1.0 + (k1 - 1.0 / 3.0) * r2
+            g = 2.0 * (k1 - 1.0 / 3.0)
+            ir = 0.0
+        xd = x * s
+        yd = y * s
+        dxx = s + x * x * g
+        dxy = x * y * g
+        dyx = dxy
+        dyy = s + y * y * g
+        tp = th * ir     # theta^(2i+1) / r, i = 1..4
+        for j in range(4):
+            tp *= t2
+            out_dc[0, 4 + j] = fx * x * tp
+            out_dc[1, 4 + j] = fy * y * tp
     else:
         k1, k2, p1, p2, k3 = c[4], c[5], c[6], c[7], c[8]
         k4 = k5 = k6 = 0.0

@@ -54,10 +54,18 @@ class ViewResult:
     ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
     residuals_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    corner_sigma_px: float = float("nan")
+    """Median 1-sigma precision the detector stated for this view's points (px), NaN without."""
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"image": self.image, "rms_px": fin(self.rms_px), "used": self.used,
                                "n_points": self.n_points}
+        if len(self.residuals_px):
+            # the view's worst corner and its detector's stated precision beside the RMS: a view
+            # whose residuals far exceed what its corners claim is a bad view (blur, a moved board)
+            out["max_px"] = fin(float(np.max(np.hypot(*self.residuals_px.T))))
+        if np.isfinite(self.corner_sigma_px):
+            out["corner_sigma_px"] = fin(self.corner_sigma_px)
         if self.reason:
             out["reason"] = self.reason
         if self.outlier:

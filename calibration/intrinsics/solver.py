@@ -138,6 +138,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
         vr.rms_px = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
         vr.T_cam_target = make_transform(R[k], t[k])
         vr.ids, vr.uv, vr.residuals_px = v.ids, v.uv, e
+        if v.sigma is not None and len(v.sigma):
+            vr.corner_sigma_px = float(np.median(v.sigma))
         vr.n_outlier_points = max(vr.n_outlier_points, int(pt_out[sl].sum()))
         if view_out[k]:
             vr.outlier = True
