@@ -95,3 +95,40 @@ def test_a_wide_lens_is_fitted_and_chosen_by_cross_validation() -> None:
 def test_opencv_export_refuses_fisheye4(tmp_path) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(ExportError, match="fisheye4"):
         write_opencv_yaml(FISHEYE, tmp_path / "f.yaml")
+
+
+def test_a_fisheye4_camera_maps_pixels_to_the_plane_and_back_through_its_file() -> None:
+    from calibration.geometry import make_transform
+    from calibration.measure.plane import image_to_plane, plane_to_image
+
+    cam = CameraModel.from_dict(FISHEYE.to_dict())          # through the cam.json form
+    assert cam.model == "fisheye4" and np.allclose(cam.dist, FISHEYE.dist)
+    T = make_transform(exp_so3(np.array([[0.5, -0.3, 0.1]]))[0], np.array([0.02, -0.01, 0.3]))
+    xy = np.random.default_rng(2).uniform(-0.2, 0.2, (50, 2))
+    uv = plane_to_image(cam, T, xy)
+    ok = np.all(np.isfinite(uv), axis=1)
+    assert ok.sum() > 40
+    assert np.abs(image_to_plane(cam, T, uv[ok])[:, :2] - xy[ok]).max() < 1e-9
+
+
+@pytest.mark.slow   # 20 calibrations of 12 synthetic views
+def test_fisheye4_uncertainty_is_honest_over_20_seeds() -> None:
+    """The pooled actual / reported projection error (RMS over RMS, as
+    test_uncertainty_honesty_seeds) is within 0.5-2 over 20 seeded sets of independent 0.1 px
+    corner noise."""
+    from calibration.intrinsics import covered_point_means
+
+    board = Chessboard(9, 6, 40.0)
+    act, rep = [], []
+    for seed in range(1000, 1020):
+        rng = np.random.default_rng(seed)
+        tp = board.points()
+        dets = []
+        for k, T in enumerate(plan_views(FISHEYE, board, 12, rng, fill=0.6, margin_px=6, whole_outline=True)):
+            uv = FISHEYE.project(tp.xyz_m @ T[:3, :3].T + T[:3, 3]) + rng.normal(0.0, 0.1, (len(tp.ids), 2))
+            dets.append(Detection(f"v{k}", True, ids=tp.ids.copy(), uv=uv, image_size=FISHEYE.size))
+        res = calibrate(dets, board, "fisheye4")
+        act.append(projection_difference(res.camera, FISHEYE, covered_point_means(res))["rms_px"])
+        rep.append(res.uncertainty["projection_rms_px"])
+    ratio = np.sqrt(np.mean(np.square(act))) / np.sqrt(np.mean(np.square(rep)))
+    assert 0.5 <= ratio <= 2.0, ratio
