@@ -142,6 +142,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from calibration.report import write_report
 
         cv = out.get("cross_validation")
+        if cv and "error" not in cv and selection is not None:
+            cv = {**cv, "model_selection": out["model_selection"]}
         write_report(res, args.report, cross_validation=cv if cv and "error" not in cv else None,
                      image_files=_image_files(args.images) if args.images else None)
         log.info("report written to %s", args.report)
