@@ -75,7 +75,8 @@ def _projection_advice(model: str, size: tuple[int, int], values: dict[str, floa
         return more_data + " (the division model has a single distortion coefficient: none to drop)"
     if np.isfinite(fov) and fov >= WIDE_ANGLE_FOV_DEG:
         return (more_data + f" (a wide-angle lens, {fov:.0f} deg across: it needs its distortion terms, so "
-                "do not drop coefficients; the division model often describes such lenses with one)")
+                "do not drop coefficients; the fisheye4 model (an angle polynomial) or the division model often "
+                "describe such lenses better: --model auto chooses by cross-validation)")
     if model == "opencv8":
         return more_data + ", or choose opencv5 (5 coefficients instead of 8)"
     if model == "opencv5":
