@@ -125,10 +125,10 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
             best, chosen = i, r
     if best is None or chosen is None:
         raise CrossValidationError("no candidate model could be cross-validated: "
-                                   + "; ".join(f"{r['model']}{' + board warp' if r['board_warp'] else ''}: "
-                                               f"{r['refused']}" for r in rows))
-    for i, r in enumerate(rows):
-        r["chosen"] = i == best
+                                   + "; ".join(f"{c['model']}{' + board warp' if c['board_warp'] else ''}: "
+                                               f"{c['refused']}" for c in rows))
+    for i, row in enumerate(rows):
+        row["chosen"] = i == best
     return chosen[0], {"k": k, "chosen": {"model": rows[best]["model"], "board_warp": rows[best]["board_warp"]},
                        "candidates": rows, "cross_validation": chosen[1],
                        "rule": f"smallest {k}-fold projection difference over the covered region; a richer "

@@ -82,5 +82,6 @@ def test_a_bowed_board_is_recovered_and_the_camera_with_it() -> None:
 def test_a_flat_board_gets_a_warp_of_zero_within_its_sigma() -> None:
     dets = _bowed_views((0.0, 0.0), seed=12)
     res = calibrate(dets, BOARD, "opencv5", board_warp=True)
+    assert res.board_warp is not None
     h, s = np.array(res.board_warp["height_mm"]), np.array(res.board_warp["sigma_mm"])
     assert np.all(np.abs(h) < 4 * s + 1e-3), (h, s)
