@@ -280,10 +280,11 @@ def _rms(cam: CameraModel, dets: list[Detection], board: Chessboard) -> float:
     X = board.points().xyz_m
     sq = []
     for d in dets:
-        ok, rv, tv = cv2.solvePnP(X[d.ids], d.uv, cam.K, cam.dist)
-        rv, tv = cv2.solvePnPRefineLM(X[d.ids], d.uv, cam.K, cam.dist, rv, tv)
-        pr, _ = cv2.projectPoints(X[d.ids], rv, tv, cam.K, cam.dist)
-        sq.append(np.sum((pr.reshape(-1, 2) - d.uv) ** 2, axis=1))
+        Xd, uv = np.ascontiguousarray(X[d.ids]), np.ascontiguousarray(d.uv, dtype=np.float64)
+        ok, rv, tv = cv2.solvePnP(Xd, uv, cam.K, cam.dist)
+        rv, tv = cv2.solvePnPRefineLM(Xd, uv, cam.K, cam.dist, rv, tv)
+        pr, _ = cv2.projectPoints(Xd, rv, tv, cam.K, cam.dist)
+        sq.append(np.sum((pr.reshape(-1, 2) - uv) ** 2, axis=1))
     return float(np.sqrt(np.mean(np.concatenate(sq))))
 
 
