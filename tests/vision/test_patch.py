@@ -83,7 +83,7 @@ def test_jackknife_sees_errors_shared_by_neighbours() -> None:
     rng = np.random.default_rng(3)
     x = np.linspace(-50, 50, 400)
     pts = np.stack([x, np.zeros_like(x)], axis=1)
-    J = np.stack([np.ones_like(x), x / 50.0, np.zeros_like(x) + 1e-3 * x], axis=1)
+    J = np.stack([np.ones_like(x), x / 50.0, (x / 50.0) ** 2 - 1 / 3], axis=1)
     r = rng.normal(0, 0.1, len(x))
     w = np.ones_like(x)
     Cc, Cj = classical(J, r, w, 1.0), jackknife(pts, J, r, w)

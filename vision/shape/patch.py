@@ -37,9 +37,18 @@ from numpy.typing import NDArray
 
 from vision.errors import TeachError
 from vision.image import F64, U8, bilinear
-from vision.shape.uncertainty import combine, honest_cov, sigma_of
+from vision.shape import patch_kernels as pk
+from vision.shape.uncertainty import (
+    JACKKNIFE_BLOCKS,
+    blocks_of,
+    classical_of,
+    combine,
+    honest_of,
+    jackknife_of,
+    sigma_of,
+)
 
-MAX_SAMPLES = 6000
+MAX_SAMPLES = 1500
 """Sample points of a patch (a large part is subsampled on a grid: its fit's cost is bounded)."""
 TUKEY_C = 4.685
 """Tukey's biweight constant (in robust standard deviations of the residual)."""
@@ -47,6 +56,8 @@ BLUR_SIGMA_PX = 1.0
 """Patch and image are smoothed alike before the fit: bilinear interpolation of a sharp image pulls a
 grey-value fit towards whole pixels (a few hundredths of a pixel on rendered edges); smoothed, it does
 not."""
+TILT_PRIOR = 0.01
+"""The patch fit's prior 1-sigma of its perspective terms, as the change of scale across the part."""
 HULL_MARGIN_PX = 2.0
 """The patch's mask is the hull of the model's level-0 points grown by this much (the outline's own
 grey-level step is in the patch)."""
@@ -142,6 +153,21 @@ def patch_from_dict(d: dict[str, Any], model_pts: F64) -> TeachPatch:
     return patch_from(np.ascontiguousarray(img, dtype=np.uint8), origin, model_pts)
 
 
+def patch_blocks(patch: TeachPatch) -> NDArray[np.int64]:
+    """Each sample's jackknife block (cached with the samples)."""
+    got = patch.__dict__.get("_blocks")
+    if got is None:
+        got = blocks_of(patch.samples()[0])
+        patch.__dict__["_blocks"] = got
+    return got  # type: ignore[no-any-return]
+
+
+def patch_step(patch: TeachPatch) -> float:
+    """The samples' grid step (px)."""
+    pts = patch.samples()[0]
+    return float(np.median(np.hypot(*np.diff(pts[: min(len(pts), 200)], axis=0).T))) if len(pts) > 2 else 1.0
+
+
 @dataclass
 class PatchFit:
     """The patch's fit at a pose (level-0 image pixels; ``theta`` rad, CCW on screen)."""
@@ -170,10 +196,13 @@ def _warp(pts: F64, x: float, y: float, th: float, sc: float) -> tuple[F64, F64]
 
 
 def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: float,
-        iterations: int = 12, fit_scale: bool = True) -> PatchFit | None:
-    """Align the patch to ``image`` from the pose (x, y, theta, scale); ``None`` when too little of it
-    lies inside the image or the fit runs away (more than the part's size from the start)."""
-    pts, T, tmag = patch.samples()
+        iterations: int = 8) -> PatchFit | None:
+    """Align the patch to ``image`` from the pose (x, y, theta, scale) by a plane homography of its
+    samples, ``q = (A p + t) / (1 + v.p)`` (a slightly tilted view; the turn and scale reported are
+    those of its local linear map at the reference point, as for the edge fit's homography); ``None``
+    when too little of it lies inside the image or the fit runs away (more than the part's size from
+    the start)."""
+    pts, T, _ = patch.samples()
     if len(pts) < 30:
         return None
     r_max = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) * scale * 1.2 + 4
@@ -185,58 +214,72 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
     crop = cv2.GaussianBlur(image[y0:y1, x0:x1].astype(np.float32), (0, 0), BLUR_SIGMA_PX)
     gx = cv2.Scharr(crop, cv2.CV_32F, 1, 0, scale=1.0 / 32.0)
     gy = cv2.Scharr(crop, cv2.CV_32F, 0, 1, scale=1.0 / 32.0)
-    p = np.array([x - x0, y - y0, theta, scale])
-    start = p.copy()
-    nparam = 4 if fit_scale else 3
-    wgt = np.ones(len(pts))
+    c, s = math.cos(theta), math.sin(theta)
+    # (t, A, v, gain, offset): see patch_kernels
+    par = np.array([x - x0, y - y0, scale * c, scale * s, -scale * s, scale * c, 0.0, 0.0, 1.0, 0.0])
+    t_start = par[:2].copy()
+    block = patch_blocks(patch)
+    # the light to start from: T ~ a I + b at the edge fit's pose
+    _, _, _, _, r0, inside = pk.normal_equations(crop, gx, gy, pts, T, block, 1, par, 0.0, TUKEY_C, False)
+    if inside.sum() < 0.5 * len(pts):
+        return None
+    I0 = r0[inside] + T[inside]
+    ab = np.linalg.lstsq(np.stack([I0, np.ones_like(I0)], axis=1), T[inside], rcond=None)[0]
+    par[8], par[9] = (float(ab[0]) if abs(ab[0]) > 1e-6 else 1e-6), float(ab[1])
     converged = False
-    J = r = np.zeros(0)
-    inside = np.zeros(len(pts), bool)
-    for _ in range(iterations):
-        q, dth = _warp(pts, *p)
-        inside = (q[:, 0] >= 1) & (q[:, 1] >= 1) & (q[:, 0] <= x1 - x0 - 2) & (q[:, 1] <= y1 - y0 - 2)
+    sd = 0.0
+    nb = JACKKNIFE_BLOCKS ** 2
+    H = g = Hb = Gb = np.zeros(0)
+    for it in range(iterations + 1):
+        last = converged or it == iterations
+        H, g, Hb, Gb, r, inside = pk.normal_equations(crop, gx, gy, pts, T, block, nb, par, sd, TUKEY_C, last)
         if inside.sum() < 0.5 * len(pts):
             return None
-        I = bilinear(crop, q[:, 0], q[:, 1])
-        Ix, Iy = bilinear(gx, q[:, 0], q[:, 1]), bilinear(gy, q[:, 0], q[:, 1])
-        # the light: T ~ a I + b (weighted least squares at this pose)
-        ww = wgt * inside
-        A = np.stack([I, np.ones_like(I)], axis=1)
-        ab = np.linalg.lstsq(A * ww[:, None], T * ww, rcond=None)[0]
-        a = float(ab[0]) if abs(ab[0]) > 1e-6 else 1e-6
-        r = a * I + ab[1] - T
-        # robust weights: Tukey on the residual's robust spread
-        sd = 1.4826 * float(np.median(np.abs(r[inside]))) + 1e-6
-        u2 = (r / (TUKEY_C * sd)) ** 2
-        wgt = np.where((u2 < 1) & inside, (1 - u2) ** 2, 0.0)
-        cols = [a * Ix, a * Iy, a * (Ix * dth[:, 0] + Iy * dth[:, 1])]
-        if fit_scale:
-            dsc = (q - p[:2]) / p[3]
-            cols.append(a * (Ix * dsc[:, 0] + Iy * dsc[:, 1]))
-        J = np.stack(cols + [I, np.ones_like(I)], axis=1)
-        H = J.T @ (J * wgt[:, None])
-        g = J.T @ (wgt * r)
+        if last:
+            break
+        # a prior on the perspective terms (a view tilted by a few degrees: v r_max ~ 0.01): a round or
+        # featureless part does not trade its position for a made-up tilt
+        Hp = H.copy()
+        prior = (sd if sd > 0 else 1.0) ** 2 * (r_max / TILT_PRIOR) ** 2
+        Hp[6, 6] += prior
+        Hp[7, 7] += prior
+        gp = g.copy()
+        gp[6:8] += prior * par[6:8]
         try:
-            d = -np.linalg.solve(H + 1e-9 * np.eye(len(H)) * np.trace(H), g)
+            d = -np.linalg.solve(Hp + 1e-9 * np.eye(len(H)) * np.trace(H), gp)
         except np.linalg.LinAlgError:
             return None
-        p[:nparam] += d[:nparam]
-        if fit_scale:
-            p[3] = float(np.clip(p[3], 0.5 * scale, 1.5 * scale))
-        if math.hypot(p[0] - start[0], p[1] - start[1]) > r_max:
+        par += d
+        # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
+        sd = 1.4826 * float(np.median(np.abs(r[inside]))) + 1e-6
+        det = par[2] * par[5] - par[3] * par[4]
+        if math.hypot(*(par[:2] - t_start)) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
+                or float(np.abs(par[6:8]).max()) * r_max > 0.2:
             return None
-        if abs(d[0]) + abs(d[1]) < 1e-3 and abs(d[2]) * r_max < 1e-3:
+        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and float(np.abs(d[2:6]).max()) * r_max < 5e-3:
             converged = True
-            break
-    q, _ = _warp(pts, *p)
-    I = bilinear(crop, q[:, 0], q[:, 1])
-    ok = inside & (wgt > 0)
-    ncc = _ncc(I[inside], T[inside])
+    t, A, v = par[:2], par[2:6].reshape(2, 2), par[6:8]
+    ncc = _ncc(r[inside] + T[inside], T[inside])  # a I + b at the final pose against the patch
+    # the turn and scale of the local linear map at the reference point, Lm = A - t v^T (as the edge
+    # fit's homography); (x, y, theta) from (t, A, v, a, b) to first order
+    Lm = A - np.outer(t, v)
+    th = math.atan2(-Lm[1, 0], Lm[0, 0])
+    rr = Lm[0, 0] ** 2 + Lm[1, 0] ** 2
+    g00, g10 = Lm[1, 0] / rr, -Lm[0, 0] / rr
+    M = np.zeros((3, 10))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2, 2], M[2, 4] = g00, g10
+    M[2, 0], M[2, 1] = -v[0] * g00, -v[0] * g10
+    M[2, 6] = -t[0] * g00 - t[1] * g10
     # samples closer than the blur's reach share their errors: samples per independent one
-    step = float(np.median(np.hypot(*np.diff(pts[: min(len(pts), 200)], axis=0).T))) if len(pts) > 2 else 1.0
-    cov = honest_cov(pts, J, r, wgt, max((2.0 * BLUR_SIGMA_PX / max(min(step, 4.0), 0.5)) ** 2, 1.0))
-    return PatchFit(float(p[0] + x0), float(p[1] + y0), float(p[2]), float(p[3]), ncc, cov, int(ok.sum()),
-                    converged)
+    sw, swr, cnt = pk.weighted_rss(r, inside, sd, TUKEY_C)
+    if cnt <= 12:
+        return None
+    s2 = swr / max(sw * (cnt - 10) / cnt, 1e-12)
+    corr = max((2.0 * BLUR_SIGMA_PX / max(min(patch_step(patch), 4.0), 0.5)) ** 2, 1.0)
+    cov = honest_of(classical_of(H, s2, corr), jackknife_of(H, g, Hb, Gb), M)
+    return PatchFit(float(t[0] + x0), float(t[1] + y0), th, math.sqrt(abs(float(np.linalg.det(Lm)))), ncc, cov,
+                    cnt, converged)
 
 
 def _ncc(a: F64, b: F64) -> float:
@@ -249,6 +292,9 @@ def _ncc(a: F64, b: F64) -> float:
 SCAN_SIGMA_DEG = 1.0
 """Where the edge fit's angle 1-sigma exceeds this, the patch's correlation is scanned over the whole
 turn first (``_angle_scan``): the outline does not fix the angle, the interior may."""
+SPLIT_CHI2 = 25.0
+"""Edge fit and patch fit disagreeing by more than this chi-square per degree of freedom (5 sigma) are
+not averaged: the sharper one in angle answers (``finish``)."""
 MIN_PATCH_NCC = 0.5
 """A patch fit correlating less than this with the image is not used (a part seen under another light
 or much hidden: the edge fit alone answers, its own 1-sigma stands)."""
@@ -262,11 +308,12 @@ def finish(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale
     cannot be fitted there. ``scores``: ``patch_ncc`` (the patch's correlation at the final pose) and
     ``fit_chi2`` (the two fits' disagreement per degree of freedom; about 1 or less when they agree
     within their 1-sigma)."""
-    sd_edge = math.sqrt(cov_edge[2, 2]) if cov_edge is not None and np.isfinite(cov_edge[2, 2]) else math.inf
-    if sd_edge > math.radians(SCAN_SIGMA_DEG):
+    Ce = cov_edge if cov_edge is not None and np.all(np.isfinite(cov_edge)) else np.diag([1e6, 1e6, 1e2])
+    start = theta
+    if math.sqrt(Ce[2, 2]) > math.radians(SCAN_SIGMA_DEG):
         # the outline barely fixes the turn (round, nearly symmetric, low contrast): the interior does
-        theta = _angle_scan(patch, image, x, y, theta, scale)
-    pf = fit(patch, image, x, y, theta, scale)
+        start = _angle_scan(patch, image, x, y, theta, scale)
+    pf = fit(patch, image, x, y, start, scale)
     if pf is None or not np.all(np.isfinite(pf.cov)):
         return None
     scores = {"patch_ncc": round(pf.ncc, 4)}
@@ -274,10 +321,24 @@ def finish(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale
         return None
     pe = np.array([x, y, theta])
     pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
-    Ce = cov_edge if cov_edge is not None and np.all(np.isfinite(cov_edge)) else np.diag([1e6, 1e6, 1e2])
     # a jackknife over few blocks can come out nearly singular: floor each at a thousandth px / rad^2
     eps = np.diag([1e-6, 1e-6, 1e-10])
     p, C, chi = combine(pe, Ce + eps, pp, pf.cov + eps)
+    if chi > SPLIT_CHI2 and pf.cov[2, 2] < Ce[2, 2]:
+        # the two cannot both be right (beyond 5 sigma): the edges were dragged (texture, a shading
+        # gradient beside a faint outline) or never fixed the turn. The part's pixels, which match it
+        # well (patch_ncc) and tell the turn more sharply, answer the turn: the patch is fitted again
+        # from where it ended, and the edges' position joins it without their angle
+        pf2 = fit(patch, image, pf.x, pf.y, pf.theta, pf.scale)
+        if pf2 is not None and np.all(np.isfinite(pf2.cov)) and pf2.ncc >= pf.ncc:
+            pf = pf2
+            scores["patch_ncc"] = round(pf.ncc, 4)
+        pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
+        Ce_pos = Ce.copy()
+        Ce_pos[2, :2] = Ce_pos[:2, 2] = 0.0
+        Ce_pos[2, 2] = 1e2
+        p, C, chi2 = combine(pe, Ce_pos + eps, pp, pf.cov + eps)
+        C = C * max(chi2, 1.0)
     sd, sp = sigma_of(C)
     scores["fit_chi2"] = round(chi, 3)
     return float(p[0]), float(p[1]), float(p[2]), sd, sp, scores

@@ -145,7 +145,8 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
         # neighbouring points see overlapping profiles (as in _pose_sigma): points per independent one
         spacing = float(np.median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
-        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0))
+        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
+                       persp)
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
