@@ -102,6 +102,33 @@ class TeachPatch:
         self.__dict__["_samples"] = out
         return out
 
+    def at_level(self, level: int) -> TeachPatch:
+        """The patch on pyramid level ``level`` (``cv2.pyrDown`` as the search's pyramid: level-``l`` pixel
+        ``x`` lies at level-0 ``2**l x``); cached."""
+        if level == 0:
+            return self
+        cache = self.__dict__.setdefault("_levels", {})
+        got = cache.get(level)
+        if got is None:
+            img, mask = self.image, self.mask.astype(np.uint8)
+            for _ in range(level):
+                img = cv2.pyrDown(img)
+            mask = cv2.resize(mask, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
+            f = 2.0 ** level
+            got = TeachPatch(img, (self.origin[0] / f, self.origin[1] / f), mask.astype(bool))
+            cache[level] = got
+        return got  # type: ignore[no-any-return]
+
+    def fit_level(self) -> int:
+        """The pyramid level whose pixels the samples cover densely (grid step about one pixel): a large
+        part is fitted on a coarser level, where ``MAX_SAMPLES`` still sample it without gaps."""
+        got = self.__dict__.get("_fit_level")
+        if got is None:
+            n = int(self.mask.sum())
+            got = max(int(math.floor(math.log2(max(math.sqrt(n / MAX_SAMPLES), 1.0)))), 0)
+            self.__dict__["_fit_level"] = got
+        return got  # type: ignore[no-any-return]
+
     def mirrored(self) -> TeachPatch:
         """The patch of the part's mirror image (x -> -x about the reference point)."""
         w = self.image.shape[1]
@@ -300,20 +327,33 @@ MIN_PATCH_NCC = 0.5
 or much hidden: the edge fit alone answers, its own 1-sigma stands)."""
 
 
-def finish(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: float,
+def _fit_at(patch: TeachPatch, pyr: list[U8], lv: int, x: float, y: float, theta: float, scale: float
+            ) -> PatchFit | None:
+    """``fit`` on pyramid level ``lv`` (``pyr``: the image's pyramid), answered in level-0 pixels."""
+    f = 2.0 ** lv
+    pf = fit(patch.at_level(lv), pyr[lv], x / f, y / f, theta, scale)
+    if pf is None or lv == 0:
+        return pf
+    S = np.diag([f, f, 1.0])
+    return PatchFit(pf.x * f, pf.y * f, pf.theta, pf.scale, pf.ncc, S @ pf.cov @ S, pf.n_used, pf.converged)
+
+
+def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, scale: float,
            cov_edge: F64 | None) -> tuple[float, float, float, float, float, dict[str, float]] | None:
     """The final pose from the edge fit's ``(x, y, theta, scale)`` (level-0 px, rad) and its covariance,
-    and the patch fit from there: ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their
-    covariances (``uncertainty.combine``: widened by their disagreement), or ``None`` when the patch
-    cannot be fitted there. ``scores``: ``patch_ncc`` (the patch's correlation at the final pose) and
-    ``fit_chi2`` (the two fits' disagreement per degree of freedom; about 1 or less when they agree
-    within their 1-sigma)."""
+    and the patch fit from there (on the image's pyramid ``pyr``, at the patch's ``fit_level``):
+    ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their covariances (``uncertainty.combine``:
+    widened by their disagreement), or ``None`` when the patch cannot be fitted there. ``scores``:
+    ``patch_ncc`` (the patch's correlation at the final pose) and ``fit_chi2`` (the two fits'
+    disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma)."""
     Ce = cov_edge if cov_edge is not None and np.all(np.isfinite(cov_edge)) else np.diag([1e6, 1e6, 1e2])
     start = theta
+    lv = min(patch.fit_level(), len(pyr) - 1)
     if math.sqrt(Ce[2, 2]) > math.radians(SCAN_SIGMA_DEG):
         # the outline barely fixes the turn (round, nearly symmetric, low contrast): the interior does
-        start = _angle_scan(patch, image, x, y, theta, scale)
-    pf = fit(patch, image, x, y, start, scale)
+        f = 2.0 ** lv
+        start = _angle_scan(patch.at_level(lv), pyr[lv], x / f, y / f, theta, scale)
+    pf = _fit_at(patch, pyr, lv, x, y, start, scale)
     if pf is None or not np.all(np.isfinite(pf.cov)):
         return None
     scores = {"patch_ncc": round(pf.ncc, 4)}
@@ -329,7 +369,7 @@ def finish(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale
         # gradient beside a faint outline) or never fixed the turn. The part's pixels, which match it
         # well (patch_ncc) and tell the turn more sharply, answer the turn: the patch is fitted again
         # from where it ended, and the edges' position joins it without their angle
-        pf2 = fit(patch, image, pf.x, pf.y, pf.theta, pf.scale)
+        pf2 = _fit_at(patch, pyr, lv, pf.x, pf.y, pf.theta, pf.scale)
         if pf2 is not None and np.all(np.isfinite(pf2.cov)) and pf2.ncc >= pf.ncc:
             pf = pf2
             scores["patch_ncc"] = round(pf.ncc, 4)

@@ -279,19 +279,19 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
     stats["n_tracked"] = stats.get("n_tracked", 0.0) + len(cands)
     poses, low, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist,
                                      clock)
-    found = [(_finished(model, pyr[0], p, r, mirrored), r)
+    found = [(_finished(model, pyr, p, r, mirrored), r)
              for p, lv, r in poses if lv == 0 and su <= p.x <= su + sw and sv <= p.y <= sv + sh]
     return found, low, timed_out or t_out
 
 
-def _finished(model: ShapeModel, img0: U8, p: Pose, r: Refined, mirrored: bool) -> Match:
+def _finished(model: ShapeModel, pyr: list[U8], p: Pose, r: Refined, mirrored: bool) -> Match:
     """The answer for a level-0 hypothesis: the edge fit's pose finished on the taught patch
     (``patch.finish``) when the model has one, with the 1-sigma of the merged fit."""
     mt = Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
                r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
     if model.patch is None:
         return mt
-    done = finish_on_patch(model.patch, img0, p.x, p.y, p.theta, p.scale, r.cov)
+    done = finish_on_patch(model.patch, pyr, p.x, p.y, p.theta, p.scale, r.cov)
     if done is not None:
         mt.u_px, mt.v_px, th, mt.sigma_angle_deg, mt.sigma_px, extra = done
         mt.angle_deg = wrap_deg(math.degrees(th))
@@ -332,7 +332,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     best = None
     if low is not None:
         r, mir = low
-        fm = _finished(model.mirrored() if mir else model, pyr[0], r.pose, r, mir)  # as a match would be
+        fm = _finished(model.mirrored() if mir else model, pyr, r.pose, r, mir)  # as a match would be
         best = Candidate(fm.u_px, fm.v_px, fm.angle_deg, r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
