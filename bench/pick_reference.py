@@ -98,8 +98,8 @@ def sweep(teach: U8, roi: tuple[float, float, float, float], image: U8, u0: floa
         t, m = _patch(teach, roi, float(a), mirrored)
         r = cv2.matchTemplate(win, t, cv2.TM_CCOEFF_NORMED, mask=m)
         r = np.nan_to_num(r, nan=-1.0)
-        i, j = np.unravel_index(int(np.argmax(r)), r.shape)
-        best.append((_quad_peak(r, int(i), int(j))[2], int(i), int(j), r))
+        ii, jj = np.unravel_index(int(np.argmax(r)), r.shape)
+        best.append((_quad_peak(r, int(ii), int(jj))[2], int(ii), int(jj), r))
     scores = np.array([b[0] for b in best])
     k = int(np.argmax(scores))
     if k == 0 or k == len(angles) - 1:
