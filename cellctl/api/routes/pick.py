@@ -59,8 +59,11 @@ def _no_recipe(services: ServicesDep, recipe_id: int) -> str:
 
 @router.get("/recipes")
 def list_recipes(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
+    """The version in force of every recipe, with its place kind and gripper device (null: none)."""
     return [{"recipe_id": r.recipe_id, "version": r.version, "name": r.name, "creator": r.creator,
-             "created_s": r.created_s} for r in services.store.list_recipes()]
+             "created_s": r.created_s, "place": (r.data.get("place") or {}).get("kind"),
+             "gripper_device": ((r.data.get("gripper") or {}).get("device") or {}).get("io_id")}
+            for r in services.store.list_recipes()]
 
 
 @router.get("/recipes/{recipe_id}")
