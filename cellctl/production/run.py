@@ -180,6 +180,7 @@ class ProductionRun:
     def _main(self) -> None:
         try:
             ended = self._cycles()
+            self._go_home()
             state: State = "stopped" if ended == "stopped" else "complete"
             self._end(state, ended)
         except RobotStopped as exc:
@@ -291,6 +292,17 @@ class ProductionRun:
         finally:
             d.add("motion", time.monotonic() - t0)
         self._writer.put(lambda: audit(self.s.who, "robot.move", self.robot.robot_id, detail, "ok"))
+
+    def _go_home(self) -> None:
+        """A run that ends by itself or by an operator's stop leaves the arm at the robot's ``home`` named
+        pose (``robots.<id>.poses.home``), not hovering over the last slot; none named: it stays."""
+        robot_config = self.services.config.robots.get(self.s.robot_id)
+        home = None if robot_config is None else robot_config.poses.get("home")
+        if home is None:
+            return
+        from calibration import geometry as g
+
+        self._move(g.ur_pose_to_transform(list(home)), "home at the end of the run", Durations())
 
     def _move_to_capture(self) -> None:
         r = self.s.recipe
