@@ -37,7 +37,7 @@ def audited_move(store: Store, who: str, robot: RobotBase, T: NDArray[np.float64
     """A checked linear move in ``session`` (or its own), audited under ``who`` whatever happens."""
     detail = {"pose_ur": pose_ur(T), "speed_m_s": speed_m_s, "why": why, **(extra or {})}
     try:
-        robot.move_linear(T, speed_m_s, session=session)
+        robot.move_linear(T, speed_m_s, session=session, who=who)
     except Exception as exc:
         store.audit(who, "robot.move", robot.robot_id, detail, outcome(exc))
         raise
