@@ -41,7 +41,8 @@ function show(run) {
 function cycleRow(c) {
   const tr = document.createElement("tr");
   tr.dataset.result = c.result;
-  const pose = (p, keys, f, digits) => (p ? keys.map((k) => fmt(p[k] * f, digits)).join(", ") : "–");
+  const zero = (v, digits) => (Math.abs(v) < 0.5 * 10 ** -digits ? 0 : v);  // no "-0.000"
+  const pose = (p, keys, f, digits) => (p ? keys.map((k) => fmt(zero(p[k] * f, digits), digits)).join(", ") : "–");
   const mm = ["x_mm", "y_mm", "z_mm"], rv = ["rx_rad", "ry_rad", "rz_rad"];
   const cells = [c.n, new Date(c.t * 1000).toLocaleTimeString(), c.result, c.slot ?? "–", fmt(c.score, 3),
     pose(c.pick_pose, mm, 1, 1), pose(c.pick_pose, rv, 1, 3), pose(c.place_pose, mm, 1, 1),
