@@ -103,13 +103,13 @@ def robot_state(args: argparse.Namespace) -> dict[str, Any]:
     from cellctl.config import load_config
     from cellctl.robot_state import state_to_json
 
+    cell = Cell(load_config(args.config))
+    if args.robot not in cell.robots:
+        raise CommandError(f"no robot {args.robot!r} in the config; configured: {sorted(cell.robots)}")
     source = args.config or "the built-in virtual cell"
     print(f"cellctl: reading robot {args.robot} of {source} directly, not through a service (a running "
           "service's robot and its Stop latch are not seen; leave out --config/--local to ask the service)",
           file=sys.stderr, flush=True)
-    cell = Cell(load_config(args.config))
-    if args.robot not in cell.robots:
-        raise CommandError(f"no robot {args.robot!r} in the config; configured: {sorted(cell.robots)}")
     slot = cell.robots[args.robot]
     try:
         # The age is taken when the state is read, not after the adapter has closed.
