@@ -76,3 +76,13 @@ def test_recipe_management_needs_an_engineer(tmp_path: Path, part: dict[str, Any
                                  ("POST", "/recipes/2/duplicate")):
                 r = as_operator.request(method, path, json={"new_recipe_id": 3} if "duplicate" in path else None)
                 assert r.status_code == 403, (path, r.text)
+
+
+def test_a_grip_wider_than_the_stroke_is_refused_with_the_reason(tmp_path: Path, part: dict[str, Any]) -> None:
+    with in_process_cell(tmp_path) as a, a.http() as http:
+        gripper = {"grip_width_mm": 90.0, "device": {"io_id": "gripper0", "kind": "robotiq_2f", "stroke_mm": 85.0}}
+        r = http.post("/recipes", json={"recipe_id": 3, "recipe": _recipe(part, gripper=gripper)})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_grasp", r.text
+        assert "grip_width_mm 90 mm is wider than the gripper's stroke" in r.json()["error"]["message"]
+        gripper["grip_width_mm"] = 30.0
+        assert http.post("/recipes", json={"recipe_id": 3, "recipe": _recipe(part, gripper=gripper)}).status_code == 201

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.metadata as md
 import re
+from typing import Any
 
 from packaging.requirements import Requirement
 
@@ -16,7 +17,7 @@ STRONG_COPYLEFT = re.compile(r"(?<!Lesser )\b(GPL|General Public License)", re.I
 
 def licence_text(dist: md.Distribution) -> str:
     """``License-Expression``, else ``License`` (first line) and the ``License ::`` classifiers."""
-    meta = dist.metadata
+    meta: Any = dist.metadata  # an email.message.Message: .get and .get_all
     if meta.get("License-Expression"):
         return str(meta["License-Expression"])
     classifiers = [c.split("::")[-1].strip() for c in meta.get_all("Classifier") or [] if c.startswith("License ::")]
