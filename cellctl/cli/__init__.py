@@ -65,11 +65,11 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             registered.add(module)
         elif module not in wanted:
             sub.add_parser(command, help=helptext)  # listed only: its module is not imported for this call
-    for command in _commands(parser):
+    for leaf in _commands(parser):
         # `cellctl pick find ... -v` as well as `cellctl -v pick find ...`; SUPPRESS keeps a -v given
         # before the command when it is absent after it.
-        command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
-                             help="debug logging on stderr (also accepted before the command)")
+        leaf.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                          help="debug logging on stderr (also accepted before the command)")
     return parser
 
 

@@ -311,7 +311,7 @@ def jobs_table(jobs: list[dict[str, Any]]) -> str:
     head = ("ID", "ROUTINE", "STATE", "PROGRESS", "VERDICT", "BY", "STARTED", "MESSAGE")
     rows = [head]
     for j in jobs:
-        verdict = {True: "ok", False: "NOT OK"}.get(j.get("verdict_ok"), "-")
+        verdict = "-" if j.get("verdict_ok") is None else ("ok" if j["verdict_ok"] else "NOT OK")
         started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(j["created_s"])) if j.get("created_s") else "-"
         message = " ".join(str(j.get("error") or j.get("message") or "").split())
         rows.append((str(j["id"]), str(j["name"]), str(j["state"]), f"{100 * float(j.get('progress') or 0):.0f}%",
