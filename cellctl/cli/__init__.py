@@ -24,6 +24,8 @@ from typing import Final
 import cellctl
 from cellctl.cli.output import CommandError, emit
 
+__all__ = ["COMMANDS", "COMMAND_MODULES", "CommandError", "build_parser", "emit", "main"]
+
 COMMANDS: Final[dict[str, tuple[str, str]]] = {
     # command: (module under cellctl.cli that registers it, its help in `cellctl --help`)
     "serve": ("serve", "run the REST service"),
