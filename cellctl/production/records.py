@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed")
+RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed", "interrupted")
 POSE_KEYS = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
 """A pose's CSV columns: the tool's position (mm, base frame) and its orientation as UR's rotation vector
 (axis times angle, radians): ``rz_rad`` is that vector's z component, not a yaw angle."""
