@@ -11,7 +11,6 @@ from cellctl.api.app import create_app
 from cellctl.auth import hash_token
 from cellctl.config import default_config_text, load_config
 from cellctl.store import open_store
-from cellctl.store.production import ProductionStore
 from tests.store.helpers import damage_table
 
 TOKEN = "cct_store-outage-production"
@@ -24,7 +23,7 @@ def test_get_production_on_damaged_production_tables_is_503(tmp_path: Path) -> N
     (tmp_path / "cell.yaml").write_text(yaml.safe_dump(data))
     config = load_config(tmp_path / "cell.yaml")
     with open_store(config) as store:
-        ProductionStore(store.engine, store.cell_id).set_next_slot(1, 3, "test")
+        store.set_next_slot(1, 3, "test")
     damage_table(tmp_path / "store" / "cell.db", "production_runs")
     app = create_app(config, [("eng", "engineer", hash_token(TOKEN))])
     with TestClient(app) as client:

@@ -106,5 +106,5 @@ def test_a_run_on_parts_its_model_does_not_match_ends_not_recognized(cell: AppCe
     cycles = http.get(f"/production/runs/{r.json()['run_id']}/cycles").json()
     assert [c["result"] for c in cycles] == ["not_recognized"], cycles
     assert "object(s) in the search region" in cycles[0]["detail"]
-    assert ENDED["not_recognized"] == 7 and RESULTS["not_recognized"] == 8
+    assert ENDED["not_recognized"] == 7 and RESULTS["not_recognized"] == 9
     assert all(p["state"] == "in_area" for p in http.get("/sim/truth").json()["parts"])
