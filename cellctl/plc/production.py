@@ -113,20 +113,11 @@ def production_values(services: Services) -> dict[str, Any]:
 
 
 def production_words(services: Services) -> list[int]:
-    """The Modbus production block (PRODUCTION .. END - 1, docs/plc-modbus.md) from :func:`production_values`."""
-    from cellctl.plc.modbus_server import int32_words
+    """The Modbus production block (docs/plc-modbus.md) from :func:`production_values`, laid out by the
+    register map's table (``cellctl.plc.modbus_map.PRODUCTION_FIELDS``)."""
+    from cellctl.plc.modbus_map import production_block_words
 
-    v = production_values(services)
-    words = [*int32_words(v["run_id"]), v["state"], v["ended"]]
-    for c in v["counters"]:
-        words += int32_words(c)
-    words += int32_words(v["next_slot"])
-    words.append(v["last_result"])
-    words += int32_words(v["last_slot"])
-    words += int32_words(v["cycle_median_ms"])
-    words += int32_words(v["sigma_mm"] * 1000 if v["sigma_mm"] >= 0 else -1)
-    words += int32_words(v["sigma_deg"] * 1000 if v["sigma_deg"] >= 0 else -1)
-    return words
+    return production_block_words(production_values(services))
 
 
 def _line(exc: BaseException) -> str:
