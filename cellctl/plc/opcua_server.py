@@ -57,6 +57,8 @@ from asyncua import Node, Server, ua
 
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
 from cellctl.plc.modbus_server import is_loopback
+from cellctl.plc.opcua_args import guarded
+from cellctl.plc.opcua_mv import VisionSystem, add_vision_system
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
@@ -199,6 +201,7 @@ class OpcUaPlcServer:
         self._pending_refresh: asyncio.Task[None] | None = None
         self._production_vars: dict[str, Node] = {}
         self._production_shown: dict[str, Any] = {}
+        self._vision: VisionSystem | None = None
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -219,6 +222,8 @@ class OpcUaPlcServer:
             for task in (self._refresher, self._motion_watch):
                 if task is not None:
                     task.cancel()
+            if self._vision is not None:
+                await self._vision.stop()
             if self._server is not None:
                 await self._server.stop()
 
@@ -249,16 +254,19 @@ class OpcUaPlcServer:
                                                  "gripper_yaw_deg, score", array=True),
             _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)]
         await cell.add_method(
-            idx, "Pick", self._pick, [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
+            idx, "Pick", guarded("Pick", self._pick, 1, self._refused),
+            [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
             pick_outputs)
         await cell.add_method(
-            idx, "PickAndMove", self._pick_and_move,
+            idx, "PickAndMove", guarded("PickAndMove", self._pick_and_move, 1, self._refused),
             [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
             [*pick_outputs,
              _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
-        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed)
+        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed,
+                                                     self._refused)
+        self._vision = await add_vision_system(server, self.services, self._call, self._executor)
         await cell.add_method(
-            idx, "VerifyCalibration", self._verify, [],
+            idx, "VerifyCalibration", guarded("VerifyCalibration", self._verify, 0, self._refused), [],
             [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
              _arg("DriftPx", ua.VariantType.Double, "RMS drift of the plate's points, pixels"),
              _arg("DriftMm", ua.VariantType.Double, "RMS drift in 3D, mm (NaN: no hand-eye calibration)")])
@@ -268,6 +276,7 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
+        await self._vision.started()
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
         self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
@@ -350,6 +359,11 @@ class OpcUaPlcServer:
         # Device and calibration status are refreshed after the answer, not before it.
         self._pending_refresh = asyncio.get_running_loop().create_task(self._refresh())
         return out
+
+    async def _refused(self, message: str) -> None:
+        """A call refused for its arguments: its message in ``LastError`` (code: the request is wrong)."""
+        await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
+        await self._set("LastError", message)
 
     def _failed(self, out: Outcome) -> ua.StatusCode:
         return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
