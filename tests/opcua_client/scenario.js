@@ -71,7 +71,7 @@ async function scenario(session) {
   };
   const pathOf = (node) => (node === vsm ? base + q("VisionStateMachine")
     : base + q("VisionStateMachine") + q("AutomaticModeStateMachine"));
-  const struct = (id, fields) => session.constructExtensionObject(new NodeId(NodeIdType.NUMERIC, id, ns), fields);
+  const struct = (id, fields) => session.constructExtensionObject(coerceNodeId(`ns=${ns};i=${id}`), fields);
   const ext = (value) => ({ dataType: DataType.ExtensionObject, value });
   const nullExt = { dataType: DataType.ExtensionObject, value: null };
   const noParams = { dataType: DataType.Variant, arrayType: VariantArrayType.Array, value: [] };
