@@ -87,8 +87,10 @@ def test_a_plc_runs_jobs_and_production_over_opc_ua_machine_vision(tmp_path: Pat
         assert run_done["first"] and run_done["stop"] == "Good" and run_done["auto_state"] == "Ready"
         cycles = http.get(f"/production/runs/{cont['job_id'].removeprefix('run-')}/cycles").json()
         assert len(run_done["events"]) == len(cycles) >= 1  # one result per cycle
-        placed = [c for c in cycles if c["result"] == "placed"]
-        assert sum(e["result_state"] == 1 for e in run_done["events"]) == len(placed)
+        assert [json.loads(e["content"][0])["cycle"]["result"] for e in run_done["events"]] == [
+            c["result"] for c in cycles]
+        assert [e["result_state"] for e in run_done["events"]] == [3 if c["result"] == "stopped" else 1 for c in cycles]
+        assert cycles[0]["result"] == "placed" and json.loads(run_done["events"][0]["content"][0])["picks"]
         assert sorted(run_done["listed"]) == sorted(e["result_id"] for e in run_done["events"])
         assert http.get("/production").json()["ended_because"] == "stopped"
 

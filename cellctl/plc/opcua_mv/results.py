@@ -2,8 +2,9 @@
 in memory for ``ResultManagement`` (GetResultById, GetResultListFiltered), and their OPC UA form
 (``ResultDataType``, the ``ResultReadyEventType`` event's fields).
 
-``ResultState``: 1 = ok (the job found at least one pick, or the cycle placed its part); 2 = not ok
-(nothing found, the request failed or the cycle did not place a part; why in ``ResultContent``).
+``ResultState`` (OPC 40100-1, 12.19): 1 Completed (the processing was carried out: a job's picks,
+possibly none; a cycle's outcome, ``placed`` or not, in ``ResultContent``), 3 Aborted (a cycle
+ended by a Stop), 4 Failed (the request failed: why in ``ResultContent``'s ``error``).
 ``ResultContent``: one String, JSON: a job's is the REST pick answer's ``{"picks": [...]}`` (poses
 in mm / rad, ``uncertainty`` with ``sigma_mm`` and ``sigma_yaw_deg``); a cycle's is
 ``{"picks": [<the cycle's pick>], "cycle": {...}}``; a failure's ``{"picks": [], "error": ...}``.
@@ -21,7 +22,7 @@ from typing import Any
 from asyncua import ua
 
 KEEP = 100
-STATE_OK, STATE_NOT_OK = 1, 2
+STATE_COMPLETED, STATE_ABORTED, STATE_FAILED = 1, 3, 4
 
 
 def mv_type(name: str) -> Any:

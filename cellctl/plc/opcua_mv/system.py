@@ -24,7 +24,14 @@ from asyncua.common.instantiate_util import instantiate
 
 from cellctl.plc.opcua_mv import cell
 from cellctl.plc.opcua_mv.nodeset import import_machine_vision
-from cellctl.plc.opcua_mv.results import STATE_NOT_OK, STATE_OK, Result, ResultStore, mv_type
+from cellctl.plc.opcua_mv.results import (
+    STATE_ABORTED,
+    STATE_COMPLETED,
+    STATE_FAILED,
+    Result,
+    ResultStore,
+    mv_type,
+)
 from cellctl.plc.opcua_mv.states import AUTO_STATE_IDS, VISION_STATE_IDS, Job, VisionModel
 from cellctl.plc.requests import Outcome
 from cellctl.services import Services
@@ -151,7 +158,7 @@ class VisionSystem:
             content: dict[str, Any] = {"picks": out.picks}
             if not out.ok:
                 content["error"] = out.message
-            state = STATE_OK if out.ok and out.picks else STATE_NOT_OK
+            state = STATE_COMPLETED if out.ok else STATE_FAILED
             await self.emit(job_id, recipe_id, state, content, ids)
         finally:
             self.model.job = None
@@ -171,10 +178,11 @@ class VisionSystem:
         last = snap.get("last")
         if last and int(last.get("n") or 0) > self._run_seen:
             self._run_seen = int(last.get("n") or 0)
-            placed = last.get("result") == "placed"
+            outcome = last.get("result")
             pick = {"pick_pose": last.get("pick_pose"), "score": last.get("score"),
                     "uncertainty": last.get("uncertainty")}
-            await self.emit(job_id, recipe_id, STATE_OK if placed else STATE_NOT_OK,
+            state = {"stopped": STATE_ABORTED, "vision_failed": STATE_FAILED}.get(str(outcome), STATE_COMPLETED)
+            await self.emit(job_id, recipe_id, state,
                             {"picks": [pick] if last.get("pick_pose") else [], "cycle": last}, ids)
         if snap.get("ended_because") is not None:
             self.model.job = None
@@ -199,8 +207,8 @@ class VisionSystem:
             # asyncua takes a field's type from the type's default value, null for these: say it.
             event.data_types[name] = _EVENT_TYPES.get(name, ua.VariantType.ExtensionObject)
         event.Message = ua.LocalizedText(f"result {result.result_id} of job {job_id}: "
-                                         f"{'ok' if state == STATE_OK else 'not ok'}")
-        event.Severity = 100 if state == STATE_OK else 500
+                                         f"{'completed' if state == STATE_COMPLETED else 'not completed'}")
+        event.Severity = 100 if state == STATE_COMPLETED else 500
         await self._event.trigger(result.created)
         return result
 
