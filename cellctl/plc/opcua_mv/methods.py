@@ -115,7 +115,7 @@ async def link_methods(vs: VisionSystem) -> None:
         return [OK]
 
     async def halt(parent: ua.NodeId, cause: Any, description: Any) -> Any:
-        problem = await vs.blocking(lambda: cell.robot_stop(services, "Halt (OPC UA VisionSystem)"))
+        problem = await vs.stop_robot("Halt (OPC UA VisionSystem)")
         m.halted, m.automatic = True, False
         await vs.show()
         if problem:
@@ -216,7 +216,7 @@ async def link_methods(vs: VisionSystem) -> None:
         return [OK]
 
     async def abort(parent: ua.NodeId, cause: Any, description: Any) -> Any:
-        problem = await vs.blocking(lambda: cell.robot_stop(services, "Abort (OPC UA VisionSystem)"))
+        problem = await vs.stop_robot("Abort (OPC UA VisionSystem)")
         await vs.show()
         if problem:
             raise BadArgument(ua.StatusCodes.BadResourceUnavailable, problem)

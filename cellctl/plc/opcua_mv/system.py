@@ -70,7 +70,7 @@ class VisionSystem:
         from cellctl.plc.opcua_mv.methods import link_methods
 
         self.ns = ns = await import_machine_vision(self.server)
-        vs_type = self.server.get_node(ua.NodeId(1003, ns))
+        vs_type = self.server.get_node(_node_id(1003, ns))
         self.node = (await instantiate(self.server.nodes.objects, vs_type, bname=ua.QualifiedName("VisionSystem", ns),
                                        dname=ua.LocalizedText("VisionSystem")))[0]
         vsm = await self.node.get_child(f"{ns}:VisionStateMachine")
@@ -81,8 +81,8 @@ class VisionSystem:
                        "auto_id": await auto.get_child(["0:CurrentState", "0:Id"]),
                        "system": await self.node.get_child(f"{ns}:SystemState")}
         await link_methods(self)
-        event_type = self.server.get_node(ua.NodeId(1024, ns))
-        generator = await self.server.get_event_generator(event_type, self.node)
+        event_type = self.server.get_node(_node_id(1024, ns))
+        generator = await self.server.get_event_generator(event_type, self.node.nodeid)
         self._event = generator
         await self.show()
 
@@ -100,6 +100,10 @@ class VisionSystem:
     async def blocking(self, fn: Callable[[], T]) -> T:
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn)
 
+    async def stop_robot(self, reason: str) -> str | None:
+        """The robot's Stop, in a thread of its own: never queued behind a request in the executor."""
+        return await asyncio.to_thread(cell.robot_stop, self.services, reason)
+
     async def show(self) -> None:
         """Write the state machines and SystemState where they changed."""
         m, problem = self.model, self.problem
@@ -107,10 +111,10 @@ class VisionSystem:
         system = m.system_state(problem)
         values: dict[str, Any] = {
             "vision": ua.Variant(ua.LocalizedText(vision), ua.VariantType.LocalizedText),
-            "vision_id": ua.Variant(ua.NodeId(VISION_STATE_IDS[vision], self.ns), ua.VariantType.NodeId),
+            "vision_id": ua.Variant(_node_id(VISION_STATE_IDS[vision], self.ns), ua.VariantType.NodeId),
             # Not active: an empty name and the null NodeId (the variables' types admit no null value).
             "auto": ua.Variant(ua.LocalizedText(auto or ""), ua.VariantType.LocalizedText),
-            "auto_id": ua.Variant(ua.NodeId() if auto is None else ua.NodeId(AUTO_STATE_IDS[auto], self.ns),
+            "auto_id": ua.Variant(ua.NodeId() if auto is None else _node_id(AUTO_STATE_IDS[auto], self.ns),
                                   ua.VariantType.NodeId),
             "system": system}
         for name, value in values.items():
@@ -211,6 +215,10 @@ class VisionSystem:
         event.Severity = 100 if state == STATE_COMPLETED else 500
         await self._event.trigger(result.created)
         return result
+
+
+def _node_id(identifier: int, ns: int) -> ua.NodeId:
+    return ua.NodeId(ua.Int32(identifier), ua.Int16(ns))
 
 
 def _finite(value: Any) -> Any:
