@@ -53,7 +53,7 @@ def test_a_plc_runs_jobs_and_production_over_opc_ua_machine_vision(tmp_path: Pat
     port = free_port()
     cfg["plc"] = {"opcua": {"enabled": True, "host": "127.0.0.1", "port": port}, "allow_motion": True}
     path.write_text(yaml.safe_dump(cfg))
-    served = start_served(tmp_path, path)
+    served = start_served(tmp_path, path, timeout_s=180.0)  # the NodeSet import adds ~1 s of CPU to the start
     url = f"opc.tcp://127.0.0.1:{port}/cellctl/"
     try:
         http = served.client(timeout_s=60)
