@@ -139,8 +139,9 @@ class VisionSystem:
     async def poll(self) -> None:
         self.problem = cell.cell_problem(self.services)  # from memory: no I/O
         if self.model.starting:
-            await self.show()  # Preoperational is shown for at least one poll (at start and after Reset)
+            await self.show()  # Preoperational stays for one poll period (at start and after Reset)
             self.model.starting = False
+            return
         if self.model.job == "continuous":
             await self._follow_run()
         await self.show()
