@@ -128,8 +128,11 @@ async function scenario(session) {
   }
 
   // Continuous: a result per cycle until Stop.
+  // Parameters: one KeyValuePair Count (more parts than the Stop lets it place).
+  const countParam = await session.constructExtensionObject(coerceNodeId("i=14533"),
+    { key: { namespaceIndex: 0, name: "Count" }, value: { dataType: DataType.Int32, value: 5 } });
   const run = await call("continuous", [nullExt, nullExt, nullExt, nullExt,
-    { dataType: DataType.Variant, arrayType: VariantArrayType.Array, value: [] }]);
+    { dataType: DataType.ExtensionObject, arrayType: VariantArrayType.Array, value: [countParam] }]);
   const runJob = idOf(run.out[0]);
   out("continuous", { status: run.status, job_id: runJob, auto_state: await state(auto) });
   const first = await waitFor(() => events.find((e) => e.job_id === runJob), 120000);

@@ -214,6 +214,10 @@ def test_hostile_arguments_are_refused_with_a_status_and_never_move_the_robot(pl
             count = ua.KeyValuePair(Key=ua.QualifiedName("Count", 0), Value=ua.Variant(2**31 - 1, ua.VariantType.Int32))
             got["continuous_count"] = await code(auto, f"{ns}:StartContinuous", NULL, NULL, ext(Id="1"), NULL,
                                                  ua.Variant([count], ua.VariantType.ExtensionObject))
+            count = ua.KeyValuePair(Key=ua.QualifiedName("Count", 0), Value=ua.Variant(2, ua.VariantType.Int32))
+            # A good Count passes the argument checks; this cell's plc.allow_motion is off.
+            got["continuous_motion_off"] = await code(auto, f"{ns}:StartContinuous", NULL, NULL, ext(Id="1"), NULL,
+                                                      ua.Variant([count], ua.VariantType.ExtensionObject))
             got["halt_too_few"] = await code(vsm, f"{ns}:Halt")
             got["result_wrong"] = await code(await vs.get_child(f"{ns}:ResultManagement"), f"{ns}:GetResultById",
                                              ua.Variant(5, ua.VariantType.Int32), ua.Variant(0, ua.VariantType.Int32))
@@ -235,6 +239,7 @@ def test_hostile_arguments_are_refused_with_a_status_and_never_move_the_robot(pl
         "prepare_range": "BadOutOfRange", "prepare_unknown": "BadNotFound", "prepare_too_many": "BadInvalidArgument",
         "job_not_ready": "BadInvalidState", "job_wrong_types": "BadInvalidArgument",
         "job_bad_params": "BadInvalidArgument", "continuous_count": "BadOutOfRange",
+        "continuous_motion_off": "BadNotExecutable",
         "halt_too_few": "BadInvalidArgument", "result_wrong": "BadInvalidArgument",
         "pick_two_args": "BadInvalidArgument", "verify_arg": "BadInvalidArgument",
         "production_count": "BadOutOfRange", "production_types": "BadInvalidArgument",
