@@ -246,3 +246,39 @@ def test_hostile_arguments_are_refused_with_a_status_and_never_move_the_robot(pl
         "pause_arg": "BadInvalidArgument", "state": "Operational"}
     after = http.get("/robots/robot0/state").json()
     assert after["pose_ur"] == before["pose_ur"] and after["latched"] is False  # the robot did not move
+
+
+def test_abort_is_the_robots_stop_and_the_vision_system_recovers_after_resume(plc_app: PlcApp) -> None:
+    http = plc_app.http()
+
+    async def state(vsm: Node) -> str:
+        return str((await (await vsm.get_child("0:CurrentState")).read_value()).Text)
+
+    async def until(vsm: Node, want: str) -> str:
+        for _ in range(100):
+            if (now := await state(vsm)) == want:
+                return now
+            await asyncio.sleep(0.05)
+        return await state(vsm)
+
+    async def run() -> None:
+        async with Client(plc_app.opcua_url, timeout=60, watchdog_intervall=60) as client:
+            ns, vs, vsm, auto, _ = await _nodes(client)
+            cause = (ua.Variant(0, ua.VariantType.Int32),
+                     ua.Variant(ua.LocalizedText("test"), ua.VariantType.LocalizedText))
+            assert await until(vsm, "Operational") == "Operational"
+            assert await auto.call_method(f"{ns}:Abort", *cause) == 0
+            assert http.get("/robots/robot0/motion").json()["latched"] is True
+            assert await until(vsm, "Error") == "Error"
+            system = await (await vs.get_child(f"{ns}:SystemState")).read_value()
+            assert system.State == 5 and "latched" in system.StateDescription
+            with pytest.raises(UaStatusCodeError) as e:  # no new work while the robot is latched
+                await vsm.call_method(f"{ns}:SelectModeAutomatic")
+            assert e.value.code == ua.StatusCodes.BadInvalidState
+            assert http.post("/robots/robot0/resume").status_code == 200
+            assert await until(vsm, "Operational") == "Operational"
+
+    try:
+        asyncio.run(run())
+    finally:
+        http.post("/robots/robot0/resume")
