@@ -17,7 +17,17 @@ from dataclasses import dataclass
 from typing import Any
 
 from cellctl.plc.production import CMD_PRODUCTION_START, CMD_PRODUCTION_STOP, execute_production
-from cellctl.plc.requests import Outcome, execute_pick, robot_motion_status
+from cellctl.plc.requests import (
+    TEXT_DEVICE,
+    TEXT_MOTION_OFF,
+    TEXT_RECIPE_RANGE,
+    TEXT_ROBOT_BUSY,
+    TEXT_ROBOT_STOPPED,
+    TEXT_UNKNOWN_RECIPE,
+    Outcome,
+    execute_pick,
+    robot_motion_status,
+)
 from cellctl.production.manager import existing_manager
 from cellctl.services import Services
 from cellctl.store import NotFound
@@ -26,6 +36,9 @@ log = logging.getLogger(__name__)
 
 WHO = "plc:opcua-mv"
 LATCH_STORE_WAIT_S = 2.0
+__all__ = ["TEXT_DEVICE", "TEXT_MOTION_OFF", "TEXT_RECIPE_RANGE", "TEXT_ROBOT_BUSY", "TEXT_ROBOT_STOPPED",
+           "TEXT_UNKNOWN_RECIPE", "Outcome", "StoredRecipe", "cell_problem", "configuration_id", "pick",
+           "robot_stop", "run_snapshot", "start_run", "stop_run", "stored_recipe", "stored_recipes"]
 
 
 @dataclass(frozen=True)

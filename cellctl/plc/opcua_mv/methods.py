@@ -14,8 +14,7 @@ from asyncua import ua
 
 from cellctl.plc.opcua_args import BadArgument, guarded, int_arg, invalid, out_of_range, value_of
 from cellctl.plc.opcua_mv import cell
-from cellctl.plc.opcua_mv.results import KEEP, id_of, ids_filter, internal_recipe_id, mv_type
-from cellctl.plc.requests import (
+from cellctl.plc.opcua_mv.cell import (
     TEXT_DEVICE,
     TEXT_MOTION_OFF,
     TEXT_RECIPE_RANGE,
@@ -24,6 +23,7 @@ from cellctl.plc.requests import (
     TEXT_UNKNOWN_RECIPE,
     Outcome,
 )
+from cellctl.plc.opcua_mv.results import KEEP, id_of, ids_filter, internal_recipe_id, mv_type
 
 if TYPE_CHECKING:
     from cellctl.plc.opcua_mv.system import VisionSystem

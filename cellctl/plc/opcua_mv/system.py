@@ -23,6 +23,7 @@ from asyncua import Node, Server, ua
 from asyncua.common.instantiate_util import instantiate
 
 from cellctl.plc.opcua_mv import cell
+from cellctl.plc.opcua_mv.cell import Outcome
 from cellctl.plc.opcua_mv.nodeset import import_machine_vision
 from cellctl.plc.opcua_mv.results import (
     STATE_ABORTED,
@@ -33,7 +34,6 @@ from cellctl.plc.opcua_mv.results import (
     mv_type,
 )
 from cellctl.plc.opcua_mv.states import AUTO_STATE_IDS, VISION_STATE_IDS, Job, VisionModel
-from cellctl.plc.requests import Outcome
 from cellctl.services import Services
 
 log = logging.getLogger(__name__)
