@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import cpu_model  # noqa: E402
-from cellctl.pick.place import GridPlace  # noqa: E402
+from cellctl.production.config import GridPlace  # noqa: E402
 from tests.support.production_cell import production_config, serve, slot_error, teach_recipe, wait_ended  # noqa: E402
 from tests.support.served import stop_served  # noqa: E402
 

@@ -96,6 +96,19 @@ def exp_so3(rotvec: ArrayLike) -> NDArray[np.float64]:
     return R[0] if single else R
 
 
+def rot_z(angle_rad: float) -> Mat3:
+    """The rotation by ``angle_rad`` (radians, counter-clockwise) about z, 3x3."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def perturb(T: Mat4, p: ArrayLike) -> Mat4:
+    """``[Exp(w) R, t + v]`` for ``p = (w, v)`` (rotation vector in radians, translation in metres;
+    the left, base-frame perturbation every solver and simulator uses)."""
+    q = np.asarray(p, dtype=np.float64)
+    return make_transform(exp_so3(q[:3]) @ T[:3, :3], T[:3, 3] + q[3:6])
+
+
 def log_so3(R: ArrayLike) -> Vec:
     """Rotation vector (radians) of a 3x3 rotation matrix: closed form, scipy near 180 deg where the
     closed form is ill-conditioned."""

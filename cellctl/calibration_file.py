@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Final, Literal
 
+from cellctl.errors import CellctlError
+
 Kind = Literal["camera", "handeye", "npoint"]
 KINDS: Final = ("camera", "handeye", "npoint")
 MAX_IMAGE_SIDE_PX: Final = 100_000
@@ -28,7 +30,7 @@ GIVE: Final = ("a calibration result file: cam.json (cellctl calib intrinsics, c
                "he.json (cellctl calib handeye) or np.json (cellctl calib npoint)")
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(CellctlError, ValueError):
     """The file is not a usable calibration of the kind given or recognised; the message says why and what to give.
 
     ``code``: ``not_a_calibration`` (a file of another kind, or of another calibration kind than asked),
@@ -77,7 +79,9 @@ def check_calibration(data: Any, kind: str | None = None, source: str = "the fil
     if kind is not None and seen != kind:
         raise CalibrationFileError(f"{source} is a {seen} calibration (its keys say so), not a {kind} one; "
                                    f"give kind {seen}, or a file of {_MAKE[kind]}", "not_a_calibration")
-    assert seen is not None
+    if seen is None:  # unreachable: a file whose kind is unknown was refused above
+        raise CalibrationFileError(f"{source}: its calibration kind could not be told; give {GIVE}",
+                                   "not_a_calibration")
     checker = {"camera": _check_camera, "handeye": _check_handeye, "npoint": _check_npoint}[seen]
     notes = checker(data, source)
     verdict = data.get("verdict")

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from cellctl.config import CellConfig
+from cellctl.errors import CellctlError
 from drivers.backoff import Backoff
 from drivers.base import CameraBase, DeviceUnavailable, DigitalIOBase, DriverError, RobotBase
 from drivers.registry import Category, adapter_class
@@ -21,7 +22,7 @@ log = logging.getLogger(__name__)
 
 D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase)
 
-class UnknownDevice(LookupError):
+class UnknownDevice(CellctlError, LookupError):
     """A camera or robot id that the config does not name."""
 
 

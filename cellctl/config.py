@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from calibration.io import read_text, yaml_error_text
+from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class
@@ -27,7 +28,7 @@ Role = Literal["viewer", "operator", "engineer"]
 ROLE_RANK: dict[str, int] = {"viewer": 0, "operator": 1, "engineer": 2}
 
 
-class ConfigError(ValueError):
+class ConfigError(CellctlError, ValueError):
     """cell.yaml is malformed; the message names the file, the key path and what is expected."""
 
 

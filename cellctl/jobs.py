@@ -27,7 +27,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from cellctl import metrics
+from cellctl.errors import CellctlError
+from cellctl.metrics import CellMetrics
 from drivers.base import MotionSession, RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
@@ -38,7 +39,7 @@ MAX_RUNNING_JOBS = 4
 """Routines running at once in one service (each holds a thread and may hold a camera)."""
 
 
-class JobCancelled(Exception):
+class JobCancelled(CellctlError):
     """Raised inside a routine when its job was cancelled."""
 
 
@@ -46,11 +47,11 @@ class InputTimedOut(JobCancelled):
     """An interactive step waited longer than its timeout: the job ends cancelled, saying so."""
 
 
-class JobInputError(ValueError):
+class JobInputError(CellctlError, ValueError):
     """Operator input given to a job that is not waiting for it, or that is malformed."""
 
 
-class TooManyJobs(RuntimeError):
+class TooManyJobs(CellctlError, RuntimeError):
     """``MAX_RUNNING_JOBS`` routines are running already."""
 
 
@@ -74,6 +75,8 @@ class Job:
     message: str = "starting"
     result: dict[str, Any] | None = None
     error: str | None = None
+    exception: BaseException | None = field(default=None, repr=False)
+    """What ended a failed, stopped or cancelled job (typed, for callers that sort failures; not served)."""
     created_s: float = field(default_factory=time.time)
     finished_s: float | None = None
     events: list[Event] = field(default_factory=list)
@@ -214,6 +217,8 @@ class JobManager:
         self._jobs: dict[str, Job] = {}
         self._lock = threading.Lock()
         self._threads: dict[str, threading.Thread] = {}
+        self.metrics: CellMetrics | None = None
+        """Where finished jobs are counted (its ``Services``' metrics; None: nowhere)."""
 
     def start(self, name: str, fn: Callable[[JobContext], dict[str, Any]], params: dict[str, Any],
               started_by: str, motion: tuple[RobotBase, MotionSession] | None = None) -> Job:
@@ -244,16 +249,19 @@ class JobManager:
             ok = result_verdict_ok(result)
             job.message = "done" if ok is not False else "done, but the verdict is NOT OK: " + _not_ok_words(result)
         except JobCancelled as exc:
+            job.exception = exc
             job.state = "cancelled"
             if isinstance(exc, InputTimedOut):
                 job.error = f"{exc}: the step was abandoned"
             job.message = f"{f'cancelled: {job.error}' if job.error else exc}; {_aftermath(ctx)}"
         except RobotStopped as exc:
+            job.exception = exc
             job.state = "stopped"
             job.error = f"{exc}"
             job.message = "stopped by a robot Stop; nothing was stored (an engineer must resume the robot)"
         except Exception as exc:  # noqa: BLE001 - a routine's failure is reported, never raised into the server
             log.warning("job %s (%s) failed: %s", job.id, job.name, exc, exc_info=not isinstance(exc, ValueError))
+            job.exception = exc
             job.state = "failed"
             job.error = f"{exc}"
             job.message = f"failed: {exc}; {_aftermath(ctx)}"
@@ -266,7 +274,8 @@ class JobManager:
             if motion is not None:
                 motion[0].motion.end(motion[1])
             job.finished_s = time.time()
-            metrics.routine_finished(job.name, job.state, source=self)
+            if self.metrics is not None:
+                self.metrics.routine_finished(job.name, job.state)
             job._emit("state", {"state": job.state, "message": job.message, "error": job.error})
 
     def _prune(self) -> None:

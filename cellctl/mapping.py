@@ -25,10 +25,11 @@ from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.io import CameraFileError, camera_from_json, camera_mismatch, handeye_camera, handeye_start_camera
 from calibration.measure import RobotPoint, map_handeye, map_npoint
+from cellctl.errors import CellctlError
 from cellctl.services import Services
 
 
-class NoCalibration(ValueError):
+class NoCalibration(CellctlError, ValueError):
     """No active calibration can map this camera's pixels to the robot."""
 
 
@@ -101,7 +102,8 @@ def active_mapping(services: Services, camera_id: str, robot_id: str, prefer: st
             start_id = he.result.get("camera_calibration_id")
             return ActiveMapping("handeye", he.id, he.result, he_camera,
                                  start_id if isinstance(start_id, int) else None, "handeye")
-        assert cam_cal is not None
+        if cam_cal is None:  # use_he needs the camera's calibration or the hand-eye's own camera
+            raise NoCalibration(f"no active camera calibration for {camera_id}: run and activate intrinsics-capture")
         return ActiveMapping("handeye", he.id, he.result, camera_from_json(cam_cal.result, f"calibration {cam_cal.id}"),
                              cam_cal.id, "camera_calibration")
     if npc is not None and prefer in ("auto", "npoint"):

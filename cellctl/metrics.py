@@ -19,11 +19,12 @@ What is measured, and where it comes from:
   ``cellctl_camera_frame_rate_hz`` (the acquisition rate the camera reports in ``settings()``). The
   measured frame rate is ``rate(cellctl_camera_frames_total[1m])`` in PromQL.
 
-Each app has its own ``CollectorRegistry`` (not prometheus_client's global one), so several apps in
-one process never collide. The module functions ``observe_pick`` and ``routine_finished`` find the
-app's metrics through the object they are given (the ``Services``, its ``Cell`` or ``JobManager``,
-registered by ``attach``); without one they record in every attached instance (in a service process
-there is one). They never raise: a metric must not break a pick or a routine.
+Each service has its own ``CellMetrics`` (a typed field of ``cellctl.services.Services``) in its own
+``CollectorRegistry`` (not prometheus_client's global one), so several apps in one process never
+collide; nothing is registered at module level. The pick flow records through
+``services.metrics.observe_pick``, the ``JobManager`` through the metrics its ``Services`` gave it.
+They never raise: a metric must not break a pick or a routine. After ``detach`` (the service's
+close) they record nothing and the scrape reads no cell; the registry keeps its counts.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Iterable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -73,21 +74,46 @@ class CellMetrics:
         info.labels(__version__).set(1)
         self.devices = DeviceCollector()
         r.register(self.devices)
+        self.attached = True
+        """False after ``detach``: nothing more is recorded."""
+
+    def attach(self, cell: Cell | None) -> None:
+        """Read ``cell``'s devices at each scrape and record again (the service's start)."""
+        self.devices.cell = cell
+        self.attached = True
+
+    def detach(self) -> None:
+        """Forget the cell and record nothing more (the service's close); the registry keeps its counts.
+        A camera's ``settings()`` still being asked is waited for (``SETTINGS_TIMEOUT_S`` each)."""
+        self.devices.cell = None
+        self.attached = False
+        self.devices.join(SETTINGS_TIMEOUT_S)
 
     def observe_request(self, method: str, route: str, status: int, duration_s: float) -> None:
         self.request_duration.labels(method, route, str(status)).observe(duration_s)
 
     def observe_pick(self, latency_s: float, scores: Iterable[float]) -> None:
-        """One pick: its latency (seconds) and the scores of the matches it returned (may be none)."""
-        self.pick_latency.observe(float(latency_s))
-        n = 0
-        for s in scores:
-            self.match_score.observe(float(s))
-            n += 1
-        self.picks.labels("found" if n else "none").inc()
+        """One pick: its latency (seconds) and the scores of the matches it returned (may be none); never raises."""
+        if not self.attached:
+            return
+        try:
+            self.pick_latency.observe(float(latency_s))
+            n = 0
+            for s in scores:
+                self.match_score.observe(float(s))
+                n += 1
+            self.picks.labels("found" if n else "none").inc()
+        except Exception:  # noqa: BLE001 - metrics never break a pick
+            log.debug("observe_pick failed", exc_info=True)
 
     def routine_finished(self, routine: str, state: str) -> None:
-        self.routines.labels(routine, state).inc()
+        """A finished routine (job) and its final state; never raises."""
+        if not self.attached:
+            return
+        try:
+            self.routines.labels(routine, state).inc()
+        except Exception:  # noqa: BLE001 - metrics never break a job
+            log.debug("routine_finished failed", exc_info=True)
 
     def render(self) -> bytes:
         """The registry in Prometheus' text exposition format."""
@@ -101,6 +127,17 @@ class DeviceCollector(Collector):
         self.cell: Cell | None = None
         self._pending: dict[str, threading.Thread] = {}
         self._lock = threading.Lock()
+
+    def join(self, timeout_s: float) -> None:
+        """Wait for the ``settings()`` calls in progress (each thread is bounded by its device's answer: a
+        device that hangs keeps its one thread, never more, and it is logged)."""
+        with self._lock:
+            pending = list(self._pending.values())
+            self._pending.clear()
+        for thread in pending:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("%s: the camera's settings() call has not returned; its thread stays", thread.name)
 
     def describe(self) -> Iterable[Metric]:
         return []  # the series depend on the cell; describe nothing so registration never scrapes
@@ -189,51 +226,25 @@ def _number(v: Any) -> float | None:
     return float(v)
 
 
-# -- the function API other modules call -------------------------------------------------------------
+# -- the function API (each service's metrics are its own: no module-level registry) ------------------
 
-_attached: dict[int, CellMetrics] = {}
-"""id() of each attached source object (Services, its Cell and JobManager) -> its app's metrics."""
-_attached_lock = threading.Lock()
+
+class _HasMetrics(Protocol):
+    metrics: CellMetrics
 
 
 def attach(metrics: CellMetrics, services: Any) -> None:
-    """Connect an app's metrics to its running services (called in the app's lifespan)."""
-    metrics.devices.cell = services.cell
-    with _attached_lock:
-        for obj in (services, services.cell, services.jobs):
-            _attached[id(obj)] = metrics
+    """Make ``metrics`` the metrics of ``services`` (its picks, its jobs, its cell's devices)."""
+    services.metrics = metrics
+    services.jobs.metrics = metrics
+    metrics.attach(services.cell)
 
 
 def detach(metrics: CellMetrics) -> None:
-    """Forget an app's services (its shutdown); its registry keeps the counts."""
-    metrics.devices.cell = None
-    with _attached_lock:
-        for key in [k for k, m in _attached.items() if m is metrics]:
-            del _attached[key]
+    """Record nothing more in ``metrics`` (its service closed); its registry keeps the counts."""
+    metrics.detach()
 
 
-def _targets(source: object | None) -> list[CellMetrics]:
-    with _attached_lock:
-        if source is None:
-            return list({id(m): m for m in _attached.values()}.values())
-        m = _attached.get(id(source))
-        return [m] if m is not None else []
-
-
-def observe_pick(latency_s: float, scores: Iterable[float], source: object | None = None) -> None:
-    """Record one pick (latency in seconds, the returned matches' scores); never raises."""
-    score_list = list(scores)
-    for m in _targets(source):
-        try:
-            m.observe_pick(latency_s, score_list)
-        except Exception:  # noqa: BLE001 - metrics never break a pick
-            log.debug("observe_pick failed", exc_info=True)
-
-
-def routine_finished(routine: str, state: str, source: object | None = None) -> None:
-    """Record a finished routine (job) and its final state; never raises."""
-    for m in _targets(source):
-        try:
-            m.routine_finished(routine, state)
-        except Exception:  # noqa: BLE001 - metrics never break a job
-            log.debug("routine_finished failed", exc_info=True)
+def observe_pick(latency_s: float, scores: Iterable[float], source: _HasMetrics) -> None:
+    """Record one pick in ``source``'s metrics (a ``Services``); never raises."""
+    source.metrics.observe_pick(latency_s, list(scores))

@@ -9,6 +9,7 @@ sequence that fails halts the robot without hiding the first error.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,12 @@ def pose_ur(T: NDArray[np.float64]) -> list[float]:
     return [float(v) for v in g.transform_to_ur_pose(T)]
 
 
+def pose_json(T: NDArray[np.float64]) -> dict[str, float]:
+    """A pose as the answers give it: ``x_mm``, ``y_mm``, ``z_mm`` and the rotation vector in radians."""
+    x, y, z, rx, ry, rz = (float(v) for v in g.transform_to_ur_pose(T))
+    return {"x_mm": x * 1e3, "y_mm": y * 1e3, "z_mm": z * 1e3, "rx_rad": rx, "ry_rad": ry, "rz_rad": rz}
+
+
 def outcome(exc: BaseException) -> str:
     """The audit outcome of a failed move."""
     kind = ("refused" if isinstance(exc, MotionRejected | RobotBusy) else
@@ -32,16 +39,27 @@ def outcome(exc: BaseException) -> str:
     return f"{kind}: {exc}"
 
 
+Write = Callable[[Callable[[], object]], object]
+"""Runs a store write: at once (``_now``, the default) or later in order (a production run's writer thread)."""
+
+
+def _now(write: Callable[[], object]) -> object:
+    return write()
+
+
 def audited_move(store: Store, who: str, robot: RobotBase, T: NDArray[np.float64], speed_m_s: float,
-                 why: str, session: MotionSession | None = None, extra: dict[str, Any] | None = None) -> None:
-    """A checked linear move in ``session`` (or its own), audited under ``who`` whatever happens."""
+                 why: str, session: MotionSession | None = None, extra: dict[str, Any] | None = None,
+                 write: Write = _now) -> None:
+    """A checked linear move in ``session`` (or its own), audited under ``who`` whatever happens; the
+    audit row goes through ``write`` (default: written before this returns)."""
     detail = {"pose_ur": pose_ur(T), "speed_m_s": speed_m_s, "why": why, **(extra or {})}
     try:
         robot.move_linear(T, speed_m_s, session=session)
     except Exception as exc:
-        store.audit(who, "robot.move", robot.robot_id, detail, outcome(exc))
+        result = outcome(exc)
+        write(lambda: store.audit(who, "robot.move", robot.robot_id, detail, result))
         raise
-    store.audit(who, "robot.move", robot.robot_id, detail, "ok")
+    write(lambda: store.audit(who, "robot.move", robot.robot_id, detail, "ok"))
 
 
 def halt_after_failure(robot: RobotBase, error: BaseException) -> None:

@@ -51,6 +51,8 @@ READY_WAIT_S = 180.0
 """How long a request that needs a warm-up (a camera image) waits for it before answering 503
 ``starting``. On a warm cache the whole start-up takes 1-3 s; on a cold one the renderer alone is
 ~10 s of CPU, 25 s of wall time at a load of 18 on this 2-core machine and over 90 s at 30."""
+STOP_JOIN_S = 120.0
+"""At the service's stop the warm-up task in progress (loading or compiling compiled loops) finishes within this."""
 
 
 def warm_renderer(cameras: Iterable[SimCamera] = ()) -> None:
@@ -140,13 +142,31 @@ class Startup:
         self._tasks = [_Task(name, fn) for name, fn in tasks]
         self._t0 = time.monotonic() if since_s is None else since_s
         self.ready_after_s: float | None = None if self._tasks else 0.0
+        self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()
 
     def start(self) -> None:
-        """Run the tasks on a background thread."""
-        threading.Thread(target=self._run, name="cellctl-warm-up", daemon=True).start()
+        """Run the tasks on a background thread (``stop`` joins it)."""
+        self._thread = threading.Thread(target=self._run, name="cellctl-warm-up", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = STOP_JOIN_S) -> None:
+        """The service stops: the tasks not started are skipped (counted done), the one running finishes;
+        the thread is joined."""
+        self._stopping.set()
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.warning("start-up: the warm-up thread did not end within %.0f s of the service's stop", timeout_s)
 
     def _run(self) -> None:
         for task in self._tasks:
+            if self._stopping.is_set():
+                task.error = "skipped: the service stopped first"
+                task.seconds = 0.0
+                task.done.set()
+                continue
             t = time.monotonic()
             try:
                 task.fn()

@@ -27,5 +27,10 @@ class DeviceTimeout(DriverError, TimeoutError):
     """The device did not answer in time."""
 
 
+class DriverInputError(DriverError, ValueError):
+    """Bad input handed to a driver (a recording folder, a scene file, a render or imaging setting, a
+    pose no joint solution reaches): the caller's to fix, not a device fault (the REST API answers 422)."""
+
+
 class MotionRejected(DriverError, ValueError):
     """A commanded motion was refused before it was sent (envelope, speed, not allowed)."""

@@ -17,8 +17,10 @@ import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from drivers.errors import DriverError
 
-class LoopNotRunning(RuntimeError):
+
+class LoopNotRunning(DriverError, RuntimeError):
     """``call`` on a loop thread that was not started or has stopped."""
 
 
@@ -43,6 +45,13 @@ class LoopThread:
         self._thread = threading.Thread(target=self._run, args=(serve,), name=self.name, daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout_s):
+            # Not left running: the start is abandoned, its loop stopped (serve() ends with an error) and joined.
+            loop, thread = self.loop, self._thread
+            if loop is not None:
+                with contextlib.suppress(RuntimeError):  # closed meanwhile: it ended by itself
+                    loop.call_soon_threadsafe(loop.stop)
+            thread.join(timeout_s)
+            self._thread = None
             raise TimeoutError(f"{self.name} did not start within {timeout_s:.0f} s")
         if self._error is not None:
             self._thread.join(5.0)

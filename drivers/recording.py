@@ -26,11 +26,12 @@ from numpy.typing import NDArray
 
 from calibration.geometry import transform_to_ur_pose, ur_pose_to_transform
 from drivers.base import Frame, RobotState
+from drivers.errors import DriverInputError
 
 RECORDING_FORMAT_VERSION = 1
 
 
-class RecordingError(ValueError):
+class RecordingError(DriverInputError):
     """A recording folder is missing, malformed, or of a newer format."""
 
 

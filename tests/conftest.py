@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
+import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -79,7 +81,8 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
             return name
     info = getattr(item, "_fixtureinfo", None)
     defs = info.name2fixturedefs.values() if info is not None else ()
-    if any(d and d[-1].scope == "module" for d in defs):
+    # (the thread check is module-scoped on every module: it does not pin a module to a worker)
+    if any(d and d[-1].scope == "module" and d[-1].argname != "no_thread_left_behind" for d in defs):
         return rel_path
     return None
 
@@ -127,6 +130,60 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     if len(paths) == 1 and Path(next(iter(paths))).is_file():
         return 0
     return WORKERS
+
+
+# -- threads with owners ---------------------------------------------------------------------------
+
+THREAD_GRACE_S = 15.0
+"""How long the check waits, in all, for threads still ending after a module's fixtures are gone (a
+job's last step, a reader noticing its device closed): generous for a loaded CI machine."""
+LIBRARY_THREADS: dict[str, str] = {
+    "AnyIO worker thread": "anyio's worker threads (Starlette's run_in_threadpool, TestClient): anyio owns them "
+                           "and ends the idle ones itself",
+    "asyncio_": "asyncio's default executor of an event loop (a library's loop.run_in_executor(None, ...))",
+    "ThreadPoolExecutor-": "an executor a library made without a name (pymodbus, asyncua, ...)",
+    "Dummy-": "a thread started outside Python's threading (a C library's callback): nobody can join it",
+    "render_": "drivers/sim/imaging/pool.py: the renderer's process-wide pool, bounded by the core count and reused "
+               "by every render in the process (never one per call)",
+    "pydevd": "a debugger's threads",
+}
+"""Threads a test may leave behind, by name prefix, and why (everything else is the product's or the
+test's own, and must be joined by its owner)."""
+
+
+def _left_behind(before: set[threading.Thread], grace_s: float) -> list[threading.Thread]:
+    """Threads started since ``before`` that are still alive after a grace join (library threads excepted)."""
+    deadline = time.monotonic() + grace_s
+    left = []
+    for t in threading.enumerate():
+        if t in before or t is threading.current_thread() or t.name.startswith(tuple(LIBRARY_THREADS)):
+            continue
+        t.join(max(0.0, deadline - time.monotonic()))
+        if t.is_alive():
+            left.append(t)
+    return left
+
+
+def _describe_thread(t: threading.Thread) -> str:
+    target = getattr(t, "_target", None)
+    where = f"{getattr(target, '__module__', '?')}.{getattr(target, '__qualname__', '?')}" if target else \
+        f"{type(t).__module__}.{type(t).__qualname__}.run"
+    return f"{t.name!r} ({where}, daemon={t.daemon})"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def no_thread_left_behind(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fails a module whose tests leave a thread running once every fixture of the module has been torn
+    down (module scope: a module-scoped served cell keeps its threads until then, legitimately).
+    Threads libraries own are named in ``LIBRARY_THREADS``; everything the product starts is joined
+    by its owner on shutdown (docs/testing.md)."""
+    before = set(threading.enumerate())
+    yield
+    left = _left_behind(before, THREAD_GRACE_S)
+    if left:
+        pytest.fail(f"{request.node.nodeid} left {len(left)} thread(s) running after its fixtures were torn down: "
+                    + "; ".join(_describe_thread(t) for t in left)
+                    + ". The product joins every thread it starts on shutdown (a test joins its own).", pytrace=False)
 
 
 # -- markers ----------------------------------------------------------------------------------------

@@ -44,6 +44,24 @@ def test_every_exception_class_derives_from_the_library_root(package: object, ro
     assert all(issubclass(c, ValueError) for c in classes)
 
 
+@pytest.mark.parametrize(("package_name", "root_path"), [("drivers", "drivers.errors.DriverError"),
+                                                         ("cellctl", "cellctl.errors.CellctlError")])
+def test_every_exception_class_of_the_service_derives_from_its_package_root(package_name: str,
+                                                                             root_path: str) -> None:
+    """``DriverError`` roots every driver error (the virtual cell's input errors through
+    ``DriverInputError``), ``CellctlError`` every cellctl error: ``cellctl.api.errors`` maps the roots."""
+    from cellctl.api.errors import OWN_ERRORS
+
+    package = importlib.import_module(package_name)
+    module_name, _, class_name = root_path.rpartition(".")
+    root = getattr(importlib.import_module(module_name), class_name)
+    classes = _exception_classes(package)
+    assert root in classes and len(classes) >= (12 if package_name == "drivers" else 20)
+    strays = [f"{c.__module__}.{c.__qualname__}" for c in classes if not issubclass(c, root)]
+    assert not strays, f"derive these from {root.__name__}: {strays}"
+    assert root in OWN_ERRORS
+
+
 FLAG = re.compile(r"(?<![\w-])--[A-Za-z][A-Za-z0-9]*(-[A-Za-z0-9]+)*")
 
 

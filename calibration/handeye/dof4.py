@@ -41,7 +41,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
-from calibration.geometry import as_transform, invert, make_transform, rotation_angle
+from calibration.geometry import as_transform, exp_so3, invert, make_transform, rot_z, rotation_angle
 from calibration.handeye.dof4_budget import budget_problem, mapping_budget
 from calibration.handeye.dof4_checks import check_dof4_motion, pair_residuals
 from calibration.handeye.model import HandEyeError, RobotNoise
@@ -56,15 +56,6 @@ SETUPS: Final = ("eye-in-hand", "eye-to-hand")
 MIN_STATIONS: Final = 3
 RECOMMENDED_STATIONS: Final = 8
 DEFAULT_TARGET_Z_SIGMA_MM: Final = 0.1
-
-
-def _exp(w: ArrayLike) -> F64:
-    return np.asarray(Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix(), dtype=np.float64)
-
-
-def _rz(a: float) -> F64:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -119,7 +110,7 @@ def closed_form_dof4(setup: str, G: Sequence[Mat4], C: Sequence[Mat4], target_z_
         z_star = target_z_m
     else:
         phi = -theta
-        s = np.array([-_rz(-th) @ g[:3, 3] for th, g in zip(theta, G, strict=True)])
+        s = np.array([-rot_z(-th) @ g[:3, 3] for th, g in zip(theta, G, strict=True)])
         z_star = target_z_m - G_ref[2, 3]
     n_acc = np.zeros(3)
     w_acc = 0.0
@@ -139,11 +130,11 @@ def closed_form_dof4(setup: str, G: Sequence[Mat4], C: Sequence[Mat4], target_z_
     ez = np.array([0.0, 0.0, 1.0])
     axis = np.cross(n, ez)
     ang = float(np.arctan2(np.linalg.norm(axis), n @ ez))
-    R_tilt = _exp(axis / np.linalg.norm(axis) * ang) if np.linalg.norm(axis) > 1e-12 else np.eye(3)
+    R_tilt = exp_so3(axis / np.linalg.norm(axis) * ang) if np.linalg.norm(axis) > 1e-12 else np.eye(3)
     rows, rhs = [], []
     for k, Ck in enumerate(C):
         p = R_tilt @ Ck[:3, 3]
-        Rh = _rz(phi[k])
+        Rh = rot_z(phi[k])
         M = np.zeros((3, 7))  # unknowns: cos psi, sin psi, t_X (3), t_Z x, t_Z y
         M[:, 0] = -Rh @ np.array([p[0], p[1], 0.0])
         M[:, 1] = -Rh @ np.array([-p[1], p[0], 0.0])
@@ -156,12 +147,12 @@ def closed_form_dof4(setup: str, G: Sequence[Mat4], C: Sequence[Mat4], target_z_
         raise HandEyeError("the stations do not determine a 4-DOF hand-eye: move the flange in x and y between "
                            "stations as well as turning the tool about z")
     sol = np.linalg.lstsq(A, b, rcond=None)[0]
-    R_X = _rz(float(np.arctan2(sol[1], sol[0]))) @ R_tilt
-    R_Z = Rotation.from_matrix(np.array([_rz(ph) @ R_X @ Ck[:3, :3] for ph, Ck in zip(phi, C, strict=True)])).mean()
+    R_X = rot_z(float(np.arctan2(sol[1], sol[0]))) @ R_tilt
+    R_Z = Rotation.from_matrix(np.array([rot_z(ph) @ R_X @ Ck[:3, :3] for ph, Ck in zip(phi, C, strict=True)])).mean()
     # translations again with the rotation fixed
     rows, rhs = [], []
     for k, Ck in enumerate(C):
-        Rh = _rz(phi[k])
+        Rh = rot_z(phi[k])
         M = np.zeros((3, 5))
         M[:, 0:3] = -Rh
         M[0, 3] = M[1, 4] = 1.0
@@ -191,8 +182,8 @@ class _Joint4(StationProblem):
         self.U = np.column_stack([u1, np.cross(gauge_Z, u1)])  # Z's translation moves in this plane only
 
     def lead(self, x: F64) -> tuple[Mat4, Mat4]:
-        X = make_transform(_exp(x[0:3]) @ self.X0[:3, :3], self.X0[:3, 3] + x[3:6])
-        Z = make_transform(_exp(x[6:9]) @ self.Z0[:3, :3], self.Z0[:3, 3] + self.U @ x[9:11])
+        X = make_transform(exp_so3(x[0:3]) @ self.X0[:3, :3], self.X0[:3, 3] + x[3:6])
+        Z = make_transform(exp_so3(x[6:9]) @ self.Z0[:3, :3], self.Z0[:3, 3] + self.U @ x[9:11])
         return X, Z
 
 

@@ -11,11 +11,11 @@ from scipy.spatial.transform import Rotation
 from calibration.camera_model import CameraModel
 from calibration.geometry import (
     as_transform,
-    exp_so3,
     invert,
     make_transform,
     rotation_angle,
 )
+from calibration.geometry import perturb as perturb  # the one copy; the hand-eye solvers import it from here
 from calibration.handeye.model import (
     HandEyeError,
     Mat4,
@@ -28,14 +28,8 @@ from calibration.targets import Target
 
 
 # --------------------------------------------------------------------------------------------
-# small SE(3) helpers
+# small SE(3) helpers (``perturb``: ``calibration.geometry.perturb``)
 # --------------------------------------------------------------------------------------------
-def perturb(T: Mat4, p: ArrayLike) -> Mat4:
-    """``[Exp(w) R, t + v]`` for ``p = (w, v)``."""
-    q = np.asarray(p, dtype=np.float64)
-    return make_transform(exp_so3(q[:3]) @ T[:3, :3], T[:3, 3] + q[3:6])
-
-
 def mean_pose(Ts: Sequence[Mat4]) -> Mat4:
     R = Rotation.from_matrix(np.array([T[:3, :3] for T in Ts])).mean().as_matrix()
     return make_transform(R, np.mean([T[:3, 3] for T in Ts], axis=0))

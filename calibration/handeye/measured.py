@@ -30,7 +30,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
-from calibration.geometry import as_transform, invert, make_transform, rotation_angle
+from calibration.geometry import as_transform, invert, make_transform, perturb, rotation_angle
 from calibration.handeye.dof4 import Station4, make_stations4
 from calibration.handeye.model import HandEyeError, RobotNoise
 from calibration.handeye.stations import StationProblem
@@ -41,14 +41,6 @@ Mat4 = NDArray[np.float64]
 F64 = NDArray[np.float64]
 SETUPS: Final = ("eye-in-hand", "eye-to-hand")
 DEFAULT_TRACKER = RobotNoise(0.03, 0.005)
-
-
-def _exp(w: ArrayLike) -> F64:
-    return np.asarray(Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix(), dtype=np.float64)
-
-
-def _perturb(T: Mat4, p: F64) -> Mat4:
-    return make_transform(_exp(p[:3]) @ T[:3, :3], T[:3, 3] + p[3:6])
 
 
 def x_from_station(setup: str, G: Mat4, Z: Mat4, C: Mat4) -> Mat4:
@@ -69,7 +61,7 @@ class _JointMeasured(StationProblem):
         self.X0, self.Z0 = X0, Z_meas
 
     def lead(self, x: F64) -> tuple[Mat4, Mat4]:
-        return _perturb(self.X0, x[:6]), _perturb(self.Z0, x[6:12])
+        return perturb(self.X0, x[:6]), perturb(self.Z0, x[6:12])
 
     def lead_prior(self, x: F64) -> F64:
         return np.asarray(x[6:12] / self.sig, dtype=np.float64)

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration import CalibrationError
 from calibration.camera_model import CameraModel
-from calibration.geometry import as_transform, make_transform, rotvec_to_matrix, ur_pose_to_transform
+from calibration.geometry import as_transform, perturb, ur_pose_to_transform
 from calibration.npoint import NPointResult
 
 DEFAULT_NPOINT_PIXEL_SIGMA_PX = 0.1
@@ -87,10 +87,6 @@ def _ray_plane(camera: CameraModel, T_base_cam: NDArray[np.float64], uv: NDArray
     return np.asarray(o + s * d, dtype=np.float64)
 
 
-def _perturb(T: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
-    return make_transform(rotvec_to_matrix(p[:3]) @ T[:3, :3], T[:3, 3] + p[3:6])
-
-
 def _matrix(calib: dict[str, Any], key: str) -> NDArray[np.float64]:
     try:
         return as_transform(np.asarray(calib[key], dtype=np.float64), key)
@@ -151,8 +147,8 @@ def map_handeye(calib: dict[str, Any], uv_px: ArrayLike, camera: CameraModel, pl
     ray0 = camera.unproject(uv.reshape(1, 2))[0]  # shared by every perturbation that leaves the pixel alone
 
     def f(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        Xp = _perturb(X, p[0:6])
-        Gp = _perturb(G, p[8:14])
+        Xp = perturb(X, p[0:6])
+        Gp = perturb(G, p[8:14])
         T = Gp @ Xp if setup == "eye-in-hand" else Xp
         return _ray_plane(camera, T, uv + p[6:8], z, None if p[6] or p[7] else ray0)
 

@@ -13,10 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from calibration.camera_model import CameraModel
-from calibration.geometry import invert, make_transform
+from calibration.geometry import exp_so3, invert, make_transform
 from calibration.handeye import RobotNoise
 from calibration.observations import Detection
 from calibration.targets import Target
@@ -24,15 +23,11 @@ from calibration.targets import Target
 Mat4 = NDArray[np.float64]
 
 
-def _exp(w: list[float] | NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.asarray(Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix(), dtype=np.float64)
-
-
 def perturb_pose(G: Mat4, rng: np.random.Generator, noise: RobotNoise) -> Mat4:
     """A recorded pose: ``G`` with the stated robot noise applied (base frame)."""
     w = rng.normal(0.0, np.radians(noise.sigma_deg), 3)
     v = rng.normal(0.0, noise.sigma_mm * 1e-3, 3)
-    return make_transform(_exp(w) @ G[:3, :3], G[:3, 3] + v)
+    return make_transform(exp_so3(w) @ G[:3, :3], G[:3, 3] + v)
 
 
 @dataclass
@@ -61,26 +56,26 @@ def simulate_scara(setup: str, n_stations: int, rng: np.random.Generator, *, cam
     ``tool_down``: the tool z axis points down (a UR picking top-down); else up (a SCARA's).
     """
     noise = robot_noise or RobotNoise(0.02, 0.01)
-    R0 = _exp([np.pi, 0.0, 0.0]) if tool_down else np.eye(3)
-    tilt = _exp(np.radians(camera_tilt_deg) * np.array([0.6, -0.8, 0.0]))
+    R0 = exp_so3([np.pi, 0.0, 0.0]) if tool_down else np.eye(3)
+    tilt = exp_so3(np.radians(camera_tilt_deg) * np.array([0.6, -0.8, 0.0]))
     tp = target.points()
     centre = tp.xyz_m.mean(axis=0)
-    face_down = _exp([np.pi, 0.0, 0.0])  # target frame z into the target: a face-up target has z down
+    face_down = exp_so3([np.pi, 0.0, 0.0])  # target frame z into the target: a face-up target has z down
     if setup == "eye-in-hand":
         # camera optical axis (z) along the tool z axis when the tool points down
-        X = make_transform((R0.T @ face_down) @ tilt @ _exp([0.0, 0.0, 0.4]), R0.T @ np.array([0.045, -0.03, 0.09]))
-        Z = make_transform(_exp([0.0, 0.0, 0.3]) @ face_down, [0.45, 0.02, 0.012])
+        X = make_transform((R0.T @ face_down) @ tilt @ exp_so3([0.0, 0.0, 0.4]), R0.T @ np.array([0.045, -0.03, 0.09]))
+        Z = make_transform(exp_so3([0.0, 0.0, 0.3]) @ face_down, [0.45, 0.02, 0.012])
         z_mm = 12.0
     elif setup == "eye-to-hand":
-        X = make_transform(face_down @ tilt @ _exp([0.0, 0.0, -0.7]), [0.45, 0.0, 0.80])
-        Z = make_transform(R0.T @ _exp([0.0, 0.0, 0.25]) @ face_down, R0.T @ np.array([0.02, -0.015, -0.06]))
+        X = make_transform(face_down @ tilt @ exp_so3([0.0, 0.0, -0.7]), [0.45, 0.0, 0.80])
+        Z = make_transform(R0.T @ exp_so3([0.0, 0.0, 0.25]) @ face_down, R0.T @ np.array([0.02, -0.015, -0.06]))
         z_mm = float("nan")
     else:
         raise ValueError(f"setup must be eye-in-hand or eye-to-hand, got {setup!r}")
     G_true: list[Mat4] = []
     while len(G_true) < n_stations:
         th = np.radians(rng.uniform(-100.0, 100.0))
-        R = _exp([0.0, 0.0, th]) @ R0
+        R = exp_so3([0.0, 0.0, th]) @ R0
         if setup == "eye-in-hand":
             cam_pos = Z[:3, :3] @ centre + Z[:3, 3] + np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05),
                                                                 rng.uniform(0.32, 0.45)])
@@ -130,8 +125,8 @@ def simulate_tool_centre(rng: np.random.Generator, camera: CameraModel, *, n_ang
     # the same camera pose again (same seed), to project the feature through it
     sub = np.random.default_rng(seed)
     a = sub.uniform(0, 2 * np.pi)
-    tilt = _exp(np.radians(1.5) * np.array([np.cos(a), np.sin(a), 0.0]))
-    yaw = _exp([0.0, 0.0, sub.uniform(-0.3, 0.3)])
+    tilt = exp_so3(np.radians(1.5) * np.array([np.cos(a), np.sin(a), 0.0]))
+    yaw = exp_so3([0.0, 0.0, sub.uniform(-0.3, 0.3)])
     R_base_cam = yaw @ tilt @ np.diag([1.0, -1.0, -1.0])
     centre = np.array([0.45, 0.05, 0.0])
     T_base_cam = make_transform(R_base_cam, centre - R_base_cam @ np.array([0.0, 0.0, 0.5]))

@@ -23,7 +23,6 @@ from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
-from cellctl.production.manager import forget_manager, shutdown_manager
 from cellctl.services import Services
 from cellctl.warmup import service_startup
 
@@ -44,10 +43,9 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         latches = LatchKeeper(store, {rid: slot.device.motion for rid, slot in cell.robots.items()})
         await run_in_threadpool(latches.restore)
         latches.start()
-        services = Services(config, cell, store, JobManager(), latches=latches)
+        services = Services(config, cell, store, JobManager(), latches=latches, metrics=app.state.metrics)
         app.state.cell = cell
         app.state.services = services
-        metrics.attach(app.state.metrics, services)
         await run_in_threadpool(cell.open_all)
         # The compiled loops (renderer, matcher, solver) load in the background; /health says
         # `starting` until they have, and a camera image waits for its camera's (cellctl.warmup).
@@ -62,18 +60,17 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         except BaseException as exc:
             log.error("the PLC servers cannot start: %s", exc)
             await run_in_threadpool(services.close)
-            metrics.detach(app.state.metrics)
+            await run_in_threadpool(app.state.startup.stop)
             raise
         try:
             yield
         finally:
             # A production run in progress ends stopped, its robot halted and its records written,
             # before the PLC and the devices go.
-            await run_in_threadpool(shutdown_manager, services)
+            await run_in_threadpool(services.stop_production)
             await run_in_threadpool(plc.stop)
             await run_in_threadpool(services.close)
-            forget_manager(services)
-            metrics.detach(app.state.metrics)
+            await run_in_threadpool(app.state.startup.stop)
 
     app = FastAPI(
         title="cellctl",

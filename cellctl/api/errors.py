@@ -3,8 +3,8 @@
 A device that is unreachable answers 503 with ``{"available": false, "reason": ...}`` (INTERFACES
 §5); bad input answers 4xx with a machine-readable code and a human message; never a 500 for
 anything a caller or a device did. Only the project's own error types map to a 4xx: the libraries'
-roots (``CalibrationError``, ``VisionError``, ``DriverError``) and cellctl's typed errors
-(``OWN_ERRORS``); anything else (a builtin ``KeyError``, a numpy ``ValueError``) is a bug: 500
+roots (``CalibrationError``, ``VisionError``, ``DriverError``) and cellctl's (``CellctlError``):
+``OWN_ERRORS``; anything else (a builtin ``KeyError``, a numpy ``ValueError``) is a bug: 500
 with the request id, logged with its traceback.
 """
 
@@ -18,29 +18,18 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from calibration import CalibrationError
-from cellctl.calibration_file import CalibrationFileError
-from cellctl.cell import UnknownDevice
-from cellctl.config import ConfigError
+from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
-from cellctl.jobs import JobInputError
 from cellctl.logging_setup import request_id_var
-from cellctl.mapping import NoCalibration
-from cellctl.pick.recipe import PickError
-from cellctl.production.manager import NoRun
-from cellctl.routines.common import RoutineError
-from cellctl.routines.preflight import PreflightRefused
-from cellctl.store.errors import StoreError, StoreUnavailable
+from cellctl.store.errors import StoreUnavailable
 from drivers.base import DeviceTimeout, DeviceUnavailable, DriverError, MotionRejected, RobotBusy, RobotStopped
-from drivers.recording import RecordingError
-from drivers.sim.imaging import ImagingError, RenderError
-from drivers.sim.kinematics import OutOfReach
-from drivers.sim.scene import SceneError
+from drivers.errors import DriverInputError
 from vision.errors import VisionError
 
 log = logging.getLogger(__name__)
 
 
-class ApiError(Exception):
+class ApiError(CellctlError):
     """An error with an HTTP status, a machine-readable code and a message for people."""
 
     def __init__(self, status: int, code: str, message: str) -> None:
@@ -87,6 +76,12 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _driver(_: Request, exc: DriverError) -> JSONResponse:
         return JSONResponse(status_code=502, content=error_body("device_error", str(exc)))
 
+    @app.exception_handler(DriverInputError)
+    async def _driver_input(_: Request, exc: DriverInputError) -> JSONResponse:
+        # the virtual cell's input errors (a recording, a scene, a render, a reach), not device faults
+        log.warning("refused: %s", exc)
+        return JSONResponse(status_code=422, content=error_body("invalid_input", _with_notes(exc)))
+
     @app.exception_handler(RobotBusy)
     async def _busy(_: Request, exc: RobotBusy) -> JSONResponse:
         return JSONResponse(status_code=409, content=error_body("robot_busy", str(exc)))
@@ -129,13 +124,10 @@ def install_error_handlers(app: FastAPI) -> None:
         return internal_error(request, exc)
 
 
-OWN_ERRORS: tuple[type[Exception], ...] = (
-    CalibrationError, VisionError, DriverError,
-    # the virtual cell's input errors (a scene, a render, a reach), not device faults
-    RecordingError, RenderError, ImagingError, OutOfReach, SceneError,
-    CalibrationFileError, ConfigError, JobInputError, NoCalibration, PickError, RoutineError,
-    PreflightRefused, StoreError, UnknownDevice, NoRun)
-"""The project's own typed errors: their messages are written for people, so they may be a 4xx."""
+OWN_ERRORS: tuple[type[Exception], ...] = (CalibrationError, VisionError, DriverError, CellctlError)
+"""The roots of the project's own typed errors (one per package): their messages are written for
+people, so they may be a 4xx. Every error class of a package derives from its root
+(``tests/test_error_roots.py``)."""
 
 
 def is_own_error(exc: BaseException) -> bool:

@@ -26,6 +26,8 @@ from typing import Any
 
 from starlette.types import Message, Receive, Scope
 
+from cellctl.errors import CellctlError
+
 UNAUTHORIZED = 401
 REQUEST_TIMEOUT = 408
 BODY_TOO_LARGE = 413
@@ -89,11 +91,11 @@ def has_body(scope: Scope) -> bool:
     return _header(scope, b"transfer-encoding") is not None
 
 
-class BodyTooLarge(Exception):
+class BodyTooLarge(CellctlError):
     """The streamed body passed the limit (raised by :func:`read_body`)."""
 
 
-class ClientGone(Exception):
+class ClientGone(CellctlError):
     """The client disconnected before its body was complete."""
 
 
@@ -189,5 +191,5 @@ def is_event_stream(message: Message) -> bool:
     return False
 
 
-class StreamRefused(Exception):
+class StreamRefused(CellctlError):
     """Raised into the app when its event stream is refused (the 429 has been sent)."""

@@ -18,6 +18,8 @@ from typing import Final
 import cellctl
 from cellctl.cli.output import CommandError, emit
 
+__all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "emit", "main"]
+
 COMMAND_MODULES: Final[tuple[str, ...]] = (
     "serve",
     "config_cmd",

@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Any
 
 from calibration import io as cal_io
+from cellctl.errors import CellctlError
 
 
-class CommandError(Exception):
+class CommandError(CellctlError):
     """A command failed for a reason the user can fix; the message is printed as one line."""
 
     def __init__(self, message: str, exit_code: int = 2) -> None:

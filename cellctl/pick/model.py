@@ -23,6 +23,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from cellctl.errors import CellctlError
 from vision import blob, shape
 from vision.errors import SettingsError, VisionError
 from vision.image import as_gray
@@ -35,7 +36,7 @@ MODES: Final[tuple[str, ...]] = ("shape", "blob")
 Roi = tuple[float, float, float, float]
 
 
-class ModelFileError(VisionError):
+class ModelFileError(CellctlError, VisionError):
     """A model file that cannot be used (unreadable, corrupt, or from a newer cellctl)."""
 
 

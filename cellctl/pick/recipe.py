@@ -13,13 +13,14 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_validator
 
+from cellctl.errors import CellctlError
 from cellctl.pick.model import PartModel
 from cellctl.pick.model_schema import PartModelDoc
-from cellctl.pick.place import GripperDevice, PlaceSection
+from cellctl.production.config import GripperDevice, PlaceSection
 from cellctl.strict_types import Bool, Count, Num
 
 
-class PickError(ValueError):
+class PickError(CellctlError, ValueError):
     """The pick cannot be done as asked (no calibration, bad recipe, image of the wrong size...)."""
 
 

@@ -16,6 +16,10 @@ from cellctl.services import Services
 
 log = logging.getLogger(__name__)
 
+__all__ = ["PlcServers", "preflight", "start_plc_servers"]
+"""The request engine every front end shares is ``cellctl.plc.requests`` (``execute_pick``, ``execute_verify``);
+the servers ``modbus_server`` and ``opcua_server``; production over the PLC ``production``/``opcua_production``."""
+
 
 class _Server(Protocol):
     def stop(self) -> None: ...

@@ -26,6 +26,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from cellctl.auth import Principal
 from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, run_pick
 from cellctl.pick.model import ModelFileError
@@ -186,13 +187,14 @@ def robot_motion_status(services: Services) -> dict[str, Any]:
 
 
 def execute_verify(services: Services, who: str, timeout_s: float = VERIFY_TIMEOUT_S) -> Outcome:
-    """Run the ``verify`` routine as a job (visible in /jobs) and wait for it."""
-    from cellctl.routines import verify
+    """Run the ``verify`` routine as a job (visible in /jobs) and wait for it: started by the service's one
+    start (``cellctl.routines.start``: preflight, the robot held still for the job), failures sorted by type."""
+    from cellctl.routines.start import StartRefused, start_routine
 
     t0 = time.perf_counter()
     with PLC_LOCK:
         try:
-            job = services.jobs.start("verify", lambda ctx: verify.run(services, ctx), {}, who)
+            job = start_routine(services, "verify", {}, Principal(who, "operator"))
             job = services.jobs.join(job.id, timeout_s)
             if job.state == "running":
                 services.jobs.cancel(job.id)
@@ -209,8 +211,17 @@ def execute_verify(services: Services, who: str, timeout_s: float = VERIFY_TIMEO
                     out.verify = res
             else:
                 msg = job.error or job.message
-                text = TEXT_NO_CALIBRATION if "no active calibration" in msg else TEXT_VERIFY_FAILED_TO_RUN
+                text = TEXT_NO_CALIBRATION if isinstance(job.exception, NoCalibration) else TEXT_VERIFY_FAILED_TO_RUN
                 out = failure(text, f"verify: {msg}")
+        except StartRefused as exc:
+            text = TEXT_NO_CALIBRATION if exc.code == "no_active_calibration" else TEXT_VERIFY_FAILED_TO_RUN
+            out = failure(text, f"verify: {exc}")
+        except RobotStopped as exc:
+            out = failure(TEXT_ROBOT_STOPPED, f"robot stopped: an engineer must resume it ({_first_line(exc)})")
+        except RobotBusy as exc:
+            out = failure(TEXT_ROBOT_BUSY, _first_line(exc))
+        except StoreUnavailable as exc:
+            out = failure(TEXT_STORE, _first_line(exc))
         except Exception as exc:  # noqa: BLE001 - a PLC request never takes the server down
             log.exception("PLC verify failed")
             out = failure(TEXT_INTERNAL, f"internal error: {_first_line(exc)}")

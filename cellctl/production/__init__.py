@@ -1,10 +1,75 @@
 """Production pick-and-place: the run that empties a pick area into a place pattern, cycle after cycle.
 
 - ``gripper``: open, close, check the grip, release (Robotiq 2F / sim gripper, vacuum, parallel);
-- ``place``: place poses from the recipe's place section, the part's yaw and the gripper's symmetry;
+- ``place``: place poses of a picked part (``place_poses``: the slot, the pick's grasp);
 - the next free slot, the runs and the cycle records are stored (``cellctl.store.production``);
 - ``records``: a run's counters, cycle times and cycle records; ``frames``: failed cycles' frames on disk;
 - ``choice``: which part a cycle picks (retries, skips, unreachable parts);
-- ``vision``: a cycle's picture (and the next one, taken while the robot places);
+- ``vision``: a cycle's picture (the pick's candidates, ``cellctl.pick.locate``), the next one taken
+  while the robot places;
 - ``run``: the run's cycles and state machine (one per robot); ``manager``: the runs of a service.
+
+The public names are listed in ``__all__`` (imported on first use).
 """
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from cellctl.production.frames import FailureFrames
+    from cellctl.production.gripper import GripCheck, Gripper
+    from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning
+    from cellctl.production.place import place_poses
+    from cellctl.production.records import to_csv
+    from cellctl.production.run import ProductionRun, RunSettings, RunStatus
+    from cellctl.production.vision import Picture, Prefetch, VisionWorker, take_picture
+
+_LAZY: dict[str, str] = {
+    "GripperHolding": "cellctl.production.manager",
+    "NoRun": "cellctl.production.manager",
+    "ProductionManager": "cellctl.production.manager",
+    "ProductionRunning": "cellctl.production.manager",
+    "ProductionRun": "cellctl.production.run",
+    "RunSettings": "cellctl.production.run",
+    "RunStatus": "cellctl.production.run",
+    "GripCheck": "cellctl.production.gripper",
+    "Gripper": "cellctl.production.gripper",
+    "place_poses": "cellctl.production.place",
+    "Picture": "cellctl.production.vision",
+    "Prefetch": "cellctl.production.vision",
+    "VisionWorker": "cellctl.production.vision",
+    "take_picture": "cellctl.production.vision",
+    "FailureFrames": "cellctl.production.frames",
+    "to_csv": "cellctl.production.records",
+}
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
+
+__all__ = [
+    "FailureFrames",
+    "GripCheck",
+    "Gripper",
+    "GripperHolding",
+    "NoRun",
+    "Picture",
+    "Prefetch",
+    "ProductionManager",
+    "ProductionRun",
+    "ProductionRunning",
+    "RunSettings",
+    "RunStatus",
+    "VisionWorker",
+    "place_poses",
+    "take_picture",
+    "to_csv",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

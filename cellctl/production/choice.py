@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cellctl.production.place import Plan
+from cellctl.pick.candidate import PickCandidate
 from cellctl.production.records import Counters
-from cellctl.production.vision import Candidate, Picture
+from cellctl.production.vision import Picture
 
 SAME_PART_MM = 8.0
 """A match this close to a part tried before is that part (for retries and skips)."""
@@ -37,24 +37,24 @@ class Choice:
     tried: list[Tried] = field(default_factory=list)
     unreachable: list[np.ndarray] = field(default_factory=list)
 
-    def choose(self, picture: Picture, counters: Counters) -> Candidate | None:
+    def choose(self, picture: Picture, counters: Counters) -> PickCandidate | None:
         """The best-scoring pickable part; the unreachable ones are counted once each per run."""
         chosen = None
         for c in picture.candidates:
-            if c.plan.problem is not None:
-                xy = c.plan.T_base_part[:2, 3] * 1e3
+            if c.problem is not None:
+                xy = c.T_base_part[:2, 3] * 1e3
                 if not any(float(np.linalg.norm(xy - seen)) < SAME_PART_MM for seen in self.unreachable):
                     self.unreachable.append(xy)
                     counters.unreachable += 1
                 continue
-            tried = self.tried_at(c.plan)
+            tried = self.tried_at(c)
             if chosen is None and (tried is None or tried.failures <= self.retries):
                 chosen = c
         return chosen
 
     def why_none(self, picture: Picture) -> str:
         """Why no part of ``picture`` is pickable (the cycle record's detail)."""
-        problems = [c.plan.problem for c in picture.candidates if c.plan.problem]
+        problems = [c.problem for c in picture.candidates if c.problem]
         skipped = len(picture.candidates) - len(problems)
         parts = []
         if problems:
@@ -63,15 +63,15 @@ class Choice:
             parts.append(f"{skipped} skipped after failed grips")
         return f"{len(picture.candidates)} part(s) found, none pickable: " + "; ".join(parts)
 
-    def tried_at(self, plan: Plan) -> Tried | None:
-        xy = plan.T_base_part[:2, 3] * 1e3
+    def tried_at(self, cand: PickCandidate) -> Tried | None:
+        xy = cand.T_base_part[:2, 3] * 1e3
         return next((t for t in self.tried if float(np.linalg.norm(t.xy_mm - xy)) < SAME_PART_MM), None)
 
-    def grip_failed(self, plan: Plan) -> int:
-        """Count a failed grip of the part of ``plan``; its failures so far (skip it beyond ``retries``)."""
-        tried = self.tried_at(plan)
+    def grip_failed(self, cand: PickCandidate) -> int:
+        """Count a failed grip of the part ``cand``; its failures so far (skip it beyond ``retries``)."""
+        tried = self.tried_at(cand)
         if tried is None:
-            tried = Tried(plan.T_base_part[:2, 3] * 1e3)
+            tried = Tried(cand.T_base_part[:2, 3] * 1e3)
             self.tried.append(tried)
         tried.failures += 1
         return tried.failures

@@ -1,24 +1,23 @@
 """A place found by vision (a recipe's ``located`` place): the fixture in a cycle's picture.
 
 The fixture's model is searched in the same frame as the parts; its best match is mapped like a
-part's (``cellctl.pick.pose``): the reference point onto the fixture's top face (``plane_z_mm``),
-a second point along the match's angle for its taught x axis. That is ``T_base_fixture``; the
-place's slots are fixed in its frame (``LocatedPlace.T_slot_in_fixture``).
+part's, by the one conversion for parts and fixtures (``cellctl.pick.pose.part_pose``): the
+reference point onto the fixture's top face (``plane_z_mm``), a second point along the match's
+angle for its taught x axis. That is ``T_base_fixture``; the place's slots are fixed in its frame
+(``LocatedPlace.T_slot_in_fixture``).
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration import geometry as g
 from cellctl.mapping import ActiveMapping
 from cellctl.pick.model import PartModel
-from cellctl.pick.place import LocatedPlace
-from cellctl.pick.pose import AXIS_PROBE_PX
+from cellctl.pick.pose import part_pose
+from cellctl.production.config import LocatedPlace
 from vision.recognize import recognize
 from vision.types import SearchParams
 
@@ -40,12 +39,7 @@ def locate_fixture(place: LocatedPlace, pixels: NDArray[Any], mapping: ActiveMap
         return None, {"reason": f"the place's fixture was not found (min_score {place.min_score:g}): "
                                 f"{found.reason() or 'no match'}"}
     m = found.matches[0]
-    a = math.radians(m.angle_deg)
-    p0 = mapping.map(np.array([m.u_px, m.v_px]), place.plane_z_mm, T_capture, with_uncertainty=False).xyz_mm
-    p1 = mapping.map(np.array([m.u_px + AXIS_PROBE_PX * math.cos(a), m.v_px - AXIS_PROBE_PX * math.sin(a)]),
-                     place.plane_z_mm, T_capture, with_uncertainty=False).xyz_mm
-    yaw = math.atan2(p1[1] - p0[1], p1[0] - p0[0])
-    T = g.make_transform(g.rotvec_to_matrix([0.0, 0.0, yaw]), [p0[0] * 1e-3, p0[1] * 1e-3, place.plane_z_mm * 1e-3])
+    T = part_pose(mapping, m.u_px, m.v_px, m.angle_deg, place.plane_z_mm, T_capture, with_uncertainty=False).T_base_part
     return T, {"score": float(m.score), "u_px": float(m.u_px), "v_px": float(m.v_px), "angle_deg": float(m.angle_deg)}
 
 

@@ -1,6 +1,6 @@
 """Gripper actions of a production cycle: open before the approach, close, settle, check, release.
 
-The recipe's ``gripper.device`` (``cellctl.pick.place.GripperDevice``) names a configured io device
+The recipe's ``gripper.device`` (``cellctl.production.config.GripperDevice``) names a configured io device
 and its kind:
 
 - ``robotiq_2f``: ``move(position)`` / ``status()`` of ``drivers.io.robotiq_gripper`` (or the
@@ -20,8 +20,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from cellctl.pick.place import GripperDevice
 from cellctl.pick.recipe import GripperSettings, PickError
+from cellctl.production.config import GripperDevice
 from cellctl.services import Services
 from drivers.base import DigitalIOBase
 

@@ -11,6 +11,7 @@ import logging
 import threading
 from typing import Any
 
+from cellctl.errors import CellctlError
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.frames import FailureFrames
 from cellctl.production.gripper import Gripper
@@ -21,20 +22,20 @@ from drivers.base import RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
 
-class ProductionRunning(RuntimeError):
+class ProductionRunning(CellctlError, RuntimeError):
     """A production run already owns the robot."""
 
 
-class GripperHolding(RuntimeError):
+class GripperHolding(CellctlError, RuntimeError):
     """The gripper holds something before a run starts."""
 
 
-class NoRun(LookupError):
+class NoRun(CellctlError, LookupError):
     """No production run has been started in this cell."""
 
 
 class ProductionManager:
-    """Production runs of one service (``manager_for(services)``)."""
+    """Production runs of one service (``services.production``, made on first use)."""
 
     def __init__(self, services: Services) -> None:
         self.services = services
@@ -159,38 +160,11 @@ class ProductionManager:
         return [r.status.run_id for r in runs]
 
 
-_MANAGERS: dict[int, tuple[Services, ProductionManager]] = {}
-_MANAGERS_LOCK = threading.Lock()
+def manager_for(services: Services) -> ProductionManager:
+    """The service's production manager (``services.production``: made on first use)."""
+    return services.production
 
 
 def existing_manager(services: Services) -> ProductionManager | None:
     """The service's production manager if one was made (no store access: safe on an event loop)."""
-    with _MANAGERS_LOCK:
-        entry = _MANAGERS.get(id(services))
-    return entry[1] if entry is not None and entry[0] is services else None
-
-
-def manager_for(services: Services) -> ProductionManager:
-    """The service's production manager (made on first use)."""
-    with _MANAGERS_LOCK:
-        entry = _MANAGERS.get(id(services))
-        if entry is None or entry[0] is not services:
-            entry = (services, ProductionManager(services))
-            _MANAGERS[id(services)] = entry
-        return entry[1]
-
-
-def shutdown_manager(services: Services, reason: str = "the service is shutting down") -> list[int]:
-    """At the service's end: stop the service's runs now (``ProductionManager.shutdown``); the manager
-    stays registered and refuses new starts (a PLC command arriving meanwhile) until
-    ``forget_manager``. The ids of the runs it ended (none when no manager was made)."""
-    manager = existing_manager(services)
-    return [] if manager is None else manager.shutdown(reason)
-
-
-def forget_manager(services: Services) -> None:
-    """Drop the service's manager (after the service has closed)."""
-    with _MANAGERS_LOCK:
-        entry = _MANAGERS.get(id(services))
-        if entry is not None and entry[0] is services:
-            del _MANAGERS[id(services)]
+    return services.production_if_made

@@ -80,16 +80,16 @@ class Durations:
 
 
 def seen_fields(cand: Any, picture: Any, T_place: Any) -> dict[str, Any]:
-    """A cycle record's fields from what it saw and did: the chosen part (``vision.Candidate``), the
+    """A cycle record's fields from what it saw and did: the chosen part (``PickCandidate``), the
     picture (``vision.Picture``) and the place pose (4x4, metres); None where there is none."""
-    from cellctl.pick.pose import pose_json
+    from cellctl.motion import pose_json
 
     return {
-        "score": None if cand is None else float(cand.match["score"]),
-        "pick_pose": None if cand is None else pose_json(cand.plan.T_pick),
+        "score": None if cand is None else float(cand.match.score),
+        "pick_pose": None if cand is None else pose_json(cand.T_pick),
         "place_pose": None if T_place is None else pose_json(T_place),
-        "uncertainty": None if cand is None else {"sigma_mm": cand.plan.sigma_mm,
-                                                  "sigma_yaw_deg": cand.plan.sigma_yaw_deg},
+        "uncertainty": None if cand is None else {"sigma_mm": cand.sigma_mm,
+                                                  "sigma_yaw_deg": cand.sigma_yaw_deg},
         "frame_id": None if picture is None else picture.frame_id,
         "calibration": None if picture is None else picture.calibration,
         "found": None if picture is None else picture.found,

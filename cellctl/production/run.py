@@ -22,20 +22,23 @@ from typing import Any, Literal
 
 import numpy as np
 
+from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
-from cellctl.motion import halt_after_failure, outcome, pose_ur
-from cellctl.pick.place import LocatedPlace
+from cellctl.motion import audited_move, halt_after_failure
+from cellctl.pick.candidate import PickCandidate
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.production.choice import Choice
+from cellctl.production.config import LocatedPlace
 from cellctl.production.frames import KEPT_RESULTS, FailureFrames
 from cellctl.production.gripper import Gripper
+from cellctl.production.place import place_poses
 from cellctl.production.records import Counters, CycleTimes, Durations, clean, seen_fields
 from cellctl.production.vision import (
-    Candidate,
     Picture,
     Prefetch,
-    ViewWatch,
+    VisionWorker,
     camera_on_arm,
+    out_of_view,
     take_picture,
     tool_yaw,
 )
@@ -98,7 +101,6 @@ class ProductionRun:
         self._n = 0
         device = settings.recipe.gripper.device
         self._choice = Choice(device.retries if device is not None else 0)
-        self._writer = Writer(f"production-{run_id}-store")
         self._next_slot = store.next_slot(settings.recipe_id)
         self._mapping: ActiveMapping | None = None
         if settings.overlap and (isinstance(settings.recipe.place, LocatedPlace) or camera_on_arm(
@@ -115,6 +117,10 @@ class ProductionRun:
         self.done = threading.Event()
         self.last_record: dict[str, Any] | None = None
         """The last cycle's record (what a PLC reads as the last cycle's result)."""
+        self._vision: VisionWorker | None = None
+        """The next cycle's pictures (with ``overlap``): made when the run's thread starts, closed when it ends."""
+        # Last: a run that fails to be made leaves no thread behind (the writer's thread starts here).
+        self._writer = Writer(f"production-{run_id}-store")
 
     # -- control ----------------------------------------------------------------------------------
     def start(self) -> None:
@@ -179,6 +185,8 @@ class ProductionRun:
     # -- the run ----------------------------------------------------------------------------------
     def _main(self) -> None:
         try:
+            if self.s.overlap:
+                self._vision = VisionWorker(f"production-{self.status.run_id}-vision")
             ended = self._cycles()
             state: State = "stopped" if ended == "stopped" else "complete"
             self._end(state, ended)
@@ -192,6 +200,8 @@ class ProductionRun:
             halt_after_failure(self.robot, exc)
             self._end("failed", "failed", str(exc))
         finally:
+            if self._vision is not None:
+                self._vision.close()  # a picture in progress finishes (bounded by its grab and search time-outs)
             self._writer.flush()
             self._writer.close()
             self.robot.motion.end(self.session)
@@ -278,26 +288,18 @@ class ProductionRun:
 
     # -- one cycle --------------------------------------------------------------------------------
     def _move(self, T: np.ndarray, why: str, d: Durations) -> None:
+        """The audited move (``cellctl.motion``), its audit row written by the run's writer thread."""
         t0 = time.monotonic()
-        speed = self.s.recipe.speed_m_s
-        detail = {"pose_ur": pose_ur(T), "speed_m_s": speed, "why": f"production run {self.status.run_id}: {why}"}
-        audit = self.services.store.audit
         try:
-            self.robot.move_linear(T, speed, session=self.session)
-        except Exception as exc:
-            result = outcome(exc)
-            self._writer.put(lambda: audit(self.s.who, "robot.move", self.robot.robot_id, detail, result))
-            raise
+            audited_move(self.services.store, self.s.who, self.robot, T, self.s.recipe.speed_m_s,
+                         f"production run {self.status.run_id}: {why}", self.session, write=self._writer.put)
         finally:
             d.add("motion", time.monotonic() - t0)
-        self._writer.put(lambda: audit(self.s.who, "robot.move", self.robot.robot_id, detail, "ok"))
 
     def _move_to_capture(self) -> None:
         r = self.s.recipe
         if r.capture_pose_ur is None:
             return
-        from calibration import geometry as g
-
         T = g.ur_pose_to_transform(list(r.capture_pose_ur))
         here = self.robot.state().T_base_tool
         if float(np.linalg.norm(here[:3, 3] - T[:3, 3])) > 1e-3:
@@ -308,8 +310,9 @@ class ProductionRun:
         return take_picture(self.services, self.s.recipe_id, self.s.recipe_version, self.s.recipe, self.s.camera_id,
                             self.robot, yaw)
 
-    def _pick_and_place(self, cand: Candidate, picture: Picture, d: Durations, t_cycle: float) -> Prefetch | None:
-        r, plan, c = self.s.recipe, cand.plan, self.status.counters
+    def _pick_and_place(self, cand: PickCandidate, picture: Picture, d: Durations, t_cycle: float
+                        ) -> Prefetch | None:
+        r, c = self.s.recipe, self.status.counters
         # The place is checked before the pick: a full pattern or a refused place pose ends the run
         # with the part where it lies, not in the gripper.
         slot = self._next_slot
@@ -328,16 +331,16 @@ class ProductionRun:
             T_slot = picture.T_base_fixture @ r.place.T_slot_in_fixture(slot)
         else:
             T_slot = r.place.T_slot(slot)
-        T_place, T_place_app = plan.place(r, T_slot, self.robot.limits)
+        T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
         d.add("gripper", self.gripper.open())
-        self._move(plan.T_pick_approach, "pre-pick", d)
-        self._move(plan.T_pick, "pick", d)
+        self._move(cand.T_approach, "pre-pick", d)
+        self._move(cand.T_pick, "pick", d)
         check = self.gripper.close_and_check()
         d.add("gripper", check.elapsed_s)
-        self._move(plan.T_pick_approach, "post-pick", d)
+        self._move(cand.T_approach, "post-pick", d)
         if not check.held:
             c.grip_failures += 1
-            failures = self._choice.grip_failed(plan)
+            failures = self._choice.grip_failed(cand)
             if failures > self._choice.retries:
                 c.skipped += 1
                 self._record("skipped", cand, picture, d=d, detail=f"{check.detail}; skipped after "
@@ -347,20 +350,15 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
-        def next_picture() -> Prefetch:
-            return Prefetch(self.services, self.s.recipe_id, self.s.recipe_version, r, self.s.camera_id, self.robot,
-                            tool_yaw(T_place))
-
-        # With a fixed camera the next picture is taken as soon as the arm has left its view.
-        watch = None if not self.s.overlap or self._mapping is None else ViewWatch(
-            next_picture, self.robot, self._mapping, VIEW_MARGIN_MM)
+        prefetch = self._next_picture(T_place)
         try:
             self._move(T_place_app, "pre-place", d)
-        finally:
-            early = None if watch is None else watch.stop()
-        prefetch = None
-        if self.s.overlap:  # at the latest now: the arm is over the place, out of the camera's view
-            prefetch = early or next_picture()
+        except BaseException:
+            if prefetch is not None:
+                prefetch.cancel()
+            raise
+        if prefetch is not None:
+            prefetch.go()  # at the latest now: the arm is over the place, out of the camera's view
         self._move(T_place, "place", d)
         d.add("gripper", self.gripper.release())
         self._move(T_place_app, "post-place", d)
@@ -374,7 +372,26 @@ class ProductionRun:
                      durations=durations)
         return prefetch
 
-    def _record(self, result: str, cand: Candidate | None = None, picture: Picture | None = None,
+    def _next_picture(self, T_place: np.ndarray) -> Prefetch | None:
+        """With ``overlap``, the next cycle's picture on the vision thread: with a fixed camera it starts
+        as soon as the arm has left the camera's view, else when ``go`` is called (the arm over the place)."""
+        if self._vision is None:
+            return None
+        s, mapping = self.s, self._mapping
+
+        def take() -> Picture:
+            return take_picture(self.services, s.recipe_id, s.recipe_version, s.recipe, s.camera_id, self.robot,
+                                tool_yaw(T_place))
+
+        if mapping is None:
+            return self._vision.submit(take)
+
+        def out() -> bool:
+            return out_of_view(mapping, self.robot.state().T_base_tool, VIEW_MARGIN_MM)
+
+        return self._vision.submit(take, out)
+
+    def _record(self, result: str, cand: PickCandidate | None = None, picture: Picture | None = None,
                 slot: int | None = None, T_place: np.ndarray | None = None, d: Durations | None = None,
                 detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None) -> None:
         self._n += 1

@@ -1,49 +1,50 @@
-"""A production cycle's picture: grab, search the recipe's parts, plan each one's pick.
+"""A production cycle's picture: grab, search the recipe's parts, one ``PickCandidate`` each.
 
-With a fixed camera the picture of the next cycle is taken and searched while the robot places
-the current part (``Prefetch``: a thread), so that the cycle waits for vision only when the search
-takes longer than the place. With a camera on the arm the capture pose is part of the cycle.
+The candidates come from the pick's one path (``cellctl.pick.candidate.locate``): the match, the
+part's pose, the grasp, reachable or not, computed once. With a fixed camera the picture of the next
+cycle is taken and searched while the robot places the current part, on the run's one vision
+thread (``VisionWorker``: started with the run, joined when it ends), as soon as the arm is out of
+the camera's view, so that the cycle waits for vision only when the search takes longer than the
+place. With a camera on the arm the capture pose is part of the cycle.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
-from cellctl.pick.flow import _locate
-from cellctl.pick.place import LocatedPlace
+from cellctl.pick.candidate import PickCandidate, locate
 from cellctl.pick.recipe import Recipe
+from cellctl.production.config import LocatedPlace
 from cellctl.production.fixture import locate_fixture, slots_in_base
-from cellctl.production.place import Plan, plan_part
 from cellctl.services import Services
 from drivers.base import RobotBase
 
+log = logging.getLogger(__name__)
+
 IN_SLOT_MM = 8.0
 """A part found this close to a located place's slot lies in it (placed): it is not a candidate."""
-
-
-@dataclass
-class Candidate:
-    """One found part: the match as the pick answer gives it, and its plan."""
-
-    match: dict[str, Any]
-    plan: Plan
+WORKER_JOIN_S = 60.0
+"""At the run's end the vision thread finishes the picture it is taking (a grab and a search, both
+bounded by their time-outs) within this, else it is logged."""
 
 
 @dataclass
 class Picture:
     """What one capture found: the candidates (best score first), the frame and the time it took."""
 
-    candidates: list[Candidate]
+    candidates: list[PickCandidate]
     frame_id: int | None
     reason: str | None
     calibration: dict[str, Any]
@@ -51,7 +52,6 @@ class Picture:
     found: int = 0
     timed_out: bool = False
     """The search ran out of its time budget (``search.timeout_s``): what it found may not be all."""
-    extra: dict[str, Any] = field(default_factory=dict)
     T_base_fixture: Any = None
     """A located place: the fixture found in this picture (4x4, metres); None when not found or not located."""
     fixture: dict[str, Any] | None = None
@@ -66,41 +66,38 @@ def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Rec
 
 def take_picture(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str,
                  robot: RobotBase, current_yaw: float) -> Picture:
-    """Grab and search now; plan every match (pick poses checked against the robot's limits)."""
+    """Grab and search now: every match a candidate (pick poses checked against the robot's limits,
+    the grasp folded nearest ``current_yaw``, radians)."""
     t0 = time.monotonic()
-    answer = _locate(services, recipe_id, version, recipe, camera_id, robot)
-    mapping = active_mapping(services, camera_id, robot.robot_id, recipe.calibration, recipe.plane_z_mm is not None)
-    T_capture = np.array(robot.state().T_base_tool) if mapping.kind == "handeye" else None
-    cands = []
-    for m in sorted(answer["picks"], key=lambda p: -float(p["score"])):
-        cands.append(Candidate(m, plan_part(mapping, recipe, m, T_capture, current_yaw, robot.limits)))
+    located = locate(services, recipe_id, version, recipe, camera_id, robot, near_yaw=current_yaw)
+    cands = sorted(located.candidates, key=lambda c: -float(c.match.score))
     T_fixture, fixture = None, None
-    if isinstance(recipe.place, LocatedPlace) and answer.get("frame_id") is not None:
+    if isinstance(recipe.place, LocatedPlace):
         # The fixture in the same frame; the parts already in its slots are placed, not to be picked.
-        pixels = services.frames.get(int(answer["frame_id"])).pixels
-        T_fixture, fixture = locate_fixture(recipe.place, pixels, mapping, T_capture)
+        pixels = services.frames.get(located.frame_id).pixels
+        T_capture = located.T_capture if located.mapping.kind == "handeye" else None
+        T_fixture, fixture = locate_fixture(recipe.place, pixels, located.mapping, T_capture)
         if T_fixture is not None:
             slots = [T[:2, 3] * 1e3 for T in slots_in_base(recipe.place, T_fixture)]
-            cands = [c for c in cands if min(float(np.linalg.norm(c.plan.T_base_part[:2, 3] * 1e3 - xy))
+            cands = [c for c in cands if min(float(np.linalg.norm(c.T_base_part[:2, 3] * 1e3 - xy))
                                              for xy in slots) >= IN_SLOT_MM]
     device = recipe.gripper.device
     if device is not None and device.clearance_mm is not None:
         _neighbours(cands, device.clearance_mm)
-    return Picture(cands, answer.get("frame_id"), answer.get("reason"), answer.get("calibration") or {},
-                   time.monotonic() - t0, len(cands), bool(answer.get("timed_out")), T_base_fixture=T_fixture,
-                   fixture=fixture)
+    return Picture(cands, located.frame_id, located.reason, located.calibration, time.monotonic() - t0, len(cands),
+                   located.timed_out, T_base_fixture=T_fixture, fixture=fixture)
 
 
-def _neighbours(cands: list[Candidate], clearance_mm: float) -> None:
+def _neighbours(cands: list[PickCandidate], clearance_mm: float) -> None:
     """Mark the parts the gripper would hit a neighbour at (reference points nearer than ``clearance_mm``)."""
-    xy = [c.plan.T_base_part[:2, 3] * 1e3 for c in cands]
+    xy = [c.T_base_part[:2, 3] * 1e3 for c in cands]
     for i, c in enumerate(cands):
-        if c.plan.problem is not None:
+        if c.problem is not None:
             continue
         near = [float(np.linalg.norm(xy[i] - xy[j])) for j in range(len(cands)) if j != i]
         if near and min(near) < clearance_mm:
-            c.plan.problem = (f"a neighbour lies {min(near):.1f} mm from it (clearance {clearance_mm:g} mm): "
-                              "the gripper would hit it")
+            c.problem = (f"a neighbour lies {min(near):.1f} mm from it (clearance {clearance_mm:g} mm): "
+                         "the gripper would hit it")
 
 
 def out_of_view(mapping: ActiveMapping, T_base_tool: Any, margin_mm: float) -> bool:
@@ -121,55 +118,103 @@ def out_of_view(mapping: ActiveMapping, T_base_tool: Any, margin_mm: float) -> b
     return not bool(inside.any())
 
 
-class ViewWatch:
-    """Starts the next picture as soon as the arm is out of the fixed camera's view (polls the robot)."""
-
-    def __init__(self, start: Callable[[], Prefetch], robot: RobotBase, mapping: ActiveMapping,
-                 margin_mm: float, poll_s: float = 0.01) -> None:
-        self.prefetch: Prefetch | None = None
-        self._stop = threading.Event()
-
-        def watch() -> None:
-            while not self._stop.is_set():
-                try:
-                    if out_of_view(mapping, robot.state().T_base_tool, margin_mm):
-                        self.prefetch = start()
-                        return
-                except Exception:  # noqa: BLE001 - no early picture; the cycle takes it after the move
-                    return
-                self._stop.wait(poll_s)
-
-        self._thread = threading.Thread(target=watch, name="production-view-watch", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> Prefetch | None:
-        """Stop watching; the picture started meanwhile, if any."""
-        self._stop.set()
-        self._thread.join(5.0)
-        return self.prefetch
-
-
 class Prefetch:
-    """A picture taken and searched in the background (the robot is out of the camera's view)."""
+    """The next cycle's picture, taken on the run's vision thread: ``wait`` for it. Until the thread
+    starts it, it may wait for the arm to leave the camera's view (``go`` starts it at once)."""
 
-    def __init__(self, services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str,
-                 robot: RobotBase, current_yaw: float) -> None:
+    def __init__(self, take: Callable[[], Picture], ready: Callable[[], bool] | None, poll_s: float) -> None:
         self.future: Future[Picture] = Future()
+        self._take = take
+        self._ready = ready
+        self._poll_s = poll_s
+        self._go = threading.Event()
+        self.early = False
+        """The picture was started by the watch (the arm left the view), not by ``go``."""
 
-        def work() -> None:
-            try:
-                self.future.set_result(take_picture(services, recipe_id, version, recipe, camera_id, robot,
-                                                    current_yaw))
-            except BaseException as exc:  # noqa: BLE001 - handed to the cycle that waits for it
-                self.future.set_exception(exc)
+    def go(self) -> None:
+        """Take the picture now, whether or not the arm has left the view."""
+        self._go.set()
 
-        threading.Thread(target=work, name="production-vision", daemon=True).start()
+    def cancel(self) -> None:
+        """Not needed any more: not taken if not started yet (``wait`` would raise ``CancelledError``)."""
+        self.future.cancel()
+        self._go.set()
 
     def wait(self) -> tuple[Picture, float]:
         """The picture and the seconds the caller waited for it."""
+        self.go()
         t0 = time.monotonic()
         picture = self.future.result()
         return picture, time.monotonic() - t0
+
+    def _run(self) -> None:
+        """On the vision thread: watch until the arm is out of view (or ``go``), then take the picture."""
+        ready = self._ready
+        while not self._go.is_set():
+            if ready is None:
+                self._go.wait()
+                break
+            try:
+                if ready():
+                    self.early = True
+                    break
+            except Exception:  # noqa: BLE001 - no early picture; the cycle starts it after the move
+                ready = None
+                continue
+            self._go.wait(self._poll_s)
+        if not self.future.set_running_or_notify_cancel():
+            return
+        try:
+            self.future.set_result(self._take())
+        except BaseException as exc:  # noqa: BLE001 - handed to the cycle that waits for it
+            self.future.set_exception(exc)
+
+
+class VisionWorker:
+    """A run's one vision thread: takes the next pictures (``Prefetch``) in order, one at a time;
+    ``close`` ends it and joins it (the run's end)."""
+
+    def __init__(self, name: str) -> None:
+        self._q: queue.Queue[Prefetch | None] = queue.Queue()
+        self._current: Prefetch | None = None
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, take: Callable[[], Picture], ready: Callable[[], bool] | None = None,
+               poll_s: float = 0.01, now: bool = False) -> Prefetch:
+        """A picture to take: ``now``, or when ``ready()`` says so (polled every ``poll_s``), or at the
+        handle's ``go``, whichever comes first."""
+        job = Prefetch(take, ready, poll_s)
+        if now:
+            job.go()
+        self._q.put(job)
+        return job
+
+    def _loop(self) -> None:
+        while True:
+            job = self._q.get()
+            if job is None:
+                return
+            self._current = job
+            job._run()
+            self._current = None
+
+    def close(self, timeout_s: float = WORKER_JOIN_S) -> None:
+        """Cancel the pictures not started, let the one in progress finish, end the thread and join it."""
+        while True:
+            try:
+                job = self._q.get_nowait()
+            except queue.Empty:
+                break
+            if job is not None:
+                job.cancel()
+        current = self._current
+        if current is not None:
+            current.cancel()  # a watch in progress ends untaken; a picture being taken finishes
+        self._q.put(None)
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.error("production: the vision thread %s did not end within %.0f s", self._thread.name, timeout_s)
 
 
 def tool_yaw(T: Any) -> float:

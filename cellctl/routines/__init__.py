@@ -16,6 +16,10 @@ from cellctl.services import Services
 
 Routine = Callable[[Services, JobContext], dict[str, Any]]
 
+__all__ = ["HOLDS_ROBOT", "MOVES_ROBOT", "ROUTINE_MODULES", "Routine", "routine"]
+"""Starting one (the rules REST and the PLC share) is ``cellctl.routines.start.start_routine``: it imports
+this package, so it is not re-exported here."""
+
 ROUTINE_MODULES: Final[dict[str, str]] = {
     "intrinsics-capture": "cellctl.routines.intrinsics_capture",
     "handeye-capture": "cellctl.routines.handeye_capture",

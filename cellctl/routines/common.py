@@ -25,6 +25,7 @@ from calibration.detect import detect
 from calibration.observations import Detection
 from calibration.pose import estimate_pose
 from calibration.targets import Target, target_from_dict
+from cellctl.errors import CellctlError
 from cellctl.jobs import JobContext
 from cellctl.motion import audited_move
 from cellctl.services import Services
@@ -37,7 +38,7 @@ STILL_WAIT_S = 2.0
 """How long a measurement waits for a robot it owns to report standing still before refusing."""
 
 
-class RoutineError(ValueError):
+class RoutineError(CellctlError, ValueError):
     """A routine cannot go on; the message says why and what to do."""
 
 

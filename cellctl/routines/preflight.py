@@ -12,10 +12,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from cellctl.errors import CellctlError
 from cellctl.services import Services
 
 
-class PreflightRefused(ValueError):
+class PreflightRefused(CellctlError, ValueError):
     """The routine cannot run on this cell as asked; ``status`` 422 (the request) or 409 (the cell's state)."""
 
     def __init__(self, status: int, code: str, message: str) -> None:

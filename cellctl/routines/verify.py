@@ -19,7 +19,7 @@ from calibration import geometry as g
 from calibration.io import handeye_camera
 from calibration.pose import estimate_pose
 from cellctl.jobs import JobContext
-from cellctl.mapping import active_camera
+from cellctl.mapping import NoCalibration, active_camera
 from cellctl.routines.common import RoutineError, capture, detected_points_m, devices, routine_target
 from cellctl.services import Services
 
@@ -47,7 +47,7 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
     _, target = routine_target(services, p.target)
     found = active_camera(services, camera_id)
     if found is None:
-        raise RoutineError(f"camera {camera_id} has no active calibration to verify")
+        raise NoCalibration(f"camera {camera_id} has no active calibration to verify")
     cam_cal, camera = found
     he_cal = services.store.active("handeye", camera_id, robot_id)
     # A hand-eye that refined the intrinsics maps through its own camera: its drift is measured

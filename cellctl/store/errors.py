@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from cellctl.errors import CellctlError
 
-class StoreError(RuntimeError):
+
+class StoreError(CellctlError, RuntimeError):
     """Base of the store's errors (a ``RuntimeError``: the CLI prints its message as one line)."""
 
 

@@ -15,6 +15,9 @@ from drivers.sim.imaging import prepare
 from drivers.sim.tool_feature import draw_tool_feature
 from drivers.sim.world import SimWorld, world_for
 
+PREPARE_JOIN_S = 120.0
+"""close() waits this long for the open's preparation (a cold numba cache compiles the renderer's loops)."""
+
 
 class SimCameraSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -44,6 +47,7 @@ class SimCamera(CameraBase):
         self._gain_db = settings.gain_db
         self._trigger = "software"
         self._feature_rng = np.random.default_rng()
+        self._prepare: threading.Thread | None = None
 
     @property
     def world(self) -> SimWorld:
@@ -56,8 +60,10 @@ class SimCamera(CameraBase):
         self._feature_rng = np.random.default_rng([self._world.scene.seed, 0x70_0F])
         # The first frame's one-off work (lens inversion, loading the renderer's compiled loops)
         # starts now, so that a grab soon after open does not pay it all; a grab meanwhile waits.
-        threading.Thread(target=prepare, args=(self._world.camera_model,), name=f"{self.camera_id}-prepare",
-                         daemon=True).start()
+        # The thread is bounded (one lens inversion and one load) and joined by close().
+        self._prepare = threading.Thread(target=prepare, args=(self._world.camera_model,),
+                                         name=f"{self.camera_id}-prepare", daemon=True)
+        self._prepare.start()
 
     def warm_up(self) -> None:
         """Do the first frame's one-off work now and return when it is done: invert the lens and
@@ -68,6 +74,9 @@ class SimCamera(CameraBase):
 
     def close(self) -> None:
         self._world = None
+        thread, self._prepare = self._prepare, None
+        if thread is not None:
+            thread.join(PREPARE_JOIN_S)
 
     def grab(self, timeout_s: float = 2.0) -> Frame:
         world = self.world

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calibration import geometry as g
+from drivers.errors import DriverInputError
 
 UR5E_D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
 UR5E_A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])
@@ -28,7 +29,7 @@ UR5E_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 Q_SEED = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
 
 
-class OutOfReach(ValueError):
+class OutOfReach(DriverInputError):
     """No joint solution reaches the commanded pose."""
 
 

@@ -18,6 +18,7 @@ from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from drivers.sim.imaging import PlanarObject
 from drivers.sim.production import ProductionParts
+from drivers.sim.scene import SceneError
 
 
 def _reflectance(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], value: float,
@@ -166,7 +167,8 @@ def fixture_truth(parts: ProductionParts, camera: CameraModel, T_cam_base: NDArr
     """The nest plate's true frame (on its top face), its image box, and each pocket's slot: where a
     placed part's pose (its reference point on its top face) is when it lies centred in the pocket."""
     fixture = parts.spec.fixture
-    assert fixture is not None
+    if fixture is None:
+        raise SceneError("this production scene has no fixture (nest plate): its slots have no truth")
     T_fix = np.array(fixture.T_base_fixture(parts.table_z_m))
     pts = np.array([[x * 1e-3, y * 1e-3, 0.0] for x, y in fixture.outline_mm])
     uv = camera.project(g.transform_points(T_cam_base @ T_fix, pts))

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from calibration.camera_model import CameraModel
 from calibration.geometry import ur_pose_to_transform
 from calibration.targets import PlanarTarget, target_from_dict
+from drivers.errors import DriverInputError
 from drivers.sim.production_spec import ProductionSpec
 
 SCENE_FORMAT_VERSION = 1
@@ -36,7 +37,7 @@ def resolve_scene(path: str | Path | None) -> Path | None:
     return BUILTIN_SCENES.get(str(path), Path(path))
 
 
-class SceneError(ValueError):
+class SceneError(DriverInputError):
     """A scene file is malformed or of a newer format."""
 
 

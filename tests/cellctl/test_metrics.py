@@ -143,7 +143,7 @@ def virtual_services(extra: dict[str, Any] | None = None) -> Services:
     data = yaml.safe_load(default_config_text())
     data.update(extra or {})
     config = parse_config(data, "test")
-    return Services(config, Cell(config), None, JobManager())
+    return Services(config, Cell(config), None, JobManager())  # type: ignore[arg-type]  # no store needed
 
 
 def test_two_apps_in_one_process_keep_separate_registries() -> None:
@@ -153,7 +153,7 @@ def test_two_apps_in_one_process_keep_separate_registries() -> None:
     metrics.attach(b, sb)
     try:
         metrics.observe_pick(0.120, [0.91, 0.75], source=sa)
-        metrics.observe_pick(0.080, [], source=sb.cell)
+        metrics.observe_pick(0.080, [], source=sb)
         ma, mb = samples(a.render().decode()), samples(b.render().decode())
         assert ma[("cellctl_pick_latency_seconds_count", ())] == 1
         assert ma[("cellctl_pick_latency_seconds_sum", ())] == pytest.approx(0.120)
@@ -163,7 +163,9 @@ def test_two_apps_in_one_process_keep_separate_registries() -> None:
         assert mb[("cellctl_pick_latency_seconds_count", ())] == 1
         assert mb[("cellctl_picks_total", (("result", "none"),))] == 1
         assert ("cellctl_picks_total", (("result", "found"),)) not in mb
-        metrics.observe_pick(0.5, [0.5])  # no source: every attached app (a service process has one)
+        # each service records in its own metrics (no module-level registry finds "every app")
+        sa.metrics.observe_pick(0.5, [0.5])
+        sb.metrics.observe_pick(0.5, [0.5])
         assert samples(a.render().decode())[("cellctl_pick_latency_seconds_count", ())] == 2
         assert samples(b.render().decode())[("cellctl_pick_latency_seconds_count", ())] == 2
     finally:

@@ -48,6 +48,16 @@ async def settled(node: Any, idx: int, name: str, expected: Any, timeout_s: floa
             return False
         await asyncio.sleep(0.05)
 
+async def owned_by(node: Any, idx: int, what: str, timeout_s: float = 15.0) -> bool:
+    """Poll ``RobotMotionOwner`` until it names ``what`` (it is refreshed every 0.1 s)."""
+    deadline = time.monotonic() + timeout_s
+    while what not in str(await read(node, idx, "RobotMotionOwner")):
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.05)
+    return True
+
+
 STOPPED_TEXT = "robot stopped: an engineer must resume it"
 APPROACH_MM = 40.0 + 5.0  # the recipe's approach height above its grasp height (tests/plc/conftest.py)
 
@@ -230,7 +240,9 @@ def test_opcua_pick_and_move_obeys_owner_and_latch(at_home: MotionCell) -> None:
             assert await settled(node, idx, "RobotLatched", False)
             slow = {"pose_ur": {**cell.home, "z_m": cell.home["z_m"] - 0.1}, "speed_m_s": 0.02}
             mover = asyncio.create_task(asyncio.to_thread(cell.http.post, "/robots/robot0/move", json=slow))
-            await asyncio.sleep(1.0)
+            # the REST move owns the robot once its request is through (polled, not a fixed second: under load
+            # the request may take longer to get there)
+            assert await owned_by(node, idx, "linear move")
             assert "linear move" in await read(node, idx, "RobotMotionOwner")
             with pytest.raises(UaStatusCodeError) as e:
                 await node.call_method(f"{idx}:PickAndMove", arg)

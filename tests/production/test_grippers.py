@@ -12,8 +12,8 @@ import pytest
 from cellctl.cell import Cell
 from cellctl.config import parse_config
 from cellctl.jobs import JobManager
-from cellctl.pick.place import GripperDevice
 from cellctl.pick.recipe import GripperSettings, PickError
+from cellctl.production.config import GripperDevice
 from cellctl.production.gripper import Gripper
 from cellctl.services import Services
 from cellctl.store import open_store

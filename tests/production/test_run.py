@@ -36,7 +36,7 @@ def test_a_run_empties_the_area_into_the_grid(served4: Served) -> None:
     grid = recipe["place"]
     placed = sorted((p for p in truth["parts"] if p["state"] == "placed"), key=lambda p: p["T_base_part"][0][3])
     assert len(placed) == 4 and all(p["state"] == "placed" for p in truth["parts"])
-    from cellctl.pick.place import GridPlace
+    from cellctl.production.config import GridPlace
 
     slots = [GridPlace.model_validate(grid).T_slot(k) for k in range(4)]
     for p in truth["parts"]:

@@ -82,7 +82,7 @@ def test_at_real_time_the_slot_counter_survives_a_restart(tmp_path: Path) -> Non
         ms = end["cycle_ms"]
         # The second cycle's picture was taken while the first part was placed: the cycle hardly waited for it.
         assert ms["vision_median"] < 0.5 * ms["median"], ms
-        from cellctl.pick.place import GridPlace
+        from cellctl.production.config import GridPlace
 
         grid = GridPlace.model_validate(recipe["place"])
         placed = [p for p in truth_parts(http) if p["state"] == "placed"]

@@ -13,6 +13,7 @@ it, the same PLC servers (Modbus TCP, OPC UA) on free loopback ports either way:
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -134,4 +135,22 @@ def in_process_plc(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool 
     modbus_port, opcua_port = free_port(), free_port()
     path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus, allow_motion))
     with in_process_cell(tmp, config=path) as app:
+        wait_ready(app)
         yield PlcApp(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", app=app, **facts)
+
+
+READY_TIMEOUT_S = 180.0
+"""As long as the service itself lets a request wait for the warm-up (``cellctl.warmup.READY_WAIT_S``)."""
+
+
+def wait_ready(app: AppCell, timeout_s: float = READY_TIMEOUT_S) -> None:
+    """Wait until ``/health`` no longer says ``starting``: the app's warm-up (loading the renderer's,
+    matcher's and solver's compiled loops on a background thread) is done, as ``start_served`` and
+    ``served_in_thread`` wait for it. Until then a pick in this process competes with the warm-up for
+    the CPU, and the tests that time a pick against a motion (a 5 s move, a 20 s search) would measure
+    the warm-up, not the cell, on a loaded machine."""
+    deadline = time.monotonic() + timeout_s
+    while app.client.get("/health").json().get("status") == "starting":
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the in-process PLC cell was still starting after {timeout_s:.0f} s")
+        time.sleep(0.1)

@@ -239,18 +239,13 @@ def report(cal_id: CalId, services: ServicesDep, _: Viewer,
     try:
         if format == "json":
             return JSONResponse(report_json(rec.kind, rec.result, rec.inputs))
-        cached = _REPORTS.get((rec.id, rec.sha256))
+        cached = services.reports.get((rec.id, rec.sha256))
         if cached is None:
             title = (f"{rec.kind} calibration {cal_id} (v{rec.version}) of {rec.camera_id}"
                      f"{' / ' + rec.robot_id if rec.robot_id else ''}")
             cached = calibration_report(rec.kind, rec.result, rec.inputs, title)
-            if len(_REPORTS) >= _MAX_CACHED_REPORTS:
-                _REPORTS.pop(next(iter(_REPORTS)))
-            _REPORTS[(rec.id, rec.sha256)] = cached
+            services.reports.put((rec.id, rec.sha256), cached)
     except ReportError as exc:
         raise ApiError(409, "no_report", f"calibration {cal_id}: {exc}") from None
     return HTMLResponse(cached)
 
-
-_REPORTS: dict[tuple[int, str], str] = {}
-_MAX_CACHED_REPORTS = 32

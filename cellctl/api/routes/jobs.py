@@ -9,17 +9,17 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from cellctl.api.body import EdgeRoute
 from cellctl.api.deps import Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
-from cellctl.errors_format import format_validation_errors
-from cellctl.jobs import JobInputError, TooManyJobs
-from cellctl.routines import HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
-from cellctl.routines.preflight import PreflightRefused, preflight
+from cellctl.jobs import JobInputError
+from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines.start import StartRefused
+from cellctl.routines.start import start_routine as start_job
 from cellctl.strict_types import Num
 
 router = APIRouter(tags=["jobs"], route_class=EdgeRoute)
@@ -79,45 +79,11 @@ def list_routines(_: Viewer) -> list[dict[str, Any]]:
 
 
 def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, Any] | None) -> dict[str, Any]:
-    if name not in ROUTINE_MODULES:
-        raise ApiError(404, "unknown_routine", f"no routine {name!r}; routines: {', '.join(sorted(ROUTINE_MODULES))}")
-    if params is not None and not isinstance(params, dict):
-        raise ApiError(422, "invalid_params", f"routine {name}: the body must be a JSON object of parameters "
-                                              "(GET /routines lists them)")
-    # Routines that move the robot need the engineer role (an operator may present the plate by hand).
-    moves = name in MOVES_ROBOT and (params or {}).get("mode", "robot") == "robot"
-    # jog-to-mark's tool-centre step moves the robot too, under a motion session of its own (the
-    # operator jogs freely before it), so it needs the role but not the motion from the start.
-    turns = name == "jog-to-mark" and (params or {}).get("tool_centre") is True
-    if not who.has("engineer") and (moves or turns):
-        raise ApiError(403, "forbidden", f"routine {name} needs the engineer role; token {who.name!r} has {who.role}")
-    module = routine(name)
+    """The routine started by the service's one start (``cellctl.routines.start``), its refusals as HTTP."""
     try:
-        # Strict in JSON terms: a number is a JSON number (not true or "0.4"); JSON integers are fine floats.
-        checked = module.Params.model_validate_json(json.dumps(params or {}), strict=True)
-    except ValidationError as exc:
-        msg = format_validation_errors(exc, with_input=False, model=module.Params)
-        raise ApiError(422, "invalid_params", f"routine {name}: {msg} (GET /routines lists the parameters)") from None
-    try:
-        # What the config and the store decide is answered now, not by a job that fails a moment later.
-        preflight(services, name, checked)
-    except PreflightRefused as exc:
-        raise ApiError(exc.status, exc.code, f"routine {name}: {exc}") from None
-    motion = None
-    robot_id = (params or {}).get("robot_id") or services.config.calibration.robot
-    # A routine that measures with the robot still owns it too (when the cell has it), without moving it.
-    holds = name in HOLDS_ROBOT and ((params or {}).get("robot_id") is not None or robot_id in services.cell.robots)
-    if moves or holds:
-        # The routine owns the robot's motion from now to its end: a second mover gets 409.
-        robot = services.cell.robot(str(robot_id)).device
-        motion = (robot, robot.motion.begin(who.name, f"routine {name}", still=holds and not moves))
-    try:
-        job = services.jobs.start(name, lambda ctx: module.run(services, ctx), params or {}, who.name, motion)
-    except TooManyJobs as exc:
-        if motion is not None:
-            motion[0].motion.end(motion[1])
-        raise ApiError(429, "too_many_jobs", str(exc)) from None
-    services.store.audit(who.name, "routine.start", name, {"job_id": job.id, "params": params or {}}, "started")
+        job = start_job(services, name, params, who)
+    except StartRefused as exc:
+        raise ApiError(exc.status, exc.code, str(exc)) from None
     public: dict[str, Any] = job.public()
     return public
 

@@ -23,7 +23,7 @@ from cellctl.cell import UnknownDevice
 from cellctl.mapping import NoCalibration
 from cellctl.pick.frames import annotate
 from cellctl.pick.recipe import PickError, Recipe
-from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning, manager_for
+from cellctl.production.manager import GripperHolding, NoRun, ProductionManager, ProductionRunning
 from cellctl.production.records import to_csv
 from cellctl.store import NotFound
 from cellctl.strict_types import Bool, Count
@@ -53,7 +53,7 @@ class SlotInput(BaseModel):
 
 
 def _manager(services: ServicesDep) -> ProductionManager:
-    return manager_for(services)
+    return services.production
 
 
 def _current(services: ServicesDep, robot_id: str | None) -> dict[str, Any]:

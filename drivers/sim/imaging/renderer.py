@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.camera_model import CameraModel
+from drivers.errors import DriverInputError
 from drivers.sim.imaging.field import ray_field
 from drivers.sim.imaging.pool import Scratch, parallel
 from drivers.sim.imaging.pool import scratch as scratch_for
@@ -55,7 +56,7 @@ __all__ = ["Imaging", "PlanarObject", "prepare", "ray_field", "render", "render_
 Reflectance = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
 
-class RenderError(ValueError):
+class RenderError(DriverInputError):
     """An object handed to the renderer does not behave as the contract says."""
 
 

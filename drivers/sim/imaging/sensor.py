@@ -35,6 +35,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.errors import DriverInputError
+
 _DEFOCUS_STEP_PX = 0.25
 _MAX_SIGMA_PX = 20.0
 _DEFOCUS_UNIFORM_PX = 0.05
@@ -42,7 +44,7 @@ _DEFOCUS_UNIFORM_PX = 0.05
 _POISSON_BELOW_E = 30.0
 
 
-class ImagingError(ValueError):
+class ImagingError(DriverInputError):
     """An imaging setting is out of its range (the message names it and the range)."""
 
 

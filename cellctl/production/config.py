@@ -1,4 +1,6 @@
-"""A recipe's ``place`` section and its gripper's device: where parts go, and how a grip is checked.
+"""Production's part of a recipe: the ``place`` section and the gripper's device (where parts go,
+and how a grip is checked). Production owns them; the recipe (``cellctl.pick.recipe``) carries them
+under ``place`` and ``gripper.device``, its JSON unchanged.
 
 Place poses are where the **part** goes (its reference point on its top face, its taught x axis
 along the pose's x), in the robot base frame, UR form (metres, rotation vector in radians):
