@@ -18,7 +18,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["PlcServers", "preflight", "start_plc_servers"]
 """The request engine every front end shares is ``cellctl.plc.requests`` (``execute_pick``, ``execute_verify``);
-the servers ``modbus_server`` and ``opcua_server``; production over the PLC ``production``/``opcua_production``."""
+the servers ``modbus_server`` and ``opcua_server`` (with OPC UA for Machine Vision's ``VisionSystem``:
+``opcua_mv``); production over the PLC ``production``/``opcua_production``."""
 
 
 class _Server(Protocol):

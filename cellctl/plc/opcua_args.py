@@ -17,12 +17,14 @@ from typing import Any
 
 from asyncua import ua
 
+from cellctl.errors import CellctlError
+
 log = logging.getLogger(__name__)
 
 Method = Callable[..., Awaitable[Any]]
 
 
-class BadArgument(ValueError):
+class BadArgument(CellctlError, ValueError):
     """A client's argument is wrong: ``status`` is the OPC UA status code the call answers."""
 
     def __init__(self, status: int, message: str) -> None:

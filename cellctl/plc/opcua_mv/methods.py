@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from asyncua import ua
+from asyncua import Node, ua
 
 from cellctl.plc.opcua_args import BadArgument, guarded, int_arg, invalid, out_of_range, value_of
 from cellctl.plc.opcua_mv import cell
@@ -89,10 +89,10 @@ def _parameters(arg: Any, allowed: tuple[str, ...]) -> dict[str, Any]:
     return out
 
 
-async def link_methods(vs: VisionSystem) -> None:
-    """Link the implemented methods of ``vs.node`` (a method not linked answers BadNothingToDo)."""
-    ns, node, services = vs.ns, vs.node, vs.services
-    assert node is not None
+async def link_methods(vs: VisionSystem, node: Node) -> None:
+    """Link the implemented methods of ``node`` (``vs``'s VisionSystem; a method not linked answers
+    BadNothingToDo)."""
+    ns, services = vs.ns, vs.services
     m = vs.model
 
     def operational(what: str) -> None:

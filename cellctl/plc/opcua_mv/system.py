@@ -80,7 +80,7 @@ class VisionSystem:
                        "auto": await auto.get_child("0:CurrentState"),
                        "auto_id": await auto.get_child(["0:CurrentState", "0:Id"]),
                        "system": await self.node.get_child(f"{ns}:SystemState")}
-        await link_methods(self)
+        await link_methods(self, self.node)
         event_type = self.server.get_node(_node_id(1024, ns))
         generator = await self.server.get_event_generator(event_type, self.node.nodeid)
         self._event = generator
