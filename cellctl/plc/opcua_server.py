@@ -202,6 +202,7 @@ class OpcUaPlcServer:
         self._production_vars: dict[str, Node] = {}
         self._production_shown: dict[str, Any] = {}
         self._vision: VisionSystem | None = None
+        self._vision_task: asyncio.Task[None] | None = None
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -222,6 +223,9 @@ class OpcUaPlcServer:
             for task in (self._refresher, self._motion_watch):
                 if task is not None:
                     task.cancel()
+            if self._vision_task is not None:
+                self._vision_task.cancel()
+                await asyncio.gather(self._vision_task, return_exceptions=True)
             if self._vision is not None:
                 await self._vision.stop()
             if self._server is not None:
@@ -264,7 +268,6 @@ class OpcUaPlcServer:
              _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
         self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed,
                                                      self._refused)
-        self._vision = await add_vision_system(server, self.services, self._call, self._executor)
         await cell.add_method(
             idx, "VerifyCalibration", guarded("VerifyCalibration", self._verify, 0, self._refused), [],
             [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
@@ -276,10 +279,23 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
-        await self._vision.started()
+        # OPC UA for Machine Vision is added once the server listens (the NodeSet's import costs ~2 s of
+        # CPU, more on a loaded machine): the service's start does not wait for it.
+        self._vision_task = asyncio.get_running_loop().create_task(self._add_vision(server))
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
         self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
+
+    async def _add_vision(self, server: Server) -> None:
+        """Build ``Objects/VisionSystem`` (docs/plc-opcua.md) on the running server, then let it follow the cell."""
+        try:
+            vision = await add_vision_system(server, self.services, self._call, self._executor)
+        except Exception:  # noqa: BLE001 - the Cell object keeps serving without the Machine Vision model
+            log.exception("OPC UA for Machine Vision could not be added; the Cell object serves on")
+            return
+        self._vision = vision
+        await vision.started()
+        log.info("OPC UA for Machine Vision: Objects/VisionSystem at %s", self.url)
 
     async def _secure(self, server: Server) -> None:
         """Basic256Sha256 SignAndEncrypt, and only clients whose certificate is in the trusted directory.

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import math
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -173,9 +174,22 @@ def test_basic256sha256_refuses_plain_and_untrusted_clients(secure_cell: tuple[P
 
 
 async def _nodes(client: Client) -> tuple[int, Node, Node, Node, Node]:
+    """VisionSystem and its parts (it is added once the server listens: waited for up to 60 s)."""
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            ns = await client.get_namespace_index(NAMESPACE_MV)
+            vs = await client.nodes.objects.get_child(f"{ns}:VisionSystem")
+            state = await vs.get_child([f"{ns}:VisionStateMachine", "0:CurrentState"])
+            value = await state.read_value()
+            if value is not None and value.Text:  # shown once the VisionSystem is built
+                break
+        except (ValueError, UaError):
+            pass
+        if time.monotonic() > deadline:
+            raise TimeoutError("no VisionSystem within 60 s")
+        await asyncio.sleep(0.2)
     await client.load_data_type_definitions()
-    ns = await client.get_namespace_index(NAMESPACE_MV)
-    vs = await client.nodes.objects.get_child(f"{ns}:VisionSystem")
     vsm = await vs.get_child(f"{ns}:VisionStateMachine")
     auto = await vsm.get_child(f"{ns}:AutomaticModeStateMachine")
     return ns, vs, vsm, auto, await vs.get_child(f"{ns}:RecipeManagement")
