@@ -36,7 +36,7 @@ async function main() {
 async function scenario(session) {
   // VisionSystem is added once the server listens: wait until its state is shown (up to 60 s).
   let ns = -1;
-  const end = Date.now() + 60000;
+  const built = Date.now() + 60000;
   for (;;) {
     ns = (await session.read({ nodeId: "i=2255", attributeId: AttributeIds.Value })).value.value.indexOf(MV);
     if (ns >= 0) {
@@ -45,7 +45,7 @@ async function scenario(session) {
       const dv = r.targets && r.targets.length ? await session.read({ nodeId: r.targets[0].targetId }) : null;
       if (dv && dv.value.value && dv.value.value.text) break;
     }
-    if (Date.now() > end) throw new Error("no VisionSystem within 60 s");
+    if (Date.now() > built) throw new Error("no VisionSystem within 60 s");
     await sleep(200);
   }
   const q = (name) => `/${ns}:${name}`;
