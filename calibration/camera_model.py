@@ -10,6 +10,12 @@ Models:
   distorted normalized point and ``r_d^2 = x_d^2 + y_d^2``, the undistorted point is
   ``(x_d, y_d) / (1 + kappa * r_d^2)``. Unlike OpenCV's models it has a closed-form inverse in
   both directions, which is why it is implemented here rather than borrowed from OpenCV.
+- ``fisheye4``: the Kannala-Brandt equidistant model (OpenCV's ``cv2.fisheye``, ROS's
+  ``equidistant``) ``(k1, k2, k3, k4)``: with ``theta = atan(r)`` the angle of the ray to the
+  optical axis, the distorted normalized radius is ``theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6
+  + k4 theta^8)``. Its polynomial is in the *angle*, not in the pinhole radius that grows without
+  bound towards 90 deg, so it describes wide and fisheye lenses that opencv5/8 fold over on
+  (rays within 90 deg of the axis: the ``[x, y, 1]`` rays of ``unproject``).
 """
 
 from __future__ import annotations
@@ -22,9 +28,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from calibration import CalibrationError
 
-ModelName = Literal["opencv5", "opencv8", "division"]
-MODEL_NAMES: Final[tuple[str, ...]] = ("opencv5", "opencv8", "division")
-N_DIST: Final[dict[str, int]] = {"opencv5": 5, "opencv8": 8, "division": 1}
+ModelName = Literal["opencv5", "opencv8", "division", "fisheye4"]
+MODEL_NAMES: Final[tuple[str, ...]] = ("opencv5", "opencv8", "division", "fisheye4")
+N_DIST: Final[dict[str, int]] = {"opencv5": 5, "opencv8": 8, "division": 1, "fisheye4": 4}
 
 Points2 = NDArray[np.float64]
 
@@ -223,6 +229,14 @@ def distort_normalized(model: str, dist: ArrayLike, xy: ArrayLike) -> Points2:
             scale = 2.0 / (1.0 + np.sqrt(disc))
         scale[disc < 0] = np.nan
         return p * scale[:, None]
+    if model == "fisheye4":
+        r = np.sqrt(r2)
+        th = np.arctan(r)
+        t2 = th * th
+        thd = th * (1 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3]))))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(r > 1e-12, thd / np.where(r > 1e-12, r, 1.0), 1.0)
+        return p * scale[:, None]
     k1, k2, p1, p2, k3 = d[:5]
     k4, k5, k6 = d[5:8] if d.size >= 8 else (0.0, 0.0, 0.0)
     radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
@@ -243,6 +257,8 @@ def undistort_normalized(model: str, dist: ArrayLike, xy_d: ArrayLike, iteration
     if model == "division":
         r2 = np.sum(q * q, axis=1)
         return q / (1.0 + d[0] * r2)[:, None]
+    if model == "fisheye4":
+        return _undistort_fisheye4(d, q)
     if not np.any(d):
         return q.copy()
     p = _opencv_initial_guess(d, q)
@@ -274,3 +290,27 @@ def _opencv_initial_guess(dist: NDArray[np.float64], xy_d: Points2) -> Points2:
         und = cv2.undistortPointsIter(pts, np.eye(3), dist, None, None, crit).reshape(-1, 2)
         out[finite] = und
     return out
+
+
+def _undistort_fisheye4(d: NDArray[np.float64], q: Points2) -> Points2:
+    """Kannala-Brandt: the ray angle ``theta`` from the distorted radius by Newton's method on the
+    odd polynomial (to 1e-12 rad), then the pinhole radius ``tan(theta)``. A radius the model
+    cannot produce (its polynomial turns back, or theta would reach 90 deg) gives NaN."""
+    rd = np.hypot(q[:, 0], q[:, 1])
+    th = np.minimum(rd, 1.5)
+    for _ in range(30):
+        t2 = th * th
+        f = th * (1 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3])))) - rd
+        df = 1 + t2 * (3 * d[0] + t2 * (5 * d[1] + t2 * (7 * d[2] + t2 * 9 * d[3])))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = f / df
+        th = th - step
+        if np.nanmax(np.abs(step), initial=0.0) < 1e-12:
+            break
+    t2 = th * th
+    slope = 1 + t2 * (3 * d[0] + t2 * (5 * d[1] + t2 * (7 * d[2] + t2 * 9 * d[3])))
+    bad = ~np.isfinite(th) | (th < 0) | (th >= np.pi / 2 - 1e-6) | (slope <= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(rd > 1e-12, np.tan(th) / np.where(rd > 1e-12, rd, 1.0), 1.0)
+    scale[bad] = np.nan
+    return q * scale[:, None]

@@ -18,6 +18,11 @@ operator can argue with them):
   depends on the model: more and better-spread views always; fewer coefficients only where the
   model has some to spare and the lens is not wide-angle (``WIDE_ANGLE_FOV_DEG``).
 - ``outlier_views``: views whose RMS is far above the rest (advice only; does not fail).
+- ``cross_validation_disagrees`` (``cross_validation_problem``, added where the calibration was
+  cross-validated): the cameras calibrated from disjoint halves (folds) of the views project the
+  covered region more than ``MAX_CROSS_VALIDATION_PX`` apart *and* more than
+  ``CROSS_VALIDATION_FACTOR`` times what their own uncertainties explain: the model does not
+  describe the lens (or the board is not flat), whatever the RMS says.
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ CORNER_FRACTION: Final = 0.2
 MAX_FOCAL_REL_SIGMA: Final = 0.01
 MAX_PP_REL_SIGMA: Final = 0.01
 MAX_PROJECTION_RMS_PX: Final = 0.5
+MAX_CROSS_VALIDATION_PX: Final = 0.5
+CROSS_VALIDATION_FACTOR: Final = 3.0
 WIDE_ANGLE_FOV_DEG: Final = 90.0
 """A lens seeing this much across (horizontal) is wide-angle: its distortion terms are needed."""
 
@@ -68,7 +75,8 @@ def _projection_advice(model: str, size: tuple[int, int], values: dict[str, floa
         return more_data + " (the division model has a single distortion coefficient: none to drop)"
     if np.isfinite(fov) and fov >= WIDE_ANGLE_FOV_DEG:
         return (more_data + f" (a wide-angle lens, {fov:.0f} deg across: it needs its distortion terms, so "
-                "do not drop coefficients; the division model often describes such lenses with one)")
+                "do not drop coefficients; the fisheye4 model (an angle polynomial) or the division model often "
+                "describe such lenses better: --model auto chooses by cross-validation)")
     if model == "opencv8":
         return more_data + ", or choose opencv5 (5 coefficients instead of 8)"
     if model == "opencv5":
@@ -139,3 +147,20 @@ def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], 
                                   "views[].outlier); check them or recalibrate with outlier dropping"})
     return {"ok": not problems, "problems": problems, "advice": advice,
             "max_tilt_deg": {"about_x": round(max_x, 1), "about_y": round(max_y, 1)}}
+
+
+def cross_validation_problem(cv: dict[str, Any]) -> dict[str, str] | None:
+    """The ``cross_validation_disagrees`` problem for a cross-validation block
+    (``calibration.intrinsics.cross_validate``), or None when the folds agree."""
+    d = cv.get("projection_difference_rms_px")
+    expected = cv.get("expected_from_uncertainty_px") or 0.0
+    if d is None or not np.isfinite(d):
+        return None
+    if d <= MAX_CROSS_VALIDATION_PX or d <= CROSS_VALIDATION_FACTOR * expected:
+        return None
+    return {"code": "cross_validation_disagrees",
+            "message": f"cameras calibrated from disjoint halves of the views differ by {d:.2f} px over the "
+                       f"covered region (their uncertainties explain {expected:.2f} px; limit "
+                       f"{MAX_CROSS_VALIDATION_PX} px): the model does not describe this lens or the target is not "
+                       "flat; try --model auto and --board-warp auto (chosen by cross-validation), and more "
+                       "views over the whole image"}

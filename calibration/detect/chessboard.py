@@ -47,6 +47,7 @@ from calibration.detect.corner_symmetry import (
     refine_symmetric,
 )
 from calibration.detect.precision import CORNER_WINDOW_SIGMA_PX, gradient_sigma_px
+from calibration.detect.sampling import sample_bilinear
 from calibration.observations import Detection
 from calibration.targets import Chessboard
 
@@ -173,9 +174,7 @@ def refine_saddle_converged(grey: NDArray[np.uint8], uv: FloatArray, half_window
     pinv = np.linalg.pinv(A)
     converged = np.zeros(len(out), dtype=bool)
     for _ in range(iterations):
-        mu = (out[:, 0][:, None] + du[None, :]).astype(np.float32)
-        mv = (out[:, 1][:, None] + dv[None, :]).astype(np.float32)
-        vals = cv2.remap(img, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        vals = sample_bilinear(img, out[:, 0][:, None] + du[None, :], out[:, 1][:, None] + dv[None, :])
         coef = (vals * wts[None, :]) @ pinv.T
         a, b, c, d, e = coef[:, 0], coef[:, 1], coef[:, 2], coef[:, 3], coef[:, 4]
         det = 4 * a * c - b * b

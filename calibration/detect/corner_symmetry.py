@@ -19,7 +19,8 @@ imaging (bench/intrinsics_heldout.py measures the calibrations that follow).
 
 Weights are Gaussian with sigma ``0.7 x`` the half window; the image is smoothed lightly first
 (``SMOOTH_SIGMA_PX``) so bilinear sampling does not add its own ripple, and sampled with exact
-bilinear weights (``cv2.remap`` rounds positions to 1/32 px). The window is also kept
+bilinear weights (``calibration.detect.sampling``, ``exact=True``: ``cv2.remap`` rounds positions to 1/32 px,
+a bias of up to 0.016 px on every sample of a corner). The window is also kept
 inside the image (a replicated border is not symmetric).
 """
 
@@ -28,6 +29,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from calibration.detect.sampling import sample_bilinear
 
 FloatArray = NDArray[np.float64]
 
@@ -103,7 +106,8 @@ def _refine_group(img: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
     cond = np.zeros(len(out))
 
     def sample(a: NDArray[np.float32], sign: float) -> FloatArray:
-        return _bilinear(a, out, sign * du, sign * dv)
+        return sample_bilinear(a, out[:, 0:1] + sign * du[None, :], out[:, 1:2] + sign * dv[None, :],
+                               exact=True)
 
     for _ in range(iterations):
         res = sample(img, 1.0) - sample(img, -1.0)
@@ -126,19 +130,3 @@ def _refine_group(img: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         if np.all(length[ok] < 1e-4):
             break
     return out, (cond > MIN_CONDITION) & (length < CONVERGED_PX)
-
-
-def _bilinear(a: NDArray[np.float32], pts: FloatArray, du: FloatArray, dv: FloatArray) -> FloatArray:
-    """(N, K) ``a`` at ``pts + (du, dv)`` for integer offsets, bilinear with exact weights (cv2.remap
-    rounds positions to 1/32 px, a bias of up to 0.016 px on every sample of a corner); outside
-    the image the border value."""
-    h, w = a.shape
-    base = np.floor(pts)
-    fu, fv = (pts - base).T
-    u0 = base[:, 0:1].astype(np.int64) + du.astype(np.int64)[None, :]
-    v0 = base[:, 1:2].astype(np.int64) + dv.astype(np.int64)[None, :]
-    u1, v1 = np.clip(u0 + 1, 0, w - 1), np.clip(v0 + 1, 0, h - 1)
-    u0, v0 = np.clip(u0, 0, w - 1), np.clip(v0, 0, h - 1)
-    fu, fv = fu[:, None], fv[:, None]
-    return ((1 - fv) * ((1 - fu) * a[v0, u0] + fu * a[v0, u1]) + fv * ((1 - fu) * a[v1, u0] + fu * a[v1, u1])
-            ).astype(np.float64)

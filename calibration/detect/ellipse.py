@@ -4,28 +4,15 @@ Shared by the circle plate and the circle grid detectors."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from calibration.detect.sampling import sample_bilinear
 
 FloatArray = NDArray[np.float64]
 
 # ---------------------------------------------------------------------------------------------
 # sub-pixel ellipse fit
-
-
-def sample_bilinear(img32: NDArray[np.float32], u: FloatArray, v: FloatArray) -> FloatArray:
-    """Bilinear samples of ``img32`` at (u, v) (any equal shapes), through cv2.remap.
-
-    remap quantizes positions to 1/32 px; along the ~100 rays of a mark that error is random
-    and averages out far below 0.001 px.
-    """
-    shape = u.shape
-    mu = u.reshape(-1, shape[-1]).astype(np.float32)
-    mv = v.reshape(-1, shape[-1]).astype(np.float32)
-    parts = [cv2.remap(img32, mu[i : i + 30000], mv[i : i + 30000], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE) for i in range(0, len(mu), 30000)]
-    return np.concatenate(parts).reshape(shape).astype(np.float64)
 
 
 def fit_ellipses_direct(x: FloatArray, y: FloatArray, w: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:

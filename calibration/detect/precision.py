@@ -29,6 +29,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.detect.sampling import sample_bilinear
+
 FloatArray = NDArray[np.float64]
 
 QUANTISATION_GREY = 1.0 / np.sqrt(12.0)
@@ -94,10 +96,9 @@ def _window_sigma(gx: NDArray[np.float32], gy: NDArray[np.float32], pts: FloatAr
     r = np.arange(-half, half + 1, dtype=np.float64) * step
     du, dv = (a.ravel() for a in np.meshgrid(r, r))
     wts = np.exp(-(du**2 + dv**2) / (2 * window_sigma_px**2))
-    mu = (pts[:, 0:1] + du[None, :]).astype(np.float32)
-    mv = (pts[:, 1:2] + dv[None, :]).astype(np.float32)
-    sx = cv2.remap(gx, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-    sy = cv2.remap(gy, mu, mv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    mu = pts[:, 0:1] + du[None, :]
+    mv = pts[:, 1:2] + dv[None, :]
+    sx, sy = sample_bilinear(gx, mu, mv), sample_bilinear(gy, mu, mv)
     g = np.stack([sx, sy], axis=2)                                   # (N, k, 2)
     M = step**2 * np.einsum("k,nka,nkb->nab", wts, g, g)
     M2 = step**2 * np.einsum("k,nka,nkb->nab", wts**2, g, g)

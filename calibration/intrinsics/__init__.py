@@ -57,13 +57,14 @@ Modules: ``results`` (result types, limits, the error), ``model`` (the vectorise
 bundle solver), ``views`` (collecting views, the start, the solve loop, outliers), ``uncertainty``
 (projection uncertainty, jackknife, comparing cameras), ``kernels`` (the compiled projection with
 analytic derivatives and the Schur step, numba), ``solver`` (``calibrate``), ``crossval``
-(k-fold cross-validation). Planned views and synthetic detections with truth are
+(k-fold cross-validation, and choosing the model and the board warp by it:
+``select_by_cross_validation``). Planned views and synthetic detections with truth are
 ``calibration.synthetic``. Everything public is exported here: ``from calibration.intrinsics import X``
 is the interface.
 """
 
 from calibration.geometry import exp_so3 as rotations
-from calibration.intrinsics.crossval import cross_validate
+from calibration.intrinsics.crossval import SELECT_MARGIN, cross_validate, select_by_cross_validation
 from calibration.intrinsics.model import (
     camera_from_vector,
     intrinsic_steps,
@@ -100,7 +101,7 @@ __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
     "VIEW_OUTLIER_FACTOR", "IntrinsicsError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "cell_point_means", "coverage_counts", "covered_point_means",
-    "covered_points", "cross_validate",
+    "covered_points", "cross_validate", "select_by_cross_validation", "SELECT_MARGIN",
     "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations",
     "uncertainty_summary",

@@ -13,6 +13,12 @@ The formulas follow the models of ``calibration.camera_model.distort_normalized`
 compare them with central differences.
 
 Units: target points in metres, residuals in (weighted) pixels.
+
+Board warp (a target that is not flat, as mrcal models it): when the parameter vector carries two
+more entries after the lens's (``w0, w1``, metres) and the target points five columns (x, y, z and
+the basis ``bx = 4 xr (1 - xr)``, ``by = 4 yr (1 - yr)`` with ``xr, yr`` in [0, 1] across the
+target), each point's z becomes ``z + w0 bx + w1 by``: a parabolic bow along each target axis whose
+height at the centre is ``w0`` / ``w1``. The two are solved with the intrinsics (global parameters).
 """
 
 from __future__ import annotations
@@ -23,17 +29,35 @@ from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 
-MODEL_IDS = {"opencv5": 0, "opencv8": 1, "division": 2}
+MODEL_IDS = {"opencv5": 0, "opencv8": 1, "division": 2, "fisheye4": 3}
+
+
+@njit(cache=True)
+def _n_lens(model: int) -> int:
+    """Number of lens parameters (fx, fy, cx, cy and the distortion) of a model id."""
+    return 9 if model == 0 else (12 if model == 1 else (5 if model == 2 else 8))
+
+
+@njit(cache=True)
+def _target_z(model: int, c: F64, X: F64) -> float:
+    """The target point's z (metres) with the board warp when ``c`` carries it (two parameters
+    after the lens's, metres) and ``X`` its basis (columns 3 and 4): ``z + w0 bx + w1 by``."""
+    nb = _n_lens(model)
+    if c.shape[0] >= nb + 2 and X.shape[0] >= 5:
+        return X[2] + c[nb] * X[3] + c[nb + 1] * X[4]
+    return X[2]
 
 
 @njit(cache=True)
 def _point(model: int, c: F64, R: F64, t: F64, X: F64, out_dc: F64, out_dP: F64) -> tuple[float, float, bool]:
     """Project one target point ``X`` (metres) with pose ``(R, t)``: pixel (u, v), validity, and
     the derivatives d(u, v)/d(intrinsics) into ``out_dc`` (2, nc) and d(u, v)/d(P) into
-    ``out_dP`` (2, 3), with ``P`` the point in the camera frame."""
-    px = R[0, 0] * X[0] + R[0, 1] * X[1] + R[0, 2] * X[2] + t[0]
-    py = R[1, 0] * X[0] + R[1, 1] * X[1] + R[1, 2] * X[2] + t[1]
-    pz = R[2, 0] * X[0] + R[2, 1] * X[1] + R[2, 2] * X[2] + t[2]
+    ``out_dP`` (2, 3), with ``P`` the point in the camera frame. With the board warp (``_target_z``)
+    its two derivatives follow the lens's in ``out_dc``."""
+    z = _target_z(model, c, X)
+    px = R[0, 0] * X[0] + R[0, 1] * X[1] + R[0, 2] * z + t[0]
+    py = R[1, 0] * X[0] + R[1, 1] * X[1] + R[1, 2] * z + t[1]
+    pz = R[2, 0] * X[0] + R[2, 1] * X[1] + R[2, 2] * z + t[2]
     if pz <= 0.0:
         return np.nan, np.nan, False
     iz = 1.0 / pz
@@ -57,6 +81,34 @@ def _point(model: int, c: F64, R: F64, t: F64, X: F64, out_dc: F64, out_dP: F64)
         dyy = s + 2.0 * y * y * kappa * g
         out_dc[0, 4] = fx * x * r2 * g
         out_dc[1, 4] = fy * y * r2 * g
+    elif model == 3:
+        # Kannala-Brandt: xd = s x with s = theta_d / r, theta = atan(r)
+        r = np.sqrt(r2)
+        th = np.arctan(r)
+        t2 = th * th
+        k1, k2, k3, k4 = c[4], c[5], c[6], c[7]
+        poly = 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))
+        dthd = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+        if r > 1e-7:
+            s = th * poly / r
+            # g = (ds/dr) / r, ds/dr = (dthd / (1 + r^2) - s) / r
+            g = (dthd / (1.0 + r2) - s) / r2
+            ir = 1.0 / r
+        else:   # the series at the axis: s = 1 + (k1 - 1/3) r^2 + ...
+            s = 1.0 + (k1 - 1.0 / 3.0) * r2
+            g = 2.0 * (k1 - 1.0 / 3.0)
+            ir = 0.0
+        xd = x * s
+        yd = y * s
+        dxx = s + x * x * g
+        dxy = x * y * g
+        dyx = dxy
+        dyy = s + y * y * g
+        tp = th * ir     # theta^(2i+1) / r, i = 1..4
+        for j in range(4):
+            tp *= t2
+            out_dc[0, 4 + j] = fx * x * tp
+            out_dc[1, 4 + j] = fy * y * tp
     else:
         k1, k2, p1, p2, k3 = c[4], c[5], c[6], c[7], c[8]
         k4 = k5 = k6 = 0.0
@@ -109,6 +161,12 @@ def _point(model: int, c: F64, R: F64, t: F64, X: F64, out_dc: F64, out_dP: F64)
     out_dP[1, 0] = a10 * iz
     out_dP[1, 1] = a11 * iz
     out_dP[1, 2] = -(a10 * x + a11 * y) * iz
+    nb = _n_lens(model)
+    if c.shape[0] >= nb + 2 and X.shape[0] >= 5:
+        for a in range(2):
+            g = out_dP[a, 0] * R[0, 2] + out_dP[a, 1] * R[1, 2] + out_dP[a, 2] * R[2, 2]
+            out_dc[a, nb] = g * X[3]
+            out_dc[a, nb + 1] = g * X[4]
     return fx * xd + c[2], fy * yd + c[3], True
 
 
@@ -167,9 +225,10 @@ def normal_blocks(model: int, c: F64, R: F64, t: F64, X: F64, obs: F64, w: F64, 
             r[2 * i + 1] = rv
             cost[k] += ru * ru + rv * rv
             # q = R X (the rotated point): dP/dw = -[q]x, so d(r)/dw = q x d(r)/dP
-            qx = Rk[0, 0] * X[i, 0] + Rk[0, 1] * X[i, 1] + Rk[0, 2] * X[i, 2]
-            qy = Rk[1, 0] * X[i, 0] + Rk[1, 1] * X[i, 1] + Rk[1, 2] * X[i, 2]
-            qz = Rk[2, 0] * X[i, 0] + Rk[2, 1] * X[i, 1] + Rk[2, 2] * X[i, 2]
+            zi = _target_z(model, c, X[i])
+            qx = Rk[0, 0] * X[i, 0] + Rk[0, 1] * X[i, 1] + Rk[0, 2] * zi
+            qy = Rk[1, 0] * X[i, 0] + Rk[1, 1] * X[i, 1] + Rk[1, 2] * zi
+            qz = Rk[2, 0] * X[i, 0] + Rk[2, 1] * X[i, 1] + Rk[2, 2] * zi
             for a in range(2):
                 d0, d1, d2 = dP[a, 0], dP[a, 1], dP[a, 2]
                 jp[a, 0] = wi * (qy * d2 - qz * d1)
@@ -218,9 +277,10 @@ def point_jacobians(model: int, c: F64, R: F64, t: F64, X: F64, w: F64, view: ND
         if not ok:
             continue
         Rk = R[k]
-        qx = Rk[0, 0] * X[i, 0] + Rk[0, 1] * X[i, 1] + Rk[0, 2] * X[i, 2]
-        qy = Rk[1, 0] * X[i, 0] + Rk[1, 1] * X[i, 1] + Rk[1, 2] * X[i, 2]
-        qz = Rk[2, 0] * X[i, 0] + Rk[2, 1] * X[i, 1] + Rk[2, 2] * X[i, 2]
+        zi = _target_z(model, c, X[i])
+        qx = Rk[0, 0] * X[i, 0] + Rk[0, 1] * X[i, 1] + Rk[0, 2] * zi
+        qy = Rk[1, 0] * X[i, 0] + Rk[1, 1] * X[i, 1] + Rk[1, 2] * zi
+        qz = Rk[2, 0] * X[i, 0] + Rk[2, 1] * X[i, 1] + Rk[2, 2] * zi
         for a in range(2):
             d0, d1, d2 = dP[a, 0], dP[a, 1], dP[a, 2]
             row = 2 * i + a

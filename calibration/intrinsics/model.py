@@ -22,7 +22,7 @@ from calibration.intrinsics.results import (
 def param_names(model: str) -> list[str]:
     names = {"opencv5": ["k1", "k2", "p1", "p2", "k3"],
              "opencv8": ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"],
-             "division": ["kappa"]}[model]
+             "division": ["kappa"], "fisheye4": ["k1", "k2", "k3", "k4"]}[model]
     return ["fx", "fy", "cx", "cy", *names]
 
 

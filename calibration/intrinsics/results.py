@@ -54,10 +54,18 @@ class ViewResult:
     ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
     residuals_px: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    corner_sigma_px: float = float("nan")
+    """Median 1-sigma precision the detector stated for this view's points (px), NaN without."""
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"image": self.image, "rms_px": fin(self.rms_px), "used": self.used,
                                "n_points": self.n_points}
+        if len(self.residuals_px):
+            # the view's worst corner and its detector's stated precision beside the RMS: a view
+            # whose residuals far exceed what its corners claim is a bad view (blur, a moved board)
+            out["max_px"] = fin(float(np.max(np.hypot(*self.residuals_px.T))))
+        if np.isfinite(self.corner_sigma_px):
+            out["corner_sigma_px"] = fin(self.corner_sigma_px)
         if self.reason:
             out["reason"] = self.reason
         if self.outlier:
@@ -88,6 +96,8 @@ class IntrinsicsResult:
     """(ny, nx) 1-sigma projection uncertainty at each cell centre (rotation compensated)."""
     iterations: int = 0
     time_s: float = 0.0
+    board_warp: dict[str, Any] | None = None
+    """The target's solved warp (``calibrate(board_warp=True)``): heights (mm) and their 1-sigma."""
 
     @property
     def param_sigmas(self) -> dict[str, float]:
@@ -110,6 +120,8 @@ class IntrinsicsResult:
         out["n_views_used"] = sum(v.used for v in self.views)
         out["n_points_used"] = int(sum(v.n_points for v in self.views if v.used))
         out["solver"] = {"iterations": self.iterations, "time_s": round(self.time_s, 3)}
+        if self.board_warp is not None:
+            out["board_warp"] = self.board_warp
         return out
 
 

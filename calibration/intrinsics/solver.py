@@ -58,11 +58,16 @@ REWEIGHT_MARGIN = 1.25
 
 def calibrate(detections: Sequence[Detection], target: Target, model: str = "opencv5", *,
               image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
-              jackknife: bool = True) -> IntrinsicsResult:
+              jackknife: bool = True, board_warp: bool = False) -> IntrinsicsResult:
     """Calibrate one camera from detections of ``target`` (see the module docstring).
 
     ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
     scale the analytic covariance up when the jackknife's value is larger.
+
+    ``board_warp``: the target may be bowed (mrcal's two-parameter parabolic warp,
+    ``kernels``): solve its two heights with the intrinsics and report them
+    (``IntrinsicsResult.board_warp``); the camera's covariance is marginalised over them. Whether a
+    set needs it is for cross-validation to say (``select_model``), not the RMS (it always drops).
 
     Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
@@ -74,11 +79,12 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     if len(views) < MIN_VIEWS:
         raise IntrinsicsError(f"only {len(views)} usable view(s) of the target; a calibration needs "
                                f"at least {MIN_VIEWS} (10-20 recommended, tilted 20-45 deg about both axes)")
-    n_par = 4 + N_DIST[model]
+    n_lens = 4 + N_DIST[model]
+    n_par = n_lens + (2 if board_warp else 0)
     n_obs = 2 * sum(len(v.X) for v in views)
     if n_obs <= n_par + 6 * len(views):
         raise IntrinsicsError(f"too few points ({n_obs // 2}) for {len(views)} views and the {model} model")
-    p, c, R, t, iters = solve_views(model, size, views, target)
+    p, c, R, t, iters = solve_views(model, size, views, target, board_warp=board_warp)
     p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
     floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
     if drop_outliers:
@@ -117,8 +123,9 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     dof = max(n_kept - n_par - 6 * p.n_views, 1)
     sigma2 = float(np.sum(r * r)) / dof
     S_inv, pose_cov = marginals(nrm)
-    cov = sigma2 * S_inv
-    camera = camera_from_vector(model, size, c)
+    cov_all = sigma2 * S_inv
+    cov = cov_all[:n_lens, :n_lens]              # the camera's, marginalised over the warp
+    camera = camera_from_vector(model, size, c[:n_lens])
     res = (p.project(c, R, t) - p.obs)
     pt_out, view_out = flag_outliers(p, res, base_weights(views))
     all_uv = []
@@ -131,6 +138,8 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
         vr.rms_px = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
         vr.T_cam_target = make_transform(R[k], t[k])
         vr.ids, vr.uv, vr.residuals_px = v.ids, v.uv, e
+        if v.sigma is not None and len(v.sigma):
+            vr.corner_sigma_px = float(np.median(v.sigma))
         vr.n_outlier_points = max(vr.n_outlier_points, int(pt_out[sl].sum()))
         if view_out[k]:
             vr.outlier = True
@@ -158,6 +167,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             # comparing both on the same cells (see _robustly_covered).
             f = j / a_same
             cov = cov * f**2
+            cov_all = cov_all * f**2
             unc, umap = uncertainty_summary(camera, cov, coverage, points_uv)
             unc["inflation"] = f
         unc["projection_rms_analytic_px"] = a
@@ -169,13 +179,19 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     sig = {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     normals = R[:, :, 2]
     verdict = assess(n_views=len(views), size=size, coverage=coverage, normals=normals, sigmas=sig,
-                     values=dict(zip(names, c.tolist(), strict=True)), uncertainty=unc,
+                     values=dict(zip(names, c[:n_lens].tolist(), strict=True)), uncertainty=unc,
                      n_outlier_views=int(view_out.sum()), model=model)
     del pose_cov
+    warp = None
+    if board_warp:
+        sw = np.sqrt(np.maximum(np.diag(cov_all)[n_lens:], 0.0))
+        warp = {"height_mm": [round(float(x) * 1000.0, 4) for x in c[n_lens:]],
+                "sigma_mm": [round(float(x) * 1000.0, 4) for x in sw],
+                "model": "z += w0 * 4 xr (1 - xr) + w1 * 4 yr (1 - yr), xr, yr in [0, 1] across the target"}
     return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
                             param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,
                             coverage=coverage, uncertainty_map_px=umap, iterations=iters,
-                            time_s=time.perf_counter() - t0)
+                            time_s=time.perf_counter() - t0, board_warp=warp)
 
 
 Solved = tuple[BundleProblem, F64, F64, F64, int]

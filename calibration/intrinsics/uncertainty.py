@@ -199,7 +199,7 @@ def jackknife_projection_rms(camera: CameraModel, nrm: NormalEquations, pts: F64
         hg = hv[gid == g].sum(axis=0)
         sc = information_scale(Sr)
         dc = np.linalg.lstsq(Sr / sc[:, None] / sc[None, :], hg / sc, rcond=1e-14)[0] / sc
-        dq[g] = (M @ dc).reshape(-1, 2)
+        dq[g] = (M @ dc[: M.shape[1]]).reshape(-1, 2)   # the lens's part (a board warp follows it)
     dq = dq[:, valid]
     if dq.shape[1] == 0:
         return float("nan")

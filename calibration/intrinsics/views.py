@@ -148,16 +148,32 @@ def initial_estimate(views: list[ViewData], size: tuple[int, int]) -> tuple[F64,
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), R, t
 
 
-def build_problem(model: str, size: tuple[int, int], views: list[ViewData]) -> BundleProblem:
+def warp_basis(target: Target, X: F64) -> F64:
+    """(M, 2) board-warp basis of target points ``X`` (metres): ``4 xr (1 - xr)`` and ``4 yr (1 - yr)``
+    with ``xr``, ``yr`` the point's position across the target's extent of points, 0 to 1 (mrcal's
+    parabolic warp; 1 at the centre line, 0 at the outer points)."""
+    P = target.points().xyz_m
+    lo, hi = P[:, :2].min(axis=0), P[:, :2].max(axis=0)
+    r = (np.asarray(X, dtype=np.float64)[:, :2] - lo) / np.maximum(hi - lo, 1e-12)
+    return 4.0 * r * (1.0 - r)
+
+
+def build_problem(model: str, size: tuple[int, int], views: list[ViewData], warp_target: Target | None = None
+                  ) -> BundleProblem:
+    """The bundle problem of ``views``; with ``warp_target`` its points carry the board-warp basis
+    (``kernels``: the parameter vector then has the two warp entries after the lens's)."""
     counts = np.array([len(v.X) for v in views])
     w = np.concatenate([v.weights() for v in views])
-    return BundleProblem(model, size, np.vstack([v.X for v in views]), np.vstack([v.uv for v in views]),
+    X = np.vstack([v.X for v in views])
+    if warp_target is not None:
+        X = np.ascontiguousarray(np.column_stack([X, warp_basis(warp_target, X)]))
+    return BundleProblem(model, size, X, np.vstack([v.uv for v in views]),
                          np.repeat(np.arange(len(views)), counts).astype(np.int64),
                          np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), w)
 
 
 def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64, radius_m: float) -> F64:
-    cam = camera_from_vector(p.model, p.size, c)
+    cam = camera_from_vector(p.model, p.size, c[:4 + N_DIST[p.model]])
     out = np.zeros_like(p.obs)
     for k, v in enumerate(views):
         if v.ellipse:
@@ -167,21 +183,25 @@ def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64,
 
 
 def solve_views(model: str, size: tuple[int, int], views: list[ViewData], target: Target,
-           start: tuple[F64, F64, F64] | None = None, max_iter: int = 100
+           start: tuple[F64, F64, F64] | None = None, max_iter: int = 100, board_warp: bool = False
            ) -> tuple[BundleProblem, F64, F64, F64, int]:
-    p = build_problem(model, size, views)
-    raw_obs = p.obs.copy()
+    """Solve the bundle problem; ``board_warp`` (or a ``start`` whose vector carries the warp)
+    also solves the target's two warp parameters (``kernels``), after the lens's."""
     nd = N_DIST[model]
+    warp = board_warp or (start is not None and len(start[0]) > 4 + nd)
+    p = build_problem(model, size, views, target if warp else None)
+    raw_obs = p.obs.copy()
+    n = 4 + nd + (2 if warp else 0)
     if start is None:
         c4, R, t = initial_estimate(views, size)
-        c = np.concatenate([c4, np.zeros(nd)])
-        free = np.zeros(4 + nd, dtype=bool)
+        c = np.concatenate([c4, np.zeros(n - 4)])
+        free = np.zeros(n, dtype=bool)
         free[:5] = True                           # fx, fy, cx, cy and k1 / kappa
         c, R, t, it0 = levenberg_marquardt(p, c, R, t, free, max_iter=50)
     else:
         c, R, t = start
         it0 = 0
-    free = np.ones(4 + nd, dtype=bool)
+    free = np.ones(n, dtype=bool)
     c, R, t, it = levenberg_marquardt(p, c, R, t, free, max_iter=max_iter)
     it += it0
     if any(v.ellipse for v in views) and isinstance(target, CirclePlate):

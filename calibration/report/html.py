@@ -47,6 +47,11 @@ def camera_summary(rep: rc.CameraReport) -> str:
              f"{fmt(unc.get('projection_rms_whole_image_px') or math.nan)} px"),
             ("projection uncertainty, corner cells of the map (largest)",
              f"{fmt(max(finite_corners)) if finite_corners else '–'} px")]
+    warp = res.get("board_warp")
+    if warp:
+        h, s = warp.get("height_mm") or [math.nan] * 2, warp.get("sigma_mm") or [math.nan] * 2
+        rows.append(("board warp: the target's bow at its centre line along x / y (1 sigma)",
+                     f"{fmt(h[0])} ± {fmt(s[0])} mm / {fmt(h[1])} ± {fmt(s[1])} mm"))
     return verdict_html(res.get("verdict")) + table(rows)
 
 
@@ -74,6 +79,18 @@ def camera_html(rep: rc.CameraReport, cross_validation: dict[str, Any] | None = 
               f"solutions: RMS {fmt(cross_validation['projection_difference_rms_px'])} px, largest "
               f"{fmt(cross_validation.get('projection_difference_max_px') or math.nan)} px (expected from the "
               f"folds' uncertainty: {fmt(cross_validation.get('expected_from_uncertainty_px') or math.nan)} px)</p>")
+        sel = cross_validation.get("model_selection")
+        if sel and sel.get("candidates"):
+            cv += ("<p>Model chosen by cross-validation (" + esc(sel.get("rule", "")) + "):</p><table><tr>"
+                   "<th>model</th><th>board warp</th><th>RMS (px)</th><th>cross-validation (px)</th>"
+                   "<th>expected (px)</th><th></th></tr>")
+            for c in sel["candidates"]:
+                cv += (f"<tr><td>{esc(c['model'])}</td><td>{'yes' if c['board_warp'] else 'no'}</td>"
+                       f"<td class='num'>{fmt(c.get('rms_px', math.nan))}</td>"
+                       f"<td class='num'>{fmt(c.get('cross_validation_px', math.nan))}</td>"
+                       f"<td class='num'>{fmt(c.get('expected_px', math.nan))}</td>"
+                       f"<td>{'chosen' if c.get('chosen') else esc(c.get('refused', ''))}</td></tr>")
+            cv += "</table>"
     return (camera_summary(rep) + parameters_html(rep) + cv
             + "<h2>Residuals</h2>" + cp.residual_figure(rep) + cp.residual_histogram(rep)
             + "<h2>Residuals against the radius</h2>" + cp.radius_figure(rep)

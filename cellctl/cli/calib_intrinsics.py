@@ -29,13 +29,19 @@ def register(sub: Any) -> None:
         description="Calibrate a camera (opencv5, opencv8 or division model) from images of a planar target. "
                     "IMAGE may be files or folders (their *.png/*.jpg/*.bmp/*.tif, in sorted name order).")
     p.add_argument("--target", required=True, help="target description YAML")
-    p.add_argument("--model", default="opencv5", choices=["opencv5", "opencv8", "division"])
+    p.add_argument("--model", default="opencv5", choices=["opencv5", "opencv8", "division", "fisheye4", "auto"],
+                   help="lens model; fisheye4: Kannala-Brandt, for wide and fisheye lenses; auto: the one that "
+                        "cross-validates best (division, opencv5, fisheye4, opencv8)")
+    p.add_argument("--board-warp", choices=["auto", "on", "off"], default="auto",
+                   help="solve a bowed target's two warp heights: auto (default) when cross-validation "
+                        "prefers it, on, off")
     p.add_argument("images", nargs="*", metavar="IMAGE", help="image files or folders")
     p.add_argument("--detections", help="use detections JSON (output of cellctl detect) instead of images")
     p.add_argument("--out", dest="out_json", help="write the camera JSON (cam.json) here too")
     p.add_argument("--report", help="write an HTML report (residuals, coverage, distortion, uncertainty)")
-    p.add_argument("--cross-validate", type=int, metavar="K", default=0,
-                   help="k-fold cross-validation: projection difference between fold solutions")
+    p.add_argument("--cross-validate", type=int, metavar="K", default=2,
+                   help="k-fold cross-validation: projection difference between fold solutions over the covered "
+                        "region (default 2: split-half; 0: off); the verdict uses it")
     p.add_argument("--drop-outliers", action="store_true",
                    help="drop outlier views and points (rule in calibration/intrinsics.py) and re-solve")
     p.add_argument("--export-opencv", metavar="F.yaml", help="also write OpenCV FileStorage YAML")
@@ -100,40 +106,44 @@ def _detections(args: argparse.Namespace, target: Any) -> list[Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from calibration import intrinsics
     from calibration.targets import load_target
 
     if args.cross_validate and args.cross_validate < 2:
         raise CommandError("--cross-validate K needs K >= 2")
+    if args.model == "auto" and not args.cross_validate:
+        raise CommandError("--model auto chooses by cross-validation: give --cross-validate K >= 2")
     if args.export_halcon and args.model != "division":
         raise CommandError("--export-halcon needs --model division (HALCON's area_scan_division)")
     if args.export_halcon and not args.pixel_pitch_um:
         raise CommandError("--export-halcon needs --pixel-pitch-um (the sensor cell width, e.g. 3.45)")
-    if (args.export_opencv or args.export_ros) and args.model == "division":
-        raise CommandError("OpenCV/ROS files cannot express the division model; use --export-halcon")
+    if (args.export_opencv or args.export_ros) and args.model in ("division", "fisheye4"):
+        raise CommandError(f"OpenCV/ROS files cannot express the {args.model} model"
+                           + ("; use --export-halcon" if args.model == "division" else "; keep the cam.json"))
     target = load_target(args.target)
     dets = _detections(args, target)
-    try:
-        res = intrinsics.calibrate(dets, target, args.model, drop_outliers=args.drop_outliers)
-    except intrinsics.IntrinsicsError as exc:
-        raise CommandError(f"calibration failed: {exc}") from exc
+    res, selection, cv = _calibrate(args, dets, target)
+    if cv is not None and "error" not in cv:
+        from calibration.verdict import cross_validation_problem
+
+        prob = cross_validation_problem(cv)
+        if prob:
+            res.verdict["problems"].append(prob)
+            res.verdict["ok"] = False
     out = res.to_json()
     out["target"] = target.describe()
+    if selection is not None:
+        out["model_selection"] = {k: v for k, v in selection.items() if k != "cross_validation"}
     for rej in out["rejected_views"]:
         print(f"cellctl: view rejected: {rej['image']}: {rej['reason']}", file=sys.stderr)
-    if args.cross_validate:
-        try:
-            out["cross_validation"] = intrinsics.cross_validate(dets, target, args.model, args.cross_validate,
-                                                                drop_outliers=args.drop_outliers, full=res)
-        except intrinsics.CrossValidationError as exc:
-            # The calibration stands; only the cross-validation cannot run as asked.
-            out["cross_validation"] = {"k": args.cross_validate, "error": str(exc)}
-            print(f"cellctl: cross-validation not run: {exc}", file=sys.stderr)
+    if cv is not None:
+        out["cross_validation"] = cv
     _exports(args, res.camera)
     if args.report:
         from calibration.report import write_report
 
         cv = out.get("cross_validation")
+        if cv and "error" not in cv and selection is not None:
+            cv = {**cv, "model_selection": out["model_selection"]}
         write_report(res, args.report, cross_validation=cv if cv and "error" not in cv else None,
                      image_files=_image_files(args.images) if args.images else None)
         log.info("report written to %s", args.report)
@@ -143,6 +153,51 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         print("cellctl: verdict: the data cannot support this calibration (see verdict.problems)",
               file=sys.stderr)
     return out
+
+
+def _candidates(args: argparse.Namespace) -> list[tuple[str, bool]]:
+    """(model, board warp) pairs to choose from, simplest first."""
+    if args.model != "auto":
+        models = [args.model]
+    elif args.export_opencv or args.export_ros:
+        models = ["opencv5", "opencv8"]          # what those files can express
+    else:
+        models = ["division", "opencv5", "fisheye4", "opencv8"]
+    warps = {"auto": [False, True], "on": [True], "off": [False]}[args.board_warp]
+    return [(m, w) for m in models for w in warps]
+
+
+def _calibrate(args: argparse.Namespace, dets: list[Any], target: Any
+               ) -> tuple[Any, dict[str, Any] | None, dict[str, Any] | None]:
+    """The calibration, the model selection (None when there was nothing to choose) and the
+    cross-validation block (None when not asked; ``{"k", "error"}`` when it could not run)."""
+    from calibration import intrinsics
+
+    cands = _candidates(args)
+    k = args.cross_validate
+    if k and len(cands) > 1:
+        try:
+            res, selection = intrinsics.select_by_cross_validation(dets, target, cands, k,
+                                                                   drop_outliers=args.drop_outliers)
+            log.info("model chosen by cross-validation: %s", selection["chosen"])
+            return res, selection, selection["cross_validation"]
+        except intrinsics.CrossValidationError:
+            pass   # not enough views to choose: the first candidate, and the reason below
+    model, warp = cands[0]
+    try:
+        res = intrinsics.calibrate(dets, target, model, drop_outliers=args.drop_outliers, board_warp=warp)
+    except intrinsics.IntrinsicsError as exc:
+        raise CommandError(f"calibration failed: {exc}") from exc
+    if not k:
+        return res, None, None
+    try:
+        cv = intrinsics.cross_validate(dets, target, model, k, drop_outliers=args.drop_outliers, full=res,
+                                       board_warp=warp)
+    except intrinsics.CrossValidationError as exc:
+        # The calibration stands; only the cross-validation cannot run as asked.
+        cv = {"k": k, "error": str(exc)}
+        print(f"cellctl: cross-validation not run: {exc}", file=sys.stderr)
+    return res, None, cv
 
 
 def _exports(args: argparse.Namespace, camera: Any) -> None:

@@ -23,14 +23,13 @@ from typing import Any
 
 from asyncua import Node, ua
 
+from cellctl.plc.engine import Kind, Request
 from cellctl.plc.opcua_args import guarded, int_arg
 from cellctl.plc.production import (
     CMD_PRODUCTION_PAUSE,
     CMD_PRODUCTION_RESUME,
-    CMD_PRODUCTION_START,
     CMD_PRODUCTION_STOP,
     COUNTERS,
-    execute_production,
 )
 from cellctl.plc.requests import Outcome
 from cellctl.production.manager import existing_manager
@@ -51,7 +50,7 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("ProductionLastSigmaDeg", math.nan, ua.VariantType.Double),
 )
 
-Call = Callable[[Callable[[], Outcome]], Awaitable[Outcome]]
+Call = Callable[[Request], Awaitable[Outcome]]
 Fail = Callable[[Outcome], Any]
 Refused = Callable[[str], Awaitable[None]]
 MAX_COUNT = 1_000_000
@@ -100,7 +99,7 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
     async def start(parent: ua.NodeId, recipe: ua.Variant, count: ua.Variant) -> Any:
         r = int_arg(recipe, "RecipeId", 0, 65535)
         c = int_arg(count, "Count", 0, MAX_COUNT)
-        out = await call(lambda: execute_production(services, CMD_PRODUCTION_START, r, c, "plc:opcua"))
+        out = await call(Request(Kind.PRODUCTION_START, r, c))
         if not out.ok:
             return fail(out)
         manager = existing_manager(services)
@@ -108,8 +107,11 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
         return [ua.Variant(0 if snap is None else int(snap["run_id"]), ua.VariantType.Int32)]
 
     def simple(command: int) -> Callable[[ua.NodeId], Awaitable[Any]]:
+        request = Request.from_command(command)
+        assert request is not None
+
         async def method(parent: ua.NodeId) -> Any:
-            out = await call(lambda: execute_production(services, command, 0, 0, "plc:opcua"))
+            out = await call(request)
             return fail(out) if not out.ok else []
 
         return method

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed")
+RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed", "interrupted")
 CSV_COLUMNS = ("n", "t", "result", "slot", "score", "pick_x_mm", "pick_y_mm", "pick_z_mm", "pick_rz_rad",
                "place_x_mm", "place_y_mm", "place_z_mm", "place_rz_rad", "sigma_mm", "sigma_yaw_deg",
                "cycle_ms", "vision_ms", "motion_ms", "gripper_ms", "frame_id", "detail")

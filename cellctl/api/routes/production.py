@@ -44,6 +44,13 @@ class StartInput(BaseModel):
                                             "robot places (false: after it is back, for comparison)")
 
 
+class ConfirmInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    recipe_id: Count = Field(ge=0, le=65535, description="the recipe whose place pattern the slot is of")
+    occupied: Bool = Field(description="true: a part is in the slot (it stays used); false: the slot is empty "
+                                       "(the next part may go there)")
+
+
 class SlotInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
     recipe_id: Count = Field(ge=0, le=65535)
@@ -158,7 +165,7 @@ def cycle_frame(run_id: Annotated[int, Path(ge=1, le=2**62)], n: Annotated[int, 
         raise ApiError(404, "unknown_cycle", f"run {run_id} has no cycle {n} (GET /production/runs/{run_id}/cycles)")
     try:
         if record.get("frame_kept"):
-            frame = manager.failure_frames.load(run_id, n)
+            frame = manager.failure_frames.load(int(record.get("run_id") or run_id), n)  # named when written
         elif record.get("frame_id") is not None:
             frame = services.frames.get(int(record["frame_id"]))
         else:
@@ -190,6 +197,18 @@ def set_slot(body: SlotInput, services: ServicesDep, who: Engineer) -> dict[str,
     manager.store.set_next_slot(body.recipe_id, body.next_slot, who.name)
     services.store.audit(who.name, "production.slot", str(body.recipe_id), {"next_slot": body.next_slot}, "ok")
     return {"recipe_id": body.recipe_id, "next_slot": manager.store.next_slot(body.recipe_id)}
+
+
+@router.post("/slots/{slot}/confirm", responses={404: {}, 422: {}})
+def confirm_slot(slot: Annotated[int, Path(ge=0, le=1_000_000)], body: ConfirmInput, services: ServicesDep,
+                 who: Engineer) -> dict[str, Any]:
+    """Say what is in a slot in doubt (engineer), after looking: ``occupied`` true keeps it used,
+    false frees it (the counter goes back to it when it is just past it). 404 ``slot_not_in_doubt``
+    when the slot is not in doubt. Audited (``production.slot_confirm``)."""
+    try:
+        return _manager(services).store.confirm_slot(body.recipe_id, slot, body.occupied, who.name)
+    except NotFound as exc:
+        raise ApiError(404, "slot_not_in_doubt", str(exc)) from None
 
 
 @router.post("/gripper/open", responses={404: {}, 409: {}})

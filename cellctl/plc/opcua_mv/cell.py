@@ -1,11 +1,10 @@
-"""What the Machine Vision front end asks of the cell: the one module that names the cell's request
-functions (a pick, a production run's start and stop, the robot's Stop) and reads its state.
+"""What the Machine Vision front end asks of the cell: the one module that names the cell's requests
+(a pick, a production run's start and stop: requests (:class:`~cellctl.plc.engine.Request`) the OPC UA
+server submits to the request engine every front end shares, with its rules: ``plc.allow_motion``,
+the Stop latch, one request at a time for the cell) and the robot's Stop, and reads the cell's state.
 
-Every function here blocks (store, devices): the front end calls them from its executor, never on
-its event loop. The requests themselves are the PLC requests every front end runs
-(:mod:`cellctl.plc.requests`, :mod:`cellctl.plc.production`): the same rules (``plc.allow_motion``,
-the Stop latch, one request at a time). When the shared request engine replaces those functions,
-this module is the one to change.
+The functions other than the request builders block (store, devices): the front end calls them from
+its executor or a thread, never on its event loop (``cell_problem`` and ``run_snapshot`` read memory).
 """
 
 from __future__ import annotations
@@ -16,8 +15,9 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-from cellctl.plc.production import CMD_PRODUCTION_START, CMD_PRODUCTION_STOP, execute_production
+from cellctl.plc.engine import Kind, Request
 from cellctl.plc.requests import (
+    TEXT_BUSY,
     TEXT_DEVICE,
     TEXT_MOTION_OFF,
     TEXT_RECIPE_RANGE,
@@ -25,7 +25,6 @@ from cellctl.plc.requests import (
     TEXT_ROBOT_STOPPED,
     TEXT_UNKNOWN_RECIPE,
     Outcome,
-    execute_pick,
     robot_motion_status,
 )
 from cellctl.production.manager import existing_manager
@@ -36,8 +35,8 @@ log = logging.getLogger(__name__)
 
 WHO = "plc:opcua-mv"
 LATCH_STORE_WAIT_S = 2.0
-__all__ = ["TEXT_DEVICE", "TEXT_MOTION_OFF", "TEXT_RECIPE_RANGE", "TEXT_ROBOT_BUSY", "TEXT_ROBOT_STOPPED",
-           "TEXT_UNKNOWN_RECIPE", "Outcome", "StoredRecipe", "cell_problem", "configuration_id", "pick",
+__all__ = ["TEXT_BUSY", "TEXT_DEVICE", "TEXT_MOTION_OFF", "TEXT_RECIPE_RANGE", "TEXT_ROBOT_BUSY", "TEXT_ROBOT_STOPPED",
+           "TEXT_UNKNOWN_RECIPE", "Outcome", "Request", "StoredRecipe", "cell_problem", "configuration_id", "pick",
            "robot_stop", "run_snapshot", "start_run", "stop_run", "stored_recipe", "stored_recipes"]
 
 
@@ -52,19 +51,19 @@ class StoredRecipe:
     """SHA-256 of the recipe's JSON (keys sorted): a changed recipe has another hash."""
 
 
-def pick(services: Services, recipe_id: int) -> Outcome:
+def pick(recipe_id: int) -> Request:
     """One pick of ``recipe_id`` (grab, locate, convert; the robot does not move)."""
-    return execute_pick(services, recipe_id, WHO)
+    return Request(Kind.PICK, recipe_id)
 
 
-def start_run(services: Services, recipe_id: int, count: int) -> Outcome:
+def start_run(recipe_id: int, count: int) -> Request:
     """Start a production run (only with ``plc.allow_motion: true``)."""
-    return execute_production(services, CMD_PRODUCTION_START, recipe_id, count, WHO)
+    return Request(Kind.PRODUCTION_START, recipe_id, count)
 
 
-def stop_run(services: Services) -> Outcome:
+def stop_run() -> Request:
     """End the production run after its current cycle."""
-    return execute_production(services, CMD_PRODUCTION_STOP, 0, 0, WHO)
+    return Request(Kind.PRODUCTION_STOP)
 
 
 def run_snapshot(services: Services) -> dict[str, Any] | None:

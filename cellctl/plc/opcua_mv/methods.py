@@ -15,6 +15,7 @@ from asyncua import Node, ua
 from cellctl.plc.opcua_args import BadArgument, guarded, int_arg, invalid, out_of_range, value_of
 from cellctl.plc.opcua_mv import cell
 from cellctl.plc.opcua_mv.cell import (
+    TEXT_BUSY,
     TEXT_DEVICE,
     TEXT_MOTION_OFF,
     TEXT_RECIPE_RANGE,
@@ -34,7 +35,8 @@ FILTER_NAMES = ("MeasId", "PartId", "ExternalRecipeId", "InternalRecipeId", "Ext
                 "InternalConfigurationId", "ProductId", "JobId")
 STATUS_OF_TEXT = {TEXT_UNKNOWN_RECIPE: ua.StatusCodes.BadNotFound, TEXT_RECIPE_RANGE: ua.StatusCodes.BadOutOfRange,
                   TEXT_ROBOT_STOPPED: ua.StatusCodes.BadRequestNotAllowed, TEXT_ROBOT_BUSY: ua.StatusCodes.BadLocked,
-                  TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable, TEXT_DEVICE: ua.StatusCodes.BadResourceUnavailable}
+                  TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable, TEXT_DEVICE: ua.StatusCodes.BadResourceUnavailable,
+                  TEXT_BUSY: ua.StatusCodes.BadTooManyOperations}
 
 
 def _state_error(message: str) -> BadArgument:
@@ -198,7 +200,7 @@ async def link_methods(vs: VisionSystem, node: Node) -> None:
         count = 0 if count_value is None else int_arg(count_value, "Parameters Count", 0, MAX_COUNT)
         ids, number = job_ids(meas, part, recipe, product)
         automatic("StartContinuous", "Ready", "Initialized")
-        out = await vs.call(lambda: cell.start_run(services, number, count))
+        out = await vs.call(cell.start_run(number, count))
         if not out.ok:
             raise _failed(out)
         snap = await vs.blocking(lambda: cell.run_snapshot(services))
@@ -210,7 +212,7 @@ async def link_methods(vs: VisionSystem, node: Node) -> None:
     async def stop(parent: ua.NodeId, cause: Any, description: Any) -> Any:
         if m.job != "continuous":
             raise _state_error(f"Stop ends a continuous execution; none runs (job: {m.job or 'none'})")
-        out = await vs.call(lambda: cell.stop_run(services))
+        out = await vs.call(cell.stop_run())
         if not out.ok:
             raise _failed(out)
         return [OK]

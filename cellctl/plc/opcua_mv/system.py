@@ -23,7 +23,7 @@ from asyncua import Node, Server, ua
 from asyncua.common.instantiate_util import instantiate
 
 from cellctl.plc.opcua_mv import cell
-from cellctl.plc.opcua_mv.cell import Outcome
+from cellctl.plc.opcua_mv.cell import Outcome, Request
 from cellctl.plc.opcua_mv.nodeset import import_machine_vision
 from cellctl.plc.opcua_mv.results import (
     STATE_ABORTED,
@@ -43,7 +43,8 @@ _EVENT_TYPES = {"CreationTime": ua.VariantType.DateTime, "IsPartial": ua.Variant
                 "IsSimulated": ua.VariantType.Boolean, "ResultState": ua.VariantType.Int32,
                 "ResultContent": ua.VariantType.Variant}
 T = TypeVar("T")
-Call = Callable[[Callable[[], Outcome]], Awaitable[Outcome]]
+Call = Callable[[Request], Awaitable[Outcome]]
+"""The OPC UA server's call: a request through the cell's request engine (``Busy``/``LastError`` of ``Cell``)."""
 
 
 class VisionSystem:
@@ -159,7 +160,7 @@ class VisionSystem:
     async def single_job(self, job_id: str, recipe_id: int, ids: dict[str, str | None]) -> None:
         """Run one pick and emit its result; SingleExecution until then."""
         try:
-            out = await self.call(lambda: cell.pick(self.services, recipe_id))
+            out = await self.call(cell.pick(recipe_id))
             content: dict[str, Any] = {"picks": out.picks}
             if not out.ok:
                 content["error"] = out.message
