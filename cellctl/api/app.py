@@ -18,6 +18,7 @@ from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, p
 from cellctl.api.routes import metrics as metrics_route
 from cellctl.api.routes import plc as plc_route
 from cellctl.api.routes import production as production_route
+from cellctl.api.routes import recipes as recipes_route
 from cellctl.api.routes import sim as sim_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
@@ -98,5 +99,6 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.include_router(metrics_route.router)
     app.include_router(sim_route.router)
     app.include_router(production_route.router)
+    app.include_router(recipes_route.router)
     app.include_router(plc_route.router)
     return app

@@ -12,7 +12,7 @@ or ``\\r\\n`` and reads one back (docs/robot-socket.md):
   ``ERR 7 ...``.
 - ``VERIFY`` -> ``OK <drift_px> <drift_mm>`` (``drift_mm`` -1 without a hand-eye calibration).
 - ``STATUS`` -> ``OK <latched 0|1> <busy 0|1> <run_state>`` (run_state: the Modbus RUN_STATE code,
-  0 no run, 1 running ... 7 failed).
+  0 no run, 1 running ... 8 interrupted).
 - anything else -> ``ERR 1 ...``; every failure is ``ERR <code> <text>`` with ``code`` the PLC
   error-text index (docs/plc-modbus.md), e.g. ``ERR 2`` busy, ``ERR 3`` unknown recipe.
 

@@ -205,6 +205,7 @@ class ProductionRun:
             if self.s.overlap:
                 self._vision = VisionWorker(f"production-{self.status.run_id}-vision")
             ended = self._cycles()
+            self._go_home()
             state: State = "stopped" if ended == "stopped" else "complete"
             self._end(state, ended)
         except RobotStopped as exc:
@@ -356,6 +357,15 @@ class ProductionRun:
                          f"production run {self.status.run_id}: {why}", self.session, write=self._writer.put)
         finally:
             d.add("motion", time.monotonic() - t0)
+
+    def _go_home(self) -> None:
+        """A run that ends by itself or by an operator's stop leaves the arm at the robot's ``home`` named
+        pose (``robots.<id>.poses.home``), not hovering over the last slot; none named: it stays."""
+        robot_config = self.services.config.robots.get(self.s.robot_id)
+        home = None if robot_config is None else robot_config.poses.get("home")
+        if home is None:
+            return
+        self._move(g.ur_pose_to_transform(list(home)), "home at the end of the run", Durations())
 
     def _move_to_capture(self) -> None:
         r = self.s.recipe

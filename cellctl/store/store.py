@@ -18,6 +18,7 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
+from cellctl.store import recipe_versions as RV
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -446,6 +447,22 @@ class Store(LatchRows, ProductionRows):
             r.cell_id == self.cell_id).order_by(r.recipe_id)
         with self._read() as conn:
             return [self._recipe(row) for row in conn.execute(q).all()]
+
+    # ------------------------------------------------------------------ recipe versions (recipe_versions.py)
+
+    def recipe_versions(self, recipe_id: int) -> list[Recipe]:
+        """Every version of a recipe, newest first (the newest is in force)."""
+        return RV.versions(self, recipe_id)
+
+    def activate_recipe_version(self, recipe_id: int, version: int, who: str) -> Recipe:
+        """Roll back: ``version``'s data stored as the recipe's new version (nothing is rewritten)."""
+        return RV.activate_version(self, recipe_id, version, who)
+
+    def duplicate_recipe(self, recipe_id: int, new_recipe_id: int, who: str, name: str | None = None) -> Recipe:
+        return RV.duplicate(self, recipe_id, new_recipe_id, who, name)
+
+    def delete_recipe(self, recipe_id: int, who: str) -> int:
+        return RV.delete(self, recipe_id, who)
 
     # ------------------------------------------------------------------ whole-store
 

@@ -14,6 +14,7 @@ from cellctl.jobs import JobManager
 from cellctl.plc.engine import Engine, Kind, Request, plc_status
 from cellctl.plc.requests import TEXT_BUSY
 from cellctl.services import Services
+from cellctl.store import open_store
 
 
 def config_with(tmp: Path, plc: dict[str, object]) -> dict[str, object]:
@@ -46,7 +47,7 @@ def test_motion_beyond_loopback_needs_the_zone_decision(tmp_path: Path) -> None:
 
 def test_the_engine_refuses_a_motion_front_end_beyond_loopback_and_a_second_request(tmp_path: Path) -> None:
     config = parse_config(config_with(tmp_path, {"allow_motion": True}))
-    services = Services(config, Cell(config), None, JobManager())
+    services = Services(config, Cell(config), open_store(config), JobManager())
     engine = Engine(services)
     try:
         with pytest.raises(OSError, match="plc.insecure_plc_network"):
@@ -69,3 +70,4 @@ def test_the_engine_refuses_a_motion_front_end_beyond_loopback_and_a_second_requ
     off = plc_status(services)
     assert set(off["front_ends"]) == {"modbus", "opcua", "ethernet_ip", "robot_socket"}
     assert not any(f["enabled"] for f in off["front_ends"].values())
+    services.close()

@@ -233,20 +233,23 @@ def test_idle_modbus_connections_are_closed(tmp_path_factory: pytest.TempPathFac
         for s in socks:
             s.close()
         server.stop()
-        from cellctl.plc.engine import forget_engine
-
-        forget_engine(server.services)
+        server.services.close()
 
 
 def _services_server(tmp_path_factory: pytest.TempPathFactory, cls: type, cfg: object) -> mb.ModbusPlcServer:
     """A Modbus server on a cell whose devices are not opened (the connection rules need no pick)."""
+    import yaml
+
     from cellctl.cell import Cell
-    from cellctl.config import load_config
+    from cellctl.config import default_config_text, parse_config
     from cellctl.jobs import JobManager
     from cellctl.services import Services
+    from cellctl.store import open_store
 
-    config = load_config(None)
-    services = Services(config, Cell(config), None, JobManager())
+    data = yaml.safe_load(default_config_text())
+    data["store"] = {"path": str(tmp_path_factory.mktemp("modbus-idle") / "cell.db")}
+    config = parse_config(data)
+    services = Services(config, Cell(config), open_store(config), JobManager())
     server: mb.ModbusPlcServer = cls(services, "127.0.0.1", cfg.port, 1, config=cfg)  # type: ignore[attr-defined]
     return server.start()
 

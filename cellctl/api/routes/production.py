@@ -95,9 +95,17 @@ async def start(body: StartInput, services: ServicesDep, who: Engineer) -> dict[
 
 
 @router.get("", responses={404: {}})
-def current(services: ServicesDep, _: Viewer, robot_id: str | None = None) -> dict[str, Any]:
+def current(services: ServicesDep, _: Viewer, robot_id: str | None = None,
+            none_ok: Annotated[bool, Query(description="no run yet: answer 200 {\"run_id\": null, \"state\": null} "
+                                                       "instead of 404 no_run (a page that polls)")] = False,
+            ) -> dict[str, Any]:
     """The current or last run: state, ended_because, counters, cycle_ms, next_slot."""
-    return _current(services, robot_id)
+    try:
+        return _current(services, robot_id)
+    except ApiError as exc:
+        if none_ok and exc.code == "no_run":
+            return {"run_id": None, "state": None, "message": exc.message}
+        raise
 
 
 @router.post("/pause", responses={404: {}})
