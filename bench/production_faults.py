@@ -44,7 +44,7 @@ def one_block(faults: list[tuple[str, str, float]], parts: int, time_scale: floa
     with tempfile.TemporaryDirectory(prefix="cellctl-faults-") as tmp_name:
         tmp = Path(tmp_name)
         config = production_config(tmp, count=parts, time_scale=time_scale, seed=seed)
-        served: Served | None = start_served(tmp, config)
+        served: Served | None = start_served(tmp, config, timeout_s=300)
         try:
             assert served is not None
             http = served.client(timeout_s=60)
@@ -71,7 +71,7 @@ def one_block(faults: list[tuple[str, str, float]], parts: int, time_scale: floa
                     os.kill(served.process.pid, signal.SIGKILL if kind == "kill9" else signal.SIGTERM)
                     served.process.wait(60)
                     served = None
-                    served = start_served(tmp, config)
+                    served = start_served(tmp, config, timeout_s=300)
                     http = served.client(timeout_s=60)
                     st = http.get("/production").json()
                     cycles = http.get(f"/production/runs/{st['run_id']}/cycles").json()

@@ -29,6 +29,12 @@ for p in "${PACKAGES[@]}"; do
   fi
 done
 
+# node and npm: the OPC UA Machine Vision tests' client (node-opcua, deploy/install-opcua-client.sh).
+# A machine that already has both (e.g. NodeSource's nodejs, which carries npm) keeps them.
+if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
+  missing+=(nodejs npm)
+fi
+
 if [ "${#missing[@]}" -eq 0 ]; then
   echo "install-system-deps: all ${#PACKAGES[@]} Debian packages present" >&2
   exit 0

@@ -14,7 +14,7 @@
 #     about a minute of CPU, so the service's first start, frame and calibration do not compile.
 # Re-running upgrades the copy and the venv and keeps the config and the data.
 #
-# Usage: sudo deploy/install.sh [--prefix DIR] [--root DIR] [--python PY] [--no-deps] [--no-aravis] [--postgres]
+# Usage: sudo deploy/install.sh [--prefix DIR] [--root DIR] [--python PY] [--no-deps] [--no-aravis] [--postgres] [--ethernet-ip]
 #                               [--no-warm-up]
 #   --root DIR   install into the tree DIR (a chroot, an image, a test tree) instead of /: every
 #                path above lives under DIR, the user is created in DIR/etc/passwd when that file
@@ -27,6 +27,8 @@
 #   --no-aravis  leave out the GigE Vision binding (PyGObject; needs deploy/install-system-deps.sh)
 #   --postgres   add the PostgreSQL driver (psycopg) for a plant-wide store (store.url:
 #                postgresql+psycopg://...); the default SQLite store needs nothing
+#   --ethernet-ip add cpppo for the EtherNet/IP tag server (plc.ethernet_ip; cpppo is GPL-3.0 or a
+#                paid licence: docs/licences.md)
 #   --no-warm-up skip `cellctl warm-up` (the service then compiles on its first start: /health
 #                says `starting` for a minute or more)
 # Debian packages the cell needs (Aravis, socat, ...): deploy/install-system-deps.sh (run it first).
@@ -38,6 +40,7 @@ PY=${PYTHON:-python3}
 DEPS=1
 ARAVIS=1
 POSTGRES=0
+ETHERNET_IP=0
 WARM=1
 SERVICE_USER=cellctl
 SRC=$(cd "$(dirname "$0")/.." && pwd)
@@ -54,6 +57,7 @@ while [ $# -gt 0 ]; do
     --no-deps) DEPS=0; shift ;;
     --no-aravis) ARAVIS=0; shift ;;
     --postgres) POSTGRES=1; shift ;;
+    --ethernet-ip) ETHERNET_IP=1; shift ;;
     --no-warm-up) WARM=0; shift ;;
     -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) die "unknown option $1; see --help" ;;
@@ -63,6 +67,7 @@ done
 EXTRAS=""
 [ "$ARAVIS" -eq 1 ] && EXTRAS=aravis
 [ "$POSTGRES" -eq 1 ] && EXTRAS=${EXTRAS:+$EXTRAS,}postgres
+[ "$ETHERNET_IP" -eq 1 ] && EXTRAS=${EXTRAS:+$EXTRAS,}ethernet-ip
 EXTRAS=${EXTRAS:+[$EXTRAS]}
 
 case "$PREFIX" in /*) ;; *) die "--prefix must be an absolute path, got $PREFIX" ;; esac

@@ -27,7 +27,9 @@ if [ ! -x .venv/bin/python ]; then
   fi
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e '.[test,aravis,postgres]'
+.venv/bin/python -m pip install -q -e '.[test,aravis,postgres,ethernet-ip]'
+# node-opcua for the OPC UA Machine Vision tests (the npm registry's client, pinned by its lock file)
+bash deploy/install-opcua-client.sh
 # Into __pycache__ beside the modules, or NUMBA_CACHE_DIR when set (the service must see the same).
 echo "setup: compiling the renderer's, matcher's and solver's loops into numba's cache" >&2
 .venv/bin/cellctl warm-up >/dev/null

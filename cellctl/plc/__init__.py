@@ -20,8 +20,8 @@ log = logging.getLogger(__name__)
 __all__ = ["PlcServers", "preflight", "start_plc_servers"]
 """The request engine every front end shares is ``cellctl.plc.engine`` (``Request``, ``Kind``,
 ``Engine.submit``; ``services.plc_engine``), over the request functions of ``cellctl.plc.requests`` and
-``production``; the servers ``modbus_server``, ``opcua_server``, ``enip_server``, ``robot_socket``; the
-Modbus register table ``modbus_map``."""
+``production``; the servers ``modbus_server``, ``opcua_server`` (with OPC UA for Machine Vision's
+``VisionSystem``: ``opcua_mv``), ``enip_server``, ``robot_socket``; the Modbus register table ``modbus_map``."""
 
 
 class _Server(Protocol):

@@ -28,6 +28,7 @@ import threading
 from typing import Any
 
 from cellctl.config import EthernetIpServerConfig, is_loopback_host
+from cellctl.errors import CellctlError
 from cellctl.plc.engine import Engine, FrontEnd, Request, engine_for
 from cellctl.plc.enip_tags import TAGS, RefusedWrite, TagImage, TagSpec
 from cellctl.plc.pacing import Pacer
@@ -46,12 +47,22 @@ _ATTRIBUTES: dict[str, Any] = {}
 """The tags' cpppo attributes, by name (one set per process; each server points them at its image)."""
 
 
+class EthernetIpUnavailable(CellctlError, RuntimeError):
+    """The EtherNet/IP front end is configured but its protocol library (cpppo, an extra) is missing."""
+
+
 def _cpppo() -> Any:
     """cpppo's modules, imported on first use (2.5 s; its loggers quietened first)."""
     for name in ("enip", "cpppo", "parser", "network"):
         logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger(name).level))
-    import cpppo
-    from cpppo.server.enip import device, logix, parser
+    try:
+        import cpppo
+        from cpppo.server.enip import device, logix, parser
+    except ImportError as exc:
+        raise EthernetIpUnavailable(
+            f"plc.ethernet_ip is enabled but cpppo is not installed ({exc}): install the extra with "
+            "`pip install 'cellctl[ethernet-ip]'` (deploy/install.sh --ethernet-ip), or disable plc.ethernet_ip"
+        ) from exc
 
     for name in ("enip", "cpppo", "parser", "network"):
         quiet(name)  # after the import: its loggers exist now

@@ -3,7 +3,8 @@ run's state as variables of ``Cell`` (docs/plc-opcua.md).
 
 Methods (the same requests as Modbus commands 4..7, :func:`cellctl.plc.production.execute_production`):
 ``StartProduction(RecipeId: Int32, Count: Int32) -> RunId: Int32`` (only with
-``plc.allow_motion: true``), ``PauseProduction()``, ``ResumeProduction()``, ``StopProduction()``.
+``plc.allow_motion: true``; Count 0..1,000,000 as REST's, else BadOutOfRange),
+``PauseProduction()``, ``ResumeProduction()``, ``StopProduction()``.
 Failures are the status codes of the pick methods (``STATUS_OF_TEXT``).
 
 Variables (read-only, refreshed every 0.1 s, from memory): ``ProductionRunId`` Int32 (0: none yet),
@@ -23,6 +24,7 @@ from typing import Any
 from asyncua import Node, ua
 
 from cellctl.plc.engine import Kind, Request
+from cellctl.plc.opcua_args import guarded, int_arg
 from cellctl.plc.production import (
     CMD_PRODUCTION_PAUSE,
     CMD_PRODUCTION_RESUME,
@@ -50,6 +52,9 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
 
 Call = Callable[[Request], Awaitable[Outcome]]
 Fail = Callable[[Outcome], Any]
+Refused = Callable[[str], Awaitable[None]]
+MAX_COUNT = 1_000_000
+"""The largest production count a PLC may ask for (as ``POST /production/start``)."""
 
 
 def production_values(services: Services) -> dict[str, Any]:
@@ -74,13 +79,13 @@ def production_values(services: Services) -> dict[str, Any]:
     return out
 
 
-def _int(v: ua.Variant | None) -> int | None:
-    value = v.Value if isinstance(v, ua.Variant) else None
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
+async def add_production(cell: Node, idx: int, services: Services, call: Call, fail: Fail,
+                         refused: Refused | None = None) -> dict[str, Node]:
+    """Add the production methods and variables to ``Cell``; the variables' nodes by name.
 
-
-async def add_production(cell: Node, idx: int, services: Services, call: Call, fail: Fail) -> dict[str, Node]:
-    """Add the production methods and variables to ``Cell``; the variables' nodes by name."""
+    Arguments are checked first (:mod:`cellctl.plc.opcua_args`): a wrong type or count answers
+    ``BadInvalidArgument``, a recipe outside 0..65535 or a count outside 0..``MAX_COUNT``
+    ``BadOutOfRange`` (REST's limit), and nothing starts."""
     nodes = {name: await cell.add_variable(idx, name, value, vtype) for name, value, vtype in VARIABLES}
 
     def arg(name: str, vtype: ua.VariantType, description: str) -> ua.Argument:
@@ -91,10 +96,9 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
         a.Description = ua.LocalizedText(description)
         return a
 
-    async def start(parent: ua.NodeId, recipe: ua.Variant | None = None, count: ua.Variant | None = None) -> Any:
-        r, c = _int(recipe), _int(count)
-        if r is None or c is None or c < 0:
-            return ua.StatusCode(ua.UInt32(ua.StatusCodes.BadInvalidArgument))
+    async def start(parent: ua.NodeId, recipe: ua.Variant, count: ua.Variant) -> Any:
+        r = int_arg(recipe, "RecipeId", 0, 65535)
+        c = int_arg(count, "Count", 0, MAX_COUNT)
         out = await call(Request(Kind.PRODUCTION_START, r, c))
         if not out.ok:
             return fail(out)
@@ -112,13 +116,13 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
 
         return method
 
-    await cell.add_method(idx, "StartProduction", start,
+    await cell.add_method(idx, "StartProduction", guarded("StartProduction", start, 2, refused),
                           [arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535"),
                            arg("Count", ua.VariantType.Int32, "parts to place; 0: until the area is empty")],
                           [arg("RunId", ua.VariantType.Int32, "the run's id")])
     for name, command in (("PauseProduction", CMD_PRODUCTION_PAUSE), ("ResumeProduction", CMD_PRODUCTION_RESUME),
                           ("StopProduction", CMD_PRODUCTION_STOP)):
-        await cell.add_method(idx, name, simple(command), [], [])
+        await cell.add_method(idx, name, guarded(name, simple(command), 0, refused), [], [])
     return nodes
 
 

@@ -57,6 +57,8 @@ from asyncua import Node, Server, ua
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
 from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
+from cellctl.plc.opcua_args import guarded
+from cellctl.plc.opcua_mv import VisionSystem, add_vision_system
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
@@ -201,6 +203,8 @@ class OpcUaPlcServer:
         self._front: FrontEnd | None = None
         self._engine: Engine = engine_for(services)
         self._production_shown: dict[str, Any] = {}
+        self._vision: VisionSystem | None = None
+        self._vision_task: asyncio.Task[None] | None = None
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -225,6 +229,11 @@ class OpcUaPlcServer:
             for task in (self._refresher, self._motion_watch):
                 if task is not None:
                     task.cancel()
+            if self._vision_task is not None:
+                self._vision_task.cancel()
+                await asyncio.gather(self._vision_task, return_exceptions=True)
+            if self._vision is not None:
+                await self._vision.stop()
             if self._server is not None:
                 await self._server.stop()
 
@@ -256,16 +265,18 @@ class OpcUaPlcServer:
                                                  "gripper_yaw_deg, score", array=True),
             _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)]
         await cell.add_method(
-            idx, "Pick", self._pick, [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
+            idx, "Pick", guarded("Pick", self._pick, 1, self._refused),
+            [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
             pick_outputs)
         await cell.add_method(
-            idx, "PickAndMove", self._pick_and_move,
+            idx, "PickAndMove", guarded("PickAndMove", self._pick_and_move, 1, self._refused),
             [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
             [*pick_outputs,
              _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
-        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed)
+        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed,
+                                                     self._refused)
         await cell.add_method(
-            idx, "VerifyCalibration", self._verify, [],
+            idx, "VerifyCalibration", guarded("VerifyCalibration", self._verify, 0, self._refused), [],
             [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
              _arg("DriftPx", ua.VariantType.Double, "RMS drift of the plate's points, pixels"),
              _arg("DriftMm", ua.VariantType.Double, "RMS drift in 3D, mm (NaN: no hand-eye calibration)")])
@@ -277,9 +288,23 @@ class OpcUaPlcServer:
         self._server = server
         if self._front is not None:  # connected clients for GET /plc/status (asyncua keeps the list)
             self._front.clients_of = lambda: len(server.bserver.clients) if server.bserver is not None else 0
+        # OPC UA for Machine Vision is added once the server listens (the NodeSet's import costs ~2 s of
+        # CPU, more on a loaded machine): the service's start does not wait for it.
+        self._vision_task = asyncio.get_running_loop().create_task(self._add_vision(server))
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
         self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
+
+    async def _add_vision(self, server: Server) -> None:
+        """Build ``Objects/VisionSystem`` (docs/plc-opcua.md) on the running server, then let it follow the cell."""
+        try:
+            vision = await add_vision_system(server, self.services, self._call, self._executor)
+        except Exception:  # noqa: BLE001 - the Cell object keeps serving without the Machine Vision model
+            log.exception("OPC UA for Machine Vision could not be added; the Cell object serves on")
+            return
+        self._vision = vision
+        await vision.started()
+        log.info("OPC UA for Machine Vision: Objects/VisionSystem at %s", self.url)
 
     async def _secure(self, server: Server) -> None:
         """Basic256Sha256 SignAndEncrypt, and only clients whose certificate is in the trusted directory.
@@ -361,6 +386,11 @@ class OpcUaPlcServer:
         # Device and calibration status are refreshed after the answer, not before it.
         self._pending_refresh = asyncio.get_running_loop().create_task(self._refresh())
         return out
+
+    async def _refused(self, message: str) -> None:
+        """A call refused for its arguments: its message in ``LastError`` (code: the request is wrong)."""
+        await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
+        await self._set("LastError", message)
 
     def _failed(self, out: Outcome) -> ua.StatusCode:
         return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))

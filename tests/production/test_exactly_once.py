@@ -84,7 +84,7 @@ def test_a_sigterm_or_a_kill_9_at_any_instant_never_places_twice_and_a_killed_ru
     faults = [("releasing", False), ("leaving", False), ("leaving", True), ("releasing", True), ("carrying", True)]
     parts = len(faults) + 1
     config = production_config(tmp_path, count=parts, time_scale=0.5)
-    served: Served | None = start_served(tmp_path, config)
+    served: Served | None = start_served(tmp_path, config, timeout_s=180)
     confirmed: set[int] = set()
     try:
         assert served is not None
@@ -98,7 +98,7 @@ def test_a_sigterm_or_a_kill_9_at_any_instant_never_places_twice_and_a_killed_ru
             os.kill(served.process.pid, signal.SIGKILL if kill else signal.SIGTERM)
             served.process.wait(60)
             served = None
-            served = start_served(tmp_path, config)
+            served = start_served(tmp_path, config, timeout_s=180)
             http = served.client(timeout_s=60)
             st = http.get("/production").json()
             last = http.get(f"/production/runs/{st['run_id']}/cycles").json()[-1]

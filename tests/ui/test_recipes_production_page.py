@@ -101,6 +101,7 @@ def test_recipes_production_plc_and_audit_from_the_page(tmp_path: Path, browser:
         page.fill("#prod-recipe", "1")
         page.fill("#prod-count", "2")
         page.click("#prod-start")
+        expect(page.locator("#prod-message")).to_have_text("run 1 started")  # the start has been answered
         refused = http.delete("/recipes/1")
         assert refused.status_code == 409 and refused.json()["error"]["code"] == "recipe_in_use", refused.text
         expect(page.locator("#prod-state")).to_have_text("complete", timeout=WAIT_MS)

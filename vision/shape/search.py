@@ -47,6 +47,7 @@ from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
 from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
+from vision.shape.patch import TeachPatch
 from vision.shape.patch import finish as finish_on_patch
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
@@ -279,19 +280,24 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
     stats["n_tracked"] = stats.get("n_tracked", 0.0) + len(cands)
     poses, low, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist,
                                      clock)
-    found = [(_finished(model, pyr, p, r, mirrored), r)
+    found = [(_match_of(p, r, mirrored), r)
              for p, lv, r in poses if lv == 0 and su <= p.x <= su + sw and sv <= p.y <= sv + sh]
     return found, low, timed_out or t_out
 
 
-def _finished(model: ShapeModel, pyr: list[U8], p: Pose, r: Refined, mirrored: bool) -> Match:
-    """The answer for a level-0 hypothesis: the edge fit's pose finished on the taught patch
-    (``patch.finish``) when the model has one, with the 1-sigma of the merged fit."""
-    mt = Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
-               r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
-    if model.patch is None:
+def _match_of(p: Pose, r: Refined, mirrored: bool) -> Match:
+    """The match of a level-0 hypothesis at its edge fit's pose (``_finish`` completes an answered one)."""
+    return Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
+                 r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
+
+
+def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined) -> Match:
+    """``mt``'s pose finished on the taught patch (``patch.finish``), with the 1-sigma of the merged fit
+    and the patch's scores; unchanged without a patch or where it cannot be fitted. Only answered
+    matches (and the best candidate below ``min_score``) are finished: the rest cost nothing more."""
+    if patch is None:
         return mt
-    done = finish_on_patch(model.patch, pyr, p.x, p.y, p.theta, p.scale, r.cov)
+    done = finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg), mt.scale, r.cov)
     if done is not None:
         mt.u_px, mt.v_px, th, mt.sigma_angle_deg, mt.sigma_px, extra = done
         mt.angle_deg = wrap_deg(math.degrees(th))
@@ -326,13 +332,13 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             low = (b, mirrored)
     u, v, w, h = model.roi
     min_dist = sp.min_distance_px if sp.min_distance_px is not None else min(w, h) / 3.0
-    final, rejected = _verified(model, found, sp, min_dist)
+    final, rejected = _verified(model, found, sp, min_dist, pyr)
     if sp.max_count is not None:
         final = final[:sp.max_count]
     best = None
     if low is not None:
         r, mir = low
-        fm = _finished(model.mirrored() if mir else model, pyr, r.pose, r, mir)  # as a match would be
+        fm = _finish((model.mirrored() if mir else model).patch, pyr, _match_of(r.pose, r, mir), r)  # as a match
         best = Candidate(fm.u_px, fm.v_px, fm.angle_deg, r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
@@ -344,7 +350,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     return FindResult(final, timed_out, clock.elapsed(), stats, best, sp.min_score, rejected)
 
 
-def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist: float
+def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist: float, pyr: list[U8]
               ) -> tuple[list[Match], list[Rejected]]:
     """Final non-maximum suppression on level 0 with the verification (``verify``): the matches kept,
     best first, and the candidates that reached ``min_score`` but failed a check.
@@ -358,7 +364,9 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
     final: list[Match] = []
     contours: list[Contour] = []
     rejected: list[Rejected] = []
-    levels = {False: model.levels[0], True: model.mirrored().levels[0] if sp.mirrored else model.levels[0]}
+    mirror = model.mirrored() if sp.mirrored else model
+    levels = {False: model.levels[0], True: mirror.levels[0]}
+    patches = {False: model.patch, True: mirror.patch}
     for mt, r in found:
         if any((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 < min_dist ** 2
                or overlap(model.roi, mt, o) > sp.max_overlap for o in final):
@@ -379,7 +387,7 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
                        f"min_score {sp.min_score:g}): a ghost between neighbouring parts")
         mt.scores = {**vd.scores, **mt.scores}
         if why is None:
-            final.append(mt)
+            final.append(_finish(patches[mt.mirrored], pyr, mt, r))
             contours.append(contour_of(r.q, r.n))
         elif all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2 for o in rejected):
             rejected.append(Rejected(mt.u_px, mt.v_px, mt.angle_deg, mt.score, mt.mirrored, vd.scores, why))

@@ -39,11 +39,15 @@ def blocks_of(pts: F64) -> NDArray[np.int64]:
 def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F64]:
     """The weighted normal equations ``H = J^T W J``, ``g = J^T W r`` in all and per block."""
     nb = JACKKNIFE_BLOCKS ** 2
-    onehot = np.zeros((len(pts), nb))
-    onehot[np.arange(len(pts)), blocks_of(pts)] = 1.0
+    b = blocks_of(pts)
     Jw = J * wgt[:, None]
-    Hb = np.einsum("nb,ni,nj->bij", onehot, Jw, J, optimize=True)
-    Gb = onehot.T @ (Jw * r[:, None])
+    k = J.shape[1]
+    Hb = np.zeros((nb, k, k))
+    Gb = np.zeros((nb, k))
+    for i in np.unique(b).tolist():
+        sel = b == i
+        Hb[i] = Jw[sel].T @ J[sel]
+        Gb[i] = Jw[sel].T @ r[sel]
     return Hb.sum(axis=0), Gb.sum(axis=0), Hb, Gb
 
 
