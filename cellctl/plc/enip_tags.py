@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from cellctl.errors import CellctlError
 from cellctl.plc.engine import Request, unknown_command
 from cellctl.plc.production import production_values
 from cellctl.plc.requests import Outcome, pick_sigma, robot_motion_status
@@ -54,7 +55,7 @@ TAGS: tuple[TagSpec, ...] = (
 TAG_SPECS = {t.name: t for t in TAGS}
 
 
-class RefusedWrite(Exception):
+class RefusedWrite(CellctlError):
     """A write the handshake does not take (busy, a read-only tag, a value out of range)."""
 
 
