@@ -141,3 +141,12 @@ def test_front_ends_word_the_way_out(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["target", "render", "--target", str(board), "--out", str(tmp_path / "b.png"), "--dpi", "5"]) == 2
     err = capsys.readouterr().err
     assert "dpi must be between 10 and 2400" in err and "check --dpi" in err and err.count("\n") == 1, err
+
+
+def test_no_assert_in_the_service_or_the_drivers() -> None:
+    """``python -O`` drops asserts: a check the product relies on is a typed error instead."""
+    root = Path(__file__).resolve().parents[1]
+    found = [f"{path.relative_to(root)}:{node.lineno}" for package in ("cellctl", "drivers")
+             for path in sorted((root / package).rglob("*.py"))
+             for node in ast.walk(ast.parse(path.read_text(), str(path))) if isinstance(node, ast.Assert)]
+    assert not found, f"replace these asserts with typed checks: {found}"

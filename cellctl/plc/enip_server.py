@@ -35,7 +35,7 @@ from cellctl.plc.pacing import Pacer
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import Outcome
 from cellctl.services import Services
-from drivers.loop_thread import LoopThread
+from drivers.loop_thread import LoopNotRunning, LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +188,8 @@ class EthernetIpServer:
     # -- requests -----------------------------------------------------------------------------------
     def _submit(self, request: Request, answer: Any) -> None:
         """Start a request through the engine; ``answer(outcome)`` runs on the loop when it is done."""
-        assert self._front is not None
+        if self._front is None:
+            raise LoopNotRunning("the EtherNet/IP server is not started: start() registers its front end")
         future = self.engine.submit(self._front, request, "plc:ethernet_ip")
         if future.done():
             answer(future.result())

@@ -59,7 +59,7 @@ from cellctl.plc.production import production_words
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
 from cellctl.services import Services
-from drivers.loop_thread import LoopThread
+from drivers.loop_thread import LoopNotRunning, LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -334,7 +334,8 @@ class ModbusPlcServer:
         if request is None:
             self._post(seq, command, unknown_command(command))
             return
-        assert self._front is not None
+        if self._front is None:
+            raise LoopNotRunning("the Modbus server is not started: start() registers its front end")
         future = self.engine.submit(self._front, request, "plc:modbus")
         if future.done():  # answered at once (idle, refused busy): posted before the write is acknowledged
             self._post(seq, command, future.result())

@@ -108,7 +108,8 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
 
     def simple(command: int) -> Callable[[ua.NodeId], Awaitable[Any]]:
         request = Request.from_command(command)
-        assert request is not None
+        if request is None:
+            raise ValueError(f"command {command} is not a PLC request (a production command is)")
 
         async def method(parent: ua.NodeId) -> Any:
             out = await call(request)

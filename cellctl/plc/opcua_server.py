@@ -79,7 +79,7 @@ from cellctl.plc.requests import (
     robot_motion_status,
 )
 from cellctl.services import Services
-from drivers.loop_thread import LoopThread
+from drivers.loop_thread import LoopNotRunning, LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -377,7 +377,8 @@ class OpcUaPlcServer:
         async with self._call_lock:
             await self._set("Busy", True)
             try:
-                assert self._front is not None, "start() registers the front end"
+                if self._front is None:
+                    raise LoopNotRunning("the OPC UA server is not started: start() registers its front end")
                 out = await asyncio.wrap_future(self._engine.submit(self._front, request, "plc:opcua"))
             finally:
                 await self._set("Busy", False)

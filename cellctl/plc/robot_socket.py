@@ -45,7 +45,7 @@ from cellctl.plc.requests import (
     robot_motion_status,
 )
 from cellctl.services import Services
-from drivers.loop_thread import LoopThread
+from drivers.loop_thread import LoopNotRunning, LoopThread
 
 log = logging.getLogger(__name__)
 
@@ -223,7 +223,8 @@ class RobotSocketServer:
         return err(TEXT_UNKNOWN_COMMAND, f"unknown request {shown!r}; {HELP}")
 
     async def _run(self, request: Request) -> Outcome:
-        assert self._front is not None
+        if self._front is None:
+            raise LoopNotRunning("the robot socket server is not started: start() registers its front end")
         return await asyncio.wrap_future(self.engine.submit(self._front, request, "plc:robot_socket"))
 
     def _status(self) -> str:
