@@ -50,8 +50,9 @@ from bench.pick_cases import (  # noqa: E402
     score,
     to_reference,
 )
+from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
-from vision.types import SearchParams  # noqa: E402
+from vision.types import Match, SearchParams  # noqa: E402
 
 MIN_SCORE = SearchParams().min_score
 
@@ -107,10 +108,13 @@ class Ncc:
         return out, (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
-def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool) -> tuple[list[Found], float, float, int]:
+def _ours(model: shape.ShapeModel, img: np.ndarray, mirrored: bool, into: list[Match] | None = None
+          ) -> tuple[list[Found], float, float, int]:
     """Matches, wall ms (``FindResult.elapsed_s``), CPU ms (the search's own process time), and the
-    candidates the verification rejected."""
+    candidates the verification rejected (``into``: receives the matches themselves)."""
     res = shape.find(model, img, SearchParams(mirrored=mirrored))
+    if into is not None:
+        into += res.matches
     return ([Found(m.u_px, m.v_px, m.angle_deg, m.score, m.mirrored) for m in res.matches],
             res.elapsed_s * 1e3, res.stats.get("cpu_total_s", float("nan")) * 1e3, len(res.rejected))
 
@@ -144,6 +148,7 @@ class Run:
     mirror: Tally = field(default_factory=Tally)
     mirrored_instances: list[int] = field(default_factory=lambda: [0, 0, 0])
     false_where: list[str] = field(default_factory=list)
+    instances: list[InstanceRow] = field(default_factory=list)
 
 
 def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float, rejected: int) -> str:
@@ -160,7 +165,10 @@ def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: 
         for vname, fn in variants.items():
             key = label or vname
             img = fn(base_img)  # type: ignore[operator]
-            ours, ms, cpu, n_rej = _ours(model, img, False)
+            raw: list[Match] = []
+            ours, ms, cpu, n_rej = _ours(model, img, False, raw)
+            if vname == "original" and label is None:
+                run.instances += instance_rows(case, test, img, raw)
             so = score(case, test, ours)
             run.variants.setdefault(key, (Tally(), Tally()))[0].add(so, ms, cpu)
             if so.false:
@@ -299,7 +307,7 @@ def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
         if with_baseline:
             row += f" {t.found} | {t.false} | {t.over} / {t.bad} | {_med(t.ms):.0f} | {_med(t.cpu_ms):.0f} |"
         lines.append(row)
-    lines += ["", *_targets(r, with_baseline)]
+    lines += ["", *instance_table(r.instances), "", *_targets(r, with_baseline)]
     return "\n".join(lines) + "\n"
 
 

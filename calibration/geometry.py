@@ -205,3 +205,115 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) 
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_transform(np.column_stack([x, y, z]), e)
+
+
+# -- robot controllers' orientation conventions (the robot socket, docs/robot-socket.md) ----------------
+#
+# Every form describes the same rotation R of a pose T_base_tool (the tool's axes in the base frame):
+# ``ur``: rotation vector (axis * angle, radians); ``abb``: unit quaternion [q1, q2, q3, q4] = [w, x, y, z]
+# (scalar first, q1 >= 0); ``fanuc`` (W, P, R) and ``yaskawa`` (Rx, Ry, Rz): degrees about the fixed
+# base axes X, then Y, then Z, so R = Rz(R) @ Ry(P) @ Rx(W); ``kuka`` (A, B, C): degrees about Z, then the
+# new Y', then the new X'' (intrinsic), so R = Rz(A) @ Ry(B) @ Rx(C) -- the same matrix as FANUC's with
+# the angles listed in the other order. Written in closed form (not scipy), so the tests can hold them
+# against scipy's Rotation as an independent reference.
+
+ROBOT_ORIENTATIONS: Final = ("ur", "abb", "fanuc", "kuka", "yaskawa")
+
+
+def _rx(a: float) -> Mat3:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _ry(a: float) -> Mat3:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rz(a: float) -> Mat3:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def zyx_deg_to_matrix(z_deg: float, y_deg: float, x_deg: float) -> Mat3:
+    """``R = Rz(z) @ Ry(y) @ Rx(x)`` (degrees): KUKA's A, B, C in that order; FANUC's R, P, W reversed."""
+    return _rz(np.radians(z_deg)) @ _ry(np.radians(y_deg)) @ _rx(np.radians(x_deg))
+
+
+def matrix_to_zyx_deg(R: ArrayLike) -> tuple[float, float, float]:
+    """The angles (z, y, x) in degrees with ``R = Rz(z) @ Ry(y) @ Rx(x)``; y in [-90, 90], z and x in
+    (-180, 180]. At y = +-90 (gimbal lock) only z -+ x is defined: x is set to 0."""
+    M = np.asarray(R, dtype=np.float64)
+    cy = float(np.hypot(M[0, 0], M[1, 0]))
+    y = float(np.arctan2(-M[2, 0], cy))
+    if cy > 1e-9:
+        z = float(np.arctan2(M[1, 0], M[0, 0]))
+        x = float(np.arctan2(M[2, 1], M[2, 2]))
+    else:  # y = +-90 deg: R = Rz(z -+ x) Ry(+-90); keep x = 0
+        z = float(np.arctan2(-M[0, 1], M[1, 1]))
+        x = 0.0
+    return float(np.degrees(z)), float(np.degrees(y)), float(np.degrees(x))
+
+
+def matrix_to_quaternion_wxyz(R: ArrayLike) -> Vec:
+    """3x3 rotation matrix to a unit quaternion ``[w, x, y, z]`` (scalar first, ABB's q1..q4, w >= 0);
+    Shepperd's method (the largest of the four squared components first, for accuracy)."""
+    M = np.asarray(R, dtype=np.float64)
+    t = float(np.trace(M))
+    diag = (t, M[0, 0], M[1, 1], M[2, 2])
+    k = int(np.argmax(diag))
+    if k == 0:
+        s = 2.0 * np.sqrt(max(1.0 + t, 0.0))
+        q = [0.25 * s, (M[2, 1] - M[1, 2]) / s, (M[0, 2] - M[2, 0]) / s, (M[1, 0] - M[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * np.sqrt(max(1.0 + M[0, 0] - M[1, 1] - M[2, 2], 0.0))
+        q = [(M[2, 1] - M[1, 2]) / s, 0.25 * s, (M[0, 1] + M[1, 0]) / s, (M[0, 2] + M[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(max(1.0 - M[0, 0] + M[1, 1] - M[2, 2], 0.0))
+        q = [(M[0, 2] - M[2, 0]) / s, (M[0, 1] + M[1, 0]) / s, 0.25 * s, (M[1, 2] + M[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(max(1.0 - M[0, 0] - M[1, 1] + M[2, 2], 0.0))
+        q = [(M[1, 0] - M[0, 1]) / s, (M[0, 2] + M[2, 0]) / s, (M[1, 2] + M[2, 1]) / s, 0.25 * s]
+    v = np.asarray(q, dtype=np.float64)
+    v /= np.linalg.norm(v)
+    return -v if v[0] < 0 else v
+
+
+def quaternion_wxyz_to_matrix(q_wxyz: ArrayLike) -> Mat3:
+    """Quaternion ``[w, x, y, z]`` (scalar first; normalised here) to a 3x3 matrix."""
+    q = np.asarray(q_wxyz, dtype=np.float64).reshape(4)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(n) or n < 1e-12:
+        raise PoseError(f"a quaternion needs a finite non-zero norm, got {q.tolist()}")
+    w, x, y, z = q / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def matrix_to_robot_orientation(R: ArrayLike, convention: str) -> list[float]:
+    """A rotation in a robot controller's own form (see ``ROBOT_ORIENTATIONS`` above): 3 numbers, 4 for ``abb``."""
+    if convention == "ur":
+        return [float(v) for v in log_so3(R)]
+    if convention == "abb":
+        return [float(v) for v in matrix_to_quaternion_wxyz(R)]
+    z, y, x = matrix_to_zyx_deg(R)
+    if convention == "kuka":
+        return [z, y, x]
+    if convention in ("fanuc", "yaskawa"):
+        return [x, y, z]
+    raise PoseError(f"unknown robot orientation convention {convention!r}; one of {', '.join(ROBOT_ORIENTATIONS)}")
+
+
+def robot_orientation_to_matrix(values: ArrayLike, convention: str) -> Mat3:
+    """The inverse of :func:`matrix_to_robot_orientation`."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if convention == "ur":
+        return rotvec_to_matrix(v)
+    if convention == "abb":
+        return quaternion_wxyz_to_matrix(v)
+    if convention == "kuka":
+        return zyx_deg_to_matrix(v[0], v[1], v[2])
+    if convention in ("fanuc", "yaskawa"):
+        return zyx_deg_to_matrix(v[2], v[1], v[0])
+    raise PoseError(f"unknown robot orientation convention {convention!r}; one of {', '.join(ROBOT_ORIENTATIONS)}")

@@ -112,8 +112,14 @@ class Cell:
                                               cls(cam_id, config.validated_settings("camera", cam_id)))
         for rob_id, rob in config.robots.items():
             cls = adapter_class("robot", rob.kind)
-            self.robots[rob_id] = DeviceSlot(rob_id, rob.kind, "robot",
-                                             cls(rob_id, config.validated_settings("robot", rob_id), rob.limits()))
+            settings = config.validated_settings("robot", rob_id)
+            if rob.kind == "sim" and getattr(settings, "state_file", "") is None:
+                # The virtual production cell keeps its parts and arm across a restart, as a real one does.
+                from cellctl.paths import data_dir
+
+                settings = settings.model_copy(
+                    update={"state_file": str(data_dir() / "sim" / f"{config.cell_id}-{rob_id}.json")})
+            self.robots[rob_id] = DeviceSlot(rob_id, rob.kind, "robot", cls(rob_id, settings, rob.limits()))
         for io_id, io in config.io.items():
             cls = adapter_class("io", io.kind)
             self.io[io_id] = DeviceSlot(io_id, io.kind, "io", cls(io_id, config.validated_settings("io", io_id)))

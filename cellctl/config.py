@@ -187,6 +187,39 @@ class ModbusServerConfig(_Strict):
     port: int = Field(5020, ge=1, le=65535)
     unit_id: int = Field(1, ge=0, le=255)
     """Modbus unit (device) id the server answers to; 0 answers every unit id."""
+    idle_timeout_s: float = Field(60.0, gt=0, le=86400)
+    """A connection that sends nothing for this long is closed (a PLC polls far more often)."""
+    max_connections_per_address: int = Field(16, ge=1, le=10000)
+    """Connections at once from one client address; more are closed at once (a PLC needs one or two)."""
+    max_connections: int = Field(64, ge=1, le=100000)
+    """Connections at once in all; more are closed at once, so no client can use up the service's descriptors."""
+
+
+class EthernetIpServerConfig(_Strict):
+    """The EtherNet/IP (CIP explicit messaging) tag server for Rockwell PLCs (docs/plc-ethernet-ip.md).
+    EtherNet/IP has no authentication: bind it to the PLC's network only."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(44818, ge=1, le=65535)
+    idle_timeout_s: float = Field(60.0, gt=0, le=86400)
+    """A connection that sends nothing for this long is closed."""
+    max_clients: int = Field(16, ge=1, le=1000)
+    """Connections at once; more are closed at once."""
+
+
+class RobotSocketConfig(_Strict):
+    """The robot socket: one ASCII line in, one out, for a robot program's TCP client (docs/robot-socket.md)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(5021, ge=1, le=65535)
+    pose_format: Literal["ur", "abb", "fanuc", "kuka", "yaskawa"] = "ur"
+    """The orientation's form in a PICK answer: the robot controller's own convention."""
+    idle_timeout_s: float = Field(60.0, gt=0, le=86400)
+    """A client that sends nothing for this long is closed."""
+    max_clients: int = Field(4, ge=1, le=1000)
+    """Clients at once; more are answered ERR and closed."""
 
 
 TRUST_HINT = ("security basic256sha256 needs trusted_client_certs: a directory holding the certificate of "
@@ -224,13 +257,15 @@ class OpcUaServerConfig(_Strict):
 class PlcConfig(_Strict):
     modbus: ModbusServerConfig = ModbusServerConfig()
     opcua: OpcUaServerConfig = OpcUaServerConfig()
+    ethernet_ip: EthernetIpServerConfig = EthernetIpServerConfig()
+    robot_socket: RobotSocketConfig = RobotSocketConfig()
     allow_motion: bool = False
     """Let a PLC start a pick that moves the robot (Modbus command 3, OPC UA ``PickAndMove``): an
     engineer-level act, off by default; the motion owner and the Stop latch apply as for REST."""
     insecure_plc_network: bool = False
     """The integrator's IEC 62443 zone decision: the PLC network is a zone of its own, and its conduit
-    admits only the PLC. Needed to serve OPC UA with ``security: none`` or Modbus with ``allow_motion``
-    on an address other than loopback (neither authenticates the client); refused otherwise."""
+    admits only the PLC. Needed to serve OPC UA with ``security: none``, or Modbus or EtherNet/IP with
+    ``allow_motion``, on an address other than loopback (none authenticates the client); refused otherwise."""
 
     @model_validator(mode="after")
     def _zones(self) -> PlcConfig:
@@ -253,6 +288,10 @@ class PlcConfig(_Strict):
             return (f"plc.allow_motion with plc.modbus on {self.modbus.host} (not loopback): Modbus has no "
                     "authentication, so any client on that network could make the robot move; turn "
                     f"allow_motion off, or {zone} (docs/plc-modbus.md)")
+        if self.ethernet_ip.enabled and self.allow_motion and not is_loopback_host(self.ethernet_ip.host):
+            return (f"plc.allow_motion with plc.ethernet_ip on {self.ethernet_ip.host} (not loopback): EtherNet/IP "
+                    "has no authentication, so any client on that network could make the robot move; turn "
+                    f"allow_motion off, or {zone} (docs/plc-ethernet-ip.md)")
         return None
 
 

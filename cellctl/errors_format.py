@@ -40,6 +40,9 @@ def format_validation_errors(errors: ValidationError | Iterable[Mapping[str, Any
             keys = accepted_keys(model, tuple(err.get("loc", ()))[model_loc:-1])
             if keys:
                 msg += f" (accepted: {', '.join(keys)})"
+        hint = unit_hint(tuple(err.get("loc", ())), kind, err.get("input"))
+        if hint:
+            msg += hint
         if with_input and kind not in ("extra_forbidden", "missing") and "input" in err:
             shown = repr(err["input"])
             if len(shown) > MAX_INPUT_CHARS:
@@ -47,6 +50,23 @@ def format_validation_errors(errors: ValidationError | Iterable[Mapping[str, Any
             msg += f" (got {shown})"
         parts.append(f"{loc or '(top level)'}: {msg}")
     return "; ".join(parts)
+
+
+_RANGE_ERRORS = frozenset({"less_than", "less_than_equal", "greater_than", "greater_than_equal"})
+
+
+def unit_hint(loc: Sequence[Any], kind: str, value: Any) -> str:
+    """For a number out of range on a field in metres (``*_m``, or x, y, z of a UR pose ``*_ur``): a hint
+    that the unit is metres (``400`` for ``x_m`` reads as 400 m; 0.4 m was likely meant)."""
+    if kind not in _RANGE_ERRORS or isinstance(value, bool) or not isinstance(value, int | float) or not loc:
+        return ""
+    last = loc[-1]
+    metres = isinstance(last, str) and (last.endswith("_m") or last == "m")
+    if not metres and isinstance(last, int) and len(loc) > 1 and isinstance(loc[-2], str):
+        metres = loc[-2].endswith("_ur") and 0 <= last < 3  # a UR pose [x_m, y_m, z_m, rx, ry, rz]
+    if not metres:
+        return ""
+    return f" — the unit is metres: {value:g} m is {value * 1e3:g} mm; was {value / 1e3:g} m meant?"
 
 
 def accepted_keys(model: Any, path: Sequence[str | int]) -> list[str] | None:

@@ -54,7 +54,7 @@ def audited_move(store: Store, who: str, robot: RobotBase, T: NDArray[np.float64
     audit row goes through ``write`` (default: written before this returns)."""
     detail = {"pose_ur": pose_ur(T), "speed_m_s": speed_m_s, "why": why, **(extra or {})}
     try:
-        robot.move_linear(T, speed_m_s, session=session)
+        robot.move_linear(T, speed_m_s, session=session, who=who)
     except Exception as exc:
         result = outcome(exc)
         write(lambda: store.audit(who, "robot.move", robot.robot_id, detail, result))

@@ -2,7 +2,7 @@
 
 One ``Services`` per service process holds every piece of live state as a typed field: the config,
 the live cell, the store, the jobs, the frame cache, the Stop latches' keeper, the metrics, the
-calibration report cache and the production manager (made on first use). Nothing in ``cellctl``
+calibration report cache, the production manager and the PLC request engine (made on first use). Nothing in ``cellctl``
 keeps live state in a module-level registry; ``close`` ends it all, in order.
 """
 
@@ -21,6 +21,7 @@ from cellctl.pick.frames import FrameCache
 
 if TYPE_CHECKING:
     from cellctl.latches import LatchKeeper
+    from cellctl.plc.engine import Engine
     from cellctl.production.manager import ProductionManager
     from cellctl.store import Store
 
@@ -62,6 +63,7 @@ class Services:
     reports: ReportCache = field(default_factory=ReportCache)
     """Calibration report pages built so far (``GET /calibrations/{id}/report``)."""
     _production: ProductionManager | None = field(default=None, init=False, repr=False)
+    _plc_engine: Engine | None = field(default=None, init=False, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -84,6 +86,23 @@ class Services:
         with self._lock:
             return self._production
 
+    @property
+    def plc_engine(self) -> Engine:
+        """The PLC request engine every PLC front end shares (``cellctl.plc.engine``; made on first use)."""
+        from cellctl.plc.engine import Engine
+
+        with self._lock:
+            if self._plc_engine is None:
+                self._plc_engine = Engine(self)
+            return self._plc_engine
+
+    def close_plc_engine(self) -> None:
+        """Close the PLC request engine (after its front ends stopped): the next use makes a new one."""
+        with self._lock:
+            engine, self._plc_engine = self._plc_engine, None
+        if engine is not None:
+            engine.close()
+
     def stop_production(self, reason: str = "the service is shutting down") -> list[int]:
         """Stop this service's production runs now (``ProductionManager.shutdown``); the manager stays
         and refuses new starts (a PLC command arriving meanwhile). The ids of the runs it ended."""
@@ -95,6 +114,7 @@ class Services:
         jobs, the cell's devices, the latch writer, the store; the metrics stop reading the cell."""
         try:
             self.stop_production()
+            self.close_plc_engine()
             self.jobs.shutdown()
             self.cell.close()
             if self.latches is not None:

@@ -195,7 +195,7 @@ class Robot(Protocol):
     def close(self) -> None: ...
     def state(self) -> RobotState: ...
     def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float,
-                    session: MotionSession | None = None) -> None: ...
+                    session: MotionSession | None = None, who: str = "direct") -> None: ...
     def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
                    session: MotionSession | None = None) -> None: ...
     def stop(self, by: str = "") -> None: ...
@@ -316,10 +316,11 @@ class RobotBase(DeviceBase):
             self.motion.end(session)
 
     def move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float,
-                    session: MotionSession | None = None) -> None:
+                    session: MotionSession | None = None, who: str = "direct") -> None:
         """Move the tool in a straight line to ``T_base_tool`` (metres) at ``speed_m_s``.
 
-        Without ``session`` the move is a sequence of its own (refused while another one runs).
+        Without ``session`` the move is a sequence of its own (refused while another one runs), owned
+        by ``who`` (the motion owner ``GET /robots/{id}/motion`` shows: a token's name).
         """
         target = np.asarray(T_base_tool, dtype=np.float64)
         self.limits.check_pose(target)
@@ -327,7 +328,7 @@ class RobotBase(DeviceBase):
         distance_m = self._distance_to(target)
         nominal_s = self.limits.check_duration(distance_m, speed_m_s, "m")
         self._supervised(session, f"linear move to {_xyz_mm(target)}", nominal_s,
-                         lambda: self._move_linear(target, speed_m_s))
+                         lambda: self._move_linear(target, speed_m_s), who)
 
     def move_joint(self, joints_rad: NDArray[np.float64], speed_rad_s: float,
                    session: MotionSession | None = None) -> None:
@@ -349,9 +350,9 @@ class RobotBase(DeviceBase):
                                self.limits.move_deadline_slack_s)
 
     def _supervised(self, session: MotionSession | None, what: str, nominal_s: float,
-                    hook: Callable[[], None]) -> None:
+                    hook: Callable[[], None], who: str = "direct") -> None:
         if session is None:
-            with self.motion_session("direct", what) as own:
+            with self.motion_session(who, what) as own:
                 self._run_move(own, nominal_s, hook, in_sequence=False)
         else:
             if not self.motion.is_current(session):

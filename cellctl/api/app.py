@@ -16,13 +16,16 @@ from cellctl.api.middleware import RequestMiddleware
 from cellctl.api.pools import Pools
 from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
 from cellctl.api.routes import metrics as metrics_route
+from cellctl.api.routes import plc as plc_route
 from cellctl.api.routes import production as production_route
+from cellctl.api.routes import recipes as recipes_route
 from cellctl.api.routes import sim as sim_route
 from cellctl.auth import TokenTable
 from cellctl.cell import Cell
 from cellctl.config import CellConfig, Role
 from cellctl.jobs import JobManager
 from cellctl.latches import LatchKeeper
+from cellctl.production.interrupted import end_interrupted_runs
 from cellctl.services import Services
 from cellctl.warmup import service_startup
 
@@ -40,10 +43,15 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         cell = Cell(config)
         store = await run_in_threadpool(open_store, config)
         # Robots latched before a crash or restart are latched again before anything is served.
-        latches = LatchKeeper(store, {rid: slot.device.motion for rid, slot in cell.robots.items()})
+        owners = {rid: slot.device.motion for rid, slot in cell.robots.items()}
+        latches = LatchKeeper(store, owners)
         await run_in_threadpool(latches.restore)
+        # A production run the service did not end (killed) ends `interrupted` now, its robot latched.
+        await run_in_threadpool(end_interrupted_runs, store, owners)
         latches.start()
         services = Services(config, cell, store, JobManager(), latches=latches, metrics=app.state.metrics)
+        # The production manager now: REST and the PLC show the last stored run at once.
+        await run_in_threadpool(lambda: services.production)
         app.state.cell = cell
         app.state.services = services
         await run_in_threadpool(cell.open_all)
@@ -91,4 +99,6 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.include_router(metrics_route.router)
     app.include_router(sim_route.router)
     app.include_router(production_route.router)
+    app.include_router(recipes_route.router)
+    app.include_router(plc_route.router)
     return app

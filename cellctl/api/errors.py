@@ -109,7 +109,8 @@ def install_error_handlers(app: FastAPI) -> None:
         # An unknown key's message lists the keys accepted there (read from the route's body model).
         body_field = getattr(request.scope.get("route"), "body_field", None)
         model = getattr(getattr(body_field, "field_info", None), "annotation", None)
-        message = format_validation_errors(exc.errors(), with_input=False, model=model, model_loc=1)
+        message = (_json_syntax_message(exc) or _not_json_message(request, exc)
+                   or format_validation_errors(exc.errors(), with_input=False, model=model, model_loc=1))
         return JSONResponse(status_code=422, content=error_body("invalid_request", message))
 
     @app.exception_handler(StarletteHTTPException)
@@ -122,6 +123,36 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         return internal_error(request, exc)
+
+
+def _json_syntax_message(exc: RequestValidationError) -> str | None:
+    """A body that is not valid JSON: where (line and column, 1-based) and what the parser expected."""
+    err = next((e for e in exc.errors() if e.get("type") == "json_invalid"), None)
+    if err is None:
+        return None
+    loc = tuple(err.get("loc", ()))
+    pos = loc[1] if len(loc) > 1 and isinstance(loc[1], int) else None
+    doc = exc.body.decode("utf-8", "replace") if isinstance(exc.body, bytes) else exc.body
+    what = (err.get("ctx") or {}).get("error", "invalid JSON")
+    if pos is None or not isinstance(doc, str):
+        return f"body: not valid JSON ({what})"
+    line = doc.count("\n", 0, pos) + 1
+    column = pos - (doc.rfind("\n", 0, pos) + 1) + 1
+    near = doc[max(0, pos - 20):pos + 20].replace("\n", " ")
+    return f"body: not valid JSON at line {line}, column {column}: {what} (near {near!r})"
+
+
+def _not_json_message(request: Request, exc: RequestValidationError) -> str | None:
+    """A body sent without ``Content-Type: application/json``: it was not read as JSON; say so."""
+    content_type = request.headers.get("content-type", "")
+    if "json" in content_type.lower():
+        return None
+    if not any(tuple(e.get("loc", ())) == ("body",) and isinstance(e.get("input"), bytes | str)
+               for e in exc.errors()):
+        return None
+    sent = f"Content-Type: {content_type}" if content_type else "no Content-Type header"
+    return (f"body: not read as JSON ({sent}); send the header Content-Type: application/json "
+            "(curl: -H 'Content-Type: application/json')")
 
 
 OWN_ERRORS: tuple[type[Exception], ...] = (CalibrationError, VisionError, DriverError, CellctlError)

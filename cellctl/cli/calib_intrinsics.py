@@ -43,7 +43,7 @@ def register(sub: Any) -> None:
                    help="k-fold cross-validation: projection difference between fold solutions over the covered "
                         "region (default 2: split-half; 0: off); the verdict uses it")
     p.add_argument("--drop-outliers", action="store_true",
-                   help="drop outlier views and points (rule in calibration/intrinsics.py) and re-solve")
+                   help="drop outlier views and points (the rule is in calibration/intrinsics/) and re-solve")
     p.add_argument("--export-opencv", metavar="F.yaml", help="also write OpenCV FileStorage YAML")
     p.add_argument("--export-ros", metavar="F.yaml", help="also write a ROS camera_info YAML")
     p.add_argument("--export-halcon", metavar="F.cal", help="also write HALCON camera parameters (division)")
@@ -150,8 +150,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for prob in res.verdict["problems"]:
         print(f"cellctl: verdict: {prob['code']}: {prob['message']}", file=sys.stderr)
     if not res.verdict["ok"]:
-        print("cellctl: verdict: the data cannot support this calibration (see verdict.problems)",
-              file=sys.stderr)
+        # The result is written all the same (stdout, --out), then exit 3 as `job run --follow` does.
+        from cellctl.cli.job import VERDICT_NOT_OK_EXIT
+        from cellctl.cli.output import emit
+
+        emit(out, args.out_json)
+        raise CommandError("verdict NOT OK: the data cannot support this calibration (see verdict.problems); "
+                           "the result is written", exit_code=VERDICT_NOT_OK_EXIT)
     return out
 
 

@@ -1,24 +1,22 @@
 """``cellctl grab`` and ``cellctl robot state|move|stop|resume``.
 
-``grab`` and ``robot state --config`` open one device for the call (no service may be driving it).
-``robot state --url``, ``move``, ``stop`` and ``resume`` ask a running ``cellctl serve`` (``--url``,
-``--token`` as for ``cellctl job``): the service owns the robot, its motion checks, Stop latch and audit log.
+``robot state``, ``move``, ``stop`` and ``resume`` ask the running ``cellctl serve`` (``--url``,
+``--token`` as for ``cellctl job``): the service owns the robot, its motion checks, Stop latch and
+audit log, so "where is the robot?" is answered for the cell the command names. Only when asked by
+name (``robot state --config cell.yaml`` or ``--local``) is a robot opened directly for the call, and
+the command then says so on stderr. ``grab`` opens its camera directly (no service may be driving it).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
-import cv2
-
-from cellctl.cell import Cell
-from cellctl.cli.job import TOKEN_HELP, _service_args
+from cellctl.cli.job import TOKEN_HELP, URL_HELP
 from cellctl.cli.output import CommandError
-from cellctl.config import load_config
-from cellctl.robot_state import state_to_json
 
 
 def register(sub: Any) -> None:
@@ -29,17 +27,19 @@ def register(sub: Any) -> None:
     g.add_argument("--timeout-s", type=float, default=5.0)
     g.set_defaults(func=grab)
 
-    r: argparse.ArgumentParser = sub.add_parser("robot", help="robot commands")
+    r: argparse.ArgumentParser = sub.add_parser("robot", help="robot state, move, stop, resume on the running service")
     rsub = r.add_subparsers(dest="robot_command", metavar="ACTION", required=True)
-    s = rsub.add_parser("state", help="print a robot's state as JSON (from the device, or --url: the service)",
-                        description="Without --url: opens the robot of --config directly for this call (no service "
-                                    "may be driving it). With --url: asks the running service (GET /robots/ID/state, "
-                                    "which adds whether a Stop latches it).")
+    s = rsub.add_parser("state", help="print a robot's state as JSON from the running service (--config: the device)",
+                        description="Asks the running service (GET /robots/ID/state at --url: the pose it serves and "
+                                    "whether a Stop latches the robot). Only with --config (or --local: the built-in "
+                                    "virtual cell) is the robot opened directly for this call, bypassing any service "
+                                    "(no service may be driving it); the command then says so on stderr.")
     where = s.add_mutually_exclusive_group()
-    where.add_argument("--config", help="read the device directly: cell.yaml (default: the built-in virtual cell)")
-    where.add_argument("--url", default=None, help="ask the running service at this base URL instead, e.g. "
-                                                   "http://127.0.0.1:8080")
-    s.add_argument("--token", default=None, help=TOKEN_HELP + "; with --url")
+    where.add_argument("--url", default=None, help=URL_HELP)
+    where.add_argument("--config", help="open the robot of this cell.yaml directly instead of asking the service")
+    where.add_argument("--local", action="store_true",
+                       help="open the built-in virtual cell's robot directly instead of asking the service")
+    s.add_argument("--token", default=None, help=TOKEN_HELP)
     s.add_argument("--robot", required=True, help="robot id in the config")
     s.set_defaults(func=robot_state)
 
@@ -62,7 +62,18 @@ def register(sub: Any) -> None:
         a.set_defaults(func=robot_stop if name == "stop" else robot_resume)
 
 
+def _service_args(p: argparse.ArgumentParser) -> None:
+    from cellctl.cli.job import _service_args as service_args
+
+    service_args(p)
+
+
 def grab(args: argparse.Namespace) -> dict[str, Any]:
+    import cv2
+
+    from cellctl.cell import Cell
+    from cellctl.config import load_config
+
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"):
         raise CommandError(f"--out {out}: use an image file name ending in .png, .jpg, .bmp or .tif")
@@ -81,14 +92,24 @@ def grab(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def robot_state(args: argparse.Namespace) -> dict[str, Any]:
-    if args.url is not None:
+    if not (args.config or args.local):
+        args.url = args.url or os.environ.get("CELLCTL_URL", "http://127.0.0.1:8080")
         args.token = args.token or os.environ.get("CELLCTL_TOKEN")
         return _service(args, "GET", f"/robots/{args.robot}/state")
     if args.token is not None:
-        raise CommandError("--token belongs to --url (the service form); without --url the device is read directly")
+        raise CommandError("--token belongs to the service form (--url); with --config/--local the device is read "
+                           "directly")
+    from cellctl.cell import Cell
+    from cellctl.config import load_config
+    from cellctl.robot_state import state_to_json
+
     cell = Cell(load_config(args.config))
     if args.robot not in cell.robots:
         raise CommandError(f"no robot {args.robot!r} in the config; configured: {sorted(cell.robots)}")
+    source = args.config or "the built-in virtual cell"
+    print(f"cellctl: reading robot {args.robot} of {source} directly, not through a service (a running "
+          "service's robot and its Stop latch are not seen; leave out --config/--local to ask the service)",
+          file=sys.stderr, flush=True)
     slot = cell.robots[args.robot]
     try:
         # The age is taken when the state is read, not after the adapter has closed.
@@ -104,7 +125,7 @@ def _service(args: argparse.Namespace, method: str, path: str, body: dict[str, A
 
     try:
         with _client(args) as http:
-            return _check(http.request(method, path, json=body))
+            return _check(http.request(method, path, json=body), getattr(args, "token_file", None))
     except httpx.HTTPError as exc:
         raise CommandError(f"cannot reach the service at {args.url} ({exc}); is `cellctl serve` running?") from None
 

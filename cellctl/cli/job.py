@@ -26,26 +26,36 @@ TOKEN_HELP = ("bearer token (default: $CELLCTL_TOKEN, else the session-token fil
 
 
 class _HelpWithParams(argparse.Action):
-    """``job run --help``: the usual help, then every routine's parameters (read from their models
-    only when asked, so other commands do not import the routines)."""
+    """``job run NAME --help``: the usual help, then that routine's parameters (all routines' when no
+    known NAME came before ``--help``); read from their models only when asked, so other commands do
+    not import the routines."""
 
     def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kwargs: Any) -> None:
         super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0,
-                         help="show this help, with every routine's parameters, and exit")
+                         help="show this help with the routine's parameters (NAME --help: that routine's only)")
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
                  option_string: str | None = None) -> None:
-        parser.epilog = routine_params_help()
+        parser.epilog = routine_params_help(getattr(namespace, "name", None))
         parser.print_help()
         parser.exit()
 
 
-def routine_params_help() -> str:
-    """Every routine's parameters as text: name, type, default, range and what it means (with units)."""
+def routine_params_help(only: str | None = None) -> str:
+    """The routines' parameters as text: name, type, default, range and what it means (with units).
+
+    ``only``: that routine alone when it is one (else every routine, after a line naming the unknown one).
+    """
     from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
 
-    lines = ["routines and their parameters (give them as --param KEY=VALUE; all are optional):"]
-    for name in sorted(ROUTINE_MODULES):
+    names = sorted(ROUTINE_MODULES)
+    if only in ROUTINE_MODULES:
+        names = [only]
+        lines = ["parameters (give them as --param KEY=VALUE; all are optional):"]
+    else:
+        lines = ([f"no routine {only!r}; the routines are: {', '.join(names)}", ""] if only else []) + [
+            "routines and their parameters (give them as --param KEY=VALUE; all are optional):"]
+    for name in names:
         module = routine(name)
         doc = " ".join((module.__doc__ or "").strip().split("\n\n")[0].split()).replace("``", "")
         role = "engineer" if name in MOVES_ROBOT else "operator"
@@ -111,7 +121,8 @@ def register(sub: Any) -> None:
     s.add_argument("job_id", help="the job's id (the 'id' of the job run answer)")
     _service_args(s)
     s.set_defaults(func=status)
-    ls = jsub.add_parser("list", help="print the service's jobs, newest first (running and ended)")
+    ls = jsub.add_parser("list", help="print the service's jobs, newest first (running and ended), as a table")
+    ls.add_argument("--json", action="store_true", help="print them as a JSON list instead (every field)")
     _service_args(ls)
     ls.set_defaults(func=list_jobs)
     c = jsub.add_parser("cancel", help="cancel a running job: its routine stops the robot and stores nothing")
@@ -126,12 +137,23 @@ def _service_args(p: argparse.ArgumentParser) -> None:
 
 
 def _token(args: argparse.Namespace) -> str:
+    """The token for the service at ``args.url``: ``--token``/``$CELLCTL_TOKEN``, else the session-token
+    file of *that* service's cell (its ``cell_id`` from ``GET /health``, which needs no token)."""
     if args.token:
         return str(args.token)
-    files = sorted(data_dir().glob("*.session-token"), key=lambda f: f.stat().st_mtime, reverse=True)
-    if files:
-        return files[0].read_text().strip()
-    raise CommandError("no token: give --token or set CELLCTL_TOKEN (make one with `cellctl token add`)")
+    import httpx
+
+    try:
+        cell_id = httpx.get(f"{args.url.rstrip('/')}/health", timeout=5.0).json()["cell_id"]
+    except (httpx.HTTPError, ValueError, KeyError, TypeError) as exc:
+        raise CommandError(f"cannot reach the service at {args.url} ({exc}) to find its session token; is "
+                           "`cellctl serve` running there? (or give --token)") from None
+    path = data_dir() / f"{cell_id}.session-token"
+    if not path.is_file():
+        raise CommandError(f"no token for the service at {args.url} (cell {cell_id!r}): give --token or set "
+                           f"CELLCTL_TOKEN (no session-token file {path}; make a token with `cellctl token add`)")
+    args.token_file = path  # a 401 then names the file (an earlier run's token, another data dir)
+    return path.read_text().strip()
 
 
 def _params(pairs: list[str]) -> dict[str, Any]:
@@ -153,13 +175,15 @@ def _client(args: argparse.Namespace) -> Any:
     return httpx.Client(base_url=args.url, headers={"Authorization": f"Bearer {_token(args)}"}, timeout=30.0)
 
 
-def _check(r: Any) -> dict[str, Any]:
+def _check(r: Any, token_file: Any = None) -> dict[str, Any]:
     if r.status_code >= 400:
         try:
             err = r.json().get("error", {})
             msg = f"{err.get('code')}: {err.get('message')}"
         except ValueError:
             msg = r.text[:200]
+        if r.status_code == 401 and token_file is not None:
+            msg += f"; the token came from {token_file}: is it from an earlier run? give --token"
         raise CommandError(f"the service answered {r.status_code} ({msg})")
     body: dict[str, Any] = r.json()
     return body
@@ -170,7 +194,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     try:
         with _client(args) as http:
-            job = _check(http.post(f"/routines/{args.name}", json=_params(args.param)))
+            job = _check(http.post(f"/routines/{args.name}", json=_params(args.param)),
+                         getattr(args, "token_file", None))
             if not args.follow:
                 return job
             _follow(http, job["id"])
@@ -260,7 +285,7 @@ def _call(args: argparse.Namespace, method: str, path: str) -> Any:
             r = http.request(method, path)
             if r.status_code < 400 and isinstance(r.json(), list):
                 return r.json()
-            return _check(r)
+            return _check(r, getattr(args, "token_file", None))
     except httpx.HTTPError as exc:
         raise CommandError(f"cannot reach the service at {args.url} ({exc}); is `cellctl serve` running?") from None
 
@@ -270,9 +295,33 @@ def status(args: argparse.Namespace) -> dict[str, Any]:
     return job
 
 
-def list_jobs(args: argparse.Namespace) -> list[dict[str, Any]]:
+def list_jobs(args: argparse.Namespace) -> list[dict[str, Any]] | None:
+    """The jobs as a table on stdout (one line each), or with ``--json`` the service's JSON list."""
     jobs: list[dict[str, Any]] = _call(args, "GET", "/jobs")
-    return jobs
+    if args.json:
+        return jobs
+    sys.stdout.write(jobs_table(jobs))
+    return None
+
+
+def jobs_table(jobs: list[dict[str, Any]]) -> str:
+    """One line per job: id, routine, state, progress, verdict, who started it, when, its message."""
+    import time
+
+    head = ("ID", "ROUTINE", "STATE", "PROGRESS", "VERDICT", "BY", "STARTED", "MESSAGE")
+    rows = [head]
+    for j in jobs:
+        verdict = "-" if j.get("verdict_ok") is None else ("ok" if j["verdict_ok"] else "NOT OK")
+        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(j["created_s"])) if j.get("created_s") else "-"
+        message = " ".join(str(j.get("error") or j.get("message") or "").split())
+        rows.append((str(j["id"]), str(j["name"]), str(j["state"]), f"{100 * float(j.get('progress') or 0):.0f}%",
+                     verdict, str(j.get("started_by") or "-"), started,
+                     message if len(message) <= 60 else message[:59] + "…"))
+    if not jobs:
+        return "no jobs on this service (start one with `cellctl job run NAME`)\n"
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head) - 1)]
+    return "".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=False)) + "  " + r[-1] + "\n"
+                   for r in rows)
 
 
 def cancel(args: argparse.Namespace) -> dict[str, Any]:

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from calibration import io as cal_io
 from cellctl.errors import CellctlError
 
 
@@ -20,6 +20,13 @@ class CommandError(CellctlError):
 
 def dumps(result: Any) -> str:
     """The command's JSON: numpy values as plain numbers; a NaN/infinity is an error naming its key."""
+    if "numpy" not in sys.modules:  # a service's answer (plain JSON values): no numpy to load for it
+        try:
+            return json.dumps(result, indent=2, allow_nan=False)
+        except ValueError:
+            pass  # a NaN or infinity: the strict writer below names its key
+    from calibration import io as cal_io  # here, not at the top: `cellctl job list` loads no numpy
+
     return cal_io.dumps(result, indent=2)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.cli.output import CommandError
-from cellctl.pick.model import PartModel, teach
+from cellctl.pick.model import PartModel, check_roi, teach
 from vision import blob, shape
 from vision.recognize import recognize
 from vision.types import POLARITIES, SearchParams
@@ -53,14 +53,23 @@ def read_image(path: str) -> NDArray[np.uint8]:
 
 
 def _teach(args: argparse.Namespace) -> dict[str, Any]:
-    img = read_image(args.image)
+    if len(args.image) != len(args.roi):
+        raise CommandError(f"give one --roi per --image (got {len(args.image)} images, {len(args.roi)} ROIs)")
+    if len(args.image) > 1 and args.mode != "shape":
+        raise CommandError("several teach images make a shape model: leave --mode blob out, or give one image")
+    imgs = [read_image(p) for p in args.image]
+    rois = [_roi(r, "--roi") for r in args.roi]
     name = args.name or Path(args.out_model).stem
-    roi = _roi(args.roi, "--roi")
+    roi = rois[0]
     if roi is None:
         raise CommandError("--roi U,V,W,H is required to teach a part (the part's box in pixels)")
-    m = teach(img, roi, mode=args.mode, name=name, teach_image=str(args.image),
-              shape_params=shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels),
+    params = shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels)
+    m = teach(imgs[0], roi, mode=args.mode, name=name, teach_image=str(args.image[0]), shape_params=params,
               blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity))
+    if len(imgs) > 1:  # the edges seen in every image stay (vision.shape.multi)
+        for img, r in zip(imgs[1:], rois[1:], strict=True):
+            check_roi(r, (int(img.shape[1]), int(img.shape[0])))  # type: ignore[arg-type]
+        m.shape = shape.teach_many(imgs, rois, params)  # type: ignore[arg-type]
     m.save(args.out_model)
     return {"model": str(args.out_model), **m.summary()}
 
@@ -113,9 +122,11 @@ def register(sub: Any) -> None:
     parser: argparse.ArgumentParser = sub.add_parser("pick", help="teach part models and find parts")
     psub = parser.add_subparsers(dest="pick_command", metavar="ACTION", required=True)
 
-    t = psub.add_parser("teach", help="a part model from the ROI of one image")
-    t.add_argument("--image", required=True, help="the teach image")
-    t.add_argument("--roi", required=True, metavar="U,V,W,H",
+    t = psub.add_parser("teach", help="a part model from the ROI of one image (or of 2-5 images of the part)")
+    t.add_argument("--image", required=True, action="append",
+                   help="the teach image; repeat (with one --roi each, in order) for 2-5 images of the same "
+                        "part: the model keeps the edges seen in all of them")
+    t.add_argument("--roi", required=True, metavar="U,V,W,H", action="append",
                    help="rectangle from (U,V) to (U+W,V+H) in pixels; its centre is the reference point")
     t.add_argument("--out", required=True, dest="out_model", help="model file to write (JSON)")
     t.add_argument("--mode", choices=("shape", "blob"), default="shape")

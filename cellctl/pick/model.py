@@ -5,8 +5,10 @@ File layout (``format_version`` 1)::
     {"format_version": 1, "kind": "cellctl.pick.model", "name": "bracket", "mode": "shape",
      "teach": {"image": "teach.png", "image_size": [W, H], "roi": [U, V, W, H],
                "reference_px": [U + W/2, V + H/2], "params": {...}},
-     "shape": {"levels": [{"level": 0, "points": [[x, y, normal_deg], ...], "features": [...]}, ...]}}
-     (or "blob": {...} in blob mode)
+     "shape": {"levels": [{"level": 0, "points": [[x, y, normal_deg], ...], "features": [...]}, ...],
+               "patch": {"origin_px": [x, y], "png_base64": "..."}}}
+     (or "blob": {...} in blob mode; ``shape.patch``, the teach image's pixels of the part that finish
+     a match's pose, is absent in files taught before it: those find with the edge fit alone)
 
 Point coordinates are relative to the reference point, in pixels of their pyramid level. A file
 with a newer ``format_version`` than this code knows is refused with a clear message.

@@ -26,6 +26,8 @@ MAX_IMAGE_SIDE_PX = 100_000
 MAX_LEVELS = 16
 MAX_POINTS = 200_000
 """Edge points of one level (a taught model has a few thousand)."""
+MAX_PATCH_B64 = 64_000_000
+"""The teach patch's PNG in base64 (a 4000 x 3000 grey patch is about 16 MB)."""
 
 Px = Annotated[Num, Field(ge=-MAX_PX, le=MAX_PX)]
 Deg = Annotated[Num, Field(ge=-360.0, le=360.0)]
@@ -74,8 +76,16 @@ class LevelDoc(_Part):
     features: list[Index] = Field(min_length=1, max_length=MAX_POINTS)
 
 
+class PatchDoc(_Part):
+    """``shape.patch``: the part's pixels in the teach image (vision.shape.patch), a grey PNG."""
+
+    origin_px: tuple[Px, Px]
+    png_base64: str = Field(min_length=4, max_length=MAX_PATCH_B64)
+
+
 class ShapeDoc(_Part):
     levels: list[LevelDoc] = Field(min_length=1, max_length=MAX_LEVELS)
+    patch: PatchDoc | None = None
 
 
 class BlobDoc(_Part):

@@ -1,8 +1,9 @@
-"""PLC-native front ends of ``cellctl serve``: a Modbus TCP server and an OPC UA server.
+"""PLC-native front ends of ``cellctl serve``: Modbus TCP, OPC UA, EtherNet/IP and the robot socket.
 
-Both are off unless ``plc.modbus.enabled`` / ``plc.opcua.enabled`` in ``cell.yaml``; both run in
-their own threads (their own event loops) beside the REST service and share its :class:`Services`.
-Register map: docs/plc-modbus.md; address space: docs/plc-opcua.md.
+Each is off unless ``plc.<front end>.enabled`` in ``cell.yaml``; each runs in its own thread (its own
+event loop) beside the REST service, shares its :class:`Services`, and runs every request through
+the one request engine (:mod:`cellctl.plc.engine`). Register map: docs/plc-modbus.md; address
+space: docs/plc-opcua.md; tags: docs/plc-ethernet-ip.md; line protocol: docs/robot-socket.md.
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ from cellctl.services import Services
 log = logging.getLogger(__name__)
 
 __all__ = ["PlcServers", "preflight", "start_plc_servers"]
-"""The request engine every front end shares is ``cellctl.plc.requests`` (``execute_pick``, ``execute_verify``);
-the servers ``modbus_server`` and ``opcua_server``; production over the PLC ``production``/``opcua_production``."""
+"""The request engine every front end shares is ``cellctl.plc.engine`` (``Request``, ``Kind``,
+``Engine.submit``; ``services.plc_engine``), over the request functions of ``cellctl.plc.requests`` and
+``production``; the servers ``modbus_server``, ``opcua_server``, ``enip_server``, ``robot_socket``; the
+Modbus register table ``modbus_map``."""
 
 
 class _Server(Protocol):
@@ -27,9 +30,10 @@ class _Server(Protocol):
 
 @dataclass
 class PlcServers:
-    """The PLC servers that were started (stop them in reverse order)."""
+    """The PLC servers that were started (stop them in reverse order, then the request engine)."""
 
     running: list[_Server] = field(default_factory=list)
+    services: Services | None = None
 
     def stop(self) -> None:
         while self.running:
@@ -38,6 +42,10 @@ class PlcServers:
                 server.stop()
             except Exception:  # noqa: BLE001 - stop every server even when one fails
                 log.exception("stopping a PLC server failed")
+        if self.services is not None:
+            from cellctl.plc.engine import forget_engine
+
+            forget_engine(self.services)
 
 
 def preflight(config: CellConfig) -> None:
@@ -59,17 +67,25 @@ def start_plc_servers(services: Services) -> PlcServers:
     zone = cfg.zone_problem()
     if zone:
         raise OSError(zone)
-    servers = PlcServers()
+    servers = PlcServers(services=services)
     try:
         if cfg.modbus.enabled:
             from cellctl.plc.modbus_server import ModbusPlcServer
 
             m = cfg.modbus
-            servers.running.append(ModbusPlcServer(services, m.host, m.port, m.unit_id).start())
+            servers.running.append(ModbusPlcServer(services, m.host, m.port, m.unit_id, config=m).start())
         if cfg.opcua.enabled:
             from cellctl.plc.opcua_server import OpcUaPlcServer
 
             servers.running.append(OpcUaPlcServer(services, cfg.opcua).start())
+        if cfg.ethernet_ip.enabled:
+            from cellctl.plc.enip_server import EthernetIpServer
+
+            servers.running.append(EthernetIpServer(services, cfg.ethernet_ip).start())
+        if cfg.robot_socket.enabled:
+            from cellctl.plc.robot_socket import RobotSocketServer
+
+            servers.running.append(RobotSocketServer(services, cfg.robot_socket).start())
     except BaseException:
         servers.stop()
         raise

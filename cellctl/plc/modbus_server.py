@@ -1,124 +1,91 @@
-"""The Modbus TCP server for PLCs: pick and verify through holding registers (pymodbus 3.16).
+"""The Modbus TCP server for PLCs: pick, verify and production through holding registers (pymodbus 3.16).
 
 The PLC is the Modbus client; ``cellctl serve`` answers on ``plc.modbus.host:port`` (unit id
 ``plc.modbus.unit_id``). All data are 16-bit holding registers, read with FC3 (or FC4, same
-registers) and written with FC6/FC16; other function codes are refused (exception 01). Addresses
-are protocol addresses, 0-based (the "4x" reference is 40001 + address). Unmapped addresses and
-writes to the read-only block answer exception 02 (illegal data address); other unit ids
-exception 0B.
+registers) and written with FC6/FC16; every other function code (7, 8, 11, 17, 20, 21, 24, 43, ...)
+is answered exception 01. Addresses are protocol addresses, 0-based. Unmapped addresses and writes
+to the read-only block answer exception 02 (illegal data address); other unit ids exception 0B.
 
-Register map (version 4; full description with the handshake in docs/plc-modbus.md)::
-
-    address  dir  meaning
-    0        W    COMMAND: 0 idle (no-op, answered at once), 1 pick (recipe in 1), 2 verify calibration,
-                  3 pick with robot motion (recipe in 1; only with plc.allow_motion: true), 4..7
-                  production start (recipe in 1, count in 3; plc.allow_motion), pause, resume, stop
-    1        W    RECIPE: recipe number 0..65535
-    2        W    SEQUENCE: request counter 1..65535 written by the PLC (0 = no request). A write that
-                  changes it to a new non-zero value starts the request latched from 0..2 (write 0..2
-                  in one FC16). While BUSY such a write is refused with exception 06 (device busy),
-                  not applied, and flagged with REFUSED / REFUSED_SEQ; the running request goes on.
-    3        W    COUNT: production start: parts to place, 0 = until the area is empty (write 0..3 in one FC16)
-    10       R    STATUS bits: bit0 BUSY, bit1 DONE (answer ok), bit2 ERROR (answer failed),
-                  bit3 REFUSED (the last sequence write was refused: busy), live on every read:
-                  bit4 ROBOT_LATCHED (the cell's robot is stopped until an engineer resumes it),
-                  bit5 ROBOT_OWNED (a move, pick or routine owns the robot's motion now)
-    11       R    ECHO_SEQ: the sequence of the request the answer (10, 13..173) belongs to; 0 = none yet
-    12       R    ACTIVE_SEQ: the sequence of the running request (the last accepted one when idle)
-    13       R    ERROR_CODE: error class (0 none, 1 request, 2 busy, 3 setup, 4 runtime, 5 drift,
-                  6 robot stopped, 9 internal)
-    14       R    ERROR_TEXT: error-text index (table in docs/plc-modbus.md, cellctl.plc.requests.ERROR_TEXTS)
-    15       R    RESULT_COMMAND: the command the answer is for
-    16       R    PICKS_REPORTED: picks in 30..109 (at most MAX_PICKS)
-    17       R    PICKS_FOUND: all picks found (may exceed MAX_PICKS)
-    18       R    VERIFY_PASSED: 1 when the verify passed, else 0
-    19       R    REFUSED_SEQ: the sequence of the last refused request
-    20-21    R    DRIFT_PX x1000, int32 (verify; -1 when not measured)
-    22-23    R    DRIFT_MM x1000, int32 (verify; -1 when not measured: no hand-eye calibration)
-    24-25    R    LATENCY in 0.1 ms, int32: request accepted -> answer posted
-    26       R    HEARTBEAT: counts up every 100 ms while the server runs (wraps at 65536)
-    27       R    MAX_PICKS (8)
-    28       R    MAP_VERSION (2)
-    29       R    PICKED: command 3 only: k + 1 when the robot picked pick k; 0 when it did not move
-    30+10k   R    pick k (k = 0..7, best first):
-                    +0..1 X, +2..3 Y, +4..5 Z of the gripper pick pose in the robot base frame, int32 in 0.01 mm
-                    +6..7 ROTATION: gripper yaw about base z, int32 in 0.001 degree
-                    +8 SCORE x1000 (0..1000), +9 REACHABLE (1: inside the envelope, 0: do not send it)
-    110-173  R    MESSAGE: the error's one-line text, ASCII, 2 characters per register (high byte
-                  first), NUL-padded, at most 128 characters
-    174-202  R    PRODUCTION: the production run's state, live on every read (docs/plc-modbus.md):
-                  run id, state, ended_because, counters, next slot, the last cycle's result, slot,
-                  cycle time and 1-sigma uncertainty
-    203      R    SIGMA_SEQ: the sequence of the answer 204..235 belong to (= ECHO_SEQ once posted)
-    204+4k   R    pick k's 1-sigma (k = 0..7, as 30+10k): +0..1 position (largest axis), int32 in um;
-                  +2..3 angle, int32 in 0.001 degree; -1 when not known
-
-int32 values are two registers, **big-endian words: high word first**, two's complement.
+The register map is one table in code, ``cellctl.plc.modbus_map`` (map version ``MAP_VERSION``);
+the addresses below come from it and docs/plc-modbus.md describes it (a test holds the two together).
 
 Handshake: write COMMAND, RECIPE, SEQUENCE (one FC16 at 0, count 3) with a new SEQUENCE; when the
-write is answered BUSY is set and DONE/ERROR are clear; poll 10..109 in one FC3 read (100
-registers, one consistent snapshot) until ECHO_SEQ equals your SEQUENCE, then DONE or ERROR
-tells the outcome and the rest of the snapshot is the answer. The answer stays until the next
-request, so a PLC that lost its connection reconnects and reads it; writing the same SEQUENCE
-again starts nothing.
+write is answered BUSY is set and DONE/ERROR are clear; poll 10..109 in one FC3 read until ECHO_SEQ
+equals your SEQUENCE, then DONE or ERROR tells the outcome and the rest of the snapshot is the
+answer. While this server's request runs, a new SEQUENCE is refused with exception 06 (REFUSED,
+REFUSED_SEQ); while another front end's request runs, the request is answered ERROR, text 2 (busy),
+by the request engine (``cellctl.plc.engine``), which runs every front end's requests one at a time.
 
-The server runs in its own thread with its own event loop; picks and verifies run in a worker
-thread (one at a time), so a slow pick never delays register reads.
+Connections: at most ``max_connections`` at once and ``max_connections_per_address`` from one
+address (more are closed at once); one silent for ``idle_timeout_s`` is closed; a frame that cannot
+be decoded closes its connection with one rate-limited log line, never a traceback. The requests'
+work is paced (``cellctl.plc.pacing``) so that a client polling as fast as it is answered cannot
+take the interpreter from Stop.
+
+The server runs in its own thread with its own event loop; requests run in the engine's worker
+thread, so a slow pick never delays register reads.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import time
-from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from cellctl.config import is_loopback_host
-from cellctl.plc.production import PRODUCTION_COMMANDS, execute_production, production_words
-from cellctl.plc.requests import (
-    ERROR_TEXTS,
-    TEXT_UNKNOWN_COMMAND,
-    Outcome,
-    execute_pick,
-    execute_verify,
-    failure,
-    pick_sigma,
-    robot_motion_status,
+from cellctl.config import ModbusServerConfig, is_loopback_host
+from cellctl.plc import modbus_map as mm
+from cellctl.plc.engine import Engine, FrontEnd, Request, engine_for, unknown_command
+from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests and bench decode with them
+    MAP_VERSION,
+    MAX_PICKS,
+    PICK_SIGMA,
+    PICK_STRIDE,
+    PICKS,
+    SIGMA_STRIDE,
+    ascii_words,
+    int32_words,
+    words_ascii,
+    words_int32,
 )
+from cellctl.plc.pacing import Pacer
+from cellctl.plc.production import production_words
+from cellctl.plc.quiet_log import client_mistake, quiet
+from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
 from cellctl.services import Services
 from drivers.loop_thread import LoopThread
 
 log = logging.getLogger(__name__)
 
-MAP_VERSION = 4
-COMMAND, RECIPE, SEQUENCE, COUNT = 0, 1, 2, 3
-STATUS, ECHO_SEQ, ACTIVE_SEQ, ERROR_CODE, ERROR_TEXT = 10, 11, 12, 13, 14
-RESULT_COMMAND, PICKS_REPORTED, PICKS_FOUND, VERIFY_PASSED, REFUSED_SEQ = 15, 16, 17, 18, 19
-DRIFT_PX, DRIFT_MM, LATENCY, HEARTBEAT, MAX_PICKS_REG, MAP_VERSION_REG, PICKED = 20, 22, 24, 26, 27, 28, 29
-PICKS = 30
-PICK_STRIDE = 10
-MAX_PICKS = 8
-MESSAGE = PICKS + PICK_STRIDE * MAX_PICKS  # 110
-MESSAGE_REGS = 64
-PRODUCTION = MESSAGE + MESSAGE_REGS  # 174: the production block (live on every read)
-PRODUCTION_REGS = 29
-SIGMA_SEQ = PRODUCTION + PRODUCTION_REGS  # 203: the per-pick uncertainty block (map version 4)
-PICK_SIGMA = SIGMA_SEQ + 1  # 204 + 4k: pick k's position and angle 1-sigma
-SIGMA_STRIDE = 4
-END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: first address after the map
+_a = mm.address
+COMMAND, RECIPE, SEQUENCE, COUNT = _a("COMMAND"), _a("RECIPE"), _a("SEQUENCE"), _a("COUNT")
+STATUS, ECHO_SEQ, ACTIVE_SEQ, ERROR_CODE, ERROR_TEXT = (_a("STATUS"), _a("ECHO_SEQ"), _a("ACTIVE_SEQ"),
+                                                        _a("ERROR_CODE"), _a("ERROR_TEXT"))
+RESULT_COMMAND, PICKS_REPORTED, PICKS_FOUND, VERIFY_PASSED, REFUSED_SEQ = (
+    _a("RESULT_COMMAND"), _a("PICKS_REPORTED"), _a("PICKS_FOUND"), _a("VERIFY_PASSED"), _a("REFUSED_SEQ"))
+DRIFT_PX, DRIFT_MM, LATENCY, HEARTBEAT = _a("DRIFT_PX"), _a("DRIFT_MM"), _a("LATENCY"), _a("HEARTBEAT")
+MAX_PICKS_REG, MAP_VERSION_REG, PICKED = _a("MAX_PICKS"), _a("MAP_VERSION"), _a("PICKED")
+MESSAGE = _a("MESSAGE")  # 110
+MESSAGE_REGS = mm.REGISTERS["MESSAGE"].field.count
+PRODUCTION = _a("RUN_ID")  # 174: the production block (live on every read)
+PRODUCTION_REGS = sum(f.count for f in mm.PRODUCTION_FIELDS)
+SIGMA_SEQ = _a("SIGMA_SEQ")  # 203: the per-pick uncertainty block
+END = mm.END  # 236: first address after the map
 READ_ONLY = STATUS
+_PICK = {name: placed.address for name, placed in mm.PICK_OFFSETS.items()}
+_SIGMA = {name: placed.address for name, placed in mm.SIGMA_OFFSETS.items()}
 
 BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
 LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED
 CMD_IDLE, CMD_PICK, CMD_VERIFY, CMD_PICK_MOVE = 0, 1, 2, 3
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
+IDLE_CHECK_S = 1.0
 
 
 async def _gateway_no_response(function_code: int, start_address: int, address: int, count: int,
@@ -129,37 +96,80 @@ async def _gateway_no_response(function_code: int, start_address: int, address: 
 is_loopback = is_loopback_host
 
 
-def int32_words(value: float) -> list[int]:
-    """A number as an int32 register pair, big-endian words (high word first), saturated."""
-    v = int(round(value)) if math.isfinite(value) else 0
-    v = max(-(2**31), min(2**31 - 1, v))
-    u = v & 0xFFFFFFFF
-    return [u >> 16, u & 0xFFFF]
+class _Connection(ServerRequestHandler):  # type: ignore[misc]
+    """One client connection: admitted under the caps, closed when idle or on garbage, and only the
+    documented function codes served (every other one: exception 01)."""
+
+    plc: ModbusPlcServer
+    peer = "?"
+    last_activity = 0.0
+
+    def callback_connected(self) -> None:
+        super().callback_connected()
+        info = self.transport.get_extra_info("peername") if self.transport else None
+        self.peer = str(info[0]) if info else "?"
+        self.last_activity = time.monotonic()
+        if not self.plc._admit(self):
+            self.close()
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        self.plc._forget(self)
+        super().callback_disconnected(exc)
+
+    def close(self, reconnect: bool = False) -> None:
+        self.plc._forget(self)
+        super().close(reconnect)
+
+    def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        self.last_activity = time.monotonic()
+        try:
+            used: int = super().callback_data(data, addr)
+            return used
+        except Exception as exc:  # noqa: BLE001 - a client's garbage closes its connection, nothing more
+            client_mistake(log, "undecodable Modbus frames", "PLC Modbus: closed the connection from %s: a frame "
+                           "that is not Modbus TCP (%s)", self.peer, str(exc).splitlines()[0][:120] if str(exc)
+                           else type(exc).__name__)
+            self.close()
+            return len(data)
+
+    async def handle_request(self) -> None:
+        pdu = self.last_pdu
+        if pdu is None:
+            return
+        if pdu.function_code not in ALLOWED_FUNCTIONS:
+            response = ExceptionResponse(pdu.function_code & 0x7F, ExcCodes.ILLEGAL_FUNCTION)
+            response.transaction_id = pdu.transaction_id
+            response.dev_id = pdu.dev_id
+            self.server_send(response, self.last_addr)
+            return
+        try:
+            t0 = await self.plc.pacer.wait()
+            self.last_pdu = pdu  # the request this call was scheduled for, whatever came meanwhile
+            await super().handle_request()
+            self.plc.pacer.done(t0)
+        except Exception as exc:  # noqa: BLE001 - never a traceback for a client's request
+            client_mistake(log, "failed Modbus requests", "PLC Modbus: a request from %s failed (%s); connection "
+                           "closed", self.peer, type(exc).__name__)
+            self.close()
 
 
-def words_int32(words: Sequence[int]) -> int:
-    """The inverse of :func:`int32_words`."""
-    u = (words[0] << 16) | words[1]
-    return u - (1 << 32) if u & 0x80000000 else u
+class _TcpServer(ModbusTcpServer):  # type: ignore[misc]
+    plc: ModbusPlcServer
 
-
-def ascii_words(text: str, n_regs: int = MESSAGE_REGS) -> list[int]:
-    """Text as registers, 2 ASCII characters each (high byte first), NUL-padded and truncated."""
-    raw = text.encode("ascii", "replace")[: 2 * n_regs].ljust(2 * n_regs, b"\0")
-    return [(raw[2 * i] << 8) | raw[2 * i + 1] for i in range(n_regs)]
-
-
-def words_ascii(words: Sequence[int]) -> str:
-    """The inverse of :func:`ascii_words`."""
-    raw = b"".join(bytes([w >> 8, w & 0xFF]) for w in words)
-    return raw.rstrip(b"\0").decode("ascii", "replace")
+    def callback_new_connection(self) -> _Connection:
+        conn = _Connection(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+        conn.plc = self.plc
+        return conn
 
 
 class ModbusPlcServer:
     """The PLC's Modbus TCP server for one cell; ``start()`` listens, ``stop()`` ends it."""
 
-    def __init__(self, services: Services, host: str = "127.0.0.1", port: int = 5020, unit_id: int = 1) -> None:
+    def __init__(self, services: Services, host: str = "127.0.0.1", port: int = 5020, unit_id: int = 1,
+                 config: ModbusServerConfig | None = None, engine: Engine | None = None) -> None:
         self.services, self.host, self.port, self.unit_id = services, host, port, unit_id
+        self.config = config or ModbusServerConfig(host=host, port=port, unit_id=unit_id)
+        self.engine = engine or engine_for(services)
         self._image = [0] * END
         """The read-only block as the PLC sees it; changed only on the server's loop."""
         self._image[MAX_PICKS_REG] = MAX_PICKS
@@ -168,22 +178,38 @@ class ModbusPlcServer:
         self._last_seq = 0
         self._accepted_at = 0.0
         self._thread = LoopThread(f"plc-modbus-{port}")
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plc-modbus-request")
-        self._server: ModbusTcpServer | None = None
+        self._server: _TcpServer | None = None
+        self._front: FrontEnd | None = None
+        self._connections: set[_Connection] = set()
+        self._idle_task: asyncio.Task[None] | None = None
         self.requests = 0
         self.refused = 0
+        self.closed_idle = 0
+        self.closed_over_cap = 0
+        self.pacer = Pacer()
+        """Bounds the share of the interpreter the clients' requests take (``cellctl.plc.pacing``)."""
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> ModbusPlcServer:
+        quiet("pymodbus")
+        self._front = self.engine.register("modbus", self.host, self.port)
+
         async def serve() -> None:
-            self._server = ModbusTcpServer(self._devices(), address=(self.host, self.port))
+            server = _TcpServer(self._devices(), address=(self.host, self.port))
+            server.plc = self
+            self._server = server
             try:
-                await self._server.serve_forever(background=True)
+                await server.serve_forever(background=True)
             except (RuntimeError, OSError) as exc:
                 raise OSError(f"PLC Modbus server cannot listen on {self.host}:{self.port} ({exc}); "
                               "free the port or change plc.modbus.port") from None
+            self._idle_task = asyncio.get_running_loop().create_task(self._close_idle())
 
-        self._thread.start(serve)
+        try:
+            self._thread.start(serve)
+        except BaseException:
+            self.engine.unregister("modbus")
+            raise
         log.info("PLC Modbus TCP server on %s:%d (unit id %d, register map v%d)", self.host, self.port,
                  self.unit_id, MAP_VERSION)
         if not is_loopback(self.host):
@@ -197,11 +223,13 @@ class ModbusPlcServer:
 
     def stop(self) -> None:
         async def shutdown() -> None:
+            if self._idle_task is not None:
+                self._idle_task.cancel()
             if self._server is not None:
                 await self._server.shutdown()
 
         self._thread.stop(shutdown)
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        self.engine.unregister("modbus")
 
     def _devices(self) -> list[SimDevice]:
         ours = SimDevice(
@@ -219,6 +247,38 @@ class ModbusPlcServer:
         others = SimDevice(id=0, simdata=[SimData(0, count=65536, values=0, datatype=DataType.REGISTERS)],
                            action=_gateway_no_response)
         return [ours, others]
+
+    # -- connections (all on the server's loop) -----------------------------------------------------
+    def _admit(self, conn: _Connection) -> bool:
+        cfg = self.config
+        same = sum(1 for c in self._connections if c.peer == conn.peer)
+        if len(self._connections) >= cfg.max_connections or same >= cfg.max_connections_per_address:
+            self.closed_over_cap += 1
+            client_mistake(log, "Modbus connections over the cap", "PLC Modbus: refused a connection from %s (%d "
+                           "from that address, %d in all; caps %d and %d: plc.modbus.max_connections_per_address, "
+                           "max_connections)", conn.peer, same, len(self._connections),
+                           cfg.max_connections_per_address, cfg.max_connections)
+            return False
+        self._connections.add(conn)
+        if self._front is not None:
+            self._front.clients = len(self._connections)
+        return True
+
+    def _forget(self, conn: _Connection) -> None:
+        self._connections.discard(conn)
+        if self._front is not None:
+            self._front.clients = len(self._connections)
+
+    async def _close_idle(self) -> None:
+        """Close connections silent for ``idle_timeout_s`` (checked every second)."""
+        while True:
+            await asyncio.sleep(min(IDLE_CHECK_S, self.config.idle_timeout_s / 2))
+            limit = time.monotonic() - self.config.idle_timeout_s
+            for conn in [c for c in self._connections if c.last_activity < limit]:
+                self.closed_idle += 1
+                client_mistake(log, "idle Modbus connections", "PLC Modbus: closed the connection from %s: silent "
+                               "for %.0f s (plc.modbus.idle_timeout_s)", conn.peer, self.config.idle_timeout_s)
+                conn.close()
 
     # -- requests (all on the server's loop) --------------------------------------------------------
     async def _action(self, function_code: int, start_address: int, address: int, count: int,
@@ -270,34 +330,23 @@ class ModbusPlcServer:
         img = self._image
         img[STATUS] = BUSY
         img[ACTIVE_SEQ] = seq
-        if command == CMD_IDLE:
-            self._post(seq, command, Outcome(True))
-        elif command == CMD_PICK:
-            self._run(seq, command, lambda: execute_pick(self.services, recipe, "plc:modbus"))
-        elif command == CMD_VERIFY:
-            self._run(seq, command, lambda: execute_verify(self.services, "plc:modbus"))
-        elif command == CMD_PICK_MOVE:
-            self._run(seq, command, lambda: execute_pick(self.services, recipe, "plc:modbus", move=True))
-        elif command in PRODUCTION_COMMANDS:
-            self._run(seq, command, lambda: execute_production(self.services, command, recipe, count, "plc:modbus"))
-        else:
-            self._post(seq, command, failure(TEXT_UNKNOWN_COMMAND, f"unknown command code {command}: use 0 idle, "
-                                                                   "1 pick, 2 verify, 3 pick with motion, 4..7 "
-                                                                   "production start, pause, resume, stop"))
-
-    def _run(self, seq: int, command: int, work: Any) -> None:
-        future = asyncio.get_running_loop().run_in_executor(self._executor, work)
+        request = Request.from_command(command, recipe, count)
+        if request is None:
+            self._post(seq, command, unknown_command(command))
+            return
+        assert self._front is not None
+        future = self.engine.submit(self._front, request, "plc:modbus")
+        if future.done():  # answered at once (idle, refused busy): posted before the write is acknowledged
+            self._post(seq, command, future.result())
+            return
+        wrapped = asyncio.wrap_future(future)
 
         def finished(f: asyncio.Future[Outcome]) -> None:
-            if f.cancelled():
-                outcome = failure(99, "the request was cancelled (server shutting down)")
-            elif f.exception() is not None:
-                outcome = failure(99, f"internal error: {f.exception()}")
-            else:
-                outcome = f.result()
+            outcome = f.result() if not f.cancelled() else failure(99, "the request was cancelled (server shutting "
+                                                                       "down)")
             self._post(seq, command, outcome)
 
-        future.add_done_callback(finished)
+        wrapped.add_done_callback(finished)
 
     def _post(self, seq: int, command: int, out: Outcome) -> None:
         """Write the whole answer at once (the loop never interleaves a read with this)."""
@@ -307,18 +356,19 @@ class ModbusPlcServer:
         for k, p in enumerate(picks):
             pose = p["pick_pose"]
             base = PICKS + PICK_STRIDE * k
-            img[base : base + 2] = int32_words(pose["x_mm"] * 100)
-            img[base + 2 : base + 4] = int32_words(pose["y_mm"] * 100)
-            img[base + 4 : base + 6] = int32_words(pose["z_mm"] * 100)
-            img[base + 6 : base + 8] = int32_words(p["gripper_yaw_deg"] * 1000)
-            img[base + 8] = max(0, min(1000, int(round(float(p["score"]) * 1000))))
-            img[base + 9] = 1 if p["reachable"] else 0
+            for name, value in (("X", pose["x_mm"] * 100), ("Y", pose["y_mm"] * 100), ("Z", pose["z_mm"] * 100),
+                                ("ROTATION", p["gripper_yaw_deg"] * 1000)):
+                img[base + _PICK[name] : base + _PICK[name] + 2] = int32_words(value)
+            img[base + _PICK["SCORE"]] = max(0, min(1000, int(round(float(p["score"]) * 1000))))
+            img[base + _PICK["REACHABLE"]] = 1 if p["reachable"] else 0
         img[SIGMA_SEQ:END] = [0] + [0xFFFF] * (END - PICK_SIGMA)  # -1: not known
         for k, p in enumerate(picks):
             sigma_mm, sigma_deg = pick_sigma(p)
             base = PICK_SIGMA + SIGMA_STRIDE * k
-            img[base : base + 2] = int32_words(-1 if sigma_mm is None else sigma_mm * 1000)
-            img[base + 2 : base + 4] = int32_words(-1 if sigma_deg is None else sigma_deg * 1000)
+            img[base + _SIGMA["SIGMA_UM"] : base + _SIGMA["SIGMA_UM"] + 2] = int32_words(
+                -1 if sigma_mm is None else sigma_mm * 1000)
+            img[base + _SIGMA["SIGMA_MDEG"] : base + _SIGMA["SIGMA_MDEG"] + 2] = int32_words(
+                -1 if sigma_deg is None else sigma_deg * 1000)
         img[SIGMA_SEQ] = seq
         v = out.verify or {}
         drift_px, drift_mm = v.get("drift_px"), v.get("drift_mm")

@@ -22,13 +22,12 @@ from typing import Any
 
 from asyncua import Node, ua
 
+from cellctl.plc.engine import Kind, Request
 from cellctl.plc.production import (
     CMD_PRODUCTION_PAUSE,
     CMD_PRODUCTION_RESUME,
-    CMD_PRODUCTION_START,
     CMD_PRODUCTION_STOP,
     COUNTERS,
-    execute_production,
 )
 from cellctl.plc.requests import Outcome
 from cellctl.production.manager import existing_manager
@@ -49,7 +48,7 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("ProductionLastSigmaDeg", math.nan, ua.VariantType.Double),
 )
 
-Call = Callable[[Callable[[], Outcome]], Awaitable[Outcome]]
+Call = Callable[[Request], Awaitable[Outcome]]
 Fail = Callable[[Outcome], Any]
 
 
@@ -96,7 +95,7 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
         r, c = _int(recipe), _int(count)
         if r is None or c is None or c < 0:
             return ua.StatusCode(ua.UInt32(ua.StatusCodes.BadInvalidArgument))
-        out = await call(lambda: execute_production(services, CMD_PRODUCTION_START, r, c, "plc:opcua"))
+        out = await call(Request(Kind.PRODUCTION_START, r, c))
         if not out.ok:
             return fail(out)
         manager = existing_manager(services)
@@ -104,8 +103,11 @@ async def add_production(cell: Node, idx: int, services: Services, call: Call, f
         return [ua.Variant(0 if snap is None else int(snap["run_id"]), ua.VariantType.Int32)]
 
     def simple(command: int) -> Callable[[ua.NodeId], Awaitable[Any]]:
+        request = Request.from_command(command)
+        assert request is not None
+
         async def method(parent: ua.NodeId) -> Any:
-            out = await call(lambda: execute_production(services, command, 0, 0, "plc:opcua"))
+            out = await call(request)
             return fail(out) if not out.ok else []
 
         return method

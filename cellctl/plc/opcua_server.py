@@ -48,7 +48,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -56,10 +55,12 @@ from typing import Any
 from asyncua import Node, Server, ua
 
 from cellctl.config import TRUST_HINT, OpcUaServerConfig
+from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
+    TEXT_BUSY,
     TEXT_CANNOT_PICK,
     TEXT_DEVICE,
     TEXT_MOTION_OFF,
@@ -72,8 +73,6 @@ from cellctl.plc.requests import (
     TEXT_UNKNOWN_RECIPE,
     TEXT_VERIFY_FAILED_TO_RUN,
     Outcome,
-    execute_pick,
-    execute_verify,
     pick_sigma,
     robot_motion_status,
 )
@@ -97,6 +96,7 @@ STATUS_OF_TEXT: dict[int, int] = {
     TEXT_TIMEOUT: ua.StatusCodes.BadTimeout,
     TEXT_ROBOT_STOPPED: ua.StatusCodes.BadRequestNotAllowed,
     TEXT_ROBOT_BUSY: ua.StatusCodes.BadLocked,
+    TEXT_BUSY: ua.StatusCodes.BadTooManyOperations,
     TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable,
     TEXT_STORE: ua.StatusCodes.BadResourceUnavailable,
 }
@@ -198,12 +198,18 @@ class OpcUaPlcServer:
         self._call_lock = asyncio.Lock()
         self._pending_refresh: asyncio.Task[None] | None = None
         self._production_vars: dict[str, Node] = {}
+        self._front: FrontEnd | None = None
+        self._engine: Engine = engine_for(services)
         self._production_shown: dict[str, Any] = {}
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
         # asyncua logs every standard node it adds at INFO: thousands of lines per start.
         logging.getLogger("asyncua").setLevel(max(logging.WARNING, logging.getLogger("asyncua").level))
+        # With security, clients are authenticated by certificate: no zone decision needed beyond loopback.
+        self._engine = engine_for(self.services)
+        self._front = self._engine.register("opcua", self.config.host, self.config.port,
+                                            motion=self.config.security == "none")
         self._thread.start(self._serve, timeout_s=60.0)
         log.info("PLC OPC UA server at %s (security %s)", self.url, self.config.security)
         if self.services.config.plc.allow_motion:
@@ -224,6 +230,7 @@ class OpcUaPlcServer:
 
         self._thread.stop(shutdown, timeout_s=15.0)
         self._executor.shutdown(wait=True, cancel_futures=True)
+        self._engine.unregister("opcua")
 
     async def _serve(self) -> None:
         cfg = self.config
@@ -268,6 +275,8 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
+        if self._front is not None:  # connected clients for GET /plc/status (asyncua keeps the list)
+            self._front.clients_of = lambda: len(server.bserver.clients) if server.bserver is not None else 0
         await self._refresh()
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_forever())
         self._motion_watch = asyncio.get_running_loop().create_task(self._watch_motion())
@@ -338,11 +347,13 @@ class OpcUaPlcServer:
             await asyncio.sleep(MOTION_POLL_S)
 
     # -- methods ------------------------------------------------------------------------------------
-    async def _call(self, work: Callable[[], Outcome]) -> Outcome:
+    async def _call(self, request: Request) -> Outcome:
+        """Run ``request`` through the cell's request engine (one at a time for every front end)."""
         async with self._call_lock:
             await self._set("Busy", True)
             try:
-                out = await asyncio.get_running_loop().run_in_executor(self._executor, work)
+                assert self._front is not None, "start() registers the front end"
+                out = await asyncio.wrap_future(self._engine.submit(self._front, request, "plc:opcua"))
             finally:
                 await self._set("Busy", False)
         await self._set("LastErrorCode", out.text_index)
@@ -367,7 +378,7 @@ class OpcUaPlcServer:
             await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
             await self._set("LastError", f"{method} needs one Int32 recipe number, got {value!r}")
             return _status_code(ua.StatusCodes.BadInvalidArgument)
-        out = await self._call(lambda: execute_pick(self.services, value, "plc:opcua", move=move))
+        out = await self._call(Request(Kind.PICK_MOVE if move else Kind.PICK, value))
         if not out.ok:
             return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
         poses: list[float] = []
@@ -391,7 +402,7 @@ class OpcUaPlcServer:
         return answer
 
     async def _verify(self, parent: ua.NodeId) -> Any:
-        out = await self._call(lambda: execute_verify(self.services, "plc:opcua"))
+        out = await self._call(Request(Kind.VERIFY))
         if out.verify is None:
             return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
         v = out.verify

@@ -40,10 +40,11 @@ log = logging.getLogger(__name__)
 CMD_PRODUCTION_START, CMD_PRODUCTION_PAUSE, CMD_PRODUCTION_RESUME, CMD_PRODUCTION_STOP = 4, 5, 6, 7
 PRODUCTION_COMMANDS = (CMD_PRODUCTION_START, CMD_PRODUCTION_PAUSE, CMD_PRODUCTION_RESUME, CMD_PRODUCTION_STOP)
 
-STATES = {"running": 1, "pausing": 2, "paused": 3, "stopping": 4, "stopped": 5, "complete": 6, "failed": 7}
-ENDED = {"count_reached": 1, "area_empty": 2, "none_pickable": 3, "stopped": 4, "failed": 5}
+STATES = {"running": 1, "pausing": 2, "paused": 3, "stopping": 4, "stopped": 5, "complete": 6, "failed": 7,
+          "interrupted": 8}
+ENDED = {"count_reached": 1, "area_empty": 2, "none_pickable": 3, "stopped": 4, "failed": 5, "interrupted": 6}
 RESULTS = {"placed": 1, "grip_failed": 2, "skipped": 3, "empty": 4, "none_pickable": 5, "stopped": 6,
-           "vision_failed": 7}
+           "vision_failed": 7, "interrupted": 8}
 COUNTERS = ("picked", "placed", "grip_failures", "retries", "skipped", "empty_area", "unreachable")
 
 
@@ -104,7 +105,7 @@ def production_values(services: Services) -> dict[str, Any]:
     median = snap["cycle_median_ms"]
     return {"run_id": snap["run_id"], "state": STATES.get(snap["state"], 0),
             "ended": ENDED.get(snap["ended_because"] or "", 0),
-            "counters": [int(snap["counters"][k]) for k in COUNTERS], "next_slot": int(snap["next_slot"]),
+            "counters": [int(snap["counters"].get(k, 0)) for k in COUNTERS], "next_slot": int(snap["next_slot"]),
             "last_result": RESULTS.get(str(last.get("result")), 0),
             "last_slot": -1 if last.get("slot") is None else int(last["slot"]),
             "cycle_median_ms": -1 if median is None else median,
@@ -112,20 +113,11 @@ def production_values(services: Services) -> dict[str, Any]:
 
 
 def production_words(services: Services) -> list[int]:
-    """The Modbus production block (PRODUCTION .. END - 1, docs/plc-modbus.md) from :func:`production_values`."""
-    from cellctl.plc.modbus_server import int32_words
+    """The Modbus production block (docs/plc-modbus.md) from :func:`production_values`, laid out by the
+    register map's table (``cellctl.plc.modbus_map.PRODUCTION_FIELDS``)."""
+    from cellctl.plc.modbus_map import production_block_words
 
-    v = production_values(services)
-    words = [*int32_words(v["run_id"]), v["state"], v["ended"]]
-    for c in v["counters"]:
-        words += int32_words(c)
-    words += int32_words(v["next_slot"])
-    words.append(v["last_result"])
-    words += int32_words(v["last_slot"])
-    words += int32_words(v["cycle_median_ms"])
-    words += int32_words(v["sigma_mm"] * 1000 if v["sigma_mm"] >= 0 else -1)
-    words += int32_words(v["sigma_deg"] * 1000 if v["sigma_deg"] >= 0 else -1)
-    return words
+    return production_block_words(production_values(services))
 
 
 def _line(exc: BaseException) -> str:

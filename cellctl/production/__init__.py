@@ -2,7 +2,9 @@
 
 - ``gripper``: open, close, check the grip, release (Robotiq 2F / sim gripper, vacuum, parallel);
 - ``place``: place poses of a picked part (``place_poses``: the slot, the pick's grasp);
-- the next free slot, the runs and the cycle records are stored (``cellctl.store.production``);
+- the runs, the cycle records, the slot counter and the slot claims are tables of the store
+  (``cellctl.store.production``: ``Store.claim_slot`` ... exactly once); ``interrupted``: runs the
+  service did not end, ended at the next start;
 - ``records``: a run's counters, cycle times and cycle records; ``frames``: failed cycles' frames on disk;
 - ``choice``: which part a cycle picks (retries, skips, unreachable parts);
 - ``vision``: a cycle's picture (the pick's candidates, ``cellctl.pick.locate``), the next one taken

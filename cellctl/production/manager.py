@@ -17,7 +17,6 @@ from cellctl.production.frames import FailureFrames
 from cellctl.production.gripper import Gripper
 from cellctl.production.run import ProductionRun, RunSettings
 from cellctl.services import Services
-from cellctl.store.production import ProductionStore
 from drivers.base import RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
@@ -39,12 +38,15 @@ class ProductionManager:
 
     def __init__(self, services: Services) -> None:
         self.services = services
-        self.store = ProductionStore(services.store.engine, services.store.cell_id)
+        self.store = services.store
         self.failure_frames = FailureFrames.for_config(services.config)
         self._runs: dict[str, ProductionRun] = {}
         self._last: ProductionRun | None = None
         self._lock = threading.Lock()
         self._closed = False
+        self._stored_last = self._stored_snapshot()
+        """The last stored run as a PLC reads it, until a run starts in this service (made once: no store
+        access on a server's event loop)."""
 
     def start(self, recipe_id: int, count: int, who: str, robot_id: str | None = None, camera_id: str | None = None,
               overlap: bool = True) -> ProductionRun:
@@ -101,7 +103,20 @@ class ProductionManager:
         """The last run started in this service, from memory (None: none yet)."""
         with self._lock:
             run = self._last
-        return None if run is None else run.snapshot()
+        return self._stored_last if run is None else run.snapshot()
+
+    def _stored_snapshot(self) -> dict[str, Any] | None:
+        try:
+            last = self.store.last_run()
+            if last is None:
+                return None
+            return {"run_id": last["run_id"], "state": last["state"], "ended_because": last["ended_because"],
+                    "counters": last.get("counters") or {}, "next_slot": self.store.free_slot(int(last["recipe_id"])),
+                    "cycle_median_ms": (last.get("cycle_ms") or {}).get("median"),
+                    "last": self.store.last_cycle(int(last["run_id"]))}
+        except Exception:  # noqa: BLE001 - the PLC shows no run; REST reads the store itself
+            log.exception("production: the last stored run cannot be read")
+            return None
 
     def current(self, robot_id: str | None = None) -> dict[str, Any]:
         """The current or last run as ``GET /production`` shows it (the last stored one after a restart)."""
@@ -111,9 +126,10 @@ class ProductionManager:
             last = self.store.last_run()
             if last is None:
                 raise
-            out = {**last, "next_slot": self.store.next_slot(int(last["recipe_id"]))}
+            out = {**last, "next_slot": self.store.free_slot(int(last["recipe_id"]))}
         totals = self.store.totals(exclude_run_id=int(out["run_id"]))
-        out["totals"] = {k: totals.get(k, 0) + int(v) for k, v in out["counters"].items()}
+        out["totals"] = {k: totals.get(k, 0) + int(v) for k, v in (out.get("counters") or {}).items()}
+        out["slots_in_doubt"] = self.store.slots_in_doubt()
         return out
 
     def running(self, recipe_id: int | None = None) -> list[ProductionRun]:

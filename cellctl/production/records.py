@@ -16,9 +16,12 @@ from typing import Any
 
 import numpy as np
 
-RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed")
-CSV_COLUMNS = ("n", "t", "result", "slot", "score", "pick_x_mm", "pick_y_mm", "pick_z_mm", "pick_rz_rad",
-               "place_x_mm", "place_y_mm", "place_z_mm", "place_rz_rad", "sigma_mm", "sigma_yaw_deg",
+RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed", "interrupted")
+POSE_KEYS = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
+"""A pose's CSV columns: the tool's position (mm, base frame) and its orientation as UR's rotation vector
+(axis times angle, radians): ``rz_rad`` is that vector's z component, not a yaw angle."""
+CSV_COLUMNS = ("n", "t", "result", "slot", "score", *(f"pick_{k}" for k in POSE_KEYS),
+               *(f"place_{k}" for k in POSE_KEYS), "sigma_mm", "sigma_yaw_deg",
                "cycle_ms", "vision_ms", "motion_ms", "gripper_ms", "frame_id", "detail")
 
 
@@ -109,7 +112,7 @@ def clean(value: Any) -> Any:
 
 
 def to_csv(records: list[dict[str, Any]]) -> str:
-    """The cycle records as CSV (one row per cycle; poses as mm and rz in radians)."""
+    """The cycle records as CSV (one row per cycle; the pick and place poses whole: ``POSE_KEYS``)."""
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
@@ -119,8 +122,7 @@ def to_csv(records: list[dict[str, Any]]) -> str:
         d = r.get("durations_ms") or {}
         sigma = unc.get("sigma_mm")
         w.writerow([r["n"], f"{r['t']:.3f}", r["result"], _v(r.get("slot")), _v(r.get("score")),
-                    _v(pick.get("x_mm")), _v(pick.get("y_mm")), _v(pick.get("z_mm")), _v(pick.get("rz_rad")),
-                    _v(place.get("x_mm")), _v(place.get("y_mm")), _v(place.get("z_mm")), _v(place.get("rz_rad")),
+                    *(_v(pick.get(k)) for k in POSE_KEYS), *(_v(place.get(k)) for k in POSE_KEYS),
                     "" if not sigma else " ".join(f"{s:.4f}" for s in sigma if s is not None),
                     _v(unc.get("sigma_yaw_deg")), _v(d.get("cycle")), _v(d.get("vision")), _v(d.get("motion")),
                     _v(d.get("gripper")), _v(r.get("frame_id")), r.get("detail") or ""])
@@ -131,5 +133,5 @@ def _v(x: Any) -> str:
     if x is None:
         return ""
     if isinstance(x, float):
-        return f"{x:.4f}"
+        return f"{x + 0.0:.4f}".replace("-0.0000", "0.0000")  # no "-0.0000" for a component that is 0
     return str(x)

@@ -10,6 +10,13 @@ States: ``running`` -> ``pausing`` (pause asked: the cycle finishes) -> ``paused
 ``stopping`` (stop asked: the cycle finishes) -> ``stopped``; ``complete`` (count reached, area
 empty, none pickable); ``failed`` (an error: the robot is halted). A robot Stop aborts the motion
 session at once: the run ends ``stopped`` and the gripper is not opened (a held part stays held).
+
+Exactly once (docs/production.md): the slot is claimed in the store (``Store.claim_slot``, the counter
+moves past it in the same transaction) before the part is carried there, and confirmed once the
+gripper has let it go; a run that ends in between (a Stop, the service shutting down, an error)
+leaves the slot ``in_doubt``: no run places there until an engineer confirms it. The run's phase is
+stored as it goes (``progress``), so that a run the service did not end is ended ``interrupted``
+with where it was at the next start (``cellctl.production.interrupted``).
 """
 
 from __future__ import annotations
@@ -44,13 +51,17 @@ from cellctl.production.vision import (
 )
 from cellctl.production.writer import Writer
 from cellctl.services import Services
-from cellctl.store.production import ProductionStore
+from cellctl.store import Store
 from drivers.base import MotionSession, RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
 
-State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed"]
-Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed"]
+State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed", "interrupted"]
+Ended = Literal["count_reached", "area_empty", "none_pickable", "stopped", "failed", "interrupted"]
+Phase = Literal["starting", "to_capture", "vision", "to_pick", "closing", "lifting", "carrying", "over_slot",
+                "releasing", "leaving", "between"]
+"""Where a run is in its cycle: ... ``carrying`` (to above the slot, the slot claimed), ``over_slot`` (down
+to it), ``releasing`` (the gripper opening), ``leaving`` (up from it, the part let go)."""
 VIEW_MARGIN_MM = 60.0
 """The arm counts as out of a fixed camera's view when nothing within this of its tool centre (the
 gripper and the part it holds) is in the image."""
@@ -87,7 +98,7 @@ class RunStatus:
 class ProductionRun:
     """One run in its own thread (``start``); ``pause``/``resume``/``stop`` are safe from any thread."""
 
-    def __init__(self, services: Services, store: ProductionStore, settings: RunSettings, robot: RobotBase,
+    def __init__(self, services: Services, store: Store, settings: RunSettings, robot: RobotBase,
                  session: MotionSession, run_id: int, failure_frames: FailureFrames | None = None) -> None:
         self.services, self.store, self.s, self.robot, self.session = services, store, settings, robot, session
         self.failure_frames = failure_frames
@@ -101,7 +112,13 @@ class ProductionRun:
         self._n = 0
         device = settings.recipe.gripper.device
         self._choice = Choice(device.retries if device is not None else 0)
-        self._next_slot = store.next_slot(settings.recipe_id)
+        self._next_slot = store.free_slot(settings.recipe_id)
+        self.phase: Phase = "starting"
+        self._claim: int | None = None
+        """The slot claimed for the part carried now (None: none claimed, or confirmed)."""
+        self._released = False
+        """The gripper has let the claimed slot's part go (the release returned)."""
+        self._cycle: tuple[PickCandidate, Picture, np.ndarray] | None = None
         self._mapping: ActiveMapping | None = None
         if settings.overlap and (isinstance(settings.recipe.place, LocatedPlace) or camera_on_arm(
                 services, settings.camera_id, settings.robot_id, settings.recipe)):
@@ -172,8 +189,8 @@ class ProductionRun:
         st = self.status
         return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
                 "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
-                "next_slot": self.store.next_slot(st.recipe_id) if self.ended else self._next_slot,
-                "error": st.error, "stop_reason": st.stop_reason, "cycles": self._n}
+                "next_slot": self.store.free_slot(st.recipe_id) if self.ended else self._next_slot,
+                "error": st.error, "stop_reason": st.stop_reason, "cycles": self._n, "phase": self.phase}
 
     def snapshot(self) -> dict[str, Any]:
         """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
@@ -188,16 +205,19 @@ class ProductionRun:
             if self.s.overlap:
                 self._vision = VisionWorker(f"production-{self.status.run_id}-vision")
             ended = self._cycles()
+            self._go_home()
             state: State = "stopped" if ended == "stopped" else "complete"
             self._end(state, ended)
         except RobotStopped as exc:
             # The emergency path (or the service's shutdown): halted already; the gripper keeps what it holds.
             self.status.stop_reason = self._abort_reason or str(exc)
-            self._record("stopped", detail=self.status.stop_reason)
+            slot = self._settle_claim(self.status.stop_reason)
+            self._record("stopped", detail=self.status.stop_reason, **{"phase": self.phase, **slot})
             self._end("stopped", "stopped", None)
         except Exception as exc:  # noqa: BLE001 - the run ends failed, saying why; the robot is halted
             log.exception("production run %s failed", self.status.run_id)
             halt_after_failure(self.robot, exc)
+            self._settle_claim(f"the run failed: {exc}")
             self._end("failed", "failed", str(exc))
         finally:
             if self._vision is not None:
@@ -282,6 +302,48 @@ class ProductionRun:
         self._store_state()
         return None
 
+    def _at(self, phase: Phase, store: bool = False, **info: Any) -> None:
+        """The run is now at ``phase`` of cycle ``_n + 1``; ``store``: write it (in order, off the cycle's path)."""
+        self.phase = phase
+        if store:
+            progress = clean({"phase": phase, "n": self._n + 1, "slot": self._claim, "at_s": time.time(), **info})
+            run_id = self.status.run_id
+            self._writer.put(lambda: self.store.set_progress(run_id, progress))
+
+    def _settle_claim(self, why: str) -> dict[str, Any]:
+        """The run ends with a slot claimed: placed when the gripper let the part go, else in doubt.
+
+        Written at once (not queued): the next run must see it. The cycle record's slot fields.
+        """
+        slot, self._claim = self._claim, None
+        if slot is None:
+            return {}
+        if self._released:  # the record resolves the claim (one transaction, queued before the 'stopped' one)
+            self._placed(slot, f"placed; the run then stopped while leaving the slot ({why})")
+            return {}
+        detail = {"phase": self.phase, "why": why, "held": self._holding(),
+                  "pick_pose": None if self._cycle is None else seen_fields(self._cycle[0], None, None)["pick_pose"]}
+        try:
+            self.store.slot_in_doubt(self.s.recipe_id, slot, self.status.run_id, clean(detail))
+        except Exception:  # noqa: BLE001 - the claim stays 'claimed': in doubt at the next start all the same
+            log.exception("production run %s: storing slot %s as in doubt failed", self.status.run_id, slot)
+        return {"slot": slot, "slot_state": "in_doubt", "phase": self.phase}
+
+    def _holding(self) -> bool | None:
+        try:
+            return self.gripper.holding()
+        except Exception:  # noqa: BLE001 - unknown: said so
+            return None
+
+    def _placed(self, slot: int, detail: str = "") -> None:
+        """Count and record the cycle whose part was let go in ``slot``."""
+        self.status.counters.placed += 1
+        if self._cycle is None:
+            self._record("placed", slot=slot, detail=detail, resolves=slot)
+            return
+        cand, picture, T_place = self._cycle
+        self._record("placed", cand, picture, slot=slot, T_place=T_place, detail=detail, resolves=slot)
+
     def _store_state(self) -> None:
         state, summary = self.status.state, clean(self._summary())
         self._writer.put(lambda: self.store.update_run(self.status.run_id, state, None, summary))
@@ -295,6 +357,15 @@ class ProductionRun:
                          f"production run {self.status.run_id}: {why}", self.session, write=self._writer.put)
         finally:
             d.add("motion", time.monotonic() - t0)
+
+    def _go_home(self) -> None:
+        """A run that ends by itself or by an operator's stop leaves the arm at the robot's ``home`` named
+        pose (``robots.<id>.poses.home``), not hovering over the last slot; none named: it stays."""
+        robot_config = self.services.config.robots.get(self.s.robot_id)
+        home = None if robot_config is None else robot_config.poses.get("home")
+        if home is None:
+            return
+        self._move(g.ur_pose_to_transform(list(home)), "home at the end of the run", Durations())
 
     def _move_to_capture(self) -> None:
         r = self.s.recipe
@@ -315,7 +386,7 @@ class ProductionRun:
         r, c = self.s.recipe, self.status.counters
         # The place is checked before the pick: a full pattern or a refused place pose ends the run
         # with the part where it lies, not in the gripper.
-        slot = self._next_slot
+        slot = self._next_slot = self.store.free_slot(self.s.recipe_id)  # past every slot claimed or in doubt
         if r.place is None:
             raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
                             "(docs/production.md)")
@@ -332,11 +403,15 @@ class ProductionRun:
         else:
             T_slot = r.place.T_slot(slot)
         T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
+        self._cycle = (cand, picture, T_place)
+        self._at("to_pick", store=True, pick_pose=seen_fields(cand, None, None)["pick_pose"])
         d.add("gripper", self.gripper.open())
         self._move(cand.T_approach, "pre-pick", d)
         self._move(cand.T_pick, "pick", d)
+        self._at("closing")
         check = self.gripper.close_and_check()
         d.add("gripper", check.elapsed_s)
+        self._at("lifting")
         self._move(cand.T_approach, "post-pick", d)
         if not check.held:
             c.grip_failures += 1
@@ -350,6 +425,15 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
+        if n_slots is not None:
+            # Exactly once: the slot is claimed (stored, the counter past it) before the part goes there.
+            # (A fixed place has no slots: what takes the part away is not the cell's.)
+            self.store.claim_slot(self.s.recipe_id, slot, self.status.run_id, self._n + 1,
+                                  clean({"pick_pose": seen_fields(cand, None, None)["pick_pose"],
+                                         "place_pose": seen_fields(None, None, T_place)["place_pose"]}))
+            self._claim, self._released = slot, False
+            self._next_slot = slot + 1
+        self._at("carrying", store=True, holding=True)
         prefetch = self._next_picture(T_place)
         try:
             self._move(T_place_app, "pre-place", d)
@@ -359,17 +443,20 @@ class ProductionRun:
             raise
         if prefetch is not None:
             prefetch.go()  # at the latest now: the arm is over the place, out of the camera's view
+        self._at("over_slot")
         self._move(T_place, "place", d)
+        self._at("releasing")
         d.add("gripper", self.gripper.release())
+        self._released = True
+        self._at("leaving", store=True, holding=False)
         self._move(T_place_app, "post-place", d)
-        if n_slots is not None:
-            self._next_slot = slot + 1
-            self._writer.put(lambda: self.store.set_next_slot(self.s.recipe_id, slot + 1, self.s.who))
+        claimed, self._claim = self._claim, None  # resolved by the placed record (one transaction)
+        self._at("between")
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
         self.status.times.add(durations)
         self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle,
-                     durations=durations)
+                     durations=durations, resolves=claimed)
         return prefetch
 
     def _next_picture(self, T_place: np.ndarray) -> Prefetch | None:
@@ -393,14 +480,15 @@ class ProductionRun:
 
     def _record(self, result: str, cand: PickCandidate | None = None, picture: Picture | None = None,
                 slot: int | None = None, T_place: np.ndarray | None = None, d: Durations | None = None,
-                detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None) -> None:
+                detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None,
+                resolves: int | None = None, **extra: Any) -> None:
         self._n += 1
         if durations is None and d is not None and t_cycle is not None:
             durations = d.as_ms(time.monotonic() - t_cycle)
         rec: dict[str, Any] = {
             "n": self._n, "t": time.time(), "run_id": self.status.run_id, "result": result, "slot": slot,
             "recipe_id": self.s.recipe_id, "recipe_version": self.s.recipe_version,
-            **seen_fields(cand, picture, T_place), "durations_ms": durations, "detail": detail,
+            **seen_fields(cand, picture, T_place), "durations_ms": durations, "detail": detail, **extra,
         }
         kept = None
         if result in KEPT_RESULTS and picture is not None and picture.frame_id is not None \
@@ -413,12 +501,12 @@ class ProductionRun:
         rec["frame_kept"] = kept is not None
         record = clean(rec)
         self.last_record = record
-        run_id, n, frames = self.status.run_id, self._n, self.failure_frames
+        run_id, n, frames, recipe_id = self.status.run_id, self._n, self.failure_frames, self.s.recipe_id
 
         def write() -> None:
             out = record
             if kept is not None and frames is not None and not frames.keep(run_id, n, kept, record):
                 out = {**record, "frame_kept": False}
-            self.store.add_cycle(run_id, out)
+            self.store.add_cycle(run_id, out, None if resolves is None else (recipe_id, resolves))
 
         self._writer.put(write)

@@ -6,6 +6,9 @@ import { refreshRecipes } from "./pick.js";
 import "./wizard.js";
 import "./routines.js";
 import "./production.js";
+import "./recipes.js";
+import "./plc.js";
+import "./audit.js";
 
 async function login(token) {
   const who = await api("GET", "/auth/whoami", undefined, { token });

@@ -122,39 +122,74 @@ $("#recipe-pose-button").addEventListener("click", async () => {
 
 const num = (sel) => ($(sel).value === "" ? null : Number($(sel).value));
 
+$("#recipe-id").addEventListener("input", () => {
+  $("#recipe-exists").hidden = true;
+  $("#recipe-new-version").checked = false;
+});
+
 $("#recipe-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   if (!teach.model) return;
   $("#teach-error").textContent = "";
   const recipeId = Number($("#recipe-id").value);
+  const existing = stored.find((r) => r.recipe_id === recipeId);
+  if (existing && !$("#recipe-new-version").checked) {
+    // Never over a recipe by default: an existing number must be asked for (a production recipe's place
+    // section and gripper device are then carried over to the new version).
+    $("#recipe-exists-id").textContent = String(recipeId);
+    $("#recipe-exists").hidden = false;
+    $("#teach-error").textContent = `recipe ${recipeId} (${existing.name}) exists: tick the box to save a new version `
+      + "of it, or choose another number";
+    return;
+  }
   teach.model.name = $("#recipe-name").value;  // the part is named after the recipe it is saved in
+  let kept = {};
+  if (existing) {
+    const old = (await api("GET", `/recipes/${recipeId}`)).data;
+    kept = { place: old.place ?? null, search: old.search };
+    if (old.gripper && old.gripper.device) kept.device = old.gripper.device;
+  }
   const recipe = {
     name: $("#recipe-name").value, models: [teach.model], camera_id: state.cameraId, robot_id: state.robotId,
     plane_z_mm: num("#recipe-plane-z"), grasp_z_mm: num("#recipe-grasp-z") ?? 0,
     approach_height_mm: num("#recipe-approach") ?? 50, capture_pose_ur: teach.pose,
     gripper: { open_width_mm: num("#grip-open"), grip_width_mm: num("#grip-close"), force_n: num("#grip-force") },
   };
+  if (kept.place) recipe.place = kept.place;
+  if (kept.search) recipe.search = kept.search;
+  if (kept.device) recipe.gripper.device = kept.device;
   try {
     const r = await api("POST", "/recipes", { recipe_id: recipeId, recipe });
     $("#recipe-status").textContent = `recipe ${r.recipe_id} "${r.name}" saved as version ${r.version}`
-      + (teach.pose ? " with its capture pose" : " (no capture pose: picks are taken from wherever the robot is)");
+      + (teach.pose ? " with its capture pose" : " (no capture pose: picks are taken from wherever the robot is)")
+      + (recipe.place ? "" : "; for production add its place section and gripper device in the Recipes tab");
+    $("#recipe-new-version").checked = false;
+    $("#recipe-exists").hidden = true;
     await refreshRecipes(r.recipe_id);
   } catch (e) { $("#teach-error").textContent = `save: ${e.message}`; }
 });
 
 // ---------------------------------------------------------------- pick test
 
+let stored = [];  // the recipes as last listed (GET /recipes)
+
 export async function refreshRecipes(select) {
   if (!state.token) return;
   try {
     const recipes = await api("GET", "/recipes");
+    stored = recipes;
+    // A new recipe gets a new number by default: the next after the highest stored (never recipe 1 over one).
+    const next = recipes.length ? Math.min(65535, Math.max(...recipes.map((r) => r.recipe_id)) + 1) : 1;
+    if ($("#recipe-id").value === "" || recipes.some((r) => r.recipe_id === Number($("#recipe-id").value)
+        && !$("#recipe-new-version").checked)) $("#recipe-id").value = String(next);
     const sel = $("#pick-recipe");
     const keep = select ?? (sel.value === "" ? null : Number(sel.value));
     sel.replaceChildren(...recipes.map((r) => new Option(`${r.recipe_id} ${r.name} (v${r.version})`, String(r.recipe_id))));
     if (keep !== null && recipes.some((r) => r.recipe_id === keep)) sel.value = String(keep);
     $("#pick-recipes").textContent = recipes.length
       ? `recipes: ${recipes.map((r) => `${r.recipe_id} ${r.name} (v${r.version})`).join(", ")}`
-      : "no recipes stored yet: teach a part above";
+      : (has("engineer") ? "no recipes stored yet: teach a part above"
+        : "no recipes stored yet: an engineer teaches a part and saves a recipe");
     $("#pick-button").disabled = !recipes.length;
   } catch (e) { $("#pick-recipes").textContent = e.message; }
 }

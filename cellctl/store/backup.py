@@ -71,7 +71,12 @@ def backup(store: Store, out: str | Path, fmt: BackupFormat | None = None) -> di
         tmp.unlink(missing_ok=True)
     _fsync_dir(out.parent)
     return {"backend": store.backend, "store": store.describe(), "cell_id": store.cell_id, "format": fmt,
-            "out": str(out), "bytes": out.stat().st_size, "counts": counts}
+            "out": str(out), "bytes": out.stat().st_size, "counts": _held(counts)}
+
+
+def _held(counts: dict[str, int]) -> dict[str, int]:
+    """Rows per table, the tables that hold none of the cell's rows left out."""
+    return {name: n for name, n in counts.items() if n}
 
 
 def _sqlite_backup(db: Path, tmp: Path, cell_id: str) -> dict[str, int]:
@@ -106,7 +111,7 @@ def dump_cell(store: Store) -> dict[str, Any]:
         with conn.begin():
             for t in S.CELL_TABLES:
                 cols = [c.name for c in t.columns]
-                rows = conn.execute(sa.select(t).where(t.c.cell_id == store.cell_id).order_by(t.c.id))
+                rows = conn.execute(sa.select(t).where(t.c.cell_id == store.cell_id).order_by(*S.order_of(t)))
                 tables[t.name] = {"columns": cols, "rows": [list(r) for r in rows]}
     return {"format": DUMP_FORMAT, "schema_version": S.SCHEMA_VERSION, "cell_id": store.cell_id,
             "created_s": time.time(), "tool_version": cellctl.__version__, "source": store.describe(),
@@ -144,11 +149,16 @@ def _read_sqlite_backup(path: Path, cell_id: str) -> dict[str, Any]:
         if cells and cell_id not in cells:
             raise RestoreRefused(f"restore: {path} holds the store of cell(s) {', '.join(cells)}, not of "
                                  f"{cell_id!r}; use that cell's config or a backup of this cell")
+        version = int(meta.get("schema_version", "0"))
         tables: dict[str, Any] = {}
         for t in S.CELL_TABLES:
             if t.name not in names:
+                if S.TABLES_SINCE.get(t.name, 1) > version:
+                    continue  # a backup of an older store: the table came later (restored empty)
                 raise RestoreRefused(f"restore: {path} has no {t.name} table; not a complete cellctl store backup")
-            cur = conn.execute(f"SELECT * FROM {t.name} WHERE cell_id = ? ORDER BY id", (cell_id,))  # noqa: S608
+            order = ", ".join(c.name for c in S.order_of(t))
+            cur = conn.execute(f"SELECT * FROM {t.name} WHERE cell_id = ? ORDER BY {order}",  # noqa: S608
+                               (cell_id,))
             tables[t.name] = {"columns": [d[0] for d in cur.description], "rows": [list(r) for r in cur]}
     except sqlite3.Error as exc:
         raise RestoreRefused(f"restore: {path} cannot be read as a cellctl store backup ({exc})") from None
@@ -156,8 +166,7 @@ def _read_sqlite_backup(path: Path, cell_id: str) -> dict[str, Any]:
         conn.close()
     if meta.get("format") != S.STORE_MARKER:
         raise RestoreRefused(f"restore: {path} is not a cellctl store backup (format={meta.get('format')!r})")
-    return {"format": DUMP_FORMAT, "schema_version": int(meta.get("schema_version", "0")), "cell_id": cell_id,
-            "tables": tables}
+    return {"format": DUMP_FORMAT, "schema_version": version, "cell_id": cell_id, "tables": tables}
 
 
 def _read_json_backup(path: Path) -> dict[str, Any]:
@@ -184,6 +193,7 @@ def _check_dump(dump: dict[str, Any], path: Path, cell_id: str) -> None:
     tables = dump.get("tables")
     if not isinstance(tables, dict):
         raise RestoreRefused(f"restore: {path} has no tables")
+    _upgrade(tables, version)
     for t in S.CELL_TABLES:
         entry = tables.get(t.name)
         want = [c.name for c in t.columns]
@@ -193,6 +203,31 @@ def _check_dump(dump: dict[str, Any], path: Path, cell_id: str) -> None:
         for row in entry["rows"]:
             if not isinstance(row, list) or len(row) != len(want) or row[ci] != cell_id:
                 raise RestoreRefused(f"restore: {path}: table {t.name} has a malformed row or one of another cell")
+
+
+def _upgrade(tables: dict[str, Any], version: int) -> None:
+    """A backup of an older schema as this one's: the tables that came later empty, the columns that
+    came later with the value the store's migration gives old rows (``schema.ADDED_COLUMNS``)."""
+    for t in S.CELL_TABLES:
+        if t.name not in tables and S.TABLES_SINCE.get(t.name, 1) > version:
+            tables[t.name] = {"columns": [c.name for c in t.columns], "rows": []}
+    for since, added in S.ADDED_COLUMNS.items():
+        if since <= version:
+            continue
+        for table, column, default in added:
+            entry = tables.get(table.name)
+            if not isinstance(entry, dict) or not isinstance(entry.get("columns"), list) \
+                    or column.name in entry["columns"] or not isinstance(entry.get("rows"), list):
+                continue
+            value = default.strip("'")
+            entry["columns"] = [*entry["columns"], column.name]
+            entry["rows"] = [[*r, value] if isinstance(r, list) else r for r in entry["rows"]]
+            want = [c.name for c in table.columns]
+            if sorted(entry["columns"]) == sorted(want):  # in the table's column order
+                idx = [entry["columns"].index(n) for n in want]
+                entry["columns"] = want
+                entry["rows"] = [[r[i] for i in idx] if isinstance(r, list) and len(r) == len(idx) else r
+                                 for r in entry["rows"]]
 
 
 def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dict[str, Any]:
@@ -217,24 +252,28 @@ def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dic
             rows = {t.name: [dict(zip(dump["tables"][t.name]["columns"], r, strict=True))
                              for r in dump["tables"][t.name]["rows"]] for t in S.CELL_TABLES}
             remap = _ids_taken(conn, rows, store.cell_id)
-            id_map = _insert_rows(conn, rows, remap)
+            id_map, run_map = _insert_rows(conn, rows, remap)
             if store.backend == "postgresql":
                 for t in S.CELL_TABLES:
-                    _advance_sequence(conn, t)
+                    if "id" in t.c:
+                        _advance_sequence(conn, t)
             store._audit(conn, who, "store.restore", f"cell:{store.cell_id}",
                          {"from": str(Path(src).resolve()), "counts": counts, "replaced": existing if replaced else {},
                           "backup_created_s": dump.get("created_s"),
-                          "calibration_ids_renumbered": {str(k): v for k, v in id_map.items()}}, "ok")
+                          "calibration_ids_renumbered": {str(k): v for k, v in id_map.items()},
+                          "run_ids_renumbered": {str(k): v for k, v in run_map.items()}}, "ok")
     except sa.exc.IntegrityError as exc:
         raise RestoreRefused(f"restore: the backup's rows violate the store's constraints "
                              f"({str(exc.orig).strip().splitlines()[0]}); nothing was changed") from None
     return {"backend": store.backend, "store": store.describe(), "cell_id": store.cell_id, "from": str(src),
-            "counts": counts, "replaced": replaced, "ids_renumbered": remap}
+            "counts": _held(counts), "replaced": replaced, "ids_renumbered": remap}
 
 
 def _ids_taken(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], cell_id: str) -> bool:
     """Whether any of the backup's row ids is used by another cell (a database shared by cells)."""
     for t in S.CELL_TABLES:
+        if "id" not in t.c:
+            continue  # keyed by the cell id: no other cell's row can hold it
         ids = [r["id"] for r in rows[t.name]]
         for i in range(0, len(ids), INSERT_CHUNK):
             taken = conn.execute(sa.select(t.c.id).where(t.c.id.in_(ids[i:i + INSERT_CHUNK]),
@@ -244,22 +283,39 @@ def _ids_taken(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], cell_
     return False
 
 
-def _insert_rows(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], remap: bool) -> dict[int, int]:
+def _insert_rows(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]],
+                 remap: bool) -> tuple[dict[int, int], dict[int, int]]:
     """Insert the backup's rows; with ``remap`` they get new ids (in their original order).
 
-    Renumbering keeps every reference right: activations point at the new calibration ids and
-    audit targets ``calibration:N`` are rewritten; returns ``{old id: new id}`` of the calibrations.
+    Renumbering keeps every reference right: activations point at the new calibration ids, audit
+    targets ``calibration:N`` are rewritten, cycles and slot claims follow their run (a cycle record
+    keeps the run id it was written with: its kept failure frame is named by it); returns
+    ``{old id: new id}`` of the calibrations and of the runs.
     """
     if not remap:
         for t in S.CELL_TABLES:
             for i in range(0, len(rows[t.name]), INSERT_CHUNK):
                 conn.execute(t.insert(), rows[t.name][i:i + INSERT_CHUNK])
-        return {}
+        return {}, {}
     cal_map: dict[int, int] = {}
     for r in rows[S.calibrations.name]:
         new_id = conn.execute(S.calibrations.insert().values({k: v for k, v in r.items() if k != "id"})
                               .returning(S.calibrations.c.id)).scalar_one()
         cal_map[int(r["id"])] = int(new_id)
+    run_map: dict[int, int] = {}
+    for r in rows[S.production_runs.name]:
+        new_id = conn.execute(S.production_runs.insert().values({k: v for k, v in r.items() if k != "id"})
+                              .returning(S.production_runs.c.id)).scalar_one()
+        run_map[int(r["id"])] = int(new_id)
+    for t in (S.production_cycles, S.production_slots, S.slot_claims):
+        moved = []
+        for r in rows[t.name]:
+            r = {k: v for k, v in r.items() if k != "id"}
+            if "run_id" in r:
+                r["run_id"] = run_map.get(int(r["run_id"]), r["run_id"])
+            moved.append(r)
+        for i in range(0, len(moved), INSERT_CHUNK):
+            conn.execute(t.insert(), moved[i:i + INSERT_CHUNK])
     for t in (S.activations, S.recipes, S.audit):
         fixed = []
         for r in rows[t.name]:
@@ -276,7 +332,7 @@ def _insert_rows(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]], rem
             fixed.append(r)
         for i in range(0, len(fixed), INSERT_CHUNK):  # executemany keeps the order, so ids stay increasing
             conn.execute(t.insert(), fixed[i:i + INSERT_CHUNK])
-    return cal_map
+    return cal_map, run_map
 
 
 def _advance_sequence(conn: sa.Connection, table: sa.Table) -> None:

@@ -1,5 +1,6 @@
 """The store of one cell: versioned calibrations with their inputs, the active pointer with its
-history, recipes and the audit log — one data-access layer over SQLite or PostgreSQL.
+history, recipes, the audit log, the robots' latches (``latches.py``) and production's runs, cycles
+and slots (``production.py``) — one data-access layer over SQLite or PostgreSQL.
 
 Every write is one database transaction that also appends its audit entry, so a process killed at
 any moment leaves either the whole act (record + audit) or nothing. A :class:`Store` is safe to
@@ -17,7 +18,7 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
-from cellctl.store import latches as L
+from cellctl.store import recipe_versions as RV
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
 from cellctl.store.errors import (
@@ -31,6 +32,8 @@ from cellctl.store.errors import (
     StoreUnavailable,
 )
 from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
+from cellctl.store.latches import LatchRows
+from cellctl.store.production import ProductionRows
 from cellctl.store.records import (
     CALIBRATION_KINDS,
     AuditEntry,
@@ -44,7 +47,7 @@ from cellctl.store.values import check_key, check_text, describe_key, payload_sh
 MAX_AUDIT_LIMIT = 10_000
 
 
-class Store:
+class Store(LatchRows, ProductionRows):
     """One cell's store. Open it with :func:`cellctl.store.open_store` or ``Store(url, cell_id)``.
 
     ``url`` is a SQLAlchemy URL: ``sqlite:////abs/path.db`` or
@@ -164,6 +167,22 @@ class Store:
             if version > S.SCHEMA_VERSION:
                 raise StoreFormatError(f"store {self.describe()} has schema version {version}, newer than this "
                                        f"cellctl supports ({S.SCHEMA_VERSION}); upgrade cellctl")
+            if version < S.SCHEMA_VERSION:
+                self._migrate(conn, version)
+
+    def _migrate(self, conn: sa.Connection, version: int) -> None:
+        """Bring a store of an older schema ``version`` to this one, in the schema's transaction (the
+        new tables were just created; an older table gets its new columns, its rows the default)."""
+        for since, added in sorted(S.ADDED_COLUMNS.items()):
+            if since <= version:
+                continue
+            for table, column, default in added:
+                have = {c["name"] for c in sa.inspect(conn).get_columns(table.name)}
+                if column.name not in have:
+                    kind = column.type.compile(dialect=conn.dialect)
+                    conn.exec_driver_sql(f"ALTER TABLE {table.name} ADD COLUMN {column.name} {kind} "
+                                         f"NOT NULL DEFAULT {default}")
+        conn.execute(sa.update(S.meta).where(S.meta.c.key == "schema_version").values(value=str(S.SCHEMA_VERSION)))
 
     def _audit(self, conn: sa.Connection, who: str, action: str, target: str, detail: dict[str, Any],
                result: str, at_s: float | None = None) -> None:
@@ -429,19 +448,21 @@ class Store:
         with self._read() as conn:
             return [self._recipe(row) for row in conn.execute(q).all()]
 
-    # ------------------------------------------------------------------ robot latches (latches.py)
+    # ------------------------------------------------------------------ recipe versions (recipe_versions.py)
 
-    def set_latch(self, robot_id: str, latched_by: str, reason: str, since_s: float, result: str = "stored") -> None:
-        """Store that ``robot_id`` is latched, with its audit entry (one transaction)."""
-        L.set_latch(self, robot_id, latched_by, reason, since_s, result)
+    def recipe_versions(self, recipe_id: int) -> list[Recipe]:
+        """Every version of a recipe, newest first (the newest is in force)."""
+        return RV.versions(self, recipe_id)
 
-    def clear_latch(self, robot_id: str, who: str, result: str = "stored: cleared") -> bool:
-        """Store that ``who`` resumed ``robot_id``, with its audit entry; True when it was stored latched."""
-        return L.clear_latch(self, robot_id, who, result)
+    def activate_recipe_version(self, recipe_id: int, version: int, who: str) -> Recipe:
+        """Roll back: ``version``'s data stored as the recipe's new version (nothing is rewritten)."""
+        return RV.activate_version(self, recipe_id, version, who)
 
-    def latches(self) -> list[L.StoredLatch]:
-        """The robots stored latched (they are latched again when the service starts)."""
-        return L.stored_latches(self)
+    def duplicate_recipe(self, recipe_id: int, new_recipe_id: int, who: str, name: str | None = None) -> Recipe:
+        return RV.duplicate(self, recipe_id, new_recipe_id, who, name)
+
+    def delete_recipe(self, recipe_id: int, who: str) -> int:
+        return RV.delete(self, recipe_id, who)
 
     # ------------------------------------------------------------------ whole-store
 

@@ -88,6 +88,7 @@ class SimGripper(DigitalIOBase):
             else:
                 parts.open(world.T_base_tool_true)
                 self.last_reason = ""
+            world.keep()  # a kept world (a restart finds the part where the gripper left it)
         return self.status()
 
     def open_gripper(self, **kw: Any) -> dict[str, Any]:

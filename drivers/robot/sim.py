@@ -42,6 +42,10 @@ class SimRobotSettings(BaseModel):
     seed: int | None = Field(None, ge=0)
     motion_time_scale: float | None = Field(None, ge=0, le=10)
     """Overrides the scene's ``robot.motion_time_scale`` (1: real time; 0: instantaneous moves)."""
+    state_file: str | None = None
+    """Where a production scene's world keeps its parts, gripper and arm pose across a restart
+    (``SimWorld.keep_state_in``); ``cellctl serve`` sets ``<data dir>/sim/<cell_id>-<robot_id>.json`` when
+    None; "": nothing is kept (a fresh scene at every start)."""
 
 
 class SimRobot(RobotBase):
@@ -74,6 +78,8 @@ class SimRobot(RobotBase):
 
     def connect(self) -> None:
         self._world = world_for(self._settings.scene, self._settings.seed)
+        if self._settings.state_file:
+            self._world.keep_state_in(self._settings.state_file)
         self._dropped = False
         self._moves = 0
 
@@ -153,6 +159,7 @@ class SimRobot(RobotBase):
                     self._protective_stop = True
                 if self._halt.is_set() or self._protective_stop or self._motion_aborted():
                     world.set_moving_pose(cmd.at(s), true.at(s))
+                    world.keep()  # halted here: a restart finds the arm where it stopped
                     if self._dropped:
                         raise DeviceUnavailable(f"robot {self.robot_id}: the controller dropped off during the move")
                     if self._protective_stop:

@@ -251,6 +251,32 @@ class ProductionParts:
             cur = nxt
         return cur
 
+    # -- kept across a restart (drivers.sim.world.SimWorld.keep_state_in) ---------------------------
+    def state(self) -> dict[str, Any]:
+        """The parts' states and poses, the gripper closed or not, the fault draw's counters (JSON-able)."""
+        with self._lock:
+            return {"parts": [{"id": p.id, "state": p.state, "T_base_part": p.T_base_part.tolist(),
+                               "T_tool_part": None if p.T_tool_part is None else p.T_tool_part.tolist()}
+                              for p in self.parts],
+                    "closed": self.closed, "closes_on_part": self.closes_on_part, "faults": self.faults}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Take back :meth:`state` (the same scene's: its part ids); ``ValueError`` when it is not."""
+        parts = state["parts"]
+        if sorted(int(p["id"]) for p in parts) != [p.id for p in self.parts]:
+            raise ValueError("the kept parts are not this scene's (another scatter or part count)")
+        with self._lock:
+            for kept in parts:
+                part = self.parts[int(kept["id"])]
+                part.state = kept["state"]
+                part.T_base_part = np.asarray(kept["T_base_part"], dtype=np.float64)
+                part.T_tool_part = None if kept["T_tool_part"] is None else np.asarray(kept["T_tool_part"],
+                                                                                        dtype=np.float64)
+            self.closed = bool(state["closed"])
+            self.closes_on_part = int(state.get("closes_on_part", 0))
+            self.faults = int(state.get("faults", 0))
+            self.version += 1
+
     # -- truth ------------------------------------------------------------------------------------
     def outline_in_base(self, T_base_part: NDArray[np.float64]) -> NDArray[np.float64]:
         """The outline's corners in the base frame (metres), on the part's top face."""

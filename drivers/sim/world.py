@@ -4,11 +4,20 @@ One ``SimWorld`` per scene is shared by the simulated camera and robot of a cell
 scene path and seed), so that an eye-in-hand camera renders from the robot's true pose. The
 robot *reports* its pose with repeatability noise drawn once per move; the camera renders from
 the true pose — as on a real cell, where the encoders' pose and the physical pose differ.
+
+A production scene's world keeps its state in a file when told where (``keep_state_in``, by the sim
+robot's ``state_file``): the parts (where they lie, which one the gripper holds), the gripper and
+the arm's pose are written whenever a part moves, a move ends or a halted arm stands, and read back
+when a service starts on the same file — as a real cell's parts and arm stay where they are when
+its controller restarts.
 """
 
 from __future__ import annotations
 
 import functools
+import json
+import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -23,6 +32,11 @@ from drivers.sim.kinematics import KinematicError
 from drivers.sim.production import ProductionParts
 from drivers.sim.production_view import production_objects, production_truth
 from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene, resolve_scene
+
+log = logging.getLogger(__name__)
+
+KEEP_MOVING_EVERY_S = 0.05
+"""While the arm moves, its pose is written to the state file at most this often."""
 
 
 class SimWorld:
@@ -46,6 +60,8 @@ class SimWorld:
         prod = scene.production
         self.production = None if prod is None else ProductionParts(prod, scene.table.z_m, scene.seed)
         """The production scene's parts (picked and placed by a sim gripper); None without one."""
+        self._state_file: Path | None = None
+        self._kept_s = 0.0
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -90,6 +106,8 @@ class SimWorld:
         with self._lock:
             self._T_base_tool_cmd = np.asarray(T_commanded, dtype=np.float64).copy()
             self._T_base_tool_true = np.asarray(T_true, dtype=np.float64).copy()
+        if self._state_file is not None and time.monotonic() - self._kept_s >= KEEP_MOVING_EVERY_S:
+            self.keep()
 
     def place_tool(self, T_base_tool_commanded: NDArray[np.float64],
                    T_true: NDArray[np.float64] | None = None, joints_rad: NDArray[np.float64] | None = None) -> None:
@@ -108,11 +126,60 @@ class SimWorld:
             axis /= np.linalg.norm(axis)
             angle = self._rng.normal(0.0, np.radians(spec.repeatability_deg))
             self._T_report_error = g.make_transform(g.rotvec_to_matrix(axis * angle), dt)
+        self.keep()
 
     def move_started(self, speed_m_s: float) -> None:
         """The robot starts a move at ``speed_m_s``: a held part may slip (``production.gripper.slip_accel_m_s2``)."""
         if self.production is not None:
             self.production.move_started(speed_m_s, self.T_base_tool_true)
+            self.keep()
+
+    # -- state kept across a restart ----------------------------------------------------------------
+    def keep_state_in(self, path: str | Path) -> None:
+        """Keep this production world's state in ``path``: read it back now when it is there (the same
+        scene's), then write it on every change. Nothing for a scene without production; a second call
+        (another device of the same world) changes nothing."""
+        if self.production is None or self._state_file is not None:
+            return
+        path = Path(path)
+        try:
+            kept = json.loads(path.read_text())
+        except FileNotFoundError:
+            kept = None
+        except (OSError, ValueError) as exc:
+            log.warning("sim: the kept state %s cannot be read (%s); the scene starts afresh", path, exc)
+            kept = None
+        if kept is not None:
+            try:
+                if kept.get("scene") != self.scene.name or kept.get("seed") != self.scene.seed:
+                    raise ValueError(f"it is scene {kept.get('scene')!r} seed {kept.get('seed')}")
+                self.production.set_state(kept["production"])
+                with self._lock:
+                    self._T_base_tool_cmd = np.asarray(kept["T_base_tool_commanded"], dtype=np.float64)
+                    self._T_base_tool_true = np.asarray(kept["T_base_tool_true"], dtype=np.float64)
+                    self._joints_rad = np.asarray(kept["joints_rad"], dtype=np.float64)
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning("sim: the kept state %s is not this scene's (%s); the scene starts afresh", path, exc)
+        self._state_file = path
+        self.keep()
+
+    def keep(self) -> None:
+        """Write the state file now (atomically: a kill leaves the old or the new one)."""
+        path = self._state_file
+        if path is None or self.production is None:
+            return
+        with self._lock:
+            self._kept_s = time.monotonic()
+            state = {"scene": self.scene.name, "seed": self.scene.seed, "production": self.production.state(),
+                     "T_base_tool_commanded": self._T_base_tool_cmd.tolist(),
+                     "T_base_tool_true": self._T_base_tool_true.tolist(), "joints_rad": self._joints_rad.tolist()}
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(f".{path.name}.tmp")
+                tmp.write_text(json.dumps(state))
+                os.replace(tmp, path)
+            except OSError as exc:
+                log.warning("sim: the state cannot be kept in %s: %s", path, exc)
 
     # -- camera -----------------------------------------------------------------------------------
     def T_base_cam(self) -> NDArray[np.float64]:

@@ -103,8 +103,9 @@ def test_cli_reports_rejected_views_and_a_too_large_k_on_stderr(tmp_path: Path,
     dets[5].image_size = (1281, 721)
     det, target = _write(tmp_path, dets)
     capsys.readouterr()
-    assert main(["calib", "intrinsics", "--target", target, "--detections", det, "--cross-validate", "5"]) == 0
+    rc = main(["calib", "intrinsics", "--target", target, "--detections", det, "--cross-validate", "5"])
     cap = capsys.readouterr()
+    assert rc == (0 if json.loads(cap.out)["verdict"]["ok"] else 3)  # 3: a NOT OK verdict (issue 36)
     assert f"view rejected: {dets[5].image}: image size 1281x721" in cap.err
     assert "cross-validation not run: k = 5 is too large for 11 views" in cap.err
     out = json.loads(cap.out)

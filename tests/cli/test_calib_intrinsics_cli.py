@@ -43,8 +43,8 @@ def test_folder_to_report_and_opencv_yaml(image_dir: Path, tmp_path: Path) -> No
     p = run_cli("calib", "intrinsics", "--target", str(image_dir.parent / "board.yaml"),
                 "--model", "opencv5", str(image_dir), "--out", str(out), "--report", str(rep),
                 "--export-opencv", str(yml), "--cross-validate", "2")
-    assert p.returncode == 0, p.stderr
     cam = json.loads(out.read_text())
+    assert p.returncode == (0 if cam["verdict"]["ok"] else 3), p.stderr  # 3: the verdict is NOT OK (issue 36)
     assert json.loads(p.stdout) == cam
     assert cam["model"] == "opencv5" and len(cam["views"]) == 8 and all(v["used"] for v in cam["views"])
     assert cam["rms_px"] < 0.2
@@ -159,3 +159,19 @@ def test_detections_that_are_not_a_detection_list_are_one_line(tmp_path: Path, c
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr
     assert str(det) in lines[0] and words in lines[0] and "cellctl detect" in lines[0]
+
+
+def test_a_not_ok_verdict_exits_3_with_the_result_written(tmp_path: Path) -> None:
+    """As `job run --follow`: exit 3 when the calibration ran but its verdict is NOT OK (5 views: too few);
+    the camera JSON is still written to stdout and --out."""
+    det = _detections_file(tmp_path, 5)
+    out = tmp_path / "cam.json"
+    p = run_cli("calib", "intrinsics", "--target", str(tmp_path / "board.yaml"), "--detections", str(det),
+                "--out", str(out))
+    assert p.returncode == 3, p.stderr
+    cam = json.loads(out.read_text())
+    assert cam["verdict"]["ok"] is False and json.loads(p.stdout) == cam
+    assert "too_few_views" in p.stderr and "verdict NOT OK" in p.stderr.strip().splitlines()[-1]
+    ok = run_cli("calib", "intrinsics", "--target", str(tmp_path / "board.yaml"),
+                 "--detections", str(_detections_file(tmp_path, 12)))
+    assert ok.returncode == 0 and json.loads(ok.stdout)["verdict"]["ok"] is True, ok.stderr

@@ -27,7 +27,7 @@ def test_grab_and_robot_state(tmp_path: Path) -> None:
     assert json.loads(r.stdout)["width"] == 1280
     img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert img is not None and img.shape == (960, 1280)
-    r = run("robot", "state", "--robot", "robot0")
+    r = run("robot", "state", "--local", "--robot", "robot0")  # the device, asked for by name (issue 36)
     assert r.returncode == 0
     s = json.loads(r.stdout)
     assert len(s["T_base_tool"]) == 4 and set(s["pose_ur"]) == {"x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"}
@@ -56,7 +56,7 @@ def test_bad_config_is_a_one_line_error(tmp_path: Path, text: str, args: tuple[s
 def test_unknown_camera_and_robot(tmp_path: Path) -> None:
     r = run("grab", "--camera", "nope", "--out", str(tmp_path / "x.png"))
     assert r.returncode == 2 and "no camera 'nope'" in r.stderr
-    r = run("robot", "state", "--robot", "nope")
+    r = run("robot", "state", "--local", "--robot", "nope")
     assert r.returncode == 2 and "no robot 'nope'" in r.stderr
 
 

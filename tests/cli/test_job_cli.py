@@ -33,7 +33,7 @@ def _job(served: Served, *args: str) -> Any:
 def test_list_shows_a_running_job_and_cancel_ends_it(served: Served) -> None:
     started = _job(served, "run", "jog-to-mark")  # waits for the operator: it stays running
     assert started["state"] == "running"
-    listed = _job(served, "list")
+    listed = _job(served, "list", "--json")
     assert started["id"] in [j["id"] for j in listed]
     _job(served, "cancel", started["id"])
     deadline = time.monotonic() + 20

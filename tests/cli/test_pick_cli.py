@@ -162,3 +162,18 @@ def test_a_half_of_the_part_is_refused_unless_min_surround_allows_it(tmp_path: P
     assert found["0.2"] == [] and found["-1"], found
     r = run("pick", "find", "--model", str(model), str(tmp_path / "halves.png"), "--min-surround", "2")
     assert r.returncode != 0 and "min_surround 2 must be -1..1" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_teach_from_several_images(files: Files) -> None:
+    """Two --image/--roi pairs make one model (the edges seen in both); a missing ROI is named."""
+    d = files.dir
+    r = run("pick", "teach", "--image", str(d / "teach.png"), "--roi", files.roi, "--image", str(d / "teach.png"),
+            "--roi", files.roi, "--out", str(d / "two.json"))
+    assert r.returncode == 0, r.stderr
+    out = run("pick", "find", "--model", str(d / "two.json"), str(d / "scene.png"))
+    assert out.returncode == 0, out.stderr
+    found = json.loads(out.stdout)
+    assert len(found[0]["matches"]) == 2
+    r = run("pick", "teach", "--image", str(d / "teach.png"), "--image", str(d / "scene.png"), "--roi", files.roi,
+            "--out", str(d / "bad.json"))
+    assert r.returncode != 0 and "one --roi per --image" in r.stderr and "Traceback" not in r.stderr

@@ -4,6 +4,7 @@ reading the device directly (as before)."""
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
 from typing import Any
 
@@ -58,9 +59,26 @@ def test_errors_are_one_line(served: Served) -> None:
     assert r.returncode == 2 and "cannot reach the service" in r.stderr
 
 
-def test_state_without_url_reads_the_device() -> None:
-    r = run_cli("robot", "state", "--robot", "robot0")
+def test_state_reads_the_device_only_when_asked_by_name() -> None:
+    # Asked by name (--local: the built-in virtual cell; --config FILE likewise): the device, said on stderr.
+    r = run_cli("robot", "state", "--robot", "robot0", "--local")
     assert r.returncode == 0, r.stderr
     assert "latched" not in json.loads(r.stdout) and "pose_ur" in json.loads(r.stdout)
-    r = run_cli("robot", "state", "--robot", "robot0", "--token", "abc")
+    assert "directly, not through a service" in r.stderr
+    r = run_cli("robot", "state", "--robot", "robot0", "--local", "--token", "abc")
     assert r.returncode == 2 and "--url" in r.stderr
+
+
+def test_state_without_url_or_config_asks_the_service(served: Served) -> None:
+    """The issue's trip: without --url, `robot state` used to open a private virtual robot and print its
+    pose; now it asks the service ($CELLCTL_URL here), like `robot move`, and shows the latch."""
+    _robot(served, "move", "--pose-ur", "0.41,0.02,0.52,3.1,0.05,0.05", "--speed-m-s", "0.25")
+    env = {**os.environ, "CELLCTL_URL": served.base_url, "CELLCTL_TOKEN": served.token}
+    r = run_cli("robot", "state", "--robot", "robot0", env=env)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["latched"] is False and "directly" not in r.stderr
+    assert out["pose_ur"]["z_m"] == pytest.approx(0.52, abs=1e-4)
+    assert out["pose_ur"]["rx_rad"] == pytest.approx(3.1, abs=1e-4)
+    r = run_cli("robot", "state", "--robot", "robot0", env={**env, "CELLCTL_URL": "http://127.0.0.1:9"})
+    assert r.returncode == 2 and "cannot reach the service at http://127.0.0.1:9" in r.stderr

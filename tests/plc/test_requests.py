@@ -115,3 +115,40 @@ def test_a_damaged_store_is_a_runtime_error_naming_the_restore(tmp_path: Path) -
         svc.close()
     assert (out.ok, out.text_index, out.error_class) == (False, TEXT_STORE, CLASS_RUNTIME)
     assert "cell.db is damaged" in out.message and "cellctl store restore --config" in out.message
+
+
+def test_verify_goes_through_the_one_start_with_typed_refusals(prepared: Path, tmp_path: Path) -> None:
+    """The PLC's verify is started by ``cellctl.routines.start`` as REST's is: it holds the robot still
+    (refused while another caller owns it), is preflighted (no active calibration is said at once,
+    before a job runs) and its refusals are sorted by type, not by their text."""
+    from cellctl.plc.requests import TEXT_ROBOT_BUSY
+
+    svc = services_of(prepared)
+    try:
+        started_before = len(svc.store.audit_log(limit=10_000, action="routine.start"))
+        robot = svc.cell.robot("robot0").ensure_open()
+        other = robot.motion.begin("someone", "a test holding the robot")
+        try:
+            busy = execute_verify(svc, "test")
+        finally:
+            robot.motion.end(other)
+        assert not busy.ok and busy.text_index == TEXT_ROBOT_BUSY, busy
+        assert not svc.jobs.list()  # refused before a job started
+        ok = execute_verify(svc, "test")
+        assert ok.ok, ok
+        assert [j.name for j in svc.jobs.list()] == ["verify"]
+        started = svc.store.audit_log(limit=10_000, action="routine.start")
+        assert len(started) == started_before + 1 and ("test", "verify") in [(e.who, e.target) for e in started]
+    finally:
+        svc.close()
+
+    data = yaml.safe_load(prepared.read_text())
+    data["store"] = {"path": str(tmp_path / "empty.db")}
+    config = parse_config(data)
+    empty = Services(config, Cell(config), open_store(config), JobManager())
+    try:
+        out = execute_verify(empty, "test")
+        assert not out.ok and out.text_index == TEXT_NO_CALIBRATION and out.error_class == CLASS_SETUP, out
+        assert "no active calibration" in out.message and not empty.jobs.list()
+    finally:
+        empty.close()

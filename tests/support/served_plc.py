@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -51,6 +51,10 @@ class PlcFacts:
     part_y_mm: float
     camera_calibration_id: int
     handeye_calibration_id: int
+    enip_port: int = field(default=0, kw_only=True)
+    """The EtherNet/IP tag server's port (0: not enabled)."""
+    robot_socket_port: int = field(default=0, kw_only=True)
+    """The robot socket's port (0: not enabled)."""
 
 
 @dataclass
@@ -116,10 +120,16 @@ class PlcApp(PlcFacts):
 
 
 def plc_section(modbus_port: int, opcua_port: int, opcua: dict[str, Any] | None = None, modbus: bool = True,
-                allow_motion: bool = False) -> dict[str, Any]:
-    """cell.yaml's ``plc`` section: both servers on 127.0.0.1 at the given ports (unit id 1)."""
+                allow_motion: bool = False, enip_port: int = 0, robot_socket: dict[str, Any] | None = None,
+                ) -> dict[str, Any]:
+    """cell.yaml's ``plc`` section: the servers on 127.0.0.1 at the given ports (unit id 1); EtherNet/IP when
+    ``enip_port``, the robot socket when ``robot_socket`` (its settings, with ``port``) is given."""
     plc: dict[str, Any] = {"modbus": {"enabled": modbus, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1},
                            "opcua": {"enabled": True, "host": "127.0.0.1", "port": opcua_port, **(opcua or {})}}
+    if enip_port:
+        plc["ethernet_ip"] = {"enabled": True, "host": "127.0.0.1", "port": enip_port}
+    if robot_socket:
+        plc["robot_socket"] = {"enabled": True, "host": "127.0.0.1", **robot_socket}
     if allow_motion:
         plc["allow_motion"] = True
     return plc
@@ -127,16 +137,34 @@ def plc_section(modbus_port: int, opcua_port: int, opcua: dict[str, Any] | None 
 
 @contextmanager
 def in_process_plc(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool = True,
-                        allow_motion: bool = False) -> Iterator[PlcApp]:
-    """Prepare the store, then run the app in this process with both PLC servers on free loopback ports
-    (``allow_motion``: ``plc.allow_motion``, the PLC's picks with robot motion)."""
+                   allow_motion: bool = False, all_front_ends: bool = False,
+                   robot_socket: dict[str, Any] | None = None) -> Iterator[PlcApp]:
+    """Prepare the store, then run the app in this process with the PLC servers on free loopback ports
+    (``allow_motion``: ``plc.allow_motion``, the PLC's picks with robot motion; ``all_front_ends``: EtherNet/IP
+    and the robot socket too, the socket with ``robot_socket``'s settings)."""
     from tests.support.app import in_process_cell
 
     modbus_port, opcua_port = free_port(), free_port()
-    path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus, allow_motion))
+    enip_port = free_port() if all_front_ends else 0
+    socket_cfg = {"port": free_port(), **(robot_socket or {})} if all_front_ends else None
+    path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, opcua, modbus, allow_motion, enip_port,
+                                                socket_cfg))
     with in_process_cell(tmp, config=path) as app:
         wait_ready(app)
-        yield PlcApp(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", app=app, **facts)
+        yield PlcApp(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", app=app,
+                     enip_port=enip_port, robot_socket_port=socket_cfg["port"] if socket_cfg else 0, **facts)
+
+
+def start_all_front_ends(tmp: Path, robot_socket: dict[str, Any] | None = None,
+                         allow_motion: bool = False) -> PlcCell:
+    """``cellctl serve`` with every PLC front end (Modbus, OPC UA, EtherNet/IP, robot socket) on loopback."""
+    modbus_port, opcua_port, enip_port = free_port(), free_port(), free_port()
+    socket_cfg = {"port": free_port(), **(robot_socket or {})}
+    path, facts = prepare_cell(tmp, plc_section(modbus_port, opcua_port, None, True, allow_motion, enip_port,
+                                                socket_cfg))
+    served = start_served(tmp, config=path, timeout_s=120.0)
+    return PlcCell(modbus_port, opcua_port, f"opc.tcp://127.0.0.1:{opcua_port}/cellctl/", served=served,
+                   enip_port=enip_port, robot_socket_port=socket_cfg["port"], **facts)
 
 
 READY_TIMEOUT_S = 180.0

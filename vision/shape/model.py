@@ -35,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 
 from vision.errors import TeachError
 from vision.image import F64, U8, as_gray, bilinear, gauss_peak, gradients, profile_ok, pyramid
+from vision.shape.patch import TeachPatch, make_patch, patch_from_dict, patch_to_dict
 
 MIN_TOP_RADIUS_PX = 8.0
 """Automatic pyramid depth: the top level must show the model at least this large."""
@@ -151,13 +152,19 @@ class ShapeModel:
     params: TeachParams
     roi: tuple[float, float, float, float]
     image_size: tuple[int, int]
+    patch: TeachPatch | None = None
+    """The part's pixels in the teach image (``vision.shape.patch``): the final pose is finished on
+    them; ``None`` (a model read from a file without them): the edge fit alone."""
 
     @property
     def top_level(self) -> int:
         return len(self.levels) - 1
 
     def to_dict(self) -> dict[str, Any]:
-        return {"levels": [lv.to_dict() for lv in self.levels]}
+        out: dict[str, Any] = {"levels": [lv.to_dict() for lv in self.levels]}
+        if self.patch is not None:
+            out["patch"] = patch_to_dict(self.patch)
+        return out
 
     def contour(self, u_px: float, v_px: float, angle_deg: float, scale: float = 1.0,
                 mirrored: bool = False) -> tuple[F64, F64]:
@@ -171,12 +178,15 @@ class ShapeModel:
 
     def mirrored(self) -> ShapeModel:
         """The model of the part's mirror image (a flat part lying face down)."""
-        return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size)
+        return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size,
+                          None if self.patch is None else self.patch.mirrored())
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
                   image_size: tuple[int, int]) -> ShapeModel:
-        return cls([LevelModel.from_dict(x) for x in d["levels"]], params, roi, image_size)
+        levels = [LevelModel.from_dict(x) for x in d["levels"]]
+        patch = patch_from_dict(d["patch"], levels[0].points) if d.get("patch") is not None else None
+        return cls(levels, params, roi, image_size, patch)
 
 
 
@@ -382,5 +392,6 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
     top = levels[-1]
     # (on level 0 too: the first points in storage order would all lie along the part's top edge)
     top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5)
-    return ShapeModel(levels, p, (u, v, w, h), (img.shape[1], img.shape[0]))
+    return ShapeModel(levels, p, (u, v, w, h), (img.shape[1], img.shape[0]),
+                      make_patch(img, (u, v, w, h), levels[0].points))
 

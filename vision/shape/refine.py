@@ -25,6 +25,7 @@ from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
+from vision.shape.uncertainty import edge_cov
 
 
 @dataclass
@@ -75,6 +76,8 @@ class Refined:
     """(N, 2) the model points at the final pose, image pixels (level 0 only)."""
     n: F64 | None = None
     """(N, 2) their unit normals there."""
+    cov: F64 | None = None
+    """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad)."""
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -138,6 +141,12 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
         sig_deg, sig_px = _pose_sigma(img_f, m, q, n, th, sc, min_contrast, fit_scale, persp, visible(q))
+        off, S, clean = _profile(img_f, q, n)
+        used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
+        # neighbouring points see overlapping profiles (as in _pose_sigma): points per independent one
+        spacing = float(np.median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
+        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
+                       persp)
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
@@ -149,7 +158,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     if fine is None:
         return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, sig_deg, sig_px, detail,
-                   grad_noise(crop, sigma), q + np.array([x0, y0]), n)
+                   grad_noise(crop, sigma), q + np.array([x0, y0]), n, cov)
 
 
 def _pose_sigma(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_contrast: float,

@@ -47,6 +47,7 @@ from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
 from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
+from vision.shape.patch import finish as finish_on_patch
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
@@ -278,10 +279,24 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
     stats["n_tracked"] = stats.get("n_tracked", 0.0) + len(cands)
     poses, low, t_out = _refine_down(model, pyr, thr_grad, cands, lowest_discrete, sp, coarse_min, min_dist,
                                      clock)
-    found = [(Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
-                    r.n_points, r.n_visible, r.sigma_deg, r.sigma_px), r)
+    found = [(_finished(model, pyr, p, r, mirrored), r)
              for p, lv, r in poses if lv == 0 and su <= p.x <= su + sw and sv <= p.y <= sv + sh]
     return found, low, timed_out or t_out
+
+
+def _finished(model: ShapeModel, pyr: list[U8], p: Pose, r: Refined, mirrored: bool) -> Match:
+    """The answer for a level-0 hypothesis: the edge fit's pose finished on the taught patch
+    (``patch.finish``) when the model has one, with the 1-sigma of the merged fit."""
+    mt = Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
+               r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
+    if model.patch is None:
+        return mt
+    done = finish_on_patch(model.patch, pyr, p.x, p.y, p.theta, p.scale, r.cov)
+    if done is not None:
+        mt.u_px, mt.v_px, th, mt.sigma_angle_deg, mt.sigma_px, extra = done
+        mt.angle_deg = wrap_deg(math.degrees(th))
+        mt.scores.update(extra)
+    return mt
 
 
 def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
@@ -317,7 +332,8 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     best = None
     if low is not None:
         r, mir = low
-        best = Candidate(r.pose.x, r.pose.y, wrap_deg(math.degrees(r.pose.theta)), r.score)
+        fm = _finished(model.mirrored() if mir else model, pyr, r.pose, r, mir)  # as a match would be
+        best = Candidate(fm.u_px, fm.v_px, fm.angle_deg, r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
             lower = max(math.floor(r.score * 100) / 100, MIN_SCORE_FLOOR)  # the hint's min_score
@@ -361,7 +377,7 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
             if unclaimed < sp.min_score:
                 why = (f"its edges are mostly those of better matches (unclaimed score {unclaimed:.2f} < "
                        f"min_score {sp.min_score:g}): a ghost between neighbouring parts")
-        mt.scores = vd.scores
+        mt.scores = {**vd.scores, **mt.scores}
         if why is None:
             final.append(mt)
             contours.append(contour_of(r.q, r.n))

@@ -59,8 +59,11 @@ def _no_recipe(services: ServicesDep, recipe_id: int) -> str:
 
 @router.get("/recipes")
 def list_recipes(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
+    """The version in force of every recipe, with its place kind and gripper device (null: none)."""
     return [{"recipe_id": r.recipe_id, "version": r.version, "name": r.name, "creator": r.creator,
-             "created_s": r.created_s} for r in services.store.list_recipes()]
+             "created_s": r.created_s, "place": (r.data.get("place") or {}).get("kind"),
+             "gripper_device": ((r.data.get("gripper") or {}).get("device") or {}).get("io_id")}
+            for r in services.store.list_recipes()]
 
 
 @router.get("/recipes/{recipe_id}")
@@ -79,9 +82,27 @@ def save_recipe(body: RecipeInput, services: ServicesDep, who: Engineer) -> dict
         body.recipe.part_models()
     except ModelFileError as exc:
         raise ApiError(422, "invalid_model", str(exc)) from None
+    problem = _grasp_problem(body.recipe)
+    if problem:
+        raise ApiError(422, "invalid_grasp", problem)
     # The store audits the save in the same transaction (recipe.save, recipe:<id>): once, never here again.
     r = services.store.save_recipe(body.recipe_id, body.recipe.name, body.recipe.model_dump(mode="json"), who.name)
     return {"recipe_id": r.recipe_id, "version": r.version, "name": r.name}
+
+
+def _grasp_problem(recipe: Recipe) -> str | None:
+    """A parallel gripper (``robotiq_2f``) asked to open or grip wider than its fingers' stroke: the grip
+    can never happen as set (the gripper would stop at its stroke and the grip check would fail)."""
+    device = recipe.gripper.device
+    if device is None or device.kind != "robotiq_2f":
+        return None
+    for key in ("open_width_mm", "grip_width_mm"):
+        width = getattr(recipe.gripper, key)
+        if width is not None and width > device.stroke_mm:
+            return (f"recipe.gripper.{key} {width:g} mm is wider than the gripper's stroke "
+                    f"(gripper.device.stroke_mm {device.stroke_mm:g} mm): its fingers cannot open that far; "
+                    "set a width within the stroke, or the device's real stroke")
+    return None
 
 
 @router.post("/pick/teach")

@@ -44,6 +44,13 @@ class StartInput(BaseModel):
                                             "robot places (false: after it is back, for comparison)")
 
 
+class ConfirmInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    recipe_id: Count = Field(ge=0, le=65535, description="the recipe whose place pattern the slot is of")
+    occupied: Bool = Field(description="true: a part is in the slot (it stays used); false: the slot is empty "
+                                       "(the next part may go there)")
+
+
 class SlotInput(BaseModel):
     model_config = ConfigDict(extra="forbid")
     recipe_id: Count = Field(ge=0, le=65535)
@@ -88,9 +95,17 @@ async def start(body: StartInput, services: ServicesDep, who: Engineer) -> dict[
 
 
 @router.get("", responses={404: {}})
-def current(services: ServicesDep, _: Viewer, robot_id: str | None = None) -> dict[str, Any]:
+def current(services: ServicesDep, _: Viewer, robot_id: str | None = None,
+            none_ok: Annotated[bool, Query(description="no run yet: answer 200 {\"run_id\": null, \"state\": null} "
+                                                       "instead of 404 no_run (a page that polls)")] = False,
+            ) -> dict[str, Any]:
     """The current or last run: state, ended_because, counters, cycle_ms, next_slot."""
-    return _current(services, robot_id)
+    try:
+        return _current(services, robot_id)
+    except ApiError as exc:
+        if none_ok and exc.code == "no_run":
+            return {"run_id": None, "state": None, "message": exc.message}
+        raise
 
 
 @router.post("/pause", responses={404: {}})
@@ -158,7 +173,7 @@ def cycle_frame(run_id: Annotated[int, Path(ge=1, le=2**62)], n: Annotated[int, 
         raise ApiError(404, "unknown_cycle", f"run {run_id} has no cycle {n} (GET /production/runs/{run_id}/cycles)")
     try:
         if record.get("frame_kept"):
-            frame = manager.failure_frames.load(run_id, n)
+            frame = manager.failure_frames.load(int(record.get("run_id") or run_id), n)  # named when written
         elif record.get("frame_id") is not None:
             frame = services.frames.get(int(record["frame_id"]))
         else:
@@ -190,6 +205,18 @@ def set_slot(body: SlotInput, services: ServicesDep, who: Engineer) -> dict[str,
     manager.store.set_next_slot(body.recipe_id, body.next_slot, who.name)
     services.store.audit(who.name, "production.slot", str(body.recipe_id), {"next_slot": body.next_slot}, "ok")
     return {"recipe_id": body.recipe_id, "next_slot": manager.store.next_slot(body.recipe_id)}
+
+
+@router.post("/slots/{slot}/confirm", responses={404: {}, 422: {}})
+def confirm_slot(slot: Annotated[int, Path(ge=0, le=1_000_000)], body: ConfirmInput, services: ServicesDep,
+                 who: Engineer) -> dict[str, Any]:
+    """Say what is in a slot in doubt (engineer), after looking: ``occupied`` true keeps it used,
+    false frees it (the counter goes back to it when it is just past it). 404 ``slot_not_in_doubt``
+    when the slot is not in doubt. Audited (``production.slot_confirm``)."""
+    try:
+        return _manager(services).store.confirm_slot(body.recipe_id, slot, body.occupied, who.name)
+    except NotFound as exc:
+        raise ApiError(404, "slot_not_in_doubt", str(exc)) from None
 
 
 @router.post("/gripper/open", responses={404: {}, 409: {}})

@@ -152,7 +152,7 @@ async def move(robot_id: str, body: MoveInput, cell: CellDep, services: Services
     except g.PoseError as exc:
         raise ApiError(422, "invalid_pose", str(exc)) from None
 
-    what = "POST /robots/move" + (f" named_pose {body.named_pose}" if body.named_pose is not None else "")
+    what = f"POST /robots/{robot_id}/move" + (f" named_pose {body.named_pose}" if body.named_pose is not None else "")
 
     def go(robot: RobotBase) -> RobotState:
         audited_move(services.store, who.name, robot, T, body.speed_m_s, what)

@@ -1,0 +1,165 @@
+"""A fit's honest 1-sigma: a block jackknife of its last Gauss-Newton system, and two fits merged.
+
+A least-squares fit's textbook covariance ``s^2 (J^T J)^-1`` takes every residual as independent. On
+real images they are not: blur ties neighbouring pixels, and a shading gradient, a bevel or texture
+that the model lacks moves a whole stretch of edge or a whole region of the patch one way. The
+**block jackknife** sees that: the points are split into blocks (a ``JACKKNIFE_BLOCKS``-square grid
+over the part), the fit is solved again without each block (one Gauss-Newton step from the optimum,
+exact to first order), and the spread of those answers, ``(m-1)/m sum (p_k - mean)^2``, is the
+variance. Where the residuals are independent it agrees with the textbook value; where a block pulls
+the fit, it grows by as much as that block moves it.
+
+``honest_cov`` is the textbook covariance widened by the jackknife's excess over it (where the data
+barely fix a parameter the textbook value is the larger; where blocks pull, the jackknife's).
+``combine`` merges two estimates of (x, y, theta) by their covariances and widens the result by their
+disagreement. Units: pixels (level 0) and radians.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from vision.image import F64
+
+JACKKNIFE_BLOCKS = 4
+"""The grid of jackknife blocks over the part is this many blocks on a side (up to 16 blocks)."""
+
+
+def blocks_of(pts: F64) -> NDArray[np.int64]:
+    """Each point's jackknife block: a ``JACKKNIFE_BLOCKS``-square grid over the points' extent."""
+    k = JACKKNIFE_BLOCKS
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    cell = np.minimum(((pts - lo) / np.maximum(hi - lo, 1e-9) * k).astype(np.int64), k - 1)
+    return np.asarray(cell[:, 1] * k + cell[:, 0], dtype=np.int64)
+
+
+def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F64]:
+    """The weighted normal equations ``H = J^T W J``, ``g = J^T W r`` in all and per block."""
+    nb = JACKKNIFE_BLOCKS ** 2
+    onehot = np.zeros((len(pts), nb))
+    onehot[np.arange(len(pts)), blocks_of(pts)] = 1.0
+    Jw = J * wgt[:, None]
+    Hb = np.einsum("nb,ni,nj->bij", onehot, Jw, J, optimize=True)
+    Gb = onehot.T @ (Jw * r[:, None])
+    return Hb.sum(axis=0), Gb.sum(axis=0), Hb, Gb
+
+
+def jackknife_of(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
+    """Covariance (k, k) of the parameters by the block jackknife: one Gauss-Newton step from the
+    optimum without each block (``(m-1)/m sum (p_k - mean)^2`` over the m blocks that hold points)."""
+    used = np.abs(Hb).reshape(len(Hb), -1).sum(axis=1) > 0
+    if used.sum() < 4:
+        return np.full(H.shape, np.inf)
+    reg = 1e-9 * np.trace(H) * np.eye(len(H))
+    try:
+        S = -np.linalg.solve(H[None] - Hb[used] + reg[None], (g[None] - Gb[used])[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.full(H.shape, np.inf)
+    D = S - S.mean(axis=0)
+    m = len(S)
+    return np.asarray((m - 1) / m * (D.T @ D), dtype=np.float64)
+
+
+def classical_of(H: F64, s2: float, corr: float) -> F64:
+    """The textbook covariance ``s^2 H^-1`` times ``corr`` (how many samples share one independent
+    error: neighbouring pixels see the same blur). Where the data barely fix a parameter (the turn of
+    a round outline) it is large; a jackknife of few blocks can miss that."""
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return np.full(H.shape, np.inf)
+    if not (np.all(np.isfinite(Hi)) and np.all(np.diag(Hi) > 0)):
+        return np.full(H.shape, np.inf)  # a direction the data do not fix at all
+    return np.asarray(Hi * s2 * corr, dtype=np.float64)
+
+
+def honest_of(Cc: F64, Cj: F64, M: F64) -> F64:
+    """The pose's covariance (3, 3) of (x, y, theta): the textbook one widened by as much as the
+    jackknife exceeds it on any of x, y, theta; ``M`` (3, k) maps the parameters to (x, y, theta)."""
+    ok_c, ok_j = bool(np.all(np.isfinite(Cc))), bool(np.all(np.isfinite(Cj)))
+    if not ok_c:
+        # a direction the data do not fix (a round outline's turn): no block can show it either
+        return np.full((3, 3), np.inf)
+    Cc = M @ Cc @ M.T
+    if not ok_j:
+        return np.asarray(Cc, dtype=np.float64)
+    Cj = M @ Cj @ M.T
+    excess = float(np.max(np.diag(Cj) / np.maximum(np.diag(Cc), 1e-30)))
+    return np.asarray(Cc * max(excess, 1.0), dtype=np.float64)
+
+
+def jackknife(pts: F64, J: F64, r: F64, wgt: F64) -> F64:
+    """Covariance (k, k) of a fit's parameters (``J``'s columns, residuals ``r``, weights ``wgt``) by
+    the block jackknife over a grid of the points ``pts``."""
+    return jackknife_of(*block_systems(pts, J, r, wgt))
+
+
+def classical(J: F64, r: F64, wgt: F64, corr: float) -> F64:
+    """The textbook covariance (k, k) of a fit's parameters (``classical_of``), ``s^2`` the weighted
+    residual variance."""
+    n_eff = float(np.sum(wgt > 0))
+    if n_eff <= J.shape[1] + 2:
+        return np.full((J.shape[1], J.shape[1]), np.inf)
+    s2 = float(np.sum(wgt * r * r)) / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
+    return classical_of(J.T @ (J * wgt[:, None]), s2, corr)
+
+
+def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64 | None = None) -> F64:
+    """``honest_of`` the textbook and the jackknife covariances of a fit (default ``M``: the first three
+    parameters are x, y, theta)."""
+    return honest_of(classical(J, r, wgt, corr), jackknife(pts, J, r, wgt),
+                     np.eye(3, J.shape[1]) if M is None else M)
+
+
+def combine(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
+    """Merge two estimates of (x, y, theta) by their covariances: the merged estimate, its covariance
+    widened by the two's disagreement (the chi-square of their difference over its 3 degrees of
+    freedom, when above 1), and that chi-square per degree of freedom."""
+    d = pp - pe
+    try:
+        chi = float(d @ np.linalg.solve(Ce + Cp, d)) / 3.0
+        We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
+        C = np.linalg.inv(We + Wp)
+    except np.linalg.LinAlgError:
+        return pe, Ce, float("inf")
+    p = C @ (We @ pe + Wp @ pp)
+    return p, C * max(chi, 1.0), chi
+
+
+def sigma_of(C: F64) -> tuple[float, float]:
+    """1-sigma of the angle (deg) and of the position (px, the larger axis) of a (3, 3) covariance of
+    (x, y, theta)."""
+    ev = np.linalg.eigvalsh(C[:2, :2])
+    return math.degrees(math.sqrt(max(float(C[2, 2]), 0.0))), math.sqrt(max(float(ev[-1]), 0.0))
+
+
+def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float, corr: float,
+             perspective: bool) -> F64:
+    """Covariance (3, 3) of (x, y, theta) of an edge fit (``honest_cov``): ``off`` the points' normal
+    residuals (px) at the final pose, ``ok`` those used, ``m`` the model points (relative to the
+    reference point), ``q`` and ``n`` the points and unit normals at the pose; over the parameters the
+    fit had: a similarity (x, y, theta, scale) or, with ``perspective``, the plane homography
+    ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``, as ``refine._pose_var``)."""
+    c, s = math.cos(th), math.sin(th)
+    wgt = np.where(ok, (1 - np.clip(off, -1, 1) ** 2) ** 2, 0.0)
+    if not perspective:
+        dqx = sc * (-s * m[:, 0] + c * m[:, 1])
+        dqy = sc * (-c * m[:, 0] - s * m[:, 1])
+        rx, ry = c * m[:, 0] + s * m[:, 1], -s * m[:, 0] + c * m[:, 1]
+        J = np.stack([n[:, 0], n[:, 1], n[:, 0] * dqx + n[:, 1] * dqy, n[:, 0] * rx + n[:, 1] * ry], axis=1)
+        return honest_cov(m, J, -off, wgt, corr)
+    nx, ny, mx, my = n[:, 0], n[:, 1], m[:, 0], m[:, 1]
+    nq = nx * q[:, 0] + ny * q[:, 1]
+    J = np.stack([nx, ny, nx * mx, nx * my, ny * mx, ny * my, -nq * mx, -nq * my], axis=1)
+    l00, l10 = sc * c, -sc * s
+    r2 = l00 * l00 + l10 * l10
+    # the reference point in the crop: q of a model point less its linear image
+    cx = float(np.median(q[:, 0] - sc * (mx * c + my * s)))
+    cy = float(np.median(q[:, 1] - sc * (-mx * s + my * c)))
+    M = np.zeros((3, 8))
+    M[0, 0] = M[1, 1] = 1.0
+    M[2, 2], M[2, 4], M[2, 6] = l10 / r2, -l00 / r2, (-l10 * cx + l00 * cy) / r2
+    return honest_cov(m, J, -off, wgt, corr, M)
