@@ -9,7 +9,7 @@ Peers:
 - **mrcal** 2.2 (Debian): ``mrcal-calibrate-cameras`` with LENSMODEL_OPENCV5, LENSMODEL_OPENCV8 (board warp
   solved, its default; opencv8 also without the warp) and LENSMODEL_SPLINED_STEREOGRAPHIC (order 3; Nx = 30
   knots across on sets of >= 100 views, as mrcal's published fisheye solve, else 16; Ny by the image's
-  aspect; fov_x 1.15x the field of view of cellctl's opencv8 focal length, at most 170 deg), run through
+  aspect; fov_x 1.15x the field of view of cellctl's opencv8 camera across the centre row, at most 170 deg), run through
   the system Python as a subprocess. Install: ``apt-get install -y mrcal python3-mrcal``; the bench
   refuses with that line when ``mrcal-calibrate-cameras`` or ``/usr/bin/python3 -c 'import mrcal'`` is
   missing. mrcal is a bench peer only: nothing of cellctl or its tests needs it.
@@ -205,10 +205,16 @@ def fisheye_set() -> RealSet:
     return RealSet("mrcal Samyang 12 mm fisheye (mrcal's corners)", board, size, {"mrcal": dets}, levels)
 
 
-def splined_name(n_views: int, size: tuple[int, int], fx: float) -> str:
+def splined_name(n_views: int, size: tuple[int, int], cam: CameraModel) -> str:
+    """mrcal's splined model for a set: the field of view from the angle of the rays through the
+    left and right edge of the image's centre row (a pinhole formula underestimates a fisheye)."""
     nx = 30 if n_views >= 100 else 16
     ny = max(4, round(nx * size[1] / size[0]))
-    fov = min(170, math.ceil(1.15 * math.degrees(2 * math.atan2(size[0] / 2, fx))))
+    rays = cam.unproject([[0.0, size[1] / 2], [size[0] - 1.0, size[1] / 2]])
+    ang = np.degrees(np.arctan(np.hypot(rays[:, 0], rays[:, 1])))
+    pinhole = math.degrees(2 * math.atan2(size[0] / 2, cam.fx))
+    fov_deg = float(ang.sum()) if np.all(np.isfinite(ang)) else pinhole
+    fov = min(170, math.ceil(1.15 * max(fov_deg, pinhole)))
     return f"LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx={nx}_Ny={ny}_fov_x_deg={fov}"
 
 
@@ -260,7 +266,7 @@ def run_set(s: RealSet, workdir: Path) -> list[dict[str, Any]]:
             add("OpenCV calibrateCamera", model, projection_difference(cv_h[0], cv_h[1], pts)["rms_px"], rms_cv,
                 time.process_time() - t0)
         specs = [("LENSMODEL_OPENCV5", True), ("LENSMODEL_OPENCV8", True), ("LENSMODEL_OPENCV8", False),
-                 (splined_name(len(dets), s.size, fx), True)]
+                 (splined_name(len(dets), s.size, ref.camera), True)]
         for lens, warp in specs:
             t0 = time.time()
             label = lens.replace("LENSMODEL_", "").lower().split("_order")[0] + ("" if warp else ", no warp")
