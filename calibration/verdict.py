@@ -76,7 +76,7 @@ def _projection_advice(model: str, size: tuple[int, int], values: dict[str, floa
     if np.isfinite(fov) and fov >= WIDE_ANGLE_FOV_DEG:
         return (more_data + f" (a wide-angle lens, {fov:.0f} deg across: it needs its distortion terms, so "
                 "do not drop coefficients; the fisheye4 model (an angle polynomial) or the division model often "
-                "describe such lenses better: --model auto chooses by cross-validation)")
+                "describe such lenses better: let cross-validation choose the model (the automatic model choice))")
     if model == "opencv8":
         return more_data + ", or choose opencv5 (5 coefficients instead of 8)"
     if model == "opencv5":
@@ -162,5 +162,5 @@ def cross_validation_problem(cv: dict[str, Any]) -> dict[str, str] | None:
             "message": f"cameras calibrated from disjoint halves of the views differ by {d:.2f} px over the "
                        f"covered region (their uncertainties explain {expected:.2f} px; limit "
                        f"{MAX_CROSS_VALIDATION_PX} px): the model does not describe this lens or the target is not "
-                       "flat; try --model auto and --board-warp auto (chosen by cross-validation), and more "
-                       "views over the whole image"}
+                       "flat; let cross-validation choose the lens model and the board warp (the automatic "
+                       "choices), and add views over the whole image"}
