@@ -24,6 +24,7 @@ from cellctl.strict_types import Count
 router = APIRouter(tags=["pick"], route_class=EdgeRoute)
 
 RecipeId = Annotated[int, Path(ge=0, le=65535, description="the PLC's recipe number")]
+RecipeVersion = Annotated[int, Path(ge=1, le=2**31 - 1, description="a stored version of the recipe (1, 2, ...)")]
 
 
 class DuplicateInput(BaseModel):
@@ -57,7 +58,7 @@ def recipe_versions(recipe_id: RecipeId, services: ServicesDep, _: Viewer) -> li
 
 
 @router.get("/recipes/{recipe_id}/versions/{version}")
-def recipe_version(recipe_id: RecipeId, version: Annotated[int, Path(ge=1)], services: ServicesDep,
+def recipe_version(recipe_id: RecipeId, version: RecipeVersion, services: ServicesDep,
                    _: Viewer) -> dict[str, Any]:
     try:
         out: dict[str, Any] = services.store.get_recipe(recipe_id, version).to_dict()
@@ -67,7 +68,7 @@ def recipe_version(recipe_id: RecipeId, version: Annotated[int, Path(ge=1)], ser
 
 
 @router.post("/recipes/{recipe_id}/versions/{version}/activate")
-def activate_recipe_version(recipe_id: RecipeId, version: Annotated[int, Path(ge=1)], services: ServicesDep,
+def activate_recipe_version(recipe_id: RecipeId, version: RecipeVersion, services: ServicesDep,
                             who: Engineer) -> dict[str, Any]:
     """Roll back: version ``version``'s data becomes the recipe's newest version (audited
     ``recipe.activate`` with ``from_version``). A run already going keeps the version it started with."""
