@@ -93,6 +93,13 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
                          grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem)
 
 
+def _arm_in(arm: ArmView | None, roi: Any) -> str | None:
+    """What of the arm lies in the search region ``roi``, in words (None: nothing or no arm known)."""
+    if arm is None:
+        return None
+    return arm.what if arm.share_of(roi) > 0 else None
+
+
 @dataclass
 class Located:
     """What one picture found: the candidates (the search's order), the frame and how long it took."""
@@ -114,15 +121,11 @@ class Located:
     arm: ArmView | None = None
     """The arm's region in the picture (a fixed camera with an eye-to-hand hand-eye), its matches dropped."""
 
-    @property
-    def arm_in_view(self) -> str | None:
-        """What of the arm the picture shows in the search region, in words (None: nothing)."""
-        if self.arm is None:
-            return None
-        return self.arm.what if self.arm.share_of(self.search_roi) > 0 else None
-
     search_roi: Any = None
     """The recipe's ``search.roi`` the picture was searched in (None: the whole image)."""
+    arm_in_view: str | None = None
+    """What of the arm the picture shows in the search region, in words (None: nothing); a plain value,
+    computed once in :func:`locate`, so a caller reading it does not come back into this package."""
 
     def answer(self) -> dict[str, Any]:
         """The pick answer (``POST /pick``; the PLC front ends read the same)."""
@@ -185,4 +188,5 @@ def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, cam
     return Located(recipe_id, version, cam_id, robot.robot_id, mapping, T_capture, cands, frame_id, reason,
                    found.timed_out, [x.as_dict() for x in found.rejected],
                    {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3, "total": (t_done - t0) * 1e3},
-                   {"kind": mapping.kind, "id": mapping.calibration_id}, arm, recipe.search.roi)
+                   {"kind": mapping.kind, "id": mapping.calibration_id}, arm, recipe.search.roi,
+                   _arm_in(arm, recipe.search.roi))
