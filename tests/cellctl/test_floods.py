@@ -193,12 +193,13 @@ def client():
                                           headers={"Content-Type": "application/json"}).status_code)
             except httpx.HTTPError as exc:  # the server closes the connection rather than read the body
                 outcomes.append(type(exc).__name__)
-            first.set()
+            if len(outcomes) >= 10:
+                first.set()
 threads = [threading.Thread(target=client, daemon=True) for _ in range(5)]
 for t in threads:
     t.start()
-first.wait(60)
-print("started", flush=True)
+first.wait(120)
+print("started", len(outcomes), flush=True)
 sys.stdin.readline()
 stop.set()
 for t in threads:
@@ -217,12 +218,16 @@ def test_stop_is_not_delayed_by_a_no_token_flood_of_large_numbers(cell: tuple[Se
     flood = subprocess.Popen(["nice", "-n", "19", sys.executable, "-c", NO_TOKEN_FLOOD, served.base_url],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
-        assert flood.stdout is not None and flood.stdout.readline().strip() == "started"
+        assert flood.stdout is not None
+        word, before = flood.stdout.readline().split()
+        assert word == "started"
         latencies = stop_and_resume(served.base_url, tokens, 10)
     finally:
         out, _ = flood.communicate("stop\n", timeout=60)
     outcomes = json.loads(out.strip().splitlines()[-1])
-    assert len(outcomes) >= 10 and 500 not in outcomes and 200 not in outcomes, outcomes[:20]
+    # the flood was at full tilt (10 bodies refused) before the Stops were timed and went on during them
+    assert len(outcomes) > int(before) >= 10, (before, len(outcomes))
+    assert 500 not in outcomes and 200 not in outcomes, outcomes[:20]
     assert max(latencies) < STOP_BOUND_S, latencies
 
 
