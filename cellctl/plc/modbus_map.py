@@ -75,6 +75,11 @@ SIGMA_SEQ_FIELDS = (Field("SIGMA_SEQ"),)
 SIGMA_FIELDS = (Field("SIGMA_UM", 2, kind="int32"), Field("SIGMA_MDEG", 2, kind="int32"))
 """One pick's uncertainty, at offsets from ``PICK_SIGMA + SIGMA_STRIDE * k``."""
 
+STATUS_BITS: dict[str, int] = {"BUSY": 0, "DONE": 1, "ERROR": 2, "REFUSED": 3, "ROBOT_LATCHED": 4, "ROBOT_OWNED": 5,
+                               "DRIFT_ALARM": 6}
+"""STATUS (register 10) bit numbers; bits 4-6 are live on every read. DRIFT_ALARM: the last drift check of the
+cell's fixed camera raised an alarm (docs/drift.md)."""
+
 COMMAND_BLOCK = layout(0, COMMAND_FIELDS)
 ANSWER_BLOCK = layout(10, ANSWER_FIELDS)
 PICKS = 10 + sum(f.count for f in ANSWER_FIELDS)  # 30

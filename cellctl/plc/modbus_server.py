@@ -81,8 +81,10 @@ READ_ONLY = STATUS
 _PICK = {name: placed.address for name, placed in mm.PICK_OFFSETS.items()}
 _SIGMA = {name: placed.address for name, placed in mm.SIGMA_OFFSETS.items()}
 
-BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
-LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED
+BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED, DRIFT_ALARM = (
+    1 << mm.STATUS_BITS[name] for name in ("BUSY", "DONE", "ERROR", "REFUSED", "ROBOT_LATCHED", "ROBOT_OWNED",
+                                           "DRIFT_ALARM"))
+LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED | DRIFT_ALARM
 CMD_IDLE, CMD_PICK, CMD_VERIFY, CMD_PICK_MOVE = 0, 1, 2, 3
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
 IDLE_CHECK_S = 1.0
@@ -314,13 +316,15 @@ class ModbusPlcServer:
         registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
 
     def _robot_bits(self) -> int:
-        """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot now (a lock, no I/O: fine on the loop)."""
+        """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot and DRIFT_ALARM now (locks, no I/O: fine on the loop)."""
         try:
             status = robot_motion_status(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the robot's state
             log.exception("reading the robot's motion status failed")
             return 0
-        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0)
+        drift = self.services.drift_if_made  # a lock, no I/O
+        alarm = DRIFT_ALARM if drift is not None and drift.alarm else 0
+        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0) | alarm
 
     def _accept(self, command: int, recipe: int, seq: int, count: int = 0) -> None:
         self.requests += 1

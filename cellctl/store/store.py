@@ -1,6 +1,7 @@
 """The store of one cell: versioned calibrations with their inputs, the active pointer with its
-history, recipes, the audit log, the robots' latches (``latches.py``) and production's runs, cycles
-and slots (``production.py``) — one data-access layer over SQLite or PostgreSQL.
+history, recipes, the audit log, the robots' latches (``latches.py``), production's runs, cycles
+and slots (``production.py``) and the drift checks (``drift.py``) — one data-access layer over
+SQLite or PostgreSQL.
 
 Every write is one database transaction that also appends its audit entry, so a process killed at
 any moment leaves either the whole act (record + audit) or nothing. A :class:`Store` is safe to
@@ -21,6 +22,7 @@ import cellctl
 from cellctl.store import recipe_versions as RV
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
+from cellctl.store.drift import DriftRows
 from cellctl.store.errors import (
     CorruptRecord,
     InvalidInput,
@@ -47,7 +49,7 @@ from cellctl.store.values import check_key, check_text, describe_key, payload_sh
 MAX_AUDIT_LIMIT = 10_000
 
 
-class Store(LatchRows, ProductionRows):
+class Store(LatchRows, ProductionRows, DriftRows):
     """One cell's store. Open it with :func:`cellctl.store.open_store` or ``Store(url, cell_id)``.
 
     ``url`` is a SQLAlchemy URL: ``sqlite:////abs/path.db`` or

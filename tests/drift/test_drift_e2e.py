@@ -1,0 +1,113 @@
+"""The drift loop end to end on the virtual production cell, in this process: a bump of the camera
+raises the alarm on REST, /metrics and the Modbus STATUS bit; the re-solve stores a new hand-eye that
+an engineer activates; the cell then maps within 0.1 mm of the truth again and a run places accurately."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+from pymodbus.client import ModbusTcpClient
+
+from calibration import geometry as g
+from calibration.io import camera_from_json
+from cellctl.plc import modbus_map as mm
+from tests.support.app import in_process_cell
+from tests.support.ports import free_port
+from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended
+
+BASELINE = 5
+
+
+def drift_cell(tmp: Path, modbus_port: int) -> Path:
+    path = production_config(tmp, count=2)
+    cfg = yaml.safe_load(path.read_text())
+    cfg["drift"].update({"every_s": 0, "every_cycles": 1, "baseline_checks": BASELINE})
+    cfg["plc"] = {"modbus": {"enabled": True, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1}}
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def map_error_mm(http: object, truth: dict, xy_mm: tuple[float, float]) -> float:
+    """How far the cell maps the pixel where the (bumped) camera truly sees base point ``xy_mm`` on the table."""
+    cam = camera_from_json(truth["camera"], "truth")
+    p = np.array([[xy_mm[0] * 1e-3, xy_mm[1] * 1e-3, 0.0]])
+    uv = cam.project(g.transform_points(g.invert(np.array(truth["T_base_cam"])), p))[0]
+    r = http.post("/map", json={"u_px": float(uv[0]), "v_px": float(uv[1]), "plane_z_mm": 0.0})  # type: ignore[attr-defined]
+    assert r.status_code == 200, r.text
+    return float(np.hypot(r.json()["x_mm"] - xy_mm[0], r.json()["y_mm"] - xy_mm[1]))
+
+
+def status_bits(port: int) -> int:
+    with ModbusTcpClient("127.0.0.1", port=port) as client:
+        r = client.read_holding_registers(mm.address("STATUS"), count=1, device_id=1)
+        assert not r.isError(), r
+        return int(r.registers[0])
+
+
+def metric(http: object, name: str) -> float:
+    text = http.get("/metrics").text  # type: ignore[attr-defined]
+    line = next(ln for ln in text.splitlines() if ln.startswith(name + "{"))
+    return float(line.rsplit(" ", 1)[1])
+
+
+def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
+    port = free_port()
+    with in_process_cell(tmp_path, drift_cell(tmp_path, port)) as app:
+        http = app.http()
+        recipe = teach_recipe(http)  # the arm out of the camera's view, the part taught, a recipe saved
+        assert http.get("/drift").json()["limits"] is None
+        for k in range(BASELINE):
+            rec = http.post("/drift/check").json()
+            assert rec["state"] == "baseline" and rec["drift_mm"] < 0.05 and rec["seen"] == 6, rec
+        rec = http.post("/drift/check").json()
+        assert rec["state"] == "ok" and rec["rule"] is None, rec
+        body = http.get("/drift").json()
+        assert body["state"] == "ok" and len(body["records"]) == BASELINE + 1
+        assert set(body["limits"]) >= {"center_mm", "ucl_mm", "mr_ucl_mm"}
+        assert set(body["records"][-1]) >= {"t", "drift_px", "drift_mm", "drift_deg", "state", "rule"}
+        assert metric(http, "cellctl_drift_alarm") == 0.0
+        assert not status_bits(port) & (1 << mm.STATUS_BITS["DRIFT_ALARM"])
+
+        # The bracket is bumped: 0.3 mm along x and 0.05 deg about z.
+        r = http.post("/sim/faults", json={"camera_shift_mm": [0.3, 0.0, 0.0], "camera_rot_deg": [0.0, 0.0, 0.05]})
+        assert r.status_code == 200, r.text
+        truth = http.get("/sim/truth").json()
+        assert map_error_mm(http, truth, (450.0, 0.0)) > 0.25  # the cell now maps off
+        rec = http.post("/drift/check").json()
+        assert rec["state"] == "alarm" and rec["rule"] == "beyond_3sigma", rec
+        assert rec["drift_mm"] > 0.2 and abs(rec["drift_deg"] - 0.05) < 0.01, rec
+        assert http.get("/drift").json()["state"] == "alarm"
+        assert metric(http, "cellctl_drift_alarm") == 1.0 and metric(http, "cellctl_drift_mm") > 0.2
+        assert status_bits(port) & (1 << mm.STATUS_BITS["DRIFT_ALARM"])
+        assert any(e["action"] == "drift.alarm" for e in http.get("/audit", params={"limit": 20}).json())
+
+        # The re-solve: a new inactive hand-eye; activating it is the engineer's audited act.
+        out = http.post("/drift/resolve").json()
+        assert out["verdict"]["ok"] is True and abs(out["shift_mm"] - 0.3) < 0.05, out
+        assert abs(out["shift_deg"] - 0.05) < 0.01, out
+        active = http.get("/calibrations", params={"kind": "handeye"}).json()
+        assert [c["id"] for c in active if c.get("active")] != [out["calibration_id"]]
+        assert http.post(f"/calibrations/{out['calibration_id']}/activate").status_code == 200
+        for point in ((300.0, -100.0), (450.0, 0.0), (600.0, 100.0)):
+            assert map_error_mm(http, truth, point) < 0.1, point
+
+        # A new calibration: a new chart (baseline), then ok; the alarm is gone from every front end.
+        states = [http.post("/drift/check").json()["state"] for _ in range(BASELINE + 1)]
+        assert states == ["baseline"] * BASELINE + ["ok"], states
+        assert metric(http, "cellctl_drift_alarm") == 0.0
+        assert not status_bits(port) & (1 << mm.STATUS_BITS["DRIFT_ALARM"])
+
+        # Picks accurate again: a run places its parts in their slots (each production picture checked).
+        r = http.post("/production/start", json={"recipe_id": 1, "count": 1})
+        assert r.status_code == 202, r.text
+        end = wait_ended(http)
+        assert end["counters"]["placed"] == 1, end
+        from cellctl.production.config import GridPlace
+
+        part = next(p for p in http.get("/sim/truth").json()["parts"] if p["state"] == "placed")
+        mm_err, deg_err = slot_error(part["T_base_part"], GridPlace.model_validate(recipe["place"]).T_slot(0))
+        assert mm_err < 1.0 and deg_err < 1.0
+        sources = [c.get("source") for c in http.get("/drift").json()["records"]]
+        assert "production" in sources
