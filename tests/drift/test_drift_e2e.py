@@ -58,7 +58,7 @@ def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
         http = app.http()
         recipe = teach_recipe(http)  # the arm out of the camera's view, the part taught, a recipe saved
         assert http.get("/drift").json()["limits"] is None
-        for k in range(BASELINE):
+        for _ in range(BASELINE):
             rec = http.post("/drift/check").json()
             assert rec["state"] == "baseline" and rec["drift_mm"] < 0.05 and rec["seen"] == 6, rec
         rec = http.post("/drift/check").json()
