@@ -6,6 +6,7 @@ import { refreshRecipes } from "./pick.js";
 import "./wizard.js";
 import "./routines.js";
 import "./production.js";
+import "./drift.js";
 import "./recipes.js";
 import "./plc.js";
 import "./audit.js";

@@ -44,10 +44,15 @@ async def _call(services: Services, fn: Any) -> dict[str, Any]:
 
 @router.get("")
 async def drift(services: ServicesDep, _: Viewer,
-                limit: Annotated[int, Query(ge=1, le=10_000, description="the last records shown")] = 200
+                limit: Annotated[int, Query(ge=1, le=10_000, description="the last records shown")] = 200,
+                none_ok: Annotated[bool, Query(description="without a drift: section answer 200 with state off "
+                                                           "(the page asks so), not 404")] = False,
                 ) -> dict[str, Any]:
-    """The drift state (``off``... ``baseline``, ``ok``, ``alarm``, ``no_calibration``), the last checks
-    (oldest first) and the chart's limits (null while the baseline is being set)."""
+    """The drift state (``baseline``, ``ok``, ``alarm``, ``no_calibration``; ``off`` with ``none_ok`` and no
+    drift checks configured), the last checks (oldest first) and the chart's limits (null while the baseline
+    is being set)."""
+    if none_ok and services.config.drift is None:
+        return {"state": "off", "records": [], "limits": None}
     monitor = _monitor(services)
     return await _call(services, lambda: monitor.public(limit))
 
