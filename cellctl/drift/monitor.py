@@ -254,13 +254,15 @@ class DriftMonitor:
             problems.append({"code": "fiducials_fit", "message": f"the fiducials fit the re-solved camera with "
                              f"{r.rms_px:.3f} px RMS (more than {self.cfg.resolve_max_rms_px:g} px): a mark moved or "
                              "was misread; check the fiducials"})
+        history = [{k: h.get(k) for k in ("t", "drift_mm", "drift_deg", "state", "rule")}
+                   for h in self.services.store.drift_checks(self.camera_id, 60, mapping.calibration_id)]
         verdict = {"ok": not problems, "problems": problems,
                    "rms_px": _r(r.rms_px), "fiducials_seen": r.seen}
         result = {**mapping.calib, "T_base_cam": r.T_base_cam.tolist(), "verdict": verdict,
                   "drift_resolve": {"from_calibration_id": mapping.calibration_id, "shift_mm": _r(r.shift_mm),
                                     "shift_deg": _r(r.shift_deg), "rms_px": _r(r.rms_px),
                                     "sigma_trans_mm": _r(r.sigma_trans_mm), "sigma_rot_deg": _r(r.sigma_rot_deg),
-                                    "fiducials_seen": r.seen, "t": time.time()}}
+                                    "fiducials_seen": r.seen, "t": time.time(), "history": history}}
         unc = result.get("uncertainty")
         if isinstance(unc, dict):  # the pose's own covariance (rotation, translation), as the solver gives it
             result["uncertainty"] = {**unc, "source": "drift re-solve (fiducials)"}

@@ -4,6 +4,8 @@ an engineer activates; the cell then maps within 0.1 mm of the truth again and a
 
 from __future__ import annotations
 
+import asyncio
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +22,12 @@ from tests.support.production_cell import production_config, slot_error, teach_r
 BASELINE = 5
 
 
-def drift_cell(tmp: Path, modbus_port: int) -> Path:
+def drift_cell(tmp: Path, modbus_port: int, opcua_port: int) -> Path:
     path = production_config(tmp, count=2)
     cfg = yaml.safe_load(path.read_text())
     cfg["drift"].update({"every_s": 0, "every_cycles": 1, "baseline_checks": BASELINE})
-    cfg["plc"] = {"modbus": {"enabled": True, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1}}
+    cfg["plc"] = {"modbus": {"enabled": True, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1},
+                  "opcua": {"enabled": True, "host": "127.0.0.1", "port": opcua_port}}
     path.write_text(yaml.safe_dump(cfg))
     return path
 
@@ -46,6 +49,28 @@ def status_bits(port: int) -> int:
         return int(r.registers[0])
 
 
+def opcua_drift(port: int) -> tuple[bool, float, str]:
+    """(Cell/DriftAlarm, Cell/DriftMm, VisionSystem SystemState's description) read by an OPC UA client."""
+    from asyncua import Client
+
+    from cellctl.plc.opcua_mv.nodeset import NAMESPACE_MV
+    from cellctl.plc.opcua_server import NAMESPACE
+
+    async def run() -> tuple[bool, float, str]:
+        async with Client(f"opc.tcp://127.0.0.1:{port}/cellctl/", timeout=30) as client:
+            idx = await client.get_namespace_index(NAMESPACE)
+            cell = await client.nodes.objects.get_child(f"{idx}:Cell")
+            alarm = await (await cell.get_child(f"{idx}:DriftAlarm")).read_value()
+            drift_mm = await (await cell.get_child(f"{idx}:DriftMm")).read_value()
+            await client.load_data_type_definitions()
+            ns = await client.get_namespace_index(NAMESPACE_MV)
+            system = await (await client.nodes.objects.get_child([f"{ns}:VisionSystem", f"{ns}:SystemState"])
+                            ).read_value()
+            return bool(alarm), float(drift_mm), str(system.StateDescription)
+
+    return asyncio.run(run())
+
+
 def metric(http: object, name: str) -> float:
     text = http.get("/metrics").text  # type: ignore[attr-defined]
     line = next(ln for ln in text.splitlines() if ln.startswith(name + "{"))
@@ -53,8 +78,8 @@ def metric(http: object, name: str) -> float:
 
 
 def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
-    port = free_port()
-    with in_process_cell(tmp_path, drift_cell(tmp_path, port)) as app:
+    port, opcua_port = free_port(), free_port()
+    with in_process_cell(tmp_path, drift_cell(tmp_path, port, opcua_port)) as app:
         http = app.http()
         recipe = teach_recipe(http)  # the arm out of the camera's view, the part taught, a recipe saved
         assert http.get("/drift").json()["limits"] is None
@@ -82,11 +107,18 @@ def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
         assert metric(http, "cellctl_drift_alarm") == 1.0 and metric(http, "cellctl_drift_mm") > 0.2
         assert status_bits(port) & (1 << mm.STATUS_BITS["DRIFT_ALARM"])
         assert any(e["action"] == "drift.alarm" for e in http.get("/audit", params={"limit": 20}).json())
+        deadline = time.monotonic() + 10  # the OPC UA variables follow within their poll (0.1 s, 1 s)
+        while (seen := opcua_drift(opcua_port))[0] is not True or "drift alarm" not in seen[2]:
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.3)
+        assert seen[1] > 0.2, seen
 
         # The re-solve: a new inactive hand-eye; activating it is the engineer's audited act.
         out = http.post("/drift/resolve").json()
         assert out["verdict"]["ok"] is True and abs(out["shift_mm"] - 0.3) < 0.05, out
         assert abs(out["shift_deg"] - 0.05) < 0.01, out
+        report = http.get(f"/calibrations/{out['calibration_id']}/report").text
+        assert "Drift re-solve" in report and "beyond_3sigma" in report  # the history behind it
         active = http.get("/calibrations", params={"kind": "handeye"}).json()
         assert [c["id"] for c in active if c.get("active")] != [out["calibration_id"]]
         assert http.post(f"/calibrations/{out['calibration_id']}/activate").status_code == 200
