@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
-from calibration.drift import Chart
+from calibration.drift import Chart, Limits
 from calibration.drift.fiducials import FiducialError, measure, resolve
 from cellctl.drift.config import DriftConfig
 from cellctl.drift.fiducials import observe
@@ -198,6 +198,8 @@ class DriftMonitor:
             self._chart, self._chart_calibration = chart, calibration_id
             self._last = last
             self._state = "baseline" if last is None else last["state"]
+        if last is not None:  # after a restart the front ends show the stored state at once
+            self.services.metrics.observe_drift(self.camera_id, float(last["drift_mm"]), last["state"] == "alarm")
         return chart
 
     # -- what the front ends show --------------------------------------------------------------------
@@ -222,16 +224,14 @@ class DriftMonitor:
             return self._state
 
     def public(self, limit: int = HISTORY) -> dict[str, Any]:
-        """``GET /drift``: the state, the records (oldest first) and the chart's limits (null in the baseline)."""
+        """``GET /drift``: the state, the records (oldest first) and the chart's limits (each null in the baseline)."""
         state = self.state()
         with self._lock:
             chart, cal = self._chart, self._chart_calibration
         lim = None if chart is None else chart.lim
         records = self.services.store.drift_checks(self.camera_id, limit)
         return {"state": state, "camera_id": self.camera_id, "calibration_id": cal, "records": records,
-                "limits": None if lim is None else {"center_mm": _r(lim.center), "ucl_mm": _r(lim.ucl),
-                                                     "lcl_mm": _r(lim.lcl), "mr_ucl_mm": _r(lim.mr_ucl),
-                                                     "sigma_mm": _r(lim.sigma), "baseline_checks": lim.n},
+                "limits": limits_json(lim),
                 "baseline_checks": self.cfg.baseline_checks, "every_cycles": self.cfg.every_cycles,
                 "every_s": self.cfg.every_s, "pause_on_alarm": self.cfg.pause_on_alarm}
 
@@ -278,6 +278,14 @@ class DriftMonitor:
         return {"calibration_id": rec.id, "verdict": verdict, "shift_mm": _r(r.shift_mm),
                 "shift_deg": _r(r.shift_deg), "T_base_cam": r.T_base_cam.tolist(),
                 "T_base_cam_ur": [float(v) for v in g.transform_to_ur_pose(r.T_base_cam)]}
+
+
+def limits_json(lim: Limits | None) -> dict[str, Any]:
+    """The chart's limits for ``GET /drift`` (mm; each null while the baseline is being set)."""
+    if lim is None:
+        return dict.fromkeys(("center_mm", "ucl_mm", "lcl_mm", "mr_ucl_mm", "sigma_mm", "baseline_checks"))
+    return {"center_mm": _r(lim.center), "ucl_mm": _r(lim.ucl), "lcl_mm": _r(lim.lcl), "mr_ucl_mm": _r(lim.mr_ucl),
+            "sigma_mm": _r(lim.sigma), "baseline_checks": lim.n}
 
 
 def _r(v: float) -> float:

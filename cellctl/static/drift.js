@@ -56,7 +56,7 @@ async function refresh() {
     $("#drift-last").textContent = last && last.drift_mm !== null
       ? `last: ${fmt(last.drift_mm, 3)} mm, ${fmt(last.drift_deg, 4)} deg${last.rule ? ` (${last.rule})` : ""}`
       : (d.state === "off" ? "no drift checks configured (docs/drift.md)" : "no check yet");
-    const lim = d.limits;
+    const lim = d.limits && d.limits.ucl_mm !== null ? d.limits : null;
     $("#drift-limits").textContent = lim ? `centre ${fmt(lim.center_mm, 3)} mm, UCL ${fmt(lim.ucl_mm, 3)} mm` : "";
     $("#drift-chart").replaceChildren(chart(d.records, lim));
   } catch (e) {

@@ -17,7 +17,7 @@ from calibration.io import camera_from_json
 from cellctl.plc import modbus_map as mm
 from tests.support.app import in_process_cell
 from tests.support.ports import free_port
-from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended
+from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended, wait_for
 
 BASELINE = 5
 
@@ -25,7 +25,7 @@ BASELINE = 5
 def drift_cell(tmp: Path, modbus_port: int, opcua_port: int) -> Path:
     path = production_config(tmp, count=2)
     cfg = yaml.safe_load(path.read_text())
-    cfg["drift"].update({"every_s": 0, "every_cycles": 1, "baseline_checks": BASELINE})
+    cfg["drift"].update({"every_s": 0, "every_cycles": 1, "baseline_checks": BASELINE, "pause_on_alarm": True})
     cfg["plc"] = {"modbus": {"enabled": True, "host": "127.0.0.1", "port": modbus_port, "unit_id": 1},
                   "opcua": {"enabled": True, "host": "127.0.0.1", "port": opcua_port}}
     path.write_text(yaml.safe_dump(cfg))
@@ -82,7 +82,7 @@ def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
     with in_process_cell(tmp_path, drift_cell(tmp_path, port, opcua_port)) as app:
         http = app.http()
         recipe = teach_recipe(http)  # the arm out of the camera's view, the part taught, a recipe saved
-        assert http.get("/drift").json()["limits"] is None
+        assert http.get("/drift").json()["limits"]["ucl_mm"] is None  # no limits before the baseline
         for _ in range(BASELINE):
             rec = http.post("/drift/check").json()
             assert rec["state"] == "baseline" and rec["drift_mm"] < 0.05 and rec["seen"] == 6, rec
@@ -141,5 +141,15 @@ def test_bump_alarm_resolve_activate_accurate_again(tmp_path: Path) -> None:
         part = next(p for p in http.get("/sim/truth").json()["parts"] if p["state"] == "placed")
         mm_err, deg_err = slot_error(part["T_base_part"], GridPlace.model_validate(recipe["place"]).T_slot(0))
         assert mm_err < 1.0 and deg_err < 1.0
-        sources = [c.get("source") for c in http.get("/drift").json()["records"]]
-        assert "production" in sources
+        records = http.get("/drift").json()["records"]
+        assert records[-1]["source"] == "production" and records[-1]["state"] == "ok", records[-1]
+
+        # Bumped again during production: the run pauses after the cycle whose picture alarmed.
+        http.post("/sim/faults", json={"camera_shift_mm": [0.6, 0.0, 0.0], "camera_rot_deg": [0.0, 0.0, 0.05]})
+        assert http.post("/production/start", json={"recipe_id": 1, "count": 0}).status_code == 202
+        paused = wait_for(http, lambda st: st["state"] == "paused")
+        assert paused["counters"]["placed"] <= 1, paused
+        last = http.get("/drift").json()["records"][-1]
+        assert last["source"] == "production" and last["state"] == "alarm", last
+        assert http.post("/production/stop").status_code == 200
+        wait_ended(http)

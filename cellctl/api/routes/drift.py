@@ -1,6 +1,7 @@
 """Drift monitoring over REST (docs/drift.md): the chart, a check now, the gated re-solve.
 
-- ``GET /drift`` (viewer): ``{"state", "records", "limits": {"center_mm", "ucl_mm", "mr_ucl_mm", ...}}``;
+- ``GET /drift`` (viewer): ``{"state", "records", "limits": {"center_mm", "ucl_mm", "mr_ucl_mm", ...}}`` (the
+  limits null while the baseline is being set);
 - ``POST /drift/check`` (operator): one check now on a fresh frame, answering its record;
 - ``POST /drift/resolve`` (engineer): the camera's pose re-solved from the fiducials, stored as a new
   hand-eye version, not activated: ``{"calibration_id", "verdict", "shift_mm", "shift_deg"}``; an
@@ -20,7 +21,7 @@ from starlette.concurrency import run_in_threadpool
 from cellctl.api.deps import Engineer, Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
-from cellctl.drift.monitor import DriftMonitor, DriftUnavailable
+from cellctl.drift.monitor import DriftMonitor, DriftUnavailable, limits_json
 from cellctl.services import Services
 
 router = APIRouter(prefix="/drift", tags=["drift"])
@@ -52,7 +53,7 @@ async def drift(services: ServicesDep, _: Viewer,
     drift checks configured), the last checks (oldest first) and the chart's limits (null while the baseline
     is being set)."""
     if none_ok and services.config.drift is None:
-        return {"state": "off", "records": [], "limits": None}
+        return {"state": "off", "records": [], "limits": limits_json(None)}
     monitor = _monitor(services)
     return await _call(services, lambda: monitor.public(limit))
 
