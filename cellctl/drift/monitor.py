@@ -102,15 +102,30 @@ class DriftMonitor:
             m = active_mapping(self.services, self.camera_id, self.robot_id, "handeye", True)
         except NoCalibration as exc:
             raise DriftUnavailable(f"no drift check: {exc}") from None
-        if m.calib.get("setup") != "eye-to-hand" or m.camera is None:
-            raise DriftUnavailable(f"no drift check: the active hand-eye of {self.camera_id}/{self.robot_id} is not "
-                                   "eye-to-hand (a camera on the arm is checked from a station: not built yet)")
+        if m.camera is None:
+            raise DriftUnavailable(f"no drift check: the active hand-eye of {self.camera_id}/{self.robot_id} has no "
+                                   "camera to map through: activate the camera's intrinsics")
         return m
 
+    def _T_base_cam(self, mapping: ActiveMapping, T_base_tool: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """Where the calibration puts the camera: fixed (eye-to-hand), or on the arm at ``T_base_tool``."""
+        if mapping.calib.get("setup") == "eye-in-hand":
+            if T_base_tool is None:
+                raise DriftUnavailable("no drift check: a camera on the arm needs the robot's pose at the picture")
+            return np.asarray(T_base_tool, dtype=np.float64) @ np.asarray(mapping.calib["T_tool_cam"], dtype=np.float64)
+        return np.asarray(mapping.calib["T_base_cam"], dtype=np.float64)
+
+    def _robot_pose(self, mapping: ActiveMapping) -> NDArray[np.float64] | None:
+        """The robot's pose now when the camera rides on the arm (it sees from there); None for a fixed camera."""
+        if mapping.calib.get("setup") != "eye-in-hand":
+            return None
+        return np.asarray(self.services.cell.robot(self.robot_id).ensure_open().state().T_base_tool)
+
     def check_now(self, who: str, source: Source = "request") -> dict[str, Any]:
-        """Grab a frame from the camera and check it."""
+        """Grab a frame from the camera and check it (a camera on the arm: from where the robot stands)."""
+        T_base_tool = self._robot_pose(self._mapping())
         frame = self.services.cell.camera(self.camera_id).ensure_open().grab(timeout_s=5.0)
-        return self.check_pixels(frame.pixels, source, who)
+        return self.check_pixels(frame.pixels, source, who, T_base_tool)
 
     def on_production_picture(self, run: Any, frame_id: int | None, camera_id: str,
                               later: Callable[[Callable[[], None]], None]) -> None:
@@ -128,10 +143,13 @@ class DriftMonitor:
             pixels = self.services.frames.get(int(frame_id)).pixels
         except KeyError:
             return
+        # A camera on the arm took the picture from the capture pose, where the arm still stands (a fixed
+        # camera's check does not use it).
+        T_base_tool = np.asarray(run.robot.state().T_base_tool)
 
         def check() -> None:
             try:
-                rec = self.check_pixels(pixels, "production", "system")
+                rec = self.check_pixels(pixels, "production", "system", T_base_tool)
             except DriftUnavailable as exc:
                 log.info("drift check on production picture skipped: %s", exc)
                 return
@@ -144,12 +162,14 @@ class DriftMonitor:
 
         later(check)
 
-    def check_pixels(self, pixels: NDArray[Any], source: Source, who: str) -> dict[str, Any]:
-        """Check one frame: the stored record (``state``: baseline, ok, alarm, or failed when the fiducials
-        were not seen: then the drift values are null and ``reason`` says why)."""
+    def check_pixels(self, pixels: NDArray[Any], source: Source, who: str,
+                     T_base_tool: NDArray[np.float64] | None = None) -> dict[str, Any]:
+        """Check one frame (a camera on the arm: taken at ``T_base_tool``): the stored record (``state``:
+        baseline, ok, alarm, or failed when the fiducials were not seen: then the drift values are null and
+        ``reason`` says why)."""
         with self._check_lock:
             mapping = self._mapping()
-            T_base_cam = np.asarray(mapping.calib["T_base_cam"], dtype=np.float64)
+            T_base_cam = self._T_base_cam(mapping, T_base_tool)
             assert mapping.camera is not None
             chart = self._chart_for(mapping.calibration_id)
             X, uv = observe(self.cfg, self.services.config.targets, pixels, mapping.camera, T_base_cam)
@@ -242,13 +262,18 @@ class DriftMonitor:
         "shift_mm", "shift_deg"}``."""
         mapping = self._mapping()
         assert mapping.camera is not None
+        on_arm = mapping.calib.get("setup") == "eye-in-hand"
+        T_base_tool = self._robot_pose(mapping)
         frame = self.services.cell.camera(self.camera_id).ensure_open().grab(timeout_s=5.0)
-        T_old = np.asarray(mapping.calib["T_base_cam"], dtype=np.float64)
+        T_old = self._T_base_cam(mapping, T_base_tool)
         X, uv = observe(self.cfg, self.services.config.targets, frame.pixels, mapping.camera, T_old)
         try:
             r = resolve(mapping.camera, T_old, uv, X)
         except FiducialError as exc:
             raise DriftUnavailable(f"no re-solve: {exc}") from None
+        # A camera on the arm: the re-solved pose through the robot's pose at the picture (T_tool_cam).
+        key, T_new = (("T_tool_cam", g.invert(T_base_tool) @ r.T_base_cam) if on_arm and T_base_tool is not None
+                      else ("T_base_cam", r.T_base_cam))
         problems = []
         if r.rms_px > self.cfg.resolve_max_rms_px:
             problems.append({"code": "fiducials_fit", "message": f"the fiducials fit the re-solved camera with "
@@ -258,7 +283,7 @@ class DriftMonitor:
                    for h in self.services.store.drift_checks(self.camera_id, 60, mapping.calibration_id)]
         verdict = {"ok": not problems, "problems": problems,
                    "rms_px": _r(r.rms_px), "fiducials_seen": r.seen}
-        result = {**mapping.calib, "T_base_cam": r.T_base_cam.tolist(), "verdict": verdict,
+        result = {**mapping.calib, key: T_new.tolist(), "verdict": verdict,
                   "drift_resolve": {"from_calibration_id": mapping.calibration_id, "shift_mm": _r(r.shift_mm),
                                     "shift_deg": _r(r.shift_deg), "rms_px": _r(r.rms_px),
                                     "sigma_trans_mm": _r(r.sigma_trans_mm), "sigma_rot_deg": _r(r.sigma_rot_deg),
@@ -269,15 +294,16 @@ class DriftMonitor:
         rec = self.services.store.save_calibration(
             "handeye", self.camera_id, self.robot_id, result,
             {"drift_resolve": {"uv_px": np.where(np.isfinite(uv), uv, -1.0).tolist(), "points_base_m": X.tolist(),
-                               "from_calibration_id": mapping.calibration_id}},
+                               "from_calibration_id": mapping.calibration_id,
+                               "T_base_tool": None if T_base_tool is None else T_base_tool.tolist()}},
             creator=who, note=f"drift re-solve of calibration {mapping.calibration_id}: camera moved "
                               f"{r.shift_mm:.3f} mm, turned {r.shift_deg:.4f} deg")
         self.services.store.audit(who, "drift.resolve", f"calibration:{rec.id}",
                                   {"from_calibration_id": mapping.calibration_id, "shift_mm": _r(r.shift_mm),
                                    "shift_deg": _r(r.shift_deg), "verdict_ok": verdict["ok"]}, "stored (not active)")
         return {"calibration_id": rec.id, "verdict": verdict, "shift_mm": _r(r.shift_mm),
-                "shift_deg": _r(r.shift_deg), "T_base_cam": r.T_base_cam.tolist(),
-                "T_base_cam_ur": [float(v) for v in g.transform_to_ur_pose(r.T_base_cam)]}
+                "shift_deg": _r(r.shift_deg), key: T_new.tolist(),
+                f"{key}_ur": [float(v) for v in g.transform_to_ur_pose(T_new)]}
 
 
 def limits_json(lim: Limits | None) -> dict[str, Any]:
