@@ -39,7 +39,7 @@ class FiducialsConfig(_Strict):
 
 
 class DriftConfig(_Strict):
-    """Drift checks of one fixed camera (eye-to-hand) against its active hand-eye calibration."""
+    """Drift checks of one camera against its active hand-eye calibration (fixed, or on the arm from a station)."""
 
     camera: str | None = None
     """The camera checked; default ``calibration.camera``."""

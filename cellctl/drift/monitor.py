@@ -44,7 +44,7 @@ HISTORY = 200
 
 
 class DriftUnavailable(CellctlError, ValueError):
-    """No check can be made now (no active eye-to-hand hand-eye, fiducials not seen); the message says why."""
+    """No check can be made now (no active hand-eye, fiducials not seen); the message says why."""
 
 
 class DriftMonitor:
