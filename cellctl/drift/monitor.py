@@ -3,8 +3,9 @@
 One :class:`DriftMonitor` per service (``Services.drift``, made when ``drift:`` is configured). A
 check measures the fiducials in a frame (``cellctl.drift.fiducials``) against the active hand-eye
 (``calibration.drift.measure``; a camera on the arm through the robot's pose at the picture), judges
-``drift_mm`` on that calibration's I-MR chart (``calibration.drift.Chart``: the first ``baseline_checks`` set its limits; the chart is rebuilt
-from the store after a restart) and stores the record. Frames come from production (every
+``drift_mm`` on that calibration's I-MR chart (``calibration.drift.Chart``: the first
+``baseline_checks`` set its limits; the chart is rebuilt from the store after a restart) and stores
+the record. Frames come from production (every
 ``every_cycles``-th picture, checked on the run's store thread: no extra picture, no extra motion),
 from the idle thread (every ``every_s`` while no production run uses the camera) or on request.
 
