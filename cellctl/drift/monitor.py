@@ -84,7 +84,7 @@ class DriftMonitor:
 
     def _idle(self) -> None:
         while not self._stop.wait(self.cfg.every_s):
-            if self._in_production():
+            if self._busy():
                 continue
             try:
                 self.check_now("system", "idle")
@@ -93,9 +93,15 @@ class DriftMonitor:
             except Exception:  # noqa: BLE001 - the idle checks go on; the next may work
                 log.exception("drift idle check failed")
 
-    def _in_production(self) -> bool:
+    def _busy(self) -> bool:
+        """Not idle: a production run uses the camera, a routine runs, or something owns the robot's motion."""
         manager = self.services.production_if_made
-        return manager is not None and any(r.s.camera_id == self.camera_id for r in manager.running())
+        if manager is not None and any(r.s.camera_id == self.camera_id for r in manager.running()):
+            return True
+        if any(j.state == "running" for j in self.services.jobs.list()):
+            return True
+        slot = self.services.cell.robots.get(self.robot_id)
+        return slot is not None and bool(slot.device.motion.status().get("owner"))
 
     # -- checks ---------------------------------------------------------------------------------------
     def _mapping(self) -> ActiveMapping:
