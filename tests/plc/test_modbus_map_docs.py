@@ -60,3 +60,11 @@ def test_the_server_and_the_production_block_are_built_from_the_table() -> None:
     assert mm.words_int32(words[at["COUNTERS"] + 12 : at["COUNTERS"] + 14]) == 7
     assert mm.words_int32(words[at["LAST_SIGMA_UM"] : at["LAST_SIGMA_UM"] + 2]) == 60
     assert mm.words_int32(words[at["LAST_SIGMA_MDEG"] : at["LAST_SIGMA_MDEG"] + 2]) == -1
+
+
+def test_the_document_names_every_status_bit_the_server_sets() -> None:
+    text = DOC.read_text()
+    for name, bit in mm.STATUS_BITS.items():
+        assert f"bit {bit} {name}" in text, name
+        assert getattr(mb, name) == 1 << bit  # the server's masks come from the table
+    assert mb.LIVE_BITS & mb.DRIFT_ALARM  # live on every read, like the robot's bits
