@@ -32,6 +32,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+from calibration import CalibrationError
+
 D2 = 1.128
 """Expected range of two normal samples, in sigma (the moving range's d2)."""
 D4 = 3.267
@@ -42,7 +44,7 @@ Rule = Literal["beyond_3sigma", "2_of_3_beyond_2sigma", "8_in_a_row"]
 RULES: tuple[Rule, ...] = ("beyond_3sigma", "2_of_3_beyond_2sigma", "8_in_a_row")
 
 
-class ChartError(ValueError):
+class ChartError(CalibrationError):
     """A chart cannot be built from these values (too few, not finite)."""
 
 

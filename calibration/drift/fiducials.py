@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from calibration import CalibrationError
 from calibration import geometry as g
 from calibration.camera_model import CameraModel
-from calibration.pose.pnp import PoseEstimationError, estimate_pose
+from calibration.pose import PoseEstimationError, estimate_pose
 
 F64 = NDArray[np.float64]
 MIN_CONTRAST_DN = 25.0

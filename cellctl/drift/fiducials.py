@@ -17,6 +17,7 @@ from calibration.camera_model import CameraModel
 from calibration.detect import detect
 from calibration.drift.fiducials import find_marks, predict_px
 from calibration.targets import target_from_dict
+from cellctl.config import ConfigError
 from cellctl.drift.config import DriftConfig
 
 F64 = NDArray[np.float64]
@@ -27,7 +28,8 @@ def fiducial_points(cfg: DriftConfig, targets: dict[str, dict[str, Any]]) -> F64
     f = cfg.fiducials
     if f.marks_mm is not None:
         return np.asarray(f.marks_mm, dtype=np.float64) * 1e-3
-    assert f.target is not None and f.T_base_target_ur is not None
+    if f.target is None or f.T_base_target_ur is None:  # the config's validator refuses this already
+        raise ConfigError("drift.fiducials needs marks_mm, or target with T_base_target_ur")
     target = target_from_dict(targets[f.target], f"targets.{f.target}")
     pts = target.points()
     return g.transform_points(g.ur_pose_to_transform(list(f.T_base_target_ur)), pts.xyz_m)
@@ -43,8 +45,7 @@ def observe(cfg: DriftConfig, targets: dict[str, dict[str, Any]], pixels: NDArra
         distance_m = np.linalg.norm(X - np.asarray(T_base_cam)[:3, 3], axis=1)
         radius_px = float(np.median(f.mark_diameter_mm * 1e-3 / 2 / distance_m)) * float(camera.K[0, 0])
         return X, find_marks(pixels, pred, cfg.window_px, radius_px)
-    assert f.target is not None
-    target = target_from_dict(targets[f.target], f"targets.{f.target}")
+    target = target_from_dict(targets[str(f.target)], f"targets.{f.target}")
     det = detect(pixels, target, "drift check")
     uv = np.full((len(X), 2), np.nan)
     if det.found:

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
+from calibration.camera_model import CameraModel
 from calibration.drift import Chart, Limits
 from calibration.drift.fiducials import FiducialError, measure, resolve
 from cellctl.drift.config import DriftConfig
@@ -104,7 +105,8 @@ class DriftMonitor:
         return slot is not None and bool(slot.device.motion.status().get("owner"))
 
     # -- checks ---------------------------------------------------------------------------------------
-    def _mapping(self) -> ActiveMapping:
+    def _mapping(self) -> tuple[ActiveMapping, CameraModel]:
+        """The active hand-eye and the camera it maps through."""
         try:
             m = active_mapping(self.services, self.camera_id, self.robot_id, "handeye", True)
         except NoCalibration as exc:
@@ -112,7 +114,7 @@ class DriftMonitor:
         if m.camera is None:
             raise DriftUnavailable(f"no drift check: the active hand-eye of {self.camera_id}/{self.robot_id} has no "
                                    "camera to map through: activate the camera's intrinsics")
-        return m
+        return m, m.camera
 
     def _T_base_cam(self, mapping: ActiveMapping, T_base_tool: NDArray[np.float64] | None) -> NDArray[np.float64]:
         """Where the calibration puts the camera: fixed (eye-to-hand), or on the arm at ``T_base_tool``."""
@@ -130,7 +132,7 @@ class DriftMonitor:
 
     def check_now(self, who: str, source: Source = "request") -> dict[str, Any]:
         """Grab a frame from the camera and check it (a camera on the arm: from where the robot stands)."""
-        T_base_tool = self._robot_pose(self._mapping())
+        T_base_tool = self._robot_pose(self._mapping()[0])
         frame = self.services.cell.camera(self.camera_id).ensure_open().grab(timeout_s=5.0)
         return self.check_pixels(frame.pixels, source, who, T_base_tool)
 
@@ -175,14 +177,13 @@ class DriftMonitor:
         baseline, ok, alarm, or failed when the fiducials were not seen: then the drift values are null and
         ``reason`` says why)."""
         with self._check_lock:
-            mapping = self._mapping()
+            mapping, camera = self._mapping()
             T_base_cam = self._T_base_cam(mapping, T_base_tool)
-            assert mapping.camera is not None
             chart = self._chart_for(mapping.calibration_id)
-            X, uv = observe(self.cfg, self.services.config.targets, pixels, mapping.camera, T_base_cam)
+            X, uv = observe(self.cfg, self.services.config.targets, pixels, camera, T_base_cam)
             rec: dict[str, Any] = {"t": time.time(), "source": source, "calibration_id": mapping.calibration_id}
             try:
-                m = measure(mapping.camera, T_base_cam, uv, X)
+                m = measure(camera, T_base_cam, uv, X)
             except FiducialError as exc:
                 rec.update({"drift_px": None, "drift_mm": None, "drift_deg": None, "state": "failed", "rule": None,
                             "reason": str(exc), "seen": int(np.all(np.isfinite(uv), axis=1).sum())})
@@ -243,7 +244,7 @@ class DriftMonitor:
     def state(self) -> State:
         """The cell's drift state now (reads the active calibration: not on an event loop)."""
         try:
-            mapping = self._mapping()
+            mapping, _ = self._mapping()
         except DriftUnavailable:
             return "no_calibration"
         self._chart_for(mapping.calibration_id)
@@ -267,15 +268,14 @@ class DriftMonitor:
         """Re-solve the camera's pose from the fiducials in a fresh frame (the intrinsics and the robot side
         kept) and store it as a new hand-eye version, not activated: ``{"calibration_id", "verdict",
         "shift_mm", "shift_deg"}``."""
-        mapping = self._mapping()
-        assert mapping.camera is not None
+        mapping, camera = self._mapping()
         on_arm = mapping.calib.get("setup") == "eye-in-hand"
         T_base_tool = self._robot_pose(mapping)
         frame = self.services.cell.camera(self.camera_id).ensure_open().grab(timeout_s=5.0)
         T_old = self._T_base_cam(mapping, T_base_tool)
-        X, uv = observe(self.cfg, self.services.config.targets, frame.pixels, mapping.camera, T_old)
+        X, uv = observe(self.cfg, self.services.config.targets, frame.pixels, camera, T_old)
         try:
-            r = resolve(mapping.camera, T_old, uv, X)
+            r = resolve(camera, T_old, uv, X)
         except FiducialError as exc:
             raise DriftUnavailable(f"no re-solve: {exc}") from None
         # A camera on the arm: the re-solved pose through the robot's pose at the picture (T_tool_cam).
