@@ -72,7 +72,7 @@ def test_the_slots_in_doubt_reach_the_plc_and_a_confirm_takes_them_away(tmp_path
 def walk(cell: AppCell, modbus_port: int, killed: int) -> None:
     """The PLC's view through the claims' changes."""
     http = cell.http()
-    services = cell.client.app.state.services
+    services: Services = cell.client.app.state.services  # type: ignore[attr-defined]
     listed = [(d["recipe_id"], d["slot"]) for d in http.get("/production").json()["slots_in_doubt"]]
     assert listed == [(1, 3), (2, 5)], listed  # the dead service's claim is in doubt after the start
     assert modbus_doubt(modbus_port) == (2, 1, 3)
