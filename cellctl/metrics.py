@@ -121,12 +121,14 @@ class CellMetrics:
         except Exception:  # noqa: BLE001 - metrics never break a job
             log.debug("routine_finished failed", exc_info=True)
 
-    def observe_drift(self, camera: str, drift_mm: float, alarm: bool) -> None:
-        """A judged drift check of ``camera`` (mm, alarm or not); never raises."""
+    def observe_drift(self, camera: str, drift_mm: float | None, alarm: bool) -> None:
+        """A judged drift check of ``camera`` (mm, alarm or not; ``drift_mm`` None: no check yet, the last
+        value stays); never raises."""
         if not self.attached:
             return
         try:
-            self.drift_mm.labels(camera).set(float(drift_mm))
+            if drift_mm is not None:
+                self.drift_mm.labels(camera).set(float(drift_mm))
             self.drift_alarm.labels(camera).set(1.0 if alarm else 0.0)
         except Exception:  # noqa: BLE001 - metrics never break a check
             log.debug("observe_drift failed", exc_info=True)

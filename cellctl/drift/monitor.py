@@ -226,8 +226,9 @@ class DriftMonitor:
             self._chart, self._chart_calibration = chart, calibration_id
             self._last = last
             self._state = "baseline" if last is None else last["state"]
-        if last is not None:  # after a restart the front ends show the stored state at once
-            self.services.metrics.observe_drift(self.camera_id, float(last["drift_mm"]), last["state"] == "alarm")
+        # After a restart the front ends show the stored state at once; a new calibration clears the alarm.
+        self.services.metrics.observe_drift(self.camera_id, None if last is None else float(last["drift_mm"]),
+                                            last is not None and last["state"] == "alarm")
         return chart
 
     # -- what the front ends show --------------------------------------------------------------------
