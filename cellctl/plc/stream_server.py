@@ -75,6 +75,7 @@ class StreamServer:
     def start(self) -> StreamServer:
         """Register with the engine and listen; raises (and leaves nothing registered) when it cannot."""
         self._front = self.engine.register(self.name, self.config.host, self.config.port, motion=self.motion)
+        self._front.pacer = self.pacer
         try:
             self._thread.start(self._listen)
         except BaseException:
