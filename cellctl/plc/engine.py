@@ -333,7 +333,7 @@ def status_of(services: Services, fronts: dict[str, FrontEnd], running: tuple[st
         host, port = getattr(section, "host", None), getattr(section, "port", None)
         out[name] = {"enabled": False, "address": None if host is None else f"{host}:{port}", "host": host,
                      "port": port, "clients": 0, "requests": 0, "refused_busy": 0, "last_request": None,
-                     "last_answer": None}
+                     "last_answer": None, "paced": None}
     return {"allow_motion": plc.allow_motion, "insecure_plc_network": plc.insecure_plc_network,
             "busy": running is not None,
             "running": None if running is None else {"front_end": running[0], **running[1].describe()},
