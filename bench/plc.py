@@ -156,7 +156,7 @@ class MachineVision:
         self.results: dict[str, str] = {}
         self.arrived = threading.Condition()
         self.sub = client.create_subscription(MV_PUBLISH_MS, self)
-        self.sub.subscribe_events(vs, client.get_node(ua.NodeId(1024, ns)))
+        self.sub.subscribe_events(vs, client.get_node(ua.NodeId(ua.Int32(1024), ua.Int16(ns))))
 
     def event_notification(self, event: object) -> None:
         """asyncua's subscription handler: a ResultReadyEventType event (in the client's thread)."""

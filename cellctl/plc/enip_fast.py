@@ -119,12 +119,10 @@ class FastPath:
         interface, timeout, items, n_type, n_len, d_type, d_len = RR_DATA.unpack_from(frame, ENCAPSULATION.size)
         if interface or items != 2 or n_type or n_len or d_type != 0xB2 or at + d_len != len(frame):
             return None
-        request = frame[at:]
-        if request[:1] == bytes([UNCONNECTED_SEND]):
-            request = _unwrap_unconnected_send(request)
-            if request is None:
-                return None
-        cip = self._tag_service(request)
+        request: bytes | None = frame[at:]
+        if frame[at : at + 1] == bytes([UNCONNECTED_SEND]):
+            request = _unwrap_unconnected_send(frame[at:])
+        cip = None if request is None else self._tag_service(request)
         if cip is None:
             return None
         return RR_DATA.pack(0, timeout, 2, 0, 0, 0xB2, len(cip)) + cip
