@@ -154,10 +154,10 @@ def check_material(view: GraspImage, model: PartModel, u: float, v: float, angle
         problem = (f"{what} closes across {width:.1f} mm of part {model.name}, wider than the gripper's stroke "
                    f"({stroke_mm:g} mm): its fingers cannot take it there; turn the grasp (grasp_yaw_deg) or move it")
     elif t_lo < -half or t_hi > half:
-        problem = (f"{what}: part {model.name} spans {width:.1f} mm along the closing line from "
-                   f"{-t_lo * view.mm_per_px:.1f} mm on one side of the grasp point to {t_hi * view.mm_per_px:.1f} mm "
-                   f"on the other, beyond the fingers' opening ({view.open_mm:g} mm, {view.open_mm / 2:g} each side): "
-                   "a finger would come down on the part; open wider (gripper.open_width_mm) or centre the grasp")
+        problem = (f"{what}: part {model.name} spans {width:.1f} mm of the closing line, from "
+                   f"{t_lo * view.mm_per_px:+.1f} to {t_hi * view.mm_per_px:+.1f} mm from the grasp point, beyond the "
+                   f"fingers' opening ({view.open_mm:g} mm: {view.open_mm / 2:g} each side): a finger would come "
+                   "down on the part; open wider (gripper.open_width_mm) or centre the grasp on it (grasp_offset_mm)")
     elif view.grip_width_mm is not None and width_tolerance_mm is not None and \
             abs(width - view.grip_width_mm) > width_tolerance_mm:
         problem = (f"{what} closes on {width:.1f} mm of part {model.name}, but recipe.gripper.grip_width_mm is "
