@@ -274,6 +274,11 @@ class CameraBase(DeviceBase):
     def settings(self) -> dict[str, Any]:
         return {}
 
+    def control_ranges(self) -> dict[str, Any]:
+        """The controls this camera offers and their bounds: ``{"exposure_us": [lo, hi], "gain_db": [lo, hi],
+        "trigger": [modes...]}``, a key only for a control it has (none here: a driver that sets one says so)."""
+        return {}
+
 
 class RobotBase(DeviceBase):
     """Base of robot adapters: the public motion methods own the rules, the adapter fills hooks.
