@@ -132,6 +132,8 @@ class ViewPlanner:
         for name in list(CORNERS):
             if name in self.missing_corners():
                 yield from self._reach_corner(name)
+        for side in self.missing_border():
+            yield from self._reach_edge(side)
         tilt = min(self.max_tilt_deg, 45.0) + tilt_boost_deg
         for axis, sign in ((0, 1), (1, 1), (0, -1), (1, -1)):
             yield f"tilt {'xy'[axis]}{'+' if sign > 0 else '-'}", self._tilted(self.T0, axis, sign * tilt)
@@ -204,9 +206,9 @@ class ViewPlanner:
         half = 0.5 * self.frame_scale * (self.uv0.max(axis=0) - self.uv0.min(axis=0)) / farther
         goal = c0.copy()
         if sx:
-            goal[0] = w / 2 + sx * (w / 2 - half[0])
+            goal[0] = w / 2 + sx * (w / 2 - CORNER_MARGIN * w - half[0])
         else:
-            goal[1] = h / 2 + sy * (h / 2 - half[1])
+            goal[1] = h / 2 + sy * (h / 2 - CORNER_MARGIN * h - half[1])
         good_goal = c0.copy()
         for _ in range(EDGE_TRIES):
             yield f"border {side}", self._shifted(base, self._shift_for(goal - c0) * farther)
@@ -221,7 +223,7 @@ class ViewPlanner:
                 goal = 0.5 * (good_goal + goal)
 
     def _edge_miss(self, side: str, uv: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The image shift (px) that brings ``uv``'s points nearest side ``side`` to the middle of its border strip."""
+        """The image shift (px) that brings ``uv``'s points nearest side ``side`` just inside its border strip."""
         w, h = self.image_size
         sx, sy = EDGES[side]
         axis, n = (0, w) if sx else (1, h)
@@ -230,7 +232,7 @@ class ViewPlanner:
         nearest = float(uv[:, axis].max() if sign > 0 else uv[:, axis].min())
         to_edge = (n - 1 - nearest) if sign > 0 else nearest
         out = np.zeros(2)
-        out[axis] = sign * max(to_edge - 0.5 * strip, 0.0)
+        out[axis] = sign * max(to_edge - 0.7 * strip, 0.0)
         return out
 
     # -- geometry ------------------------------------------------------------------------------------

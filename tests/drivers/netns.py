@@ -189,7 +189,8 @@ def scenario_controls(tmp: str) -> dict[str, Any]:
             out["too_long"] = {"status": r.status_code, "body": r.json()}
             r = http.put("/cameras/cam0/controls", json={"trigger": "free_run"})
             out["free_run"] = {"status": r.status_code, "trigger": r.json()["controls"]["trigger"]["value"]}
-            out["audit"] = [e for e in http.get("/audit", params={"limit": 20}).json() if e["action"] == "camera.controls"]
+            audit = http.get("/audit", params={"limit": 20}).json()
+            out["audit"] = [e for e in audit if e["action"] == "camera.controls"]
     finally:
         peer.kill()
     return out
