@@ -7,7 +7,9 @@ points in an image side's border strip (the outer 10%), *inner* views do not. Tw
 the same size share ``--inner`` inner views and add ``--extra`` more views each:
 
 - **without**: ``--extra`` more inner views (the ring stays empty; the verdict says ``border_not_covered``);
-- **with**: ``--extra`` border views, chosen greedily to reach every side.
+- **with**: ``--extra`` border views: other inner views slid across the view (their depth and tilt kept)
+  until the board 0.6 of a square beyond its outer corners lies 4 px from the top, bottom, left, right
+  side in turn (its corners then in that side's strip).
 
 Both are rendered (edge pixels integrated, the scene's defects), detected and calibrated by cellctl
 (opencv5). Scores on ``--test`` held-out views drawn from the whole pool (border ones included):
@@ -38,6 +40,9 @@ from calibration.synthetic import plan_views  # noqa: E402
 from calibration.verdict import BORDER_FRACTION, border_coverage  # noqa: E402
 from drivers.sim.imaging import PlanarObject, render  # noqa: E402
 
+EDGE_PX = 4.0
+"""Border views put the board's printed outline this many pixels from the side."""
+
 
 def ring_pixels(size: tuple[int, int], step: int = 8) -> np.ndarray:
     """Pixels of the border ring (the outer ``BORDER_FRACTION`` along every side), on a grid."""
@@ -46,6 +51,34 @@ def ring_pixels(size: tuple[int, int], step: int = 8) -> np.ndarray:
     bw, bh = BORDER_FRACTION * w, BORDER_FRACTION * h
     ring = (g[:, 0] < bw) | (g[:, 0] > w - 1 - bw) | (g[:, 1] < bh) | (g[:, 1] > h - 1 - bh)
     return g[ring]
+
+
+def to_side(truth: Any, T: np.ndarray, side: str, size: tuple[int, int]) -> np.ndarray | None:
+    """``T`` slid across the view (camera x/y, its depth kept) until the board's printed outline lies
+    ``EDGE_PX`` from ``side`` (the outline: 0.6 of a square beyond the outer corners; the detector needs 0.2);
+    None when its corners then miss that side's border strip, or the outline leaves the image elsewhere."""
+    w, h = size
+    X = BOARD.points().xyz_m
+    m = 0.6 * BOARD.square_mm * 1e-3  # the board beyond its outer corners that must be seen (0.2 squares: detect)
+    (x0, y0), (x1, y1) = X[:, :2].min(0) - m, X[:, :2].max(0) + m
+    outline = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]])
+    axis, sign = {"top": (1, -1), "bottom": (1, 1), "left": (0, -1), "right": (0, 1)}[side]
+    n = (w, h)[axis]
+    out = T.copy()
+    for _ in range(6):
+        uv = truth.project(outline @ out[:3, :3].T + out[:3, 3])
+        far = uv[:, axis].max() if sign > 0 else uv[:, axis].min()
+        want = (n - 1 - EDGE_PX) if sign > 0 else EDGE_PX
+        d_px = want - far
+        if abs(d_px) < 0.5:
+            break
+        out[axis, 3] += d_px * out[2, 3] / (truth.fx if axis == 0 else truth.fy)
+    box = truth.project(outline @ out[:3, :3].T + out[:3, 3])
+    inside = (box[:, 0] >= 3).all() and (box[:, 0] <= w - 4).all() and (box[:, 1] >= 3).all() and \
+        (box[:, 1] <= h - 4).all()
+    corners = truth.project(X @ out[:3, :3].T + out[:3, 3])
+    reached = border_coverage(coverage_counts(size, corners))[side] > 0
+    return out if inside and reached else None
 
 
 def whole_pixels(size: tuple[int, int], step: int = 16) -> np.ndarray:
@@ -57,7 +90,7 @@ def one_set(seed: int, n_inner: int, n_extra: int, n_test: int, size: tuple[int,
             ) -> dict[str, Any] | None:
     truth, imaging = scene_camera_and_imaging(size)
     rng = np.random.default_rng(seed)
-    pool = plan_views(truth, BOARD, 60, rng, fill=0.5, margin_px=6, whole_outline=True)
+    pool = plan_views(truth, BOARD, 60, rng, fill=0.45, margin_px=6, whole_outline=True)
     X = BOARD.points().xyz_m
 
     def sides(T: np.ndarray) -> set[str]:
@@ -71,16 +104,16 @@ def one_set(seed: int, n_inner: int, n_extra: int, n_test: int, size: tuple[int,
     test = [pool[i] for i in order[:n_test]]
     rest = [pool[i] for i in order[n_test:]]
     inner = [T for T in rest if not touches(T)]
-    border = [T for T in rest if touches(T)]
-    if len(inner) < n_inner + n_extra or len(border) < n_extra:
+    if len(inner) < n_inner + 2 * n_extra:
         return None
     shared = inner[:n_inner]
-    chosen: list[np.ndarray] = []  # border views, greedily covering the sides not yet reached
-    reached: set[str] = set()
-    for _ in range(n_extra):
-        best = max((T for T in border if not any(T is c for c in chosen)), key=lambda T: len(sides(T) - reached))
-        chosen.append(best)
-        reached |= sides(best)
+    # border views: further inner views slid (in the camera frame, at their distance) against the middle of
+    # each side in turn, until the board's outermost corner lies in that side's strip, its outline in view
+    chosen = [T for T in (to_side(truth, inner[n_inner + n_extra + k], side, size)
+                          for k, side in enumerate(("top", "bottom", "left", "right")[:n_extra])) if T is not None]
+    reached = set().union(*(sides(T) for T in chosen)) if chosen else set()
+    if len(chosen) < n_extra or len(reached) < min(4, n_extra):
+        return None
     sets = {"without": shared + inner[n_inner:n_inner + n_extra], "with": shared + chosen}
     rendered: dict[int, Any] = {}
 
@@ -109,16 +142,19 @@ def one_set(seed: int, n_inner: int, n_extra: int, n_test: int, size: tuple[int,
 
 
 def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
-    lines = [f"{len(rows)} seeded sets (seeds {args.seed0}..{args.seed0 + args.seeds - 1}, sets without enough views "
-             f"of a kind skipped), {args.width}x{args.height} px, 9x6 chessboard (20 mm), the real-defects scene's "
-             f"lens and defects, edge pixels integrated on {args.supersample}x{args.supersample} samples; "
+    lines = [f"{len(rows)} seeded sets (seeds {args.seed0}..{args.seed0 + args.seeds - 1}; a set whose pool lacks the "
+             "views of a kind, or border views reaching all four sides, skipped), "
+             f"{args.width}x{args.height} px, 9x6 chessboard (20 mm), the real-defects scene's lens and defects, "
+             f"edge pixels integrated on {args.supersample}x{args.supersample} samples; "
              f"{args.inner} shared inner views + {args.extra} more inner (without) or border (with) views; "
              f"{args.test} held-out views from the whole pool.", "",
-             "| seed | verdict without | held-out RMS without / with (px) | ring diff to truth without / with (px) "
+             "| seed (views detected without / with) | verdict without | held-out RMS without / with (px) "
+             "| ring diff to truth without / with (px) "
              "| whole-image diff without / with (px) |",
              "|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['seed']} | {r['without_codes']} | {r['without_heldout']:.3f} / {r['with_heldout']:.3f} | "
+        lines.append(f"| {r['seed']} ({r['without_views']} / {r['with_views']}) | {r['without_codes']} | "
+                     f"{r['without_heldout']:.3f} / {r['with_heldout']:.3f} | "
                      f"{r['without_ring']:.3f} / {r['with_ring']:.3f} | "
                      f"{r['without_whole']:.3f} / {r['with_whole']:.3f} |")
     if rows:

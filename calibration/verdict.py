@@ -10,10 +10,10 @@ operator can argue with them):
 - ``corners_not_covered``: an image corner region (the outer ``CORNER_FRACTION`` of width and
   height) holds no observed point; distortion there is extrapolated. The message names them.
 - ``border_not_covered``: along an image side, the border strip (the outer ``BORDER_FRACTION`` of the
-  width or height) holds observed points over less than ``BORDER_MIN_FRACTION`` of its length (cells of the
-  coverage grid: in practice, none). Lens distortion grows fastest towards the border; with the ring empty it is extrapolated
-  there, however well the centre fits (the held-out effect: ``bench/intrinsics_border.py``). The message names
-  the sides and how much of each is covered.
+  width or height) holds observed points over less than ``BORDER_MIN_FRACTION`` of its length (cells
+  of the coverage grid: in practice, none). Lens distortion grows fastest towards the border; with
+  the ring empty it is extrapolated there, however well the centre fits (measured on held-out renders:
+  ``bench/intrinsics_border.py``). The message names the sides and how much of each is covered.
 - ``focal_poorly_determined``: 1-sigma of fx or fy above ``MAX_FOCAL_REL_SIGMA`` of its value.
 - ``principal_point_poorly_determined``: 1-sigma of cx or cy above ``MAX_PP_REL_SIGMA`` of the
   image width/height.
