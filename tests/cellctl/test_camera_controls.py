@@ -22,7 +22,9 @@ FOLDER = REPO / "tests" / "data" / "udacity_camera_cal_9x6"
 def _mean(http: httpx.Client, camera_id: str) -> float:
     r = http.get(f"/cameras/{camera_id}/image", params={"format": "png"})
     assert r.status_code == 200, r.text
-    return float(cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_GRAYSCALE).mean())
+    img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert img is not None
+    return float(img.mean())
 
 
 def test_camera_controls_set_checked_and_audited(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ import subprocess
 from collections.abc import Iterator
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
@@ -164,8 +165,8 @@ def test_teach_recipe_pick_from_the_page(cell: tuple[Served, dict[str, Any]], br
         shown = http.post("/pick", json={"recipe_id": 9}).json()
         g0 = shown["picks"][0]["grasp_px"]
         png = http.get(shown["image_url"]).content
-    import cv2
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None
     fu, fv = (int(round(x)) for x in g0["fingers_px"][0])
     patch = img[fv - 2:fv + 3, fu - 2:fu + 3].reshape(-1, 3).astype(int)
     assert ((patch[:, 0] > 200) & (patch[:, 2] < 60)).any(), patch  # the finger's blue (BGR 255, 120, 0)
