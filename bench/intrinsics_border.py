@@ -148,16 +148,19 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
              f"edge pixels integrated on {args.supersample}x{args.supersample} samples; "
              f"{args.inner} shared inner views + {args.extra} more inner (without) or border (with) views; "
              f"{args.test} held-out views from the whole pool.", "",
-             "| seed (views detected without / with) | verdict without | held-out RMS without / with (px) "
+             "| seed (views detected without / with) | verdict without | verdict with "
+             "| held-out RMS without / with (px) "
              "| ring diff to truth without / with (px) "
              "| whole-image diff without / with (px) |",
-             "|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['seed']} ({r['without_views']} / {r['with_views']}) | {r['without_codes']} | "
+                     f"{r['with_codes']} | "
                      f"{r['without_heldout']:.3f} / {r['with_heldout']:.3f} | "
                      f"{r['without_ring']:.3f} / {r['with_ring']:.3f} | "
                      f"{r['without_whole']:.3f} / {r['with_whole']:.3f} |")
     if rows:
+        ok_with = sum(r["with_ok"] for r in rows)
         med = {k: float(np.median([r[k] for r in rows])) for k in
                ("without_heldout", "with_heldout", "without_ring", "with_ring", "without_whole", "with_whole")}
         better = sum(r["with_heldout"] < r["without_heldout"] for r in rows)
@@ -168,7 +171,9 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[str]:
                       f"{med['with_ring']:.3f} px, over the whole image {med['without_whole']:.3f} / "
                       f"{med['with_whole']:.3f} px. The verdict flagged `border_not_covered` on {flagged} of "
                       f"{len(rows)} sets without border views and on "
-                      f"{sum('border_not_covered' in r['with_codes'] for r in rows)} with them."]
+                      f"{sum('border_not_covered' in r['with_codes'] for r in rows)} with them; {ok_with} of "
+                      f"{len(rows)} sets with border views had an OK verdict (the others name what is still missing "
+                      "or poorly determined)."]
     return lines
 
 

@@ -95,7 +95,7 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
     sigma_yaw = float(match.sigma_angle_deg)
     try:
         drawn: dict[str, Any] | None = grasp_in_image(mapping, recipe, match.u_px, match.v_px, match.angle_deg,
-                                                      T_capture).as_json()
+                                                      T_capture, part).as_json()
     except PickError:  # no local scale at the match (UnusableCalibration): the pose above was mapped, the drawing not
         drawn = None
     return PickCandidate(match, part.T_base_part, part.sigma_mm, sigma_yaw if math.isfinite(sigma_yaw) else None,

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, NoCalibration, active_mapping
 from cellctl.pick.model import PartModel
-from cellctl.pick.pose import grasp, part_pose
+from cellctl.pick.pose import PartPose, grasp, part_pose
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.services import Services
 
@@ -88,11 +88,13 @@ def open_width_mm(recipe: Recipe) -> float:
 
 
 def grasp_in_image(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
-                   T_capture: NDArray[np.float64] | None) -> GraspImage:
-    """The recipe's grasp of a part found at ``(u, v)`` turned ``angle_deg``, in image pixels.
+                   T_capture: NDArray[np.float64] | None, part: PartPose | None = None) -> GraspImage:
+    """The recipe's grasp of a part found at ``(u, v)`` turned ``angle_deg``, in image pixels (``part``: its
+    pose when already mapped).
 
     Raises what ``mapping.map`` raises (``NoCalibration``) or ``UnusableCalibration``."""
-    part = part_pose(mapping, u, v, angle_deg, recipe.plane_z_mm, T_capture, with_uncertainty=False)
+    if part is None:
+        part = part_pose(mapping, u, v, angle_deg, recipe.plane_z_mm, T_capture, with_uncertainty=False)
     grip = grasp(recipe, part, part.base_yaw_rad + math.radians(recipe.grasp_yaw_deg))
     T_base_grip = part.T_base_part @ grip.T_part_grip
     J = _jacobian(mapping, u, v, recipe.plane_z_mm, T_capture)  # mm per px, 2x2
