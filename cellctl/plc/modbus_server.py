@@ -55,7 +55,7 @@ from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests 
     words_int32,
 )
 from cellctl.plc.pacing import Pacer
-from cellctl.plc.production import production_words
+from cellctl.plc.production import doubt_words, production_words
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
 from cellctl.services import Services
@@ -76,7 +76,9 @@ MESSAGE_REGS = mm.REGISTERS["MESSAGE"].field.count
 PRODUCTION = _a("RUN_ID")  # 174: the production block (live on every read)
 PRODUCTION_REGS = sum(f.count for f in mm.PRODUCTION_FIELDS)
 SIGMA_SEQ = _a("SIGMA_SEQ")  # 203: the per-pick uncertainty block
-END = mm.END  # 236: first address after the map
+SIGMA_END = mm.SIGMA_END  # 236: first address after the uncertainty block
+DOUBT = _a("DOUBT_COUNT")  # 236: the slots in doubt (live on every read)
+END = mm.END  # 241: first address after the map
 READ_ONLY = STATUS
 _PICK = {name: placed.address for name, placed in mm.PICK_OFFSETS.items()}
 _SIGMA = {name: placed.address for name, placed in mm.SIGMA_OFFSETS.items()}
@@ -311,6 +313,7 @@ class ModbusPlcServer:
             self._image[PRODUCTION:SIGMA_SEQ] = production_words(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the run's state
             log.exception("reading the production run's state failed")
+        self._image[DOUBT:END] = doubt_words(self.services)
         registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
 
     def _robot_bits(self) -> int:
@@ -362,7 +365,7 @@ class ModbusPlcServer:
                 img[base + _PICK[name] : base + _PICK[name] + 2] = int32_words(value)
             img[base + _PICK["SCORE"]] = max(0, min(1000, int(round(float(p["score"]) * 1000))))
             img[base + _PICK["REACHABLE"]] = 1 if p["reachable"] else 0
-        img[SIGMA_SEQ:END] = [0] + [0xFFFF] * (END - PICK_SIGMA)  # -1: not known
+        img[SIGMA_SEQ:SIGMA_END] = [0] + [0xFFFF] * (SIGMA_END - PICK_SIGMA)  # -1: not known
         for k, p in enumerate(picks):
             sigma_mm, sigma_deg = pick_sigma(p)
             base = PICK_SIGMA + SIGMA_STRIDE * k

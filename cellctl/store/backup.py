@@ -265,6 +265,7 @@ def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dic
     except sa.exc.IntegrityError as exc:
         raise RestoreRefused(f"restore: the backup's rows violate the store's constraints "
                              f"({str(exc.orig).strip().splitlines()[0]}); nothing was changed") from None
+    store.forget_doubt()  # the slot claims are the backup's now
     return {"backend": store.backend, "store": store.describe(), "cell_id": store.cell_id, "from": str(src),
             "counts": _held(counts), "replaced": replaced, "ids_renumbered": remap}
 

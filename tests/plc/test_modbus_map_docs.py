@@ -42,8 +42,10 @@ def test_the_document_names_every_field_at_its_served_address() -> None:
     assert f"**{mm.PICKS} + {mm.PICK_STRIDE}·k**" in text  # where pick k starts
     assert f"(register map version {mm.MAP_VERSION})" in text.splitlines()[0]
     assert f"| {mm.address('MAP_VERSION')} | MAP_VERSION | {mm.MAP_VERSION} (" in text
-    assert f"**{mm.address('SIGMA_SEQ')}..{mm.END - 1} ({mm.END - mm.address('SIGMA_SEQ')} registers)**" in text
-    assert mm.END == 236 and "236 and above" in text
+    sigma_end = mm.SIGMA_END  # version 5 added the slots-in-doubt block after the uncertainty block
+    assert f"**{mm.address('SIGMA_SEQ')}..{sigma_end - 1} ({sigma_end - mm.address('SIGMA_SEQ')} registers)**" in text
+    assert sigma_end == 236 and mm.address("DOUBT_COUNT") == 236
+    assert mm.END == 241 and "241 and above" in text
 
 
 def test_the_server_and_the_production_block_are_built_from_the_table() -> None:
