@@ -108,3 +108,12 @@ def test_a_grasp_off_the_part_closes_across_no_material(cell: Any) -> None:
     cup["gripper"] = {"settle_s": 0.1}
     r = http.post("/recipes", json={"recipe_id": 3, "recipe": cup})
     assert r.status_code == 201, r.text
+
+
+def test_the_drawing_of_a_recipe_it_cannot_read_says_why(cell: Any) -> None:
+    http, truth = cell
+    model = _teach(http, truth["parts"][0], 12)
+    newer = {**model, "format_version": 99}
+    r = http.post("/pick/grasp", json={"recipe": _recipe(newer)})
+    assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_model", r.text
+    assert "newer than this cellctl reads" in r.json()["error"]["message"]

@@ -134,6 +134,10 @@ def grasp_preview(body: GraspInput, services: ServicesDep, _: Viewer) -> dict[st
     """The recipe's grasp drawn at each model's teach pose (image pixels: the gripper centre, the open
     fingers, where they meet the part, the width they close on) and its problem, the one ``POST /recipes``
     refuses with 422 ``invalid_grasp`` for a parallel gripper; ``unavailable`` says why nothing is drawn."""
+    try:
+        body.recipe.part_models()
+    except ModelFileError as exc:
+        raise ApiError(422, "invalid_model", str(exc)) from None
     views, why = taught_grasps(services, body.recipe)
     stroke = _grasp_problem(body.recipe)
     return {"grasps": [v.as_json() for v in views], "unavailable": why,
