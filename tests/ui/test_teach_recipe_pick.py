@@ -5,7 +5,7 @@ at the capture pose through the true camera onto the table plane), so the test j
 against where the part really lies. The engineer takes a picture, drags the part's region with
 the mouse, teaches (the model's edges are drawn), takes the capture pose from the robot, fills in
 gripper settings, saves the recipe and picks with it; a recipe that searches an empty corner
-answers no pick and says why. Screenshots go to ``test-artifacts/screenshots/``.
+answers no pick and says why. First, on the Live tab, the camera's exposure is set from the page. Screenshots go to ``test-artifacts/screenshots/``.
 """
 
 from __future__ import annotations
@@ -104,6 +104,18 @@ def test_teach_recipe_pick_from_the_page(cell: tuple[Served, dict[str, Any]], br
     page.fill("#token", served.token)
     page.click("#login-button")
     expect(page.locator("#who-role")).to_have_text("engineer")
+    # The Live tab's camera controls: the virtual camera's exposure, gain and trigger, set from the page.
+    expect(page.locator("#cc-exposure")).to_have_value("10000")
+    expect(page.locator("#cc-trigger")).to_have_value("software")
+    page.fill("#cc-exposure", "8000")
+    page.click("#cc-apply")
+    expect(page.locator("#cc-status")).to_have_text("set exposure_us 8000")
+    with served.client() as http:
+        assert http.get("/cameras/cam0/settings").json()["exposure_us"] == 8000
+    page.screenshot(path=str(SHOTS / "live-camera-controls.png"), full_page=True)
+    page.fill("#cc-exposure", "10000")
+    page.click("#cc-apply")
+    expect(page.locator("#cc-status")).to_have_text("set exposure_us 10000")
     page.click("#tabs button[data-tab=pick]")
     expect(page.locator("#pick-recipes")).to_contain_text("no recipes stored yet")
 
