@@ -195,6 +195,7 @@ class ModbusPlcServer:
     def start(self) -> ModbusPlcServer:
         quiet("pymodbus")
         self._front = self.engine.register("modbus", self.host, self.port)
+        self._front.pacer = self.pacer
 
         async def serve() -> None:
             server = _TcpServer(self._devices(), address=(self.host, self.port))

@@ -59,6 +59,7 @@ from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_args import guarded
 from cellctl.plc.opcua_mv import VisionSystem, add_vision_system
+from cellctl.plc.opcua_pacing import PacedClients, pace
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
@@ -205,6 +206,8 @@ class OpcUaPlcServer:
         self._production_shown: dict[str, Any] = {}
         self._vision: VisionSystem | None = None
         self._vision_task: asyncio.Task[None] | None = None
+        self.paced: PacedClients | None = None
+        """The connections whose messages are paced (``cellctl.plc.opcua_pacing``), once listening."""
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -286,8 +289,10 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
+        self.paced = pace(server)  # its messages share the interpreter budget of every front end
         if self._front is not None:  # connected clients for GET /plc/status (asyncua keeps the list)
             self._front.clients_of = lambda: len(server.bserver.clients) if server.bserver is not None else 0
+            self._front.pacer = None if self.paced is None else self.paced.pacer
         # OPC UA for Machine Vision is added once the server listens (the NodeSet's import costs ~2 s of
         # CPU, more on a loaded machine): the service's start does not wait for it.
         self._vision_task = asyncio.get_running_loop().create_task(self._add_vision(server))
