@@ -5,7 +5,8 @@ at the capture pose through the true camera onto the table plane), so the test j
 against where the part really lies. The engineer takes a picture, drags the part's region with
 the mouse, teaches (the model's edges are drawn), takes the capture pose from the robot, fills in
 gripper settings, saves the recipe and picks with it; a recipe that searches an empty corner
-answers no pick and says why. First, on the Live tab, the camera's exposure is set from the page. Screenshots go to ``test-artifacts/screenshots/``.
+answers no pick and says why. First, on the Live tab, the camera's exposure is set from the page.
+Screenshots go to ``test-artifacts/screenshots/``.
 """
 
 from __future__ import annotations
