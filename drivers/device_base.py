@@ -66,6 +66,11 @@ class CameraBase(DeviceBase):
     def settings(self) -> dict[str, Any]:
         return {}
 
+    def control_ranges(self) -> dict[str, Any]:
+        """The controls this camera offers and their bounds: ``{"exposure_us": [lo, hi], "gain_db": [lo, hi],
+        "trigger": [modes...]}``, a key only for a control it has (none here: a driver that sets one says so)."""
+        return {}
+
 
 class DigitalIOBase(DeviceBase):
     """Base of digital IO adapters."""

@@ -10,6 +10,7 @@ import "./drift.js";
 import "./recipes.js";
 import "./plc.js";
 import "./audit.js";
+import { loadControls } from "./camera.js";
 
 async function login(token) {
   const who = await api("GET", "/auth/whoami", undefined, { token });
@@ -26,6 +27,7 @@ async function login(token) {
   applyRoles();
   document.dispatchEvent(new CustomEvent("cellctl:login"));
   await loadDevices();
+  loadControls();
   const session = state.session;
   liveLoop(session);
   robotLoop(session);
