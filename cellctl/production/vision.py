@@ -233,5 +233,22 @@ class VisionWorker:
             log.error("production: the vision thread %s did not end within %.0f s", self._thread.name, timeout_s)
 
 
+def next_picture(worker: VisionWorker | None, take: Callable[[], Picture], mapping: ActiveMapping | None,
+                 robot: RobotBase, margin_mm: float) -> Prefetch | None:
+    """The next cycle's picture on ``worker`` (None: no overlap, no picture): with a fixed camera's
+    eye-to-hand ``mapping`` it starts as soon as the arm has left the camera's view (nothing within
+    ``margin_mm`` of the tool centre in the image), else when the handle's ``go`` is called."""
+    if worker is None:
+        return None
+    if mapping is None:
+        return worker.submit(take)
+    m = mapping
+
+    def out() -> bool:
+        return out_of_view(m, robot.state().T_base_tool, margin_mm)
+
+    return worker.submit(take, out)
+
+
 def tool_yaw(T: Any) -> float:
     return math.atan2(float(T[1][0]), float(T[0][0]))
