@@ -61,6 +61,12 @@ class Frame:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def meta(self) -> dict[str, Any]:
+        """``metadata`` (the name docs/conveyor.md uses: ``Frame.meta["encoder_ticks"]``, a belt's count
+        latched at the exposure)."""
+        return self.metadata
+
+    @property
     def size(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return (int(self.pixels.shape[1]), int(self.pixels.shape[0]))
@@ -440,6 +446,31 @@ class RobotBase(DeviceBase):
         if current.shape != q.shape:
             return 0.0
         return float(np.max(np.abs(q - current))) if q.size else 0.0
+
+    # -- conveyor tracking ---------------------------------------------------------------------------
+    def start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
+                       session: MotionSession) -> int:
+        """Follow a conveyor from now, as the robot controller does with the belt's encoder wired to it (UR:
+        ``conveyor_pulse_decode`` + ``track_conveyor_linear``): every pose commanded from now on is carried
+        along ``direction_base`` (unit vector, base frame) by the travel the encoder counts
+        (``ticks_per_m``), at most ``most_m`` metres. The count tracking starts at. Needs the motion
+        (``session``); a Stop ends tracking at once (the tool stays where it is). ``MotionRejected`` when
+        the adapter cannot track."""
+        if not self.motion.is_current(session):
+            session.check()
+            raise RobotBusy(f"robot {self.robot_id}: {session.what} does not own the robot's motion")
+        session.check()
+        return self._start_tracking(np.asarray(direction_base, dtype=np.float64), float(ticks_per_m), float(most_m))
+
+    def stop_tracking(self) -> None:
+        """Stop following the conveyor: the tool stays where it is."""
+        self._stop_tracking()
+
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
+        raise MotionRejected(f"robot {self.robot_id}: this adapter cannot track a conveyor (docs/conveyor.md)")
+
+    def _stop_tracking(self) -> None:
+        """Tell the controller to stop tracking (nothing when it cannot track)."""
 
     # -- stop, resume ------------------------------------------------------------------------------
     def stop(self, by: str = "") -> None:

@@ -61,6 +61,8 @@ class Picture:
     """What of the arm the picture showed in the search region (its matches there were dropped); None: none."""
     occupancy: Occupancy | None = None
     """With no candidate: the objects the picture shows anyway (``cellctl.production.occupancy``)."""
+    encoder_ticks: int | None = None
+    """A belt's encoder count at the exposure (conveyor tracking); None: no belt."""
 
 
 def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
@@ -101,7 +103,8 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
                              part_sides_px(recipe.models), arm.mask if arm is not None else None, known)
     return Picture(cands, located.frame_id, located.reason, located.calibration, time.monotonic() - t0, len(cands),
                    located.timed_out, T_base_fixture=T_fixture, fixture=fixture, arm=located.arm_in_view,
-                   occupancy=occupied)
+                   occupancy=occupied,
+                   encoder_ticks=located.encoder_ticks)
 
 
 def _neighbours(cands: list[PickCandidate], clearance_mm: float) -> None:
