@@ -82,6 +82,8 @@ def run(services: Services, ctx: JobContext) -> dict[str, Any]:
         if not det.found:
             if len(rows) >= 3 and _travel_mm(rows) >= p.min_travel_mm:
                 break  # it has left the view after enough travel
+            if rows and int(ticks) != rows[-1]["ticks"]:
+                rows = []  # it left the view too soon: the next pass (a belt is a loop) starts afresh
             continue
         X = detected_points_m(target, det)
         pose = estimate_pose(camera, X, det.uv)
