@@ -71,6 +71,9 @@ PRODUCTION_FIELDS = (
     Field("CYCLE_MEDIAN_MS", 2, kind="int32"), Field("LAST_SIGMA_UM", 2, kind="int32"),
     Field("LAST_SIGMA_MDEG", 2, kind="int32"),
 )
+CONVEYOR_FIELDS = (Field("MISSED_WINDOW", 2, kind="int32"), Field("QUEUE_LENGTH"))
+"""Production from a belt (docs/conveyor.md): added after the map's end within version 4 (additive: every
+older address is where it was)."""
 SIGMA_SEQ_FIELDS = (Field("SIGMA_SEQ"),)
 SIGMA_FIELDS = (Field("SIGMA_UM", 2, kind="int32"), Field("SIGMA_MDEG", 2, kind="int32"))
 """One pick's uncertainty, at offsets from ``PICK_SIGMA + SIGMA_STRIDE * k``."""
@@ -86,9 +89,12 @@ SIGMA_SEQ_BLOCK = layout(PRODUCTION_BLOCK["LAST_SIGMA_MDEG"].end + 1, SIGMA_SEQ_
 PICK_SIGMA = SIGMA_SEQ_BLOCK["SIGMA_SEQ"].address + 1  # 204
 SIGMA_STRIDE = sum(f.count for f in SIGMA_FIELDS)  # 4
 SIGMA_OFFSETS = layout(0, SIGMA_FIELDS)
-END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: the first address after the map
+END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: the first address after the pick uncertainty block
+CONVEYOR_BLOCK = layout(END, CONVEYOR_FIELDS)  # 236
+MAP_END = CONVEYOR_BLOCK["QUEUE_LENGTH"].end + 1  # 239: the first address after the map
 
-REGISTERS: dict[str, Placed] = {**COMMAND_BLOCK, **ANSWER_BLOCK, **MESSAGE_BLOCK, **PRODUCTION_BLOCK, **SIGMA_SEQ_BLOCK}
+REGISTERS: dict[str, Placed] = {**COMMAND_BLOCK, **ANSWER_BLOCK, **MESSAGE_BLOCK, **PRODUCTION_BLOCK, **SIGMA_SEQ_BLOCK,
+                                 **CONVEYOR_BLOCK}
 """Every field at a fixed address (the pick and sigma fields repeat: ``PICK_OFFSETS``, ``SIGMA_OFFSETS``)."""
 
 
@@ -153,3 +159,9 @@ def production_block_words(values: dict[str, Any]) -> list[int]:
         key, scale = PRODUCTION_VALUES[f.name]
         words += field_words(f, values[key], scale)
     return words
+
+
+def conveyor_block_words(missed_window: int, queue_length: int) -> list[int]:
+    """The conveyor block (its registers in order): parts that left the window unpicked in the last run, and
+    the parts queued on the belt now (0 for a still run or none)."""
+    return [*int32_words(missed_window), max(0, min(0xFFFF, int(queue_length)))]

@@ -48,7 +48,10 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("ProductionCycleMedianMs", math.nan, ua.VariantType.Double),
     ("ProductionLastSigmaMm", math.nan, ua.VariantType.Double),
     ("ProductionLastSigmaDeg", math.nan, ua.VariantType.Double),
+    ("ProductionMissedWindow", 0, ua.VariantType.Int32),
+    ("ProductionQueueLength", 0, ua.VariantType.Int32),
 )
+"""``ProductionMissedWindow`` and ``ProductionQueueLength``: production from a belt (docs/conveyor.md)."""
 
 Call = Callable[[Request], Awaitable[Outcome]]
 Fail = Callable[[Outcome], Any]
@@ -76,6 +79,8 @@ def production_values(services: Services) -> dict[str, Any]:
         "ProductionLastSigmaDeg": math.nan if sigma_deg is None else float(sigma_deg)}
     for k in COUNTERS:
         out[_COUNTER_NAMES[k]] = int(snap["counters"][k])
+    out["ProductionMissedWindow"] = int(snap["counters"].get("missed_window", 0))
+    out["ProductionQueueLength"] = int(snap.get("queue_length", 0))
     return out
 
 
