@@ -462,6 +462,11 @@ class RobotBase(DeviceBase):
         session.check()
         return self._start_tracking(np.asarray(direction_base, dtype=np.float64), float(ticks_per_m), float(most_m))
 
+    def tracks_conveyor(self) -> bool:
+        """Whether this adapter can track a conveyor (``start_tracking``); a belt run is refused before the
+        robot moves when it cannot."""
+        return False
+
     def stop_tracking(self) -> None:
         """Stop following the conveyor: the tool stays where it is."""
         self._stop_tracking()

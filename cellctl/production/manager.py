@@ -192,6 +192,10 @@ def conveyor_parts(services: Services, recipe: Recipe, robot_id: str) -> dict[st
     source = recipe.source
     assert source is not None  # noqa: S101 - called for a conveyor recipe
     conveyor = services.cell.conveyor(source.conveyor_id).ensure_open()
+    robot = services.cell.robot(robot_id).ensure_open()
+    if not robot.tracks_conveyor():
+        raise PickError(f"robot {robot_id} ({type(robot).__name__}) cannot track a conveyor: a belt run needs a robot "
+                        "whose controller follows the belt's encoder (docs/conveyor.md)")
     cal = services.store.active("conveyor", source.conveyor_id, robot_id)
     if cal is None:
         raise PickError(f"conveyor {source.conveyor_id} has no active belt calibration for robot {robot_id}: run the "

@@ -183,6 +183,9 @@ class SimRobot(RobotBase):
         if self._world is not None:
             self._world.tracker.stop()
 
+    def tracks_conveyor(self) -> bool:
+        return self._world is not None and self._world.belt is not None
+
     def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
         world = self.world
         if world.belt is None:

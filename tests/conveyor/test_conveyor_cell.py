@@ -61,6 +61,10 @@ def test_1_conveyor_calibrate_finds_the_belt_within_its_uncertainty(cell: tuple[
     assert stored["kind"] == "conveyor" and stored["camera_id"] == "belt0" and stored["robot_id"] == "robot0"
     act = http.post(f"/calibrations/{r['calibration_id']}/activate", json={})
     assert act.status_code == 200, act.text
+    report = http.get(f"/calibrations/{r['calibration_id']}/report", params={"format": "json"}).json()
+    assert report["kind"] == "conveyor" and report["ticks_per_m"] == r["ticks_per_m"], report
+    page = http.get(f"/calibrations/{r['calibration_id']}/report")
+    assert page.status_code == 200 and "ticks per metre" in page.text
     viewer_refused = http.get("/routines").json()
     assert next(x for x in viewer_refused if x["name"] == "conveyor-calibrate")["role"] == "engineer"
 
