@@ -21,7 +21,7 @@ from drivers.registry import Category, adapter_class
 
 log = logging.getLogger(__name__)
 
-D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase)
+D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase, ConveyorBase)
 
 class UnknownDevice(CellctlError, LookupError):
     """A camera or robot id that the config does not name."""
