@@ -128,7 +128,8 @@ class ConveyorRun(ProductionRun):
 
     def _belt_cycles(self) -> Ended:
         r = self.s.recipe
-        assert r.source is not None  # noqa: S101 - a conveyor run is made for a conveyor recipe
+        if r.source is None:
+            raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
         just_cycled = True
         while True:
             if just_cycled or self._stop or self._pause or (self.s.count and
@@ -167,7 +168,8 @@ class ConveyorRun(ProductionRun):
     def _next_part(self) -> tuple[BeltPart, Meeting] | None:
         """The part furthest along that can be met (and its meeting); parts that cannot are given up."""
         r = self.s.recipe
-        assert r.source is not None  # noqa: S101
+        if r.source is None:
+            raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
         ticks = self._check_count()
         speed = self.watch.speed_mm_s()
         tool = self.robot.state().T_base_tool

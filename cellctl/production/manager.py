@@ -190,7 +190,8 @@ def conveyor_parts(services: Services, recipe: Recipe, robot_id: str) -> dict[st
     from cellctl.production.belt import BeltCalibration
 
     source = recipe.source
-    assert source is not None  # noqa: S101 - called for a conveyor recipe
+    if source is None:
+        raise PickError(f"recipe {recipe.name!r} has no source: it is not a belt recipe")
     conveyor = services.cell.conveyor(source.conveyor_id).ensure_open()
     robot = services.cell.robot(robot_id).ensure_open()
     if not robot.tracks_conveyor():

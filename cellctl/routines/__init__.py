@@ -16,7 +16,7 @@ from cellctl.services import Services
 
 Routine = Callable[[Services, JobContext], dict[str, Any]]
 
-__all__ = ["ENGINEER_ONLY", "HOLDS_ROBOT", "MOVES_ROBOT", "ROUTINE_MODULES", "Routine", "routine"]
+__all__ = ["ENGINEER_ONLY", "HOLDS_ROBOT", "MOVES_ROBOT", "NEEDS_CONVEYOR", "ROUTINE_MODULES", "Routine", "routine"]
 """Starting one (the rules REST and the PLC share) is ``cellctl.routines.start.start_routine``: it imports
 this package, so it is not re-exported here."""
 
@@ -29,6 +29,8 @@ ROUTINE_MODULES: Final[dict[str, str]] = {
 }
 MOVES_ROBOT: Final[frozenset[str]] = frozenset({"intrinsics-capture", "handeye-capture"})
 ENGINEER_ONLY: Final[frozenset[str]] = frozenset({"conveyor-calibrate"})
+NEEDS_CONVEYOR: Final[frozenset[str]] = frozenset({"conveyor-calibrate"})
+"""Routines listed (``GET /routines``) only in a cell whose config names a conveyor."""
 """Routines that need the engineer role without moving the robot (they calibrate the cell against a moving belt)."""
 HOLDS_ROBOT: Final[frozenset[str]] = frozenset({"verify"})
 """Routines that measure with the robot standing still: they hold it still for their whole run

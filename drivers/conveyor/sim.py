@@ -74,7 +74,8 @@ class SimConveyor(ConveyorBase):
         if w is not None:
             return (float(w[0]), float(w[1]))
         spec = world_for(self._settings.scene, self._settings.seed).scene.conveyor
-        assert spec is not None  # noqa: S101 - open() refused a scene without one
+        if spec is None:
+            raise DeviceUnavailable(f"conveyor {self.conveyor_id}: the scene has no conveyor (use scene: conveyor)")
         return spec.pick_window_mm
 
     def set_speed(self, speed_mm_s: float, variation: float | None = None) -> None:

@@ -268,7 +268,8 @@ class ProductionParts:
         """Seeded poses along the belt from its ``first_x_mm`` upstream (-x): random spacing, some parts
         pushed against the one ahead (touching), none overlapping; all inside the parts' lane. The first part
         lies upright (its outline's x along base x): the one a user teaches with the belt still."""
-        assert self.belt is not None
+        if self.belt is None:
+            raise ValueError("the scene has no conveyor to scatter parts on")
         bp = self.belt.spec.parts
         rng = np.random.default_rng([bp.seed, 0xC0])
         r = self.spec.part_radius_mm()
