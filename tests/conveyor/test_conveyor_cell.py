@@ -160,3 +160,58 @@ def test_5_an_encoder_fault_ends_the_run_failed_saying_what(cell: tuple[AppCell,
     assert st["state"] == "failed", st
     want = r"encoder stopped" if fault == "encoder_stop" else r"jumped by 40\d\d ticks"  # 4000 and the travel
     assert re.search(want, st["error"] or ""), st
+
+
+def _wait_phase(http: Any, phase: str, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st = http.get("/production").json()
+        if st.get("phase") == phase and st["ended_because"] is None:
+            return
+        time.sleep(0.005)
+    raise TimeoutError(f"phase {phase} not reached: {http.get('/production').json()}")
+
+
+def test_6_a_belt_that_stops_mid_pick_is_recorded_and_the_part_is_met_when_it_moves_again(
+        cell: tuple[AppCell, SimWorld]) -> None:
+    app, world = cell
+    http = app.http()
+    _ready(http, world)
+    set_speed(http, 100.0)
+    assert http.post("/production/start", json={"recipe_id": 1, "count": 1}).status_code == 202
+    _wait_phase(http, "to_pick")
+    set_speed(http, 0.0)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        cycles = http.get(f"/production/runs/{http.get('/production').json()['run_id']}/cycles").json()
+        if any(c["result"] == "belt_stopped" for c in cycles):
+            break
+        time.sleep(0.1)
+    stopped = [c for c in cycles if c["result"] == "belt_stopped"]
+    assert stopped and "the belt stopped or slowed" in stopped[0]["detail"], cycles
+    set_speed(http, 100.0)
+    st = wait_ended(http, 40.0)
+    assert st["ended_because"] == "count_reached" and st["counters"]["placed"] == 1, st
+
+
+def test_7_a_part_that_slips_before_the_grip_is_a_failed_grip_not_chased(cell: tuple[AppCell, SimWorld]) -> None:
+    app, world = cell
+    http = app.http()
+    _ready(http, world)
+    set_speed(http, 100.0)
+    assert http.post("/production/start", json={"recipe_id": 1, "count": 1}).status_code == 202
+    _wait_phase(http, "to_pick")
+    parts = world.production
+    assert parts is not None
+    for p, T in parts.poses(world.T_base_tool_true):
+        if p.state == "in_area" and 0.15 <= T[0, 3] <= 0.74:
+            parts.slip(p.id, 25.0)  # pushed 25 mm along the belt after its last sighting
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and http.get("/production").json()["counters"]["grip_failures"] == 0:
+        time.sleep(0.05)
+    http.post("/production/stop")
+    st = wait_ended(http, 40.0)
+    cycles = http.get(f"/production/runs/{st['run_id']}/cycles").json()
+    failed = [c for c in cycles if c["result"] == "grip_failed"]
+    assert failed and "may have slipped" in failed[0]["detail"], cycles
+    assert world.T_base_tool_true[0, 3] <= 0.740 + 1e-6
