@@ -137,3 +137,12 @@ def test_the_belt_fit_recovers_direction_and_ticks_per_metre_within_its_sigma() 
         ang = math.degrees(math.acos(min(1.0, float(np.dot(out["direction_base"], d)))))
         assert ang < 5 * out["sigma_direction_deg"] + 1e-3
     assert misses <= 2  # 3-sigma: about 1 in 370 expected
+
+
+def test_the_plc_reads_missed_window_and_the_queue_length_after_every_older_register() -> None:
+    from cellctl.plc import modbus_map as mm
+
+    assert (mm.address("MISSED_WINDOW"), mm.address("QUEUE_LENGTH"), mm.MAP_END) == (mm.END, mm.END + 2, mm.END + 3)
+    assert all(p.end < mm.END for name, p in mm.REGISTERS.items() if name not in ("MISSED_WINDOW", "QUEUE_LENGTH"))
+    words = mm.conveyor_block_words(70000, 3)
+    assert mm.words_int32(words[:2]) == 70000 and words[2] == 3
