@@ -148,6 +148,19 @@ class SimBelt:
             self._encoder_stopped_at = None
             self._jump_ticks = 0
 
+    def carried(self, T: np.ndarray, s_m: float | None = None) -> np.ndarray:
+        """Where a target riding the belt (a loop twice the belt's length; ``T`` its pose at the start) is
+        after the belt's travel ``s_m`` (default now); on the return side it is far below, out of view."""
+        x0, x1 = (v * 1e-3 for v in self.spec.x_mm)
+        loop = 2 * (x1 - x0)
+        s = self.position_m() if s_m is None else s_m
+        x = x0 + (float(T[0, 3]) - x0 + s) % loop
+        out = np.array(T, dtype=np.float64, copy=True)
+        out[0, 3] = x
+        if x > x1:
+            out[2, 3] -= 1.0
+        return out
+
     # -- truth ------------------------------------------------------------------------------------
     def truth(self) -> dict[str, object]:
         now = time.monotonic()

@@ -24,7 +24,7 @@ from drivers.sim.scene import SceneError
 def _reflectance(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], value: float,
                  x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
     """The part in its own frame (metres): ``value`` inside the outline and outside the holes, NaN elsewhere."""
-    from drivers.sim.world import part_mask
+    from drivers.sim.outline import part_mask
 
     inside = part_mask(outline_mm, holes_mm, 0.0, 0.0, 0.0, x, y)
     out = np.full(x.shape, np.nan)
@@ -67,7 +67,7 @@ class _Lying:
             self.labels[1][on & ~first] = k + 1
 
     def __call__(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-        from drivers.sim.world import part_mask
+        from drivers.sim.outline import part_mask
 
         out = np.full(x.shape, np.nan)
         _, h, w = self.labels.shape

@@ -36,11 +36,13 @@ from calibration import geometry as g
 from drivers.sim.conveyor import BeltTracker, SimBelt
 from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
+from drivers.sim.outline import part_mask
 from drivers.sim.production import ProductionParts
 from drivers.sim.production_view import production_objects, production_truth
 from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene, resolve_scene
 
 log = logging.getLogger(__name__)
+__all__ = ["SimWorld", "forget_worlds", "part_mask", "world_for"]
 
 KEEP_MOVING_EVERY_S = 0.05
 """While the arm moves, its pose is written to the state file at most this often."""
@@ -227,19 +229,9 @@ class SimWorld:
         raise KeyError(f"no target named {name!r} in the scene")
 
     def _on_belt(self, T: NDArray[np.float64], s_m: float | None = None) -> NDArray[np.float64]:
-        """A target riding the belt (a loop twice the belt's length): where it is after the belt's travel;
-        on the return side (under the belt) it is far below, out of view."""
         if self.belt is None:
             raise SceneError("a target attached_to: belt needs the scene's conveyor")
-        x0, x1 = (v * 1e-3 for v in self.belt.spec.x_mm)
-        loop = 2 * (x1 - x0)
-        s = self.belt.position_m() if s_m is None else s_m
-        x = x0 + (float(T[0, 3]) - x0 + s) % loop
-        out = T.copy()
-        out[0, 3] = x
-        if x > x1:
-            out[2, 3] -= 1.0
-        return out
+        return self.belt.carried(T, s_m)
 
     def planar_objects(self, s_m: float | None = None) -> list[PlanarObject]:
         """Everything visible, as planes in the camera frame: targets, then the parts, the table.
@@ -371,44 +363,6 @@ class SimWorld:
             out["tool_feature"] = {**feature.model_dump(mode="json"),
                                    "T_base_feature": (self.T_base_tool_true @ T_tool_feature).tolist()}
         return out
-
-
-def part_mask(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], x_mm0: float, y_mm0: float,
-              angle_deg: float, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Points (table frame, metres) inside a part's outline and outside its holes."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
-    poly = np.asarray(outline_mm, dtype=np.float64)
-    radius = float(np.max(np.linalg.norm(poly, axis=1)))
-    inside = np.zeros(x.shape, dtype=bool)
-    # A box test on the raw coordinates first: most of a frame's points are far from every part.
-    r_m = radius / 1000.0 + 1e-6
-    box = (np.abs(x - x_mm0 / 1000.0) <= r_m) & (np.abs(y - y_mm0 / 1000.0) <= r_m)
-    if not np.any(box):
-        return inside
-    dx, dy = x[box] * 1000.0 - x_mm0, y[box] * 1000.0 - y_mm0
-    px, py = c * dx + s * dy, -s * dx + c * dy  # into the part frame (mm)
-    near = px * px + py * py <= radius * radius
-    qx, qy = px[near], py[near]
-    m = _even_odd(poly, qx, qy)
-    for hole in holes_mm:
-        m &= ~_even_odd(np.asarray(hole, dtype=np.float64), qx, qy)
-    near[near] = m
-    inside[box] = near
-    return inside
-
-
-def _even_odd(poly: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
-    inside = np.zeros(x.shape, dtype=bool)
-    n = len(poly)
-    for i in range(n):
-        x1, y1 = poly[i]
-        x2, y2 = poly[(i + 1) % n]
-        crosses = (y1 > y) != (y2 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xi = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= crosses & (x < xi)
-    return inside
 
 
 _WORLDS: dict[tuple[str, int], SimWorld] = {}
