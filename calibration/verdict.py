@@ -9,6 +9,11 @@ operator can argue with them):
   focal length and the target distance cannot be told apart (docs/field-notes.md).
 - ``corners_not_covered``: an image corner region (the outer ``CORNER_FRACTION`` of width and
   height) holds no observed point; distortion there is extrapolated. The message names them.
+- ``border_not_covered``: along an image side, the border strip (the outer ``BORDER_FRACTION`` of the
+  width or height) holds observed points over less than ``BORDER_MIN_FRACTION`` of its length (cells
+  of the coverage grid: in practice, none). Lens distortion grows fastest towards the border; with
+  the ring empty it is extrapolated there, however well the centre fits (measured on held-out renders:
+  ``bench/intrinsics_border.py``). The message names the sides and how much of each is covered.
 - ``focal_poorly_determined``: 1-sigma of fx or fy above ``MAX_FOCAL_REL_SIGMA`` of its value.
 - ``principal_point_poorly_determined``: 1-sigma of cx or cy above ``MAX_PP_REL_SIGMA`` of the
   image width/height.
@@ -35,6 +40,12 @@ from numpy.typing import NDArray
 MIN_GOOD_VIEWS: Final = 8
 MIN_TILT_DEG: Final = 15.0
 CORNER_FRACTION: Final = 0.2
+BORDER_FRACTION: Final = 0.1
+"""The border strip along each image side: cells whose centre lies in the outer 10% of the width/height."""
+BORDER_MIN_FRACTION: Final = 0.05
+"""A side's strip counts as covered when observed points lie over at least this share of its length (one
+cell of the 16 x 12 grid along a side: the radial terms are pinned by the largest radius reached, the image
+corners; the strip asks for each side's distortion to be sampled at least once)."""
 MAX_FOCAL_REL_SIGMA: Final = 0.01
 MAX_PP_REL_SIGMA: Final = 0.01
 MAX_PROJECTION_RMS_PX: Final = 0.5
@@ -60,6 +71,23 @@ def uncovered_corners(coverage: NDArray[np.int64], fraction: float = CORNER_FRAC
     regions = {"top-left": coverage[:cy, :cx], "top-right": coverage[:cy, -cx:],
                "bottom-left": coverage[-cy:, :cx], "bottom-right": coverage[-cy:, -cx:]}
     return [k for k, r in regions.items() if r.sum() == 0]
+
+
+def border_coverage(coverage: NDArray[np.int64], fraction: float = BORDER_FRACTION) -> dict[str, float]:
+    """For each image side (top, bottom, left, right), the share of its border strip's length (cells along
+    the side) that holds an observed point; the strip is the cells whose centre lies in the outer
+    ``fraction`` of the image."""
+    ny, nx = coverage.shape
+    kx = max(1, int(np.sum((np.arange(nx) + 0.5) / nx < fraction)))
+    ky = max(1, int(np.sum((np.arange(ny) + 0.5) / ny < fraction)))
+    c = np.asarray(coverage) > 0
+    return {"top": float(c[:ky, :].any(axis=0).mean()), "bottom": float(c[-ky:, :].any(axis=0).mean()),
+            "left": float(c[:, :kx].any(axis=1).mean()), "right": float(c[:, -kx:].any(axis=1).mean())}
+
+
+def uncovered_border(coverage: NDArray[np.int64]) -> list[str]:
+    """The image sides whose border strip is covered over less than ``BORDER_MIN_FRACTION`` of its length."""
+    return [k for k, f in border_coverage(coverage).items() if f < BORDER_MIN_FRACTION]
 
 
 def horizontal_fov_deg(size: tuple[int, int], fx: float) -> float:
@@ -117,6 +145,16 @@ def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], 
                          "message": f"no target points in the image corner(s) {', '.join(missing)} (outer "
                                     f"{CORNER_FRACTION:.0%} of the image); add views with the target there, "
                                     "or distortion there is a guess"})
+    sides = uncovered_border(coverage)
+    if sides:
+        share = border_coverage(coverage)
+        problems.append({"code": "border_not_covered",
+                         "message": "the image border is not covered: target points lie along "
+                                    + ", ".join(f"the {k} edge over {share[k]:.0%}" for k in sides)
+                                    + f" of its outer {BORDER_FRACTION:.0%} strip (at least "
+                                    f"{BORDER_MIN_FRACTION:.0%} needed); add views with the target reaching the "
+                                    f"{', '.join(sides)} edge(s) of the image, where the lens distorts most "
+                                    "(uncovered, the distortion there is extrapolated)"})
     for f in ("fx", "fy"):
         if f in sigmas and values.get(f):
             rel = sigmas[f] / abs(values[f])
@@ -146,7 +184,8 @@ def assess(*, n_views: int, size: tuple[int, int], coverage: NDArray[np.int64], 
                        "message": f"{n_outlier_views} view(s) fit far worse than the rest (see "
                                   "views[].outlier); check them or recalibrate with outlier dropping"})
     return {"ok": not problems, "problems": problems, "advice": advice,
-            "max_tilt_deg": {"about_x": round(max_x, 1), "about_y": round(max_y, 1)}}
+            "max_tilt_deg": {"about_x": round(max_x, 1), "about_y": round(max_y, 1)},
+            "border_covered": {k: round(v, 3) for k, v in border_coverage(coverage).items()}}
 
 
 def cross_validation_problem(cv: dict[str, Any]) -> dict[str, str] | None:

@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from calibration.io import read_text, yaml_error_text
+from cellctl.drift.config import DriftConfig
 from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
 from drivers.base import MotionLimits
@@ -336,6 +337,8 @@ class CellConfig(_Strict):
     plc: PlcConfig = PlcConfig()
     """PLC-native front ends (Modbus TCP, OPC UA); both off unless enabled."""
     production: ProductionConfig = ProductionConfig()
+    drift: DriftConfig | None = None
+    """Drift checks against fixed fiducials (docs/drift.md); none when absent."""
     _source: Path | None = PrivateAttr(None)
     """The file this config was read from (None: built in); the service re-reads its tokens on change."""
 
@@ -351,6 +354,14 @@ class CellConfig(_Strict):
         for name, desc in v.items():
             target_from_dict(desc, f"targets.{name}")
         return v
+
+    @model_validator(mode="after")
+    def _drift_target(self) -> CellConfig:
+        target = None if self.drift is None else self.drift.fiducials.target
+        if target is not None and target not in self.targets:
+            raise ValueError(f"drift.fiducials.target {target!r} is not a target of this cell (targets: "
+                             f"{', '.join(sorted(self.targets)) or 'none'}); name one of them")
+        return self
 
     @field_validator("format_version")
     @classmethod

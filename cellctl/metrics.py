@@ -11,6 +11,8 @@ What is measured, and where it comes from:
   whatever runs a pick (REST route, PLC front ends) calls.
 - ``cellctl_routine_outcomes_total{routine,state}``: every finished job (succeeded / failed /
   cancelled), fed by ``cellctl.jobs.JobManager`` through ``routine_finished``.
+- ``cellctl_drift_mm{camera}`` and ``cellctl_drift_alarm{camera}`` (gauges): the last judged drift
+  check (``cellctl.drift``), fed by ``observe_drift``.
 - Read from the live cell at each scrape: ``cellctl_device_available{category,device,kind}``,
   ``cellctl_device_outages_total{category,device}``, ``cellctl_robot_connected{robot}`` (1 when the
   robot's slot is open and its adapter reports fresh state), and per camera, when its adapter counts
@@ -70,6 +72,10 @@ class CellMetrics:
         self.picks = Counter("cellctl_picks", "picks, by whether anything was found", ["result"], registry=r)
         self.routines = Counter("cellctl_routine_outcomes", "finished routines (jobs), by routine and final state",
                                 ["routine", "state"], registry=r)
+        self.drift_mm = Gauge("cellctl_drift_mm", "the last drift check's drift at the fiducials, mm "
+                              "(docs/drift.md)", ["camera"], registry=r)
+        self.drift_alarm = Gauge("cellctl_drift_alarm", "1 when the last drift check raised an alarm",
+                                 ["camera"], registry=r)
         info = Gauge("cellctl_build_info", "the running cellctl version (value 1)", ["version"], registry=r)
         info.labels(__version__).set(1)
         self.devices = DeviceCollector()
@@ -114,6 +120,18 @@ class CellMetrics:
             self.routines.labels(routine, state).inc()
         except Exception:  # noqa: BLE001 - metrics never break a job
             log.debug("routine_finished failed", exc_info=True)
+
+    def observe_drift(self, camera: str, drift_mm: float | None, alarm: bool) -> None:
+        """A judged drift check of ``camera`` (mm, alarm or not; ``drift_mm`` None: no check yet, the last
+        value stays); never raises."""
+        if not self.attached:
+            return
+        try:
+            if drift_mm is not None:
+                self.drift_mm.labels(camera).set(float(drift_mm))
+            self.drift_alarm.labels(camera).set(1.0 if alarm else 0.0)
+        except Exception:  # noqa: BLE001 - metrics never break a check
+            log.debug("observe_drift failed", exc_info=True)
 
     def render(self) -> bytes:
         """The registry in Prometheus' text exposition format."""

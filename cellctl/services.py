@@ -2,8 +2,9 @@
 
 One ``Services`` per service process holds every piece of live state as a typed field: the config,
 the live cell, the store, the jobs, the frame cache, the Stop latches' keeper, the metrics, the
-calibration report cache, the production manager and the PLC request engine (made on first use). Nothing in ``cellctl``
-keeps live state in a module-level registry; ``close`` ends it all, in order.
+calibration report cache, the production manager, the PLC request engine and the drift monitor (made
+on first use). Nothing in ``cellctl`` keeps live state in a module-level registry; ``close`` ends it
+all, in order.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from cellctl.metrics import CellMetrics
 from cellctl.pick.frames import FrameCache
 
 if TYPE_CHECKING:
+    from cellctl.drift.monitor import DriftMonitor
     from cellctl.latches import LatchKeeper
     from cellctl.plc.engine import Engine
     from cellctl.production.manager import ProductionManager
@@ -64,6 +66,7 @@ class Services:
     """Calibration report pages built so far (``GET /calibrations/{id}/report``)."""
     _production: ProductionManager | None = field(default=None, init=False, repr=False)
     _plc_engine: Engine | None = field(default=None, init=False, repr=False)
+    _drift: DriftMonitor | None = field(default=None, init=False, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -96,6 +99,24 @@ class Services:
                 self._plc_engine = Engine(self)
             return self._plc_engine
 
+    @property
+    def drift(self) -> DriftMonitor | None:
+        """The drift monitor (``cellctl.drift``; made on first use); None when ``drift:`` is not configured."""
+        if self.config.drift is None:
+            return None
+        from cellctl.drift.monitor import DriftMonitor
+
+        with self._lock:
+            if self._drift is None:
+                self._drift = DriftMonitor(self, self.config.drift)
+            return self._drift
+
+    @property
+    def drift_if_made(self) -> DriftMonitor | None:
+        """The drift monitor if one was made (no store access: safe on an event loop)."""
+        with self._lock:
+            return self._drift
+
     def close_plc_engine(self) -> None:
         """Close the PLC request engine (after its front ends stopped): the next use makes a new one."""
         with self._lock:
@@ -114,6 +135,9 @@ class Services:
         jobs, the cell's devices, the latch writer, the store; the metrics stop reading the cell."""
         try:
             self.stop_production()
+            drift = self.drift_if_made
+            if drift is not None:
+                drift.close()
             self.close_plc_engine()
             self.jobs.shutdown()
             self.cell.close()

@@ -15,6 +15,7 @@ from typing import Any
 
 from calibration.report import plots as pl
 from calibration.report.camera_plots import RESIDUAL_BAND
+from calibration.report.drift import drift_html
 from calibration.report.page import esc, fmt, matrix_html, table, verdict_html
 
 POSITION_BAND = pl.Band(0.5, 2.0, "mm")
@@ -134,4 +135,5 @@ def handeye_html(res: dict[str, Any]) -> str:
                                  "plot corrections", "Per station: robot pose correction of the refinement "
                                  "(against the noise model)", bands, ("position correction", "rotation correction"))
         figs += _station_table(st)
-    return verdict_html(res.get("verdict")) + table(rows) + "<h2>Transforms</h2>" + mats + "<h2>Stations</h2>" + figs
+    return (verdict_html(res.get("verdict")) + table(rows) + drift_html(res) + "<h2>Transforms</h2>" + mats
+            + "<h2>Stations</h2>" + figs)

@@ -14,7 +14,11 @@ h1{font-size:1.4em}h2{font-size:1.1em;margin-top:1.6em;border-bottom:1px solid #
 table{border-collapse:collapse;margin:.5em 0}td,th{padding:2px 10px;text-align:left;border-bottom:1px solid #eee}
 td.num{text-align:right;font-variant-numeric:tabular-nums}.note{color:#555;font-size:.85em;margin-top:0}
 .thumbs{display:flex;flex-wrap:wrap;gap:6px}.thumb{margin:0;font-size:.75em;text-align:center}
-.thumb.rejected{opacity:.6}.plots{display:flex;flex-wrap:wrap;gap:12px}svg.plot{max-width:100%;height:auto}"""
+.thumb.rejected{opacity:.6}.plots{display:flex;flex-wrap:wrap;gap:12px}svg.plot{max-width:100%;height:auto}
+@page{size:A4;margin:12mm}
+@media print{body{max-width:none;margin:0;padding:0;font-size:10pt;color:#000}h2{break-after:avoid}
+table,tr,figure,svg.plot,.thumb{break-inside:avoid}.plots{display:block}
+svg.plot{display:block;margin:0 auto 4mm;max-height:120mm}.ok,.bad{color:#000}.bad{text-decoration:underline}}"""
 
 
 def esc(text: object) -> str:

@@ -5,19 +5,13 @@ imported on first use.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from cellctl.api.app import create_app
     from cellctl.api.errors import OWN_ERRORS, ApiError, install_error_handlers
-
-_LAZY: dict[str, str] = {
-    "create_app": "cellctl.api.app",
-    "ApiError": "cellctl.api.errors",
-    "OWN_ERRORS": "cellctl.api.errors",
-    "install_error_handlers": "cellctl.api.errors",
-}
-"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
 
 __all__ = [
     "ApiError",
@@ -26,12 +20,10 @@ __all__ = [
     "install_error_handlers",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "create_app": "cellctl.api.app",
+    "ApiError": "cellctl.api.errors",
+    "OWN_ERRORS": "cellctl.api.errors",
+    "install_error_handlers": "cellctl.api.errors",
+})
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""

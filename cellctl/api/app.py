@@ -16,6 +16,7 @@ from cellctl.api.errors import install_error_handlers
 from cellctl.api.middleware import RequestMiddleware
 from cellctl.api.pools import Pools
 from cellctl.api.routes import auth, calibrations, cameras, health, jobs, map, pick, robots, targets, ui
+from cellctl.api.routes import drift as drift_route
 from cellctl.api.routes import metrics as metrics_route
 from cellctl.api.routes import plc as plc_route
 from cellctl.api.routes import production as production_route
@@ -63,6 +64,9 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
         # `starting` until they have, and a camera image waits for its camera's (cellctl.warmup).
         app.state.startup = service_startup(cell, since_s=t0)
         app.state.startup.start()
+        drift = await run_in_threadpool(lambda: services.drift)
+        if drift is not None:
+            drift.start()  # the idle checks (docs/drift.md); joined by services.close
         log.info("cell %s open: cameras %s, robots %s; store %s; warming up", config.cell_id, sorted(cell.cameras),
                  sorted(cell.robots), store.describe())
         from cellctl.plc import start_plc_servers
@@ -105,4 +109,5 @@ def create_app(config: CellConfig, session_tokens: list[tuple[str, Role, str]] |
     app.include_router(production_route.router)
     app.include_router(recipes_route.router)
     app.include_router(plc_route.router)
+    app.include_router(drift_route.router)
     return app

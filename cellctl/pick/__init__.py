@@ -18,7 +18,9 @@ sense), in (-180, 180].
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from cellctl.pick.candidate import Located, PickCandidate, locate
@@ -29,36 +31,6 @@ if TYPE_CHECKING:
     from vision.recognize import Recognition, RecognitionResult, recognize
     from vision.shape import TeachParams
     from vision.types import FindResult, Match, SearchParams
-
-_LAZY: dict[str, str] = {
-    "Located": "cellctl.pick.candidate",
-    "PickCandidate": "cellctl.pick.candidate",
-    "locate": "cellctl.pick.candidate",
-    "run_pick": "cellctl.pick.flow",
-    "FORMAT_VERSION": "cellctl.pick.model",
-    "ModelFileError": "cellctl.pick.model",
-    "PartModel": "cellctl.pick.model",
-    "teach": "cellctl.pick.model",
-    "PartPose": "cellctl.pick.pose",
-    "fold_yaw": "cellctl.pick.pose",
-    "part_pose": "cellctl.pick.pose",
-    "pick_pose": "cellctl.pick.pose",
-    "pose_json": "cellctl.pick.pose",
-    "GripperSettings": "cellctl.pick.recipe",
-    "PickError": "cellctl.pick.recipe",
-    "Recipe": "cellctl.pick.recipe",
-    "SearchSettings": "cellctl.pick.recipe",
-    "Recognition": "vision.recognize",
-    "RecognitionResult": "vision.recognize",
-    "recognize": "vision.recognize",
-    "TeachParams": "vision.shape",
-    "FindResult": "vision.types",
-    "Match": "vision.types",
-    "SearchParams": "vision.types",
-}
-"""Public names imported on first use (PEP 562): importing the package runs none of its modules, so the
-service root (``cellctl.services``, which uses this package's frames) and production (whose recipe
-sections the recipe carries) import its modules without a cycle."""
 
 __all__ = [
     "FORMAT_VERSION",
@@ -87,12 +59,32 @@ __all__ = [
     "teach",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "Located": "cellctl.pick.candidate",
+    "PickCandidate": "cellctl.pick.candidate",
+    "locate": "cellctl.pick.candidate",
+    "run_pick": "cellctl.pick.flow",
+    "FORMAT_VERSION": "cellctl.pick.model",
+    "ModelFileError": "cellctl.pick.model",
+    "PartModel": "cellctl.pick.model",
+    "teach": "cellctl.pick.model",
+    "PartPose": "cellctl.pick.pose",
+    "fold_yaw": "cellctl.pick.pose",
+    "part_pose": "cellctl.pick.pose",
+    "pick_pose": "cellctl.pick.pose",
+    "pose_json": "cellctl.pick.pose",
+    "GripperSettings": "cellctl.pick.recipe",
+    "PickError": "cellctl.pick.recipe",
+    "Recipe": "cellctl.pick.recipe",
+    "SearchSettings": "cellctl.pick.recipe",
+    "Recognition": "vision.recognize",
+    "RecognitionResult": "vision.recognize",
+    "recognize": "vision.recognize",
+    "TeachParams": "vision.shape",
+    "FindResult": "vision.types",
+    "Match": "vision.types",
+    "SearchParams": "vision.types",
+})
+"""Public names imported on first use (PEP 562): importing the package runs none of its modules, so the
+service root (``cellctl.services``, which uses this package's frames) and production (whose recipe
+sections the recipe carries) import its modules without a cycle."""

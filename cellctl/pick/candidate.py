@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from cellctl.arm_view import ArmView, arm_view
 from cellctl.mapping import ActiveMapping, active_mapping, npoint_pose_check
 from cellctl.pick.frames import match_contours
+from cellctl.pick.grasp_view import grasp_in_image
 from cellctl.pick.pose import grasp, part_pose, pose_json
 from cellctl.pick.recipe import PickError, Recipe
 from cellctl.services import Services
@@ -58,6 +59,9 @@ class PickCandidate:
     """(which pose, why) when the pick or its approach is outside the robot's envelope; None: reachable."""
     problem: str | None = None
     """Why this part is not to be picked (a refused pose; production adds a neighbour too close); None: it may be."""
+    grasp_px: dict[str, Any] | None = None
+    """The grasp drawn in the picture (``cellctl.pick.grasp_view.GraspImage.as_json``: the gripper centre, the
+    open fingers, the closing direction); None when the calibration gives no local scale there."""
 
     @property
     def reachable(self) -> bool:
@@ -70,7 +74,8 @@ class PickCandidate:
                 "part_yaw_deg": wrap_deg(self.match.angle_deg), "base_yaw_deg": self.base_yaw_deg,
                 "gripper_yaw_deg": self.gripper_yaw_deg,
                 "uncertainty": {"sigma_mm": self.sigma_mm, "sigma_yaw_deg": self.sigma_yaw_deg},
-                "reachable": self.reachable, "not_reachable_reason": None if self.refused is None else self.refused[1]}
+                "reachable": self.reachable, "not_reachable_reason": None if self.refused is None else self.refused[1],
+                "grasp_px": self.grasp_px}
 
 
 def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capture: Mat4 | None, near_yaw: float,
@@ -88,9 +93,14 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
             break
     problem = None if refused is None else f"the {refused[0]} pose is refused: {refused[1]}"
     sigma_yaw = float(match.sigma_angle_deg)
+    try:
+        drawn: dict[str, Any] | None = grasp_in_image(mapping, recipe, match.u_px, match.v_px, match.angle_deg,
+                                                      T_capture, part).as_json()
+    except PickError:  # no local scale at the match (UnusableCalibration): the pose above was mapped, the drawing not
+        drawn = None
     return PickCandidate(match, part.T_base_part, part.sigma_mm, sigma_yaw if math.isfinite(sigma_yaw) else None,
                          math.degrees(part.base_yaw_rad), grip.T_part_grip, grip.T_grip_flange, grip.T_pick,
-                         grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem)
+                         grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem, drawn)
 
 
 def _ticks(value: Any) -> int | None:

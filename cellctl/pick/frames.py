@@ -87,8 +87,9 @@ def _draw_contour(out: NDArray[np.uint8], seg: NDArray[np.float64], colour: tupl
 
 def annotate(frame: StoredFrame) -> NDArray[np.uint8]:
     """The frame in colour with each match drawn: its model contour at its pose, a cross at the
-    reference point, the part's x axis, its rank, part name and score; green when reachable, red
-    when not. With no match, the reason in the top-left corner."""
+    reference point, the part's x axis, the recipe's grasp (the open fingers and their closing line, in
+    blue), its rank, part name and score; green when reachable, red when not. With no match, the reason in
+    the top-left corner."""
     img = frame.pixels
     out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
     for rank, m in enumerate(frame.matches, start=1):
@@ -101,11 +102,33 @@ def annotate(frame: StoredFrame) -> NDArray[np.uint8]:
         cv2.drawMarker(out, p, colour, cv2.MARKER_CROSS, 24, 2)
         q = (int(round(u + 40 * math.cos(a))), int(round(v - 40 * math.sin(a))))  # CCW on screen
         cv2.arrowedLine(out, p, q, colour, 2, tipLength=0.25)
+        if isinstance(m.get("grasp_px"), dict):
+            draw_grasp(out, m["grasp_px"], (255, 120, 0))
         label = f"{rank} {m.get('part', '')} {float(m['score']):.2f}"
         cv2.putText(out, label, (p[0] + 10, p[1] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2)
     if not frame.matches and frame.reason:
         _banner(out, frame.reason)
     return out
+
+
+def draw_grasp(out: NDArray[np.uint8], grasp_px: dict[str, Any], colour: tuple[int, int, int]) -> None:
+    """A parallel gripper's grasp (``GraspImage.as_json``): the closing line between the open fingers (dashed
+    look: thin), each finger a short bar across it, the gripper centre a small circle."""
+    (u0, v0), (u1, v1) = grasp_px["fingers_px"]
+    du, dv = u1 - u0, v1 - v0
+    n = math.hypot(du, dv) or 1.0
+    pu, pv = -dv / n * 9.0, du / n * 9.0  # half a finger's width across the closing line, px
+    cv2.line(out, _pt(u0, v0), _pt(u1, v1), colour, 1, cv2.LINE_AA)
+    for fu, fv in ((u0, v0), (u1, v1)):
+        cv2.line(out, _pt(fu - pu, fv - pv), _pt(fu + pu, fv + pv), colour, 4, cv2.LINE_AA)
+    cu, cv_ = grasp_px["centre_px"]
+    cv2.circle(out, _pt(cu, cv_), 5, colour, 2, cv2.LINE_AA)
+    for c in grasp_px.get("contacts_px") or []:
+        cv2.circle(out, _pt(*c), 3, (0, 0, 255) if grasp_px.get("problem") else colour, -1, cv2.LINE_AA)
+
+
+def _pt(u: float, v: float) -> tuple[int, int]:
+    return int(round(u)), int(round(v))
 
 
 def _banner(out: NDArray[np.uint8], text: str) -> None:

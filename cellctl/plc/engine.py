@@ -34,6 +34,7 @@ from enum import StrEnum
 from typing import Any
 
 from cellctl.config import is_loopback_host
+from cellctl.plc.pacing import Pacer
 from cellctl.plc.requests import (
     TEXT_BUSY,
     TEXT_INTERNAL,
@@ -142,6 +143,8 @@ class FrontEnd:
     """The last answer, kept until this front end's next request."""
     clients_of: Callable[[], int] | None = None
     """For a front end whose library keeps the connections: how many there are now (instead of ``clients``)."""
+    pacer: Pacer | None = None
+    """Its clients' work budget (``cellctl.plc.pacing``): frames done under it and the time they waited."""
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def client_connected(self) -> None:
@@ -162,7 +165,8 @@ class FrontEnd:
         with self._lock:
             return {"enabled": True, "address": f"{self.host}:{self.port}", "host": self.host, "port": self.port,
                     "clients": clients, "requests": self.requests, "refused_busy": self.refused_busy,
-                    "last_request": self.last_request, "last_answer": self.last_answer}
+                    "last_request": self.last_request, "last_answer": self.last_answer,
+                    "paced": None if self.pacer is None else self.pacer.status()}
 
 
 FRONT_ENDS = ("modbus", "opcua", "ethernet_ip", "robot_socket")
@@ -329,7 +333,7 @@ def status_of(services: Services, fronts: dict[str, FrontEnd], running: tuple[st
         host, port = getattr(section, "host", None), getattr(section, "port", None)
         out[name] = {"enabled": False, "address": None if host is None else f"{host}:{port}", "host": host,
                      "port": port, "clients": 0, "requests": 0, "refused_busy": 0, "last_request": None,
-                     "last_answer": None}
+                     "last_answer": None, "paced": None}
     return {"allow_motion": plc.allow_motion, "insecure_plc_network": plc.insecure_plc_network,
             "busy": running is not None,
             "running": None if running is None else {"front_end": running[0], **running[1].describe()},

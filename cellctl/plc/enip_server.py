@@ -5,14 +5,17 @@ With ``plc.ethernet_ip.enabled`` the service answers on ``plc.ethernet_ip.host:p
 to Read/Write Tag services (unconnected, or connected after a Forward Open). The tags and their
 handshake: ``cellctl.plc.enip_tags`` and docs/plc-ethernet-ip.md.
 
-The protocol (the encapsulation parser, the UCMM, the Connection Manager, the Logix Read/Write Tag
-[Fragmented] services) is cpppo's; the network side is ours, on an asyncio loop in a thread this
-server owns: each encapsulation frame is read whole (24-byte header, then its length, at most
-``MAX_FRAME`` bytes), parsed and answered by cpppo on the loop, so the tags change only there. A
-frame cpppo cannot parse, an over-long frame, a connection over ``max_clients`` or silent for
-``idle_timeout_s`` is closed, with one rate-limited log line and never a traceback. The frames'
-work is paced (``cellctl.plc.pacing``): cpppo's parser is pure Python, and a client polling as fast
-as it is answered must not take the interpreter from Stop.
+The frames a PLC sends over and over (Read Tag / Write Tag of our tags, connected or unconnected)
+are answered by a struct-level fast path (``cellctl.plc.enip_fast``, byte for byte as cpppo would,
+a thousand times faster); everything else (Register Session, Forward Open/Close, other services,
+unknown tags, malformed frames) is cpppo's: the encapsulation parser, the UCMM, the Connection
+Manager, the Logix Read/Write Tag [Fragmented] services. The network side is ours
+(``cellctl.plc.stream_server``: an asyncio loop in a thread this server owns): each encapsulation
+frame is read whole (24-byte header, then its length, at most ``MAX_FRAME`` bytes) and answered on
+the loop, so the tags change only there. A frame cpppo cannot parse, an over-long frame, a
+connection over ``max_clients`` or silent for ``idle_timeout_s`` is closed, with one rate-limited
+log line and never a traceback. The frames' work is paced (``cellctl.plc.pacing``): a client
+polling as fast as it is answered must not take the interpreter from Stop.
 
 cpppo keeps its CIP objects (identity, message router, tags) in one registry per process, so one
 EtherNet/IP server runs per process (a second start is refused).
@@ -29,13 +32,14 @@ from typing import Any
 
 from cellctl.config import EthernetIpServerConfig, is_loopback_host
 from cellctl.errors import CellctlError
-from cellctl.plc.engine import Engine, FrontEnd, Request, engine_for
+from cellctl.plc.engine import Engine, Request
+from cellctl.plc.enip_fast import FastPath
 from cellctl.plc.enip_tags import TAGS, RefusedWrite, TagImage, TagSpec
-from cellctl.plc.pacing import Pacer
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import Outcome
+from cellctl.plc.stream_server import StreamServer
 from cellctl.services import Services
-from drivers.loop_thread import LoopNotRunning, LoopThread
+from drivers.loop_thread import LoopNotRunning
 
 log = logging.getLogger(__name__)
 
@@ -100,23 +104,21 @@ def _attribute_class(device: Any) -> Any:
     return TagAttribute
 
 
-class EthernetIpServer:
-    """The PLC's EtherNet/IP tag server for one cell; ``start()`` listens, ``stop()`` ends it."""
+class EthernetIpServer(StreamServer):
+    """The PLC's EtherNet/IP tag server for one cell; ``start()`` listens, ``stop()`` ends it (``StreamServer``)."""
+
+    name, setting, title = "ethernet_ip", "plc.ethernet_ip", "PLC EtherNet/IP server"
+    config: EthernetIpServerConfig
 
     def __init__(self, services: Services, config: EthernetIpServerConfig, engine: Engine | None = None) -> None:
-        self.services, self.config = services, config
-        self.engine = engine or engine_for(services)
+        super().__init__(services, config, engine)
         self.image = TagImage(services, self._submit)
-        self._thread = LoopThread(f"plc-enip-{config.port}")
-        self._server: asyncio.Server | None = None
-        self._front: FrontEnd | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
         self._kwds: dict[str, Any] = {}
         self._mods: Any = None
-        self._pacer = Pacer()
-        self.clients = 0
         self.closed_bad = 0
-        self.address: tuple[str, int] = (config.host, config.port)
+        self.fast_frames = 0
+        """Frames the struct-level fast path answered (``cellctl.plc.enip_fast``); the others went to cpppo."""
+        self.cpppo_frames = 0
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> EthernetIpServer:
@@ -125,10 +127,8 @@ class EthernetIpServer:
         try:
             self._mods = _cpppo()
             self._kwds = self._setup_tags()
-            self._front = self.engine.register("ethernet_ip", self.config.host, self.config.port)
-            self._thread.start(self._listen)
+            super().start()
         except BaseException:
-            self.engine.unregister("ethernet_ip")
             _ONE_SERVER.release()
             raise
         log.info("PLC EtherNet/IP tag server on %s:%d (%d tags)", self.config.host, self.address[1], len(TAGS))
@@ -138,20 +138,9 @@ class EthernetIpServer:
         return self
 
     def stop(self) -> None:
-        async def shutdown() -> None:
-            if self._server is not None:
-                self._server.close()
-            for task in list(self._tasks):
-                task.cancel()
-            if self._tasks:
-                await asyncio.gather(*self._tasks, return_exceptions=True)
-            if self._server is not None:
-                await self._server.wait_closed()
-
         try:
-            self._thread.stop(shutdown)
+            super().stop()
         finally:
-            self.engine.unregister("ethernet_ip")
             if _ONE_SERVER.locked():
                 _ONE_SERVER.release()
 
@@ -175,16 +164,6 @@ class EthernetIpServer:
         # are set up once, here, and each frame is processed without them.
         return {}
 
-    async def _listen(self) -> None:
-        try:
-            self._server = await asyncio.start_server(self._serve, self.config.host, self.config.port,
-                                                      reuse_address=True)
-        except OSError as exc:
-            raise OSError(f"PLC EtherNet/IP server cannot listen on {self.config.host}:{self.config.port} "
-                          f"({exc.strerror or exc}); free the port or change plc.ethernet_ip.port") from None
-        sock = self._server.sockets[0].getsockname()
-        self.address = (str(sock[0]), int(sock[1]))
-
     # -- requests -----------------------------------------------------------------------------------
     def _submit(self, request: Request, answer: Any) -> None:
         """Start a request through the engine; ``answer(outcome)`` runs on the loop when it is done."""
@@ -202,57 +181,42 @@ class EthernetIpServer:
 
         future.add_done_callback(done)
 
-    # -- connections --------------------------------------------------------------------------------
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        peer = writer.get_extra_info("peername")
-        addr = (str(peer[0]), int(peer[1])) if peer else ("?", 0)
-        if self.clients >= self.config.max_clients:
-            client_mistake(log, "EtherNet/IP connections over the cap", "PLC EtherNet/IP: refused a connection from "
-                           "%s (%d at once: plc.ethernet_ip.max_clients)", addr[0], self.clients)
-            writer.close()
-            return
-        if task is not None:
-            self._tasks.add(task)
-        self.clients += 1
-        if self._front is not None:
-            self._front.clients = self.clients
-        cpppo, _device, _logix, parser = self._mods
+    # -- connections (StreamServer) -----------------------------------------------------------------
+    async def serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                           addr: tuple[str, int]) -> None:
+        cpppo, _device, logix, parser = self._mods
+        fast = FastPath(self.image)
         try:
             with parser.enip_machine(name=f"enip_{addr[1]}", context="enip") as machine:
                 while True:
                     frame = await self._read_frame(reader, addr)
                     if frame is None:
-                        break
-                    t0 = await self._pacer.wait()
-                    reply, keep = self._answer(cpppo, parser, machine, frame, addr)
-                    self._pacer.done(t0)
+                        return
+                    t0 = await self.pacer.wait()
+                    reply, keep = (fast.answer(frame) if FastPath.enabled else None), True
+                    if reply is not None:
+                        self.fast_frames += 1
+                    else:
+                        self.cpppo_frames += 1
+                        reply, keep = self._answer(cpppo, parser, machine, frame, addr)
+                        fast.learn(frame, reply)
+                    self.pacer.done(t0)
                     if reply:
                         writer.write(reply)
                         await writer.drain()
                     if not keep:
-                        break
-        except (ConnectionError, asyncio.IncompleteReadError):
-            pass
+                        return
         finally:
-            self.clients -= 1
-            if self._front is not None:
-                self._front.clients = self.clients
-            if task is not None:
-                self._tasks.discard(task)
             with contextlib.suppress(Exception):
-                self._mods[2].process(addr, data=cpppo.dotdict(), **self._kwds)  # ends the CIP session
-            writer.close()
+                logix.process(addr, data=cpppo.dotdict(), **self._kwds)  # ends the CIP session
 
     async def _read_frame(self, reader: asyncio.StreamReader, addr: tuple[str, int]) -> bytes | None:
         """One whole encapsulation frame; None at the end, when idle too long or when it is too long."""
         try:
-            header = await asyncio.wait_for(reader.readexactly(HEADER), self.config.idle_timeout_s)
-        except TimeoutError:
-            client_mistake(log, "idle EtherNet/IP connections", "PLC EtherNet/IP: closed the connection from %s: "
-                           "silent for %.0f s (plc.ethernet_ip.idle_timeout_s)", addr[0], self.config.idle_timeout_s)
-            return None
+            header = await self.within_idle(reader.readexactly(HEADER), addr)
         except asyncio.IncompleteReadError:
+            return None
+        if header is None:
             return None
         (length,) = struct.unpack_from("<H", header, 2)
         if HEADER + length > MAX_FRAME:
@@ -260,8 +224,8 @@ class EthernetIpServer:
             client_mistake(log, "over-long EtherNet/IP frames", "PLC EtherNet/IP: closed the connection from %s: a "
                            "frame of %d bytes (at most %d)", addr[0], HEADER + length, MAX_FRAME)
             return None
-        body = await asyncio.wait_for(reader.readexactly(length), self.config.idle_timeout_s) if length else b""
-        return header + body
+        body = await self.within_idle(reader.readexactly(length), addr) if length else b""
+        return None if body is None else header + body
 
     def _answer(self, cpppo: Any, parser: Any, machine: Any, frame: bytes, addr: tuple[str, int]
                 ) -> tuple[bytes | None, bool]:

@@ -26,7 +26,7 @@ from cellctl.plc.production import production_values
 from cellctl.plc.requests import Outcome, pick_sigma, robot_motion_status
 from cellctl.services import Services
 
-BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
+BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED, DRIFT_ALARM = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20, 0x40
 MAX_PICKS = 8
 PICK_FIELDS = ("x_mm", "y_mm", "z_mm", "rz_deg", "score", "reachable", "sigma_mm", "sigma_deg")
 """``CC_Picks``: 8 REALs per pick, in this order (``rz_deg``: the gripper's yaw about base z)."""
@@ -88,7 +88,9 @@ class TagImage:
 
     def _robot_bits(self) -> int:
         status = robot_motion_status(self.services)
-        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0)
+        drift = self.services.drift_if_made
+        alarm = DRIFT_ALARM if drift is not None and drift.alarm else 0
+        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0) | alarm
 
     # -- writes -------------------------------------------------------------------------------------
     def write(self, name: str, value: Any) -> None:

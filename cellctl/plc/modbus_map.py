@@ -1,4 +1,4 @@
-"""The Modbus register map (version 4) as one table: the server's addresses, the production block's
+"""The Modbus register map (version 5) as one table: the server's addresses, the production block's
 words and docs/plc-modbus.md all come from it (``tests/plc/test_modbus_map_docs.py`` holds the
 document to it).
 
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-MAP_VERSION = 4
+MAP_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -72,11 +72,18 @@ PRODUCTION_FIELDS = (
     Field("LAST_SIGMA_MDEG", 2, kind="int32"),
 )
 CONVEYOR_FIELDS = (Field("MISSED_WINDOW", 2, kind="int32"), Field("QUEUE_LENGTH"))
-"""Production from a belt (docs/conveyor.md): added after the map's end within version 4 (additive: every
-older address is where it was)."""
+"""Production from a belt (docs/conveyor.md), version 5: after the in-doubt block (every older address is
+where it was)."""
 SIGMA_SEQ_FIELDS = (Field("SIGMA_SEQ"),)
 SIGMA_FIELDS = (Field("SIGMA_UM", 2, kind="int32"), Field("SIGMA_MDEG", 2, kind="int32"))
 """One pick's uncertainty, at offsets from ``PICK_SIGMA + SIGMA_STRIDE * k``."""
+DOUBT_FIELDS = (Field("DOUBT_COUNT"), Field("DOUBT_RECIPE", 2, kind="int32"), Field("DOUBT_SLOT", 2, kind="int32"))
+"""The slots in doubt (version 5): how many, and the first one's recipe and slot (-1: none)."""
+
+STATUS_BITS: dict[str, int] = {"BUSY": 0, "DONE": 1, "ERROR": 2, "REFUSED": 3, "ROBOT_LATCHED": 4, "ROBOT_OWNED": 5,
+                               "DRIFT_ALARM": 6}
+"""STATUS (register 10) bit numbers; bits 4-6 are live on every read. DRIFT_ALARM: the last drift check of the
+cell's fixed camera raised an alarm (docs/drift.md)."""
 
 COMMAND_BLOCK = layout(0, COMMAND_FIELDS)
 ANSWER_BLOCK = layout(10, ANSWER_FIELDS)
@@ -89,12 +96,14 @@ SIGMA_SEQ_BLOCK = layout(PRODUCTION_BLOCK["LAST_SIGMA_MDEG"].end + 1, SIGMA_SEQ_
 PICK_SIGMA = SIGMA_SEQ_BLOCK["SIGMA_SEQ"].address + 1  # 204
 SIGMA_STRIDE = sum(f.count for f in SIGMA_FIELDS)  # 4
 SIGMA_OFFSETS = layout(0, SIGMA_FIELDS)
-END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: the first address after the pick uncertainty block
-CONVEYOR_BLOCK = layout(END, CONVEYOR_FIELDS)  # 236
-MAP_END = CONVEYOR_BLOCK["QUEUE_LENGTH"].end + 1  # 239: the first address after the map
+SIGMA_END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: the first address after the uncertainty block
+DOUBT_BLOCK = layout(SIGMA_END, DOUBT_FIELDS)  # 236
+END = DOUBT_BLOCK["DOUBT_SLOT"].end + 1  # 241: the first address after the in-doubt block
+CONVEYOR_BLOCK = layout(END, CONVEYOR_FIELDS)  # 241
+MAP_END = CONVEYOR_BLOCK["QUEUE_LENGTH"].end + 1  # 244: the first address after the map
 
 REGISTERS: dict[str, Placed] = {**COMMAND_BLOCK, **ANSWER_BLOCK, **MESSAGE_BLOCK, **PRODUCTION_BLOCK, **SIGMA_SEQ_BLOCK,
-                                 **CONVEYOR_BLOCK}
+                                **DOUBT_BLOCK, **CONVEYOR_BLOCK}
 """Every field at a fixed address (the pick and sigma fields repeat: ``PICK_OFFSETS``, ``SIGMA_OFFSETS``)."""
 
 
@@ -165,3 +174,17 @@ def conveyor_block_words(missed_window: int, queue_length: int) -> list[int]:
     """The conveyor block (its registers in order): parts that left the window unpicked in the last run, and
     the parts queued on the belt now (0 for a still run or none)."""
     return [*int32_words(missed_window), max(0, min(0xFFFF, int(queue_length)))]
+
+
+DOUBT_UNKNOWN = 0xFFFF
+"""DOUBT_COUNT when the store cannot be read: what is in doubt is not known."""
+
+
+def doubt_block_words(count: int | None, recipe_id: int | None, slot: int | None) -> list[int]:
+    """The in-doubt block: ``count`` None when not known (``DOUBT_UNKNOWN``), recipe and slot -1 for none."""
+    values = {"DOUBT_COUNT": DOUBT_UNKNOWN if count is None else min(count, DOUBT_UNKNOWN - 1),
+              "DOUBT_RECIPE": -1 if recipe_id is None else recipe_id, "DOUBT_SLOT": -1 if slot is None else slot}
+    words: list[int] = []
+    for f in DOUBT_FIELDS:
+        words += field_words(f, values[f.name])
+    return words

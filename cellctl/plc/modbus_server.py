@@ -55,7 +55,7 @@ from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests 
     words_int32,
 )
 from cellctl.plc.pacing import Pacer
-from cellctl.plc.production import conveyor_words, production_words
+from cellctl.plc.production import conveyor_words, doubt_words, production_words
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
 from cellctl.services import Services
@@ -76,14 +76,18 @@ MESSAGE_REGS = mm.REGISTERS["MESSAGE"].field.count
 PRODUCTION = _a("RUN_ID")  # 174: the production block (live on every read)
 PRODUCTION_REGS = sum(f.count for f in mm.PRODUCTION_FIELDS)
 SIGMA_SEQ = _a("SIGMA_SEQ")  # 203: the per-pick uncertainty block
-END = mm.END  # 236: first address after the pick uncertainty block
-MAP_END = mm.MAP_END  # 239: first address after the map (the conveyor block 236..238)
+SIGMA_END = mm.SIGMA_END  # 236: first address after the uncertainty block
+DOUBT = _a("DOUBT_COUNT")  # 236: the slots in doubt (live on every read)
+END = mm.END  # 241: first address after the in-doubt block
+MAP_END = mm.MAP_END  # 244: first address after the map (the conveyor block 241..243, live on every read)
 READ_ONLY = STATUS
 _PICK = {name: placed.address for name, placed in mm.PICK_OFFSETS.items()}
 _SIGMA = {name: placed.address for name, placed in mm.SIGMA_OFFSETS.items()}
 
-BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
-LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED
+BUSY, DONE, ERROR, REFUSED, ROBOT_LATCHED, ROBOT_OWNED, DRIFT_ALARM = (
+    1 << mm.STATUS_BITS[name] for name in ("BUSY", "DONE", "ERROR", "REFUSED", "ROBOT_LATCHED", "ROBOT_OWNED",
+                                           "DRIFT_ALARM"))
+LIVE_BITS = ROBOT_LATCHED | ROBOT_OWNED | DRIFT_ALARM
 CMD_IDLE, CMD_PICK, CMD_VERIFY, CMD_PICK_MOVE = 0, 1, 2, 3
 ALLOWED_FUNCTIONS = (3, 4, 6, 16)
 IDLE_CHECK_S = 1.0
@@ -194,6 +198,7 @@ class ModbusPlcServer:
     def start(self) -> ModbusPlcServer:
         quiet("pymodbus")
         self._front = self.engine.register("modbus", self.host, self.port)
+        self._front.pacer = self.pacer
 
         async def serve() -> None:
             server = _TcpServer(self._devices(), address=(self.host, self.port))
@@ -313,16 +318,19 @@ class ModbusPlcServer:
             self._image[END:MAP_END] = conveyor_words(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the run's state
             log.exception("reading the production run's state failed")
+        self._image[DOUBT:END] = doubt_words(self.services)
         registers[READ_ONLY - start_address : MAP_END - start_address] = self._image[READ_ONLY:MAP_END]
 
     def _robot_bits(self) -> int:
-        """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot now (a lock, no I/O: fine on the loop)."""
+        """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot and DRIFT_ALARM now (locks, no I/O: fine on the loop)."""
         try:
             status = robot_motion_status(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the robot's state
             log.exception("reading the robot's motion status failed")
             return 0
-        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0)
+        drift = self.services.drift_if_made  # a lock, no I/O
+        alarm = DRIFT_ALARM if drift is not None and drift.alarm else 0
+        return (ROBOT_LATCHED if status["latched"] else 0) | (ROBOT_OWNED if status["owner"] else 0) | alarm
 
     def _accept(self, command: int, recipe: int, seq: int, count: int = 0) -> None:
         self.requests += 1
@@ -364,7 +372,7 @@ class ModbusPlcServer:
                 img[base + _PICK[name] : base + _PICK[name] + 2] = int32_words(value)
             img[base + _PICK["SCORE"]] = max(0, min(1000, int(round(float(p["score"]) * 1000))))
             img[base + _PICK["REACHABLE"]] = 1 if p["reachable"] else 0
-        img[SIGMA_SEQ:END] = [0] + [0xFFFF] * (END - PICK_SIGMA)  # -1: not known
+        img[SIGMA_SEQ:SIGMA_END] = [0] + [0xFFFF] * (SIGMA_END - PICK_SIGMA)  # -1: not known
         for k, p in enumerate(picks):
             sigma_mm, sigma_deg = pick_sigma(p)
             base = PICK_SIGMA + SIGMA_STRIDE * k

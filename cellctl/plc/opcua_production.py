@@ -12,7 +12,10 @@ Variables (read-only, refreshed every 0.1 s, from memory): ``ProductionRunId`` I
 ``ProductionPicked``, ``ProductionPlaced``, ``ProductionGripFailures``, ``ProductionRetries``,
 ``ProductionSkipped``, ``ProductionEmptyArea``, ``ProductionUnreachable``, ``ProductionNextSlot``
 Int32, ``ProductionLastResult`` String, ``ProductionCycleMedianMs``, ``ProductionLastSigmaMm``,
-``ProductionLastSigmaDeg`` Double (NaN: not known).
+``ProductionLastSigmaDeg`` Double (NaN: not known); the slots in doubt (docs/production.md, "Exactly
+once"): ``ProductionSlotsInDoubt`` Int32 (how many; -1: the store cannot say),
+``ProductionFirstSlotInDoubt`` and ``ProductionFirstSlotInDoubtRecipe`` Int32 (the first one by recipe,
+then slot; -1: none). An engineer confirms a slot with ``POST /production/slots/{slot}/confirm``.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from cellctl.plc.production import (
     CMD_PRODUCTION_RESUME,
     CMD_PRODUCTION_STOP,
     COUNTERS,
+    doubt_values,
 )
 from cellctl.plc.requests import Outcome
 from cellctl.production.manager import existing_manager
@@ -48,6 +52,9 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("ProductionCycleMedianMs", math.nan, ua.VariantType.Double),
     ("ProductionLastSigmaMm", math.nan, ua.VariantType.Double),
     ("ProductionLastSigmaDeg", math.nan, ua.VariantType.Double),
+    ("ProductionSlotsInDoubt", 0, ua.VariantType.Int32),
+    ("ProductionFirstSlotInDoubt", -1, ua.VariantType.Int32),
+    ("ProductionFirstSlotInDoubtRecipe", -1, ua.VariantType.Int32),
     ("ProductionMissedWindow", 0, ua.VariantType.Int32),
     ("ProductionQueueLength", 0, ua.VariantType.Int32),
 )
@@ -61,11 +68,15 @@ MAX_COUNT = 1_000_000
 
 
 def production_values(services: Services) -> dict[str, Any]:
-    """The variables' values now (from memory; no store access)."""
+    """The variables' values now (from memory: the run's snapshot, the store's in-doubt summary)."""
+    count, recipe_id, slot = doubt_values(services)
+    doubt = {"ProductionSlotsInDoubt": -1 if count is None else count,
+             "ProductionFirstSlotInDoubt": -1 if slot is None else slot,
+             "ProductionFirstSlotInDoubtRecipe": -1 if recipe_id is None else recipe_id}
     manager = existing_manager(services)
     snap = None if manager is None else manager.snapshot()
     if snap is None:
-        return {}
+        return doubt
     last = snap["last"] or {}
     unc = last.get("uncertainty") or {}
     sig = [s for s in (unc.get("sigma_mm") or []) if s is not None]
@@ -76,10 +87,10 @@ def production_values(services: Services) -> dict[str, Any]:
         "ProductionLastResult": str(last.get("result") or ""),
         "ProductionCycleMedianMs": math.nan if median is None else float(median),
         "ProductionLastSigmaMm": max(sig) if sig else math.nan,
-        "ProductionLastSigmaDeg": math.nan if sigma_deg is None else float(sigma_deg)}
+        "ProductionLastSigmaDeg": math.nan if sigma_deg is None else float(sigma_deg), **doubt}
     for k in COUNTERS:
-        out[_COUNTER_NAMES[k]] = int(snap["counters"][k])
-    out["ProductionMissedWindow"] = int(snap["counters"].get("missed_window", 0))
+        out[_COUNTER_NAMES[k]] = int((snap["counters"] or {}).get(k, 0))  # a run killed early stored none
+    out["ProductionMissedWindow"] = int((snap["counters"] or {}).get("missed_window", 0))
     out["ProductionQueueLength"] = int(snap.get("queue_length", 0))
     return out
 

@@ -13,7 +13,9 @@ Variables (read-only, refreshed every second and after every call)
     ``LastErrorCode`` Int32 (the error-text index of cellctl.plc.requests.ERROR_TEXTS, 0 = none),
     ``LastError`` String (the one-line message, empty when the last call succeeded).
     Live (checked every 0.1 s): ``RobotLatched`` Boolean (the cell's robot is stopped until an
-    engineer resumes it), ``RobotMotionOwner`` String (who owns the robot's motion; empty: free).
+    engineer resumes it), ``RobotMotionOwner`` String (who owns the robot's motion; empty: free),
+    ``DriftAlarm`` Boolean (the last drift check alarmed: the camera moved, docs/drift.md) and
+    ``DriftMm`` Double (its drift at the fiducials, mm; NaN before the first check).
 
 Methods
     ``Pick(RecipeId: Int32) -> (Count: Int32, Poses: Double[], Reachable: Boolean[])``: grab,
@@ -59,6 +61,7 @@ from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_args import guarded
 from cellctl.plc.opcua_mv import VisionSystem, add_vision_system
+from cellctl.plc.opcua_pacing import PacedClients, pace
 from cellctl.plc.opcua_production import add_production, refresh_production
 from cellctl.plc.requests import (
     TEXT_BAD_RECIPE,
@@ -117,6 +120,8 @@ _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("LastError", "", ua.VariantType.String),
     ("RobotLatched", False, ua.VariantType.Boolean),
     ("RobotMotionOwner", "", ua.VariantType.String),
+    ("DriftAlarm", False, ua.VariantType.Boolean),
+    ("DriftMm", float("nan"), ua.VariantType.Double),
 )
 
 
@@ -205,6 +210,8 @@ class OpcUaPlcServer:
         self._production_shown: dict[str, Any] = {}
         self._vision: VisionSystem | None = None
         self._vision_task: asyncio.Task[None] | None = None
+        self.paced: PacedClients | None = None
+        """The connections whose messages are paced (``cellctl.plc.opcua_pacing``), once listening."""
 
     # -- life cycle ---------------------------------------------------------------------------------
     def start(self) -> OpcUaPlcServer:
@@ -286,8 +293,10 @@ class OpcUaPlcServer:
             raise OSError(f"PLC OPC UA server cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc}); "
                           "free the port or change plc.opcua.port") from None
         self._server = server
+        self.paced = pace(server)  # its messages share the interpreter budget of every front end
         if self._front is not None:  # connected clients for GET /plc/status (asyncua keeps the list)
             self._front.clients_of = lambda: len(server.bserver.clients) if server.bserver is not None else 0
+            self._front.pacer = None if self.paced is None else self.paced.pacer
         # OPC UA for Machine Vision is added once the server listens (the NodeSet's import costs ~2 s of
         # CPU, more on a loaded machine): the service's start does not wait for it.
         self._vision_task = asyncio.get_running_loop().create_task(self._add_vision(server))
@@ -355,8 +364,9 @@ class OpcUaPlcServer:
             await self._refresh()
 
     async def _watch_motion(self) -> None:
-        """Keep RobotLatched / RobotMotionOwner live: a Stop shows within MOTION_POLL_S."""
+        """Keep RobotLatched / RobotMotionOwner (and DriftAlarm / DriftMm) live: a Stop shows within MOTION_POLL_S."""
         shown: tuple[bool, str] | None = None
+        drift_shown: tuple[bool, float | None] | None = None
         while True:
             try:
                 status = robot_motion_status(self.services)
@@ -366,6 +376,13 @@ class OpcUaPlcServer:
                     await self._set("RobotLatched", now[0])
                     await self._set("RobotMotionOwner", now[1])
                     shown = now
+                drift = self.services.drift_if_made  # from memory: a lock, no I/O
+                last = None if drift is None else drift.last()
+                drift_now = (drift is not None and drift.alarm, None if last is None else float(last["drift_mm"]))
+                if drift_now != drift_shown:
+                    await self._set("DriftAlarm", drift_now[0])
+                    await self._set("DriftMm", float("nan") if drift_now[1] is None else drift_now[1])
+                    drift_shown = drift_now
                 await refresh_production(self._production_vars, self.services, self._production_shown)
             except Exception:  # noqa: BLE001 - the watch keeps running; the variables stay as they were
                 log.exception("OPC UA robot motion status failed")

@@ -2,7 +2,8 @@
 
 Shared by the PLC front ends like ``cellctl.plc.requests``: :func:`execute_production` never raises
 (every failure is an :class:`~cellctl.plc.requests.Outcome` with the documented error class and
-text); :func:`production_words` is the run's state as the Modbus production block (docs/plc-modbus.md).
+text); :func:`production_words` is the run's state as the Modbus production block and :func:`doubt_words`
+the slots in doubt as the in-doubt block (docs/plc-modbus.md).
 Starting (and resuming) a run moves the robot: only with ``plc.allow_motion: true``.
 """
 
@@ -121,7 +122,7 @@ def conveyor_words(services: Services) -> list[int]:
     snap = None if manager is None else manager.snapshot()
     if snap is None:
         return conveyor_block_words(0, 0)
-    return conveyor_block_words(int(snap["counters"].get("missed_window", 0)), int(snap.get("queue_length", 0)))
+    return conveyor_block_words(int((snap["counters"] or {}).get("missed_window", 0)), int(snap.get("queue_length", 0)))
 
 
 def production_words(services: Services) -> list[int]:
@@ -130,6 +131,24 @@ def production_words(services: Services) -> list[int]:
     from cellctl.plc.modbus_map import production_block_words
 
     return production_block_words(production_values(services))
+
+
+def doubt_values(services: Services) -> tuple[int | None, int | None, int | None]:
+    """(count, first recipe, first slot) of the cell's slots in doubt; count None when the store cannot
+    say (the store keeps the summary in memory: ``Store.doubt_summary``)."""
+    try:
+        d = services.store.doubt_summary()
+    except Exception as exc:  # noqa: BLE001 - the PLC is told "not known", never a stale zero
+        log.warning("the slots in doubt cannot be read from the store: %s", _line(exc))
+        return None, None, None
+    return d.count, d.recipe_id, d.slot
+
+
+def doubt_words(services: Services) -> list[int]:
+    """The Modbus in-doubt block (docs/plc-modbus.md: DOUBT_COUNT, DOUBT_RECIPE, DOUBT_SLOT)."""
+    from cellctl.plc.modbus_map import doubt_block_words
+
+    return doubt_block_words(*doubt_values(services))
 
 
 def _line(exc: BaseException) -> str:

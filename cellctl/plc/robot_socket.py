@@ -25,14 +25,15 @@ moves the robot (the robot program does, with the pose it read).
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 from calibration import geometry as g
 from cellctl.config import RobotSocketConfig
-from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
-from cellctl.plc.pacing import Pacer
+from cellctl.plc.engine import Engine, Kind, Request
 from cellctl.plc.production import production_values
 from cellctl.plc.quiet_log import client_mistake
 from cellctl.plc.requests import (
@@ -44,14 +45,19 @@ from cellctl.plc.requests import (
     pick_sigma,
     robot_motion_status,
 )
+from cellctl.plc.stream_server import StreamServer
 from cellctl.services import Services
-from drivers.loop_thread import LoopNotRunning, LoopThread
+from drivers.loop_thread import LoopNotRunning
 
 log = logging.getLogger(__name__)
 
 MAX_LINE = 256
 """Bytes in one request line, its end included."""
 HELP = "use PICK <recipe>, VERIFY or STATUS"
+
+
+def _line(text: str) -> bytes:
+    return (text + "\r\n").encode("ascii", "replace")
 
 
 def err(code: int, text: str) -> str:
@@ -87,119 +93,67 @@ def format_verify(out: Outcome) -> str:
     return "OK " + " ".join("-1" if x is None or not math.isfinite(float(x)) else f"{float(x):.4f}" for x in (px, mm))
 
 
-class RobotSocketServer:
-    """The robot socket for one cell; ``start()`` listens, ``stop()`` ends it."""
+class RobotSocketServer(StreamServer):
+    """The robot socket for one cell; ``start()`` listens, ``stop()`` ends it (``StreamServer``)."""
+
+    name, setting, title = "robot_socket", "plc.robot_socket", "PLC robot socket"
+    motion = False  # the socket never moves the robot: no zone key needed for its address
+    line_limit = MAX_LINE + 2
+    config: RobotSocketConfig
 
     def __init__(self, services: Services, config: RobotSocketConfig, engine: Engine | None = None) -> None:
-        self.services, self.config = services, config
-        self.engine = engine or engine_for(services)
-        self._thread = LoopThread(f"plc-robot-socket-{config.port}")
-        self._server: asyncio.Server | None = None
-        self._front: FrontEnd | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
-        self.clients = 0
-        self.refused_clients = 0
-        self._pacer = Pacer()
+        super().__init__(services, config, engine)
 
     def start(self) -> RobotSocketServer:
-        # The socket never moves the robot: no zone key needed for its address.
-        self._front = self.engine.register("robot_socket", self.config.host, self.config.port, motion=False)
-        try:
-            self._thread.start(self._listen)
-        except BaseException:
-            self.engine.unregister("robot_socket")
-            raise
-        log.info("PLC robot socket on %s:%d (pose format %s)", self.config.host, self.config.port,
+        super().start()
+        log.info("PLC robot socket on %s:%d (pose format %s)", self.config.host, self.address[1],
                  self.config.pose_format)
         return self
 
-    def stop(self) -> None:
-        async def shutdown() -> None:
-            if self._server is not None:
-                self._server.close()
-            for task in list(self._tasks):
-                task.cancel()
-            if self._tasks:
-                await asyncio.gather(*self._tasks, return_exceptions=True)
-            if self._server is not None:
-                await self._server.wait_closed()
+    async def refuse(self, writer: asyncio.StreamWriter) -> None:
+        await self.send_and_close(writer, _line(err(TEXT_BUSY, f"too many clients (at most "
+                                                               f"{self.config.max_clients}); try again later")))
 
-        try:
-            self._thread.stop(shutdown)
-        finally:
-            self.engine.unregister("robot_socket")
-
-    async def _listen(self) -> None:
-        try:
-            self._server = await asyncio.start_server(self._serve, self.config.host, self.config.port,
-                                                      reuse_address=True, limit=MAX_LINE + 2)
-        except OSError as exc:
-            raise OSError(f"PLC robot socket cannot listen on {self.config.host}:{self.config.port} "
-                          f"({exc.strerror or exc}); free the port or change plc.robot_socket.port") from None
-
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        peer = writer.get_extra_info("peername")
-        host = str(peer[0]) if peer else "?"
-        if self.clients >= self.config.max_clients:
-            self.refused_clients += 1
-            client_mistake(log, "robot socket clients over the cap", "PLC robot socket: refused a client from %s "
-                           "(%d at once: plc.robot_socket.max_clients)", host, self.clients)
-            await self._send_and_close(writer, err(TEXT_BUSY, f"too many clients (at most "
-                                                              f"{self.config.max_clients}); try again later"))
-            return
-        if task is not None:
-            self._tasks.add(task)
-        self.clients += 1
-        if self._front is not None:
-            self._front.clients = self.clients
-        try:
-            while True:
-                try:
-                    raw = await asyncio.wait_for(reader.readuntil(b"\n"), self.config.idle_timeout_s)
-                except TimeoutError:
-                    client_mistake(log, "idle robot socket clients", "PLC robot socket: closed the client %s: "
-                                   "silent for %.0f s", host, self.config.idle_timeout_s)
-                    break
-                except asyncio.LimitOverrunError:
-                    client_mistake(log, "over-long robot socket lines", "PLC robot socket: closed the client %s: a "
-                                   "line longer than %d bytes", host, MAX_LINE)
-                    await self._send_and_close(writer, err(TEXT_UNKNOWN_COMMAND, f"line longer than {MAX_LINE} "
-                                                                                 f"bytes; {HELP}"))
-                    break
-                except asyncio.IncompleteReadError as exc:
-                    if len(exc.partial) > MAX_LINE:
-                        await self._send_and_close(writer, err(TEXT_UNKNOWN_COMMAND, "line too long"))
-                    break
-                if len(raw) > MAX_LINE:
-                    await self._send_and_close(writer, err(TEXT_UNKNOWN_COMMAND, f"line longer than {MAX_LINE} "
-                                                                                 f"bytes; {HELP}"))
-                    break
-                t0 = await self._pacer.wait()
-                answer = await self._answer(raw)
-                self._pacer.done(t0)
-                writer.write((answer + "\r\n").encode("ascii", "replace"))
-                await writer.drain()
-        except (ConnectionError, asyncio.CancelledError):
-            pass
-        finally:
-            self.clients -= 1
-            if self._front is not None:
-                self._front.clients = self.clients
-            if task is not None:
-                self._tasks.discard(task)
-            writer.close()
-
-    async def _send_and_close(self, writer: asyncio.StreamWriter, line: str) -> None:
-        try:
-            writer.write((line + "\r\n").encode("ascii", "replace"))
-            await asyncio.wait_for(writer.drain(), 2.0)
-        except (ConnectionError, TimeoutError):
-            pass
-        writer.close()
+    async def serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                           addr: tuple[str, int]) -> None:
+        too_long = _line(err(TEXT_UNKNOWN_COMMAND, f"line longer than {MAX_LINE} bytes; {HELP}"))
+        while True:
+            try:
+                raw = await self.within_idle(reader.readuntil(b"\n"), addr)
+            except asyncio.LimitOverrunError:
+                client_mistake(log, "over-long robot socket lines", "PLC robot socket: closed the client %s: a "
+                               "line longer than %d bytes", addr[0], MAX_LINE)
+                await self.send_and_close(writer, too_long)
+                return
+            except asyncio.IncompleteReadError as exc:
+                if len(exc.partial) > MAX_LINE:
+                    await self.send_and_close(writer, _line(err(TEXT_UNKNOWN_COMMAND, "line too long")))
+                return
+            if raw is None:
+                return
+            if len(raw) > MAX_LINE:
+                await self.send_and_close(writer, too_long)
+                return
+            writer.write(_line(await self._answer(raw)))
+            await writer.drain()
 
     async def _answer(self, raw: bytes) -> str:
-        """One request line's answer (never raises for a client's line)."""
+        """One request line's answer (never raises for a client's line). The line's parsing is paced
+        (``self.pacer``); the wait for the engine's answer is not (it is not this front end's work)."""
+        t0 = await self.pacer.wait()
+        try:
+            parsed = self._parse(raw)
+        finally:
+            self.pacer.done(t0)
+        if isinstance(parsed, str):
+            return parsed
+        request, answer = parsed
+        if self._front is None:
+            raise LoopNotRunning("the robot socket server is not started: start() registers its front end")
+        return answer(await asyncio.wrap_future(self.engine.submit(self._front, request, "plc:robot_socket")))
+
+    def _parse(self, raw: bytes) -> str | tuple[Request, Callable[[Outcome], str]]:
+        """The answer to a line, or the request it asks for and how to word its outcome."""
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError:
@@ -212,20 +166,15 @@ class RobotSocketServer:
         if verb == "STATUS" and len(words) == 1:
             return self._status()
         if verb == "VERIFY" and len(words) == 1:
-            return format_verify(await self._run(Request(Kind.VERIFY)))
+            return Request(Kind.VERIFY), format_verify
         if verb == "PICK":
             if len(words) != 2 or not words[1].isdigit():
                 return err(TEXT_RECIPE_RANGE if len(words) == 2 else TEXT_UNKNOWN_COMMAND,
                            "PICK needs one recipe number 0..65535, e.g. PICK 1")
             recipe = int(words[1]) if len(words[1]) <= 6 else 10**6
-            return format_pick(await self._run(Request(Kind.PICK, recipe)), self.config.pose_format)
+            return Request(Kind.PICK, recipe), functools.partial(format_pick, pose_format=self.config.pose_format)
         shown = line[:40] + ("..." if len(line) > 40 else "")
         return err(TEXT_UNKNOWN_COMMAND, f"unknown request {shown!r}; {HELP}")
-
-    async def _run(self, request: Request) -> Outcome:
-        if self._front is None:
-            raise LoopNotRunning("the robot socket server is not started: start() registers its front end")
-        return await asyncio.wrap_future(self.engine.submit(self._front, request, "plc:robot_socket"))
 
     def _status(self) -> str:
         motion: dict[str, Any] = robot_motion_status(self.services)

@@ -16,7 +16,9 @@ The public names are listed in ``__all__`` (imported on first use).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from cellctl.production.frames import FailureFrames
@@ -26,26 +28,6 @@ if TYPE_CHECKING:
     from cellctl.production.records import to_csv
     from cellctl.production.run import ProductionRun, RunSettings, RunStatus
     from cellctl.production.vision import Picture, Prefetch, VisionWorker, take_picture
-
-_LAZY: dict[str, str] = {
-    "GripperHolding": "cellctl.production.manager",
-    "NoRun": "cellctl.production.manager",
-    "ProductionManager": "cellctl.production.manager",
-    "ProductionRunning": "cellctl.production.manager",
-    "ProductionRun": "cellctl.production.run",
-    "RunSettings": "cellctl.production.status",
-    "RunStatus": "cellctl.production.status",
-    "GripCheck": "cellctl.production.gripper",
-    "Gripper": "cellctl.production.gripper",
-    "place_poses": "cellctl.production.place",
-    "Picture": "cellctl.production.vision",
-    "Prefetch": "cellctl.production.vision",
-    "VisionWorker": "cellctl.production.vision",
-    "take_picture": "cellctl.production.vision",
-    "FailureFrames": "cellctl.production.frames",
-    "to_csv": "cellctl.production.records",
-}
-"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
 
 __all__ = [
     "FailureFrames",
@@ -66,12 +48,22 @@ __all__ = [
     "to_csv",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "GripperHolding": "cellctl.production.manager",
+    "NoRun": "cellctl.production.manager",
+    "ProductionManager": "cellctl.production.manager",
+    "ProductionRunning": "cellctl.production.manager",
+    "ProductionRun": "cellctl.production.run",
+    "RunSettings": "cellctl.production.run",
+    "RunStatus": "cellctl.production.run",
+    "GripCheck": "cellctl.production.gripper",
+    "Gripper": "cellctl.production.gripper",
+    "place_poses": "cellctl.production.place",
+    "Picture": "cellctl.production.vision",
+    "Prefetch": "cellctl.production.vision",
+    "VisionWorker": "cellctl.production.vision",
+    "take_picture": "cellctl.production.vision",
+    "FailureFrames": "cellctl.production.frames",
+    "to_csv": "cellctl.production.records",
+})
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""

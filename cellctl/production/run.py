@@ -244,6 +244,7 @@ class ProductionRun:
                 picture = self._picture()
                 waited += picture.took_s
             d.add("vision", waited)
+            self._drift(picture)
             self.session.check()
             if not picture.candidates and picture.timed_out:
                 why = (f"the search ran out of its time ({self.s.recipe.search.timeout_s} s) {SEARCH_RETRIES + 1} "
@@ -344,6 +345,13 @@ class ProductionRun:
         here = self.robot.state().T_base_tool
         if float(np.linalg.norm(here[:3, 3] - T[:3, 3])) > 1e-3:
             self._move(T, "to the capture pose", Durations())
+
+    def _drift(self, picture: Picture) -> None:
+        """Every ``drift.every_cycles``-th picture is a drift check too, on the run's store thread (no extra
+        picture or motion); an alarm with ``drift.pause_on_alarm`` pauses the run after this cycle."""
+        drift = self.services.drift
+        if drift is not None:
+            drift.on_production_picture(self, picture.frame_id, self.s.camera_id, self._writer.put)
 
     def _picture(self) -> Picture:
         yaw = tool_yaw(self.robot.state().T_base_tool)

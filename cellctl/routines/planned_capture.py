@@ -85,6 +85,7 @@ class PlannedCapture:
                 break
             result = self._calibrate()
         result.verdict["coverage_missing"] = {"corners": self.planner.missing_corners(),
+                                              "border": self.planner.missing_border(),
                                               "views_tried": self.attempts, "budget": self.p.max_views}
         return result, self.rejected
 

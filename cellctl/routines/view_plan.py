@@ -9,7 +9,9 @@ poses planned from guesses, the planner measures as it goes:
    no assumption.
 2. **Corners.** For each image corner region the verdict asks to be covered, the plate is shifted
    so that its outer corner lands inside the region with a margin; a view that crops the plate is
-   retried closer to the centre, a view that falls short is pushed further (closed loop).
+   retried closer to the centre, a view that falls short is pushed further (closed loop). When the
+   verdict finds an image side's border strip uncovered (``border_not_covered``), the plate is
+   pushed against the middle of that side the same way (``_reach_edge``).
 3. **Tilts and distances.** Rotations about the plate's centre (a point that then stays where it
    is in the image) about the camera's x and y axes, at the centre and at the corner poses found,
    and views nearer and farther along the view axis.
@@ -29,7 +31,7 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from calibration.intrinsics import coverage_counts
-from calibration.verdict import MIN_TILT_DEG, uncovered_corners
+from calibration.verdict import BORDER_FRACTION, MIN_TILT_DEG, border_coverage, uncovered_border, uncovered_corners
 
 Mat4 = NDArray[np.float64]
 
@@ -40,6 +42,10 @@ CORNER_MARGIN = 0.03
 CORNER_DISTANCE_SCALE = 1.3
 """Corner views are taken from this many times the start distance."""
 CORNERS = {"top-left": (-1, -1), "top-right": (1, -1), "bottom-left": (-1, 1), "bottom-right": (1, 1)}
+EDGE_TRIES = 4
+"""Border views: at most this many tries per side (pushed on while short, halved back when the plate is cut)."""
+EDGES = {"top": (0, -1), "bottom": (0, 1), "left": (-1, 0), "right": (1, 0)}
+"""The image sides' midpoints: where the plate goes when the verdict finds a side's border strip uncovered."""
 
 
 @dataclass
@@ -92,6 +98,18 @@ class ViewPlanner:
         missing = uncovered_corners(coverage_counts(self.image_size, np.asarray(uv, dtype=np.float64).reshape(-1, 2)))
         return {c for c in CORNERS if c not in missing}
 
+    def _coverage(self) -> NDArray[np.int64]:
+        uv = [s.uv for s in self.seen if s.good and len(s.uv)]
+        return coverage_counts(self.image_size, np.vstack(uv) if uv else np.zeros((0, 2)))
+
+    def missing_border(self) -> list[str]:
+        """The image sides whose border strip the good views leave uncovered, by the verdict's own rule."""
+        return uncovered_border(self._coverage())
+
+    def border_covered(self) -> dict[str, float]:
+        """How much of each side's border strip the good views cover (0..1)."""
+        return border_coverage(self._coverage())
+
     def missing_corners(self) -> list[str]:
         covered: set[str] = set()
         for s in self.seen:
@@ -114,6 +132,8 @@ class ViewPlanner:
         for name in list(CORNERS):
             if name in self.missing_corners():
                 yield from self._reach_corner(name)
+        for side in self.missing_border():
+            yield from self._reach_edge(side)
         tilt = min(self.max_tilt_deg, 45.0) + tilt_boost_deg
         for axis, sign in ((0, 1), (1, 1), (0, -1), (1, -1)):
             yield f"tilt {'xy'[axis]}{'+' if sign > 0 else '-'}", self._tilted(self.T0, axis, sign * tilt)
@@ -134,6 +154,11 @@ class ViewPlanner:
         if "corners_not_covered" in missing:
             for name in self.missing_corners():
                 yield from self._reach_corner(name, margin=CORNER_MARGIN / 2, farther=1.1 * CORNER_DISTANCE_SCALE)
+        if "border_not_covered" in missing:
+            for side in self.missing_border():
+                yield from self._reach_edge(side)
+        if set(missing) == {"border_not_covered"}:
+            return  # the border views alone answer it: no spread views to lengthen the capture
         golden = math.pi * (3 - math.sqrt(5))
         tilt = min(self.max_tilt_deg, 45.0)
         for k in range(4):
@@ -167,6 +192,48 @@ class ViewPlanner:
                 return
             # Fell short: aim beyond by what was missed; cropped: pull back towards the centre.
             goal = goal + 0.8 * (goal - last.uv.mean(axis=0)) if last.good else c0 + 0.8 * (goal - c0)
+
+    def _reach_edge(self, side: str) -> Iterator[tuple[str, Mat4]]:
+        """Push the plate against the middle of image side ``side`` until its points reach the side's border
+        strip: from the corner views' distance, pushed on by what the nearest points miss, and halfway back
+        to the last good shift when the view loses the plate (its frame must stay in the image)."""
+        w, h = self.image_size
+        sx, sy = EDGES[side]
+        farther = CORNER_DISTANCE_SCALE
+        centre = 0.5 * np.asarray(self.image_size, dtype=np.float64)
+        base = self._along_view(self.T0, (farther - 1.0) * self.distance_m)
+        c0 = centre + (self.uv0.mean(axis=0) - centre) / farther
+        half = 0.5 * self.frame_scale * (self.uv0.max(axis=0) - self.uv0.min(axis=0)) / farther
+        goal = c0.copy()
+        if sx:
+            goal[0] = w / 2 + sx * (w / 2 - CORNER_MARGIN * w - half[0])
+        else:
+            goal[1] = h / 2 + sy * (h / 2 - CORNER_MARGIN * h - half[1])
+        good_goal = c0.copy()
+        for _ in range(EDGE_TRIES):
+            yield f"border {side}", self._shifted(base, self._shift_for(goal - c0) * farther)
+            last = self.seen[-1] if self.seen else None
+            if last is None:
+                return
+            if last.good:
+                if border_coverage(coverage_counts(self.image_size, last.uv))[side] > 0:
+                    return
+                good_goal, goal = goal, goal + self._edge_miss(side, last.uv)
+            else:
+                goal = 0.5 * (good_goal + goal)
+
+    def _edge_miss(self, side: str, uv: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The image shift (px) that brings ``uv``'s points nearest side ``side`` just inside its border strip."""
+        w, h = self.image_size
+        sx, sy = EDGES[side]
+        axis, n = (0, w) if sx else (1, h)
+        sign = sx or sy
+        strip = BORDER_FRACTION * n
+        nearest = float(uv[:, axis].max() if sign > 0 else uv[:, axis].min())
+        to_edge = (n - 1 - nearest) if sign > 0 else nearest
+        out = np.zeros(2)
+        out[axis] = sign * max(to_edge - 0.7 * strip, 0.0)
+        return out
 
     # -- geometry ------------------------------------------------------------------------------------
     def _learn_jacobian(self, axis: int, probe_m: float) -> None:

@@ -105,15 +105,20 @@ export async function activate(id) {
   await refreshCalibrations();
 }
 
+let reportUrl = null;  // the shown report as a page of its own (Full page): no token needed to open it
+
 async function showReport(id) {
   try {
     const html = await api("GET", `/calibrations/${id}/report`);
     $("#report-title").textContent = `calibration ${id}`;
     $("#report-frame").srcdoc = html;
     $("#report-card").hidden = false;
+    if (reportUrl) URL.revokeObjectURL(reportUrl);
+    reportUrl = URL.createObjectURL(new Blob([html], { type: "text/html" }));
   } catch (e) { $("#calib-status").textContent = `report: ${e.message}`; }
 }
 $("#report-close").addEventListener("click", () => { $("#report-card").hidden = true; });
+$("#report-full").addEventListener("click", () => { if (reportUrl) window.open(reportUrl, "_blank", "noopener"); });
 $("#calib-refresh").addEventListener("click", refreshCalibrations);
 
 document.addEventListener("cellctl:tab", (e) => { if (e.detail === "calib") refreshCalibrations(); });

@@ -6,9 +6,11 @@ import { refreshRecipes } from "./pick.js";
 import "./wizard.js";
 import "./routines.js";
 import "./production.js";
+import "./drift.js";
 import "./recipes.js";
 import "./plc.js";
 import "./audit.js";
+import { loadControls } from "./camera.js";
 
 async function login(token) {
   const who = await api("GET", "/auth/whoami", undefined, { token });
@@ -25,6 +27,7 @@ async function login(token) {
   applyRoles();
   document.dispatchEvent(new CustomEvent("cellctl:login"));
   await loadDevices();
+  loadControls();
   const session = state.session;
   liveLoop(session);
   robotLoop(session);

@@ -2,7 +2,7 @@
 // as a named recipe with its capture pose (read from the robot) and gripper settings, test a pick.
 import { $, api, fmt, grabBitmap, has, state } from "./core.js";
 
-const teach = { image: null, roi: null, drag: null, model: null, preview: null, pose: null };
+const teach = { image: null, roi: null, drag: null, model: null, preview: null, pose: null, grasp: null };
 
 // ---------------------------------------------------------------- teach: picture and region
 
@@ -31,6 +31,67 @@ function teachDraw() {
     for (const [[u0, v0], [u1, v1]] of teach.preview.edges_px) { ctx.moveTo(u0 + 0.5, v0 + 0.5); ctx.lineTo(u1 + 0.5, v1 + 0.5); }
     ctx.stroke();
   }
+  if (teach.grasp && !teach.drag) drawGrasp(ctx, teach.grasp);
+}
+
+// The recipe's grasp (POST /pick/grasp, image pixels): the closing line between the open fingers, each finger a
+// bar across it, the gripper centre, and where the fingers meet the part (red when the grasp is refused).
+function drawGrasp(ctx, g) {
+  const [[u0, v0], [u1, v1]] = g.fingers_px;
+  const n = Math.hypot(u1 - u0, v1 - v0) || 1, pu = -(v1 - v0) / n * 10, pv = (u1 - u0) / n * 10;
+  ctx.strokeStyle = g.problem ? "#ef4444" : "#3b82f6"; ctx.lineWidth = 2; ctx.setLineDash([6, 4]);
+  ctx.beginPath(); ctx.moveTo(u0 + 0.5, v0 + 0.5); ctx.lineTo(u1 + 0.5, v1 + 0.5); ctx.stroke();
+  ctx.setLineDash([]); ctx.lineWidth = 6;
+  ctx.beginPath();
+  for (const [u, v] of g.fingers_px) { ctx.moveTo(u - pu + 0.5, v - pv + 0.5); ctx.lineTo(u + pu + 0.5, v + pv + 0.5); }
+  ctx.stroke();
+  ctx.lineWidth = 2;
+  ctx.beginPath(); ctx.arc(g.centre_px[0] + 0.5, g.centre_px[1] + 0.5, 6, 0, 2 * Math.PI); ctx.stroke();
+  ctx.fillStyle = g.problem ? "#ef4444" : "#3b82f6";
+  for (const [u, v] of g.contacts_px || []) { ctx.beginPath(); ctx.arc(u + 0.5, v + 0.5, 4, 0, 2 * Math.PI); ctx.fill(); }
+}
+
+const numOr = (sel, d) => ($(sel).value === "" ? d : Number($(sel).value));
+
+// The recipe the teach card would save (without the kept place section and device of an existing number).
+function draftRecipe() {
+  return {
+    name: $("#recipe-name").value || "part", models: [teach.model], camera_id: state.cameraId, robot_id: state.robotId,
+    plane_z_mm: numOr("#recipe-plane-z", null), grasp_z_mm: numOr("#recipe-grasp-z", 0),
+    approach_height_mm: numOr("#recipe-approach", 50), capture_pose_ur: teach.pose,
+    grasp_offset_mm: [numOr("#grasp-x", 0), numOr("#grasp-y", 0)], grasp_yaw_deg: numOr("#grasp-yaw", 0),
+    gripper: { open_width_mm: numOr("#grip-open", null), grip_width_mm: numOr("#grip-close", null),
+      force_n: numOr("#grip-force", null) },
+  };
+}
+
+let graspTimer = null, graspAsk = 0;
+function showGrasp() {
+  clearTimeout(graspTimer);
+  graspTimer = setTimeout(async () => {
+    if (!teach.model) return;
+    const ask = ++graspAsk;
+    try {
+      const r = await api("POST", "/pick/grasp", { recipe: draftRecipe() });
+      if (ask !== graspAsk) return;  // a newer edit asked again
+      teach.grasp = r.grasps[0] || null;
+      const g = teach.grasp;
+      $("#teach-grasp").className = g && g.problem ? "error" : "muted";
+      $("#teach-grasp").textContent = !g ? (r.unavailable || "not drawn")
+        : (g.problem || `the fingers open ${fmt(g.open_mm, 1)} mm and close on `
+          + `${g.material_mm === null ? "?" : fmt(g.material_mm, 1)} mm of part along ${fmt(g.closing_deg, 0)}° on screen`);
+      $("#teach-canvas").dataset.grasp = g ? g.fingers_px.flat().map((x) => x.toFixed(1)).join(",") : "";
+    } catch (e) {
+      if (ask !== graspAsk) return;
+      teach.grasp = null;
+      $("#teach-grasp").className = "error";
+      $("#teach-grasp").textContent = e.message;
+    }
+    teachDraw();
+  }, 200);
+}
+for (const id of ["#grasp-x", "#grasp-y", "#grasp-yaw", "#grip-open", "#grip-close", "#recipe-plane-z"]) {
+  $(id).addEventListener("input", showGrasp);
 }
 
 function imagePoint(ev) {
@@ -42,7 +103,7 @@ function imagePoint(ev) {
 
 function setRoi(roi) {
   teach.roi = roi;
-  teach.model = null; teach.preview = null;
+  teach.model = null; teach.preview = null; teach.grasp = null;
   $("#recipe-form").hidden = true;
   $("#teach-button").disabled = !roi;
   $("#teach-roi").textContent = roi ? `region U ${fmt(roi[0], 0)}, V ${fmt(roi[1], 0)}, W ${fmt(roi[2], 0)}, H ${fmt(roi[3], 0)} px`
@@ -101,6 +162,7 @@ $("#teach-button").addEventListener("click", async () => {
     $("#teach-canvas").dataset.edges = String(teach.preview.edges_px.length);
     $("#recipe-form").hidden = false;
     teachDraw();
+    showGrasp();
   } catch (e) {
     $("#teach-error").textContent = `teach: ${e.message}`;
   } finally {
@@ -117,6 +179,7 @@ $("#recipe-pose-button").addEventListener("click", async () => {
     teach.pose = [p.x_m, p.y_m, p.z_m, p.rx_rad, p.ry_rad, p.rz_rad];
     $("#recipe-pose").textContent = `x ${fmt(p.x_m * 1e3, 1)}, y ${fmt(p.y_m * 1e3, 1)}, z ${fmt(p.z_m * 1e3, 1)} mm · `
       + `rotation vector ${fmt(p.rx_rad, 3)}, ${fmt(p.ry_rad, 3)}, ${fmt(p.rz_rad, 3)} rad (${state.robotId})`;
+    showGrasp();
   } catch (e) { $("#teach-error").textContent = `robot pose: ${e.message}`; }
 });
 
@@ -149,12 +212,7 @@ $("#recipe-form").addEventListener("submit", async (ev) => {
     kept = { place: old.place ?? null, search: old.search };
     if (old.gripper && old.gripper.device) kept.device = old.gripper.device;
   }
-  const recipe = {
-    name: $("#recipe-name").value, models: [teach.model], camera_id: state.cameraId, robot_id: state.robotId,
-    plane_z_mm: num("#recipe-plane-z"), grasp_z_mm: num("#recipe-grasp-z") ?? 0,
-    approach_height_mm: num("#recipe-approach") ?? 50, capture_pose_ur: teach.pose,
-    gripper: { open_width_mm: num("#grip-open"), grip_width_mm: num("#grip-close"), force_n: num("#grip-force") },
-  };
+  const recipe = draftRecipe();
   if (kept.place) recipe.place = kept.place;
   if (kept.search) recipe.search = kept.search;
   if (kept.device) recipe.gripper.device = kept.device;

@@ -65,6 +65,7 @@ async function openRecipe(id) {
 function fill(d) {
   setVal("#re-name", d.name);
   setVal("#re-plane-z", d.plane_z_mm); setVal("#re-grasp-z", d.grasp_z_mm);
+  setVal("#re-grasp-xy", (d.grasp_offset_mm || [0, 0]).join(",")); setVal("#re-grasp-yaw", d.grasp_yaw_deg ?? 0);
   setVal("#re-approach", d.approach_height_mm); setVal("#re-speed", d.speed_m_s);
   const ul = $("#re-models");
   ul.replaceChildren(...d.models.map((m, k) => {
@@ -118,6 +119,10 @@ function edited() {
   d.name = $("#re-name").value;
   d.plane_z_mm = num("#re-plane-z");
   d.grasp_z_mm = num("#re-grasp-z") ?? 0;
+  const xy = $("#re-grasp-xy").value.split(",").map((x) => Number(x.trim()));
+  if (xy.length !== 2 || xy.some((x) => !Number.isFinite(x))) throw new Error("grasp x, y: two numbers in mm, e.g. 0,-9");
+  d.grasp_offset_mm = xy;
+  d.grasp_yaw_deg = num("#re-grasp-yaw") ?? 0;
   d.approach_height_mm = num("#re-approach") ?? 50;
   if (num("#re-speed") !== null) d.speed_m_s = num("#re-speed");
   d.search = { ...(d.search || {}), ...dropNulls({ min_score: num("#re-min-score"), max_count: num("#re-max-count"),

@@ -265,6 +265,7 @@ def restore(store: Store, src: str | Path, who: str, force: bool = False) -> dic
     except sa.exc.IntegrityError as exc:
         raise RestoreRefused(f"restore: the backup's rows violate the store's constraints "
                              f"({str(exc.orig).strip().splitlines()[0]}); nothing was changed") from None
+    store.forget_doubt()  # the slot claims are the backup's now
     return {"backend": store.backend, "store": store.describe(), "cell_id": store.cell_id, "from": str(src),
             "counts": _held(counts), "replaced": replaced, "ids_renumbered": remap}
 
@@ -316,6 +317,14 @@ def _insert_rows(conn: sa.Connection, rows: dict[str, list[dict[str, Any]]],
             moved.append(r)
         for i in range(0, len(moved), INSERT_CHUNK):
             conn.execute(t.insert(), moved[i:i + INSERT_CHUNK])
+    drift = []
+    for r in rows.get(S.drift_checks.name, []):
+        r = {k: v for k, v in r.items() if k != "id"}
+        if r.get("calibration_id") is not None:
+            r["calibration_id"] = cal_map.get(int(r["calibration_id"]), r["calibration_id"])
+        drift.append(r)
+    for i in range(0, len(drift), INSERT_CHUNK):
+        conn.execute(S.drift_checks.insert(), drift[i:i + INSERT_CHUNK])
     for t in (S.activations, S.recipes, S.audit):
         fixed = []
         for r in rows[t.name]:

@@ -2,8 +2,10 @@
 
 A database error inside a store call is one of three things:
 
-- **damaged** (:class:`StoreDamaged`): SQLite reports the file malformed or not a database, or a
-  stored text cannot be decoded. Nothing but restoring a backup helps; the message names the
+- **damaged** (:class:`StoreDamaged`): SQLite reports the file malformed or not a database, a
+  stored text cannot be decoded, or a table of the store's schema is gone while the service runs
+  (SQLite "no such table", PostgreSQL ``undefined_table``: the schema is created at the start, so a
+  table missing later was dropped or the file replaced). Nothing but restoring a backup helps; the message names the
   command. The service answers 503 ``store_unavailable`` and keeps saying so until it is restarted
   on a restored store.
 - **unavailable** (:class:`StoreUnavailable`): the file is locked by another process beyond the
@@ -27,7 +29,9 @@ DAMAGED_CODES = ("SQLITE_CORRUPT", "SQLITE_NOTADB")
 """SQLite's primary error names (and their extended ``..._XXX`` forms) that mean damaged data."""
 UNAVAILABLE_CODES = ("SQLITE_IOERR", "SQLITE_CANTOPEN", "SQLITE_FULL", "SQLITE_READONLY", "SQLITE_BUSY",
                      "SQLITE_LOCKED", "SQLITE_PERM", "SQLITE_NOLFS", "SQLITE_PROTOCOL")
-DAMAGED_TEXTS = ("malformed", "not a database", "could not decode to utf-8")
+DAMAGED_TEXTS = ("malformed", "not a database", "could not decode to utf-8", "no such table")
+DAMAGED_SQLSTATES = ("42P01",)
+"""PostgreSQL's SQLSTATEs that mean damaged data: ``undefined_table`` (a table of the schema is gone)."""
 
 
 def restore_commands(config_path: str | Path | None) -> str:
@@ -59,6 +63,8 @@ def is_damage(exc: BaseException) -> bool:
     orig = getattr(exc, "orig", None) or exc
     name = str(getattr(orig, "sqlite_errorname", "") or "")
     if name.startswith(DAMAGED_CODES):
+        return True
+    if getattr(orig, "sqlstate", None) in DAMAGED_SQLSTATES:
         return True
     return isinstance(orig, sqlite3.Error) and any(t in str(orig).lower() for t in DAMAGED_TEXTS)
 

@@ -16,29 +16,54 @@ claim is never chosen (:meth:`ProductionRows.free_slot`) until an engineer confi
 from __future__ import annotations
 
 import json
+import logging
+import threading
 import time
 from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import sqlalchemy as sa
 
 from cellctl.store import schema as S
-from cellctl.store.errors import InvalidInput, NotFound, StoreError
+from cellctl.store.errors import InvalidInput, NotFound, StoreError, StoreUnavailable
 from cellctl.store.values import check_text, to_json_text
 
 ENDED_STATES = ("stopped", "complete", "failed", "interrupted")
 """A run in one of these states has ended; any other stored state at a start means the service died."""
 SLOT_CONFIRM_ACTION = "production.slot_confirm"
+DOUBT_RETRY_S = 2.0
+"""After the slots in doubt could not be read, the PLC front ends are told "not known" for this long
+before the store is asked again (they read on every request; an unreachable database must not make
+each of them wait for its connect timeout)."""
+
+log = logging.getLogger(__name__)
 
 
 class SlotTaken(StoreError):
     """The slot is claimed already (another run, or in doubt): the part is not carried there."""
 
 
+@dataclass(frozen=True)
+class DoubtSummary:
+    """How many slots of the cell are in doubt, and the first of them (by recipe, then slot)."""
+
+    count: int
+    recipe_id: int | None = None
+    """The first in-doubt slot's recipe; None when no slot is in doubt."""
+    slot: int | None = None
+    """The first in-doubt slot (0-based); None when no slot is in doubt."""
+
+
 class ProductionRows:
     """Production's rows of one cell (mixed into ``Store``: the same connection pool and write path)."""
 
     cell_id: str
+    _doubt_cache: tuple[int, DoubtSummary | None] = (0, None)
+    """(generation, summary) of :meth:`doubt_summary`; every change of a claim's state moves the generation."""
+    _doubt_lock = threading.Lock()
+    _doubt_retry_at = 0.0
+    """``time.monotonic()`` before which a failed read of the slots in doubt is not tried again."""
     if TYPE_CHECKING:
         def _write(self) -> AbstractContextManager[sa.Connection]: ...
         def _read(self) -> AbstractContextManager[sa.Connection]: ...
@@ -110,6 +135,7 @@ class ProductionRows:
             conn.execute(sa.update(S.slot_claims).where(
                 c.cell_id == self.cell_id, c.recipe_id == recipe_id, c.slot == slot, c.run_id == run_id).values(
                 state="in_doubt", at_s=time.time(), detail_json=to_json_text(detail, "slot claim detail")))
+        self.forget_doubt()
 
     def claims_in_doubt_at_start(self, why: str) -> list[dict[str, Any]]:
         """At the service's start (no run is alive): every claim still ``claimed`` becomes ``in_doubt``."""
@@ -124,6 +150,7 @@ class ProductionRows:
                     state="in_doubt", detail_json=to_json_text(detail, "slot claim detail")))
                 out.append({"recipe_id": r.recipe_id, "slot": r.slot, "run_id": r.run_id, "n": r.n,
                             "since_s": r.at_s, **detail})
+        self.forget_doubt()
         return out
 
     def slots_in_doubt(self, recipe_id: int | None = None) -> list[dict[str, Any]]:
@@ -163,7 +190,48 @@ class ProductionRows:
             out = {"recipe_id": recipe_id, "slot": slot, "occupied": occupied, "run_id": row.run_id, "n": row.n,
                    "next_slot": counter}
             self._audit(conn, who, SLOT_CONFIRM_ACTION, f"recipe:{recipe_id}", out, "ok")
+        self.forget_doubt()
         return out
+
+    def doubt_summary(self) -> DoubtSummary:
+        """The count of slots in doubt and the first one, for the PLC front ends (read on every Modbus
+        read, every 0.1 s by OPC UA, on their event loops): kept in memory. It is read again from the
+        store by the thread that changed a claim's state through this store (a slot put in doubt, the
+        claims of a dead service, a confirm, a restore), right after its write, so a PLC's read does
+        not wait for the database; one service writes a cell's claims, so memory and store agree.
+        When the store could not be read, :class:`StoreUnavailable` (retried after ``DOUBT_RETRY_S``)."""
+        generation, summary = self._doubt_cache
+        if summary is not None:
+            return summary
+        if time.monotonic() < self._doubt_retry_at:
+            raise StoreUnavailable("the slots in doubt could not be read from the store; retrying shortly")
+        c = S.slot_claims.c
+        try:
+            with self._read() as conn:
+                count = int(conn.execute(sa.select(sa.func.count()).select_from(S.slot_claims).where(
+                    c.cell_id == self.cell_id, c.state == "in_doubt")).scalar_one())
+                first = conn.execute(sa.select(c.recipe_id, c.slot).where(
+                    c.cell_id == self.cell_id, c.state == "in_doubt").order_by(c.recipe_id, c.slot).limit(1)).first()
+        except StoreError:
+            self._doubt_retry_at = time.monotonic() + DOUBT_RETRY_S  # a PLC read does not wait on it again at once
+            raise
+        summary = DoubtSummary(count, None if first is None else int(first.recipe_id),
+                               None if first is None else int(first.slot))
+        with self._doubt_lock:
+            if self._doubt_cache[0] == generation:  # no change since the read began: keep it
+                self._doubt_cache = (generation, summary)
+        return summary
+
+    def forget_doubt(self) -> None:
+        """The slots in doubt changed: read them again now (in the caller's thread, which has just written
+        to the store), or at the next :meth:`doubt_summary` when that fails."""
+        with self._doubt_lock:
+            self._doubt_cache = (self._doubt_cache[0] + 1, None)
+            self._doubt_retry_at = 0.0
+        try:
+            self.doubt_summary()
+        except Exception as exc:  # noqa: BLE001 - the write is done; the PLC reads "not known" meanwhile
+            log.warning("the slots in doubt cannot be read from the store now: %s", exc)
 
     # -- runs --------------------------------------------------------------------------------------
     def new_run(self, recipe_id: int, robot_id: str, who: str) -> int:

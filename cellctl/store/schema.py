@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Bumped when the tables change; a store with a newer version is refused, not guessed at.
 1: calibrations, activations, recipes, audit, latches (production in tables of its own);
-2: production runs, cycles, slots and slot claims in the schema (see :data:`MIGRATIONS`)."""
+2: production runs, cycles, slots and slot claims in the schema (see :data:`MIGRATIONS`);
+3: drift checks (``drift_checks``)."""
 
 STORE_MARKER = "cellctl-store"
 KIND_CHECK = "kind IN ('camera', 'handeye', 'npoint', 'conveyor')"
@@ -163,14 +164,28 @@ slot_claims = sa.Table(
     sa.CheckConstraint("state IN ('claimed', 'in_doubt')", name="ck_slot_claim_state"),
 )
 
+drift_checks = sa.Table(
+    "drift_checks", metadata,
+    # One drift check of a fixed camera (cellctl.drift): its record (drift_px, drift_mm, drift_deg, state,
+    # rule, ...) and the hand-eye calibration it was judged against (its chart is that calibration's).
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("cell_id", sa.String(128), nullable=False),
+    sa.Column("camera_id", sa.String(128), nullable=False),
+    sa.Column("calibration_id", sa.Integer, nullable=True),
+    sa.Column("t", sa.Double, nullable=False),
+    sa.Column("state", sa.String(16), nullable=False),
+    sa.Column("record_json", sa.Text, nullable=False),
+)
+
 sa.Index("ix_calibrations_cell", calibrations.c.cell_id, calibrations.c.kind, calibrations.c.camera_id)
 sa.Index("ix_activations_cell", activations.c.cell_id, activations.c.kind, activations.c.camera_id)
 sa.Index("ix_recipes_cell", recipes.c.cell_id, recipes.c.recipe_id)
 sa.Index("ix_audit_cell", audit.c.cell_id, audit.c.id)
 sa.Index("ix_production_cycles_run", production_cycles.c.cell_id, production_cycles.c.run_id, production_cycles.c.n)
+sa.Index("ix_drift_checks_cell", drift_checks.c.cell_id, drift_checks.c.camera_id, drift_checks.c.id)
 
 CELL_TABLES: tuple[sa.Table, ...] = (calibrations, activations, recipes, audit, production_runs, production_cycles,
-                                     production_slots, slot_claims)
+                                     production_slots, slot_claims, drift_checks)
 """The per-cell tables (a backup's content), in an order that satisfies the references when inserting."""
 
 ADDED_COLUMNS: dict[int, tuple[tuple[sa.Table, sa.Column[object], str], ...]] = {
@@ -179,8 +194,8 @@ ADDED_COLUMNS: dict[int, tuple[tuple[sa.Table, sa.Column[object], str], ...]] = 
 """Columns a version added to a table an older store may already hold (with the value old rows get):
 the migration adds them; a backup of an older version gets them filled in."""
 
-TABLES_SINCE: dict[str, int] = {t.name: 2 for t in (production_runs, production_cycles, production_slots,
-                                                    slot_claims)}
+TABLES_SINCE: dict[str, int] = {**{t.name: 2 for t in (production_runs, production_cycles, production_slots,
+                                                       slot_claims)}, drift_checks.name: 3}
 """Tables a backup of an older version may lack (restored empty)."""
 
 

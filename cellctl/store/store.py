@@ -1,6 +1,7 @@
 """The store of one cell: versioned calibrations with their inputs, the active pointer with its
-history, recipes, the audit log, the robots' latches (``latches.py``) and production's runs, cycles
-and slots (``production.py``) — one data-access layer over SQLite or PostgreSQL.
+history, the audit log, recipes (``recipes.py``), the robots' latches (``latches.py``),
+production's runs, cycles and slots (``production.py``) and the drift checks (``drift.py``) — one
+data-access layer over SQLite or PostgreSQL.
 
 Every write is one database transaction that also appends its audit entry, so a process killed at
 any moment leaves either the whole act (record + audit) or nothing. A :class:`Store` is safe to
@@ -19,9 +20,9 @@ from typing import Any
 import sqlalchemy as sa
 
 import cellctl
-from cellctl.store import recipe_versions as RV
 from cellctl.store import schema as S
 from cellctl.store.backends import WRITE_OPTION, Backend, advisory_key, backend_of, make_engine, parse_url
+from cellctl.store.drift import DriftRows
 from cellctl.store.errors import (
     CorruptRecord,
     InvalidInput,
@@ -35,13 +36,13 @@ from cellctl.store.errors import (
 from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
 from cellctl.store.latches import LatchRows
 from cellctl.store.production import ProductionRows
+from cellctl.store.recipes import RecipeRows
 from cellctl.store.records import (
     CALIBRATION_KINDS,
     AuditEntry,
     CalibrationKind,
     CalibrationRecord,
     CalibrationSummary,
-    Recipe,
 )
 from cellctl.store.values import check_key, check_text, describe_key, payload_sha256, to_json_text
 
@@ -50,7 +51,7 @@ log = logging.getLogger(__name__)
 MAX_AUDIT_LIMIT = 10_000
 
 
-class Store(LatchRows, ProductionRows):
+class Store(LatchRows, ProductionRows, RecipeRows, DriftRows):
     """One cell's store. Open it with :func:`cellctl.store.open_store` or ``Store(url, cell_id)``.
 
     ``url`` is a SQLAlchemy URL: ``sqlite:////abs/path.db`` or
@@ -435,68 +436,6 @@ class Store(LatchRows, ProductionRows):
         return [AuditEntry(id=r.id, cell_id=r.cell_id, at_s=r.at_s, who=r.who, action=r.action, target=r.target,
                            detail=self._loads(r.detail_json, "an audit entry"), result=r.result) for r in rows]
 
-    # ------------------------------------------------------------------ recipes
-
-    def save_recipe(self, recipe_id: int, name: str, data: dict[str, Any], who: str) -> Recipe:
-        """Store a new version of recipe ``recipe_id`` (the latest version is the one in force)."""
-        if isinstance(recipe_id, bool) or not isinstance(recipe_id, int) or recipe_id < 0:
-            raise InvalidInput(f"recipe id must be a non-negative integer (the PLC's recipe number), got {recipe_id!r}")
-        check_text(name, "recipe name")
-        check_text(who, "who")
-        if not isinstance(data, dict):
-            raise InvalidInput("save_recipe: data must be a dict")
-        data_json = to_json_text(data, "recipe data")
-        now = time.time()
-        r = S.recipes.c
-        with self._write() as conn:
-            version = conn.execute(sa.select(sa.func.coalesce(sa.func.max(r.version), 0)).where(
-                r.cell_id == self.cell_id, r.recipe_id == recipe_id)).scalar_one() + 1
-            conn.execute(S.recipes.insert().values(
-                cell_id=self.cell_id, recipe_id=recipe_id, version=version, name=name, data_json=data_json,
-                creator=who, created_s=now))
-            self._audit(conn, who, "recipe.save", f"recipe:{recipe_id}", {"name": name, "version": version}, "ok", now)
-        return Recipe(recipe_id=recipe_id, version=int(version), name=name, data=json.loads(data_json),
-                      creator=who, created_s=now, cell_id=self.cell_id)
-
-    def get_recipe(self, recipe_id: int, version: int | None = None) -> Recipe:
-        """The latest version of recipe ``recipe_id`` (or the given ``version``); :class:`NotFound` if absent."""
-        r = S.recipes.c
-        q = sa.select(S.recipes).where(r.cell_id == self.cell_id, r.recipe_id == recipe_id)
-        q = q.where(r.version == version) if version is not None else q.order_by(r.version.desc()).limit(1)
-        with self._read() as conn:
-            row = conn.execute(q).one_or_none()
-        if row is None:
-            which = f"recipe {recipe_id}" + (f" version {version}" if version is not None else "")
-            raise NotFound(f"{which} not found in the store of cell {self.cell_id!r}; list them with list_recipes")
-        return self._recipe(row)
-
-    def list_recipes(self) -> list[Recipe]:
-        """The latest version of every recipe, by recipe id."""
-        r = S.recipes.c
-        latest = sa.select(r.recipe_id, sa.func.max(r.version).label("version")).where(
-            r.cell_id == self.cell_id).group_by(r.recipe_id).subquery()
-        q = sa.select(S.recipes).join(latest, sa.and_(r.recipe_id == latest.c.recipe_id,
-                                                      r.version == latest.c.version)).where(
-            r.cell_id == self.cell_id).order_by(r.recipe_id)
-        with self._read() as conn:
-            return [self._recipe(row) for row in conn.execute(q).all()]
-
-    # ------------------------------------------------------------------ recipe versions (recipe_versions.py)
-
-    def recipe_versions(self, recipe_id: int) -> list[Recipe]:
-        """Every version of a recipe, newest first (the newest is in force)."""
-        return RV.versions(self, recipe_id)
-
-    def activate_recipe_version(self, recipe_id: int, version: int, who: str) -> Recipe:
-        """Roll back: ``version``'s data stored as the recipe's new version (nothing is rewritten)."""
-        return RV.activate_version(self, recipe_id, version, who)
-
-    def duplicate_recipe(self, recipe_id: int, new_recipe_id: int, who: str, name: str | None = None) -> Recipe:
-        return RV.duplicate(self, recipe_id, new_recipe_id, who, name)
-
-    def delete_recipe(self, recipe_id: int, who: str) -> int:
-        return RV.delete(self, recipe_id, who)
-
     # ------------------------------------------------------------------ whole-store
 
     def counts(self) -> dict[str, int]:
@@ -507,8 +446,3 @@ class Store(LatchRows, ProductionRows):
 
     def is_empty(self) -> bool:
         return not any(self.counts().values())
-
-    def _recipe(self, row: sa.Row[Any]) -> Recipe:
-        return Recipe(recipe_id=row.recipe_id, version=row.version, name=row.name, creator=row.creator,
-                      data=self._loads(row.data_json, f"recipe {row.recipe_id}"), created_s=row.created_s,
-                      cell_id=row.cell_id)

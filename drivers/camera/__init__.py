@@ -6,23 +6,15 @@ libraries such as Aravis load only when asked for).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from drivers.camera.aravis import AravisCamera
     from drivers.camera.aravis_formats import AravisCameraSettings
     from drivers.camera.opencv import OpenCVCamera, OpenCVCameraSettings
     from drivers.camera.sim import SimCamera, SimCameraSettings
-
-_LAZY: dict[str, str] = {
-    "SimCamera": "drivers.camera.sim",
-    "SimCameraSettings": "drivers.camera.sim",
-    "OpenCVCamera": "drivers.camera.opencv",
-    "OpenCVCameraSettings": "drivers.camera.opencv",
-    "AravisCamera": "drivers.camera.aravis",
-    "AravisCameraSettings": "drivers.camera.aravis_formats",
-}
-"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
 
 __all__ = [
     "AravisCamera",
@@ -33,12 +25,12 @@ __all__ = [
     "SimCameraSettings",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "SimCamera": "drivers.camera.sim",
+    "SimCameraSettings": "drivers.camera.sim",
+    "OpenCVCamera": "drivers.camera.opencv",
+    "OpenCVCameraSettings": "drivers.camera.opencv",
+    "AravisCamera": "drivers.camera.aravis",
+    "AravisCameraSettings": "drivers.camera.aravis_formats",
+})
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""

@@ -342,6 +342,24 @@ class AravisCamera(CameraBase):
         self._apply_trigger(cam, mode)  # type: ignore[arg-type]
         self._trigger = mode  # type: ignore[assignment]
 
+    def control_ranges(self) -> dict[str, Any]:
+        """The camera's own bounds of exposure (us) and gain (dB) where it has them, and the trigger modes its
+        GenICam features allow (hardware and software need ``TriggerMode``/``TriggerSource``)."""
+        cam = self._require_cam()
+        out: dict[str, Any] = {}
+        try:
+            if cam.is_exposure_time_available():
+                out["exposure_us"] = [float(x) for x in cam.get_exposure_time_bounds()]
+            if cam.is_gain_available():
+                out["gain_db"] = [float(x) for x in cam.get_gain_bounds()]
+        except Exception as exc:  # noqa: BLE001 - a GenICam read error: the device's own words
+            raise DeviceOperationError(f"camera {self.camera_id}: its control bounds cannot be read: {exc}") from exc
+        modes = ["free_run"]
+        if all(self._feature(cam, f) for f in ("TriggerMode", "TriggerSource")):
+            modes += ["software", "hardware"] if self._feature(cam, "TriggerSoftware") else ["hardware"]
+        out["trigger"] = modes
+        return out
+
     def health(self) -> DeviceHealth:
         c = self.counters
         return self._outages.health(self._cam is not None, frames_received=c["completed"],

@@ -88,6 +88,11 @@ class SimCamera(CameraBase):
             pixels = draw_tool_feature(pixels, world.camera_model, T_cam_tool, feature, world.scene.camera.imaging,
                                        self._feature_rng)
         self._frame_id += 1
+        # Exposure and gain scale the light the configured settings rendered (clipped at full scale).
+        scale = (self._exposure_us / self._settings.exposure_us) * 10.0 ** (
+            (self._gain_db - self._settings.gain_db) / 20.0)
+        if scale != 1.0:
+            pixels = np.clip(pixels.astype(np.float32) * scale, 0, 255).astype(np.uint8)
         return Frame(
             pixels=pixels,
             timestamp_s=time.time(),
@@ -106,6 +111,11 @@ class SimCamera(CameraBase):
         if mode not in ("software", "free_run"):
             raise DeviceInitError(f"camera {self.camera_id}: trigger mode {mode!r} unknown; use software or free_run")
         self._trigger = mode
+
+    def control_ranges(self) -> dict[str, Any]:
+        """Exposure (us) and gain (dB) within the settings' bounds (they scale the rendered light), the
+        trigger modes it takes."""
+        return {"exposure_us": [1.0, 10_000_000.0], "gain_db": [0.0, 48.0], "trigger": ["software", "free_run"]}
 
     def settings(self) -> dict[str, Any]:
         model = self._world.camera_model if self._world else None

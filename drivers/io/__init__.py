@@ -5,25 +5,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from drivers.io.modbus import ModbusDigitalIO, ModbusIOSettings
     from drivers.io.robotiq_gripper import RobotiqGripper, RobotiqGripperSettings
     from drivers.io.serial_light import SerialLightController, SerialLightSettings
     from drivers.io.sim_gripper import SimGripper, SimGripperSettings
-
-_LAZY: dict[str, str] = {
-    "ModbusDigitalIO": "drivers.io.modbus",
-    "ModbusIOSettings": "drivers.io.modbus",
-    "RobotiqGripper": "drivers.io.robotiq_gripper",
-    "RobotiqGripperSettings": "drivers.io.robotiq_gripper",
-    "SimGripper": "drivers.io.sim_gripper",
-    "SimGripperSettings": "drivers.io.sim_gripper",
-    "SerialLightController": "drivers.io.serial_light",
-    "SerialLightSettings": "drivers.io.serial_light",
-}
-"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
 
 __all__ = [
     "ModbusDigitalIO",
@@ -36,12 +26,14 @@ __all__ = [
     "SimGripperSettings",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "ModbusDigitalIO": "drivers.io.modbus",
+    "ModbusIOSettings": "drivers.io.modbus",
+    "RobotiqGripper": "drivers.io.robotiq_gripper",
+    "RobotiqGripperSettings": "drivers.io.robotiq_gripper",
+    "SimGripper": "drivers.io.sim_gripper",
+    "SimGripperSettings": "drivers.io.sim_gripper",
+    "SerialLightController": "drivers.io.serial_light",
+    "SerialLightSettings": "drivers.io.serial_light",
+})
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""

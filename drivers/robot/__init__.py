@@ -7,23 +7,15 @@ imported on first use.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from drivers.lazy import lazy_getattr
 
 if TYPE_CHECKING:
     from drivers.robot.modbus import ModbusRobot
     from drivers.robot.modbus_map import ModbusRobotSettings
     from drivers.robot.sim import SimRobot, SimRobotSettings
     from drivers.robot.ur_rtde import URRTDERobot, URRTDESettings
-
-_LAZY: dict[str, str] = {
-    "SimRobot": "drivers.robot.sim",
-    "SimRobotSettings": "drivers.robot.sim",
-    "URRTDERobot": "drivers.robot.ur_rtde",
-    "URRTDESettings": "drivers.robot.ur_rtde",
-    "ModbusRobot": "drivers.robot.modbus",
-    "ModbusRobotSettings": "drivers.robot.modbus_map",
-}
-"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""
 
 __all__ = [
     "ModbusRobot",
@@ -34,12 +26,12 @@ __all__ = [
     "URRTDESettings",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, {
+    "SimRobot": "drivers.robot.sim",
+    "SimRobotSettings": "drivers.robot.sim",
+    "URRTDERobot": "drivers.robot.ur_rtde",
+    "URRTDESettings": "drivers.robot.ur_rtde",
+    "ModbusRobot": "drivers.robot.modbus",
+    "ModbusRobotSettings": "drivers.robot.modbus_map",
+})
+"""Public names imported on first use (PEP 562): importing the package stays cheap and free of cycles."""

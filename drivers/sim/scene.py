@@ -219,6 +219,17 @@ class ToolFeatureSpec(_Strict):
     ring_grey_dn: float = Field(20.0, ge=0, le=255)
 
 
+class FiducialSpec(_Strict):
+    """A mark fixed on the table for drift checks: a bright disk of ``diameter_mm`` centred at
+    (``x_mm``, ``y_mm``, ``z_mm``) in the robot base frame, lying level (cellctl's ``drift.fiducials``)."""
+
+    x_mm: float
+    y_mm: float
+    z_mm: float = 0.0
+    diameter_mm: float = Field(4.0, gt=0, le=100)
+    reflectance: float = Field(0.95, ge=0, le=1)
+
+
 class TableSpec(_Strict):
     z_m: float = 0.0
     reflectance: float = Field(0.35, ge=0, le=1)
@@ -236,6 +247,8 @@ class SceneSpec(_Strict):
     parts: list[PartSpec] = []
     tool_feature: ToolFeatureSpec | None = None
     """A feature on the tool for a fixed camera to see (the tool centre); none when absent."""
+    fiducials: list[FiducialSpec] = []
+    """Marks fixed on the table (drift checks); none when absent."""
     production: ProductionSpec | None = None
     """Parts as objects a sim gripper picks and places (``drivers.sim.production``); none when absent."""
     conveyor: BeltSpec | None = None

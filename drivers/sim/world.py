@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
+from drivers.sim.camera_fault import CameraFault
 from drivers.sim.conveyor import BeltTracker, SimBelt
 from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
@@ -74,6 +75,8 @@ class SimWorld:
         """The production scene's parts (picked and placed by a sim gripper); None without one."""
         self._state_file: Path | None = None
         self._kept_s = 0.0
+        self.camera_fault = CameraFault()
+        """A bump of the camera on request (``POST /sim/faults``): applied to its true pose."""
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -211,13 +214,14 @@ class SimWorld:
 
     # -- camera -----------------------------------------------------------------------------------
     def T_base_cam(self) -> NDArray[np.float64]:
+        """The camera's true pose (with the fault in force, ``camera_fault``)."""
         fixed = self.scene.T_base_cam_fixed()
         if fixed is not None:
-            return fixed
+            return self.camera_fault.apply(fixed)
         T_tool_cam = self.scene.T_tool_cam()
         if T_tool_cam is None:
             raise SceneError("the scene's camera has neither T_base_cam (mount: base) nor T_tool_cam (mount: tool)")
-        return self.T_base_tool_true @ T_tool_cam
+        return self.camera_fault.apply(self.T_base_tool_true @ T_tool_cam)
 
     def T_base_target(self, name: str) -> NDArray[np.float64]:
         for spec, _ in self._targets:
@@ -247,6 +251,14 @@ class SimWorld:
                              target.reflectance) for spec, target in self._targets]
         table = self.scene.table
         T_cam_table = T_cam_base @ g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
+        for mark in self.scene.fiducials:
+            # A mark on the table lies in the table's own frame (it ties with it in depth and, listed
+            # first, wins); one above it in its own level plane.
+            r_m, x_m, y_m = mark.diameter_mm / 2000.0, mark.x_mm / 1000.0, mark.y_mm / 1000.0
+            dz = mark.z_mm / 1000.0 - table.z_m
+            T_plane = T_cam_table if abs(dz) < 1e-9 else T_cam_table @ g.make_transform(np.eye(3), [0.0, 0.0, dz])
+            objs.append(PlanarObject(T_plane, functools.partial(_disk, x_m, y_m, r_m, mark.reflectance),
+                                     (x_m - r_m, y_m - r_m, x_m + r_m, y_m + r_m)))
         if self.production is not None:
             objs.extend(production_objects(self.production, T_cam_base, self.T_base_tool_true, s_m))
         for part in reversed(self.scene.parts):
@@ -342,6 +354,8 @@ class SimWorld:
                  "z_mm": self.scene.table.z_m * 1000.0}
                 for p in self.scene.parts
             ],
+            "fiducials": [m.model_dump() for m in self.scene.fiducials],
+            "camera_fault": self.camera_fault.state(),
             "robot_repeatability": {"mm": self.scene.robot.repeatability_mm,
                                     "deg": self.scene.robot.repeatability_deg},
             "timestamp_s": time.time(),
@@ -363,6 +377,13 @@ class SimWorld:
             out["tool_feature"] = {**feature.model_dump(mode="json"),
                                    "T_base_feature": (self.T_base_tool_true @ T_tool_feature).tolist()}
         return out
+
+
+def _disk(x0_m: float, y0_m: float, r_m: float, reflectance: float, x: NDArray[np.float64],
+          y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A fiducial mark: ``reflectance`` inside its disk, NaN elsewhere (table frame, metres)."""
+    dx, dy = x - x0_m, y - y0_m
+    return np.where(dx * dx + dy * dy <= r_m * r_m, reflectance, np.nan)
 
 
 _WORLDS: dict[tuple[str, int], SimWorld] = {}

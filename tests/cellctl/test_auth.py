@@ -49,6 +49,10 @@ ROUTES: list[tuple[str, str, dict[str, Any] | None, str]] = [
     ("POST", "/pick/teach", {"roi": [-5, 0, 10, 10]}, "engineer"),
     ("GET", "/frames/999.png", None, "viewer"),
     ("GET", "/audit", None, "engineer"),
+    ("GET", "/drift", None, "viewer"),
+    ("POST", "/drift/check", None, "operator"),
+    ("POST", "/drift/resolve", None, "engineer"),
+    ("POST", "/sim/faults", {}, "engineer"),
 ]
 
 

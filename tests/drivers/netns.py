@@ -161,7 +161,43 @@ def scenario_contract() -> dict[str, Any]:
         peer.kill()
 
 
+def scenario_controls(tmp: str) -> dict[str, Any]:
+    """``GET``/``PUT /cameras/cam0/controls`` of the service (in process) on arv-fake-gv-camera over GigE Vision."""
+    import yaml
+
+    from cellctl.config import default_config_text
+    from tests.support.app import in_process_cell
+
+    cfg = yaml.safe_load(default_config_text())
+    cfg["cameras"]["cam0"] = {"kind": "aravis", "settings": {"device_id": "127.0.0.1", "interfaces": ["GigEVision"],
+                                                             "frame_rate_hz": 20}}
+    cfg["store"]["path"] = str(Path(tmp) / "cell.db")
+    path = Path(tmp) / "cell.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out: dict[str, Any] = {}
+    peer = FakeCamera().start()
+    try:
+        with in_process_cell(Path(tmp), path) as a, a.http() as http:
+            out["get"] = http.get("/cameras/cam0/controls").json()
+            r = http.put("/cameras/cam0/controls", json={"exposure_us": 4000, "gain_db": 2, "trigger": "software"})
+            out["put"] = {"status": r.status_code, "body": r.json()}
+            out["settings"] = http.get("/cameras/cam0/settings").json()
+            t0 = time.monotonic()
+            out["image_status"] = http.get("/cameras/cam0/image", params={"format": "png"}).status_code
+            out["image_s"] = time.monotonic() - t0
+            r = http.put("/cameras/cam0/controls", json={"exposure_us": 50_000_000})
+            out["too_long"] = {"status": r.status_code, "body": r.json()}
+            r = http.put("/cameras/cam0/controls", json={"trigger": "free_run"})
+            out["free_run"] = {"status": r.status_code, "trigger": r.json()["controls"]["trigger"]["value"]}
+            audit = http.get("/audit", params={"limit": 20}).json()
+            out["audit"] = [e for e in audit if e["action"] == "camera.controls"]
+    finally:
+        peer.kill()
+    return out
+
+
 SCENARIOS: dict[str, Callable[..., dict[str, Any]]] = {
+    "controls": scenario_controls,
     "gige": scenario_gige,
     "contract": scenario_contract,
     "faults": scenario_faults,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -100,3 +101,20 @@ def test_gige_faults_in_loopback_namespace() -> None:
     rec = r["recovered"]
     assert rec["error"] == "" and rec["s"] < 10.0  # recovers by itself (backoff <= 1 s)
     assert rec["health"]["outages"] == 1 and rec["health"]["reconnects"] >= 1
+
+
+def test_camera_controls_over_rest_on_gige(tmp_path: Path) -> None:
+    """``GET``/``PUT /cameras/{id}/controls`` on arv-fake-gv-camera (the service in process, in the namespace):
+    the camera's own GenICam bounds, a change set and read back, one outside the bounds refused, audited."""
+    r = run_scenario("controls", 120.0, str(tmp_path))
+    c = r["get"]["controls"]
+    assert r["get"]["kind"] == "aravis" and all(c[k]["supported"] for k in ("exposure_us", "gain_db", "trigger"))
+    assert c["exposure_us"]["min"] > 0 and c["exposure_us"]["max"] > c["exposure_us"]["min"]
+    assert set(c["trigger"]["options"]) >= {"free_run", "software"}
+    assert r["put"]["status"] == 200, r["put"]
+    assert r["settings"]["exposure_us"] == pytest.approx(4000) and r["settings"]["gain_db"] == pytest.approx(2)
+    assert r["settings"]["trigger"] == "software" and r["image_status"] == 200 and r["image_s"] < 3.0
+    assert r["too_long"]["status"] == 422 and r["too_long"]["body"]["error"]["code"] in ("invalid_control",
+                                                                                         "invalid_request")
+    assert r["free_run"] == {"status": 200, "trigger": "free_run"}
+    assert [e["result"] for e in r["audit"]][-1] == "ok" and len(r["audit"]) >= 2

@@ -198,3 +198,178 @@ def test_a_production_run_starts_and_stops_through_ethernet_ip(tmp_path: Path) -
         assert served.client().get("/production").json()["ended_because"] == "stopped"
     finally:
         stop_served(served)
+
+
+# -- the struct-level fast path (cellctl.plc.enip_fast) against cpppo, frame by frame -------------------------------
+
+
+def _recv_frame(s: socket.socket) -> bytes | None:
+    """One encapsulation frame from the server, or None when it closed the connection."""
+    buf = b""
+    try:
+        while len(buf) < 24 or len(buf) < 24 + struct.unpack_from("<H", buf, 2)[0]:
+            chunk = s.recv(4096)
+            if not chunk:
+                return None
+            buf += chunk
+    except (ConnectionResetError, TimeoutError):
+        return None
+    return buf
+
+
+def _path(name: str, element: int | None = None, wide: bool = False) -> bytes:
+    raw = name.encode()
+    p = bytes([0x91, len(raw)]) + raw + b"\0" * (len(raw) % 2)
+    if element is not None:
+        p += struct.pack("<BBH", 0x29, 0, element) if wide else bytes([0x28, element])
+    return p
+
+
+def _cip(service: int, path: bytes, data: bytes) -> bytes:
+    return bytes([service, len(path) // 2]) + path + data
+
+
+def _read(name: str, count: int = 1, element: int | None = None, wide: bool = False) -> bytes:
+    return _cip(0x4C, _path(name, element, wide), struct.pack("<H", count))
+
+
+def _write(name: str, type_code: int, value: bytes, count: int = 1) -> bytes:
+    return _cip(0x4D, _path(name), struct.pack("<HH", type_code, count) + value)
+
+
+class _Session:
+    """A raw EtherNet/IP client as pylogix talks: Register Session, Large Forward Open, then frames."""
+
+    def __init__(self, port: int) -> None:
+        self.s = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.s.sendall(_register_session())
+        reply = _recv_frame(self.s)
+        assert reply is not None
+        self.session = struct.unpack_from("<I", reply, 4)[0]
+        # pylogix's Large Forward Open (0x5B) to the Connection Manager, 4002-byte connections, backplane slot 0
+        forward_open = bytes.fromhex("5b 02 20 06 24 01 0a 0e 02 00 00 20 ed 5d 00 00 91 95 37 13 2a 00 00 00"
+                                     "03 00 00 00 34 12 20 00 a2 0f 00 42 01 40 20 00 a2 0f 00 42 a3 03 01 00"
+                                     "20 02 24 01")
+        reply = self.ask(self.rr(forward_open))
+        assert reply is not None and reply[40] == 0xDB and reply[42] == 0, reply
+        self.conn = struct.unpack_from("<I", reply, 44)[0]
+
+    def ask(self, frame: bytes) -> bytes | None:
+        self.s.sendall(frame)
+        return _recv_frame(self.s)
+
+    def unit(self, cip: bytes, session: int | None = None, conn: int | None = None, extra: int = 0,
+             seq: int = 9) -> bytes:
+        conn = self.conn if conn is None else conn
+        body = struct.pack("<IHHHHIHHH", 0, 0, 2, 0xA1, 4, conn, 0xB1, len(cip) + 2 + extra, seq) + cip
+        return self.encap(0x70, body, session)
+
+    def rr(self, cip: bytes, session: int | None = None, timeout: int = 0) -> bytes:
+        body = struct.pack("<IHHHHHH", 0, timeout, 2, 0, 0, 0xB2, len(cip)) + cip
+        return self.encap(0x6F, body, session)
+
+    def encap(self, command: int, body: bytes, session: int | None = None) -> bytes:
+        return struct.pack("<HHII8sI", command, len(body), self.session if session is None else session, 0,
+                           b"cellctl!", 0) + body
+
+    def close(self) -> None:
+        self.s.close()
+
+
+def _unconnected_send(cip: bytes, slot: int = 0) -> bytes:
+    return (bytes([0x52, 2, 0x20, 6, 0x24, 1, 10, 0xFF]) + struct.pack("<H", len(cip)) + cip
+            + b"\0" * (len(cip) % 2) + bytes([1, 0, 1, slot]))
+
+
+# (name, frame builder, whether the fast path answers it): every one answered exactly as cpppo answers it.
+PROBES: list[tuple[str, Any, bool]] = [
+    ("read DINT", lambda c: c.unit(_read("CC_EchoSeq")), True),
+    ("read REAL[64]", lambda c: c.unit(_read("CC_Picks", 64)), True),
+    ("read REAL[3..4]", lambda c: c.unit(_read("CC_Picks", 2, element=3)), True),
+    ("read REAL[60..63], 16-bit element", lambda c: c.unit(_read("CC_Picks", 4, element=60, wide=True)), True),
+    ("read DINT[7]", lambda c: c.unit(_read("CC_Counters", 7)), True),
+    ("read scalar [0]", lambda c: c.unit(_read("CC_Command", 1, element=0)), True),
+    ("read STRING", lambda c: c.unit(_read("CC_Message")), True),
+    ("read, unconnected", lambda c: c.rr(_read("CC_ErrorText")), True),
+    ("read, unconnected, a timeout", lambda c: c.rr(_read("CC_ErrorText"), timeout=5), True),
+    ("read, Unconnected Send to slot 0", lambda c: c.rr(_unconnected_send(_read("CC_PicksReported"))), True),
+    ("write DINT", lambda c: c.unit(_write("CC_Count", 0xC4, struct.pack("<i", 0))), True),
+    ("write a read-only tag", lambda c: c.unit(_write("CC_Status", 0xC4, struct.pack("<i", 7))), False),
+    ("write a REAL into a DINT", lambda c: c.unit(_write("CC_Count", 0xCA, struct.pack("<f", 1.5))), False),
+    ("write a SINT into a DINT", lambda c: c.unit(_write("CC_Count", 0xC2, b"\0")), False),
+    ("write two DINTs into one", lambda c: c.unit(_write("CC_Count", 0xC4, b"\0" * 8, count=2)), False),
+    ("read an unknown tag", lambda c: c.unit(_read("NoSuchTag")), False),
+    ("read past the end", lambda c: c.unit(_read("CC_Picks", 65)), False),
+    ("read two of a scalar", lambda c: c.unit(_read("CC_EchoSeq", 2)), False),
+    ("read zero elements", lambda c: c.unit(_read("CC_EchoSeq", 0)), False),
+    ("read with a trailing byte", lambda c: c.unit(_read("CC_EchoSeq") + b"\0"), False),
+    ("read, a path longer than the request", lambda c: c.unit(bytes([0x4C, 40]) + _path("CC_EchoSeq")), False),
+    ("Read Tag Fragmented", lambda c: c.unit(_cip(0x52, _path("CC_Picks"), struct.pack("<HI", 64, 0))), False),
+    ("Unconnected Send to slot 3", lambda c: c.rr(_unconnected_send(_read("CC_PicksReported"), slot=3)), False),
+    ("an unknown connection id", lambda c: c.unit(_read("CC_EchoSeq"), conn=c.conn ^ 0xFFFF), False),
+    ("another session's handle", lambda c: c.unit(_read("CC_EchoSeq"), session=c.session ^ 1), False),
+    ("a data item longer than the frame", lambda c: c.unit(_read("CC_EchoSeq"), extra=4), False),
+    ("a data item shorter than the frame", lambda c: c.unit(_read("CC_EchoSeq"), extra=-4), False),
+    ("a truncated request", lambda c: c.unit(_read("CC_EchoSeq")[:3]), False),
+]
+
+
+def _normal(reply: bytes | None, c: _Session) -> bytes | None:
+    """The reply with this connection's session handle and connection id blanked (cpppo draws them)."""
+    if reply is None:
+        return None
+    out = bytearray(reply)
+    if struct.unpack_from("<I", out, 4)[0] in (c.session, c.session ^ 1):
+        out[4:8] = b"\0" * 4
+    if out[0] == 0x70 and len(out) >= 40 and struct.unpack_from("<I", out, 36)[0] in (c.conn, c.conn ^ 0xFFFF):
+        out[36:40] = b"\0" * 4
+    return bytes(out)
+
+
+def _answers(port: int) -> dict[str, bytes | None]:
+    """Each probe's reply (None: the connection was closed), on one connection until one is closed."""
+    out: dict[str, bytes | None] = {}
+    c: _Session | None = None
+    try:
+        for name, build, _fast in PROBES:
+            c = c or _Session(port)
+            out[name] = _normal(c.ask(build(c)), c)
+            if out[name] is None:
+                c.close()
+                c = None
+    finally:
+        if c is not None:
+            c.close()
+    return out
+
+
+def test_the_fast_path_answers_as_cpppo_does_and_declines_everything_else(
+        cell: PlcApp, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cellctl.plc.enip_fast import FastPath
+
+    answered: list[bytes] = []
+    original = FastPath.answer
+
+    def spy(self: FastPath, frame: bytes) -> bytes | None:
+        reply = original(self, frame)
+        if reply is not None:
+            answered.append(frame)
+        return reply
+
+    monkeypatch.setattr(FastPath, "answer", spy)
+    monkeypatch.setattr(FastPath, "enabled", False)
+    by_cpppo = _answers(cell.enip_port)
+    assert not answered
+    monkeypatch.setattr(FastPath, "enabled", True)
+    fast = _answers(cell.enip_port)
+    for name, _build, _takes in PROBES:
+        assert fast[name] == by_cpppo[name], (name, fast[name], by_cpppo[name])
+    taken = [name for name, _b, takes in PROBES if takes]
+    assert len(answered) == len(taken), answered  # exactly the well-formed reads and writes of our tags
+    assert by_cpppo["read DINT"] is not None and by_cpppo["read DINT"][48] == 0  # a real answer, status 0
+    assert by_cpppo["read an unknown tag"] is not None and by_cpppo["read an unknown tag"][48] == 0x05
+    # A Logix client's handshake runs on the fast path: only session and connection set-up reach cpppo.
+    answered.clear()
+    with logix(cell.enip_port) as c:
+        assert request(c, 0)["status"] & DONE
+    assert len(answered) >= 10, len(answered)

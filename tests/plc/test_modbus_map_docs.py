@@ -42,8 +42,10 @@ def test_the_document_names_every_field_at_its_served_address() -> None:
     assert f"**{mm.PICKS} + {mm.PICK_STRIDE}·k**" in text  # where pick k starts
     assert f"(register map version {mm.MAP_VERSION})" in text.splitlines()[0]
     assert f"| {mm.address('MAP_VERSION')} | MAP_VERSION | {mm.MAP_VERSION} (" in text
-    assert f"**{mm.address('SIGMA_SEQ')}..{mm.END - 1} ({mm.END - mm.address('SIGMA_SEQ')} registers)**" in text
-    assert mm.END == 236 and "236 and above" in text
+    sigma_end = mm.SIGMA_END  # version 5 added the slots-in-doubt block after the uncertainty block
+    assert f"**{mm.address('SIGMA_SEQ')}..{sigma_end - 1} ({sigma_end - mm.address('SIGMA_SEQ')} registers)**" in text
+    assert sigma_end == 236 and mm.address("DOUBT_COUNT") == 236
+    assert mm.END == 241 and "241 and above" in text
 
 
 def test_the_server_and_the_production_block_are_built_from_the_table() -> None:
@@ -60,3 +62,11 @@ def test_the_server_and_the_production_block_are_built_from_the_table() -> None:
     assert mm.words_int32(words[at["COUNTERS"] + 12 : at["COUNTERS"] + 14]) == 7
     assert mm.words_int32(words[at["LAST_SIGMA_UM"] : at["LAST_SIGMA_UM"] + 2]) == 60
     assert mm.words_int32(words[at["LAST_SIGMA_MDEG"] : at["LAST_SIGMA_MDEG"] + 2]) == -1
+
+
+def test_the_document_names_every_status_bit_the_server_sets() -> None:
+    text = DOC.read_text()
+    for name, bit in mm.STATUS_BITS.items():
+        assert f"bit {bit} {name}" in text, name
+        assert getattr(mb, name) == 1 << bit  # the server's masks come from the table
+    assert mb.LIVE_BITS & mb.DRIFT_ALARM  # live on every read, like the robot's bits

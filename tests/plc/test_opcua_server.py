@@ -110,7 +110,12 @@ def test_pick_verify_and_status_with_security_none(plc_app: PlcApp) -> None:
                 await (await cell.get_child(f"{idx}:LastError")).write_value("forged")
             assert await read(cell, idx, "CellId") == "virtual-cell"
 
+    before = plc_app.http().get("/plc/status").json()["front_ends"]["opcua"]["paced"]["frames"]
     asyncio.run(run())
+    # Every message went through the front ends' work budget (cellctl.plc.opcua_pacing), as Modbus's frames do.
+    status = plc_app.http().get("/plc/status").json()["front_ends"]
+    assert status["opcua"]["paced"]["frames"] >= before + 15, status["opcua"]
+    assert status["modbus"]["paced"] is not None
 
 
 @pytest.fixture(scope="module")

@@ -38,7 +38,7 @@ def pick_over_modbus(port: int, seq: int) -> tuple[list[int], list[int], int]:
                 break
             assert time.monotonic() < deadline, "no answer within 60 s"
             time.sleep(0.01)
-        sigma = client.read_holding_registers(mb.SIGMA_SEQ, count=mb.END - mb.SIGMA_SEQ, device_id=UNIT)
+        sigma = client.read_holding_registers(mb.SIGMA_SEQ, count=mb.SIGMA_END - mb.SIGMA_SEQ, device_id=UNIT)
         assert not sigma.isError(), sigma
         version = client.read_holding_registers(mb.MAP_VERSION_REG, count=1, device_id=UNIT).registers[0]
         return answer, list(sigma.registers), version
@@ -71,7 +71,7 @@ def test_modbus_and_opcua_carry_each_picks_uncertainty(tmp_path: Path) -> None:
         answer, regs, version = pick_over_modbus(modbus_port, 4711)
         reported = answer[mb.PICKS_REPORTED - mb.STATUS]
         assert answer[0] & mb.DONE and reported >= 1, answer[:10]
-        assert version == mb.MAP_VERSION == 4
+        assert version == mb.MAP_VERSION == 5
         assert regs[0] == 4711  # SIGMA_SEQ: the block belongs to this answer
 
         def i32(k: int, off: int) -> int:

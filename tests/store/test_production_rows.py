@@ -95,7 +95,7 @@ def test_a_store_of_schema_1_with_production_tables_opens_migrated_and_keeps_its
     with Store(store_url, cell_id) as store:
         with store.engine.connect() as conn:
             version = conn.execute(sa.select(S.meta.c.value).where(S.meta.c.key == "schema_version")).scalar()
-        assert version == str(S.SCHEMA_VERSION) == "2"
+        assert version == str(S.SCHEMA_VERSION) == "3"  # 3: drift checks (issue 40)
         last = store.last_run()
         assert last is not None and last["state"] == "complete" and last["counters"] == {"placed": 4}
         assert last["progress"] == {}  # the column added, its default

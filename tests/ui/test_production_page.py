@@ -1,5 +1,6 @@
 """The page's Production tab on a served production cell (Chromium): start a run, watch the counters
-move to the end, see the last cycle's picture; the header's Stop robot is there on every tab."""
+move to the end, see the last cycle's picture and the drift chart with its limits; the header's Stop
+robot is there on every tab."""
 
 from __future__ import annotations
 
@@ -18,7 +19,10 @@ WAIT_MS = 90_000
 def test_a_run_started_from_the_page_counts_up_to_the_end(tmp_path: Path, browser: Browser) -> None:
     served = start_served(tmp_path, production_config(tmp_path, count=3))
     try:
-        teach_recipe(served.client(timeout_s=60))
+        http = served.client(timeout_s=60)
+        teach_recipe(http)
+        for _ in range(21):  # the drift chart's baseline (20 checks) and one judged check
+            assert http.post("/drift/check").status_code == 200
         page = browser.new_page(viewport={"width": 1440, "height": 1100})
         page.set_default_timeout(WAIT_MS)
         errors: list[str] = []
@@ -40,6 +44,12 @@ def test_a_run_started_from_the_page_counts_up_to_the_end(tmp_path: Path, browse
         expect(page.locator("#pc-ended")).to_have_text("count_reached")
         expect(page.locator("#prod-frame")).to_be_visible()
         expect(page.locator("#pc-slot")).to_have_text("2")
+        # the drift card: the state and the chart of the checks with its centre and limits (docs/drift.md)
+        expect(page.locator("#drift-state")).to_have_text("ok")
+        expect(page.locator("#drift-chart svg .drift-point")).to_have_count(21)
+        expect(page.locator("#drift-chart svg .drift-ucl")).to_have_count(1)
+        expect(page.locator("#drift-chart svg .drift-center")).to_have_count(1)
+        expect(page.locator("#drift-limits")).to_contain_text("UCL")
         page.screenshot(path=str(SHOTS / "production-tab.png"), full_page=True)
         page.click("#tabs button[data-tab=live]")
         expect(page.locator("#header-stop")).to_be_visible()

@@ -80,6 +80,14 @@ def test_recipes_production_plc_and_audit_from_the_page(tmp_path: Path, browser:
         assert v2["data"]["place"] == v1["place"] and v2["data"]["models"] == v1["models"]  # kept as they were
         page.screenshot(path=str(SHOTS / "recipes-tab.png"), full_page=True)
 
+        # A grasp moved off the part is refused with the reason (the fingers would close on nothing); nothing stored.
+        expect(page.locator("#re-grasp-xy")).to_have_value("0,0")
+        page.fill("#re-grasp-xy", "45,0")
+        page.click("#re-save")
+        expect(page.locator("#re-error")).to_contain_text("closes across no part material")
+        assert http.get("/recipes/1").json()["version"] == 2
+        page.fill("#re-grasp-xy", "0,0")
+
         # Roll back to version 1: stored as version 3 with version 1's data.
         page.locator("#re-versions tbody tr[data-version='1'] button").click()
         expect(page.locator("#re-status")).to_contain_text("version 1 is in force again, as version 3")

@@ -206,3 +206,42 @@ def test_a_camera_stored_without_detections_still_has_a_report(cell: dict[str, A
     assert r.text.count('<svg class="plot') == 2 and "class='params'" in r.text
     assert not RAW_DUMP.search(re.sub(r"<[^>]+>", " ", r.text))
     assert data["kind"] == "camera" and data["residual_px"]["n"] == 0
+
+
+def test_the_page_opens_the_report_full_page_and_it_prints(cell: dict[str, Any], browser: Browser) -> None:
+    """The Calibrations tab's report opens as a page of its own (Full page) and prints through its print
+    stylesheet: A4, the page's width, no plot cut across two pages (emulated print media, a PDF from Chromium)."""
+    from playwright.sync_api import expect
+
+    s: Served = cell["served"]
+    cal_id = cell["ids"]["camera"]
+    context = browser.new_context(viewport={"width": 1300, "height": 900})
+    try:
+        page = context.new_page()
+        page.goto(s.base_url + "/")
+        page.fill("#token", s.token)
+        page.click("#login-button")
+        page.click("#tabs button[data-tab=calib]")
+        page.locator(f"#calib-table tbody tr[data-id='{cal_id}'] button.report").click()
+        expect(page.frame_locator("#report-frame").locator("h1")).to_contain_text(f"calibration {cal_id}",
+                                                                                   timeout=90_000)
+        with context.expect_page() as popup:
+            page.click("#report-full")
+        full = popup.value
+        full.wait_for_load_state()
+        expect(full.locator("h1")).to_contain_text(f"calibration {cal_id}")
+        _check_plots(full, 6)
+        screen_width = full.evaluate("getComputedStyle(document.body).maxWidth")
+        full.emulate_media(media="print")
+        printed = full.evaluate("""() => ({body: getComputedStyle(document.body).maxWidth,
+            plot: getComputedStyle(document.querySelector('svg.plot')).breakInside,
+            table: getComputedStyle(document.querySelector('table')).breakInside})""")
+        assert screen_width == "980px" and printed == {"body": "none", "plot": "avoid", "table": "avoid"}, printed
+        full.screenshot(path=str(SHOTS / "report-print-media.png"), full_page=True)
+        pdf = full.pdf(prefer_css_page_size=True)
+        pages = len(re.findall(rb"/Type\s*/Page[^s]", pdf))
+        assert pdf.startswith(b"%PDF") and pages >= 2, pages
+        assert re.search(rb"/MediaBox\s*\[\s*0\s+0\s+59[45]", pdf), "the PDF's pages are not A4"
+        (SHOTS / "report-print.pdf").write_bytes(pdf)
+    finally:
+        context.close()

@@ -5,7 +5,8 @@ at the capture pose through the true camera onto the table plane), so the test j
 against where the part really lies. The engineer takes a picture, drags the part's region with
 the mouse, teaches (the model's edges are drawn), takes the capture pose from the robot, fills in
 gripper settings, saves the recipe and picks with it; a recipe that searches an empty corner
-answers no pick and says why. Screenshots go to ``test-artifacts/screenshots/``.
+answers no pick and says why. First, on the Live tab, the camera's exposure is set from the page.
+Screenshots go to ``test-artifacts/screenshots/``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import subprocess
 from collections.abc import Iterator
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
@@ -103,6 +105,18 @@ def test_teach_recipe_pick_from_the_page(cell: tuple[Served, dict[str, Any]], br
     page.fill("#token", served.token)
     page.click("#login-button")
     expect(page.locator("#who-role")).to_have_text("engineer")
+    # The Live tab's camera controls: the virtual camera's exposure, gain and trigger, set from the page.
+    expect(page.locator("#cc-exposure")).to_have_value("10000")
+    expect(page.locator("#cc-trigger")).to_have_value("software")
+    page.fill("#cc-exposure", "8000")
+    page.click("#cc-apply")
+    expect(page.locator("#cc-status")).to_have_text("set exposure_us 8000")
+    with served.client() as http:
+        assert http.get("/cameras/cam0/settings").json()["exposure_us"] == 8000
+    page.screenshot(path=str(SHOTS / "live-camera-controls.png"), full_page=True)
+    page.fill("#cc-exposure", "10000")
+    page.click("#cc-apply")
+    expect(page.locator("#cc-status")).to_have_text("set exposure_us 10000")
     page.click("#tabs button[data-tab=pick]")
     expect(page.locator("#pick-recipes")).to_contain_text("no recipes stored yet")
 
@@ -123,6 +137,25 @@ def test_teach_recipe_pick_from_the_page(cell: tuple[Served, dict[str, Any]], br
     page.fill("#grip-close", "18.5")
     page.click("#recipe-pose-button")
     expect(page.locator("#recipe-pose")).to_contain_text("x 400.0")
+    # The grasp is drawn on the teach picture, at the reference point: the bracket's 18.5 mm lies from 5 to 24 mm
+    # along the closing line (its reference point is off its material), so a finger opened 20 mm would come
+    # down on it (what a save refuses for a parallel gripper device); centred on it (grasp y -14.5 mm in the
+    # part's frame: the fingers close along the tool's y, the part's -y) it closes on the part's 18.5 mm.
+    expect(page.locator("#teach-grasp")).to_contain_text("a finger would come down on the part")
+    fingers = [float(x) for x in (page.locator("#teach-canvas").get_attribute("data-grasp") or "").split(",")]
+    centre = ((fingers[0] + fingers[2]) / 2, (fingers[1] + fingers[3]) / 2)
+    assert np.hypot(centre[0] - (roi[0] + roi[2] / 2), centre[1] - (roi[1] + roi[3] / 2)) < 1.0, (centre, roi)
+    page.fill("#grasp-y", "-14.5")
+    expect(page.locator("#teach-grasp")).to_contain_text("the fingers open 40.0 mm and close on 18.")
+    page.screenshot(path=str(SHOTS / "teach-grasp.png"), full_page=True)
+    page.fill("#grasp-y", "0")
+    page.fill("#grasp-x", "150")
+    expect(page.locator("#teach-grasp")).to_contain_text("closes across no part material")
+    moved = [float(x) for x in (page.locator("#teach-canvas").get_attribute("data-grasp") or "").split(",")]
+    assert np.hypot((moved[0] + moved[2]) / 2 - centre[0], (moved[1] + moved[3]) / 2 - centre[1]) > 50, moved
+    page.screenshot(path=str(SHOTS / "teach-grasp-off-part.png"), full_page=True)
+    page.fill("#grasp-x", "0")
+    expect(page.locator("#teach-grasp")).to_contain_text("a finger would come down on the part")
     page.click("#recipe-save")
     expect(page.locator("#recipe-status")).to_contain_text("recipe 9")
     expect(page.locator("#recipe-status")).to_contain_text("with its capture pose")
@@ -134,12 +167,22 @@ def test_teach_recipe_pick_from_the_page(cell: tuple[Served, dict[str, Any]], br
     assert np.allclose(data["capture_pose_ur"], [0.40, 0.0, 0.55, np.pi, 0.0, 0.0], atol=1e-3)
     assert data["gripper"]["open_width_mm"] == 40 and data["gripper"]["grip_width_mm"] == 18.5
     assert data["models"][0]["teach"]["roi"] == pytest.approx(roi, abs=0.1)
+    assert data["grasp_offset_mm"] == [0, 0] and data["grasp_yaw_deg"] == 0
 
     page.click("#pick-button")
     expect(page.locator("#pick-table")).to_be_visible()
     expect(page.locator("#pick-image")).to_be_visible()
     first = page.locator("#pick-table tbody tr").first.locator("td").all_inner_texts()
     assert first[1] == "bracket" and first[-1] == "yes", first
+    with served.client() as http:  # the pick frame the page shows has the grasp drawn on it (blue fingers)
+        shown = http.post("/pick", json={"recipe_id": 9}).json()
+        g0 = shown["picks"][0]["grasp_px"]
+        png = http.get(shown["image_url"]).content
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None
+    fu, fv = (int(round(x)) for x in g0["fingers_px"][0])
+    patch = img[fv - 2:fv + 3, fu - 2:fu + 3].reshape(-1, 3).astype(int)
+    assert ((patch[:, 0] > 200) & (patch[:, 2] < 60)).any(), patch  # the finger's blue (BGR 255, 120, 0)
     x_mm, y_mm = float(first[5]), float(first[6])
     assert np.hypot(x_mm - part["x_mm"], y_mm - part["y_mm"]) < 1.5, (x_mm, y_mm)
     assert page.locator("#pick-reason").inner_text() == ""

@@ -7,13 +7,18 @@ from typing import Annotated, Any, Literal
 import cv2
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
+from pydantic import BaseModel, ConfigDict, Field
 
-from cellctl.api.deps import CellDep, Viewer, device_call, slot_or_404
+from cellctl.api.body import EdgeRoute
+from cellctl.api.deps import CellDep, Engineer, Viewer, device_call, slot_or_404
+from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
+from cellctl.camera_controls import ControlRefused, apply_controls, controls_of
+from cellctl.strict_types import Num
 from cellctl.warmup import READY_WAIT_S, RENDERER, Startup
 from drivers.base import Camera, Frame
 
-router = APIRouter(prefix="/cameras", tags=["cameras"])
+router = APIRouter(prefix="/cameras", tags=["cameras"], route_class=EdgeRoute)
 
 CAMERA_TIMEOUT_S = 5.0
 """A frame may take a while (exposure, a virtual render); past this the camera is unavailable. The
@@ -35,6 +40,43 @@ async def camera_settings(camera_id: str, cell: CellDep, _: Viewer) -> dict[str,
     slot = _slot(cell, camera_id)
     settings: dict[str, Any] = await device_call(slot, lambda cam: cam.settings())
     return {"id": camera_id, "kind": slot.kind, **settings}
+
+
+@router.get("/{camera_id}/controls")
+async def get_controls(camera_id: str, cell: CellDep, _: Viewer) -> dict[str, Any]:
+    """Exposure (us), gain (dB) and trigger mode: each ``supported`` or not (``why``), its value and bounds."""
+    slot = _slot(cell, camera_id)
+    controls: dict[str, Any] = await device_call(slot, lambda cam: controls_of(cam, slot.kind))
+    return {"camera_id": camera_id, "kind": slot.kind, "controls": controls}
+
+
+class ControlsInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    exposure_us: Num | None = Field(None, gt=0, le=60_000_000, description="exposure time, microseconds")
+    gain_db: Num | None = Field(None, ge=-100, le=100, description="gain, decibels")
+    trigger: Literal["free_run", "software", "hardware"] | None = None
+
+
+@router.put("/{camera_id}/controls")
+async def put_controls(camera_id: str, body: ControlsInput, cell: CellDep, services: ServicesDep,
+                       who: Engineer) -> dict[str, Any]:
+    """Set the given controls (checked against the camera's bounds first: all or none); audited
+    ``camera.controls`` with the values before and after."""
+    slot = _slot(cell, camera_id)
+    changes = body.model_dump(exclude_none=True)
+    if not changes:
+        raise ApiError(422, "invalid_request", "give at least one of exposure_us, gain_db, trigger")
+    before: dict[str, Any] = await device_call(slot, lambda cam: controls_of(cam, slot.kind))
+    old = {k: before[k]["value"] for k in changes}
+    try:
+        after: dict[str, Any] = await device_call(slot, lambda cam: apply_controls(cam, slot.kind, camera_id, changes))
+    except ControlRefused as exc:
+        services.store.audit(who.name, "camera.controls", f"camera:{camera_id}", {"set": changes, "before": old},
+                             f"refused: {exc}")
+        raise ApiError(422, exc.code, str(exc)) from None
+    services.store.audit(who.name, "camera.controls", f"camera:{camera_id}",
+                         {"set": changes, "before": old, "after": {k: after[k]["value"] for k in changes}}, "ok")
+    return {"camera_id": camera_id, "kind": slot.kind, "controls": after}
 
 
 @router.get("/{camera_id}/image", response_class=Response,

@@ -20,6 +20,7 @@ from cellctl.arm_view import arm_view_now
 from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, Recipe, run_pick
 from cellctl.pick.frames import annotate
+from cellctl.pick.grasp_view import taught_grasps
 from cellctl.pick.model import ModelFileError
 from cellctl.pick.pose import UnusableCalibration
 from cellctl.pick.recipe_limits import RecipeOutsideCell, check_recipe_for_cell
@@ -85,7 +86,7 @@ def save_recipe(body: RecipeInput, services: ServicesDep, who: Engineer) -> dict
         body.recipe.part_models()
     except ModelFileError as exc:
         raise ApiError(422, "invalid_model", str(exc)) from None
-    problem = _grasp_problem(body.recipe)
+    problem = _grasp_problem(body.recipe) or _grasp_on_part(services, body.recipe)
     if problem:
         raise ApiError(422, "invalid_grasp", problem)
     try:
@@ -110,6 +111,38 @@ def _grasp_problem(recipe: Recipe) -> str | None:
                     f"(gripper.device.stroke_mm {device.stroke_mm:g} mm): its fingers cannot open that far; "
                     "set a width within the stroke, or the device's real stroke")
     return None
+
+
+def _grasp_on_part(services: ServicesDep, recipe: Recipe) -> str | None:
+    """A parallel gripper's grasp that closes on no part material, on more than its stroke, or on a width
+    its grip check refuses, at each model's teach pose (``cellctl.pick.grasp_view``); None: none of these,
+    or no calibration to draw the grasp with (a vacuum cup has no closing line)."""
+    device = recipe.gripper.device
+    if device is None or device.kind not in ("robotiq_2f", "parallel"):
+        return None
+    views, _ = taught_grasps(services, recipe)
+    return next((f"recipe.models[{k}]: {v.problem}" for k, v in enumerate(views) if v.problem), None)
+
+
+class GraspInput(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    recipe: Recipe
+
+
+@router.post("/pick/grasp")
+def grasp_preview(body: GraspInput, services: ServicesDep, _: Viewer) -> dict[str, Any]:
+    """The recipe's grasp drawn at each model's teach pose (image pixels: the gripper centre, the open
+    fingers, where they meet the part, the width they close on) and its problem, the one ``POST /recipes``
+    refuses with 422 ``invalid_grasp`` for a parallel gripper; ``unavailable`` says why nothing is drawn."""
+    try:
+        body.recipe.part_models()
+    except ModelFileError as exc:
+        raise ApiError(422, "invalid_model", str(exc)) from None
+    views, why = taught_grasps(services, body.recipe)
+    stroke = _grasp_problem(body.recipe)
+    return {"grasps": [v.as_json() for v in views], "unavailable": why,
+            "problem": stroke or next((f"recipe.models[{k}]: {v.problem}" for k, v in enumerate(views) if v.problem),
+                                      None)}
 
 
 @router.post("/pick/teach")

@@ -109,6 +109,16 @@ def cell_problem(services: Services) -> str | None:
     return None
 
 
+def drift_note(services: Services) -> str | None:
+    """The drift alarm as a line for ``SystemState``'s description (from memory: no I/O); None without one."""
+    drift = services.drift_if_made
+    last = None if drift is None else drift.last()
+    if drift is None or not drift.alarm or last is None:
+        return None
+    return (f"drift alarm: the camera moved ({last['drift_mm']:.3f} mm at the fiducials, rule {last['rule']}); "
+            "an engineer re-solves it (POST /drift/resolve) and activates the result")
+
+
 def stored_recipes(services: Services) -> list[StoredRecipe]:
     """The stored recipes (latest versions), by number."""
     return [_stored(r) for r in services.store.list_recipes()]

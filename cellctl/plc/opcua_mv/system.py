@@ -110,6 +110,9 @@ class VisionSystem:
         m, problem = self.model, self.problem
         vision, auto = m.vision_state(problem), m.auto_state(problem)
         system = m.system_state(problem)
+        note = cell.drift_note(self.services)  # OPC 40100 diagnostics: the drift alarm in SystemState's text
+        if note is not None:
+            system = (system[0], f"{system[1]}; {note}")
         values: dict[str, Any] = {
             "vision": ua.Variant(ua.LocalizedText(vision), ua.VariantType.LocalizedText),
             "vision_id": ua.Variant(_node_id(VISION_STATE_IDS[vision], self.ns), ua.VariantType.NodeId),
