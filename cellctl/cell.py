@@ -16,11 +16,12 @@ from cellctl.config import CellConfig
 from cellctl.errors import CellctlError
 from drivers.backoff import Backoff
 from drivers.base import CameraBase, DeviceUnavailable, DigitalIOBase, DriverError, RobotBase
+from drivers.conveyor.base import ConveyorBase
 from drivers.registry import Category, adapter_class
 
 log = logging.getLogger(__name__)
 
-D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase)
+D = TypeVar("D", CameraBase, RobotBase, DigitalIOBase, ConveyorBase)
 
 class UnknownDevice(CellctlError, LookupError):
     """A camera or robot id that the config does not name."""
@@ -106,6 +107,7 @@ class Cell:
         self.cameras: dict[str, DeviceSlot[CameraBase]] = {}
         self.robots: dict[str, DeviceSlot[RobotBase]] = {}
         self.io: dict[str, DeviceSlot[DigitalIOBase]] = {}
+        self.conveyors: dict[str, DeviceSlot[ConveyorBase]] = {}
         for cam_id, cam in config.cameras.items():
             cls = adapter_class("camera", cam.kind)
             self.cameras[cam_id] = DeviceSlot(cam_id, cam.kind, "camera",
@@ -123,6 +125,10 @@ class Cell:
         for io_id, io in config.io.items():
             cls = adapter_class("io", io.kind)
             self.io[io_id] = DeviceSlot(io_id, io.kind, "io", cls(io_id, config.validated_settings("io", io_id)))
+        for cv_id, cv in config.conveyors.items():
+            cls = adapter_class("conveyor", cv.kind)
+            self.conveyors[cv_id] = DeviceSlot(cv_id, cv.kind, "conveyor",
+                                               cls(cv_id, config.validated_settings("conveyor", cv_id)))
 
     def open_all(self) -> None:
         """Try to open every device; failures are recorded, not raised (the service still starts)."""
@@ -140,7 +146,7 @@ class Cell:
                 log.exception("closing %s failed", slot.device_id)
 
     def _slots(self) -> list[DeviceSlot[Any]]:
-        return [*self.cameras.values(), *self.robots.values(), *self.io.values()]
+        return [*self.cameras.values(), *self.robots.values(), *self.io.values(), *self.conveyors.values()]
 
     def __enter__(self) -> Cell:
         self.open_all()
@@ -160,3 +166,10 @@ class Cell:
             return self.robots[robot_id]
         except KeyError:
             raise UnknownDevice(f"no robot {robot_id!r} in the config; configured: {sorted(self.robots)}") from None
+
+    def conveyor(self, conveyor_id: str) -> DeviceSlot[ConveyorBase]:
+        try:
+            return self.conveyors[conveyor_id]
+        except KeyError:
+            raise UnknownDevice(f"no conveyor {conveyor_id!r} in the config; configured: "
+                                f"{sorted(self.conveyors)}") from None

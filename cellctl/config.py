@@ -175,6 +175,10 @@ class IOConfig(DeviceConfig):
     pass
 
 
+class ConveyorConfig(DeviceConfig):
+    """A belt's encoder (docs/conveyor.md)."""
+
+
 class CalibrationDefaults(_Strict):
     """Defaults of the calibration routines (each request may override them)."""
 
@@ -325,6 +329,8 @@ class CellConfig(_Strict):
     cameras: dict[str, CameraConfig] = {}
     robots: dict[str, RobotConfig] = {}
     io: dict[str, IOConfig] = {}
+    conveyors: dict[str, ConveyorConfig] = {}
+    """Belts whose encoder the cell reads (conveyor tracking, docs/conveyor.md)."""
     targets: dict[str, dict[str, Any]] = {}
     """Named calibration targets (the YAML of docs/targets.md)."""
     calibration: CalibrationDefaults = CalibrationDefaults()
@@ -368,13 +374,14 @@ class CellConfig(_Strict):
     def validated_settings(self, category: Category, device_id: str) -> BaseModel:
         """The device's settings parsed by its adapter's ``Settings`` model."""
         table: dict[str, dict[str, DeviceConfig]] = {
-            "camera": dict(self.cameras), "robot": dict(self.robots), "io": dict(self.io)}
+            "camera": dict(self.cameras), "robot": dict(self.robots), "io": dict(self.io),
+            "conveyor": dict(self.conveyors)}
         dev = table[category][device_id]
         settings_model: type[BaseModel] = adapter_class(category, dev.kind).Settings  # type: ignore[attr-defined]
         return settings_model.model_validate(dev.settings)
 
 
-_SECTIONS: dict[str, Category] = {"cameras": "camera", "robots": "robot", "io": "io"}
+_SECTIONS: dict[str, Category] = {"cameras": "camera", "robots": "robot", "io": "io", "conveyors": "conveyor"}
 
 
 def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:

@@ -2,8 +2,9 @@
 
 Each adapter class carries a pydantic ``Settings`` model for its own settings. Constructors:
 cameras ``cls(camera_id, settings)``, robots ``cls(robot_id, settings, limits)``, IO devices
-``cls(io_id, settings)``. An adapter whose optional system library is missing fails when it is
-built, with a message naming what to install, never at import of this module.
+``cls(io_id, settings)``, conveyors ``cls(conveyor_id, settings)``. An adapter whose optional system
+library is missing fails when it is built, with a message naming what to install, never at import
+of this module.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Final, Literal
 
 from drivers.base import DeviceInitError
 
-Category = Literal["camera", "robot", "io"]
+Category = Literal["camera", "robot", "io", "conveyor"]
 
 ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
     "camera": {
@@ -33,6 +34,9 @@ ADAPTERS: Final[dict[Category, dict[str, tuple[str, str]]]] = {
         "serial_light": ("drivers.io.serial_light", "SerialLightController"),
         "robotiq_gripper": ("drivers.io.robotiq_gripper", "RobotiqGripper"),
         "sim_gripper": ("drivers.io.sim_gripper", "SimGripper"),
+    },
+    "conveyor": {
+        "sim_conveyor": ("drivers.conveyor.sim", "SimConveyor"),
     },
 }
 

@@ -193,6 +193,36 @@ class RobotBase(DeviceBase):
             return 0.0
         return float(np.max(np.abs(q - current))) if q.size else 0.0
 
+    # -- conveyor tracking ---------------------------------------------------------------------------
+    def start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
+                       session: MotionSession) -> int:
+        """Follow a conveyor from now, as the robot controller does with the belt's encoder wired to it (UR:
+        ``conveyor_pulse_decode`` + ``track_conveyor_linear``): every pose commanded from now on is carried
+        along ``direction_base`` (unit vector, base frame) by the travel the encoder counts
+        (``ticks_per_m``), at most ``most_m`` metres. The count tracking starts at. Needs the motion
+        (``session``); a Stop ends tracking at once (the tool stays where it is). ``MotionRejected`` when
+        the adapter cannot track."""
+        if not self.motion.is_current(session):
+            session.check()
+            raise RobotBusy(f"robot {self.robot_id}: {session.what} does not own the robot's motion")
+        session.check()
+        return self._start_tracking(np.asarray(direction_base, dtype=np.float64), float(ticks_per_m), float(most_m))
+
+    def tracks_conveyor(self) -> bool:
+        """Whether this adapter can track a conveyor (``start_tracking``); a belt run is refused before the
+        robot moves when it cannot."""
+        return False
+
+    def stop_tracking(self) -> None:
+        """Stop following the conveyor: the tool stays where it is."""
+        self._stop_tracking()
+
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
+        raise MotionRejected(f"robot {self.robot_id}: this adapter cannot track a conveyor (docs/conveyor.md)")
+
+    def _stop_tracking(self) -> None:
+        """Tell the controller to stop tracking (nothing when it cannot track)."""
+
     # -- stop, resume ------------------------------------------------------------------------------
     def stop(self, by: str = "") -> None:
         """Halt now, abort the sequence that owns the robot, and latch until ``resume``.

@@ -25,6 +25,12 @@ class Frame:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def meta(self) -> dict[str, Any]:
+        """``metadata`` (the name docs/conveyor.md uses: ``Frame.meta["encoder_ticks"]``, a belt's count
+        latched at the exposure)."""
+        return self.metadata
+
+    @property
     def size(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return (int(self.pixels.shape[1]), int(self.pixels.shape[0]))

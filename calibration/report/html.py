@@ -125,7 +125,7 @@ def camera_html_without_detections(rep: rc.CameraReport) -> str:
 
 def calibration_report(kind: str, result: dict[str, Any], inputs: dict[str, Any] | None = None, title: str = "",
                        cross_validation: dict[str, Any] | None = None, images: dict[str, bytes] | None = None) -> str:
-    """The HTML report of a stored calibration (``kind``: camera, handeye, npoint)."""
+    """The HTML report of a stored calibration (``kind``: camera, handeye, npoint, conveyor)."""
     inputs = inputs or {}
     if kind == "camera":
         found = _camera_inputs(inputs, result)
@@ -137,6 +137,10 @@ def calibration_report(kind: str, result: dict[str, Any], inputs: dict[str, Any]
         body = handeye_html(result)
     elif kind == "npoint":
         body = npoint_html(result, inputs)
+    elif kind == "conveyor":
+        from calibration.report.conveyor import conveyor_html
+
+        body = conveyor_html(result, inputs)
     else:
         raise ReportError(f"no report for calibrations of kind {kind!r}")
     return page(title or f"{kind} calibration", body)
@@ -150,7 +154,9 @@ def report_json(kind: str, result: dict[str, Any], inputs: dict[str, Any] | None
         return rc.build(result, views, target, inputs=inputs or {}).to_json()
     keys = {"handeye": ("setup", "method", "dof", "rms_px", "quality", "uncertainty", "poses", "leave_one_out",
                         "verdict"),
-            "npoint": ("model", "rms_mm", "loo_rms_mm", "residuals_mm", "verdict")}.get(kind, ())
+            "npoint": ("model", "rms_mm", "loo_rms_mm", "residuals_mm", "verdict"),
+            "conveyor": ("direction_base", "ticks_per_m", "sigma_ticks_per_m", "sigma_direction_deg", "rms_mm",
+                         "n_sightings", "travel_mm", "verdict")}.get(kind, ())
     out = {k: result[k] for k in keys if k in result}
     if isinstance(out.get("uncertainty"), dict):
         out["uncertainty"] = {k: v for k, v in out["uncertainty"].items() if "covariance" not in k}

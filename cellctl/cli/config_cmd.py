@@ -21,7 +21,10 @@ def register(sub: Any) -> None:
                    help="virtual-cell: the README tour's cell (eye-in-hand camera, two parts); production: a fixed "
                         "camera over a pick area of parts, a place grid and a sim gripper (docs/production.md); "
                         "fixed-camera: a camera fixed over a circle plate and a tool feature, for jog-to-mark with "
-                        "its tool-centre step (docs/routines/jog-to-mark.md)")
+                        "its tool-centre step (docs/routines/jog-to-mark.md); conveyor: a belt past a fixed camera "
+                        "into the robot's reach, a place grid and a sim gripper (docs/conveyor.md)")
+    d.add_argument("--belt-speed-mm-s", type=_belt_speed, default=None, metavar="S",
+                   help="the conveyor scene's belt speed in the printed config, mm/s (0-300; default 100)")
     d.add_argument("--motion-time-scale", type=_time_scale, default=None, metavar="S",
                    help="set the simulated robot's motion_time_scale (and a sim gripper's time_scale) in the printed "
                         "config: 1 real time, 0.25 four times faster, 0 instantaneous moves (default: the scene's, "
@@ -53,7 +56,7 @@ def register(sub: Any) -> None:
 
 
 DEFAULT_SCENES = {"virtual-cell": "data/virtual-cell.yaml", "production": "data/production-cell.yaml",
-                  "fixed-camera": "data/fixed-camera-cell.yaml"}
+                  "fixed-camera": "data/fixed-camera-cell.yaml", "conveyor": "data/conveyor-cell.yaml"}
 
 
 def print_default(args: argparse.Namespace) -> None:
@@ -67,7 +70,33 @@ def print_default(args: argparse.Namespace) -> None:
     else:
         text = resources.files("cellctl").joinpath(DEFAULT_SCENES[scene]).read_text()
     scale = getattr(args, "motion_time_scale", None)
-    sys.stdout.write(text if scale is None else with_time_scale(text, scale))
+    text = text if scale is None else with_time_scale(text, scale)
+    belt = getattr(args, "belt_speed_mm_s", None)
+    if belt is not None:
+        if scene != "conveyor":
+            raise SystemExit("cellctl config default: --belt-speed-mm-s is for --scene conveyor")
+        text = with_belt_speed(text, belt)
+    sys.stdout.write(text)
+
+
+def _belt_speed(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; give the belt speed in mm/s (0-300)") from None
+    if not 0.0 <= value <= 300.0:
+        raise argparse.ArgumentTypeError(f"{text} mm/s is out of range; give 0-300 mm/s")
+    return value
+
+
+def with_belt_speed(text: str, speed_mm_s: float) -> str:
+    """``text`` (a cell.yaml) with every sim conveyor's ``speed_mm_s`` set; comments and order kept."""
+    import re
+
+    out, n = re.subn(r"(\n\s+speed_mm_s: )[0-9.]+", lambda m: f"{m.group(1)}{speed_mm_s:g}", text)
+    if n == 0:
+        raise SystemExit("cellctl config default: the config has no conveyor speed to set")
+    return out
 
 
 def _time_scale(text: str) -> float:
@@ -106,7 +135,8 @@ def check(args: argparse.Namespace) -> dict[str, Any]:
     return {"ok": True, "cell_id": cfg.cell_id,
             "cameras": {k: v.kind for k, v in cfg.cameras.items()},
             "robots": {k: v.kind for k, v in cfg.robots.items()},
-            "io": {k: v.kind for k, v in cfg.io.items()}}
+            "io": {k: v.kind for k, v in cfg.io.items()},
+            "conveyors": {k: v.kind for k, v in cfg.conveyors.items()}}
 
 
 def add_token(args: argparse.Namespace) -> dict[str, Any]:

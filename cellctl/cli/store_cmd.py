@@ -67,7 +67,7 @@ def register(sub: Any) -> None:
     a.add_argument("file", help="the calibration file: cam.json (calib intrinsics, calib import, calib dlt), he.json "
                                 "(calib handeye, --dof 4 too) or np.json (calib npoint)")
     a.add_argument("--config", required=True, help="cell.yaml naming the store and the cell's cameras and robots")
-    a.add_argument("--kind", choices=("camera", "handeye", "npoint"), default=None,
+    a.add_argument("--kind", choices=("camera", "handeye", "npoint", "conveyor"), default=None,
                    help="the calibration's kind (default: recognised from the file's keys)")
     a.add_argument("--camera", default=None, help="the camera it belongs to (default: the config's calibration.camera)")
     a.add_argument("--robot", default=None, help="hand-eye and n-point: the robot (default: calibration.robot)")

@@ -103,6 +103,10 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
                          grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem, drawn)
 
 
+def _ticks(value: Any) -> int | None:
+    return None if value is None else int(value)
+
+
 def _arm_in(arm: ArmView | None, roi: Any) -> str | None:
     """What of the arm lies in the search region ``roi``, in words (None: nothing or no arm known)."""
     if arm is None:
@@ -136,6 +140,8 @@ class Located:
     arm_in_view: str | None = None
     """What of the arm the picture shows in the search region, in words (None: nothing); a plain value,
     computed once in :func:`locate`, so a caller reading it does not come back into this package."""
+    encoder_ticks: int | None = None
+    """A belt's encoder count latched at the frame's exposure (``Frame.meta["encoder_ticks"]``); None: none."""
 
     def answer(self) -> dict[str, Any]:
         """The pick answer (``POST /pick``; the PLC front ends read the same)."""
@@ -199,4 +205,4 @@ def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, cam
                    found.timed_out, [x.as_dict() for x in found.rejected],
                    {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3, "total": (t_done - t0) * 1e3},
                    {"kind": mapping.kind, "id": mapping.calibration_id}, arm, recipe.search.roi,
-                   _arm_in(arm, recipe.search.roi))
+                   _arm_in(arm, recipe.search.roi), _ticks(frame.metadata.get("encoder_ticks")))

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_serializer, field_valid
 from cellctl.errors import CellctlError
 from cellctl.pick.model import PartModel
 from cellctl.pick.model_schema import PartModelDoc
-from cellctl.production.config import GripperDevice, PlaceSection
+from cellctl.production.config import ConveyorSource, GripperDevice, PlaceSection
 from cellctl.strict_types import Bool, Count, Num
 
 
@@ -121,6 +121,8 @@ class Recipe(BaseModel):
     gripper: GripperSettings = GripperSettings()
     place: PlaceSection | None = Field(None, description="where picked parts go (fixed, grid or located; "
                                                          "docs/production.md); none: the recipe only picks")
+    source: ConveyorSource | None = Field(None, description="where parts come from: absent, a still pick area; "
+                                                          "{kind: conveyor, ...}: a moving belt (docs/conveyor.md)")
     tool_centre_offset_mm: tuple[Mm, Mm] | None = Field(
         None, description="the gripper's centre from the flange axis, as `cellctl calib tcp` reports it "
                           "(offset_mm: tool x/y along base x/y at tool rz = 0), mm; the pick poses then put "

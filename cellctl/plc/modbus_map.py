@@ -71,6 +71,9 @@ PRODUCTION_FIELDS = (
     Field("CYCLE_MEDIAN_MS", 2, kind="int32"), Field("LAST_SIGMA_UM", 2, kind="int32"),
     Field("LAST_SIGMA_MDEG", 2, kind="int32"),
 )
+CONVEYOR_FIELDS = (Field("MISSED_WINDOW", 2, kind="int32"), Field("QUEUE_LENGTH"))
+"""Production from a belt (docs/conveyor.md), version 5: after the in-doubt block (every older address is
+where it was)."""
 SIGMA_SEQ_FIELDS = (Field("SIGMA_SEQ"),)
 SIGMA_FIELDS = (Field("SIGMA_UM", 2, kind="int32"), Field("SIGMA_MDEG", 2, kind="int32"))
 """One pick's uncertainty, at offsets from ``PICK_SIGMA + SIGMA_STRIDE * k``."""
@@ -95,10 +98,12 @@ SIGMA_STRIDE = sum(f.count for f in SIGMA_FIELDS)  # 4
 SIGMA_OFFSETS = layout(0, SIGMA_FIELDS)
 SIGMA_END = PICK_SIGMA + SIGMA_STRIDE * MAX_PICKS  # 236: the first address after the uncertainty block
 DOUBT_BLOCK = layout(SIGMA_END, DOUBT_FIELDS)  # 236
-END = DOUBT_BLOCK["DOUBT_SLOT"].end + 1  # 241: the first address after the map
+END = DOUBT_BLOCK["DOUBT_SLOT"].end + 1  # 241: the first address after the in-doubt block
+CONVEYOR_BLOCK = layout(END, CONVEYOR_FIELDS)  # 241
+MAP_END = CONVEYOR_BLOCK["QUEUE_LENGTH"].end + 1  # 244: the first address after the map
 
 REGISTERS: dict[str, Placed] = {**COMMAND_BLOCK, **ANSWER_BLOCK, **MESSAGE_BLOCK, **PRODUCTION_BLOCK, **SIGMA_SEQ_BLOCK,
-                                **DOUBT_BLOCK}
+                                **DOUBT_BLOCK, **CONVEYOR_BLOCK}
 """Every field at a fixed address (the pick and sigma fields repeat: ``PICK_OFFSETS``, ``SIGMA_OFFSETS``)."""
 
 
@@ -163,6 +168,12 @@ def production_block_words(values: dict[str, Any]) -> list[int]:
         key, scale = PRODUCTION_VALUES[f.name]
         words += field_words(f, values[key], scale)
     return words
+
+
+def conveyor_block_words(missed_window: int, queue_length: int) -> list[int]:
+    """The conveyor block (its registers in order): parts that left the window unpicked in the last run, and
+    the parts queued on the belt now (0 for a still run or none)."""
+    return [*int32_words(missed_window), max(0, min(0xFFFF, int(queue_length)))]
 
 
 DOUBT_UNKNOWN = 0xFFFF

@@ -55,7 +55,7 @@ from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests 
     words_int32,
 )
 from cellctl.plc.pacing import Pacer
-from cellctl.plc.production import doubt_words, production_words
+from cellctl.plc.production import conveyor_words, doubt_words, production_words
 from cellctl.plc.quiet_log import client_mistake, quiet
 from cellctl.plc.requests import ERROR_TEXTS, Outcome, failure, pick_sigma, robot_motion_status
 from cellctl.services import Services
@@ -78,7 +78,8 @@ PRODUCTION_REGS = sum(f.count for f in mm.PRODUCTION_FIELDS)
 SIGMA_SEQ = _a("SIGMA_SEQ")  # 203: the per-pick uncertainty block
 SIGMA_END = mm.SIGMA_END  # 236: first address after the uncertainty block
 DOUBT = _a("DOUBT_COUNT")  # 236: the slots in doubt (live on every read)
-END = mm.END  # 241: first address after the map
+END = mm.END  # 241: first address after the in-doubt block
+MAP_END = mm.MAP_END  # 244: first address after the map (the conveyor block 241..243, live on every read)
 READ_ONLY = STATUS
 _PICK = {name: placed.address for name, placed in mm.PICK_OFFSETS.items()}
 _SIGMA = {name: placed.address for name, placed in mm.SIGMA_OFFSETS.items()}
@@ -174,7 +175,7 @@ class ModbusPlcServer:
         self.services, self.host, self.port, self.unit_id = services, host, port, unit_id
         self.config = config or ModbusServerConfig(host=host, port=port, unit_id=unit_id)
         self.engine = engine or engine_for(services)
-        self._image = [0] * END
+        self._image = [0] * MAP_END
         """The read-only block as the PLC sees it; changed only on the server's loop."""
         self._image[MAX_PICKS_REG] = MAX_PICKS
         self._image[MAP_VERSION_REG] = MAP_VERSION
@@ -241,7 +242,7 @@ class ModbusPlcServer:
             id=self.unit_id,
             simdata=[
                 SimData(COMMAND, count=4, values=0, datatype=DataType.REGISTERS),
-                SimData(READ_ONLY, count=END - READ_ONLY, values=0, datatype=DataType.REGISTERS, readonly=True),
+                SimData(READ_ONLY, count=MAP_END - READ_ONLY, values=0, datatype=DataType.REGISTERS, readonly=True),
             ],
             action=self._action,
         )
@@ -314,10 +315,11 @@ class ModbusPlcServer:
         self._image[STATUS] = (self._image[STATUS] & ~LIVE_BITS) | self._robot_bits()
         try:
             self._image[PRODUCTION:SIGMA_SEQ] = production_words(self.services)
+            self._image[END:MAP_END] = conveyor_words(self.services)
         except Exception:  # noqa: BLE001 - the register map is served whatever the run's state
             log.exception("reading the production run's state failed")
         self._image[DOUBT:END] = doubt_words(self.services)
-        registers[READ_ONLY - start_address : END - start_address] = self._image[READ_ONLY:END]
+        registers[READ_ONLY - start_address : MAP_END - start_address] = self._image[READ_ONLY:MAP_END]
 
     def _robot_bits(self) -> int:
         """ROBOT_LATCHED / ROBOT_OWNED of the cell's robot and DRIFT_ALARM now (locks, no I/O: fine on the loop)."""

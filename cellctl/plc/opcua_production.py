@@ -55,7 +55,10 @@ VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("ProductionSlotsInDoubt", 0, ua.VariantType.Int32),
     ("ProductionFirstSlotInDoubt", -1, ua.VariantType.Int32),
     ("ProductionFirstSlotInDoubtRecipe", -1, ua.VariantType.Int32),
+    ("ProductionMissedWindow", 0, ua.VariantType.Int32),
+    ("ProductionQueueLength", 0, ua.VariantType.Int32),
 )
+"""``ProductionMissedWindow`` and ``ProductionQueueLength``: production from a belt (docs/conveyor.md)."""
 
 Call = Callable[[Request], Awaitable[Outcome]]
 Fail = Callable[[Outcome], Any]
@@ -87,6 +90,8 @@ def production_values(services: Services) -> dict[str, Any]:
         "ProductionLastSigmaDeg": math.nan if sigma_deg is None else float(sigma_deg), **doubt}
     for k in COUNTERS:
         out[_COUNTER_NAMES[k]] = int((snap["counters"] or {}).get(k, 0))  # a run killed early stored none
+    out["ProductionMissedWindow"] = int((snap["counters"] or {}).get("missed_window", 0))
+    out["ProductionQueueLength"] = int(snap.get("queue_length", 0))
     return out
 
 

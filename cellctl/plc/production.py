@@ -46,7 +46,7 @@ STATES = {"running": 1, "pausing": 2, "paused": 3, "stopping": 4, "stopped": 5, 
 ENDED = {"count_reached": 1, "area_empty": 2, "none_pickable": 3, "stopped": 4, "failed": 5, "interrupted": 6,
          "not_recognized": 7}
 RESULTS = {"placed": 1, "grip_failed": 2, "skipped": 3, "empty": 4, "none_pickable": 5, "stopped": 6,
-           "vision_failed": 7, "interrupted": 8, "not_recognized": 9}
+           "vision_failed": 7, "interrupted": 8, "not_recognized": 9, "missed_window": 10, "belt_stopped": 11}
 COUNTERS = ("picked", "placed", "grip_failures", "retries", "skipped", "empty_area", "unreachable")
 
 
@@ -112,6 +112,17 @@ def production_values(services: Services) -> dict[str, Any]:
             "last_slot": -1 if last.get("slot") is None else int(last["slot"]),
             "cycle_median_ms": -1 if median is None else median,
             "sigma_mm": max(sig) if sig else -1, "sigma_deg": -1 if sigma_deg is None else sigma_deg}
+
+
+def conveyor_words(services: Services) -> list[int]:
+    """The Modbus conveyor block: the last run's ``missed_window`` and the parts queued on its belt now."""
+    from cellctl.plc.modbus_map import conveyor_block_words
+
+    manager = existing_manager(services)
+    snap = None if manager is None else manager.snapshot()
+    if snap is None:
+        return conveyor_block_words(0, 0)
+    return conveyor_block_words(int((snap["counters"] or {}).get("missed_window", 0)), int(snap.get("queue_length", 0)))
 
 
 def production_words(services: Services) -> list[int]:

@@ -167,6 +167,25 @@ class LocatedPlace(_Strict):
 PlaceSection = Annotated[FixedPlace | GridPlace | LocatedPlace, Field(discriminator="kind")]
 
 
+class ConveyorSource(_Strict):
+    """A recipe's ``source``: the parts come on a belt (docs/conveyor.md); absent: a still pick area."""
+
+    kind: Literal["conveyor"]
+    conveyor_id: str = Field("belt0", min_length=1, max_length=64, description="the belt (the config's conveyors)")
+    window_mm: tuple[Num, Num] | None = Field(None, description="base x (mm) where the robot may meet a part on "
+                                                                "the belt (default: the belt's pick_window_mm)")
+    idle_timeout_s: Num = Field(30.0, gt=0, le=3600, description="a run with count 0 ends area_empty when the "
+                                                                 "belt brought no part for this long, s")
+    accel_m_s2: Num = Field(2.0, gt=0, le=50, description="the robot's linear acceleration the meeting is "
+                                                          "planned with, m/s^2")
+
+    @model_validator(mode="after")
+    def _window(self) -> ConveyorSource:
+        if self.window_mm is not None and not self.window_mm[0] < self.window_mm[1]:
+            raise ValueError("window_mm must be [x_start, x_end] with x_start < x_end (base x, mm)")
+        return self
+
+
 class GripperDevice(_Strict):
     """The gripper's device and how its grip is checked (see the module docstring)."""
 

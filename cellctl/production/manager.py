@@ -66,6 +66,7 @@ class ProductionManager:
         if Gripper(self.services, recipe.gripper).holding():
             raise GripperHolding(f"gripper {recipe.gripper.device.io_id} holds something: take the part out and "
                                  "open the gripper (POST /production/gripper/open) before a run starts")
+        belt = None if recipe.source is None else conveyor_parts(self.services, recipe, rid)
         finishing = self._runs.get(rid)
         if finishing is not None and finishing.status.ended_because is not None:
             finishing.done.wait(10.0)  # it has ended: its last writes and the robot's release follow at once
@@ -79,9 +80,16 @@ class ProductionManager:
             session = robot.motion.begin(who, f"production run of recipe {recipe_id}")
             try:
                 run_id = self.store.new_run(recipe_id, rid, who)
-                run = ProductionRun(self.services, self.store,
-                                    RunSettings(recipe_id, stored.version, recipe, rid, cid, count, overlap, who),
-                                    robot, session, run_id, self.failure_frames)
+                settings = RunSettings(recipe_id, stored.version, recipe, rid, cid, count, overlap, who)
+                if belt is None:
+                    run = ProductionRun(self.services, self.store, settings, robot, session, run_id,
+                                        self.failure_frames)
+                else:
+                    from cellctl.production.conveyor_run import ConveyorRun
+
+                    settings.overlap = False  # the belt run takes its pictures on its own thread
+                    run = ConveyorRun(self.services, self.store, settings, robot, session, run_id,
+                                      self.failure_frames, **belt)
             except BaseException:
                 robot.motion.end(session)
                 raise
@@ -174,6 +182,28 @@ class ProductionManager:
                 log.error("production run %s did not end within %.0f s of the shutdown", run.status.run_id,
                           timeout_s)
         return [r.status.run_id for r in runs]
+
+
+def conveyor_parts(services: Services, recipe: Recipe, robot_id: str) -> dict[str, Any]:
+    """What a belt run needs before it owns the robot: the conveyor (open), its active belt calibration for
+    this robot, and the window (the recipe's, else the conveyor's)."""
+    from cellctl.production.belt import BeltCalibration
+
+    source = recipe.source
+    if source is None:
+        raise PickError(f"recipe {recipe.name!r} has no source: it is not a belt recipe")
+    conveyor = services.cell.conveyor(source.conveyor_id).ensure_open()
+    robot = services.cell.robot(robot_id).ensure_open()
+    if not robot.tracks_conveyor():
+        raise PickError(f"robot {robot_id} ({type(robot).__name__}) cannot track a conveyor: a belt run needs a robot "
+                        "whose controller follows the belt's encoder (docs/conveyor.md)")
+    cal = services.store.active("conveyor", source.conveyor_id, robot_id)
+    if cal is None:
+        raise PickError(f"conveyor {source.conveyor_id} has no active belt calibration for robot {robot_id}: run the "
+                        "conveyor-calibrate routine and activate its result (docs/conveyor.md)")
+    window = source.window_mm or conveyor.pick_window_mm
+    return {"belt": BeltCalibration.from_result(cal.result, cal.id), "conveyor": conveyor,
+            "window_mm": (float(window[0]), float(window[1]))}
 
 
 def manager_for(services: Services) -> ProductionManager:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 RESULTS = ("placed", "grip_failed", "skipped", "empty", "none_pickable", "stopped", "vision_failed", "interrupted",
-           "not_recognized")
+           "not_recognized", "missed_window")
 POSE_KEYS = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
 """A pose's CSV columns: the tool's position (mm, base frame) and its orientation as UR's rotation vector
 (axis times angle, radians): ``rz_rad`` is that vector's z component, not a yaw angle."""
@@ -35,6 +35,8 @@ class Counters:
     skipped: int = 0
     empty_area: int = 0
     unreachable: int = 0
+    missed_window: int = 0
+    """Parts on a belt that left the pick window unpicked (docs/conveyor.md)."""
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

@@ -13,12 +13,10 @@ States: ``running`` -> ``pausing`` (pause asked: the cycle finishes) -> ``paused
 empty, none pickable); ``failed`` (an error: the robot is halted). A robot Stop aborts the motion
 session at once: the run ends ``stopped`` and the gripper is not opened (a held part stays held).
 
-Exactly once (docs/production.md): the slot is claimed in the store (``Store.claim_slot``, the counter
-moves past it in the same transaction) before the part is carried there, and confirmed once the
-gripper has let it go; a run that ends in between (a Stop, the service shutting down, an error)
-leaves the slot ``in_doubt``: no run places there until an engineer confirms it. The run's phase is
-stored as it goes (``progress``), so that a run the service did not end is ended ``interrupted``
-with where it was at the next start (``cellctl.production.interrupted``).
+Exactly once (docs/production.md): the slot is claimed before the part is carried there and
+confirmed once the gripper has let it go (``cellctl.production.slots``). The run's phase is stored
+as it goes (``progress``), so that a run the service did not end is ended ``interrupted`` with where
+it was at the next start (``cellctl.production.interrupted``). Cycle records: ``recorder``.
 """
 
 from __future__ import annotations
@@ -26,8 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -35,20 +32,23 @@ from calibration import geometry as g
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.motion import audited_move, halt_after_failure
 from cellctl.pick.candidate import PickCandidate
-from cellctl.pick.recipe import PickError, Recipe
+from cellctl.pick.recipe import PickError
 from cellctl.production.choice import Choice
 from cellctl.production.config import LocatedPlace
-from cellctl.production.frames import KEPT_RESULTS, FailureFrames
+from cellctl.production.frames import FailureFrames
 from cellctl.production.gripper import Gripper
 from cellctl.production.occupancy import not_recognized_detail
 from cellctl.production.place import place_poses
-from cellctl.production.records import Counters, CycleTimes, Durations, clean, seen_fields
+from cellctl.production.recorder import CycleLog
+from cellctl.production.records import Durations, clean, seen_fields
+from cellctl.production.slots import FixtureNotFound, SlotClaims
+from cellctl.production.status import Ended, Phase, RunSettings, RunStatus, State
 from cellctl.production.vision import (
     Picture,
     Prefetch,
     VisionWorker,
     camera_on_arm,
-    out_of_view,
+    next_picture,
     take_picture,
     tool_yaw,
 )
@@ -59,43 +59,12 @@ from drivers.base import MotionSession, RobotBase, RobotStopped
 
 log = logging.getLogger(__name__)
 
-State = Literal["running", "pausing", "paused", "stopping", "stopped", "complete", "failed", "interrupted"]
-Ended = Literal["count_reached", "area_empty", "none_pickable", "not_recognized", "stopped", "failed", "interrupted"]
-Phase = Literal["starting", "to_capture", "vision", "to_pick", "closing", "lifting", "carrying", "over_slot",
-                "releasing", "leaving", "between"]
-"""Where a run is in its cycle: ... ``carrying`` (to above the slot, the slot claimed), ``over_slot`` (down
-to it), ``releasing`` (the gripper opening), ``leaving`` (up from it, the part let go)."""
 VIEW_MARGIN_MM = 60.0
 """The arm counts as out of a fixed camera's view when nothing within this of its tool centre (the
 gripper and the part it holds) is in the image."""
 SEARCH_RETRIES = 2
 """A search that timed out with nothing found is repeated this many times before the run fails."""
-
-
-@dataclass
-class RunSettings:
-    recipe_id: int
-    recipe_version: int
-    recipe: Recipe
-    robot_id: str
-    camera_id: str
-    count: int
-    overlap: bool
-    who: str
-
-
-@dataclass
-class RunStatus:
-    run_id: int
-    recipe_id: int
-    robot_id: str
-    state: State = "running"
-    ended_because: Ended | None = None
-    error: str | None = None
-    stop_reason: str | None = None
-    """Why a ``stopped`` run stopped (a Stop, an operator's stop, the service shutting down)."""
-    counters: Counters = field(default_factory=Counters)
-    times: CycleTimes = field(default_factory=CycleTimes)
+__all__ = ["Ended", "Phase", "ProductionRun", "RunSettings", "RunStatus", "State"]
 
 
 class ProductionRun:
@@ -112,15 +81,10 @@ class ProductionRun:
         self._pause = False
         self._stop = False
         self._abort_reason: str | None = None
-        self._n = 0
         device = settings.recipe.gripper.device
         self._choice = Choice(device.retries if device is not None else 0)
-        self._next_slot = store.free_slot(settings.recipe_id)
+        self.slots = SlotClaims(store, settings.recipe_id, run_id)
         self.phase: Phase = "starting"
-        self._claim: int | None = None
-        """The slot claimed for the part carried now (None: none claimed, or confirmed)."""
-        self._released = False
-        """The gripper has let the claimed slot's part go (the release returned)."""
         self._cycle: tuple[PickCandidate, Picture, np.ndarray] | None = None
         self._mapping: ActiveMapping | None = None
         if settings.overlap and (isinstance(settings.recipe.place, LocatedPlace) or camera_on_arm(
@@ -135,12 +99,22 @@ class ProductionRun:
                                         ) else None
         self._thread = threading.Thread(target=self._main, name=f"production-{run_id}", daemon=True)
         self.done = threading.Event()
-        self.last_record: dict[str, Any] | None = None
-        """The last cycle's record (what a PLC reads as the last cycle's result)."""
         self._vision: VisionWorker | None = None
         """The next cycle's pictures (with ``overlap``): made when the run's thread starts, closed when it ends."""
         # Last: a run that fails to be made leaves no thread behind (the writer's thread starts here).
         self._writer = Writer(f"production-{run_id}-store")
+        self.cycles = CycleLog(services, store, self._writer, run_id, settings.recipe_id, settings.recipe_version,
+                               failure_frames)
+        self._record = self.cycles.record
+
+    @property
+    def _n(self) -> int:
+        return self.cycles.n
+
+    @property
+    def last_record(self) -> dict[str, Any] | None:
+        """The last cycle's record (what a PLC reads as the last cycle's result)."""
+        return self.cycles.last
 
     # -- control ----------------------------------------------------------------------------------
     def start(self) -> None:
@@ -192,14 +166,14 @@ class ProductionRun:
         st = self.status
         return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
                 "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
-                "next_slot": self.store.free_slot(st.recipe_id) if self.ended else self._next_slot,
+                "next_slot": self.store.free_slot(st.recipe_id) if self.ended else self.slots.next_slot,
                 "error": st.error, "stop_reason": st.stop_reason, "cycles": self._n, "phase": self.phase}
 
     def snapshot(self) -> dict[str, Any]:
         """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
         st = self.status
         return {"run_id": st.run_id, "state": st.state, "ended_because": st.ended_because,
-                "counters": st.counters.as_dict(), "next_slot": self._next_slot,
+                "counters": st.counters.as_dict(), "next_slot": self.slots.next_slot,
                 "cycle_median_ms": st.times.summary()["median"], "last": self.last_record}
 
     # -- the run ----------------------------------------------------------------------------------
@@ -316,28 +290,14 @@ class ProductionRun:
         """The run is now at ``phase`` of cycle ``_n + 1``; ``store``: write it (in order, off the cycle's path)."""
         self.phase = phase
         if store:
-            progress = clean({"phase": phase, "n": self._n + 1, "slot": self._claim, "at_s": time.time(), **info})
+            progress = clean({"phase": phase, "n": self._n + 1, "slot": self.slots.claim, "at_s": time.time(), **info})
             run_id = self.status.run_id
             self._writer.put(lambda: self.store.set_progress(run_id, progress))
 
     def _settle_claim(self, why: str) -> dict[str, Any]:
-        """The run ends with a slot claimed: placed when the gripper let the part go, else in doubt.
-
-        Written at once (not queued): the next run must see it. The cycle record's slot fields.
-        """
-        slot, self._claim = self._claim, None
-        if slot is None:
-            return {}
-        if self._released:  # the record resolves the claim (one transaction, queued before the 'stopped' one)
-            self._placed(slot, f"placed; the run then stopped while leaving the slot ({why})")
-            return {}
-        detail = {"phase": self.phase, "why": why, "held": self._holding(),
-                  "pick_pose": None if self._cycle is None else seen_fields(self._cycle[0], None, None)["pick_pose"]}
-        try:
-            self.store.slot_in_doubt(self.s.recipe_id, slot, self.status.run_id, clean(detail))
-        except Exception:  # noqa: BLE001 - the claim stays 'claimed': in doubt at the next start all the same
-            log.exception("production run %s: storing slot %s as in doubt failed", self.status.run_id, slot)
-        return {"slot": slot, "slot_state": "in_doubt", "phase": self.phase}
+        """The run ends with a slot claimed: placed or in doubt (``SlotClaims.settle``)."""
+        pick_pose = None if self._cycle is None else seen_fields(self._cycle[0], None, None)["pick_pose"]
+        return self.slots.settle(why, self.phase, self._holding, pick_pose, self._placed)
 
     def _holding(self) -> bool | None:
         try:
@@ -403,22 +363,11 @@ class ProductionRun:
         r, c = self.s.recipe, self.status.counters
         # The place is checked before the pick: a full pattern or a refused place pose ends the run
         # with the part where it lies, not in the gripper.
-        slot = self._next_slot = self.store.free_slot(self.s.recipe_id)  # past every slot claimed or in doubt
-        if r.place is None:
-            raise PickError(f"recipe {self.s.recipe_id} has no place section: a production run needs one "
-                            "(docs/production.md)")
-        n_slots = r.place.slot_count()
-        if n_slots is not None and slot >= n_slots:
-            raise PickError(f"the place pattern is full (slot {slot} of {n_slots}): empty it and reset the slot "
-                            "(PUT /production/slot)")
-        if isinstance(r.place, LocatedPlace):
-            if picture.T_base_fixture is None:
-                why = (picture.fixture or {}).get("reason") or "the place's fixture was not found"
-                self._record("vision_failed", cand, picture, detail=why)
-                raise PickError(f"{why}; the part is left where it lies")
-            T_slot = picture.T_base_fixture @ r.place.T_slot_in_fixture(slot)
-        else:
-            T_slot = r.place.T_slot(slot)
+        try:
+            slot, n_slots, T_slot = self.slots.target(r, picture.T_base_fixture, picture.fixture)
+        except FixtureNotFound as exc:
+            self._record("vision_failed", cand, picture, detail=str(exc))
+            raise PickError(f"{exc}; the part is left where it lies") from exc
         T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
         self._cycle = (cand, picture, T_place)
         self._at("to_pick", store=True, pick_pose=seen_fields(cand, None, None)["pick_pose"])
@@ -442,14 +391,8 @@ class ProductionRun:
                 self._record("grip_failed", cand, picture, d=d, detail=check.detail, t_cycle=t_cycle)
             return None
         c.picked += 1
-        if n_slots is not None:
-            # Exactly once: the slot is claimed (stored, the counter past it) before the part goes there.
-            # (A fixed place has no slots: what takes the part away is not the cell's.)
-            self.store.claim_slot(self.s.recipe_id, slot, self.status.run_id, self._n + 1,
-                                  clean({"pick_pose": seen_fields(cand, None, None)["pick_pose"],
-                                         "place_pose": seen_fields(None, None, T_place)["place_pose"]}))
-            self._claim, self._released = slot, False
-            self._next_slot = slot + 1
+        self.slots.take(slot, n_slots, self._n + 1, {"pick_pose": seen_fields(cand, None, None)["pick_pose"],
+                                                     "place_pose": seen_fields(None, None, T_place)["place_pose"]})
         self._at("carrying", store=True, holding=True)
         prefetch = self._next_picture(T_place)
         try:
@@ -464,10 +407,10 @@ class ProductionRun:
         self._move(T_place, "place", d)
         self._at("releasing")
         d.add("gripper", self.gripper.release())
-        self._released = True
+        self.slots.released = True
         self._at("leaving", store=True, holding=False)
         self._move(T_place_app, "post-place", d)
-        claimed, self._claim = self._claim, None  # resolved by the placed record (one transaction)
+        claimed = self.slots.resolve()  # resolved by the placed record (one transaction)
         self._at("between")
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
@@ -477,53 +420,11 @@ class ProductionRun:
         return prefetch
 
     def _next_picture(self, T_place: np.ndarray) -> Prefetch | None:
-        """With ``overlap``, the next cycle's picture on the vision thread: with a fixed camera it starts
-        as soon as the arm has left the camera's view, else when ``go`` is called (the arm over the place)."""
-        if self._vision is None:
-            return None
-        s, mapping = self.s, self._mapping
+        """With ``overlap``, the next cycle's picture on the vision thread (``vision.next_picture``)."""
+        s = self.s
 
         def take() -> Picture:
             return take_picture(self.services, s.recipe_id, s.recipe_version, s.recipe, s.camera_id, self.robot,
                                 tool_yaw(T_place))
 
-        if mapping is None:
-            return self._vision.submit(take)
-
-        def out() -> bool:
-            return out_of_view(mapping, self.robot.state().T_base_tool, VIEW_MARGIN_MM)
-
-        return self._vision.submit(take, out)
-
-    def _record(self, result: str, cand: PickCandidate | None = None, picture: Picture | None = None,
-                slot: int | None = None, T_place: np.ndarray | None = None, d: Durations | None = None,
-                detail: str = "", t_cycle: float | None = None, durations: dict[str, float] | None = None,
-                resolves: int | None = None, **extra: Any) -> None:
-        self._n += 1
-        if durations is None and d is not None and t_cycle is not None:
-            durations = d.as_ms(time.monotonic() - t_cycle)
-        rec: dict[str, Any] = {
-            "n": self._n, "t": time.time(), "run_id": self.status.run_id, "result": result, "slot": slot,
-            "recipe_id": self.s.recipe_id, "recipe_version": self.s.recipe_version,
-            **seen_fields(cand, picture, T_place), "durations_ms": durations, "detail": detail, **extra,
-        }
-        kept = None
-        if result in KEPT_RESULTS and picture is not None and picture.frame_id is not None \
-                and self.failure_frames is not None:
-            try:  # taken now: the frame cache may drop it before the writer gets to it
-                kept = self.services.frames.get(int(picture.frame_id))
-            except KeyError:
-                log.warning("production run %s: the frame of cycle %s left the cache before it was kept",
-                            self.status.run_id, self._n)
-        rec["frame_kept"] = kept is not None
-        record = clean(rec)
-        self.last_record = record
-        run_id, n, frames, recipe_id = self.status.run_id, self._n, self.failure_frames, self.s.recipe_id
-
-        def write() -> None:
-            out = record
-            if kept is not None and frames is not None and not frames.keep(run_id, n, kept, record):
-                out = {**record, "frame_kept": False}
-            self.store.add_cycle(run_id, out, None if resolves is None else (recipe_id, resolves))
-
-        self._writer.put(write)
+        return next_picture(self._vision, take, self._mapping, self.robot, VIEW_MARGIN_MM)

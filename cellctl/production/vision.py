@@ -61,6 +61,8 @@ class Picture:
     """What of the arm the picture showed in the search region (its matches there were dropped); None: none."""
     occupancy: Occupancy | None = None
     """With no candidate: the objects the picture shows anyway (``cellctl.production.occupancy``)."""
+    encoder_ticks: int | None = None
+    """A belt's encoder count at the exposure (conveyor tracking); None: no belt."""
 
 
 def camera_on_arm(services: Services, camera_id: str, robot_id: str, recipe: Recipe) -> bool:
@@ -101,7 +103,8 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
                              part_sides_px(recipe.models), arm.mask if arm is not None else None, known)
     return Picture(cands, located.frame_id, located.reason, located.calibration, time.monotonic() - t0, len(cands),
                    located.timed_out, T_base_fixture=T_fixture, fixture=fixture, arm=located.arm_in_view,
-                   occupancy=occupied)
+                   occupancy=occupied,
+                   encoder_ticks=located.encoder_ticks)
 
 
 def _neighbours(cands: list[PickCandidate], clearance_mm: float) -> None:
@@ -231,6 +234,23 @@ class VisionWorker:
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             log.error("production: the vision thread %s did not end within %.0f s", self._thread.name, timeout_s)
+
+
+def next_picture(worker: VisionWorker | None, take: Callable[[], Picture], mapping: ActiveMapping | None,
+                 robot: RobotBase, margin_mm: float) -> Prefetch | None:
+    """The next cycle's picture on ``worker`` (None: no overlap, no picture): with a fixed camera's
+    eye-to-hand ``mapping`` it starts as soon as the arm has left the camera's view (nothing within
+    ``margin_mm`` of the tool centre in the image), else when the handle's ``go`` is called."""
+    if worker is None:
+        return None
+    if mapping is None:
+        return worker.submit(take)
+    m = mapping
+
+    def out() -> bool:
+        return out_of_view(m, robot.state().T_base_tool, margin_mm)
+
+    return worker.submit(take, out)
 
 
 def tool_yaw(T: Any) -> float:

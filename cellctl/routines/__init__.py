@@ -16,7 +16,7 @@ from cellctl.services import Services
 
 Routine = Callable[[Services, JobContext], dict[str, Any]]
 
-__all__ = ["HOLDS_ROBOT", "MOVES_ROBOT", "ROUTINE_MODULES", "Routine", "routine"]
+__all__ = ["ENGINEER_ONLY", "HOLDS_ROBOT", "MOVES_ROBOT", "NEEDS_CONVEYOR", "ROUTINE_MODULES", "Routine", "routine"]
 """Starting one (the rules REST and the PLC share) is ``cellctl.routines.start.start_routine``: it imports
 this package, so it is not re-exported here."""
 
@@ -25,8 +25,13 @@ ROUTINE_MODULES: Final[dict[str, str]] = {
     "handeye-capture": "cellctl.routines.handeye_capture",
     "jog-to-mark": "cellctl.routines.jog_to_mark",
     "verify": "cellctl.routines.verify",
+    "conveyor-calibrate": "cellctl.routines.conveyor_calibrate",
 }
 MOVES_ROBOT: Final[frozenset[str]] = frozenset({"intrinsics-capture", "handeye-capture"})
+ENGINEER_ONLY: Final[frozenset[str]] = frozenset({"conveyor-calibrate"})
+NEEDS_CONVEYOR: Final[frozenset[str]] = frozenset({"conveyor-calibrate"})
+"""Routines listed (``GET /routines``) only in a cell whose config names a conveyor."""
+"""Routines that need the engineer role without moving the robot (they calibrate the cell against a moving belt)."""
 HOLDS_ROBOT: Final[frozenset[str]] = frozenset({"verify"})
 """Routines that measure with the robot standing still: they hold it still for their whole run
 without moving it (the operator role is enough); refused (409 robot_busy) while another caller

@@ -20,7 +20,7 @@ from cellctl.auth import Principal
 from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
 from cellctl.jobs import Job, TooManyJobs
-from cellctl.routines import HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines import ENGINEER_ONLY, HOLDS_ROBOT, MOVES_ROBOT, ROUTINE_MODULES, routine
 from cellctl.routines.preflight import PreflightRefused, preflight
 from cellctl.services import Services
 
@@ -49,7 +49,7 @@ def start_routine(services: Services, name: str, params: Any, who: Principal) ->
     # jog-to-mark's tool-centre step moves the robot too, under a motion session of its own (the
     # operator jogs freely before it), so it needs the role but not the motion from the start.
     turns = name == "jog-to-mark" and given.get("tool_centre") is True
-    if not who.has("engineer") and (moves or turns):
+    if not who.has("engineer") and (moves or turns or name in ENGINEER_ONLY):
         raise StartRefused(403, "forbidden",
                            f"routine {name} needs the engineer role; token {who.name!r} has {who.role}")
     module = routine(name)

@@ -10,8 +10,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
-CalibrationKind = Literal["camera", "handeye", "npoint"]
-CALIBRATION_KINDS: tuple[CalibrationKind, ...] = ("camera", "handeye", "npoint")
+CalibrationKind = Literal["camera", "handeye", "npoint", "conveyor"]
+CALIBRATION_KINDS: tuple[CalibrationKind, ...] = ("camera", "handeye", "npoint", "conveyor")
+"""``conveyor``: a belt in a robot's base frame (``conveyor-calibrate``), keyed by the conveyor's id in place of
+a camera's."""
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,9 @@ SCHEMA_VERSION = 3
 3: drift checks (``drift_checks``)."""
 
 STORE_MARKER = "cellctl-store"
+KIND_CHECK = "kind IN ('camera', 'handeye', 'npoint', 'conveyor')"
+"""The calibration kinds a row may have (``conveyor`` came with conveyor tracking, in schema version 2: a
+store made before it gets the wider check at its next start, ``Store._widen_kind_check``)."""
 
 metadata = sa.MetaData()
 
@@ -48,7 +51,7 @@ calibrations = sa.Table(
     sa.Column("note", sa.Text, nullable=False),
     sa.Column("created_s", sa.Double, nullable=False),
     sa.UniqueConstraint("cell_id", "kind", "camera_id", "robot_id", "version", name="uq_calibration_version"),
-    sa.CheckConstraint("kind IN ('camera', 'handeye', 'npoint')", name="ck_calibration_kind"),
+    sa.CheckConstraint(KIND_CHECK, name="ck_calibration_kind"),
 )
 
 activations = sa.Table(

@@ -11,6 +11,7 @@ share between threads: each call checks a connection out of the engine's pool fo
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -44,6 +45,8 @@ from cellctl.store.records import (
     CalibrationSummary,
 )
 from cellctl.store.values import check_key, check_text, describe_key, payload_sha256, to_json_text
+
+log = logging.getLogger(__name__)
 
 MAX_AUDIT_LIMIT = 10_000
 
@@ -170,6 +173,36 @@ class Store(LatchRows, ProductionRows, RecipeRows, DriftRows):
                                        f"cellctl supports ({S.SCHEMA_VERSION}); upgrade cellctl")
             if version < S.SCHEMA_VERSION:
                 self._migrate(conn, version)
+            self._widen_kind_check(conn)
+
+    def _widen_kind_check(self, conn: sa.Connection) -> None:
+        """A store made before the ``conveyor`` calibration kind: its calibrations table gets today's check
+        (SQLite: the table is rebuilt with its rows; PostgreSQL: the constraint is replaced)."""
+        if self.backend == "postgresql":
+            found = conn.exec_driver_sql("SELECT pg_get_constraintdef(oid) FROM pg_constraint WHERE conname = "
+                                         "'ck_calibration_kind'").scalar()
+            if found is not None and "conveyor" not in str(found):
+                conn.exec_driver_sql("ALTER TABLE calibrations DROP CONSTRAINT ck_calibration_kind")
+                conn.exec_driver_sql(f"ALTER TABLE calibrations ADD CONSTRAINT ck_calibration_kind CHECK "
+                                     f"({S.KIND_CHECK})")
+            return
+        sql = conn.exec_driver_sql("SELECT sql FROM sqlite_master WHERE type = 'table' AND name = 'calibrations'"
+                                   ).scalar()
+        if sql is None or "conveyor" in str(sql):
+            return
+        new_sql = str(sql).replace("'npoint')", "'npoint', 'conveyor')")
+        if new_sql == sql:
+            log.warning("store %s: the calibrations table's kind check is not the one expected; left as it is",
+                        self.describe())
+            return
+        # SQLite cannot alter a check: the table's definition is rewritten in place (same columns, the
+        # wider check; PRAGMA writable_schema as SQLite's docs describe for exactly this change).
+        conn.exec_driver_sql("PRAGMA writable_schema = ON")
+        conn.exec_driver_sql("UPDATE sqlite_master SET sql = ? WHERE type = 'table' AND name = 'calibrations'",
+                             (new_sql,))
+        version = conn.exec_driver_sql("PRAGMA schema_version").scalar()
+        conn.exec_driver_sql(f"PRAGMA schema_version = {int(version or 0) + 1}")
+        conn.exec_driver_sql("PRAGMA writable_schema = OFF")
 
     def _migrate(self, conn: sa.Connection, version: int) -> None:
         """Bring a store of an older schema ``version`` to this one, in the schema's transaction (the

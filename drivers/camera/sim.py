@@ -81,7 +81,7 @@ class SimCamera(CameraBase):
     def grab(self, timeout_s: float = 2.0) -> Frame:
         world = self.world
         T_base_tool = world.T_base_tool_true
-        pixels = world.render()
+        pixels, exposure = world.render_with_meta()  # a belt's encoder count latched at the exposure
         feature = world.scene.tool_feature
         if feature is not None:
             T_cam_tool = g.invert(world.T_base_cam()) @ T_base_tool
@@ -98,7 +98,7 @@ class SimCamera(CameraBase):
             timestamp_s=time.time(),
             frame_id=self._frame_id,
             camera_id=self.camera_id,
-            metadata={"exposure_us": self._exposure_us, "gain_db": self._gain_db, "simulated": True},
+            metadata={"exposure_us": self._exposure_us, "gain_db": self._gain_db, "simulated": True, **exposure},
         )
 
     def set_exposure_us(self, exposure_us: float) -> None:

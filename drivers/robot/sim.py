@@ -9,6 +9,8 @@
 - Faults of the scene (``robot.faults``): a protective stop halfway through a move (the move
   raises, moves are refused until ``unlock_protective_stop``), and a controller that drops off the
   network (state and moves raise ``DeviceUnavailable`` until reconnected).
+- A conveyor scene's arm tracks the belt (``start_tracking``: ``drivers.sim.conveyor.BeltTracker``);
+  a Stop ends tracking at once.
 - With ``robot.kinematic_error`` the true pose is the perturbed arm's (``drivers.sim.kinematics``);
   the reported pose stays the controller's belief with repeatability noise.
 
@@ -130,6 +132,8 @@ class SimRobot(RobotBase):
         except OutOfReach as exc:
             raise MotionRejected(f"robot {self.robot_id}: {exc}") from exc
         self._halt.clear()
+        if not world.tracker.tracking:
+            world.settle_tracking()
         world.move_started(speed_m_s)
         faults = world.scene.robot.faults
         self._moves += 1
@@ -147,7 +151,7 @@ class SimRobot(RobotBase):
     def _travel(self, world: SimWorld, T_cmd_end: NDArray[np.float64], T_true_end: NDArray[np.float64],
                 duration_s: float, protective_halfway: bool) -> None:
         """Move the tool along the line in real time; raise where a stop or a fault halts it."""
-        T_cmd0, T_true0 = world.T_base_tool_commanded, world.T_base_tool_true
+        T_cmd0, T_true0 = world.T_base_tool_commanded, world.raw_true_pose()
         cmd = _Line(T_cmd0, T_cmd_end)
         true = _Line(T_true0, T_true_end)
         t0 = time.monotonic()
@@ -174,8 +178,32 @@ class SimRobot(RobotBase):
             self._moving = False
 
     def _stop(self) -> None:
-        """Halt the tool where it is (an interrupted move raises)."""
+        """Halt the tool where it is (an interrupted move raises), tracking too."""
         self._halt.set()
+        if self._world is not None:
+            self._world.tracker.stop()
+
+    def tracks_conveyor(self) -> bool:
+        return self._world is not None and self._world.belt is not None
+
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
+        world = self.world
+        if world.belt is None:
+            raise MotionRejected(f"robot {self.robot_id}: the scene has no conveyor to track")
+        if self._moving:
+            raise MotionRejected(f"robot {self.robot_id}: tracking starts with the arm standing still")
+        world.settle_tracking()
+        return world.tracker.start(direction_base, ticks_per_m, most_m)
+
+    def _stop_tracking(self) -> None:
+        if self._world is not None:
+            self._world.tracker.stop()
+
+    def _distance_to(self, target: NDArray[np.float64]) -> float:
+        """From the commanded pose (the frame of the commands while tracking), m."""
+        if self._world is None or self._dropped or not self._world.tracker.tracking:
+            return super()._distance_to(target)
+        return float(np.linalg.norm(target[:3, 3] - self._world.T_base_tool_commanded[:3, 3]))
 
 
 def _turn_deg(T0: NDArray[np.float64], T1: NDArray[np.float64]) -> float:

@@ -5,6 +5,10 @@ is the tool's true pose times where it sat in the gripper when it closed), ``pla
 the place area) or ``dropped`` (anywhere else: it slipped, or was let go elsewhere). A part that
 is let go lands on the table below where it was, level, keeping its yaw.
 
+With a conveyor (``drivers.sim.conveyor``) the pick area is the belt: a part on it rides it (its
+pose is where it lay when the belt had travelled ``belt_s_m``, moved along the belt by the travel
+since), appears when it reaches the belt's start and is ``fallen`` once carried past its end.
+
 Poses are ``T_base_part`` (4x4, metres): the part's reference point on its top face, x along the
 outline's x (``drivers.sim.production_spec.PartTemplate``). The pick area's scatter is seeded and
 deterministic (``scatter``); so are the gripper's failures (the world's seed).
@@ -21,9 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration import geometry as g
+from drivers.sim.conveyor import SimBelt
 from drivers.sim.production_spec import AreaSpec, ProductionSpec
 
-PartState = Literal["in_area", "held", "placed", "dropped"]
+PartState = Literal["in_area", "held", "placed", "dropped", "fallen"]
 SAMPLE_MM = 1.0
 """Spacing of the points that test two parts for overlap, mm."""
 
@@ -37,6 +42,8 @@ class SimPart:
     T_base_part: NDArray[np.float64]
     """Where it lies (``in_area``, ``placed``, ``dropped``); its pose when it was gripped, while held."""
     T_tool_part: NDArray[np.float64] | None = None
+    belt_s_m: float | None = None
+    """On a belt: its travel (m) when the part lay at ``T_base_part``; None: the part does not ride a belt."""
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,9 @@ def flat_pose(x_mm: float, y_mm: float, z_mm: float, yaw_deg: float) -> NDArray[
 class ProductionParts:
     """The parts of a production scene and what the sim gripper does to them (thread-safe)."""
 
-    def __init__(self, spec: ProductionSpec, table_z_m: float, seed: int) -> None:
+    def __init__(self, spec: ProductionSpec, table_z_m: float, seed: int, belt: SimBelt | None = None) -> None:
         self.spec = spec
+        self.belt = belt
         self.table_z_m = table_z_m
         self._lock = threading.RLock()
         fault_seed = [seed, spec.scatter.seed] if spec.gripper.fail_seed is None else [spec.gripper.fail_seed]
@@ -76,6 +84,9 @@ class ProductionParts:
         n = len(self.parts)
         for k, fixed in enumerate(spec.unreachable):
             self.parts.append(SimPart(n + k, "in_area", self.lying(fixed.x_mm, fixed.y_mm, fixed.angle_deg)))
+        if belt is not None:
+            n = len(self.parts)
+            self.parts.extend(SimPart(n + k, "in_area", T, belt_s_m=0.0) for k, T in enumerate(self._belt_scatter()))
         self.closed = False
         self.version = 0
         """Bumped whenever a part moves relative to the table (the render cache key uses it)."""
@@ -88,21 +99,58 @@ class ProductionParts:
     def lying(self, x_mm: float, y_mm: float, angle_deg: float) -> NDArray[np.float64]:
         return flat_pose(x_mm, y_mm, self.top_z_mm, angle_deg)
 
-    def pose(self, part: SimPart, T_base_tool_true: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The part's true pose now (a held part moves with the tool)."""
+    def pose(self, part: SimPart, T_base_tool_true: NDArray[np.float64], s_m: float | None = None
+             ) -> NDArray[np.float64]:
+        """The part's true pose now (a held part moves with the tool; one on the belt with the belt, at its
+        travel ``s_m``: default now)."""
         if part.state == "held" and part.T_tool_part is not None:
             return T_base_tool_true @ part.T_tool_part
+        if part.belt_s_m is not None and self.belt is not None:
+            s = self.belt.position_m() if s_m is None else s_m
+            T = part.T_base_part.copy()
+            T[:3, 3] += self.belt.direction_base * (s - part.belt_s_m)
+            return T
         return part.T_base_part
 
-    def poses(self, T_base_tool_true: NDArray[np.float64]) -> list[tuple[SimPart, NDArray[np.float64]]]:
+    def poses(self, T_base_tool_true: NDArray[np.float64], s_m: float | None = None
+              ) -> list[tuple[SimPart, NDArray[np.float64]]]:
+        """The parts there are and their true poses (at the belt's travel ``s_m``: default now); a part not
+        yet on the belt is not listed, one carried past its end becomes ``fallen``."""
         with self._lock:
-            return [(p, self.pose(p, T_base_tool_true)) for p in self.parts]
+            if self.belt is None:
+                return [(p, self.pose(p, T_base_tool_true)) for p in self.parts]
+            s = self.belt.position_m() if s_m is None else s_m
+            x0, x1 = self.belt.spec.x_mm
+            out = []
+            for p in self.parts:
+                T = self.pose(p, T_base_tool_true, s)
+                if p.belt_s_m is not None:
+                    x_mm = float(T[0, 3]) * 1e3
+                    if x_mm < x0:
+                        continue  # not on the belt yet
+                    if x_mm > x1 and s_m is None:
+                        p.state, p.T_base_part, p.belt_s_m = "fallen", T, None
+                        T[2, 3] = self.table_z_m - 0.5  # off the belt's end, out of every view
+                        self.version += 1
+                out.append((p, T))
+            return out
 
-    def key(self, T_base_tool_true: NDArray[np.float64]) -> bytes:
+    def key(self, T_base_tool_true: NDArray[np.float64], s_m: float | None = None) -> bytes:
         """Changes whenever what the camera could see of the parts changes."""
         with self._lock:
             held = any(p.state == "held" for p in self.parts)
-            return b"parts%d" % self.version + (T_base_tool_true.tobytes() if held else b"")
+            belt = b"" if s_m is None else b"s%.6f" % s_m
+            return b"parts%d" % self.version + belt + (T_base_tool_true.tobytes() if held else b"")
+
+    def slip(self, part_id: int, along_mm: float) -> None:
+        """A part on the belt slips ``along_mm`` along it (a fault: where vision saw it is no longer true)."""
+        with self._lock:
+            part = self.parts[part_id]
+            if part.belt_s_m is None:
+                raise ValueError(f"part {part_id} is not on the belt ({part.state})")
+            part.T_base_part = part.T_base_part.copy()
+            part.T_base_part[0, 3] += along_mm * 1e-3
+            self.version += 1
 
     def held(self) -> SimPart | None:
         with self._lock:
@@ -117,21 +165,21 @@ class ProductionParts:
                 held = self.held()
                 return GripOutcome(None if held is None else held.id, "already closed")
             self.closed = True
-            best, best_d = None, math.inf
-            for p in self.parts:
-                if p.state == "held":
+            best, best_d, best_T = None, math.inf, np.eye(4)
+            for p, T_now in self.poses(T_base_tool_true):
+                if p.state in ("held", "fallen"):
                     continue
-                d = float(np.hypot(*(T_base_tool_true[:2, 3] - p.T_base_part[:2, 3]))) * 1e3
+                d = float(np.hypot(*(T_base_tool_true[:2, 3] - T_now[:2, 3]))) * 1e3
                 if d < best_d:
-                    best, best_d = p, d
+                    best, best_d, best_T = p, d, T_now
             if best is None or best_d > gs.tolerance_mm:
                 return GripOutcome(None, f"no part within {gs.tolerance_mm} mm of the gripper's centre"
                                    + ("" if best is None else f" (nearest {best_d:.1f} mm)"))
-            dz_mm = (T_base_tool_true[2, 3] - best.T_base_part[2, 3]) * 1e3
+            dz_mm = (T_base_tool_true[2, 3] - best_T[2, 3]) * 1e3
             if not -self.spec.part.thickness_mm <= dz_mm <= gs.above_mm:
                 return GripOutcome(None, f"the gripper closed {dz_mm:.1f} mm from part {best.id}'s top face "
                                    f"(allowed -{self.spec.part.thickness_mm}..{gs.above_mm} mm)")
-            dyaw = math.degrees(yaw_of(T_base_tool_true) - yaw_of(best.T_base_part))
+            dyaw = math.degrees(yaw_of(T_base_tool_true) - yaw_of(best_T))
             sym = gs.symmetry_deg
             off = abs((dyaw + sym / 2) % sym - sym / 2)
             if off > gs.tolerance_deg:
@@ -140,8 +188,8 @@ class ProductionParts:
             if gs.fail_probability > 0 and self._rng.uniform() < gs.fail_probability:
                 self.faults += 1
                 return GripOutcome(None, f"part {best.id} slipped from the fingers as they closed (simulated)")
-            best.T_tool_part = g.invert(T_base_tool_true) @ best.T_base_part
-            best.state = "held"
+            best.T_tool_part = g.invert(T_base_tool_true) @ best_T
+            best.state, best.T_base_part, best.belt_s_m = "held", best_T, None
             self.version += 1
             return GripOutcome(best.id, "")
 
@@ -179,6 +227,8 @@ class ProductionParts:
         x_mm, y_mm = float(T[0, 3]) * 1e3, float(T[1, 3]) * 1e3
         part.T_base_part = self.lying(x_mm, y_mm, math.degrees(yaw_of(T)))
         part.T_tool_part = None
+        if self.belt is not None and self.spec.pick_area.contains(x_mm, y_mm):
+            part.belt_s_m = self.belt.position_m()  # let go over the belt: it rides it again
         if slipped:
             part.state = "dropped"
         elif self.spec.place_area.contains(x_mm, y_mm) or (self.spec.fixture is not None
@@ -213,6 +263,35 @@ class ProductionParts:
                 cand = self._slide(cand, placed, area, rng)
             placed.append(cand)
         return [self.lying(*p) for p in placed]
+
+    def _belt_scatter(self) -> list[NDArray[np.float64]]:
+        """Seeded poses along the belt from its ``first_x_mm`` upstream (-x): random spacing, some parts
+        pushed against the one ahead (touching), none overlapping; all inside the parts' lane. The first part
+        lies upright (its outline's x along base x): the one a user teaches with the belt still."""
+        if self.belt is None:
+            raise ValueError("the scene has no conveyor to scatter parts on")
+        bp = self.belt.spec.parts
+        rng = np.random.default_rng([bp.seed, 0xC0])
+        r = self.spec.part_radius_mm()
+        y_lo, y_hi = bp.lane_y_mm[0] + r, bp.lane_y_mm[1] - r
+        placed: list[tuple[float, float, float]] = []
+        x = bp.first_x_mm
+        for k in range(bp.count):
+            y = float(rng.uniform(y_lo, y_hi)) if y_hi > y_lo else 0.5 * sum(bp.lane_y_mm)
+            a = float(rng.uniform(-180, 180)) if k > 0 else 0.0  # the first one upright: to be taught
+            if k > 0:
+                x = placed[-1][0] - float(rng.uniform(*bp.spacing_mm))
+                if rng.uniform() < bp.touching:
+                    while x + SAMPLE_MM < placed[-1][0] and self._clear((x + SAMPLE_MM, y, a), placed[-2:]):
+                        x += SAMPLE_MM  # pushed up to the part ahead
+            while not self._clear((x, y, a), placed[-2:]):
+                x -= SAMPLE_MM
+            placed.append((x, y, a))
+        return [self.lying(*p) for p in placed]
+
+    def _clear(self, cand: tuple[float, float, float], others: list[tuple[float, float, float]]) -> bool:
+        pts = self._world_samples(cand)
+        return not any(_overlap(pts, self._world_samples(o), SAMPLE_MM) for o in others)
 
     def _world_samples(self, pose: tuple[float, float, float]) -> NDArray[np.float64]:
         a = math.radians(pose[2])
@@ -256,7 +335,8 @@ class ProductionParts:
         """The parts' states and poses, the gripper closed or not, the fault draw's counters (JSON-able)."""
         with self._lock:
             return {"parts": [{"id": p.id, "state": p.state, "T_base_part": p.T_base_part.tolist(),
-                               "T_tool_part": None if p.T_tool_part is None else p.T_tool_part.tolist()}
+                               "T_tool_part": None if p.T_tool_part is None else p.T_tool_part.tolist(),
+                               **({} if p.belt_s_m is None else {"belt_s_m": p.belt_s_m})}
                               for p in self.parts],
                     "closed": self.closed, "closes_on_part": self.closes_on_part, "faults": self.faults}
 
@@ -272,6 +352,7 @@ class ProductionParts:
                 part.T_base_part = np.asarray(kept["T_base_part"], dtype=np.float64)
                 part.T_tool_part = None if kept["T_tool_part"] is None else np.asarray(kept["T_tool_part"],
                                                                                         dtype=np.float64)
+                part.belt_s_m = kept.get("belt_s_m")
             self.closed = bool(state["closed"])
             self.closes_on_part = int(state.get("closes_on_part", 0))
             self.faults = int(state.get("faults", 0))

@@ -24,7 +24,7 @@ from drivers.sim.scene import SceneError
 def _reflectance(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], value: float,
                  x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
     """The part in its own frame (metres): ``value`` inside the outline and outside the holes, NaN elsewhere."""
-    from drivers.sim.world import part_mask
+    from drivers.sim.outline import part_mask
 
     inside = part_mask(outline_mm, holes_mm, 0.0, 0.0, 0.0, x, y)
     out = np.full(x.shape, np.nan)
@@ -67,7 +67,7 @@ class _Lying:
             self.labels[1][on & ~first] = k + 1
 
     def __call__(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-        from drivers.sim.world import part_mask
+        from drivers.sim.outline import part_mask
 
         out = np.full(x.shape, np.nan)
         _, h, w = self.labels.shape
@@ -89,7 +89,7 @@ class _Lying:
 
 
 def production_objects(parts: ProductionParts, T_cam_base: NDArray[np.float64],
-                       T_base_tool_true: NDArray[np.float64]) -> list[PlanarObject]:
+                       T_base_tool_true: NDArray[np.float64], s_m: float | None = None) -> list[PlanarObject]:
     """The parts as planes in the camera frame.
 
     The parts that lie on the table share one plane at their top face (bounded by the box around
@@ -101,7 +101,9 @@ def production_objects(parts: ProductionParts, T_cam_base: NDArray[np.float64],
     box = (float(poly[:, 0].min()), float(poly[:, 1].min()), float(poly[:, 0].max()), float(poly[:, 1].max()))
     objs = []
     lying: list[tuple[float, float, float]] = []
-    for part, T in parts.poses(T_base_tool_true):
+    for part, T in parts.poses(T_base_tool_true, s_m):
+        if part.state == "fallen":
+            continue
         if part.state == "held":
             shade = functools.partial(_reflectance, spec.outline_mm, spec.holes_mm, spec.reflectance)
             objs.append(PlanarObject(T_cam_base @ T, shade, box))

@@ -21,12 +21,14 @@ from calibration.camera_model import CameraModel
 from calibration.geometry import ur_pose_to_transform
 from calibration.targets import PlanarTarget, target_from_dict
 from drivers.errors import DriverInputError
+from drivers.sim.conveyor import BeltSpec
 from drivers.sim.production_spec import ProductionSpec
 
 SCENE_FORMAT_VERSION = 1
 BUILTIN_SCENE = Path(__file__).with_name("scenes") / "virtual-cell.yaml"
 BUILTIN_SCENES = {"production": Path(__file__).with_name("scenes") / "production.yaml",
-                  "fixed-camera": Path(__file__).with_name("scenes") / "virtual-cell-fixed-camera.yaml"}
+                  "fixed-camera": Path(__file__).with_name("scenes") / "virtual-cell-fixed-camera.yaml",
+                  "conveyor": Path(__file__).with_name("scenes") / "conveyor.yaml"}
 """Scenes a sim device's ``scene`` setting may name instead of giving a path."""
 
 
@@ -160,9 +162,10 @@ class RobotSpec(_Strict):
 class TargetSpec(_Strict):
     name: str
     target: dict[str, Any]
-    attached_to: Literal["base", "tool"] = "base"
+    attached_to: Literal["base", "tool", "belt"] = "base"
     pose: URPose
-    """``T_base_target`` (attached to base) or ``T_tool_target`` (attached to tool)."""
+    """``T_base_target`` (attached to base) or ``T_tool_target`` (attached to tool); on the belt: its
+    ``T_base_target`` at the belt's start (it rides the belt, a loop: it comes round again)."""
 
     @field_validator("target")
     @classmethod
@@ -248,6 +251,8 @@ class SceneSpec(_Strict):
     """Marks fixed on the table (drift checks); none when absent."""
     production: ProductionSpec | None = None
     """Parts as objects a sim gripper picks and places (``drivers.sim.production``); none when absent."""
+    conveyor: BeltSpec | None = None
+    """A belt carrying the production parts along base +x (``drivers.sim.conveyor``); none when absent."""
 
     def T_tool_cam(self) -> np.ndarray | None:
         c = self.camera

@@ -10,6 +10,12 @@ robot's ``state_file``): the parts (where they lie, which one the gripper holds)
 the arm's pose are written whenever a part moves, a move ends or a halted arm stands, and read back
 when a service starts on the same file — as a real cell's parts and arm stay where they are when
 its controller restarts.
+
+A conveyor scene's world has a belt (``belt``, ``drivers.sim.conveyor``): its parts ride it, a target
+``attached_to: belt`` too, and the robot can track it (``start_tracking``: as a robot controller with
+the belt's encoder wired to it does, every commanded pose is then carried along the belt by the
+travel the encoder counted since, so the tool follows the belt). Its state is not kept across a
+restart (the belt moved on meanwhile).
 """
 
 from __future__ import annotations
@@ -28,13 +34,16 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from drivers.sim.camera_fault import CameraFault
+from drivers.sim.conveyor import BeltTracker, SimBelt
 from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
 from drivers.sim.kinematics import KinematicError
+from drivers.sim.outline import part_mask
 from drivers.sim.production import ProductionParts
 from drivers.sim.production_view import production_objects, production_truth
 from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene, resolve_scene
 
 log = logging.getLogger(__name__)
+__all__ = ["SimWorld", "forget_worlds", "part_mask", "world_for"]
 
 KEEP_MOVING_EVERY_S = 0.05
 """While the arm moves, its pose is written to the state file at most this often."""
@@ -58,8 +67,11 @@ class SimWorld:
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
         self._reflectance_cache: tuple[bytes, NDArray[np.float64], NDArray[np.float64]] | None = None
+        self.belt = None if scene.conveyor is None else SimBelt(scene.conveyor, scene.seed)
+        """The conveyor's belt and encoder; None without one."""
+        self.tracker = BeltTracker(self.belt, self._lock)
         prod = scene.production
-        self.production = None if prod is None else ProductionParts(prod, scene.table.z_m, scene.seed)
+        self.production = None if prod is None else ProductionParts(prod, scene.table.z_m, scene.seed, self.belt)
         """The production scene's parts (picked and placed by a sim gripper); None without one."""
         self._state_file: Path | None = None
         self._kept_s = 0.0
@@ -70,13 +82,29 @@ class SimWorld:
     @property
     def T_base_tool_true(self) -> NDArray[np.float64]:
         with self._lock:
-            return self._T_base_tool_true.copy()
+            return self.tracker.shifted(self._T_base_tool_true)
 
     @property
     def T_base_tool_commanded(self) -> NDArray[np.float64]:
-        """Where the controller believes the tool is (the last commanded or interpolated pose)."""
+        """Where the controller believes the tool is (the last commanded or interpolated pose; while it
+        tracks the belt, in the frame of its commands: the belt where tracking started)."""
         with self._lock:
             return self._T_base_tool_cmd.copy()
+
+    def raw_true_pose(self) -> NDArray[np.float64]:
+        """The true pose in the frame of the commands (without the belt's travel while tracking)."""
+        with self._lock:
+            return self._T_base_tool_true.copy()
+
+    def settle_tracking(self) -> None:
+        """Before a move or tracking starts (no move under way): the travel the tool followed is taken into
+        its poses, whose frame is the base's again (``BeltTracker.settle``)."""
+        with self._lock:
+            shift = self.tracker.settle()
+            self._T_base_tool_cmd = self._T_base_tool_cmd.copy()
+            self._T_base_tool_true = self._T_base_tool_true.copy()
+            self._T_base_tool_cmd[:3, 3] += shift
+            self._T_base_tool_true[:3, 3] += shift
 
     @property
     def joints_rad(self) -> NDArray[np.float64]:
@@ -90,7 +118,7 @@ class SimWorld:
         the perturbed arm's (``true_pose_for``) while the report stays near the commanded pose.
         """
         with self._lock:
-            return self._T_base_tool_cmd @ self._T_report_error
+            return self.tracker.shifted(self._T_base_tool_cmd) @ self._T_report_error
 
     def true_pose_for(self, T_base_tool_commanded: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                                                  NDArray[np.float64]]:
@@ -142,7 +170,7 @@ class SimWorld:
         """Keep this production world's state in ``path``: read it back now when it is there (the same
         scene's), then write it on every change. Nothing for a scene without production; a second call
         (another device of the same world) changes nothing."""
-        if self.production is None or self._state_file is not None:
+        if self.production is None or self._state_file is not None or self.belt is not None:
             return
         path = Path(path)
         try:
@@ -199,10 +227,17 @@ class SimWorld:
         for spec, _ in self._targets:
             if spec.name == name:
                 T = g.ur_pose_to_transform(spec.pose)
+                if spec.attached_to == "belt":
+                    return self._on_belt(T)
                 return self.T_base_tool_true @ T if spec.attached_to == "tool" else T
         raise KeyError(f"no target named {name!r} in the scene")
 
-    def planar_objects(self) -> list[PlanarObject]:
+    def _on_belt(self, T: NDArray[np.float64], s_m: float | None = None) -> NDArray[np.float64]:
+        if self.belt is None:
+            raise SceneError("a target attached_to: belt needs the scene's conveyor")
+        return self.belt.carried(T, s_m)
+
+    def planar_objects(self, s_m: float | None = None) -> list[PlanarObject]:
         """Everything visible, as planes in the camera frame: targets, then the parts, the table.
 
         The parts lie in the table's own frame, so they tie with it in depth and win (the renderer
@@ -211,8 +246,9 @@ class SimWorld:
         pixels near it are tested against it.
         """
         T_cam_base = g.invert(self.T_base_cam())
-        objs = [PlanarObject(T_cam_base @ self.T_base_target(spec.name), target.reflectance)
-                for spec, target in self._targets]
+        objs = [PlanarObject(T_cam_base @ (self._on_belt(g.ur_pose_to_transform(spec.pose), s_m)
+                                           if spec.attached_to == "belt" else self.T_base_target(spec.name)),
+                             target.reflectance) for spec, target in self._targets]
         table = self.scene.table
         T_cam_table = T_cam_base @ g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
         for mark in self.scene.fiducials:
@@ -224,7 +260,7 @@ class SimWorld:
             objs.append(PlanarObject(T_plane, functools.partial(_disk, x_m, y_m, r_m, mark.reflectance),
                                      (x_m - r_m, y_m - r_m, x_m + r_m, y_m + r_m)))
         if self.production is not None:
-            objs.extend(production_objects(self.production, T_cam_base, self.T_base_tool_true))
+            objs.extend(production_objects(self.production, T_cam_base, self.T_base_tool_true, s_m))
         for part in reversed(self.scene.parts):
             r_m = float(np.max(np.linalg.norm(np.asarray(part.outline_mm, dtype=np.float64), axis=1))) / 1000.0
             x_m, y_m = part.x_mm / 1000.0, part.y_mm / 1000.0
@@ -234,7 +270,12 @@ class SimWorld:
         return objs
 
     def render(self) -> NDArray[np.uint8]:
-        """A grey image of what the camera sees now (noise drawn from the world's generator).
+        """A grey image of what the camera sees now (``render_with_meta``'s pixels)."""
+        return self.render_with_meta()[0]
+
+    def render_with_meta(self) -> tuple[NDArray[np.uint8], dict[str, Any]]:
+        """A grey image of what the camera sees now (noise drawn from the world's generator), and what the
+        frame carries: with a belt, ``encoder_ticks`` latched at the exposure (the belt frozen there).
 
         The geometric rendering (the expensive part) is cached for as long as the camera's pose
         and the scene's parts stay put; every frame still gets its own lighting, blur, noise and
@@ -242,15 +283,23 @@ class SimWorld:
         """
         im = self.scene.camera.imaging
         imaging = Imaging(**im.model_dump(exclude={"supersample"}))
+        meta: dict[str, Any] = {}
+        s_m = None
+        if self.belt is not None:
+            t_exposure = time.monotonic()
+            s_m = self.belt.position_m(t_exposure)
+            meta["encoder_ticks"] = self.belt.latched_ticks(t_exposure)
         with self._lock:
             key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
+            if s_m is not None:
+                key += b"belt%.7f" % s_m
             if self.production is not None:
-                key += self.production.key(self.T_base_tool_true)
+                key += self.production.key(self.T_base_tool_true, s_m)
             if any(spec.attached_to == "tool" for spec, _ in self._targets):
                 key += self.T_base_tool_true.tobytes()  # a target on the tool moves with it
             cached = self._reflectance_cache
             hit = cached is not None and cached[0] == key
-            objects = [] if hit else self.planar_objects()
+            objects = [] if hit else self.planar_objects(s_m)
             self.frame_counter += 1
             rng = np.random.default_rng(self._rng.integers(2**63))
         if hit and cached is not None:
@@ -259,7 +308,7 @@ class SimWorld:
             reflectance, depth_m = render_scene(self.camera_model, objects, im.background, im.supersample)
             with self._lock:
                 self._reflectance_cache = (key, reflectance, depth_m)
-        return to_grey(reflectance, imaging, rng, depth_m)
+        return to_grey(reflectance, imaging, rng, depth_m), meta
 
     def _table_reflectance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
         table = self.scene.table
@@ -314,6 +363,10 @@ class SimWorld:
         T_tool_cam = self.scene.T_tool_cam()
         if T_tool_cam is not None:
             out["T_tool_cam"] = T_tool_cam.tolist()
+        else:
+            out["camera"] = {**out["camera"], "T_base_cam": out["T_base_cam"]}
+        if self.belt is not None:
+            out["conveyor"] = {**self.belt.truth(), "tracking": self.tracker.tracking}
         if self.production is not None:
             # A production scene's parts are objects with a state (INTERFACES: /sim/truth).
             out.update(production_truth(self.production, self.camera_model, self.T_base_cam(),
@@ -331,44 +384,6 @@ def _disk(x0_m: float, y0_m: float, r_m: float, reflectance: float, x: NDArray[n
     """A fiducial mark: ``reflectance`` inside its disk, NaN elsewhere (table frame, metres)."""
     dx, dy = x - x0_m, y - y0_m
     return np.where(dx * dx + dy * dy <= r_m * r_m, reflectance, np.nan)
-
-
-def part_mask(outline_mm: list[list[float]], holes_mm: list[list[list[float]]], x_mm0: float, y_mm0: float,
-              angle_deg: float, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Points (table frame, metres) inside a part's outline and outside its holes."""
-    a = np.radians(angle_deg)
-    c, s = np.cos(a), np.sin(a)
-    poly = np.asarray(outline_mm, dtype=np.float64)
-    radius = float(np.max(np.linalg.norm(poly, axis=1)))
-    inside = np.zeros(x.shape, dtype=bool)
-    # A box test on the raw coordinates first: most of a frame's points are far from every part.
-    r_m = radius / 1000.0 + 1e-6
-    box = (np.abs(x - x_mm0 / 1000.0) <= r_m) & (np.abs(y - y_mm0 / 1000.0) <= r_m)
-    if not np.any(box):
-        return inside
-    dx, dy = x[box] * 1000.0 - x_mm0, y[box] * 1000.0 - y_mm0
-    px, py = c * dx + s * dy, -s * dx + c * dy  # into the part frame (mm)
-    near = px * px + py * py <= radius * radius
-    qx, qy = px[near], py[near]
-    m = _even_odd(poly, qx, qy)
-    for hole in holes_mm:
-        m &= ~_even_odd(np.asarray(hole, dtype=np.float64), qx, qy)
-    near[near] = m
-    inside[box] = near
-    return inside
-
-
-def _even_odd(poly: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.bool_]:
-    inside = np.zeros(x.shape, dtype=bool)
-    n = len(poly)
-    for i in range(n):
-        x1, y1 = poly[i]
-        x2, y2 = poly[(i + 1) % n]
-        crosses = (y1 > y) != (y2 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xi = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= crosses & (x < xi)
-    return inside
 
 
 _WORLDS: dict[tuple[str, int], SimWorld] = {}

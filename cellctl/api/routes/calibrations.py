@@ -24,7 +24,7 @@ from cellctl.strict_types import Bool
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/calibrations", tags=["calibrations"], route_class=EdgeRoute)
 
-Kind = Literal["camera", "handeye", "npoint"]
+Kind = Literal["camera", "handeye", "npoint", "conveyor"]
 CalId = Annotated[int, Path(ge=1, le=2**62, description="calibration id")]
 
 

@@ -17,7 +17,7 @@ from cellctl.api.deps import Operator, Viewer
 from cellctl.api.deps_services import ServicesDep
 from cellctl.api.errors import ApiError
 from cellctl.jobs import JobInputError
-from cellctl.routines import MOVES_ROBOT, ROUTINE_MODULES, routine
+from cellctl.routines import ENGINEER_ONLY, MOVES_ROBOT, NEEDS_CONVEYOR, ROUTINE_MODULES, routine
 from cellctl.routines.start import StartRefused
 from cellctl.routines.start import start_routine as start_job
 from cellctl.strict_types import Num
@@ -68,14 +68,16 @@ def _describe(name: str) -> dict[str, Any]:
     module = routine(name)
     doc = (module.__doc__ or "").strip().split("\n\n")[0].replace("``", "")
     return {"name": name, "description": " ".join(doc.split()), "moves_robot": name in MOVES_ROBOT,
-            "role": "engineer" if name in MOVES_ROBOT else "operator",
+            "role": "engineer" if name in MOVES_ROBOT | ENGINEER_ONLY else "operator",
             "params_schema": module.Params.model_json_schema()}
 
 
 @router.get("/routines", response_model=list[RoutinePublic])
-def list_routines(_: Viewer) -> list[dict[str, Any]]:
-    """Each routine with the JSON schema of its parameters (``POST /routines/{name}`` takes them)."""
-    return [_describe(n) for n in sorted(ROUTINE_MODULES)]
+def list_routines(services: ServicesDep, _: Viewer) -> list[dict[str, Any]]:
+    """Each routine the cell can run with the JSON schema of its parameters (``POST /routines/{name}`` takes
+    them); ``conveyor-calibrate`` is listed when the config names a conveyor."""
+    return [_describe(n) for n in sorted(ROUTINE_MODULES)
+            if n not in NEEDS_CONVEYOR or services.config.conveyors]
 
 
 def _start(name: str, services: ServicesDep, who: Operator, params: dict[str, Any] | None) -> dict[str, Any]:

@@ -33,6 +33,29 @@ async def truth(services: ServicesDep, _: Engineer) -> dict[str, Any]:
     return out
 
 
+class BeltSpeed(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    speed_mm_s: float = Field(ge=0, le=300, description="the belt's speed along base +x, mm/s (0-300)")
+    speed_variation: float | None = Field(None, ge=0, le=0.5, description="a slowly varying belt: the speed swings "
+                                                                         "by this fraction (0: steady)")
+
+
+@router.put("/conveyors/{conveyor_id}/speed")
+async def belt_speed(conveyor_id: str, body: BeltSpeed, services: ServicesDep, _: Engineer) -> dict[str, Any]:
+    """Set a simulated belt's speed now (the virtual plant's drive; a real belt's is the plant's, not
+    cellctl's). 404 for a conveyor the config does not name, 409 for one that is not simulated."""
+    cfg = services.config.conveyors.get(conveyor_id)
+    if cfg is None:
+        raise ApiError(404, "unknown_conveyor", f"no conveyor {conveyor_id!r} in the config; configured: "
+                                                f"{sorted(services.config.conveyors)}")
+    if cfg.kind != "sim_conveyor":
+        raise ApiError(409, "not_simulated", f"conveyor {conveyor_id} is a {cfg.kind}: its speed is the plant's")
+    device = await run_in_threadpool(services.cell.conveyor(conveyor_id).ensure_open)
+    device.set_speed(body.speed_mm_s, body.speed_variation)  # type: ignore[attr-defined]
+    return {"conveyor_id": conveyor_id, "speed_mm_s": body.speed_mm_s, "ticks": device.ticks()}
+
+
 Shift = Annotated[Num, Field(ge=-100.0, le=100.0)]
 Turn = Annotated[Num, Field(ge=-10.0, le=10.0)]
 

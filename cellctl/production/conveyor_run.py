@@ -1,0 +1,294 @@
+"""A production run from a moving belt (a recipe's ``source: {kind: conveyor}``; docs/conveyor.md).
+
+The belt does not stop. A vision thread takes pictures one after the other; each picture's matches
+are mapped at the encoder count latched at its exposure and queued in the belt's frame
+(``cellctl.production.belt``: the same part in several pictures is one). The run's thread takes the
+part furthest along that the robot can still meet inside the window (``plan_meeting``: the robot's
+speed and acceleration, the follow time of the grip), moves above the meeting point, waits for the
+count at which the part is there, then lets the robot track the belt (``RobotBase.start_tracking``:
+commanded poses ride the belt) while it goes down, closes the gripper and comes up; then it stops
+tracking and places the part as a still run does (the slot claimed first: exactly once). A part that
+cannot be met before it leaves the window is given up, counted ``missed_window`` and recorded; the
+robot never chases it out of the window.
+
+Safety: every commanded pose is checked against the envelope by ``move_linear``; while tracking, the
+pose is also checked where the belt can carry it (the controller's tracking limit is the window's
+end). A robot Stop halts the arm and ends tracking at once (the held part stays held); the run ends
+``stopped``. Faults end the run ``failed`` with the reason: a count that jumps (faster than any belt),
+an encoder that stopped while the parts moved (two pictures at one count, the parts elsewhere), a
+belt that stopped with the robot waiting for a part (``belt_stopped`` is recorded; the part stays
+queued and is met where it lies if that is in the window).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from cellctl.pick.recipe import PickError
+from cellctl.production.belt import BeltCalibration, BeltPart, BeltQueue, BeltWatch, Meeting, Missed, plan_meeting
+from cellctl.production.place import place_poses
+from cellctl.production.records import Durations, seen_fields
+from cellctl.production.run import ProductionRun
+from cellctl.production.status import Ended
+from cellctl.production.vision import take_picture
+from drivers.base import MotionRejected
+from drivers.conveyor.base import ConveyorBase
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.002
+"""How often the count is read while the robot waits for a part, s."""
+FOLLOW_MARGIN_S = 0.25
+"""Added to the follow time (down, close, up) when a meeting is planned, s."""
+GRIP_CLOSE_S = 0.2
+"""The gripper's close time assumed until the run has measured one, s."""
+TURN_DEG_S = 90.0
+"""The tool's turn rate the meeting is planned with when the robot does not say its own, deg/s."""
+WAIT_SLACK_S = 1.5
+"""The robot waits this much longer than planned for the count at which the part is under it, s."""
+ENCODER_STOP_S = 0.3
+"""Two pictures this far apart in time at one count, the parts elsewhere: the encoder stopped."""
+
+
+class ConveyorRun(ProductionRun):
+    """A production run whose parts come on a belt (one per robot, like a still run)."""
+
+    def __init__(self, *args: Any, belt: BeltCalibration, conveyor: ConveyorBase, window_mm: tuple[float, float],
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.belt, self.conveyor, self.window_mm = belt, conveyor, window_mm
+        self.queue = BeltQueue(belt)
+        self.watch = BeltWatch(belt.ticks_per_m)
+        self._fault: str | None = None
+        self._seen_s = time.monotonic()
+        self._halt_vision = threading.Event()
+        self._close_s = GRIP_CLOSE_S
+        self.pictures = 0
+
+    def public(self) -> dict[str, Any]:
+        return {**super().public(), "conveyor": self._belt_state()}
+
+    def snapshot(self) -> dict[str, Any]:
+        return {**super().snapshot(), "queue_length": len(self.queue)}
+
+    def _belt_state(self) -> dict[str, Any]:
+        return {"conveyor_id": self.conveyor.conveyor_id, "queue_length": len(self.queue),
+                "speed_mm_s": round(self.watch.speed_mm_s(), 1), "window_mm": list(self.window_mm),
+                "pictures": self.pictures, "calibration_id": self.belt.calibration_id}
+
+    # -- the vision thread -------------------------------------------------------------------------
+    def _look(self) -> None:
+        """Pictures one after the other until the run ends; each one's parts into the queue."""
+        s = self.s
+        last: tuple[float, int, int] | None = None  # (time, count, parts) of the previous picture
+        while not self._halt_vision.is_set():
+            try:
+                picture = take_picture(self.services, s.recipe_id, s.recipe_version, s.recipe, s.camera_id,
+                                       self.robot, 0.0)
+            except Exception as exc:  # noqa: BLE001 - the run fails saying why
+                self._fault = f"the camera or the search failed: {exc}"
+                return
+            self.pictures += 1
+            if picture.encoder_ticks is None:
+                self._fault = (f"camera {s.camera_id}'s frames carry no encoder count (Frame.meta['encoder_ticks']): "
+                               "a belt run needs the count latched at each exposure (docs/conveyor.md)")
+                return
+            cands = [c for c in picture.candidates if c.problem is None or c.refused is not None]
+            seen = self.queue.add(cands, picture.encoder_ticks, picture.frame_id, picture)
+            now = time.monotonic()
+            if cands:
+                self._seen_s = now
+            if (last is not None and abs(picture.encoder_ticks - last[1]) <= 1 and now - last[0] >= ENCODER_STOP_S
+                    and last[2] > 0 and seen.added > 0 and seen.merged == 0 and seen.done == 0):
+                self._fault = (f"the encoder count stood at {picture.encoder_ticks} for {now - last[0]:.1f} s while "
+                               f"the parts moved on the belt ({seen.added} seen where none was expected): the "
+                               "encoder stopped counting; check its coupling to the belt")
+                return
+            last = (now, picture.encoder_ticks, len(cands))
+
+    # -- the run's thread -------------------------------------------------------------------------
+    def _cycles(self) -> Ended:
+        r = self.s.recipe
+        if r.place is None or r.place.kind == "located":
+            raise PickError("a belt run places into a fixed or grid place (a located place needs the arm out of "
+                            "the place's picture: not on a belt)")
+        self._go_home()
+        looker = threading.Thread(target=self._look, name=f"production-{self.status.run_id}-belt", daemon=True)
+        looker.start()
+        try:
+            return self._belt_cycles()
+        finally:
+            self._halt_vision.set()
+            looker.join(30.0)
+
+    def _belt_cycles(self) -> Ended:
+        r = self.s.recipe
+        if r.source is None:
+            raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
+        just_cycled = True
+        while True:
+            if just_cycled or self._stop or self._pause or (self.s.count and
+                                                            self.status.counters.placed >= self.s.count):
+                ended = self._between_cycles()
+                if ended is not None:
+                    return ended
+                just_cycled = False
+            self.session.check()
+            self._check_count()
+            if self._fault is not None:
+                raise PickError(self._fault)
+            found = self._next_part()
+            if found is None:
+                if not self.s.count and time.monotonic() - self._seen_s > r.source.idle_timeout_s:
+                    self.status.counters.empty_area += 1
+                    self._record("empty", detail=f"the belt brought no part for {r.source.idle_timeout_s:g} s")
+                    return "area_empty"
+                time.sleep(0.01)
+                continue
+            self._pick_from_belt(*found)
+            just_cycled = True
+
+    def _check_count(self) -> int:
+        ticks = self.conveyor.ticks()
+        problem = self.watch.sample(ticks)
+        if problem is not None:
+            raise PickError(problem)
+        return ticks
+
+    def _follow_s(self) -> float:
+        r = self.s.recipe
+        scale = float(getattr(self.robot, "time_scale", 1.0))
+        return scale * 2 * r.approach_height_mm * 1e-3 / r.speed_m_s + self._close_s + FOLLOW_MARGIN_S
+
+    def _next_part(self) -> tuple[BeltPart, Meeting] | None:
+        """The part furthest along that can be met (and its meeting); parts that cannot are given up."""
+        r = self.s.recipe
+        if r.source is None:
+            raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
+        ticks = self._check_count()
+        speed = self.watch.speed_mm_s()
+        tool = self.robot.state().T_base_tool
+        approach_z = float(tool[2, 3])
+        scale = float(getattr(self.robot, "time_scale", 1.0))
+        for part in self.queue.downstream_first(ticks):
+            approach_z = float(part.cand.T_approach[2, 3])
+            turn = scale * _turn_deg(tool, part.cand.T_approach) / self._turn_deg_s()
+            plan = plan_meeting(part, self.belt, ticks, speed, tool[:3, 3], approach_z, self.window_mm, r.speed_m_s,
+                                r.source.accel_m_s2, self._follow_s(), scale, turn)
+            if isinstance(plan, Meeting):
+                return part, plan
+            if isinstance(plan, Missed):
+                self._missed(part, str(plan))
+        return None
+
+    def _turn_deg_s(self) -> float:
+        world = getattr(self.robot, "world", None)  # the sim robot says its own; a real one: TURN_DEG_S
+        spec = getattr(getattr(world, "scene", None), "robot", None)
+        return float(getattr(spec, "tool_turn_speed_deg_s", TURN_DEG_S))
+
+    def _missed(self, part: BeltPart, why: str) -> None:
+        self.queue.remove(part)
+        self.status.counters.missed_window += 1
+        self._record("missed_window", part.cand, part.picture, detail=f"left unpicked: {why}",
+                     belt=self._belt_fields(part, None))
+
+    def _belt_fields(self, part: BeltPart, meeting: Meeting | None, ticks0: int | None = None) -> dict[str, Any]:
+        return {"conveyor_id": self.conveyor.conveyor_id, "seen_ticks": part.ticks, "sightings": part.sightings,
+                "meet_ticks": None if meeting is None else meeting.ticks,
+                "meet_x_mm": None if meeting is None else round(meeting.x_mm, 2), "tracking_ticks": ticks0,
+                "speed_mm_s": round(self.watch.speed_mm_s(), 1)}
+
+    def _pick_from_belt(self, part: BeltPart, meeting: Meeting) -> None:
+        r, c, belt = self.s.recipe, self.status.counters, self.belt
+        t_cycle, d = time.monotonic(), Durations()
+        cand, picture = part.cand, part.picture
+        slot, n_slots, T_slot = self.slots.target(r, None, None)
+        T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
+        d.add("gripper", self.gripper.open())
+        self._at("to_pick", store=True, pick_pose=seen_fields(cand, None, None)["pick_pose"])
+        self._move(part.T_at(belt, meeting.ticks, cand.T_approach), "above the part's meeting point", d)
+        t_wait = time.monotonic()
+        ticks = self._wait_for(part, meeting)
+        waited_ms = (time.monotonic() - t_wait) * 1e3
+        if ticks is None:
+            return  # the belt stopped or slowed: the part stays queued and is planned again
+        x_part = part.x_at(belt, ticks)
+        most_m = (self.window_mm[1] - x_part) * 1e-3
+        if most_m * 1e3 < self.watch.speed_mm_s() * self._follow_s():
+            self._missed(part, f"the robot was above the meeting point late: the part was at x = {x_part:.0f} mm, too "
+                               f"near the window's end ({self.window_mm[1]:.0f} mm) to be followed while gripped")
+            return
+        ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session)
+        self.queue.remove(part)
+        self._cycle = (cand, picture, T_place)
+        try:
+            T_pick, T_app = (part.T_at(belt, ticks0, T) for T in (cand.T_pick, cand.T_approach))
+            for T, what in ((T_pick, "pick"), (T_app, "post-pick")):
+                end = T.copy()
+                end[:3, 3] += belt.direction_base * most_m
+                try:  # where the belt may carry the pose before tracking ends, too
+                    self.robot.limits.check_pose(end)
+                except MotionRejected as exc:
+                    raise MotionRejected(f"the {what} pose followed to the window's end is refused: {exc}") from None
+            self._move(T_pick, "down onto the part, following the belt", d)
+            self._at("closing")
+            check = self.gripper.close_and_check()
+            self._close_s = max(GRIP_CLOSE_S, check.elapsed_s)
+            d.add("gripper", check.elapsed_s)
+            self._at("lifting")
+            self._move(T_app, "up from the belt, following it", d)
+        finally:
+            self.robot.stop_tracking()
+        fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1)}
+        if not check.held:
+            c.grip_failures += 1
+            self._record("grip_failed", cand, picture, d=d, t_cycle=t_cycle, belt=fields,
+                         detail=f"{check.detail}; the part went on with the belt (it may have slipped)")
+            return
+        c.picked += 1
+        self.slots.take(slot, n_slots, self._n + 1, {"pick_pose": seen_fields(cand, None, None)["pick_pose"],
+                                                     "place_pose": seen_fields(None, None, T_place)["place_pose"]})
+        self._at("carrying", store=True, holding=True)
+        self._move(T_place_app, "pre-place", d)
+        self._at("over_slot")
+        self._move(T_place, "place", d)
+        self._at("releasing")
+        d.add("gripper", self.gripper.release())
+        self.slots.released = True
+        self._at("leaving", store=True, holding=False)
+        self._move(T_place_app, "post-place", d)
+        claimed = self.slots.resolve()
+        self._at("between")
+        c.placed += 1
+        durations = d.as_ms(time.monotonic() - t_cycle)
+        self.status.times.add(durations)
+        self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle, durations=durations,
+                     resolves=claimed, belt=fields)
+
+    def _wait_for(self, part: BeltPart, meeting: Meeting) -> int | None:
+        """Wait until the count at which the part is under the tool; None when it does not come in time."""
+        deadline = time.monotonic() + meeting.wait_s + WAIT_SLACK_S
+        while True:
+            ticks = self._check_count()
+            if ticks >= meeting.ticks:
+                return ticks
+            self.session.check()
+            if self._stop and self.status.state == "stopping":
+                return None
+            if time.monotonic() > deadline:
+                self._record("belt_stopped", part.cand, part.picture, belt=self._belt_fields(part, meeting),
+                             detail=f"the part did not reach the meeting point (count {ticks}, expected "
+                                    f"{meeting.ticks}): the belt stopped or slowed; planned again")
+                return None
+            time.sleep(POLL_S)
+
+
+def _turn_deg(T0: np.ndarray, T1: np.ndarray) -> float:
+    """The angle (deg) the tool turns from ``T0`` to ``T1``."""
+    c = (float(np.trace(T0[:3, :3].T @ T1[:3, :3])) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
