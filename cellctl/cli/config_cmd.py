@@ -132,11 +132,13 @@ def with_time_scale(text: str, scale: float) -> str:
 
 def check(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_config(args.config)
-    return {"ok": True, "cell_id": cfg.cell_id,
-            "cameras": {k: v.kind for k, v in cfg.cameras.items()},
-            "robots": {k: v.kind for k, v in cfg.robots.items()},
-            "io": {k: v.kind for k, v in cfg.io.items()},
-            "conveyors": {k: v.kind for k, v in cfg.conveyors.items()}}
+    out: dict[str, Any] = {"ok": True, "cell_id": cfg.cell_id,
+                           "cameras": {k: v.kind for k, v in cfg.cameras.items()},
+                           "robots": {k: v.kind for k, v in cfg.robots.items()},
+                           "io": {k: v.kind for k, v in cfg.io.items()}}
+    if cfg.conveyors:  # a cell without a belt answers as before
+        out["conveyors"] = {k: v.kind for k, v in cfg.conveyors.items()}
+    return out
 
 
 def add_token(args: argparse.Namespace) -> dict[str, Any]:

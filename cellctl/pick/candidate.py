@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from cellctl.arm_view import ArmView, arm_view
 from cellctl.mapping import ActiveMapping, active_mapping, npoint_pose_check
+from cellctl.pick.fixture import FixtureSpec, locate_fixture
 from cellctl.pick.frames import match_contours
 from cellctl.pick.grasp_view import grasp_in_image
 from cellctl.pick.pose import grasp, part_pose, pose_json
@@ -142,6 +143,12 @@ class Located:
     computed once in :func:`locate`, so a caller reading it does not come back into this package."""
     encoder_ticks: int | None = None
     """A belt's encoder count latched at the frame's exposure (``Frame.meta["encoder_ticks"]``); None: none."""
+    T_base_fixture: Mat4 | None = None
+    """The fixture asked for (``locate(..., fixture=)``) in the base frame (4x4, metres); None: not asked
+    or not found."""
+    fixture: dict[str, Any] | None = None
+    """What the fixture search found (``score``, ``u_px``, ``v_px``, ``angle_deg``) or its ``reason``; None:
+    not asked."""
 
     def answer(self) -> dict[str, Any]:
         """The pick answer (``POST /pick``; the PLC front ends read the same)."""
@@ -169,10 +176,11 @@ def search_params(recipe: Recipe) -> SearchParams:
 
 
 def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, camera_id: str | None,
-           robot: RobotBase, near_yaw: float | None = None) -> Located:
+           robot: RobotBase, near_yaw: float | None = None, fixture: FixtureSpec | None = None) -> Located:
     """Grab, search the recipe's parts, and turn each match into a ``PickCandidate`` (at most
     ``search.max_count``); the frame is kept in ``services.frames`` with its matches. ``near_yaw``: the
-    tool yaw (radians) each grasp is folded nearest to (default: the tool's yaw at the grab)."""
+    tool yaw (radians) each grasp is folded nearest to (default: the tool's yaw at the grab). ``fixture``: a
+    fixture to find in the same frame (production's located place; ``Located.T_base_fixture``)."""
     t0 = time.perf_counter()
     cam_id = camera_of(services, recipe, camera_id)
     models = recipe.part_models()
@@ -198,6 +206,10 @@ def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, cam
     cands = [candidate(mapping, recipe, r, T_capture, near, robot) for r in matches[: recipe.search.max_count]]
     picks = [c.as_json() for c in cands]
     reason = found.reason()
+    T_fixture, fixture_found = None, None
+    if fixture is not None:
+        T_fixture, fixture_found = locate_fixture(fixture, frame.pixels, mapping,
+                                                  T_capture if mapping.kind == "handeye" else None)
     frame_id = services.frames.add(frame.pixels, picks, match_contours(models, picks), reason)
     t_done = time.perf_counter()
     services.metrics.observe_pick(t_done - t0, [c.match.score for c in cands])
@@ -205,4 +217,5 @@ def locate(services: Services, recipe_id: int, version: int, recipe: Recipe, cam
                    found.timed_out, [x.as_dict() for x in found.rejected],
                    {"grab": (t_grab - t0) * 1e3, "find": (t_find - t_grab) * 1e3, "total": (t_done - t0) * 1e3},
                    {"kind": mapping.kind, "id": mapping.calibration_id}, arm, recipe.search.roi,
-                   _arm_in(arm, recipe.search.roi), _ticks(frame.metadata.get("encoder_ticks")))
+                   _arm_in(arm, recipe.search.roi), _ticks(frame.metadata.get("encoder_ticks")), T_fixture,
+                   fixture_found)

@@ -206,6 +206,8 @@ class ProductionRun:
 
     def _end(self, state: State, ended: Ended, error: str | None = None) -> None:
         self._writer.flush()  # a client that sees the run ended finds every cycle record stored
+        # ... and finds the robot free: a PLC or an engineer acting on "ended" is not refused robot_busy.
+        self.robot.motion.end(self.session)
         with self._cond:
             self.status.state = state
             self.status.ended_because = ended

@@ -27,7 +27,7 @@ from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.candidate import PickCandidate, locate
 from cellctl.pick.recipe import Recipe
 from cellctl.production.config import LocatedPlace
-from cellctl.production.fixture import locate_fixture, slots_in_base
+from cellctl.production.fixture import slots_in_base
 from cellctl.production.occupancy import Occupancy, model_radius_px, occupancy, part_sides_px
 from cellctl.services import Services
 from drivers.base import RobotBase
@@ -76,18 +76,16 @@ def take_picture(services: Services, recipe_id: int, version: int, recipe: Recip
     """Grab and search now: every match a candidate (pick poses checked against the robot's limits,
     the grasp folded nearest ``current_yaw``, radians)."""
     t0 = time.monotonic()
-    located = locate(services, recipe_id, version, recipe, camera_id, robot, near_yaw=current_yaw)
+    # A located place's fixture is found in the same frame, in the same visit (cellctl.pick.fixture).
+    place = recipe.place if isinstance(recipe.place, LocatedPlace) else None
+    located = locate(services, recipe_id, version, recipe, camera_id, robot, near_yaw=current_yaw, fixture=place)
     cands = sorted(located.candidates, key=lambda c: -float(c.match.score))
-    T_fixture, fixture = None, None
-    if isinstance(recipe.place, LocatedPlace):
-        # The fixture in the same frame; the parts already in its slots are placed, not to be picked.
-        pixels = services.frames.get(located.frame_id).pixels
-        T_capture = located.T_capture if located.mapping.kind == "handeye" else None
-        T_fixture, fixture = locate_fixture(recipe.place, pixels, located.mapping, T_capture)
-        if T_fixture is not None:
-            slots = [T[:2, 3] * 1e3 for T in slots_in_base(recipe.place, T_fixture)]
-            cands = [c for c in cands if min(float(np.linalg.norm(c.T_base_part[:2, 3] * 1e3 - xy))
-                                             for xy in slots) >= IN_SLOT_MM]
+    T_fixture, fixture = located.T_base_fixture, located.fixture
+    if place is not None and T_fixture is not None:
+        # The parts already in the fixture's slots are placed, not to be picked.
+        slots = [T[:2, 3] * 1e3 for T in slots_in_base(place, T_fixture)]
+        cands = [c for c in cands if min(float(np.linalg.norm(c.T_base_part[:2, 3] * 1e3 - xy))
+                                         for xy in slots) >= IN_SLOT_MM]
     device = recipe.gripper.device
     if device is not None and device.clearance_mm is not None:
         _neighbours(cands, device.clearance_mm)

@@ -34,7 +34,8 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from tests.support.app import in_process_cell
+from tests.production.test_located_place import TAUGHT_AT, scene, teach_located_place
+from tests.support.app import AppCell, in_process_cell
 from tests.support.production_cell import production_config, teach_recipe, wait_ended
 
 PACKAGES = ("pick", "production", "store", "plc", "routines", "api", "cli")
@@ -78,25 +79,48 @@ class Walk:
                 self.left.add(room)
 
 
-def test_one_candidate_walks_forward_through_a_production_cycle(tmp_path: Path) -> None:
-    config = production_config(tmp_path, count=2, time_scale=0.2)
-    with in_process_cell(tmp_path, config) as cell:
-        http = cell.http()
-        teach_recipe(http)
-        walk = Walk(r"production-\d+")  # the run's own thread (not its writer's)
-        threading.setprofile(walk.profile)
-        try:
-            r = http.post("/production/start", json={"recipe_id": 1, "count": 1, "overlap": False})
-            assert r.status_code == 202, r.text
-            end = wait_ended(http)
-        finally:
-            threading.setprofile(None)  # type: ignore[arg-type]
-        assert end["ended_because"] == "count_reached" and end["counters"]["placed"] == 1, end
-        # the run thread's last frames return after the state is stored: let them finish
-        deadline = time.monotonic() + 10
-        while any(t.name.startswith("production-") for t in threading.enumerate()) and time.monotonic() < deadline:
-            time.sleep(0.05)
+def walk_one_cycle(cell: AppCell, recipe_id: int = 1) -> Walk:
+    """One production cycle (count 1, no overlap) of ``recipe_id`` under the profile hook."""
+    http = cell.http()
+    walk = Walk(r"production-\d+")  # the run's own thread (not its writer's)
+    threading.setprofile(walk.profile)
+    try:
+        r = http.post("/production/start", json={"recipe_id": recipe_id, "count": 1, "overlap": False})
+        assert r.status_code == 202, r.text
+        end = wait_ended(http)
+    finally:
+        threading.setprofile(None)  # type: ignore[arg-type]
+    assert end["ended_because"] == "count_reached" and end["counters"]["placed"] == 1, end
+    # the run thread's last frames return after the state is stored: let them finish
+    deadline = time.monotonic() + 10
+    while any(t.name.startswith("production-") for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.05)
     sys.stdout.write(f"room entries of the run thread ({len(walk.entries)}): {walk.entries}\n")
+    return walk
+
+
+def assert_forward(walk: Walk) -> None:
     walked = [room for room in walk.entries if room in WALK]
     assert walked == ["cellctl.production", "cellctl.pick"], walked  # production, then one visit to pick
     assert not [room for room in walk.reentered if room in WALK], walk.reentered  # production never left mid-cycle
+
+
+def test_one_candidate_walks_forward_through_a_production_cycle(tmp_path: Path) -> None:
+    config = production_config(tmp_path, count=2, time_scale=0.2)
+    with in_process_cell(tmp_path, config) as cell:
+        teach_recipe(cell.http())
+        walk = walk_one_cycle(cell)
+    assert_forward(walk)
+
+
+def test_a_located_place_is_found_in_the_same_visit(tmp_path: Path) -> None:
+    """A recipe whose place is a fixture found by vision: the fixture is found by ``locate`` with the parts
+    (``cellctl.pick.fixture``), so production does not come back into ``cellctl.pick`` for it."""
+    config = production_config(tmp_path, count=2, time_scale=0.2, scene=scene(TAUGHT_AT))
+    with in_process_cell(tmp_path, config) as cell:
+        http = cell.http()
+        recipe = teach_recipe(http)
+        recipe["place"] = teach_located_place(cell)
+        assert http.post("/recipes", json={"recipe_id": 2, "recipe": recipe}).status_code == 201
+        walk = walk_one_cycle(cell, recipe_id=2)
+    assert_forward(walk)

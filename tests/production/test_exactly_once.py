@@ -3,7 +3,8 @@ instants of a cycle, checked against the virtual cell's truth — never two part
 part accounted for — then the engineer's recovery and a new run that places the rest.
 
 The full matrix (>= 30 faults at random instants) is ``bench/production_faults.py``; here each kind
-of fault lands at the critical instants (the part released, the arm leaving the slot) and a few others.
+of fault lands at the critical instants (the part released, the arm leaving the slot) and a few others;
+a Stop (in process, cheap) at every phase of a cycle.
 """
 
 from __future__ import annotations
@@ -42,9 +43,10 @@ def _finish(http: httpx.Client, grid: GridPlace, confirmed: set[int], parts: int
     assert sum(len(v) for v in b.parts_in_slot.values()) == parts, b
 
 
-@pytest.mark.slow  # an in-process production cell, five Stops and recoveries: ~20 s
+@pytest.mark.slow  # an in-process production cell, seven Stops and recoveries: ~30 s
 def test_a_stop_at_any_instant_never_places_twice_and_accounts_for_every_part(tmp_path: Path) -> None:
-    phases = ["leaving", "releasing", "over_slot", "carrying", "closing"]
+    # every instant of a cycle the red-team named: to pick, closing, lifting, carrying, over the slot, released, leaving
+    phases = ["leaving", "releasing", "over_slot", "carrying", "lifting", "closing", "to_pick"]
     parts = len(phases) + 1
     config = production_config(tmp_path, count=parts, time_scale=0.3)
     with in_process_cell(tmp_path, config) as cell:

@@ -17,8 +17,8 @@ from fastapi import FastAPI
 
 from calibration import geometry as g
 from cellctl.mapping import active_mapping
+from cellctl.pick.fixture import locate_fixture
 from cellctl.production.config import LocatedPlace
-from cellctl.production.fixture import locate_fixture
 from tests.support.app import AppCell, in_process_cell
 from tests.support.production_cell import production_config, slot_error, teach_recipe, wait_ended
 
