@@ -255,15 +255,7 @@ class ConveyorRun(ProductionRun):
                                                      "place_pose": seen_fields(None, None, T_place)["place_pose"]})
         self._at("carrying", store=True, holding=True)
         self._move(T_place_app, "pre-place", d)
-        self._at("over_slot")
-        self._move(T_place, "place", d)
-        self._at("releasing")
-        d.add("gripper", self.gripper.release())
-        self.slots.released = True
-        self._at("leaving", store=True, holding=False)
-        self._move(T_place_app, "post-place", d)
-        claimed = self.slots.resolve()
-        self._at("between")
+        claimed = self._put_down(T_place, T_place_app, d)
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
         self.status.times.add(durations)

@@ -405,6 +405,18 @@ class ProductionRun:
             raise
         if prefetch is not None:
             prefetch.go()  # at the latest now: the arm is over the place, out of the camera's view
+        claimed = self._put_down(T_place, T_place_app, d)
+        c.placed += 1
+        durations = d.as_ms(time.monotonic() - t_cycle)
+        self.status.times.add(durations)
+        self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle,
+                     durations=durations, resolves=claimed)
+        return prefetch
+
+    def _put_down(self, T_place: np.ndarray, T_place_app: np.ndarray, d: Durations) -> int | None:
+        """From over the slot: down, release, away, each phase stored as it begins; the slot's claim
+        resolved once the arm has left (by the placed record, in one transaction). The one place step of
+        every run (still area and belt), so exactly-once placement holds for both."""
         self._at("over_slot")
         self._move(T_place, "place", d)
         self._at("releasing")
@@ -412,14 +424,9 @@ class ProductionRun:
         self.slots.released = True
         self._at("leaving", store=True, holding=False)
         self._move(T_place_app, "post-place", d)
-        claimed = self.slots.resolve()  # resolved by the placed record (one transaction)
+        claimed = self.slots.resolve()
         self._at("between")
-        c.placed += 1
-        durations = d.as_ms(time.monotonic() - t_cycle)
-        self.status.times.add(durations)
-        self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle,
-                     durations=durations, resolves=claimed)
-        return prefetch
+        return claimed
 
     def _next_picture(self, T_place: np.ndarray) -> Prefetch | None:
         """With ``overlap``, the next cycle's picture on the vision thread (``vision.next_picture``)."""
