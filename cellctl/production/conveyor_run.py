@@ -187,6 +187,9 @@ class ConveyorRun(ProductionRun):
         return None
 
     def _turn_deg_s(self) -> float:
+        own = getattr(self.robot, "tool_turn_speed_deg_s", None)  # the UR adapter's setting
+        if isinstance(own, float):
+            return own
         world = getattr(self.robot, "world", None)  # the sim robot says its own; a real one: TURN_DEG_S
         spec = getattr(getattr(world, "scene", None), "robot", None)
         return float(getattr(spec, "tool_turn_speed_deg_s", TURN_DEG_S))
@@ -223,7 +226,8 @@ class ConveyorRun(ProductionRun):
             self._missed(part, f"the robot was above the meeting point late: the part was at x = {x_part:.0f} mm, too "
                                f"near the window's end ({self.window_mm[1]:.0f} mm) to be followed while gripped")
             return
-        ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session)
+        ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session,
+                                           count=self.conveyor.ticks)
         self.queue.remove(part)
         self._cycle = (cand, picture, T_place)
         try:
@@ -245,6 +249,10 @@ class ConveyorRun(ProductionRun):
         finally:
             self.robot.stop_tracking()
         fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1)}
+        report = getattr(self.robot, "tracking_report", None)  # measured by a host-side tracker (the UR's)
+        if isinstance(report, dict):
+            fields["tracking_error_mm"] = {"rms": report["rms_mm"], "max": report["max_mm"],
+                                           "samples": report["samples"], "servo_steps": report["servo_steps"]}
         if not check.held:
             c.grip_failures += 1
             self._record("grip_failed", cand, picture, d=d, t_cycle=t_cycle, belt=fields,

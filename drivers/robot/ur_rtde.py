@@ -52,6 +52,7 @@ from drivers.base import (
 )
 from drivers.health import DeviceHealth
 from drivers.robot.ur_rtde_link import ControlLink, StateLink
+from drivers.robot.ur_tracking import HostTracking
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,11 @@ class URRTDESettings(BaseModel):
     joint_acceleration_rad_s2: float = Field(1.4, gt=0, le=40)
     position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
     joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
+    tool_turn_speed_deg_s: float = Field(
+        57.3, gt=0, le=360, description="how fast a linear move turns the tool (deg/s; the emulator's 1 rad/s): "
+        "a belt run plans its meetings with it")
+    tracking_tolerance_mm: float = Field(
+        1.0, gt=0, le=10, description="a move while tracking the belt has arrived within this of the moving target")
     watchdog_min_frequency_hz: float = Field(
         10.0, ge=1.0, le=50.0,
         description="the controller's RTDE watchdog, armed for every move: with no update from us for "
@@ -141,6 +147,16 @@ class URRTDERobot(RobotBase):
                                     self.config.watchdog_min_frequency_hz, ctx, self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
         self._ever_connected = False
+        self._tracking: HostTracking | None = None
+        self._tracking_lag_m = 0.0
+        self._tracking_speed = 0.0
+        """What the last tracking learnt: the stream's latency (m along the belt) and the belt's speed (ticks/s)."""
+        self.tracking_report: dict[str, float | int] | None = None
+        """The last tracking's measured error (``HostTracking.report``), kept after it ended."""
+
+    @property
+    def tool_turn_speed_deg_s(self) -> float:
+        return self.config.tool_turn_speed_deg_s
 
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -275,6 +291,9 @@ class URRTDERobot(RobotBase):
         return st
 
     def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
+        if self._tracking is not None:
+            self._tracked_move(self._tracking, T_base_tool, speed_m_s)
+            return
         st = self._require_ready()
         pose = [float(v) for v in transform_to_ur_pose(T_base_tool)]
         dist = float(np.linalg.norm(T_base_tool[:3, 3] - st.T_base_tool[:3, 3]))
@@ -375,14 +394,97 @@ class URRTDERobot(RobotBase):
             time.sleep(0.002)
 
     def _stop(self) -> None:
-        """Decelerate any motion this adapter commanded (stopL, then stopJ), within ``stop_timeout_s`` each."""
+        """Decelerate any motion this adapter commanded (stopL, then stopJ), within ``stop_timeout_s`` each;
+        a tracking stream ends first (no pose is streamed after the stop)."""
         self._stop_requested.set()
+        self._end_tracking()
         if not self._control.started:
             return  # no move was ever sent through this adapter
         timeout_s = min(self.config.stop_timeout_s, self.config.command_timeout_s)
         # stopL first; if the controller cannot be told that, stopJ would not get through either
         self._request("stopL", (self.config.acceleration_m_s2 * 5, False), timeout_s)
         self._request("stopJ", (self.config.joint_acceleration_rad_s2 * 5, False), timeout_s)
+
+    # -- conveyor tracking (host-side: drivers/robot/ur_tracking.py) ----------------------------------
+    def tracks_conveyor(self) -> bool:
+        return True
+
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
+                        count: Callable[[], int] | None) -> int:
+        if count is None:
+            raise MotionRejected(f"robot {self.robot_id}: tracking from the host needs the belt's count (a belt "
+                                 "run passes its conveyor's); the controller's own tracking is not used "
+                                 "(docs/conveyor.md)")
+        st = self._require_ready()
+        if st.moving:
+            raise MotionRejected(f"robot {self.robot_id}: tracking starts with the arm standing still")
+        self._stop_requested.clear()
+        tracking = HostTracking(
+            self.robot_id, self._control.track, count=count, direction_base=direction_base, ticks_per_m=ticks_per_m,
+            most_m=most_m, T_belt_start=st.T_base_tool, rotvec=[float(v) for v in st.metadata["ur_pose"][3:6]],
+            limits=self.limits, actual=self._actual_sample, lag_m=self._tracking_lag_m,
+            speed_ticks_s=self._tracking_speed)
+        self._tracking = tracking
+        tracking.begin()
+        try:
+            self._request("track_begin", (), self.config.command_timeout_s)
+        except DriverError:
+            self._end_tracking()
+            raise
+        return tracking.ticks0
+
+    def _stop_tracking(self) -> None:
+        if self._end_tracking():
+            try:
+                self._request("servoStop", (self.config.acceleration_m_s2 * 5,), self.config.stop_timeout_s)
+            except DriverError as exc:
+                log.warning("robot %s: ending the servo stream failed: %s", self.robot_id, exc)
+
+    def _end_tracking(self) -> bool:
+        """End the stream (the worker sends no pose after this returns); True when one ran."""
+        tracking, self._tracking = self._tracking, None
+        if tracking is None:
+            return False
+        tracking.end()
+        self._tracking_lag_m, self._tracking_speed = tracking.lag_m, tracking.speed_ticks_s()
+        self.tracking_report = tracking.report()
+        return True
+
+    def _actual_sample(self) -> tuple[NDArray[np.float64], float] | None:
+        s = self._link.buffer.snapshot()
+        if s is None:
+            return None
+        return ur_pose_to_transform(np.array(s.pose)), time.monotonic() - (time.time() - s.host_time_s)
+
+    def _tracked_move(self, tracking: HostTracking, T_belt: NDArray[np.float64], speed_m_s: float) -> None:
+        """A linear move in the belt's frame while tracking: streamed, arrived when the arm is on the moving target."""
+        self._require_ready()
+        t_end = time.monotonic() + tracking.move(T_belt, speed_m_s)
+        deadline = t_end + self.config.command_timeout_s
+        while True:
+            if self._stop_requested.is_set() or self._motion_aborted():
+                raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
+            if tracking.error is not None:
+                raise DeviceOperationError(f"robot {self.robot_id}: {tracking.error}")
+            s = self._state_while_moving()
+            if s is not None and s.metadata["safety_mode"] != "normal":
+                raise DeviceOperationError(f"robot {self.robot_id}: {s.metadata['safety_mode']} while tracking")
+            if s is not None and time.monotonic() >= t_end:
+                sample = self._actual_sample()
+                if sample is not None and tracking.arrived_within_mm(*sample) <= self.config.tracking_tolerance_mm:
+                    return
+            if time.monotonic() > deadline:
+                self._stop()
+                raise DeviceTimeout(f"robot {self.robot_id}: the tracked move did not arrive within "
+                                    f"{self.config.command_timeout_s:g} s of its end; the robot was told to stop")
+            time.sleep(0.002)
+
+    def _distance_to(self, target: NDArray[np.float64]) -> float:
+        """While tracking: from the tool's pose in the belt's frame (the frame of the commands), m."""
+        tracking = self._tracking
+        if tracking is None:
+            return super()._distance_to(target)
+        return float(np.linalg.norm(target[:3, 3] - tracking.belt_position(time.monotonic())))
 
     # -- IO and dashboard ----------------------------------------------------------------------------
     def set_digital_out(self, channel: int, value: bool) -> None:
