@@ -37,7 +37,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.geometry import rotation_angle, transform_to_ur_pose, ur_pose_to_transform
 from drivers.base import (
@@ -47,89 +46,21 @@ from drivers.base import (
     DriverError,
     MotionLimits,
     MotionRejected,
-    RobotBase,
     RobotState,
 )
 from drivers.health import DeviceHealth
 from drivers.robot.ur_rtde_link import ControlLink, StateLink
-from drivers.robot.ur_tracking import HostTracking
+from drivers.robot.ur_rtde_settings import ROBOT_MODES, SAFETY_MODES, URRTDESettings
+from drivers.robot.ur_rtde_tracking import URHostTracking
 
 log = logging.getLogger(__name__)
-
-ROBOT_MODES = {
-    -1: "no_controller",
-    0: "disconnected",
-    1: "confirm_safety",
-    2: "booting",
-    3: "power_off",
-    4: "power_on",
-    5: "idle",
-    6: "backdrive",
-    7: "running",
-    8: "updating_firmware",
-}
-SAFETY_MODES = {
-    1: "normal",
-    2: "reduced",
-    3: "protective_stop",
-    4: "recovery",
-    5: "safeguard_stop",
-    6: "system_emergency_stop",
-    7: "robot_emergency_stop",
-    8: "violation",
-    9: "fault",
-    10: "validate_joint_id",
-    11: "undefined_safety_mode",
-}
-
-
-class URRTDESettings(BaseModel):
-    """Settings of a Universal Robots arm reached over RTDE."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    host: str = Field(min_length=1, description="controller IP address or host name")
-    frequency_hz: float = Field(500.0, gt=0, le=500, description="RTDE rate: 500 e-Series, 125 CB3")
-    state_max_age_s: float = Field(0.1, gt=0, le=10, description="older samples are never served as current")
-    connect_timeout_s: float = Field(5.0, gt=0, le=120, description="first connection: wait for the first sample")
-    reconnect_wait_s: float = Field(
-        2.5, gt=0, le=120,
-        description="a later connect() (after an outage) waits at most this (under the service's 3 s device "
-        "deadline); the adapter keeps retrying in the background anyway",
-    )
-    stall_timeout_s: float = Field(
-        1.0, gt=0, le=60, description="no new sample for this long: the connection is restarted"
-    )
-    command_timeout_s: float = Field(
-        10.0, gt=0, le=600, description="deadline of a control request, added to a move's duration"
-    )
-    stop_timeout_s: float = Field(
-        2.0, gt=0, le=60, description="deadline of a stop request (also while the controller is unreachable)"
-    )
-    reconnect_initial_s: float = Field(0.25, gt=0, le=60)
-    reconnect_max_s: float = Field(5.0, gt=0, le=600)
-    acceleration_m_s2: float = Field(1.2, gt=0, le=10)
-    joint_acceleration_rad_s2: float = Field(1.4, gt=0, le=40)
-    position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
-    joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
-    tool_turn_speed_deg_s: float = Field(
-        57.3, gt=0, le=360, description="how fast a linear move turns the tool (deg/s; the emulator's 1 rad/s): "
-        "a belt run plans its meetings with it")
-    tracking_tolerance_mm: float = Field(
-        1.0, gt=0, le=10, description="a move while tracking the belt has arrived within this of the moving target")
-    watchdog_min_frequency_hz: float = Field(
-        10.0, ge=1.0, le=50.0,
-        description="the controller's RTDE watchdog, armed for every move: with no update from us for "
-        "1/f s (the service died) the controller stops the arm",
-    )
-
 
 # -- the adapter ---------------------------------------------------------------------------------------
 
 STOP_OPS = ("stopL", "stopJ")
 
 
-class URRTDERobot(RobotBase):
+class URRTDERobot(URHostTracking):
     """A Universal Robots arm through ``ur_rtde`` (receive, control, IO and dashboard interfaces)."""
 
     Settings = URRTDESettings
@@ -147,12 +78,6 @@ class URRTDERobot(RobotBase):
                                     self.config.watchdog_min_frequency_hz, ctx, self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
         self._ever_connected = False
-        self._tracking: HostTracking | None = None
-        self._tracking_lag_m = 0.0
-        self._tracking_speed = 0.0
-        """What the last tracking learnt: the stream's latency (m along the belt) and the belt's speed (ticks/s)."""
-        self.tracking_report: dict[str, float | int] | None = None
-        """The last tracking's measured error (``HostTracking.report``), kept after it ended."""
 
     @property
     def tool_turn_speed_deg_s(self) -> float:
@@ -404,87 +329,6 @@ class URRTDERobot(RobotBase):
         # stopL first; if the controller cannot be told that, stopJ would not get through either
         self._request("stopL", (self.config.acceleration_m_s2 * 5, False), timeout_s)
         self._request("stopJ", (self.config.joint_acceleration_rad_s2 * 5, False), timeout_s)
-
-    # -- conveyor tracking (host-side: drivers/robot/ur_tracking.py) ----------------------------------
-    def tracks_conveyor(self) -> bool:
-        return True
-
-    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
-                        count: Callable[[], int] | None) -> int:
-        if count is None:
-            raise MotionRejected(f"robot {self.robot_id}: tracking from the host needs the belt's count (a belt "
-                                 "run passes its conveyor's); the controller's own tracking is not used "
-                                 "(docs/conveyor.md)")
-        st = self._require_ready()
-        if st.moving:
-            raise MotionRejected(f"robot {self.robot_id}: tracking starts with the arm standing still")
-        self._stop_requested.clear()
-        tracking = HostTracking(
-            self.robot_id, self._control.track, count=count, direction_base=direction_base, ticks_per_m=ticks_per_m,
-            most_m=most_m, T_belt_start=st.T_base_tool, rotvec=[float(v) for v in st.metadata["ur_pose"][3:6]],
-            limits=self.limits, actual=self._actual_sample, lag_m=self._tracking_lag_m,
-            speed_ticks_s=self._tracking_speed)
-        self._tracking = tracking
-        tracking.begin()
-        try:
-            self._request("track_begin", (), self.config.command_timeout_s)
-        except DriverError:
-            self._end_tracking()
-            raise
-        return tracking.ticks0
-
-    def _stop_tracking(self) -> None:
-        if self._end_tracking():
-            try:
-                self._request("servoStop", (self.config.acceleration_m_s2 * 5,), self.config.stop_timeout_s)
-            except DriverError as exc:
-                log.warning("robot %s: ending the servo stream failed: %s", self.robot_id, exc)
-
-    def _end_tracking(self) -> bool:
-        """End the stream (the worker sends no pose after this returns); True when one ran."""
-        tracking, self._tracking = self._tracking, None
-        if tracking is None:
-            return False
-        tracking.end()
-        self._tracking_lag_m, self._tracking_speed = tracking.lag_m, tracking.speed_ticks_s()
-        self.tracking_report = tracking.report()
-        return True
-
-    def _actual_sample(self) -> tuple[NDArray[np.float64], float] | None:
-        s = self._link.buffer.snapshot()
-        if s is None:
-            return None
-        return ur_pose_to_transform(np.array(s.pose)), time.monotonic() - (time.time() - s.host_time_s)
-
-    def _tracked_move(self, tracking: HostTracking, T_belt: NDArray[np.float64], speed_m_s: float) -> None:
-        """A linear move in the belt's frame while tracking: streamed, arrived when the arm is on the moving target."""
-        self._require_ready()
-        t_end = time.monotonic() + tracking.move(T_belt, speed_m_s)
-        deadline = t_end + self.config.command_timeout_s
-        while True:
-            if self._stop_requested.is_set() or self._motion_aborted():
-                raise DeviceOperationError(f"robot {self.robot_id}: the move was stopped before it arrived")
-            if tracking.error is not None:
-                raise DeviceOperationError(f"robot {self.robot_id}: {tracking.error}")
-            s = self._state_while_moving()
-            if s is not None and s.metadata["safety_mode"] != "normal":
-                raise DeviceOperationError(f"robot {self.robot_id}: {s.metadata['safety_mode']} while tracking")
-            if s is not None and time.monotonic() >= t_end:
-                sample = self._actual_sample()
-                if sample is not None and tracking.arrived_within_mm(*sample) <= self.config.tracking_tolerance_mm:
-                    return
-            if time.monotonic() > deadline:
-                self._stop()
-                raise DeviceTimeout(f"robot {self.robot_id}: the tracked move did not arrive within "
-                                    f"{self.config.command_timeout_s:g} s of its end; the robot was told to stop")
-            time.sleep(0.002)
-
-    def _distance_to(self, target: NDArray[np.float64]) -> float:
-        """While tracking: from the tool's pose in the belt's frame (the frame of the commands), m."""
-        tracking = self._tracking
-        if tracking is None:
-            return super()._distance_to(target)
-        return float(np.linalg.norm(target[:3, 3] - tracking.belt_position(time.monotonic())))
 
     # -- IO and dashboard ----------------------------------------------------------------------------
     def set_digital_out(self, channel: int, value: bool) -> None:

@@ -28,7 +28,7 @@ from drivers.robot.ur_rtde_worker import StateBuffer, control_worker, state_work
 from drivers.robot.ur_track_stream import TrackShared
 
 if TYPE_CHECKING:
-    from drivers.robot.ur_rtde import URRTDESettings
+    from drivers.robot.ur_rtde_settings import URRTDESettings
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)

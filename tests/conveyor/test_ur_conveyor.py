@@ -26,7 +26,8 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[AppCell, Si
     with ur_emulator_with_mirror(tmp / "scene.yaml") as mirror, in_process_cell(tmp, cfg) as app:
         http = app.http()
         teach_belt_recipe(http)
-        robot = app.client.app.state.cell.robot("robot0").ensure_open()
+        cellctl_cell: Any = app.client.app.state.cell  # type: ignore[attr-defined]  # the ASGI app is FastAPI's
+        robot = cellctl_cell.robot("robot0").ensure_open()
         assert isinstance(robot, URRTDERobot)
         yield app, mirror.world, robot
 
