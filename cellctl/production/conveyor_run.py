@@ -96,6 +96,7 @@ class ConveyorRun(ProductionRun):
                 self._fault = f"the camera or the search failed: {exc}"
                 return
             self.pictures += 1
+            self._drift(picture)  # every drift.every_cycles-th picture is a drift check (the run's store thread)
             if picture.encoder_ticks is None:
                 self._fault = (f"camera {s.camera_id}'s frames carry no encoder count (Frame.meta['encoder_ticks']): "
                                "a belt run needs the count latched at each exposure (docs/conveyor.md)")
