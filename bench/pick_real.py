@@ -48,6 +48,7 @@ from bench.pick_cases import (  # noqa: E402
     load_cases,
     scaled,
     score,
+    teach_model,
     to_reference,
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
@@ -158,7 +159,7 @@ def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float, rejected
 
 def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: bool, label: str | None) -> None:
     """Search every test image of ``case`` under ``variants`` (``label``: the size variant's name)."""
-    model = shape.teach(case.teach_image(), case.roi)
+    model = teach_model(case)  # several ROIs of the part where the case gives them (screw heads)
     ncc = Ncc(case) if with_baseline else None
     for test in case.tests:
         base_img = case.test_image(test)
