@@ -53,6 +53,7 @@ from bench.pick_cases import (  # noqa: E402
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
+from vision.errors import TeachError  # noqa: E402
 from vision.types import Match, SearchParams  # noqa: E402
 
 MIN_SCORE = SearchParams().min_score
@@ -159,7 +160,7 @@ def _row(name: str, test: TestImage, so: Scored, ms: float, cpu: float, rejected
 
 def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: bool, label: str | None) -> None:
     """Search every test image of ``case`` under ``variants`` (``label``: the size variant's name)."""
-    model = teach_model(case)  # several ROIs of the part where the case gives them (screw heads)
+    model = shape.teach(case.teach_image(), case.roi)  # one ROI (several views: _views_section)
     ncc = Ncc(case) if with_baseline else None
     for test in case.tests:
         base_img = case.test_image(test)
@@ -208,8 +209,40 @@ def run(with_baseline: bool) -> str:
     for label, k in SIZES.items():
         for case in cases:
             _one_case(scaled(case, k), out, {"original": VARIANTS["original"]}, with_baseline, label)
+    views = _views_section(cases)
     load1 = os.getloadavg()
-    return _report(out, with_baseline, load0, load1)
+    return _report(out, with_baseline, load0, load1, views)
+
+
+def _views_section(cases: list[Case]) -> list[str]:
+    """The cases whose teach image shows the part more than once (``more_teach_rois``: the screw heads'
+    four heads) taught from all those views (``vision.shape.multi.teach_many``), every variant and size."""
+    out = ["## Several teach views (`more_teach_rois`: the part taught from every view of it in the teach image)",
+           "",
+           "The main tables teach each part from its one ROI. Here a case that gives further ROIs of the same "
+           "part in its teach image is taught from all of them (`bench.pick_cases.teach_model`: the edges "
+           "most views share, the views' average patch), default search settings, every variant and size "
+           "(errors against `measured_estimate` as above).", "",
+           "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for case in (c for c in cases if c.more_rois):
+        for label, k in [("original size", 1.0), *SIZES.items()]:
+            c = case if k == 1.0 else scaled(case, k)
+            try:
+                model = teach_model(c)
+            except TeachError as e:
+                out.append(f"| {case.id} | {label}: not taught ({e}) | - | - | - | - | - | - |")
+                continue
+            variants = VARIANTS if k == 1.0 else {"original": VARIANTS["original"]}
+            for vname, fn in variants.items():
+                t = Tally()
+                for test in c.tests:
+                    ours, ms, cpu, _ = _ours(model, fn(c.test_image(test)), False)
+                    t.add(score(c, test, ours), ms, cpu)
+                name = vname if k == 1.0 else label
+                out.append(f"| {case.id} | {name} | {t.expected} | {t.found} | {t.false} | {_max(t.pos)} | "
+                           f"{t.over} / {t.bad} | {_med(t.cpu_ms):.1f} |")
+    return out
 
 
 def _targets(r: Run, with_baseline: bool) -> list[str]:
@@ -242,7 +275,7 @@ def _targets(r: Run, with_baseline: bool) -> list[str]:
 
 
 def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
-            load1: tuple[float, float, float]) -> str:
+            load1: tuple[float, float, float], views: list[str] | None = None) -> str:
     head = ("| image | expected | found | false | rejected | max pos err px | max angle err deg | over target / "
             "beyond tol | ms | CPU ms |")
     sep = "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
@@ -308,7 +341,7 @@ def _report(r: Run, with_baseline: bool, load0: tuple[float, float, float],
         if with_baseline:
             row += f" {t.found} | {t.false} | {t.over} / {t.bad} | {_med(t.ms):.0f} | {_med(t.cpu_ms):.0f} |"
         lines.append(row)
-    lines += ["", *instance_table(r.instances), "", *_targets(r, with_baseline)]
+    lines += ["", *instance_table(r.instances), "", *(views or []), "", *_targets(r, with_baseline)]
     return "\n".join(lines) + "\n"
 
 
