@@ -18,8 +18,10 @@ turns with the part is the part. ``teach_many``:
 4. keeps as the taught patch the average of the aligned teach patches (each image's light matched to
    the first's by gain and offset): the interior without one image's shading.
 
-Contrast polarity is not asked to agree (the default search ignores it point by point; the normals
-keep the first image's sign). Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
+An edge counts as seen in a view only with the first view's contrast polarity (dark to bright the same
+way): on a 3-D part under one-sided light the rim and the socket's walls are lit on one side and
+shaded on the other, and where the views disagree the edge is the light's, not the part's (the screw
+heads: 7 of 9 found at the defaults with this rule, 5 of 9 without; ``bench/results/pick_real.md``). Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
 """
 
 from __future__ import annotations
@@ -103,7 +105,7 @@ def aligned_poses(model: ShapeModel, grays: list[U8], rois: list[tuple[float, fl
 def _seen_count(pts: F64, nrm: F64, level: int, images: list[U8], poses: list[Pose4],
                 p: TeachParams) -> NDArray[np.int64]:
     """In how many of ``images`` (level ``level`` of each teach image; the first is where the points
-    come from) an edge of the same orientation lies within 1 level pixel of each point (``pts``: level
+    come from) an edge of the same orientation and contrast polarity lies within 1 level pixel of each point (``pts``: level
     pixels relative to the reference point) at the image's pose (level-0 pixels, rad)."""
     count = np.ones(len(pts), np.int64)
     f = 2.0 ** level
@@ -115,8 +117,9 @@ def _seen_count(pts: F64, nrm: F64, level: int, images: list[U8], poses: list[Po
         n = np.ascontiguousarray(nrm @ R.T)
         gx, gy = gradients(img, p.edge_sigma_px if level == 0 else 0.0)
         G = np.ascontiguousarray(np.stack([gx, gy], axis=2))
-        d, found, cosd, _ = kernels.associate(G, q, n, 2, float(thr))
-        count += np.asarray(found & (np.abs(d) <= 1.0) & (cosd >= math.cos(math.radians(30.0))), np.int64)
+        d, found, cosd, sign = kernels.associate(G, q, n, 2, float(thr))
+        count += np.asarray(found & (np.abs(d) <= 1.0) & (cosd >= math.cos(math.radians(30.0))) & (sign > 0),
+                            np.int64)
     return count
 
 
