@@ -21,7 +21,8 @@ turns with the part is the part. ``teach_many``:
 An edge counts as seen in a view only with the first view's contrast polarity (dark to bright the same
 way): on a 3-D part under one-sided light the rim and the socket's walls are lit on one side and
 shaded on the other, and where the views disagree the edge is the light's, not the part's (the screw
-heads: 7 of 9 found at the defaults with this rule, 5 of 9 without; ``bench/results/pick_real.md``). Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
+heads: 7 of 9 found at the defaults with this rule, 5 of 9 without; ``bench/results/pick_real.md``).
+Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
 """
 
 from __future__ import annotations
@@ -105,8 +106,9 @@ def aligned_poses(model: ShapeModel, grays: list[U8], rois: list[tuple[float, fl
 def _seen_count(pts: F64, nrm: F64, level: int, images: list[U8], poses: list[Pose4],
                 p: TeachParams) -> NDArray[np.int64]:
     """In how many of ``images`` (level ``level`` of each teach image; the first is where the points
-    come from) an edge of the same orientation and contrast polarity lies within 1 level pixel of each point (``pts``: level
-    pixels relative to the reference point) at the image's pose (level-0 pixels, rad)."""
+    come from) an edge of the same orientation and contrast polarity lies within 1 level pixel of each
+    point (``pts``: level pixels relative to the reference point) at the image's pose (level-0 pixels,
+    rad)."""
     count = np.ones(len(pts), np.int64)
     f = 2.0 ** level
     thr = 0.5 * p.min_contrast * GRAD_PER_CONTRAST
