@@ -19,6 +19,9 @@ still tried, within ``stop_timeout_s``). The workers die with the process that o
 Moves are sent asynchronously (``moveL``/``moveJ`` with ``async=True``) and their completion is
 observed in the state stream, so ``stop()`` can interrupt them.
 
+**Conveyor tracking** is done from the host (``ur_rtde`` has no call for the controller's own): a servoL
+stream in the control worker fed with cellctl's count (``ur_rtde_tracking.py``; docs/conveyor.md).
+
 **When the service dies, the arm stops.** Before every move the control worker arms the
 controller's RTDE watchdog (``setWatchdog(watchdog_min_frequency_hz)``) and then kicks it from its
 own process; when the kicks stop for 1/f s (the service killed, its workers with it) the controller
