@@ -25,6 +25,10 @@ from drivers.values import RobotState
 
 log = logging.getLogger(__name__)
 
+FIRST_SPEED_S = 0.1
+"""Before the adapter's first tracking, the belt's speed is taken from the count over this long (s); later
+trackings start from the speed the last one ended with."""
+
 
 class URHostTracking(RobotBase):
     """``RobotBase`` with host-side conveyor tracking over the UR adapter's control link."""
@@ -67,6 +71,10 @@ class URHostTracking(RobotBase):
         if st.moving:
             raise MotionRejected(f"robot {self.robot_id}: tracking starts with the arm standing still")
         self._stop_requested.clear()
+        if self._tracking_speed == 0.0:  # the first tracking: the belt's speed from the count before it starts
+            t0, c0 = time.monotonic(), count()
+            time.sleep(FIRST_SPEED_S)
+            self._tracking_speed = (count() - c0) / (time.monotonic() - t0)
         tracking = HostTracking(
             self.robot_id, self._control.track, count=count, direction_base=direction_base, ticks_per_m=ticks_per_m,
             most_m=most_m, T_belt_start=st.T_base_tool, rotvec=[float(v) for v in st.metadata["ur_pose"][3:6]],
