@@ -157,8 +157,9 @@ class ConveyorRun(ProductionRun):
             just_cycled = True
 
     def _check_count(self) -> int:
+        read_from_s = time.monotonic()
         ticks = self.conveyor.ticks()
-        problem = self.watch.sample(ticks)
+        problem = self.watch.sample(ticks, read_from_s=read_from_s)
         if problem is not None:
             raise PickError(problem)
         return ticks
