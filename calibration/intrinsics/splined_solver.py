@@ -14,7 +14,8 @@
    reproduces constant and linear functions exactly, so the correction absorbs any change of the
    focal lengths or the centre; estimating both is a gauge freedom that LM walks along for ever),
    with an analytic sparse Jacobian and the normal
-   equations solved densely (a few thousand unknowns). Outlier points (> ``POINT_OUTLIER_SIGMAS``
+   equations solved densely (a few thousand unknowns). Points are weighted by their detection
+   precision (``ViewData.weights``, relative; none stated: all 1). Outlier points (> ``POINT_OUTLIER_SIGMAS``
    robust sigma) are weighted out once and the solve repeated.
 4. **Regularisation** (as mrcal does, so that control points the data barely see do not fold the
    map): rows ``a c`` (px) on every control value (mrcal's L2 on the spline, which also fixes the
@@ -115,13 +116,14 @@ def calibrate_splined(detections: Sequence[Detection], target: Target, *,
     prob = _Problem(layout, X, obs, view, len(views))
     ctrl = prob.initial_ctrl(core, P, cam0.project(P))
     x = np.concatenate([core, ctrl])
-    w = np.ones(len(X))
+    w0 = np.concatenate([v.weights() for v in views])       # the detector's relative precision
+    w = w0.copy()
     x, R, t, iters = prob.solve(x, R, t, w, max_iter)
-    r = prob.obs_residuals(x, R, t).reshape(-1, 2)
-    sig = 1.4826 * np.median(np.abs(r))
+    r = prob.obs_residuals(x, R, t).reshape(-1, 2) * w0[:, None]
+    sig = 1.4826 * np.median(np.abs(r[w0 > 0]))
     out = np.linalg.norm(r, axis=1) > POINT_OUTLIER_SIGMAS * sig
-    if np.any(out):
-        w = np.where(out, 0.0, 1.0)
+    if np.any(out & (w0 > 0)):
+        w = np.where(out, 0.0, w0)
         x, R, t, it2 = prob.solve(x, R, t, w, max_iter)
         iters += it2
     return _result(prob, x, R, t, w, views, results, size, start.param_names, iters, time.perf_counter() - t0)
@@ -354,7 +356,7 @@ def _result(prob: _Problem, x: F64, R: F64, t: F64, w: F64, views: list[ViewData
     kept = w > 0
     n_kept = 2 * int(kept.sum())
     dof = max(n_kept - prob.n_intr - 6 * prob.V, 1)
-    sigma2 = float(np.sum(ro[kept] ** 2)) / dof
+    sigma2 = float(np.sum((ro[kept] * w[kept, None]) ** 2)) / dof   # a point of weight 1
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hinv = np.linalg.pinv(H / d[:, None] / d[None, :], hermitian=True) / d[:, None] / d[None, :]
     B = Hinv[:prob.n_intr - 4]
