@@ -41,11 +41,11 @@ def _row(name: str, model: str, dets: list[Any], board: Any, size: tuple[int, in
         cv = None
     else:
         full = calibrate(dets, board, model, image_size=size, **kw)
-        grid = None if model != "splined" else tuple(full.camera.dist[:3])
-        halves = [calibrate(dets[h], board, model, image_size=size, spline_grid=grid, **kw).camera  # type: ignore[arg-type]
-                  for h in HALVES]
         cv = cross_validate(dets, board, model, 2, image_size=size, full=full, **kw)
-    split = projection_difference(halves[0], halves[1], pts)["rms_px"]
+    # the split-half over the set's covered cells; cross_validate's folds are the same halves (every
+    # view used) over the full solve's covered cells
+    split = (projection_difference(halves[0], halves[1], pts)["rms_px"] if cv is None
+             else cv["projection_difference_rms_px"])
     row = {"set": name, "model": model + (" drop_outliers" if kw.get("drop_outliers") else ""),
            "grid": "x".join(str(int(v)) for v in full.camera.dist[:2]) + f" fov {full.camera.dist[2]:.0f}"
            if full.camera.model == "splined" else "",

@@ -48,8 +48,8 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     pts = covered_points(full)
     grid = None
     if model == "splined":   # the folds use the full set's grid (one model, validated)
-        d = full.camera.dist
-        grid = (int(d[0]), int(d[1]), float(d[2]))
+        lay = full.camera.dist
+        grid = (int(lay[0]), int(lay[1]), float(lay[2]))
     fold_res = []
     for f in range(k):
         try:
