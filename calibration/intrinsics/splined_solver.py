@@ -17,17 +17,18 @@
    equations solved densely (a few thousand unknowns). Points are weighted by their detection
    precision (``ViewData.weights``, relative; none stated: all 1). Outlier points (> ``POINT_OUTLIER_SIGMAS``
    robust sigma) are weighted out once and the solve repeated.
-4. **Regularisation** (as mrcal does, so that control points the data barely see do not fold the
-   map): rows ``a c`` (px) on every control value (mrcal's L2 on the spline, which also fixes the
-   gauge between the core ``f, c`` and a constant or linear correction) and ``b (second difference
-   of c)`` along both grid axes (a smoothness prior, our addition: where there are no data the
-   correction continues linearly instead of dropping to 0 within a knot). ``a, b`` scale with the
-   number of observations so that at typical values (``TYPICAL_VALUE``, ``TYPICAL_CURVATURE``)
-   they cost ``REG_SHARE`` of the observations' cost at 1 px each (mrcal's rule of a small fixed
-   share).
+4. **Regularisation** (so that control points the data barely see do not fold the map): rows
+   ``f sigma / PRIOR_PX (c - c0)`` pull every control value towards ``c0``, the spline that
+   reproduces the start (fisheye4) lens over the whole grid (``initial_ctrl``); each weighs as one
+   observation of the start's residual noise ``sigma`` at ``PRIOR_PX`` pixels off. A knot with many
+   points follows them; one with a few follows the parametric lens's radial shape. (mrcal pulls the
+   control values towards 0, i.e. towards the bare stereographic lens, with a weight that is a
+   fixed share of the cost; on the fisheye set's sparse image corners that let the two halves'
+   splines differ by up to 18 px.) A weak curvature term (second differences along both grid axes,
+   ``REG_SHARE`` of the cost at ``TYPICAL_CURVATURE``) keeps the map smooth.
 5. **Uncertainty**: the sandwich covariance ``sigma^2 H^-1 (J_o^T J_o) H^-1`` (``H`` with the
-   regularisation, ``J_o`` the observations only, as mrcal), marginalised over the poses;
-   projection uncertainty as for every model (``uncertainty_summary``). No jackknife.
+   regularisation, ``J_o`` the observations only, as mrcal; the prior's own uncertainty is not in
+   it), marginalised over the poses; projection uncertainty as for every model (``uncertainty_summary``). No jackknife.
 
 Refusal: a splined model needs many views spread over the image (``MIN_VIEWS_SPLINED``) and
 ``MIN_OBS_PER_PARAM`` observations per parameter at the coarsest grid; with fewer (13-31 views of a
@@ -67,10 +68,10 @@ MIN_OBS_PER_PARAM: Final = 20
 """Observed coordinates per parameter (spline and core) the chosen grid must have."""
 GRID_COLUMNS: Final = (30, 24, 20, 16, 12, 10, 8)
 REG_SHARE: Final = 1e-3
-"""Regularisation's cost at typical values, as a share of the observations' cost at 1 px each."""
-TYPICAL_VALUE: Final = 5.0
-"""The L2 term's scale (stereographic units): weak, only a numerical floor (a fisheye's correction
-at 80 deg is ~0.3)."""
+"""The curvature term's cost at typical values, as a share of the observations' cost at 1 px each."""
+PRIOR_PX: Final = 3.0
+"""A control value this many pixels off the start model's costs as one observation off by its noise: a
+knot with many points follows them, one the data barely see follows the start (parametric) lens."""
 TYPICAL_CURVATURE: Final = 0.05
 """A typical second difference of the control values (a fisheye's ~0.06 at the grid's edge)."""
 
@@ -114,7 +115,8 @@ def calibrate_splined(detections: Sequence[Detection], target: Target, *,
     obs = np.vstack([v.uv for v in views])
     core = np.array([cam0.fx, cam0.fy, cam0.cx, cam0.cy])
     prob = _Problem(layout, X, obs, view, len(views))
-    ctrl = prob.initial_ctrl(core, P, cam0.project(P))
+    prob.sigma_px = max(float(start.sigma_px), 1e-3)
+    ctrl = prob.initial_ctrl(core, cam0)
     x = np.concatenate([core, ctrl])
     w0 = np.concatenate([v.weights() for v in views])       # the detector's relative precision
     w = w0.copy()
@@ -158,27 +160,41 @@ class _Problem:
         self.n = self.n_intr + 6 * n_views
         self.D = _regulariser(lay)
         self.G = _gauge(lay)
+        self.c0 = np.zeros(2 * self.nc)
+        self.sigma_px = 1.0
+        """The start's residual per coordinate (px): the prior's rows weigh as observations of this noise."""
+        """The prior the control values are pulled towards (``initial_ctrl``: the start model)."""
 
-    def reg_scales(self, n_obs: int) -> tuple[float, float]:
-        """Weights (px per stereographic unit) of the value and the curvature regularisation rows:
-        at typical values their total is ``REG_SHARE`` of ``n_obs`` residuals of 1 px."""
-        a = np.sqrt(REG_SHARE * n_obs / (2 * self.nc)) / TYPICAL_VALUE
+    def reg_scales(self, n_obs: int, f: float) -> tuple[float, float]:
+        """Weights (px per stereographic unit) of the prior and the curvature regularisation rows:
+        a control value ``PRIOR_PX`` (times ``f``: pixels) off the prior costs as one observation
+        off by 1 px; the curvature at a typical value costs ``REG_SHARE`` of ``n_obs`` residuals of 1 px."""
+        a = f * self.sigma_px / PRIOR_PX
         b = np.sqrt(REG_SHARE * n_obs / (2 * self.D.shape[0])) / TYPICAL_CURVATURE
         return float(a), float(b)
 
-    def initial_ctrl(self, core: F64, P: F64, q0: F64) -> F64:
-        """Control values fitting the start model's pixels ``q0`` at the points ``P`` (linear)."""
-        u, _ = splined.stereographic(P)
+    def initial_ctrl(self, core: F64, cam0: CameraModel) -> F64:
+        """Control values that reproduce the start model ``cam0`` over the whole grid (sampled 4x
+        per knot interval where ``cam0`` projects): the prior ``c0`` the regulariser pulls towards."""
+        kx, ky = self.lay.knots()
+        g = np.linspace(0.0, 1.0, 4 * (self.lay.nx - 1) + 1)
+        gy = np.linspace(0.0, 1.0, 4 * (self.lay.ny - 1) + 1)
+        uu, vv = np.meshgrid(kx[0] + g * (kx[-1] - kx[0]), ky[0] + gy * (ky[-1] - ky[0]))
+        u = np.column_stack([uu.ravel(), vv.ravel()])
+        r2 = np.sum(u * u, axis=1)
+        u = u[r2 < 3.9]                                     # rays short of 90 deg off the axis
+        xy = u / (1.0 - np.sum(u * u, axis=1) / 4.0)[:, None]
+        q0 = cam0.project(np.column_stack([xy, np.ones(len(u))]))
         target = (q0 - core[2:4]) / core[:2] - u
         ok = np.all(np.isfinite(target), axis=1)
         idx, w, _ = self.lay.support(u[ok])
         rows = np.repeat(np.arange(ok.sum()), 16)
         A = sp.csr_matrix((w.ravel(), (rows, idx.ravel())), shape=(int(ok.sum()), self.nc))
-        a, b = self.reg_scales(2 * len(P))
-        f2 = float(np.mean(core[:2])) ** 2        # the data rows are in normalised units (px / f)
-        M = (A.T @ A + a * a / f2 * sp.eye(self.nc) + b * b / f2 * (self.D.T @ self.D)).tocsc()
+        M = (A.T @ A + 1e-6 * sp.eye(self.nc) + 1e-3 * (self.D.T @ self.D)).tocsc()
         lu = sp.linalg.splu(M)
-        return np.concatenate([lu.solve(A.T @ target[ok, 0]), lu.solve(A.T @ target[ok, 1])])
+        c0 = np.concatenate([lu.solve(A.T @ target[ok, 0]), lu.solve(A.T @ target[ok, 1])])
+        self.c0 = c0
+        return c0.copy()
 
     def project(self, x: F64, R: F64, t: F64, jac: bool = False
                 ) -> tuple[F64, sp.csr_matrix | None]:
@@ -236,10 +252,11 @@ class _Problem:
 
     def reg_rows(self, x: F64, n_obs: int, jac: bool = False) -> tuple[F64, sp.csr_matrix | None]:
         """Regularisation residuals (px) and their Jacobian over all unknowns."""
-        a, b = self.reg_scales(n_obs)
+        a, b = self.reg_scales(n_obs, float(np.mean(x[:2])))
         ctrl = x[4:self.n_intr].reshape(2, self.nc)
+        dev = ctrl - self.c0.reshape(2, self.nc)
         g = GAUGE_WEIGHT * np.sqrt(n_obs)
-        r = np.concatenate([a * ctrl[0], a * ctrl[1], b * (self.D @ ctrl[0]), b * (self.D @ ctrl[1]),
+        r = np.concatenate([a * dev[0], a * dev[1], b * (self.D @ ctrl[0]), b * (self.D @ ctrl[1]),
                             g * (self.G @ x[4:self.n_intr])])
         if not jac:
             return r, None

@@ -143,3 +143,22 @@ def test_splined_uncertainty_is_honest_over_20_seeds() -> None:
         rep.append(res.uncertainty["projection_rms_px"])
     ratio = np.sqrt(np.mean(np.square(act))) / np.sqrt(np.mean(np.square(rep)))
     assert 0.5 <= ratio <= 2.0, ratio
+
+
+def test_the_projection_jacobian_for_the_uncertainty_matches_central_differences() -> None:
+    from calibration.intrinsics.model import intrinsic_steps, intrinsics_vector, project_normalized
+    from calibration.intrinsics.uncertainty import projection_jacobians
+
+    cam = _splined_camera(3)
+    pts = np.random.default_rng(0).uniform([100, 100], [1100, 800], (30, 2))
+    Ja, _, valid = projection_jacobians(cam, pts)
+    assert valid.all()
+    xy = cam.unproject(pts)[:, :2]
+    c = intrinsics_vector(cam)
+    hs = intrinsic_steps(c)
+    for i in [0, 1, 2, 3, *range(7, len(c), 7)]:
+        e = np.zeros_like(c)
+        e[i] = hs[i]
+        num = ((project_normalized(cam.model, c + e, xy) - project_normalized(cam.model, c - e, xy)) / (2 * hs[i]))
+        assert np.abs(num.reshape(-1) - Ja[:, i]).max() < 1e-4 * max(1.0, np.abs(Ja[:, i]).max()), i
+    assert not Ja[:, 4:7].any()       # the grid's layout is fixed
