@@ -24,6 +24,9 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from vision import shape
+from vision.shape.model import ShapeModel
+
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "pick_real"
 
 U8 = NDArray[np.uint8]
@@ -86,12 +89,25 @@ class Case:
     tests: list[TestImage] = field(default_factory=list)
     scale: float = 1.0
     """Teach and test images are resized by this (``scaled``: the same parts, smaller)."""
+    more_rois: list[tuple[float, float, float, float]] = field(default_factory=list)
+    """Further ROIs of the same part in the teach image (``more_teach_rois``: a model taught from
+    several views of it, ``vision.shape.multi``)."""
 
     def teach_image(self) -> U8:
         return resize(read_grey(self.teach_path), self.scale)
 
     def test_image(self, test: TestImage) -> U8:
         return resize(read_grey(test.path), self.scale)
+
+
+def teach_model(case: Case) -> ShapeModel:
+    """The case's model: from its ROI, or from its ROI and its ``more_rois`` (several views of the
+    part in the teach image: what they share, ``vision.shape.multi.teach_many``)."""
+    img = case.teach_image()
+    if not case.more_rois:
+        return shape.teach(img, case.roi)
+    rois = [case.roi, *case.more_rois]
+    return shape.teach_many([img] * len(rois), rois)
 
 
 def resize(img: U8, k: float) -> U8:
@@ -114,8 +130,9 @@ def scaled(case: Case, k: float) -> Case:
                     (case.info.accuracy[0] * k, case.info.accuracy[1]))
     tests = [TestImage(t.path, t.expected_count, [Instance(_px(i.x, k), _px(i.y, k), i.angle_deg, i.mirrored)
                                                   for i in t.instances]) for t in case.tests]
+    more = [(_px(a, k), _px(b, k), c * k, d * k) for a, b, c, d in case.more_rois]
     return Case(case.id, case.source, case.teach_path, (_px(u, k), _px(v, k), w * k, h * k),
-                info, tests, case.scale * k)
+                info, tests, case.scale * k, more)
 
 
 def read_grey(path: Path) -> U8:
@@ -132,8 +149,9 @@ def load_cases(root: Path = DATA) -> list[Case]:
         doc = yaml.safe_load(cy.read_text())
         for c in doc["cases"]:
             roi_l = [float(x) for x in c["teach_roi"]]
+            more = [(float(a), float(b), float(w), float(h)) for a, b, w, h in c.get("more_teach_rois") or []]
             case = Case(c["id"], cy.parent.name, cy.parent / c["teach_image"],
-                        (roi_l[0], roi_l[1], roi_l[2], roi_l[3]), REFERENCE[c["id"]])
+                        (roi_l[0], roi_l[1], roi_l[2], roi_l[3]), REFERENCE[c["id"]], more_rois=more)
             for t in c["tests"]:
                 est = (t.get("measured_estimate") or {}).get("instances") or []
                 insts = []

@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.pick_cases import Case, load_cases, read_grey  # noqa: E402
+from bench.pick_cases import Case, load_cases, read_grey, teach_model  # noqa: E402
 from vision import shape  # noqa: E402
 from vision.image import F64, gradients  # noqa: E402
 from vision.shape.model import LevelModel, TeachParams  # noqa: E402
@@ -109,7 +109,8 @@ def main() -> None:
     tx, ty, tr = colour_centre(case.teach_path, *case.info.reference_px)
     ref = (tx - (u + w / 2.0), ty - (v + h / 2.0))  # the head centre relative to the model's reference
     models = {"default": shape.teach(case.teach_image(), case.roi),
-              "min_component_px=120": shape.teach(case.teach_image(), case.roi, TeachParams(min_component_px=120))}
+              "min_component_px=120": shape.teach(case.teach_image(), case.roi, TeachParams(min_component_px=120)),
+              "4 ROIs (more_teach_rois)": teach_model(case)}
     hx, hy = case.info.reference_px
     print(f"teach head (11_1111.jpg): colour centre ({tx:.1f}, {ty:.1f}), radius {tr:.1f} px; Hough ({hx:g}, {hy:g})\n")
     names = list(models)

@@ -24,6 +24,7 @@ OpenCV's Canny links texture the same way and selects nothing by length.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -341,9 +342,17 @@ def auto_levels(roi_w: float, roi_h: float) -> int:
     return n
 
 
+KeepRule = Callable[[int, F64, F64], NDArray[np.bool_]]
+"""Which candidate edge points of a level may enter the model: ``(level, points, normals)`` (level
+pixels relative to the reference point, unit normals) -> mask. ``vision.shape.multi`` keeps those
+that the other teach images show too."""
+
+
 def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
-          params: TeachParams | None = None) -> ShapeModel:
-    """Teach a shape model from the ROI ``(U, V, W, H)``; its centre is the reference point."""
+          params: TeachParams | None = None, keep: KeepRule | None = None) -> ShapeModel:
+    """Teach a shape model from the ROI ``(U, V, W, H)``; its centre is the reference point.
+
+    ``keep`` (optional) filters each level's candidate edges before the point budget is filled."""
     p = params or TeachParams()
     img = as_gray(image)
     u, v, w, h = roi
@@ -376,6 +385,13 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
             if len(pts) < 8:
                 raise TeachError("too few clean edges in the ROI: choose a region that shows the part")
         pts = pts - ref / s
+        if keep is not None:
+            ok = keep(lv, pts, nrm)
+            pts, nrm, mag, length = pts[ok], nrm[ok], mag[ok], length[ok]
+            if len(pts) < 8:
+                if lv == 0:
+                    raise TeachError("too few of the ROI's edges are seen alike in every teach image")
+                break
         prio = _priority(mag, length, 0.5 * min(w, h) / s)
         if lv == 0:
             sel = _spread_subset(pts, prio, MAX_FINE_POINTS, 2.0)

@@ -1,11 +1,28 @@
 """A shape model taught from several images of the same part: what is stable across them stays.
 
 One teach image's edges are partly not the part: a scratch on the table inside the ROI, a shadow or
-a highlight of the light on that day, the glint on a 3-D part. ``teach_many`` teaches from the first
-image and ROI, finds the part in each further image inside its ROI (any turn), and keeps the level-0
-model points that an edge of the same direction meets within 1 px in every image; the coarse levels
-keep the points near a kept level-0 point. The taught patch is the first image's, masked to the kept
-points' hull. Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
+a highlight of the light on that day, the glint on a 3-D part. For a 3-D part under the cell's fixed,
+one-sided light (a screw head), the shading stays put in the image while the part turns: only what
+turns with the part is the part. ``teach_many``:
+
+1. teaches from the first image and ROI, and finds the part in each further image inside its ROI
+   (``vision.shape.multi_align``: the shape search, or a rotation sweep of the taught patch where the
+   single image's edges are too much of its light to be found elsewhere);
+2. keeps, on every pyramid level, the first image's candidate edges that an edge of the same
+   orientation meets within 1 px (level pixels) in most teach images (all of 2-3, all but one of 4-5);
+   the point budget is then filled from those only (an edge of one image's shading, grain or glint
+   drops out; the first model's budget is not wasted on them);
+3. where the sweep aligned an image, moves its pose to where the most of the first model's edges
+   recur, and again (within 2 px) for the edges most images share, before step 2 (an alignment
+   dragged by one image's shading would otherwise drop edges that are the part's);
+4. keeps as the taught patch the average of the aligned teach patches (each image's light matched to
+   the first's by gain and offset): the interior without one image's shading.
+
+An edge counts as seen in a view only with the first view's contrast polarity (dark to bright the same
+way): on a 3-D part under one-sided light the rim and the socket's walls are lit on one side and
+shaded on the other, and where the views disagree the edge is the light's, not the part's (the screw
+heads: 7 of 9 found at the defaults with this rule, 5 of 9 without; ``bench/results/pick_real.md``).
+Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
 """
 
 from __future__ import annotations
@@ -13,15 +30,16 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import TeachError
-from vision.image import as_gray, gradients
+from vision.image import F64, U8, as_gray, gradients, pyramid
 from vision.shape import kernels
 from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams, teach
-from vision.shape.patch import make_patch
-from vision.types import SearchParams
+from vision.shape.multi_align import Pose4, align, overlap
+from vision.shape.patch import TeachPatch, make_patch
 
 MAX_TEACH_IMAGES = 5
 MIN_KEPT_FRACTION = 0.2
@@ -29,58 +47,101 @@ MIN_KEPT_FRACTION = 0.2
 show the same part, or not alike)."""
 
 
+def needed(n_images: int) -> int:
+    """In how many of ``n_images`` teach images an edge must be seen to stay: all of 1-3, all but one of
+    4-5 (one image's glint or a speck of dust on one part does not drop an edge the others show)."""
+    return n_images - (n_images - 1) // 3
+
+
 def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float, float]],
                params: TeachParams | None = None) -> ShapeModel:
-    """Teach from 1-5 images of one part (``rois[i]`` frames it in ``images[i]``); see the module."""
+    """Teach from 1-5 images of one part (``rois[i]`` frames it in ``images[i]``; two ROIs may frame two
+    parts alike in the same image); see the module."""
     if not 1 <= len(images) <= MAX_TEACH_IMAGES or len(images) != len(rois):
         raise TeachError(f"give 1 to {MAX_TEACH_IMAGES} teach images, each with its ROI "
                          f"(got {len(images)} images and {len(rois)} ROIs)")
-    from vision.shape.search import find
-
-    first = as_gray(images[0])
-    model = teach(first, rois[0], params)
+    p = params or TeachParams()
+    grays = [as_gray(i) for i in images]
+    model = teach(grays[0], rois[0], p)
     if len(images) == 1:
         return model
+    poses = aligned_poses(model, grays, rois, p)
+    need = needed(len(images))
+    pyrs = [pyramid(g, len(model.levels) - 1) for g in grays]
+
+    def keep(level: int, pts: F64, nrm: F64) -> NDArray[np.bool_]:
+        if level >= len(pyrs[0]):
+            return np.zeros(len(pts), bool)
+        return _seen_count(pts, nrm, level, [pyr[level] for pyr in pyrs], poses, p) >= need
+
+    out = teach(grays[0], rois[0], p, keep=keep)
+    patch = mean_patch(make_patch(grays[0], rois[0], out.levels[0].points), grays, poses)
+    return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
+
+
+def aligned_poses(model: ShapeModel, grays: list[U8], rois: list[tuple[float, float, float, float]],
+                  p: TeachParams) -> list[Pose4]:
+    """Where the first image's part (``model``) lies in each teach image (the first: its ROI centre,
+    unturned); steps 1 and 3 of the module."""
+    u0, v0, w0, h0 = rois[0]
+    poses: list[Pose4] = [(u0 + w0 / 2.0, v0 + h0 / 2.0, 0.0, 1.0)]
     lv0 = model.levels[0]
-    keep = np.ones(len(lv0.points), bool)
-    for k, (img_any, roi) in enumerate(zip(images[1:], rois[1:], strict=True), start=2):
-        img = as_gray(img_any)
-        u, v, w, h = roi
-        res = find(model, img, SearchParams(roi=(u + w / 4, v + h / 4, w / 2, h / 2), max_count=1))
-        if not res.matches:
-            raise TeachError(f"the part taught from the first image is not found in teach image {k} inside its "
-                             f"ROI ({res.reason()}): give images of the same part, framed alike")
-        m = res.matches[0]
-        keep &= _seen(model, img, m.u_px, m.v_px, m.angle_deg, m.scale)
-    if keep.sum() < max(8, MIN_KEPT_FRACTION * len(keep)):
-        raise TeachError(f"only {int(keep.sum())} of {len(keep)} model points are seen in every teach image: "
-                         "the images do not show the part alike (another part, another side, another light)")
-    levels = [LevelModel(0, lv0.points[keep], lv0.normals[keep], np.arange(int(keep.sum()), dtype=np.int64))]
-    kept0 = lv0.points[keep]
-    for lv in model.levels[1:]:
-        s = 2.0 ** lv.level
-        d = np.min(np.hypot(*(lv.points[:, None, :] * s - kept0[None, :, :]).transpose(2, 0, 1)), axis=1)
-        near = d <= 2.0 * s
-        if near.sum() < 16:
-            break
-        remap = -np.ones(len(lv.points), np.int64)
-        remap[near] = np.arange(int(near.sum()))
-        feats = remap[lv.features]
-        feats = feats[feats >= 0]
-        if len(feats) == 0:
-            break
-        levels.append(LevelModel(lv.level, lv.points[near], lv.normals[near], feats))
-    patch = make_patch(first, rois[0], kept0)
-    return ShapeModel(levels, model.params, model.roi, model.image_size, patch)
+    swept = [False]
+    for k, (img, roi) in enumerate(zip(grays[1:], rois[1:], strict=True), start=2):
+        pose, by_search = align(model, img, roi, k)
+        poses.append(pose if by_search else overlap(lv0, img, pose, p))
+        swept.append(not by_search)
+    need = needed(len(grays))
+    stable = _seen_count(lv0.points, lv0.normals, 0, grays, poses, p) >= need
+    if stable.sum() < max(8, MIN_KEPT_FRACTION * len(stable)):
+        raise TeachError(f"only {int(stable.sum())} of {len(stable)} model points are seen in {need} of the "
+                         f"{len(grays)} teach images: the images do not show the part alike (another part, "
+                         "another side, another light)")
+    for k in (k for k in range(1, len(grays)) if swept[k]):
+        poses[k] = overlap(LevelModel(0, lv0.points[stable], lv0.normals[stable],
+                                      np.arange(int(stable.sum()), dtype=np.int64)), grays[k], poses[k], p, 2.0)
+    return poses
 
 
-def _seen(model: ShapeModel, img: NDArray[np.uint8], u: float, v: float, angle_deg: float,
-          scale: float) -> NDArray[np.bool_]:
-    """Which level-0 model points an image edge of the same orientation meets within 1 px at the pose."""
-    q, tangents = model.contour(u, v, angle_deg, scale)
-    n = np.stack([tangents[:, 1], -tangents[:, 0]], axis=1)
-    gx, gy = gradients(img, model.params.edge_sigma_px)
-    G = np.ascontiguousarray(np.stack([gx, gy], axis=2))
-    thr = 0.5 * model.params.min_contrast * GRAD_PER_CONTRAST
-    d, found, cosd, _ = kernels.associate(G, np.ascontiguousarray(q), np.ascontiguousarray(n), 2, float(thr))
-    return np.asarray(found & (np.abs(d) <= 1.0) & (cosd >= math.cos(math.radians(30.0))))
+def _seen_count(pts: F64, nrm: F64, level: int, images: list[U8], poses: list[Pose4],
+                p: TeachParams) -> NDArray[np.int64]:
+    """In how many of ``images`` (level ``level`` of each teach image; the first is where the points
+    come from) an edge of the same orientation and contrast polarity lies within 1 level pixel of each
+    point (``pts``: level pixels relative to the reference point) at the image's pose (level-0 pixels,
+    rad)."""
+    count = np.ones(len(pts), np.int64)
+    f = 2.0 ** level
+    thr = 0.5 * p.min_contrast * GRAD_PER_CONTRAST
+    for img, (x, y, th, sc) in zip(images[1:], poses[1:], strict=True):
+        c, s = math.cos(th), math.sin(th)
+        R = np.array([[c, s], [-s, c]])  # CCW on screen, as ShapeModel.contour
+        q = np.ascontiguousarray(sc * pts @ R.T + np.array([x, y]) / f)
+        n = np.ascontiguousarray(nrm @ R.T)
+        gx, gy = gradients(img, p.edge_sigma_px if level == 0 else 0.0)
+        G = np.ascontiguousarray(np.stack([gx, gy], axis=2))
+        d, found, cosd, sign = kernels.associate(G, q, n, 2, float(thr))
+        count += np.asarray(found & (np.abs(d) <= 1.0) & (cosd >= math.cos(math.radians(30.0))) & (sign > 0),
+                            np.int64)
+    return count
+
+
+def mean_patch(first: TeachPatch, images: list[U8], poses: list[Pose4]) -> TeachPatch:
+    """The first image's patch averaged with the other images' pixels at their poses (level-0 px,
+    rad), each image's grey values matched to the first's by gain and offset over the mask."""
+    H, W = first.image.shape
+    jj, ii = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    px, py = jj + first.origin[0], ii + first.origin[1]
+    ref = first.image.astype(np.float64)
+    acc = ref.copy()
+    m = first.mask
+    for img, (x, y, th, sc) in zip(images[1:], poses[1:], strict=True):
+        c, s = math.cos(th), math.sin(th)
+        qx = (sc * (c * px + s * py) + x).astype(np.float32)
+        qy = (sc * (-s * px + c * py) + y).astype(np.float32)
+        got = cv2.remap(img.astype(np.float32), qx, qy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        g = got.astype(np.float64)
+        A = np.stack([g[m], np.ones(int(m.sum()))], axis=1)
+        a, b = np.linalg.lstsq(A, ref[m], rcond=None)[0]
+        acc += a * g + b
+    mean = np.clip(np.round(acc / len(images)), 0, 255).astype(np.uint8)
+    return TeachPatch(mean, first.origin, first.mask.copy())
