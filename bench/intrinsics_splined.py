@@ -7,7 +7,9 @@ GoPro (35 views, below the splined model's 40-view rule) runs the splined model 
 (``check=False``, the coarsest grid) to see whether a richer lens closes its halves' gap, and every
 model with per-view outlier rejection (``drop_outliers``: views whose RMS is > 3x the median out).
 
-Run: ``.venv/bin/python bench/intrinsics_splined.py --sets fisheye,gopro`` (CPU-seconds per row are
+``--sets gopro-views``: leave-one-view-out influence on GoPro and the halves without the influential views.
+
+Run: ``.venv/bin/python bench/intrinsics_splined.py --sets fisheye,gopro,gopro-views`` (CPU-seconds per row are
 printed; the machine's load decides the wall time).
 """
 
@@ -69,12 +71,39 @@ def _row(name: str, model: str, dets: list[Any], board: Any, size: tuple[int, in
     return row
 
 
+def gopro_views() -> None:
+    """Leave-one-view-out influence on GoPro (division): how far the camera moves over the covered
+    cells when one view is left out; then the halves (even / odd as numbered in the full set) without
+    the views over 5x and over 3.5x the median influence."""
+    s = image_set("udacity_gopro_wide_8x6", 8, 6)
+    dets = s.corners["ours"]
+    pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
+    full = calibrate(dets, s.board, "division", image_size=s.size, jackknife=False)
+    cells = covered_points(full)
+    infl = np.array([projection_difference(calibrate(dets[:k] + dets[k + 1:], s.board, "division", image_size=s.size,
+                                                     jackknife=False).camera, full.camera, cells)["rms_px"]
+                     for k in range(len(dets))])
+    med = float(np.median(infl))
+    print({"median_influence_px": med, "top": [(dets[i].image, round(float(infl[i]), 3), round(float(infl[i]) / med, 1))
+                                               for i in np.argsort(-infl)[:6]]}, flush=True)
+    for factor in (5.0, 3.5):
+        drop = {dets[i].image for i in range(len(dets)) if infl[i] > factor * med}
+        for model in ("division", "fisheye4"):
+            h = [calibrate([d for i, d in enumerate(dets) if i % 2 == p and d.image not in drop], s.board, model,
+                           image_size=s.size, jackknife=False).camera for p in (0, 1)]
+            print({"dropped": sorted(drop), "model": model,
+                   "split_px": projection_difference(h[0], h[1], pts)["rms_px"]}, flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="fisheye,gopro")
     args = ap.parse_args()
     rows = []
     for name in args.sets.split(","):
+        if name == "gopro-views":
+            gopro_views()
+            continue
         if name == "fisheye":
             s = fisheye_set()
             dets = s.corners["mrcal"]
@@ -84,7 +113,7 @@ def main() -> None:
             dets = s.corners["ours"]
             models = [("division", {}), ("splined*", {}), ("division", {"drop_outliers": True})]
         else:
-            raise SystemExit(f"unknown set {name!r}; use fisheye, gopro")
+            raise SystemExit(f"unknown set {name!r}; use fisheye, gopro, gopro-views")
         pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
         for model, kw in models:
             try:
