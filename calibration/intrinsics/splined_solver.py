@@ -224,7 +224,6 @@ class _Problem:
         skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = RX[:, 2], -RX[:, 1], RX[:, 0]
         dW = -np.einsum("nac,ncb->nab", dP, skew)
         rows_x, rows_y = 2 * np.arange(M), 2 * np.arange(M) + 1
-        e = np.zeros(M)
         one = np.ones(M)
         ri, ci, vals = [], [], []
 
@@ -242,7 +241,6 @@ class _Problem:
         for a, rows in ((0, rows_x), (1, rows_y)):
             put(rows, pose[:, None] + np.arange(3)[None], dW[:, a, :])
             put(rows, pose[:, None] + 3 + np.arange(3)[None], dP[:, a, :])
-        del e
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(ri), np.concatenate(ci))), shape=(2 * M, self.n))
         return q, J
 
