@@ -195,18 +195,21 @@ class RobotBase(DeviceBase):
 
     # -- conveyor tracking ---------------------------------------------------------------------------
     def start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
-                       session: MotionSession) -> int:
+                       session: MotionSession, count: Callable[[], int] | None = None) -> int:
         """Follow a conveyor from now, as the robot controller does with the belt's encoder wired to it (UR:
         ``conveyor_pulse_decode`` + ``track_conveyor_linear``): every pose commanded from now on is carried
         along ``direction_base`` (unit vector, base frame) by the travel the encoder counts
         (``ticks_per_m``), at most ``most_m`` metres. The count tracking starts at. Needs the motion
         (``session``); a Stop ends tracking at once (the tool stays where it is). ``MotionRejected`` when
-        the adapter cannot track."""
+        the adapter cannot track. ``count``: the belt's encoder count as the host reads it (cellctl's
+        conveyor), for an adapter that tracks from the host (the UR over RTDE); a controller with the encoder
+        wired to it (the sim arm) counts itself."""
         if not self.motion.is_current(session):
             session.check()
             raise RobotBusy(f"robot {self.robot_id}: {session.what} does not own the robot's motion")
         session.check()
-        return self._start_tracking(np.asarray(direction_base, dtype=np.float64), float(ticks_per_m), float(most_m))
+        return self._start_tracking(np.asarray(direction_base, dtype=np.float64), float(ticks_per_m), float(most_m),
+                                    count)
 
     def tracks_conveyor(self) -> bool:
         """Whether this adapter can track a conveyor (``start_tracking``); a belt run is refused before the
@@ -217,7 +220,8 @@ class RobotBase(DeviceBase):
         """Stop following the conveyor: the tool stays where it is."""
         self._stop_tracking()
 
-    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
+                        count: Callable[[], int] | None) -> int:
         raise MotionRejected(f"robot {self.robot_id}: this adapter cannot track a conveyor (docs/conveyor.md)")
 
     def _stop_tracking(self) -> None:

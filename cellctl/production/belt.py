@@ -219,20 +219,26 @@ class BeltWatch:
         self.ticks_per_m = ticks_per_m
         self.max_speed_mm_s = max_speed_mm_s
         self._samples: deque[tuple[float, int]] = deque(maxlen=400)
+        self._read_from_s: float | None = None
+        """When the last count's read began (monotonic s): the count was taken between then and its sample's time."""
 
-    def sample(self, ticks: int, t: float | None = None) -> str | None:
-        """Record the count now; why it is wrong (a jump: faster than any belt here), or None."""
+    def sample(self, ticks: int, t: float | None = None, read_from_s: float | None = None) -> str | None:
+        """Record the count read between ``read_from_s`` and ``t`` (default: now); why it is wrong (a jump:
+        faster than any belt here), or None. The interval between two counts is taken at its longest, from
+        the start of the last read to the end of this one: a thread the machine holds between reading the
+        count and reading the clock must not make an ordinary count look like a jump."""
         t = time.monotonic() if t is None else t
         problem = None
         if self._samples:
             t0, c0 = self._samples[-1]
-            dt = max(t - t0, 1e-3)
+            dt = max(t - (t0 if self._read_from_s is None else self._read_from_s), 1e-3)
             speed = abs(ticks - c0) / self.ticks_per_m * 1e3 / dt
             if abs(ticks - c0) > 20 and speed > 2.0 * self.max_speed_mm_s:
                 problem = (f"the encoder count jumped by {ticks - c0} ticks in {dt * 1e3:.0f} ms "
                            f"({speed:.0f} mm/s, more than twice the belt's {self.max_speed_mm_s:.0f} mm/s): "
                            "check the encoder's wiring and shield, then calibrate the belt again")
         self._samples.append((t, ticks))
+        self._read_from_s = read_from_s
         return problem
 
     def speed_mm_s(self, over_s: float = 0.5) -> float:

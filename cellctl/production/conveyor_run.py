@@ -51,6 +51,8 @@ TURN_DEG_S = 90.0
 """The tool's turn rate the meeting is planned with when the robot does not say its own, deg/s."""
 WAIT_SLACK_S = 1.5
 """The robot waits this much longer than planned for the count at which the part is under it, s."""
+CLAIM_WAIT_S = 30.0
+"""The longest the arm waits over the place for the slot's claim to be stored, s."""
 ENCODER_STOP_S = 0.3
 """Two pictures this far apart in time at one count, the parts elsewhere: the encoder stopped."""
 
@@ -94,6 +96,7 @@ class ConveyorRun(ProductionRun):
                 self._fault = f"the camera or the search failed: {exc}"
                 return
             self.pictures += 1
+            self._drift(picture)  # every drift.every_cycles-th picture is a drift check (the run's store thread)
             if picture.encoder_ticks is None:
                 self._fault = (f"camera {s.camera_id}'s frames carry no encoder count (Frame.meta['encoder_ticks']): "
                                "a belt run needs the count latched at each exposure (docs/conveyor.md)")
@@ -154,8 +157,9 @@ class ConveyorRun(ProductionRun):
             just_cycled = True
 
     def _check_count(self) -> int:
+        read_from_s = time.monotonic()
         ticks = self.conveyor.ticks()
-        problem = self.watch.sample(ticks)
+        problem = self.watch.sample(ticks, read_from_s=read_from_s)
         if problem is not None:
             raise PickError(problem)
         return ticks
@@ -187,6 +191,9 @@ class ConveyorRun(ProductionRun):
         return None
 
     def _turn_deg_s(self) -> float:
+        own = getattr(self.robot, "tool_turn_speed_deg_s", None)  # the UR adapter's setting
+        if isinstance(own, float):
+            return own
         world = getattr(self.robot, "world", None)  # the sim robot says its own; a real one: TURN_DEG_S
         spec = getattr(getattr(world, "scene", None), "robot", None)
         return float(getattr(spec, "tool_turn_speed_deg_s", TURN_DEG_S))
@@ -206,9 +213,11 @@ class ConveyorRun(ProductionRun):
     def _pick_from_belt(self, part: BeltPart, meeting: Meeting) -> None:
         r, c, belt = self.s.recipe, self.status.counters, self.belt
         t_cycle, d = time.monotonic(), Durations()
+        over: dict[str, float] = {}  # the cycle's time outside motion, gripper and the wait for the part, s
         cand, picture = part.cand, part.picture
         slot, n_slots, T_slot = self.slots.target(r, None, None)
         T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
+        over["setup"] = time.monotonic() - t_cycle
         d.add("gripper", self.gripper.open())
         self._at("to_pick", store=True, pick_pose=seen_fields(cand, None, None)["pick_pose"])
         self._move(part.T_at(belt, meeting.ticks, cand.T_approach), "above the part's meeting point", d)
@@ -223,7 +232,10 @@ class ConveyorRun(ProductionRun):
             self._missed(part, f"the robot was above the meeting point late: the part was at x = {x_part:.0f} mm, too "
                                f"near the window's end ({self.window_mm[1]:.0f} mm) to be followed while gripped")
             return
-        ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session)
+        t0 = time.monotonic()
+        ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session,
+                                           count=self.conveyor.ticks)
+        over["tracking"] = time.monotonic() - t0
         self.queue.remove(part)
         self._cycle = (cand, picture, T_place)
         try:
@@ -243,24 +255,61 @@ class ConveyorRun(ProductionRun):
             self._at("lifting")
             self._move(T_app, "up from the belt, following it", d)
         finally:
+            t0 = time.monotonic()
             self.robot.stop_tracking()
-        fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1)}
+            over["tracking"] += time.monotonic() - t0
+        fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1), "overhead_ms": over}
+        report = getattr(self.robot, "tracking_report", None)  # measured by a host-side tracker (the UR's)
+        if isinstance(report, dict):
+            fields["tracking_error_mm"] = {"rms": report["rms_mm"], "max": report["max_mm"],
+                                           "samples": report["samples"], "servo_steps": report["servo_steps"]}
         if not check.held:
             c.grip_failures += 1
             self._record("grip_failed", cand, picture, d=d, t_cycle=t_cycle, belt=fields,
                          detail=f"{check.detail}; the part went on with the belt (it may have slipped)")
             return
         c.picked += 1
-        self.slots.take(slot, n_slots, self._n + 1, {"pick_pose": seen_fields(cand, None, None)["pick_pose"],
-                                                     "place_pose": seen_fields(None, None, T_place)["place_pose"]})
-        self._at("carrying", store=True, holding=True)
-        self._move(T_place_app, "pre-place", d)
+        claimed_s = self._claim_while_carrying(slot, n_slots, cand, T_place, T_place_app, d)
+        over["claim"] = claimed_s
         claimed = self._put_down(T_place, T_place_app, d)
         c.placed += 1
         durations = d.as_ms(time.monotonic() - t_cycle)
         self.status.times.add(durations)
+        fields["overhead_ms"] = {k: round(v * 1e3, 2) for k, v in over.items()}
         self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle, durations=durations,
                      resolves=claimed, belt=fields)
+
+    def _claim_while_carrying(self, slot: int, n_slots: int | None, cand: Any, T_place: np.ndarray,
+                              T_place_app: np.ndarray, d: Durations) -> float:
+        """Claim the slot on the run's store thread while the arm carries the part over it (the claim's
+        fsyncs off the cycle's path); the part goes down only once the claim is stored (exactly once), and
+        whatever ends the carry (a Stop, a fault) waits for the claim first, so the run's end settles it.
+        The time (s) the cycle still waited for the claim."""
+        done, failed = threading.Event(), []
+        poses = {"pick_pose": seen_fields(cand, None, None)["pick_pose"],
+                 "place_pose": seen_fields(None, None, T_place)["place_pose"]}
+        cycle_n = self._n + 1
+
+        def claim() -> None:
+            try:
+                self.slots.take(slot, n_slots, cycle_n, poses)
+            except Exception as exc:  # noqa: BLE001 - raised on the run's thread below
+                failed.append(exc)
+            finally:
+                done.set()
+
+        self._writer.put(claim)
+        self._at("carrying", store=True, holding=True)  # queued after the claim: stored in this order
+        try:
+            self._move(T_place_app, "pre-place", d)
+        finally:
+            t0 = time.monotonic()
+            if not done.wait(CLAIM_WAIT_S):
+                raise PickError(f"the slot's claim was not stored within {CLAIM_WAIT_S:g} s; the part is still "
+                                "held over the place (check the store)")
+        if failed:
+            raise failed[0]
+        return time.monotonic() - t0
 
     def _wait_for(self, part: BeltPart, meeting: Meeting) -> int | None:
         """Wait until the count at which the part is under the tool; None when it does not come in time."""

@@ -55,7 +55,7 @@ class SimConveyor(ConveyorBase):
                                     "(use scene: conveyor)")
         s = self._settings
         if s.speed_mm_s is not None or s.speed_variation is not None:
-            world.belt.set_speed(world.belt.speed_mm_s() if s.speed_mm_s is None else s.speed_mm_s,
+            world.belt.configure(world.belt.speed_mm_s() if s.speed_mm_s is None else s.speed_mm_s,
                                  s.speed_variation)
         self._belt = world.belt
 

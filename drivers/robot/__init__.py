@@ -15,7 +15,8 @@ if TYPE_CHECKING:
     from drivers.robot.modbus import ModbusRobot
     from drivers.robot.modbus_map import ModbusRobotSettings
     from drivers.robot.sim import SimRobot, SimRobotSettings
-    from drivers.robot.ur_rtde import URRTDERobot, URRTDESettings
+    from drivers.robot.ur_rtde import URRTDERobot
+    from drivers.robot.ur_rtde_settings import URRTDESettings
 
 __all__ = [
     "ModbusRobot",
@@ -30,7 +31,7 @@ __getattr__ = lazy_getattr(__name__, {
     "SimRobot": "drivers.robot.sim",
     "SimRobotSettings": "drivers.robot.sim",
     "URRTDERobot": "drivers.robot.ur_rtde",
-    "URRTDESettings": "drivers.robot.ur_rtde",
+    "URRTDESettings": "drivers.robot.ur_rtde_settings",
     "ModbusRobot": "drivers.robot.modbus",
     "ModbusRobotSettings": "drivers.robot.modbus_map",
 })

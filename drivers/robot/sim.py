@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -186,8 +187,9 @@ class SimRobot(RobotBase):
     def tracks_conveyor(self) -> bool:
         return self._world is not None and self._world.belt is not None
 
-    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float) -> int:
-        world = self.world
+    def _start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
+                        count: Callable[[], int] | None) -> int:
+        world = self.world  # the virtual controller has the belt's encoder wired to it: ``count`` is not needed
         if world.belt is None:
             raise MotionRejected(f"robot {self.robot_id}: the scene has no conveyor to track")
         if self._moving:

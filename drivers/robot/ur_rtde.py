@@ -19,6 +19,9 @@ still tried, within ``stop_timeout_s``). The workers die with the process that o
 Moves are sent asynchronously (``moveL``/``moveJ`` with ``async=True``) and their completion is
 observed in the state stream, so ``stop()`` can interrupt them.
 
+**Conveyor tracking** is done from the host (``ur_rtde`` has no call for the controller's own): a servoL
+stream in the control worker fed with cellctl's count (``ur_rtde_tracking.py``; docs/conveyor.md).
+
 **When the service dies, the arm stops.** Before every move the control worker arms the
 controller's RTDE watchdog (``setWatchdog(watchdog_min_frequency_hz)``) and then kicks it from its
 own process; when the kicks stop for 1/f s (the service killed, its workers with it) the controller
@@ -37,7 +40,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.geometry import rotation_angle, transform_to_ur_pose, ur_pose_to_transform
 from drivers.base import (
@@ -47,83 +49,21 @@ from drivers.base import (
     DriverError,
     MotionLimits,
     MotionRejected,
-    RobotBase,
     RobotState,
 )
 from drivers.health import DeviceHealth
 from drivers.robot.ur_rtde_link import ControlLink, StateLink
+from drivers.robot.ur_rtde_settings import ROBOT_MODES, SAFETY_MODES, URRTDESettings
+from drivers.robot.ur_rtde_tracking import URHostTracking
 
 log = logging.getLogger(__name__)
-
-ROBOT_MODES = {
-    -1: "no_controller",
-    0: "disconnected",
-    1: "confirm_safety",
-    2: "booting",
-    3: "power_off",
-    4: "power_on",
-    5: "idle",
-    6: "backdrive",
-    7: "running",
-    8: "updating_firmware",
-}
-SAFETY_MODES = {
-    1: "normal",
-    2: "reduced",
-    3: "protective_stop",
-    4: "recovery",
-    5: "safeguard_stop",
-    6: "system_emergency_stop",
-    7: "robot_emergency_stop",
-    8: "violation",
-    9: "fault",
-    10: "validate_joint_id",
-    11: "undefined_safety_mode",
-}
-
-
-class URRTDESettings(BaseModel):
-    """Settings of a Universal Robots arm reached over RTDE."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    host: str = Field(min_length=1, description="controller IP address or host name")
-    frequency_hz: float = Field(500.0, gt=0, le=500, description="RTDE rate: 500 e-Series, 125 CB3")
-    state_max_age_s: float = Field(0.1, gt=0, le=10, description="older samples are never served as current")
-    connect_timeout_s: float = Field(5.0, gt=0, le=120, description="first connection: wait for the first sample")
-    reconnect_wait_s: float = Field(
-        2.5, gt=0, le=120,
-        description="a later connect() (after an outage) waits at most this (under the service's 3 s device "
-        "deadline); the adapter keeps retrying in the background anyway",
-    )
-    stall_timeout_s: float = Field(
-        1.0, gt=0, le=60, description="no new sample for this long: the connection is restarted"
-    )
-    command_timeout_s: float = Field(
-        10.0, gt=0, le=600, description="deadline of a control request, added to a move's duration"
-    )
-    stop_timeout_s: float = Field(
-        2.0, gt=0, le=60, description="deadline of a stop request (also while the controller is unreachable)"
-    )
-    reconnect_initial_s: float = Field(0.25, gt=0, le=60)
-    reconnect_max_s: float = Field(5.0, gt=0, le=600)
-    acceleration_m_s2: float = Field(1.2, gt=0, le=10)
-    joint_acceleration_rad_s2: float = Field(1.4, gt=0, le=40)
-    position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
-    joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
-    watchdog_min_frequency_hz: float = Field(
-        10.0, ge=1.0, le=50.0,
-        description="the controller's RTDE watchdog, armed for every move: with no update from us for "
-        "1/f s (the service died) the controller stops the arm",
-    )
-
 
 # -- the adapter ---------------------------------------------------------------------------------------
 
 STOP_OPS = ("stopL", "stopJ")
 
 
-class URRTDERobot(RobotBase):
+class URRTDERobot(URHostTracking):
     """A Universal Robots arm through ``ur_rtde`` (receive, control, IO and dashboard interfaces)."""
 
     Settings = URRTDESettings
@@ -141,6 +81,10 @@ class URRTDERobot(RobotBase):
                                     self.config.watchdog_min_frequency_hz, ctx, self._link.call_in_supervisor)
         self._stop_requested = threading.Event()
         self._ever_connected = False
+
+    @property
+    def tool_turn_speed_deg_s(self) -> float:
+        return self.config.tool_turn_speed_deg_s
 
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -275,6 +219,9 @@ class URRTDERobot(RobotBase):
         return st
 
     def _move_linear(self, T_base_tool: NDArray[np.float64], speed_m_s: float) -> None:
+        if self._tracking is not None:
+            self._tracked_move(self._tracking, T_base_tool, speed_m_s)
+            return
         st = self._require_ready()
         pose = [float(v) for v in transform_to_ur_pose(T_base_tool)]
         dist = float(np.linalg.norm(T_base_tool[:3, 3] - st.T_base_tool[:3, 3]))
@@ -375,8 +322,10 @@ class URRTDERobot(RobotBase):
             time.sleep(0.002)
 
     def _stop(self) -> None:
-        """Decelerate any motion this adapter commanded (stopL, then stopJ), within ``stop_timeout_s`` each."""
+        """Decelerate any motion this adapter commanded (stopL, then stopJ), within ``stop_timeout_s`` each;
+        a tracking stream ends first (no pose is streamed after the stop)."""
         self._stop_requested.set()
+        self._end_tracking()
         if not self._control.started:
             return  # no move was ever sent through this adapter
         timeout_s = min(self.config.stop_timeout_s, self.config.command_timeout_s)

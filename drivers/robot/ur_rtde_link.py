@@ -25,9 +25,10 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from drivers.backoff import Backoff, Outages
 from drivers.errors import DeviceOperationError, DeviceTimeout, DeviceUnavailable
 from drivers.robot.ur_rtde_worker import StateBuffer, control_worker, state_worker
+from drivers.robot.ur_track_stream import TrackShared
 
 if TYPE_CHECKING:
-    from drivers.robot.ur_rtde import URRTDESettings
+    from drivers.robot.ur_rtde_settings import URRTDESettings
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -218,6 +219,8 @@ class ControlLink:
         self._lock = threading.Lock()
         self._proc: SpawnProcess | None = None
         self._conn: Connection | None = None
+        self.track = TrackShared(ctx)
+        """Conveyor tracking's shared state with the worker's servo stream (``ur_track_stream``)."""
 
     @property
     def started(self) -> bool:
@@ -249,7 +252,8 @@ class ControlLink:
 
         def spawn() -> SpawnProcess:
             proc = self._ctx.Process(target=control_worker, name=f"ur-control-{self.robot_id}", daemon=True,
-                                     args=(self.host, self.frequency_hz, self.watchdog_hz, child, os.getpid()))
+                                     args=(self.host, self.frequency_hz, self.watchdog_hz, child, os.getpid(),
+                                           self.track))
             proc.start()
             return proc
 

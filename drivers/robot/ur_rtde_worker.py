@@ -34,6 +34,8 @@ from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnContext
 from typing import Any
 
+from drivers.robot.ur_track_stream import PERIOD, TrackShared, stream_step
+
 PR_SET_PDEATHSIG = 1
 
 # shared-memory layout of the newest sample (doubles)
@@ -177,6 +179,9 @@ def state_worker(host: str, frequency_hz: float, buffer: StateBuffer, stop: Any,
         receiver.disconnect()
 
 
+STREAM_NICE = -10
+"""The control worker's priority once it streams servo steps, where the service may raise it (root or
+CAP_SYS_NICE; otherwise it stays as it is): a late step is a tracking error."""
 SCRIPT_START_S = 3.0
 """How long a re-uploaded control script may take to start before a move is sent anyway."""
 KICKS_PER_WATCHDOG_PERIOD = 5
@@ -260,6 +265,13 @@ class _Clients:
             return self._armed_control().moveL(*args)
         if op == "moveJ":
             return self._armed_control().moveJ(*args)
+        if op == "track_begin":  # the stream (ur_track_stream.py) runs from the worker's loop from now
+            self._armed_control()
+            with contextlib.suppress(OSError):  # a servo stream is soft real time: ask for priority where allowed
+                os.setpriority(os.PRIO_PROCESS, 0, STREAM_NICE)
+            return True
+        if op == "servoStop":
+            return None if self.ctrl is None else self.ctrl.servoStop(*args)
         if op in ("stopL", "stopJ"):
             # nothing to stop when no control connection was ever made
             return None if self.ctrl is None else getattr(self.ctrl, op)(*args)
@@ -278,16 +290,33 @@ class _Clients:
                     obj.disconnect()
 
 
-def control_worker(host: str, frequency_hz: float, watchdog_hz: float, conn: Connection, parent_pid: int) -> None:
+def control_worker(host: str, frequency_hz: float, watchdog_hz: float, conn: Connection, parent_pid: int,
+                   track: TrackShared | None = None) -> None:
     """Answer ``(op, args)`` requests on ``conn`` with ``("ok", result)`` or ``("error", text)``;
-    between requests, kick the controller's watchdog while it is armed."""
+    between requests, kick the controller's watchdog while it is armed, and while a conveyor is tracked
+    (``track_begin`` until the service ends it, a stop, or a pose outside the envelope) stream its servo
+    steps (``ur_track_stream``; their packages feed the watchdog)."""
     _die_with_parent(parent_pid)
     _quiet_stdout()
     clients = _Clients(host, frequency_hz, watchdog_hz)
+    streaming, next_step = False, 0.0
     while True:
         try:
-            if not conn.poll(clients.kick_period_s if clients.watchdog_armed else None):
-                clients.kick_if_due()
+            if streaming:
+                wait_s: float | None = max(0.0, next_step - time.monotonic())
+            else:
+                wait_s = clients.kick_period_s if clients.watchdog_armed else None
+            ready = conn.poll(wait_s)
+            if streaming and time.monotonic() >= next_step and track is not None:
+                try:
+                    streaming = stream_step(clients.ctrl, track)
+                except Exception:  # noqa: BLE001 - a lost connection: the stream ends, the service sees it
+                    track.write(active=0.0, failed=2.0)
+                    streaming = False
+                next_step = max(next_step + float(track.read()[PERIOD]), time.monotonic())
+            if not ready:
+                if not streaming:
+                    clients.kick_if_due()
                 continue
             op, args = conn.recv()
         except (EOFError, OSError):
@@ -295,9 +324,15 @@ def control_worker(host: str, frequency_hz: float, watchdog_hz: float, conn: Con
         if op == "close":
             conn.send(("ok", None))
             break
+        if op in ("stopL", "stopJ", "servoStop", "track_end", "moveL", "moveJ"):
+            streaming = False  # a stop (or any move) ends the stream before it runs
         try:
-            conn.send(("ok", clients.run(op, args)))
+            result = None if op == "track_end" else clients.run(op, args)
+            if op == "track_begin" and track is not None:
+                streaming, next_step = True, time.monotonic()
+            conn.send(("ok", result))
         except Exception as exc:
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
-        clients.kick_if_due()
+        if not streaming:
+            clients.kick_if_due()
     clients.disconnect()

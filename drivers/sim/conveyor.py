@@ -70,6 +70,11 @@ class BeltSpec(_Strict):
         return self
 
 
+def _check_speed(speed_mm_s: float) -> None:
+    if not 0.0 <= speed_mm_s <= MAX_SPEED_MM_S or not math.isfinite(speed_mm_s):
+        raise ValueError(f"belt speed {speed_mm_s} mm/s is outside 0..{MAX_SPEED_MM_S:g} mm/s")
+
+
 class SimBelt:
     """The belt's motion and encoder (thread-safe). ``t`` is ``time.monotonic()`` seconds."""
 
@@ -83,6 +88,8 @@ class SimBelt:
         self._rng = np.random.default_rng([seed, 0xBE17])
         self._encoder_stopped_at: int | None = None
         self._jump_ticks = 0
+        self._speed_changed = False
+        """Whether the speed was set after the start (the history since the start is then fixed)."""
         self.direction_base = np.array([1.0, 0.0, 0.0])
 
     # -- motion -----------------------------------------------------------------------------------
@@ -105,12 +112,27 @@ class SimBelt:
             w = 2 * math.pi / self.spec.variation_period_s
             return 1e3 * self._v_m_s * (1.0 + self._variation * math.sin(w * (t - self._t_set)))
 
+    def configure(self, speed_mm_s: float, variation: float | None = None) -> None:
+        """The speed (and variation) the belt ran at since its start: a conveyor device's settings when it
+        opens. The world is made by whichever of the cell's devices opens first, so without this the belt
+        ran at the scene's speed until the conveyor opened (a belt configured at 0 had moved its parts
+        tens of mm: not where the cell's first picture shows them). Once the speed was changed after the
+        start, this changes it now, like ``set_speed``."""
+        with self._lock:
+            if not self._speed_changed:
+                _check_speed(speed_mm_s)
+                self._v_m_s = speed_mm_s * 1e-3
+                if variation is not None:
+                    self._variation = float(variation)
+                return
+        self.set_speed(speed_mm_s, variation)
+
     def set_speed(self, speed_mm_s: float, variation: float | None = None) -> None:
         """Change the set speed (mm/s, 0-300) now; ``variation``: the slow variation's amplitude (fraction)."""
-        if not 0.0 <= speed_mm_s <= MAX_SPEED_MM_S or not math.isfinite(speed_mm_s):
-            raise ValueError(f"belt speed {speed_mm_s} mm/s is outside 0..{MAX_SPEED_MM_S:g} mm/s")
+        _check_speed(speed_mm_s)
         now = time.monotonic()
         with self._lock:
+            self._speed_changed = True
             self._s_set = self._position(now)
             self._t_set = now
             self._v_m_s = speed_mm_s * 1e-3

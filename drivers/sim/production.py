@@ -88,6 +88,8 @@ class ProductionParts:
             n = len(self.parts)
             self.parts.extend(SimPart(n + k, "in_area", T, belt_s_m=0.0) for k, T in enumerate(self._belt_scatter()))
         self.closed = False
+        self._slip_at_close_mm: float | None = None
+        """A slip armed for the next close (``slip_at_close``), mm along the belt."""
         self.version = 0
         """Bumped whenever a part moves relative to the table (the render cache key uses it)."""
 
@@ -152,6 +154,12 @@ class ProductionParts:
             part.T_base_part[0, 3] += along_mm * 1e-3
             self.version += 1
 
+    def slip_at_close(self, along_mm: float) -> None:
+        """Arm a slip for the next close: the belt part nearest the gripper slips ``along_mm`` along the belt the
+        instant the fingers start to close (after every picture the run took of it: a deterministic slip)."""
+        with self._lock:
+            self._slip_at_close_mm = float(along_mm)
+
     def held(self) -> SimPart | None:
         with self._lock:
             return next((p for p in self.parts if p.state == "held"), None)
@@ -165,6 +173,9 @@ class ProductionParts:
                 held = self.held()
                 return GripOutcome(None if held is None else held.id, "already closed")
             self.closed = True
+            if self._slip_at_close_mm is not None:
+                self._slip_nearest(T_base_tool_true, self._slip_at_close_mm)
+                self._slip_at_close_mm = None
             best, best_d, best_T = None, math.inf, np.eye(4)
             for p, T_now in self.poses(T_base_tool_true):
                 if p.state in ("held", "fallen"):
@@ -192,6 +203,16 @@ class ProductionParts:
             best.state, best.T_base_part, best.belt_s_m = "held", best_T, None
             self.version += 1
             return GripOutcome(best.id, "")
+
+    def _slip_nearest(self, T_base_tool_true: NDArray[np.float64], along_mm: float) -> None:
+        """(Under the lock.) The belt part nearest the tool slips ``along_mm`` along the belt."""
+        on_belt = [(p, T) for p, T in self.poses(T_base_tool_true) if p.belt_s_m is not None and p.state == "in_area"]
+        if not on_belt:
+            return
+        part, _T = min(on_belt, key=lambda pt: float(np.hypot(*(T_base_tool_true[:2, 3] - pt[1][:2, 3]))))
+        part.T_base_part = part.T_base_part.copy()
+        part.T_base_part[0, 3] += along_mm * 1e-3
+        self.version += 1
 
     def open(self, T_base_tool_true: NDArray[np.float64]) -> int | None:
         """Open the gripper: the held part (its id returned) lands below where it is."""

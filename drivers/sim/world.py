@@ -26,6 +26,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -75,12 +76,18 @@ class SimWorld:
         """The production scene's parts (picked and placed by a sim gripper); None without one."""
         self._state_file: Path | None = None
         self._kept_s = 0.0
+        self.tool_source: Callable[[], NDArray[np.float64]] | None = None
+        """An arm outside the virtual cell its tool follows (its true pose is what that arm says now; the tests'
+        UR emulator, ``tests/support/ur_conveyor.py``); None: the sim robot moves the tool."""
         self.camera_fault = CameraFault()
         """A bump of the camera on request (``POST /sim/faults``): applied to its true pose."""
 
     # -- robot ------------------------------------------------------------------------------------
     @property
     def T_base_tool_true(self) -> NDArray[np.float64]:
+        source = self.tool_source
+        if source is not None:
+            return source()
         with self._lock:
             return self.tracker.shifted(self._T_base_tool_true)
 

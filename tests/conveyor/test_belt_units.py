@@ -123,6 +123,17 @@ def test_the_watch_measures_the_speed_and_catches_a_jump() -> None:
     assert problem is not None and "jumped by 5000 ticks" in problem
 
 
+def test_a_thread_held_between_the_count_and_the_clock_is_not_a_jump() -> None:
+    """At 100 mm/s (1 tick a ms): a count read at 1.000 s whose clock was read 30 ms later (the thread held
+    by a loaded machine), then the next count read at once 4 ms after that clock: 34 ticks that came in
+    34 ms, not 4. A real jump read the same way is still caught."""
+    w = BeltWatch(10000.0)
+    assert w.sample(1000, t=1.030, read_from_s=1.000) is None
+    assert w.sample(1034, t=1.034, read_from_s=1.034) is None
+    problem = w.sample(1034 + 500, t=1.038, read_from_s=1.034)
+    assert problem is not None and "jumped by 500 ticks" in problem
+
+
 def test_the_belt_fit_recovers_direction_and_ticks_per_metre_within_its_sigma() -> None:
     rng = np.random.default_rng(3)
     d = np.array([0.999, 0.04, 0.0])
@@ -146,3 +157,18 @@ def test_the_plc_reads_missed_window_and_the_queue_length_after_every_older_regi
     assert all(p.end < mm.END for name, p in mm.REGISTERS.items() if name not in ("MISSED_WINDOW", "QUEUE_LENGTH"))
     words = mm.conveyor_block_words(70000, 3)
     assert mm.words_int32(words[:2]) == 70000 and words[2] == 3
+
+
+def test_a_belt_configured_still_never_ran_at_the_scenes_speed() -> None:
+    """The world (and its belt at the scene's 100 mm/s) is made by the first device that opens; the
+    conveyor's own setting, applied when it opens later, holds from the belt's start: a belt configured
+    at 0 has not moved. Once the speed was changed, a setting changes it from now on (no travel undone)."""
+    belt = SimBelt(BeltSpec(speed_mm_s=100.0, latch_jitter_ms=0.0), seed=1)
+    time.sleep(0.05)
+    belt.configure(0.0)
+    assert belt.position_m() == 0.0 and belt.ticks() == 0
+    belt.set_speed(100.0)
+    time.sleep(0.05)
+    moved = belt.position_m()
+    belt.configure(0.0)
+    assert belt.position_m() == pytest.approx(moved, abs=2e-3) and moved > 0.004

@@ -74,6 +74,35 @@ def inverse_kinematics(T_target: NDArray[np.float64],
     return q
 
 
+def _pose_error(T: NDArray[np.float64], T_target: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Position (m) and rotation-vector (rad) error of ``T`` against ``T_target``, base frame."""
+    R = T_target[:3, :3] @ T[:3, :3].T  # small near the solution: its skew part is the rotation vector
+    return np.array([*(T_target[:3, 3] - T[:3, 3]), 0.5 * (R[2, 1] - R[1, 2]), 0.5 * (R[0, 2] - R[2, 0]),
+                     0.5 * (R[1, 0] - R[0, 1])])
+
+
+def near_inverse_kinematics(T_target: NDArray[np.float64], q_near: NDArray[np.float64],
+                            steps: int = 4) -> NDArray[np.float64] | None:
+    """Joint angles for a target near the pose of ``q_near`` (a servo step): a few Newton steps on the
+    numerical Jacobian (about a millisecond, where ``inverse_kinematics`` takes tens); the full solve when
+    they do not converge."""
+    q = np.asarray(q_near, dtype=np.float64).copy()
+    for _ in range(steps):
+        T = forward_kinematics(q)
+        err = _pose_error(T, T_target)
+        if float(np.max(np.abs(err))) < 1e-9:
+            return q
+        J = np.empty((6, 6))
+        for j in range(6):
+            dq = q.copy()
+            dq[j] += 1e-7
+            J[:, j] = _pose_error(T, forward_kinematics(dq)) / 1e-7  # how the pose moves with joint j
+        q = q + np.linalg.lstsq(J, err, rcond=None)[0]
+    if float(np.max(np.abs(_pose_error(forward_kinematics(q), T_target)))) < 1e-8:
+        return q
+    return inverse_kinematics(T_target, q_near)
+
+
 @dataclass
 class Motion:
     """One move in progress: from (q_start, T_start) at ``t0`` to (q_end, T_end) in ``duration_s``."""
@@ -86,6 +115,8 @@ class Motion:
     T_start: NDArray[np.float64]
     T_end: NDArray[np.float64]
     waiting_client: bool  # a synchronous command: signal done when finished
+    slerp: Slerp | None = None
+    """The orientation's interpolation, made once per move (not at every 500 Hz tick)."""
 
 
 @dataclass
@@ -102,6 +133,8 @@ class Arm:
     speed_slider: float = 1.0
     moves_completed: int = 0
     last_move: dict[str, Any] = field(default_factory=dict)
+    servo_steps: int = 0
+    """servoL poses received (host-side conveyor tracking streams them)."""
 
     def __post_init__(self) -> None:
         self.T = forward_kinematics(self.q)
@@ -136,20 +169,26 @@ class Arm:
         self.halt()
         self.safety_mode = SAFETY_PROTECTIVE_STOP
 
-    def start_linear(self, pose: NDArray[np.float64], speed_m_s: float, now: float, waiting: bool) -> bool:
-        """Start ``moveL`` to a UR pose vector; False when the target is invalid or unreachable."""
+    def start_linear(self, pose: NDArray[np.float64], speed_m_s: float, now: float, waiting: bool,
+                     duration_s: float | None = None) -> bool:
+        """Start ``moveL`` to a UR pose vector (or a servo step: ``duration_s`` given, the speed ignored);
+        False when the target is invalid or unreachable."""
         if not (np.all(np.isfinite(pose)) and math.isfinite(speed_m_s) and speed_m_s > 0):
             return False
         T_end = pose_to_T(pose)
-        q_end = inverse_kinematics(T_end, self.q)
+        q_end = inverse_kinematics(T_end, self.q) if duration_s is None else near_inverse_kinematics(T_end, self.q)
         if q_end is None:
             return False
         dist = float(np.linalg.norm(T_end[:3, 3] - self.T[:3, 3]))
         angle = float(np.linalg.norm((Rotation.from_matrix(self.T[:3, :3]).inv()
                                       * Rotation.from_matrix(T_end[:3, :3])).as_rotvec()))
-        duration = max(dist / (speed_m_s * self.speed_slider), angle / 1.0, 0.0)
+        if duration_s is None:
+            duration = max(dist / (speed_m_s * self.speed_slider), angle / 1.0, 0.0)
+            self.last_move = {"kind": "moveL", "pose": pose.tolist(), "speed": speed_m_s}
+        else:
+            duration = duration_s
+            self.servo_steps += 1
         self.motion = Motion("linear", now, duration, self.q.copy(), q_end, self.T.copy(), T_end, waiting)
-        self.last_move = {"kind": "moveL", "pose": pose.tolist(), "speed": speed_m_s}
         return True
 
     def start_joint(self, q_end: NDArray[np.float64], speed_rad_s: float, now: float, waiting: bool) -> bool:
@@ -173,8 +212,9 @@ class Arm:
         if m.kind == "linear":
             T = np.eye(4)
             T[:3, 3] = m.T_start[:3, 3] + s * (m.T_end[:3, 3] - m.T_start[:3, 3])
-            rots = Rotation.from_matrix(np.stack([m.T_start[:3, :3], m.T_end[:3, :3]]))
-            T[:3, :3] = Slerp([0.0, 1.0], rots)([s]).as_matrix()[0]
+            if m.slerp is None:
+                m.slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([m.T_start[:3, :3], m.T_end[:3, :3]])))
+            T[:3, :3] = m.slerp([s]).as_matrix()[0]
             self.T = T
         else:
             self.T = forward_kinematics(self.q)

@@ -3,7 +3,9 @@
 When a script arrives, the emulator plays the control script's part of the register handshake:
 program running (robot status bits 0b11, runtime state 2) and output int register 0 = 1 (ready);
 a command in input int register 0 runs, output int register 0 = 2 when it is done, back to 1 when
-the client clears the command; 255 stops the script. The command codes are ``ur_rtde``'s
+the client clears the command; 255 stops the script. ``servoL`` streams move the arm (each pose
+reached in the command's ``time``, as the script's servo thread does): host-side conveyor tracking
+uses it. The command codes are ``ur_rtde``'s
 ``RobotCommand::Type``; ``input_int_register_1`` = 1 marks an asynchronous move. The script's
 "realtime" commands (servo, speed, ...) are acknowledged at once and not simulated; every other
 command, an unknown one too, ends with "done" and waits for the client to clear it, as the script does.
@@ -33,6 +35,8 @@ log = logging.getLogger("cellctl.ur_emulator")
 CMD_NO_CMD = 0
 CMD_MOVEJ = 1
 CMD_MOVEL = 3
+CMD_SERVO_STOP = 16
+CMD_SERVOL = 24
 CMD_PROTECTIVE_STOP = 31
 CMD_STOPL = 33
 CMD_STOPJ = 34
@@ -42,8 +46,12 @@ CMD_STOP_SCRIPT = 255
 CMD_SET_WATCHDOG = 35
 CMD_KICK_WATCHDOG = 99
 REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
-"""The control script's realtime commands (servo, speed, force...): ready again at once; not simulated.
-Every other command, ``kickWatchdog``'s 99 among them, is done once and then waits for a clear."""
+"""The control script's realtime commands (servo, speed, force...): ready again at once. Of them only
+``servoL`` (24) moves the arm (to each streamed pose in the command's ``time``); the others are not simulated.
+Every other command, ``kickWatchdog``'s 99 and ``servoStop``'s 16 among them, is done once and then waits
+for a clear."""
+SERVO_MIN_TIME_S = 0.002
+"""The shortest ``time`` of a servoL step (one 500 Hz controller tick)."""
 WATCHDOG_VARIABLE = "input_int_register_0"
 """The input the script's watchdog watches (``ur_rtde`` without its upper register range)."""
 WATCHDOG_MAX_TICK_S = 0.01
@@ -76,6 +84,12 @@ class ControlScript:
     stop_reason: str = ""
     """Why the program last stopped (empty while it runs or before the first)."""
     last_tick_s: float | None = None
+    fresh_command: bool = False
+    command_arrived_s: float = 0.0
+    """When the last command package arrived (``time.monotonic``): a servo step ends ``time`` after it, as on a
+    real-time controller, however late this process's next tick comes."""
+    """An input package carrying the command register came since the last servoL step (a realtime command
+    stays in the register between packages: one servoL package is one step, not one per tick)."""
 
     def runtime_state(self) -> int:
         return 2 if self.program_running else 1
@@ -103,6 +117,8 @@ class ControlScript:
     def input_updated(self, names: list[str]) -> None:
         """An RTDE input package with ``names`` arrived: it feeds the watchdog if it carries its variable."""
         if WATCHDOG_VARIABLE in names:
+            self.fresh_command = True
+            self.command_arrived_s = time.monotonic()
             self.watchdog_silent_s = 0.0
             self.watchdog_fed_s = time.monotonic()
 
@@ -150,8 +166,19 @@ class ControlScript:
         if cmd == CMD_STOP_SCRIPT:
             self.stop(arm, "stopScript")
             return
+        if cmd == CMD_SERVOL:
+            if not self.fresh_command:
+                return  # the same package seen again at the next tick
+            self.fresh_command = False
+            # servoL(pose, speed, acceleration, time, lookahead, gain): the arm reaches the pose in ``time``
+            # (a straight line; the controller's servoj on the pose's inverse kinematics); ready again at once
+            late_s = max(0.0, now - self.command_arrived_s)
+            if not arm.start_linear(np.array(d[0:6]), 1.0, now, False,
+                                    duration_s=max(SERVO_MIN_TIME_S, d[8] - late_s)):
+                self.stop(arm, "servoL: inverse kinematics failed or target unreachable")
+            return
         if cmd in REALTIME_CMDS:
-            return  # servo/speed/force streams: the script is ready again at once; not simulated
+            return  # speed/force streams: the script is ready again at once; not simulated
         if cmd in (CMD_MOVEL, CMD_MOVEJ):
             self.cmd_state = "busy"
             start = arm.start_linear if cmd == CMD_MOVEL else arm.start_joint
@@ -161,7 +188,7 @@ class ControlScript:
             if asynchronous:
                 self.finish_command()
             return
-        if cmd in (CMD_STOPL, CMD_STOPJ):
+        if cmd in (CMD_STOPL, CMD_STOPJ, CMD_SERVO_STOP):
             arm.halt()
         elif cmd == CMD_PROTECTIVE_STOP:
             arm.protective_stop()
