@@ -16,6 +16,10 @@ Models:
   + k4 theta^8)``. Its polynomial is in the *angle*, not in the pinhole radius that grows without
   bound towards 90 deg, so it describes wide and fisheye lenses that opencv5/8 fold over on
   (rays within 90 deg of the axis: the ``[x, y, 1]`` rays of ``unproject``).
+- ``splined``: mrcal's splined stereographic model (``calibration.splined``): the stereographic
+  projection plus a cubic B-spline correction over the stereographic plane; ``dist`` is
+  ``[Nx, Ny, fov_x_deg, dx (Nx*Ny), dy (Nx*Ny)]`` (its length depends on the grid). For lenses no
+  parametric model fits, calibrated from many views (``calibration.intrinsics.splined_solver``).
 """
 
 from __future__ import annotations
@@ -27,10 +31,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calibration import CalibrationError
+from calibration import splined as _splined
 
-ModelName = Literal["opencv5", "opencv8", "division", "fisheye4"]
-MODEL_NAMES: Final[tuple[str, ...]] = ("opencv5", "opencv8", "division", "fisheye4")
+ModelName = Literal["opencv5", "opencv8", "division", "fisheye4", "splined"]
+MODEL_NAMES: Final[tuple[str, ...]] = ("opencv5", "opencv8", "division", "fisheye4", "splined")
 N_DIST: Final[dict[str, int]] = {"opencv5": 5, "opencv8": 8, "division": 1, "fisheye4": 4}
+"""Distortion coefficient counts of the parametric models (``splined``'s depends on its grid)."""
 
 Points2 = NDArray[np.float64]
 
@@ -56,8 +62,12 @@ class CameraModel:
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CameraModelError("K must be a finite 3x3 matrix with positive fx and fy")
         d = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-        n = N_DIST[self.model]
-        if d.size != n:
+        if self.model == "splined":
+            try:
+                _splined.parse(d)
+            except ValueError as exc:
+                raise CameraModelError(f"model splined: {exc}") from exc
+        elif d.size != (n := N_DIST[self.model]):
             raise CameraModelError(f"model {self.model} needs {n} distortion coefficients, got {d.size}")
         if self.width <= 0 or self.height <= 0:
             raise CameraModelError(f"image size must be positive, got {self.width}x{self.height}")
@@ -229,6 +239,8 @@ def distort_normalized(model: str, dist: ArrayLike, xy: ArrayLike) -> Points2:
             scale = 2.0 / (1.0 + np.sqrt(disc))
         scale[disc < 0] = np.nan
         return p * scale[:, None]
+    if model == "splined":
+        return _splined.distort(d, p)
     if model == "fisheye4":
         r = np.sqrt(r2)
         th = np.arctan(r)
@@ -259,6 +271,8 @@ def undistort_normalized(model: str, dist: ArrayLike, xy_d: ArrayLike, iteration
         return q / (1.0 + d[0] * r2)[:, None]
     if model == "fisheye4":
         return _undistort_fisheye4(d, q)
+    if model == "splined":
+        return _splined.undistort(d, q)
     if not np.any(d):
         return q.copy()
     p = _opencv_initial_guess(d, q)

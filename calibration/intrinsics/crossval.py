@@ -46,11 +46,15 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
         raise CrossValidationError(_too_large(k, len(usable), "usable views (after the full calibration's "
                                                               "rejections)"))
     pts = covered_points(full)
+    grid = None
+    if model == "splined":   # the folds use the full set's grid (one model, validated)
+        lay = full.camera.dist
+        grid = (int(lay[0]), int(lay[1]), float(lay[2]))
     fold_res = []
     for f in range(k):
         try:
             fold_res.append(calibrate(usable[f::k], target, model, image_size=full.camera.size,
-                                      drop_outliers=drop_outliers, board_warp=board_warp))
+                                      drop_outliers=drop_outliers, board_warp=board_warp, spline_grid=grid))
         except IntrinsicsError as exc:
             raise CrossValidationError(f"fold {f + 1} of {k} ({len(usable[f::k])} views) cannot be calibrated "
                                        f"({exc}); use a smaller k") from exc

@@ -58,7 +58,8 @@ REWEIGHT_MARGIN = 1.25
 
 def calibrate(detections: Sequence[Detection], target: Target, model: str = "opencv5", *,
               image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
-              jackknife: bool = True, board_warp: bool = False) -> IntrinsicsResult:
+              jackknife: bool = True, board_warp: bool = False,
+              spline_grid: tuple[int, int, float] | None = None) -> IntrinsicsResult:
     """Calibrate one camera from detections of ``target`` (see the module docstring).
 
     ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
@@ -69,12 +70,23 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     (``IntrinsicsResult.board_warp``); the camera's covariance is marginalised over them. Whether a
     set needs it is for cross-validation to say (``select_model``), not the RMS (it always drops).
 
+    ``model="splined"``: mrcal's splined stereographic model (``splined_solver.calibrate_splined``;
+    ``spline_grid = (Nx, Ny, fov_x_deg)`` fixes its grid, default chosen from the data); refused
+    with the reason on sets that cannot carry it.
+
     Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
     """
     t0 = time.perf_counter()
     if model not in MODEL_NAMES:
         raise IntrinsicsError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
+    if model == "splined":
+        if board_warp:
+            raise IntrinsicsError("the board warp is not solved with the splined model; use board_warp=False")
+        from calibration.intrinsics.splined_solver import calibrate_splined
+        from calibration.splined import SplineLayout
+        return calibrate_splined(detections, target, image_size=image_size,
+                                 layout=None if spline_grid is None else SplineLayout(*spline_grid))
     views, results, size = collect_views(detections, target, image_size)
     if len(views) < MIN_VIEWS:
         raise IntrinsicsError(f"only {len(views)} usable view(s) of the target; a calibration needs "

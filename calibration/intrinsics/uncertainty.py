@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from calibration import splined
 from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3
 from calibration.intrinsics.model import (
@@ -73,13 +74,16 @@ def projection_jacobians(camera: CameraModel, pts_px: F64) -> tuple[F64, F64, ND
     c = intrinsics_vector(camera)
     valid = np.all(np.isfinite(xy), axis=1)
     xy = np.where(valid[:, None], xy, 0.0)
-    hs = intrinsic_steps(c)
-    Jc = np.empty((2 * len(xy), len(c)))
-    for i in range(len(c)):
-        e = np.zeros_like(c)
-        e[i] = hs[i]
-        Jc[:, i] = ((project_normalized(camera.model, c + e, xy)
-                     - project_normalized(camera.model, c - e, xy)) / (2 * hs[i])).reshape(-1)
+    if camera.model == "splined":
+        Jc = _splined_jacobian(camera, xy)
+    else:
+        hs = intrinsic_steps(c)
+        Jc = np.empty((2 * len(xy), len(c)))
+        for i in range(len(c)):
+            e = np.zeros_like(c)
+            e[i] = hs[i]
+            Jc[:, i] = ((project_normalized(camera.model, c + e, xy)
+                         - project_normalized(camera.model, c - e, xy)) / (2 * hs[i])).reshape(-1)
     Jw = np.empty((2 * len(xy), 3))
     P = np.column_stack([xy, np.ones(len(xy))])
     h = 1e-7
@@ -93,6 +97,27 @@ def projection_jacobians(camera: CameraModel, pts_px: F64) -> tuple[F64, F64, ND
     bad = ~np.all(np.isfinite(Jc), axis=1) | ~np.all(np.isfinite(Jw), axis=1)
     valid &= ~bad.reshape(-1, 2).any(axis=1)
     return np.nan_to_num(Jc), np.nan_to_num(Jw), valid
+
+
+def _splined_jacobian(camera: CameraModel, xy: F64) -> F64:
+    """(2N, n_intr) d(pixel)/d(intrinsics) of the splined model at the pinhole points ``xy``,
+    analytic (the projection is linear in the control values): ``(u + delta)`` for fx / fy, 1 for
+    cx / cy, 0 for the grid's layout, ``f`` times the B-spline weights for the control values."""
+    lay, ctrl = splined.parse(camera.dist)
+    u, _ = splined.stereographic(np.column_stack([xy, np.ones(len(xy))]))
+    d, _ = splined.correction(lay, ctrl, u)
+    idx, w, _ = lay.support(np.nan_to_num(u))
+    n = len(xy)
+    J = np.zeros((2 * n, 4 + splined.HEADER + 2 * lay.n_ctrl))
+    rows = np.arange(n)
+    J[2 * rows, 0] = u[:, 0] + d[:, 0]
+    J[2 * rows + 1, 1] = u[:, 1] + d[:, 1]
+    J[2 * rows, 2] = 1.0
+    J[2 * rows + 1, 3] = 1.0
+    base = 4 + splined.HEADER
+    np.add.at(J, (np.repeat(2 * rows, 16), base + idx.ravel()), camera.fx * w.ravel())
+    np.add.at(J, (np.repeat(2 * rows + 1, 16), base + lay.n_ctrl + idx.ravel()), camera.fy * w.ravel())
+    return J
 
 
 def projection_uncertainty(camera: CameraModel, cov: F64, pts_px: F64, fit_mask: NDArray[np.bool_]

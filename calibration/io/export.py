@@ -34,6 +34,11 @@ def _opencv_only(camera: CameraModel, fmt: str) -> None:
         raise ExportError(f"{fmt} (a pinhole camera matrix with OpenCV's plumb-bob or rational distortion) "
                           "cannot express the fisheye4 (Kannala-Brandt) model; use the cam.json with cellctl, or "
                           "calibrate with the opencv5 or opencv8 lens model")
+    if camera.model == "splined":
+        raise ExportError(f"{fmt} (a pinhole camera matrix with OpenCV's plumb-bob or rational distortion) "
+                          "cannot express the splined stereographic model (a B-spline correction over the "
+                          "stereographic plane); use the cam.json with cellctl, or calibrate with the opencv5 "
+                          "or opencv8 lens model")
     if camera.model == "division":
         raise ExportError(f"{fmt} cannot express the division model; export it for HALCON, or calibrate "
                           "the camera with the opencv5 or opencv8 lens model")

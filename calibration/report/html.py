@@ -63,10 +63,14 @@ def parameters_html(rep: rc.CameraReport) -> str:
     sig = params.get("sigma") or []
     values = [cam.fx, cam.fy, cam.cx, cam.cy, *[float(x) for x in cam.dist]]
     prow = []
-    for k, n in enumerate(names):
+    shown = 7 if cam.model == "splined" else len(names)   # the spline's control values: a count, not a table
+    for k, n in enumerate(names[:shown]):
         if k < len(values):
             v, s = with_sigma(values[k], sig[k] if k < len(sig) else None)
             prow.append(f"<tr><td>{esc(n)}</td><td class='num'>{v}</td><td class='num'>{s}</td></tr>")
+    if len(names) > shown:
+        prow.append(f"<tr><td colspan='3'>and {len(names) - shown} spline control values (cam.json "
+                    "<code>dist</code>)</td></tr>")
     return ("<h2>Parameters</h2><table class='params'><tr><th>parameter</th><th>value</th><th>1 sigma</th></tr>"
             + "".join(prow) + "</table>")
 

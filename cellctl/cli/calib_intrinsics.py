@@ -29,9 +29,11 @@ def register(sub: Any) -> None:
         description="Calibrate a camera (opencv5, opencv8 or division model) from images of a planar target. "
                     "IMAGE may be files or folders (their *.png/*.jpg/*.bmp/*.tif, in sorted name order).")
     p.add_argument("--target", required=True, help="target description YAML")
-    p.add_argument("--model", default="opencv5", choices=["opencv5", "opencv8", "division", "fisheye4", "auto"],
+    p.add_argument("--model", default="opencv5", choices=["opencv5", "opencv8", "division", "fisheye4", "splined",
+                                                     "auto"],
                    help="lens model; fisheye4: Kannala-Brandt, for wide and fisheye lenses; auto: the one that "
-                        "cross-validates best (division, opencv5, fisheye4, opencv8)")
+                        "cross-validates best (division, opencv5, fisheye4, opencv8, splined); splined: mrcal's "
+                        "splined stereographic model, for lenses no parametric model fits (needs >= 40 views)")
     p.add_argument("--board-warp", choices=["auto", "on", "off"], default="auto",
                    help="solve a bowed target's two warp heights: auto (default) when cross-validation "
                         "prefers it, on, off")
@@ -116,7 +118,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise CommandError("--export-halcon needs --model division (HALCON's area_scan_division)")
     if args.export_halcon and not args.pixel_pitch_um:
         raise CommandError("--export-halcon needs --pixel-pitch-um (the sensor cell width, e.g. 3.45)")
-    if (args.export_opencv or args.export_ros) and args.model in ("division", "fisheye4"):
+    if (args.export_opencv or args.export_ros) and args.model in ("division", "fisheye4", "splined"):
         raise CommandError(f"OpenCV/ROS files cannot express the {args.model} model"
                            + ("; use --export-halcon" if args.model == "division" else "; keep the cam.json"))
     target = load_target(args.target)
@@ -167,9 +169,10 @@ def _candidates(args: argparse.Namespace) -> list[tuple[str, bool]]:
     elif args.export_opencv or args.export_ros:
         models = ["opencv5", "opencv8"]          # what those files can express
     else:
-        models = ["division", "opencv5", "fisheye4", "opencv8"]
+        models = ["division", "opencv5", "fisheye4", "opencv8", "splined"]
     warps = {"auto": [False, True], "on": [True], "off": [False]}[args.board_warp]
-    return [(m, w) for m in models for w in warps]
+    # the splined model is solved without the board warp (its correction is the richer freedom)
+    return [(m, w) for m in models for w in warps if not (m == "splined" and w)] or [(m, False) for m in models]
 
 
 def _calibrate(args: argparse.Namespace, dets: list[Any], target: Any

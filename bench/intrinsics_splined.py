@@ -1,0 +1,126 @@
+"""The splined stereographic model on the real sets (issue 39 item 2), beside fisheye4 in the same run.
+
+Per set: the full solve's RMS (per corner and per coordinate, unweighted), the split-half projection
+difference (even / odd views, over the cells the full set covered, as bench/intrinsics_real.py) and
+the selection's 2-fold cross-validation (``cross_validate``), for ``splined`` and ``fisheye4``.
+GoPro (35 views, below the splined model's 40-view rule) runs the splined model with the rule off
+(``check=False``, the coarsest grid) to see whether a richer lens closes its halves' gap, and every
+model with per-view outlier rejection (``drop_outliers``: views whose RMS is > 3x the median out).
+
+``--sets gopro-views``: leave-one-view-out influence on GoPro and the halves without the influential views.
+
+Run: ``.venv/bin/python bench/intrinsics_splined.py --sets fisheye,gopro,gopro-views`` (CPU-seconds per row are
+printed; the machine's load decides the wall time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.intrinsics_real import HALVES, fisheye_set, image_set  # noqa: E402
+from calibration.intrinsics import calibrate, covered_points, cross_validate, projection_difference  # noqa: E402
+from calibration.intrinsics.splined_solver import calibrate_splined  # noqa: E402
+from calibration.splined import SplineLayout  # noqa: E402
+
+
+def weighted_rms_per_coordinate(full: Any, levels: list[np.ndarray]) -> float:
+    """mrcal's figure on our residuals: RMS per coordinate of the residuals weighted ``2^-level``
+    (mrgingham's decimation level of each corner), points beyond 5 robust sigma out (mrcal's outliers)."""
+    used = [(v, lv) for v, lv in zip(full.views, levels, strict=True) if v.used]
+    r = np.vstack([v.residuals_px * (2.0 ** -lv)[:, None] for v, lv in used])
+    sig = 1.4826 * np.median(np.abs(r))
+    keep = np.linalg.norm(r, axis=1) <= 5 * sig
+    return float(np.sqrt(np.mean(r[keep] ** 2)))
+
+
+def _row(name: str, model: str, dets: list[Any], board: Any, size: tuple[int, int], pts: np.ndarray,
+         levels: list[np.ndarray] | None = None, **kw: Any) -> dict[str, Any]:
+    t0 = time.process_time()
+    if model == "splined*":
+        full = calibrate_splined(dets, board, image_size=size, check=False)
+        d = full.camera.dist
+        lay = SplineLayout(int(d[0]), int(d[1]), float(d[2]))
+        halves = [calibrate_splined(dets[h], board, image_size=size, layout=lay, check=False).camera for h in HALVES]
+        cv = None
+    else:
+        full = calibrate(dets, board, model, image_size=size, **kw)
+        cv = cross_validate(dets, board, model, 2, image_size=size, full=full, **kw)
+    # the split-half over the set's covered cells; cross_validate's folds are the same halves (every
+    # view used) over the full solve's covered cells
+    split = (projection_difference(halves[0], halves[1], pts)["rms_px"] if cv is None
+             else cv["projection_difference_rms_px"])
+    row = {"set": name, "model": model + (" drop_outliers" if kw.get("drop_outliers") else ""),
+           "grid": "x".join(str(int(v)) for v in full.camera.dist[:2]) + f" fov {full.camera.dist[2]:.0f}"
+           if full.camera.model == "splined" else "",
+           "views": sum(v.used for v in full.views), "rms_corner_px": full.rms_px,
+           "rms_coord_px": full.rms_px / np.sqrt(2), "split_px": split,
+           "rms_coord_weighted_px": None if levels is None else weighted_rms_per_coordinate(full, levels),
+           "cv_px": None if cv is None else cv["projection_difference_rms_px"],
+           "expected_px": None if cv is None else cv["expected_from_uncertainty_px"],
+           "reported_px": full.uncertainty["projection_rms_px"], "cpu_s": time.process_time() - t0}
+    print(row, flush=True)
+    return row
+
+
+def gopro_views() -> None:
+    """Leave-one-view-out influence on GoPro (division): how far the camera moves over the covered
+    cells when one view is left out; then the halves (even / odd as numbered in the full set) without
+    the views over 5x and over 3.5x the median influence."""
+    s = image_set("udacity_gopro_wide_8x6", 8, 6)
+    dets = s.corners["ours"]
+    pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
+    full = calibrate(dets, s.board, "division", image_size=s.size, jackknife=False)
+    cells = covered_points(full)
+    infl = np.array([projection_difference(calibrate(dets[:k] + dets[k + 1:], s.board, "division", image_size=s.size,
+                                                     jackknife=False).camera, full.camera, cells)["rms_px"]
+                     for k in range(len(dets))])
+    med = float(np.median(infl))
+    print({"median_influence_px": med, "top": [(dets[i].image, round(float(infl[i]), 3), round(float(infl[i]) / med, 1))
+                                               for i in np.argsort(-infl)[:6]]}, flush=True)
+    for factor in (5.0, 3.5):
+        drop = {dets[i].image for i in range(len(dets)) if infl[i] > factor * med}
+        for model in ("division", "fisheye4"):
+            h = [calibrate([d for i, d in enumerate(dets) if i % 2 == p and d.image not in drop], s.board, model,
+                           image_size=s.size, jackknife=False).camera for p in (0, 1)]
+            print({"dropped": sorted(drop), "model": model,
+                   "split_px": projection_difference(h[0], h[1], pts)["rms_px"]}, flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sets", default="fisheye,gopro")
+    args = ap.parse_args()
+    rows = []
+    for name in args.sets.split(","):
+        if name == "gopro-views":
+            gopro_views()
+            continue
+        if name == "fisheye":
+            s = fisheye_set()
+            dets = s.corners["mrcal"]
+            models: list[tuple[str, dict[str, Any]]] = [("fisheye4", {}), ("splined", {})]
+        elif name == "gopro":
+            s = image_set("udacity_gopro_wide_8x6", 8, 6)
+            dets = s.corners["ours"]
+            models = [("division", {}), ("splined*", {}), ("division", {"drop_outliers": True})]
+        else:
+            raise SystemExit(f"unknown set {name!r}; use fisheye, gopro, gopro-views")
+        pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
+        for model, kw in models:
+            try:
+                rows.append(_row(s.name, model, dets, s.board, s.size, pts, s.levels, **kw))
+            except Exception as exc:  # noqa: BLE001 - a failure is a row
+                print({"set": s.name, "model": model, "failed": str(exc)}, flush=True)
+
+
+if __name__ == "__main__":
+    main()
