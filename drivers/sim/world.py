@@ -412,7 +412,14 @@ def world_for(scene_path: str | Path | None, seed: int | None = None) -> SimWorl
         return world
 
 
-def forget_worlds() -> None:
-    """Drop all shared worlds (a fresh start, e.g. when a service restarts in-process)."""
+def forget_worlds(scene_path: str | Path | None = None, *, only_that_scene: bool = False) -> None:
+    """Drop the shared worlds (a fresh start, e.g. when a service restarts in-process): all of them, or
+    (``only_that_scene``) those of one scene file (the built-in scene when ``scene_path`` is None)."""
     with _WORLDS_LOCK:
-        _WORLDS.clear()
+        if not only_that_scene:
+            _WORLDS.clear()
+            return
+        resolved = resolve_scene(scene_path)
+        name = str(Path(resolved).resolve()) if resolved else "built-in"
+        for key in [k for k in _WORLDS if k[0] == name]:
+            del _WORLDS[key]

@@ -27,6 +27,7 @@ from fastapi.testclient import TestClient
 from cellctl.api.app import create_app
 from cellctl.auth import hash_token, new_token
 from cellctl.config import Role, load_config
+from drivers.sim.world import forget_worlds
 from tests.support.served import Reachable
 
 
@@ -64,7 +65,13 @@ def _data_dir(data: Path) -> Iterator[None]:
 
 
 def _app_for(config: Path | None, token: str | None) -> tuple[FastAPI, str]:
-    """The app for ``config`` and the engineer token it accepts (a one-run one when it holds none)."""
+    """The app for ``config`` and the engineer token it accepts (a one-run one when it holds none).
+
+    The built-in virtual cell's world starts afresh, as in a new ``cellctl serve``: an earlier in-process
+    cell of the same worker may have left its robot elsewhere, and the virtual cell's camera rides on the
+    robot (a teach ROI then showed no part). Worlds of scene files are kept: a test may set one up before
+    its cell (the UR emulator's mirror of the arm)."""
+    forget_worlds(None, only_that_scene=True)
     cfg = load_config(str(config) if config is not None else None)
     session: list[tuple[str, Role, str]] = []
     if not cfg.auth.tokens:
