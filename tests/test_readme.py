@@ -137,6 +137,32 @@ def _serve(cmd: str, cwd: Path, env: dict[str, str], base: str, token_file: Path
         time.sleep(0.3)
 
 
+def _run_served_section(tmp_path: Path, blocks: list[str], config_name: str, port: str, cell_id: str,
+                        timeout_s: float) -> None:
+    """A README section that serves its own cell: its first block's config and serve lines (the serve on a
+    free port of its own instead of the documented ``port``, with ``tmp_path`` as HOME), then every
+    command of its other blocks as written against that service; the service is stopped after."""
+    (tmp_path / ".venv").symlink_to(REPO / ".venv")
+    config_line, serve_line = blocks[0].strip().splitlines()
+    assert serve_line.startswith(f".venv/bin/cellctl serve --config {config_name}") and f"--port {port}" in serve_line
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "CELLCTL_"))}
+    env["HOME"] = str(tmp_path)
+    subprocess.run(["bash", "-c", "set -euo pipefail\n" + config_line], cwd=tmp_path, env=env, check=True, timeout=60)
+    free = free_port()
+    base = f"http://127.0.0.1:{free}"
+    token_file = tmp_path / ".local" / "share" / "cellctl" / f"{cell_id}.session-token"
+    server = _serve(serve_line.replace(port, str(free)), tmp_path, env, base, token_file)
+    try:
+        script = "\n".join(blocks[1:]).replace(f"127.0.0.1:{port}", f"127.0.0.1:{free}")
+        assert port not in script and "8080" not in script, f"a command names port {port} where it cannot be moved"
+        r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=timeout_s)
+        assert r.returncode == 0, f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
+    finally:
+        os.killpg(server.pid, 15)
+        server.wait(timeout=30)
+
+
 def _slot_errors(truth: dict[str, Any]) -> list[tuple[int, float, float]]:
     """Each placed part's slot with its position (mm) and angle (deg) error against that slot's pose."""
     grid = truth["place_grid"]
@@ -159,26 +185,8 @@ def test_the_production_tour_runs_as_written(tmp_path: Path) -> None:
     """The production run of the tour: its config line, its serve line (on a free port of its own, with
     its own HOME), then every command of the section as written; the production cell is calibrated by
     its own routines (both verdicts ok), and the run places three parts into the first three slots."""
-    (tmp_path / ".venv").symlink_to(REPO / ".venv")
-    config_line, serve_line = PRODUCTION_BLOCKS[0].strip().splitlines()
-    assert serve_line.startswith(".venv/bin/cellctl serve --config production.yaml") and "--port 8081" in serve_line
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "CELLCTL_"))}
-    env["HOME"] = str(tmp_path)
-    subprocess.run(["bash", "-c", "set -euo pipefail\n" + config_line], cwd=tmp_path, env=env, check=True, timeout=60)
+    _run_served_section(tmp_path, PRODUCTION_BLOCKS, "production.yaml", "8081", "production-cell", timeout_s=500)
     assert "motion_time_scale: 0.25" in (tmp_path / "production.yaml").read_text()
-    port = free_port()
-    base = f"http://127.0.0.1:{port}"
-    token_file = tmp_path / ".local" / "share" / "cellctl" / "production-cell.session-token"
-    server = _serve(serve_line.replace("8081", str(port)), tmp_path, env, base, token_file)
-    try:
-        script = "\n".join(PRODUCTION_BLOCKS[1:]).replace("127.0.0.1:8081", f"127.0.0.1:{port}")
-        assert "8081" not in script and "8080" not in script, "a production command names a port this test cannot move"
-        r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], cwd=tmp_path, env=env,
-                           capture_output=True, text=True, timeout=500)
-        assert r.returncode == 0, f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
-    finally:
-        os.killpg(server.pid, 15)
-        server.wait(timeout=30)
     for name in ("p-intrinsics.json", "p-handeye.json"):
         job = json.loads((tmp_path / name).read_text())
         assert job["state"] == "succeeded" and job["verdict_ok"] is True, (name, job["result"])
@@ -199,25 +207,7 @@ def test_the_conveyor_tour_runs_as_written(tmp_path: Path) -> None:
     taught with the belt still, the belt calibrated by ``conveyor-calibrate`` against the truth, and a
     run at 100 mm/s that meets three parts on the moving belt and places them into the first three
     slots within a millimetre and a degree, none missed."""
-    (tmp_path / ".venv").symlink_to(REPO / ".venv")
-    config_line, serve_line = CONVEYOR_BLOCKS[0].strip().splitlines()
-    assert serve_line.startswith(".venv/bin/cellctl serve --config conveyor.yaml") and "--port 8082" in serve_line
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "CELLCTL_"))}
-    env["HOME"] = str(tmp_path)
-    subprocess.run(["bash", "-c", "set -euo pipefail\n" + config_line], cwd=tmp_path, env=env, check=True, timeout=60)
-    port = free_port()
-    base = f"http://127.0.0.1:{port}"
-    token_file = tmp_path / ".local" / "share" / "cellctl" / "conveyor-cell.session-token"
-    server = _serve(serve_line.replace("8082", str(port)), tmp_path, env, base, token_file)
-    try:
-        script = "\n".join(CONVEYOR_BLOCKS[1:]).replace("127.0.0.1:8082", f"127.0.0.1:{port}")
-        assert "8082" not in script and "8080" not in script, "a conveyor command names a port this test cannot move"
-        r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], cwd=tmp_path, env=env,
-                           capture_output=True, text=True, timeout=800)
-        assert r.returncode == 0, f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-3000:]}"
-    finally:
-        os.killpg(server.pid, 15)
-        server.wait(timeout=30)
+    _run_served_section(tmp_path, CONVEYOR_BLOCKS, "conveyor.yaml", "8082", "conveyor-cell", timeout_s=800)
     for name in ("c-intrinsics-capture.json", "c-handeye-capture.json", "c-belt.json"):
         job = json.loads((tmp_path / name).read_text())
         assert job["state"] == "succeeded" and job["verdict_ok"] is True, (name, job["result"])
