@@ -22,9 +22,11 @@ queued and is met where it lies if that is in the window).
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import Any
 
 import numpy as np
@@ -285,30 +287,20 @@ class ConveyorRun(ProductionRun):
         fsyncs off the cycle's path); the part goes down only once the claim is stored (exactly once), and
         whatever ends the carry (a Stop, a fault) waits for the claim first, so the run's end settles it.
         The time (s) the cycle still waited for the claim."""
-        done, failed = threading.Event(), []
         poses = {"pick_pose": seen_fields(cand, None, None)["pick_pose"],
                  "place_pose": seen_fields(None, None, T_place)["place_pose"]}
-        cycle_n = self._n + 1
-
-        def claim() -> None:
-            try:
-                self.slots.take(slot, n_slots, cycle_n, poses)
-            except Exception as exc:  # noqa: BLE001 - raised on the run's thread below
-                failed.append(exc)
-            finally:
-                done.set()
-
-        self._writer.put(claim)
+        claim = self._writer.submit(functools.partial(self.slots.take, slot, n_slots, self._n + 1, poses))
         self._at("carrying", store=True, holding=True)  # queued after the claim: stored in this order
         try:
             self._move(T_place_app, "pre-place", d)
         finally:
             t0 = time.monotonic()
-            if not done.wait(CLAIM_WAIT_S):
+            try:
+                claim.exception(CLAIM_WAIT_S)  # waits; a failed claim is raised below, after the wait
+            except FutureTimeout:
                 raise PickError(f"the slot's claim was not stored within {CLAIM_WAIT_S:g} s; the part is still "
-                                "held over the place (check the store)")
-        if failed:
-            raise failed[0]
+                                "held over the place (check the store)") from None
+        claim.result()
         return time.monotonic() - t0
 
     def _wait_for(self, part: BeltPart, meeting: Meeting) -> int | None:

@@ -12,6 +12,10 @@ import logging
 import queue
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future
+from typing import TypeVar
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +30,20 @@ class Writer:
 
     def put(self, write: Callable[[], object]) -> None:
         self._q.put(write)
+
+    def submit(self, write: Callable[[], T]) -> Future[T]:
+        """Queue ``write`` in order with the others; its result (or its exception) for a caller that must
+        know it was stored before going on (a slot's claim before the part goes down)."""
+        done: Future[T] = Future()
+
+        def run() -> None:
+            try:
+                done.set_result(write())
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller, who raises it
+                done.set_exception(exc)
+
+        self._q.put(run)
+        return done
 
     def _loop(self) -> None:
         while True:
