@@ -12,7 +12,11 @@ def test_submit_runs_in_order_with_the_queued_writes_and_returns_the_result_or_t
     try:
         done: list[str] = []
         w.put(lambda: done.append("first"))
-        stored = w.submit(lambda: done.append("claim") or len(done))
+        def claim() -> int:
+            done.append("claim")
+            return len(done)
+
+        stored = w.submit(claim)
         w.put(lambda: done.append("after"))
         assert stored.result(10.0) == 2
 
