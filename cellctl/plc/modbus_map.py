@@ -119,6 +119,15 @@ def int32_words(value: float) -> list[int]:
     return [u >> 16, u & 0xFFFF]
 
 
+def sigma_words(value: float | None, scale: float) -> list[int]:
+    """A 1-sigma as an int32 register pair at ``1 / scale`` resolution: -1 when not known; a positive sigma
+    below the resolution reads 1, never 0, so that the PLC is never told a pick is exact."""
+    if value is None or not math.isfinite(value) or value < 0:
+        return int32_words(-1)
+    scaled = value * scale
+    return int32_words(max(1, round(scaled)) if scaled > 0 else 0)
+
+
 def words_int32(words: Sequence[int]) -> int:
     """The inverse of :func:`int32_words`."""
     u = (words[0] << 16) | words[1]
@@ -154,6 +163,8 @@ def field_words(f: Field, value: Any, scale: float = 1.0) -> list[int]:
         for v in value:
             words += int32_words(v)
         return words
+    if f.kind == "int32" and f.name.startswith("LAST_SIGMA"):
+        return sigma_words(value, scale)
     if f.kind == "int32":
         return int32_words(value * scale if value >= 0 else -1)
     if f.kind == "ascii":

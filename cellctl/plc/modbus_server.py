@@ -51,6 +51,7 @@ from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests 
     SIGMA_STRIDE,
     ascii_words,
     int32_words,
+    sigma_words,
     words_ascii,
     words_int32,
 )
@@ -376,10 +377,8 @@ class ModbusPlcServer:
         for k, p in enumerate(picks):
             sigma_mm, sigma_deg = pick_sigma(p)
             base = PICK_SIGMA + SIGMA_STRIDE * k
-            img[base + _SIGMA["SIGMA_UM"] : base + _SIGMA["SIGMA_UM"] + 2] = int32_words(
-                -1 if sigma_mm is None else sigma_mm * 1000)
-            img[base + _SIGMA["SIGMA_MDEG"] : base + _SIGMA["SIGMA_MDEG"] + 2] = int32_words(
-                -1 if sigma_deg is None else sigma_deg * 1000)
+            img[base + _SIGMA["SIGMA_UM"] : base + _SIGMA["SIGMA_UM"] + 2] = sigma_words(sigma_mm, 1000)
+            img[base + _SIGMA["SIGMA_MDEG"] : base + _SIGMA["SIGMA_MDEG"] + 2] = sigma_words(sigma_deg, 1000)
         img[SIGMA_SEQ] = seq
         v = out.verify or {}
         drift_px, drift_mm = v.get("drift_px"), v.get("drift_mm")
