@@ -50,9 +50,6 @@ def recovery_hint(config_path: str | Path | None) -> str:
             "and start cellctl again")
 
 
-DEFAULT_RECOVERY = recovery_hint(None)
-
-
 def first_line(exc: BaseException) -> str:
     text = str(getattr(exc, "orig", None) or exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__

@@ -33,7 +33,7 @@ from cellctl.store.errors import (
     StoreFormatError,
     StoreUnavailable,
 )
-from cellctl.store.integrity import DEFAULT_RECOVERY, store_error
+from cellctl.store.integrity import recovery_hint, store_error
 from cellctl.store.latches import LatchRows
 from cellctl.store.production import ProductionRows
 from cellctl.store.recipes import RecipeRows
@@ -61,12 +61,12 @@ class Store(LatchRows, ProductionRows, RecipeRows, DriftRows):
     :attr:`problem` keeps saying so (see integrity.py).
     """
 
-    def __init__(self, url: str | sa.URL, cell_id: str, recovery: str = DEFAULT_RECOVERY) -> None:
+    def __init__(self, url: str | sa.URL, cell_id: str, recovery: str | None = None) -> None:
         if not cell_id:
             raise InvalidInput("store: cell_id must not be empty")
         self.url = parse_url(url)
         self.cell_id = cell_id
-        self.recovery = recovery
+        self.recovery = recovery if recovery is not None else recovery_hint(None)  # the environment now, not at import
         self._damaged: str | None = None  # kept until the process ends: only a restore mends it
         self._unavailable: str | None = None  # cleared by the next call that succeeds
         self.backend: Backend = backend_of(self.url)

@@ -13,7 +13,6 @@ checked against a pinhole model with a known truth.
 from __future__ import annotations
 
 import math
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -28,15 +27,14 @@ from cellctl.routines.view_plan_fixed import FixedCameraViewPlanner
 from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
-from tests.conftest import CELLCTL
 from tests.support.app import AppCell, in_process_cell
+from tests.support.forked import run_cellctl
 from tests.support.served import run_job
 
 
 def _config(tmp: Path, scene: str, plate_pose: list[float] | None = None) -> tuple[Path, dict[str, Any]]:
     """The built-in ``scene``'s cell.yaml with instantaneous moves (and the plate moved on the tool)."""
-    text = subprocess.run([CELLCTL, "config", "default", "--scene", scene], check=True, capture_output=True,
-                          text=True).stdout
+    text = run_cellctl("config", "default", "--scene", scene, check=True).stdout
     cfg = yaml.safe_load(text)
     scene_path = BUILTIN_SCENES[scene]
     if plate_pose is not None:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,8 @@ import yaml
 
 from calibration import geometry as g
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.support.served import run_job
 
 
@@ -61,8 +61,7 @@ def first_calibration(served: Served) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def truth(config: Path) -> dict[str, Any]:
-    out = subprocess.run([CELLCTL, "sim", "truth", "--config", str(config)], capture_output=True, check=True,
-                         text=True).stdout
+    out = run_cellctl("sim", "truth", "--config", str(config), check=True).stdout
     return dict(json.loads(out))
 
 
@@ -114,7 +113,7 @@ def test_the_parameters_are_typed_and_listed(served: Served) -> None:
     props = listed["handeye-capture"]["params_schema"]["properties"]
     assert props["max_stations"]["default"] == 24 and props["stations"]["default"] == 10
     assert "fraction" in props["distance_range"]["description"] and "degrees" in props["max_spin_deg"]["description"]
-    out = subprocess.run([CELLCTL, "job", "run", "--help"], capture_output=True, text=True, timeout=60).stdout
+    out = run_cellctl("job", "run", "--help", timeout=60).stdout
     assert "max_stations (integer, [4..80]; default 24)" in out and "distance_range" in out
 
 

@@ -11,7 +11,6 @@ within the reported uncertainty. A Stop during the turn ends the job stopped, wi
 from __future__ import annotations
 
 import json
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +24,8 @@ import yaml
 from calibration import geometry as g
 from calibration.targets import target_from_dict
 from cellctl.cli import main
-from tests.conftest import CELLCTL, REPO, Served, start_served, stop_served
+from tests.conftest import REPO, Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.support.wait import wait_until
 
 SCENE = REPO / "drivers" / "sim" / "scenes" / "virtual-cell-fixed-camera.yaml"
@@ -66,8 +66,7 @@ def served(tokens: dict[str, Any]) -> Iterator[Served]:
 
 @pytest.fixture(scope="module")
 def truth(served: Served) -> dict[str, Any]:
-    out = subprocess.run([CELLCTL, "sim", "truth", "--config", str(served.data_dir.parent / "cell.yaml")],
-                         capture_output=True, check=True, text=True).stdout
+    out = run_cellctl("sim", "truth", "--config", str(served.data_dir.parent / "cell.yaml"), check=True).stdout
     return dict(json.loads(out))
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import json
 import logging
-import subprocess
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +18,8 @@ from cellctl.api.app import create_app
 from cellctl.auth import hash_token
 from cellctl.config import default_config_text, parse_config
 from cellctl.logging_setup import JsonFormatter, configure_logging, request_id_var
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 
 
 @pytest.fixture(scope="module")
@@ -150,6 +150,6 @@ def test_text_format_shows_the_request_id() -> None:
 
 
 def test_serve_refuses_an_unknown_log_format() -> None:
-    r = subprocess.run([CELLCTL, "serve", "--log-format", "xml"], capture_output=True, text=True, timeout=60)
+    r = run_cellctl("serve", "--log-format", "xml", timeout=60)
     assert r.returncode == 2
     assert "--log-format" in r.stderr and "invalid choice" in r.stderr and "Traceback" not in r.stderr

@@ -10,7 +10,6 @@ takes time, so a cancel lands mid-routine (real-time motion: the README tour, th
 from __future__ import annotations
 
 import json
-import subprocess
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -23,7 +22,8 @@ import yaml
 from calibration import geometry as g
 from calibration.targets import target_from_dict
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.support.served import run_job
 
 
@@ -42,7 +42,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 @pytest.fixture(scope="module")
 def truth() -> dict[str, Any]:
-    out = subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout
+    out = run_cellctl("sim", "truth", check=True).stdout
     return dict(json.loads(out))
 
 
@@ -232,9 +232,8 @@ def test_move_outside_envelope_is_refused_and_audited(served: Served) -> None:
 def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
     with served.client() as http:
         go_home(http)
-    r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
-                        "--token", served.token, "--param", "tolerance_px=2.0"],
-                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    r = run_cellctl("job", "run", "verify", "--follow", "--url", served.base_url,
+                    "--token", served.token, "--param", "tolerance_px=2.0", timeout=120)
     assert r.returncode == 0, r.stderr
     job = json.loads(r.stdout)
     assert job["state"] == "succeeded" and job["result"]["tolerance_px"] == 2.0
@@ -243,15 +242,13 @@ def test_cli_job_run_follow(served: Served, calibrated: dict[str, Any]) -> None:
 
 def test_cli_job_run_exits_non_zero_when_the_routine_is_refused(served: Served) -> None:
     """A target the config lacks is refused at once (422, no job): exit 2, one line naming it."""
-    r = subprocess.run([CELLCTL, "job", "run", "verify", "--follow", "--url", served.base_url,
-                        "--token", served.token, "--param", "target=nosuch"],
-                       capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    r = run_cellctl("job", "run", "verify", "--follow", "--url", served.base_url,
+                    "--token", served.token, "--param", "target=nosuch", timeout=120)
     assert r.returncode == 2 and r.stdout == ""
     assert "no target 'nosuch'" in r.stderr
 
 
 def test_cli_job_run_bad_token_is_one_line_error(served: Served) -> None:
-    r = subprocess.run([CELLCTL, "job", "run", "verify", "--url", served.base_url, "--token", "nope"],
-                       capture_output=True, text=True, timeout=60)
+    r = run_cellctl("job", "run", "verify", "--url", served.base_url, "--token", "nope", timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "401" in r.stderr

@@ -15,7 +15,8 @@ import yaml
 
 from cellctl.cli import main
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, free_port
+from tests.conftest import free_port
+from tests.support.forked import popen_cellctl
 from tests.support.wait import wait_until
 
 
@@ -40,9 +41,8 @@ def https_cell(tmp_path_factory: pytest.TempPathFactory, certs: tuple[Path, Path
     port = free_port()
     env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp / "data")}
     log = (tmp / "serve.log").open("wb")
-    proc = subprocess.Popen([CELLCTL, "serve", "--host", "127.0.0.1", "--port", str(port),
-                             "--tls-cert", str(cert), "--tls-key", str(key)], env=env, stdout=log,
-                            stderr=subprocess.STDOUT)
+    proc = popen_cellctl(["serve", "--host", "127.0.0.1", "--port", str(port), "--tls-cert", str(cert),
+                          "--tls-key", str(key)], env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"https://127.0.0.1:{port}"
     ctx = ssl.create_default_context(cafile=str(cert))
     try:

@@ -7,7 +7,6 @@ import contextlib
 import io
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -16,7 +15,8 @@ import pytest
 
 from cellctl.cli import main
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, start_served, stop_served
+from tests.conftest import start_served, stop_served
+from tests.support.forked import run_cellctl
 
 
 def _cli(*args: str) -> dict[str, object]:
@@ -77,8 +77,7 @@ def test_serve_on_a_taken_port_keeps_the_session_token(tmp_path: Path) -> None:
         assert before.strip() == served.token
         port = served.base_url.rsplit(":", 1)[1]
         env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp_path / "data")}
-        r = subprocess.run([CELLCTL, "serve", "--host", "127.0.0.1", "--port", port], env=env,
-                           capture_output=True, text=True, timeout=60)
+        r = run_cellctl("serve", "--host", "127.0.0.1", "--port", port, env=env, timeout=60)
         assert r.returncode != 0
         assert f"127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr
         assert token_file.read_text() == before

@@ -4,7 +4,6 @@ camera alarms from those checks, and the thread ends with the service."""
 
 from __future__ import annotations
 
-import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -17,13 +16,12 @@ from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
 from tests.support.app import in_process_cell
-from tests.support.served import CELLCTL
+from tests.support.forked import run_cellctl
 
 
 def fixed_camera_cell(tmp: Path) -> Path:
     """``cellctl config default --scene fixed-camera`` with quick idle checks, its true calibrations active."""
-    cfg = yaml.safe_load(subprocess.run([CELLCTL, "config", "default", "--scene", "fixed-camera"], check=True,
-                                        capture_output=True, text=True).stdout)
+    cfg = yaml.safe_load(run_cellctl("config", "default", "--scene", "fixed-camera", check=True).stdout)
     scene = tmp / "scene.yaml"
     scene.write_text(BUILTIN_SCENES["fixed-camera"].read_text())  # a world of its own (not the shared built-in)
     for dev in (cfg["cameras"]["cam0"], cfg["robots"]["robot0"]):

@@ -10,7 +10,6 @@ same truth.
 from __future__ import annotations
 
 import math
-import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,7 @@ from cellctl.config import parse_config
 from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
-from tests.support.served import CELLCTL
+from tests.support.forked import run_cellctl
 
 WAIT_POSE_UR = [0.55, -0.30, 0.25, math.pi, 0.0, 0.0]
 
@@ -33,8 +32,7 @@ def conveyor_config(tmp: Path, time_scale: float = 1.0, seed: int = 11, count: i
     """cell.yaml of the conveyor cell (``cellctl config default --scene conveyor``) with its scene in ``tmp``
     (the parts' ``seed`` and ``count``, ``belt`` overrides of the scene's ``conveyor`` section), the belt
     at 0 mm/s (a test sets its speed), and the true calibrations stored and active."""
-    text = subprocess.run([CELLCTL, "config", "default", "--scene", "conveyor", "--belt-speed-mm-s", "0"], check=True,
-                          capture_output=True, text=True).stdout
+    text = run_cellctl("config", "default", "--scene", "conveyor", "--belt-speed-mm-s", "0", check=True).stdout
     cfg = yaml.safe_load(text)
     data = yaml.safe_load(BUILTIN_SCENES["conveyor"].read_text())
     data["conveyor"]["parts"].update({"seed": seed, "count": count})

@@ -9,7 +9,6 @@ is measured is the production run itself.
 from __future__ import annotations
 
 import math
-import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,8 @@ from cellctl.config import parse_config
 from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
-from tests.support.served import CELLCTL, Served, start_served
+from tests.support.forked import run_cellctl
+from tests.support.served import Served, start_served
 
 CLEAR_POSE_UR = [0.45, -0.30, 0.25, math.pi, 0.0, 0.0]
 """Out of the camera's view: where the robot waits and the first picture is taken from."""
@@ -32,8 +32,7 @@ def production_config(tmp: Path, scene: dict[str, Any] | None = None, time_scale
                       count: int = 4, seed: int = 3) -> Path:
     """cell.yaml of the production cell (``cellctl config default --scene production``), its scene
     written to ``tmp`` with ``scatter.count``/``seed`` and the ``production`` overrides in ``scene``."""
-    text = subprocess.run([CELLCTL, "config", "default", "--scene", "production"], check=True, capture_output=True,
-                          text=True).stdout
+    text = run_cellctl("config", "default", "--scene", "production", check=True).stdout
     cfg = yaml.safe_load(text)
     data = yaml.safe_load(BUILTIN_SCENES["production"].read_text())
     data["production"]["scatter"].update({"count": count, "seed": seed})

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,9 +15,10 @@ from typing import Any
 
 import httpx
 
+from tests.support.forked import CELLCTL, Forked, popen_cellctl
 from tests.support.ports import free_port
 
-CELLCTL = str(Path(sys.executable).with_name("cellctl"))
+__all__ = ["CELLCTL", "Reachable", "Served", "free_port", "run_job", "start_served", "stop_served"]
 
 
 @dataclass
@@ -36,9 +36,11 @@ class Reachable:
 
 @dataclass
 class Served(Reachable):
-    """A ``cellctl serve`` process on loopback, with its base URL and engineer token."""
+    """A ``cellctl serve`` process on loopback, with its base URL and engineer token: a fork of this
+    test process's fork server (``tests/support/forked.py``), or an exec'd ``cellctl`` where the
+    environment asks for one."""
 
-    process: subprocess.Popen[bytes]
+    process: Forked | subprocess.Popen[bytes]
 
 
 def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str] | None = None,
@@ -47,11 +49,11 @@ def start_served(tmp: Path, config: Path | None = None, extra_env: dict[str, str
     until it no longer says ``starting`` (its warm-up is done: what a user waits for)."""
     port = free_port()
     env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp / "data"), **(extra_env or {})}
-    cmd = [CELLCTL, "serve", "--host", "127.0.0.1", "--port", str(port)]
+    cmd = ["serve", "--host", "127.0.0.1", "--port", str(port)]
     if config is not None:
         cmd += ["--config", str(config)]
-    log = (tmp / "serve.log").open("wb")
-    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+    with (tmp / "serve.log").open("wb") as log:
+        proc = popen_cellctl(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

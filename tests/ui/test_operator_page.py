@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import subprocess
 from collections.abc import Iterator
 from typing import Any
 
@@ -27,7 +26,8 @@ from calibration.io import camera_from_json
 from calibration.targets import target_from_dict
 from cellctl.cli import main
 from cellctl.config import default_config_text
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.ui.conftest import SHOTS
 
 MARKS = 9
@@ -55,7 +55,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Served, dic
 
 @pytest.fixture(scope="module")
 def truth() -> dict[str, Any]:
-    out = subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout
+    out = run_cellctl("sim", "truth", check=True).stdout
     return dict(json.loads(out))
 
 

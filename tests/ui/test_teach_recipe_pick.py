@@ -12,7 +12,6 @@ Screenshots go to ``test-artifacts/screenshots/``.
 from __future__ import annotations
 
 import json
-import subprocess
 from collections.abc import Iterator
 from typing import Any
 
@@ -27,7 +26,8 @@ from calibration.npoint import fit_npoint
 from cellctl.cli import main
 from cellctl.config import default_config_text
 from cellctl.store import Store, sqlite_url
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.ui.conftest import SHOTS
 
 WAIT_MS = 60_000
@@ -35,7 +35,7 @@ expect.set_options(timeout=WAIT_MS)
 
 
 def _truth() -> dict[str, Any]:
-    out = subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout
+    out = run_cellctl("sim", "truth", check=True).stdout
     return dict(json.loads(out))
 
 

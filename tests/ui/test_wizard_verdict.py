@@ -7,7 +7,6 @@ records the mark's true robot position (from the virtual cell's truth) in the re
 from __future__ import annotations
 
 import json
-import subprocess
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -18,7 +17,8 @@ from playwright.sync_api import Browser, Page, expect
 
 from calibration import geometry as g
 from calibration.targets import target_from_dict
-from tests.conftest import CELLCTL, Served, start_served, stop_served
+from tests.conftest import Served, start_served, stop_served
+from tests.support.forked import run_cellctl
 from tests.ui.conftest import SHOTS
 
 expect.set_options(timeout=60_000)
@@ -35,7 +35,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 @pytest.fixture(scope="module")
 def marks_mm() -> dict[int, np.ndarray]:
-    truth = json.loads(subprocess.run([CELLCTL, "sim", "truth"], capture_output=True, check=True, text=True).stdout)
+    truth = json.loads(run_cellctl("sim", "truth", check=True).stdout)
     plate = truth["targets"]["plate"]
     pts = target_from_dict(plate["target"]).points()
     xyz = g.transform_points(np.array(plate["T_base_target"]), pts.xyz_m) * 1e3

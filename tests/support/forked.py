@@ -1,0 +1,239 @@
+"""``cellctl`` runs for the tests as forks of a pre-imported process: real processes, without the imports.
+
+A fresh ``cellctl`` pays about 3 s of CPU importing numpy, scipy, OpenCV, numba, FastAPI and the
+service's pydantic models before it does anything; the suite starts about a hundred served cells
+and many CLI runs. Each test process (an xdist worker) therefore starts one fork server
+(``tests/support/forkserver.py``) on first use, which imports all that once; ``popen_cellctl`` and
+``run_cellctl`` then have it fork a child that takes the call's environment, working directory,
+stdin/stdout/stderr and argv and runs the ``cellctl`` console script. The child is a separate
+process with its own pid, as an exec'd ``cellctl`` is: signals, ``kill -9``, exit codes and logs
+work on it as before, through a ``Popen``-like handle (:class:`Forked`).
+
+What a fork cannot reproduce, an exec does (the call falls back to ``subprocess``, same answers):
+
+- an environment that differs from the server's in a variable read at import time. Only the
+  variables in :data:`READ_AT_USE` may differ (``cellctl`` reads its own ``CELLCTL_*``, ``HOME``
+  and ``XDG_*`` when it uses them, never at import: ``tests/test_forked.py`` holds that); anything
+  else, e.g. ``NUMBA_CACHE_DIR`` (numba reads it at import), means an exec;
+- ``CELLCTL_TEST_FORK=0`` in the environment: every run is exec'd (to compare, or to rule the fork
+  server out).
+
+Tests whose point is the console script itself keep exec'ing it (``subprocess`` with
+``tests.support.served.CELLCTL``): the README's commands, the start-up import checks, the installed
+entry point (docs/testing.md lists them).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import json
+import os
+import select
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+from tests.support.forkserver import HEADER
+
+CELLCTL = str(Path(sys.executable).with_name("cellctl"))
+REPO = Path(__file__).resolve().parents[2]
+READ_AT_USE = ("CELLCTL_", "PYTEST_", "HOME", "XDG_DATA_HOME", "XDG_CONFIG_HOME", "XDG_RUNTIME_DIR")
+"""Environment variables (names or prefixes) a forked run may set differently from its fork server:
+read by ``cellctl`` when used, not at import (pytest's own are for the test process only)."""
+START_TIMEOUT_S = 120.0
+
+Stdio = int | IO[Any] | None
+
+
+class Forked:
+    """A forked ``cellctl``: ``pid``, ``poll``, ``wait``, ``send_signal``, ``terminate``, ``kill``,
+    ``returncode`` (negative: the signal that ended it), as ``subprocess.Popen`` has them."""
+
+    stdin = stdout = stderr = None
+
+    def __init__(self, args: list[str], pid: int, pidfd: int, conn: socket.socket) -> None:
+        self.args = args
+        self.pid = pid
+        self.returncode: int | None = None
+        self._pidfd: int | None = pidfd
+        self._conn = conn
+        self._status = b""
+
+    def _readable(self, timeout_s: float | None) -> bool:
+        return bool(select.select([self._conn], [], [], timeout_s)[0])
+
+    def _collect(self) -> None:
+        """Read the wait status the server sends when the child ends (or notice the server is gone)."""
+        while not self._status.endswith(b"\n"):
+            more = self._conn.recv(64)
+            if not more:
+                raise RuntimeError(f"the fork server went away before {self.args} ended (pid {self.pid})")
+            self._status += more
+        self.returncode = os.waitstatus_to_exitcode(int(self._status))
+        self._conn.close()
+        if self._pidfd is not None:
+            os.close(self._pidfd)
+            self._pidfd = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None and self._readable(0):
+            self._collect()
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None:
+            if not self._readable(timeout):
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+            self._collect()
+        assert self.returncode is not None
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        self.poll()
+        if self.returncode is None and self._pidfd is not None:
+            with contextlib.suppress(ProcessLookupError):  # ended meanwhile, as Popen.send_signal
+                signal.pidfd_send_signal(self._pidfd, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def __enter__(self) -> Forked:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.wait()
+
+
+class ForkServer:
+    """This process's fork server: started on first use, ended when this process exits."""
+
+    def __init__(self) -> None:
+        self.dir = tempfile.mkdtemp(prefix="cellctl-fork-")
+        self.path = os.path.join(self.dir, "s")
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith(("CELLCTL_", "PYTEST_"))}
+        self.log = open(os.path.join(self.dir, "server.log"), "wb")  # noqa: SIM115 (kept open with the server)
+        self.process = subprocess.Popen([sys.executable, "-m", "tests.support.forkserver", self.path],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
+                                        cwd=REPO, env=self.env)
+        assert self.process.stdout is not None
+        ready = select.select([self.process.stdout], [], [], START_TIMEOUT_S)[0]
+        if not ready or self.process.stdout.readline() != b"ready\n":
+            self.close()
+            raise RuntimeError(f"the fork server did not start: {Path(self.dir, 'server.log').read_text()}")
+        self.pid = os.getpid()
+
+    def can_fork(self, env: Mapping[str, str]) -> bool:
+        """Whether a child with ``env`` behaves as an exec'd one (no import-time variable differs)."""
+        keys = set(env) | set(self.env)
+        return all(env.get(k) == self.env.get(k) for k in keys if not k.startswith(READ_AT_USE))
+
+    def spawn(self, args: list[str], env: Mapping[str, str], cwd: str, fds: Sequence[int]) -> Forked:
+        body = json.dumps({"argv": args, "env": dict(env), "cwd": cwd}).encode()
+        conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            conn.connect(self.path)
+            socket.send_fds(conn, [HEADER.pack(len(body)) + body], list(fds))
+            reply = b""
+            pidfds: list[int] = []
+            while not reply.endswith(b"\n"):
+                data, got, _flags, _addr = socket.recv_fds(conn, 64, 1)
+                if not data:
+                    raise RuntimeError(f"the fork server refused {args}: {Path(self.dir, 'server.log').read_text()}")
+                reply += data
+                pidfds += got
+        except BaseException:
+            conn.close()
+            raise
+        return Forked(args, int(reply), pidfds[0], conn)
+
+    def close(self) -> None:
+        if self.process.stdin is not None:
+            self.process.stdin.close()
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        if self.process.stdout is not None:
+            self.process.stdout.close()
+        self.log.close()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+_server: ForkServer | None = None
+
+
+def fork_server() -> ForkServer | None:
+    """This process's fork server (started now if need be), or None when runs are to be exec'd."""
+    global _server
+    if os.environ.get("CELLCTL_TEST_FORK", "1") == "0":
+        return None
+    if _server is None or _server.pid != os.getpid():
+        _server = ForkServer()
+        atexit.register(_server.close)
+    return _server
+
+
+def _fd(stream: Stdio, default: int, opened: list[int]) -> int:
+    if stream is None:
+        return default
+    if isinstance(stream, int):
+        if stream == subprocess.DEVNULL:
+            fd = os.open(os.devnull, os.O_RDWR)
+            opened.append(fd)
+            return fd
+        return stream
+    return stream.fileno()
+
+
+def popen_cellctl(args: Sequence[str], env: Mapping[str, str] | None = None, cwd: str | Path | None = None,
+                  stdin: Stdio = None, stdout: Stdio = None, stderr: Stdio = None) -> Forked | subprocess.Popen[bytes]:
+    """``subprocess.Popen([cellctl, *args], ...)``, forked from the fork server where that is the same."""
+    argv = [CELLCTL, *args]
+    full_env = dict(os.environ if env is None else env)
+    server = fork_server()
+    if server is None or not server.can_fork(full_env):
+        return subprocess.Popen(argv, env=full_env, cwd=cwd, stdin=stdin, stdout=stdout, stderr=stderr)
+    opened: list[int] = []
+    try:
+        out = _fd(stdout, 1, opened)
+        err = out if stderr == subprocess.STDOUT else _fd(stderr, 2, opened)
+        fds = [_fd(stdin, 0, opened), out, err]
+        return server.spawn(argv, full_env, str(cwd if cwd is not None else os.getcwd()), fds)
+    finally:
+        for fd in opened:
+            os.close(fd)
+
+
+def _text(data: bytes) -> str:
+    """As ``text=True`` reads a pipe: decoded, universal newlines."""
+    return data.decode().replace("\r\n", "\n").replace("\r", "\n")
+
+
+def run_cellctl(*args: str, env: Mapping[str, str] | None = None, cwd: str | Path | None = None,
+                timeout: float | None = None, check: bool = False) -> subprocess.CompletedProcess[str]:
+    """``subprocess.run([cellctl, *args], capture_output=True, text=True, ...)`` through :func:`popen_cellctl`."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        proc = popen_cellctl(args, env=env, cwd=cwd, stdin=subprocess.DEVNULL, stdout=out, stderr=err)
+        try:
+            code = proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise
+        out.seek(0)
+        err.seek(0)
+        done = subprocess.CompletedProcess([CELLCTL, *args], code, _text(out.read()), _text(err.read()))
+    if check:
+        done.check_returncode()
+    return done
