@@ -50,6 +50,10 @@ read by ``cellctl`` when used, not at import (pytest's own are for the test proc
 START_TIMEOUT_S = 120.0
 
 Stdio = int | IO[Any] | None
+forked_cpu_s = 0.0
+"""User + system CPU seconds of this process's forked ``cellctl`` runs that have ended and been waited
+for (the fork server's children are not this process's: ``getrusage(RUSAGE_CHILDREN)`` misses them
+until the server exits; ``tests/support/cpu_report.py`` adds this)."""
 
 
 class Forked:
@@ -76,7 +80,10 @@ class Forked:
             if not more:
                 raise RuntimeError(f"the fork server went away before {self.args} ended (pid {self.pid})")
             self._status += more
-        self.returncode = os.waitstatus_to_exitcode(int(self._status))
+        status, cpu_s = self._status.split()
+        self.returncode = os.waitstatus_to_exitcode(int(status))
+        global forked_cpu_s
+        forked_cpu_s += float(cpu_s)
         self._conn.close()
         if self._pidfd is not None:
             os.close(self._pidfd)

@@ -9,7 +9,7 @@ forked into a child that takes those descriptors, that environment and that dire
 its ``__main__``, the interpreter's own exit with its atexit handlers and thread joins). The child is
 a real process with its own pid: signals, ``kill -9``, exit codes and log files work on it as on an
 exec'd ``cellctl``. The server answers each request with the child's pid and a pidfd, and when the
-child ends, with its wait status on the same connection.
+child ends, with its wait status and its CPU seconds (user + system) on the same connection.
 
 The server is single-threaded and forks from its one thread: the thread pools that numpy's and
 scipy's OpenBLAS and OpenCV start at import are shut down by their own fork handlers, and each fork
@@ -146,7 +146,7 @@ def serve(path: str) -> Request:
 def _reap(children: dict[int, socket.socket]) -> None:
     while True:
         try:
-            pid, status = os.waitpid(-1, os.WNOHANG)
+            pid, status, usage = os.wait4(-1, os.WNOHANG)
         except ChildProcessError:
             return
         if pid == 0:
@@ -154,7 +154,7 @@ def _reap(children: dict[int, socket.socket]) -> None:
         conn = children.pop(pid, None)
         if conn is not None:
             with contextlib.suppress(OSError):
-                conn.sendall(f"{status}\n".encode())
+                conn.sendall(f"{status} {usage.ru_utime + usage.ru_stime}\n".encode())
             conn.close()
 
 
