@@ -66,6 +66,25 @@ def preload() -> None:
             importlib.import_module(name)
 
 
+def load_compiled_loops() -> None:
+    """Load the renderer's, matcher's and calibration solver's compiled loops from numba's cache (what
+    every served cell's warm-up does first, ~1 s of CPU), on this thread alone: the renderer's pool
+    is held at one thread meanwhile, so no pool thread exists to be lost by a fork. The matcher's
+    warm-up search is left to each child's own warm-up (``vision.shape.warm_up`` still runs it there)."""
+    from cellctl import warmup
+    from drivers.sim.imaging import renderer
+    from vision.shape import kernels
+
+    threads_were = renderer.RENDER_THREADS
+    renderer.RENDER_THREADS = 1
+    try:
+        warmup.warm_renderer()
+    finally:
+        renderer.RENDER_THREADS = threads_were
+    kernels._load_all()
+    warmup.warm_calibration()
+
+
 def threads() -> int:
     return len(os.listdir("/proc/self/task"))
 
@@ -176,9 +195,12 @@ def become(request: Request) -> None:
 
 def main() -> None:
     preload()
+    load_compiled_loops()
     gc.collect()
     gc.freeze()  # the imported objects stay out of the children's collections: their pages stay shared
     shut_pools()
+    if threads() != 1:
+        print(f"forkserver: {threads()} threads after start-up", file=sys.stderr, flush=True)
     sys.stdout.flush()
     request = serve(sys.argv[1])
     become(request)
