@@ -125,12 +125,12 @@ def serve(path: str) -> Request:
     children: dict[int, socket.socket] = {}
     os.write(1, b"ready\n")
     while True:
-        readable, _, _ = select.select([listener, 0, wake_r], [], [])
+        readable, _, _ = select.select([listener.fileno(), 0, wake_r], [], [])
         if 0 in readable and not os.read(0, 4096):
             os._exit(0)  # the client is gone: so is its fork server (running children go on)
         if wake_r in readable:
             os.read(wake_r, 4096)
-        if listener in readable:
+        if listener.fileno() in readable:
             conn, _ = listener.accept()
             try:
                 request = _read_request(conn)
