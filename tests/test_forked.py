@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import pytest
 
 from tests.support.forked import READ_AT_USE, REPO, Forked, fork_server, popen_cellctl, run_cellctl
 from tests.support.forkserver import PRELOAD
@@ -55,9 +56,10 @@ def test_a_forked_run_has_its_own_env_cwd_stdio_and_exit_code(tmp_path: Path) ->
     assert bad.returncode == 2 and "invalid choice" in bad.stderr and bad.stdout == ""
 
 
-def test_a_forked_serve_is_a_process_of_its_own(tmp_path: Path) -> None:
+def test_a_forked_serve_is_a_process_of_its_own(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Its own pid, cwd and data dir (the environment it was given), /health on its port, and kill -9
     ends it as it ends an exec'd one (returncode -9); the server forked it from its only thread."""
+    monkeypatch.setenv("CELLCTL_TEST_FORK", "1")  # this test is about the fork even in a run that execs
     port = free_port()
     env = {**os.environ, "CELLCTL_DATA_DIR": str(tmp_path / "data")}
     with (tmp_path / "serve.log").open("wb") as log:
