@@ -59,7 +59,7 @@ REWEIGHT_MARGIN = 1.25
 def calibrate(detections: Sequence[Detection], target: Target, model: str = "opencv5", *,
               image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
               jackknife: bool = True, board_warp: bool = False,
-              spline_grid: tuple[int, int, float] | None = None) -> IntrinsicsResult:
+              spline_grid: tuple[int, int, float] | None = None, reject_views: bool = False) -> IntrinsicsResult:
     """Calibrate one camera from detections of ``target`` (see the module docstring).
 
     ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
@@ -73,6 +73,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     ``model="splined"``: mrcal's splined stereographic model (``splined_solver.calibrate_splined``;
     ``spline_grid = (Nx, Ny, fov_x_deg)`` fixes its grid, default chosen from the data); refused
     with the reason on sets that cannot carry it.
+
+    ``reject_views``: remove views whose leave-one-out influence on the projection is beyond what
+    the solve's uncertainty predicts (``influence``: a chi-square test at a 1 % false-alarm rate
+    over the set), one at a time, keeping the set's coverage; each says why in ``views`` and the
+    test's summary is ``IntrinsicsResult.view_rejection``.
 
     Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
@@ -128,6 +133,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             iters += it2
             p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
             floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
+    view_rejection = None
+    if reject_views:
+        from calibration.intrinsics.influence import reject_influential_views
+        views, (p, c, R, t, iters), view_rejection = reject_influential_views(
+            model, size, views, results, target, n_lens, (p, c, R, t, iters))
     # final Jacobian, covariance
     free = np.ones(n_par, dtype=bool)
     nrm, r = normal_equations_at(p, c, R, t, free)
@@ -203,7 +213,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
                             param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,
                             coverage=coverage, uncertainty_map_px=umap, iterations=iters,
-                            time_s=time.perf_counter() - t0, board_warp=warp)
+                            time_s=time.perf_counter() - t0, board_warp=warp, view_rejection=view_rejection)
 
 
 Solved = tuple[BundleProblem, F64, F64, F64, int]
