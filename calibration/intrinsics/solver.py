@@ -204,6 +204,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
                      values=dict(zip(names, c[:n_lens].tolist(), strict=True)), uncertainty=unc,
                      n_outlier_views=int(view_out.sum()), model=model)
     del pose_cov
+    for k in (view_rejection or {}).get("kept_significant", []):
+        verdict["advice"].append({"code": "influential_view_kept",
+                                  "message": f"{k['image']} moves the projection {k['shift_px']} px where one view "
+                                             f"is predicted to move it {k['predicted_px']} px (a sheared or blurred "
+                                             f"view?), but it was kept: {k['kept_because']}"})
     warp = None
     if board_warp:
         sw = np.sqrt(np.maximum(np.diag(cov_all)[n_lens:], 0.0))

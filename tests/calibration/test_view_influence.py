@@ -89,7 +89,8 @@ def test_clean_sets_lose_no_view_and_the_statistic_is_chi_square() -> None:
 
 def test_a_bad_view_that_alone_covers_an_image_corner_is_kept() -> None:
     """Never drop so much that the set is no longer covered: the one view left that reaches an
-    image corner stays, though sheared and significant, and the summary names it."""
+    image corner stays, though sheared and significant; the test stops there (no other view is
+    dropped for the pull this one has on it) and the summary names it and why."""
     dets = _views(5)
     size = TRUTH.size
     reach = [set(CORNERS) - set(uncovered_corners(coverage_counts(size, d.uv))) for d in dets]
@@ -100,7 +101,11 @@ def test_a_bad_view_that_alone_covers_an_image_corner_is_kept() -> None:
     _shear(dets[bad], 6.0)
     res = calibrate(dets, BOARD, "opencv5", jackknife=False, reject_views=True)
     assert res.views[bad].used, res.views[bad].reason
-    assert res.view_rejection is not None and dets[bad].image in res.view_rejection["kept_significant"]
+    assert res.view_rejection is not None and res.view_rejection["rejected"] == []
+    (kept,) = res.view_rejection["kept_significant"]
+    assert kept["image"] == dets[bad].image and corner in kept["kept_because"], kept
+    assert any(a["code"] == "influential_view_kept" and dets[bad].image in a["message"]
+               for a in res.verdict["advice"])
     assert corner not in uncovered_corners(res.coverage)
 
 
