@@ -86,11 +86,9 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     if model not in MODEL_NAMES:
         raise IntrinsicsError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
     if model == "splined":
-        if board_warp:
-            raise IntrinsicsError("the board warp is not solved with the splined model; use board_warp=False")
         from calibration.intrinsics.splined_solver import calibrate_splined
         from calibration.splined import SplineLayout
-        return calibrate_splined(detections, target, image_size=image_size,
+        return calibrate_splined(detections, target, image_size=image_size, board_warp=board_warp,
                                  layout=None if spline_grid is None else SplineLayout(*spline_grid))
     views, results, size = collect_views(detections, target, image_size)
     if len(views) < MIN_VIEWS:
