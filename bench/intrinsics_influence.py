@@ -54,7 +54,7 @@ def rolling_shutter(img: np.ndarray, shear_px: float, blur_px: int) -> np.ndarra
 
 
 def render_rows(seed: int, shear_px: float, blur_px: int, n_views: int = 12,
-                size: tuple[int, int] = (960, 720)) -> list[dict[str, Any]]:
+                size: tuple[int, int] = (960, 720), clean_only: bool = False) -> list[dict[str, Any]]:
     board = Chessboard(9, 6, 20.0)
     truth, imaging = scene_camera_and_imaging(size)
     rng = np.random.default_rng(seed)
@@ -62,8 +62,11 @@ def render_rows(seed: int, shear_px: float, blur_px: int, n_views: int = 12,
     imgs = [render(truth, [PlanarObject(T, board.reflectance)], imaging, rng, supersample=32) for T in poses]
     bad = seed % n_views
     rows = []
-    for label, images in (("clean", imgs), ("bad view", [rolling_shutter(g, shear_px, blur_px) if k == bad else g
-                                                         for k, g in enumerate(imgs)])):
+    sets = [("clean", imgs)]
+    if not clean_only:
+        sets.append(("bad view", [rolling_shutter(g, shear_px, blur_px) if k == bad else g
+                                  for k, g in enumerate(imgs)]))
+    for label, images in sets:
         dets = [d for d in (detect(g, board, f"v{k:02d}") for k, g in enumerate(images)) if d.found]
         plain = calibrate(dets, board, "opencv5")
         pts = covered_points(plain)
@@ -127,12 +130,13 @@ def main() -> None:
     ap.add_argument("--shear-px", type=float, default=4.0)
     ap.add_argument("--blur-px", type=int, default=5)
     ap.add_argument("--sets", default="udacity,gopro,opencv_left,opencv_right,fisheye")
+    ap.add_argument("--clean-only", action="store_true", help="renders without the bad view only (false alarms)")
     a = ap.parse_args()
     warm_up()
     for key in [k for k in a.sets.split(",") if k]:
         real_rows(key)
     for seed in range(a.first_seed, a.first_seed + a.render_seeds):
-        render_rows(seed, a.shear_px, a.blur_px)
+        render_rows(seed, a.shear_px, a.blur_px, clean_only=a.clean_only)
 
 
 if __name__ == "__main__":
