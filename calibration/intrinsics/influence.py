@@ -16,9 +16,11 @@ solve's own uncertainty predicts for removing one view (a Cook's-distance / Haus
   has its own residual variance ``s_w^2`` (its residuals over its points' dof less its pose's 6) and
   the covariance is the sandwich ``A (Q - s_v^2 S_v) A^T + s_v^2 S^-1 S_v S^-1`` with ``A = (S -
   S_v)^-1 - S^-1`` and ``Q = sum_w s_w^2 S_w`` (the formula above when all are equal). Without it
-  the worst-fitting sweep of mrcal's fisheye set (frames 81-87, RMS 1.8x the median) was rejected,
-  while a sheared view on renders is found either way. ``T_v = dq_v^T (M C_v M^T)^+ dq_v`` is then
-  chi-square with ``r`` degrees of freedom (the rank the covered region sees);
+  the worst-fitting sweep of mrcal's fisheye set (frames 81-87, RMS 1.8x the median) was rejected.
+  A view's variance counts up to the RMS rule's limit (``VIEW_OUTLIER_FACTOR`` x the median view's
+  RMS): beyond it the excess is the view's defect and must not excuse its influence.
+  ``T_v = dq_v^T (M C_v M^T)^+ dq_v`` is then chi-square with ``r`` degrees of freedom (the rank
+  the covered region sees);
 - errors correlated within a view (a lens the model fits only approximately, a detector's bias
   along an edge) move the camera more than independent pixel noise of the same size: every
   ``T_v`` is scaled up alike. That
@@ -51,7 +53,7 @@ from calibration.intrinsics.model import (
     information_scale,
     normal_equations_at,
 )
-from calibration.intrinsics.results import F64, MIN_VIEWS, ViewResult
+from calibration.intrinsics.results import F64, MIN_VIEWS, VIEW_OUTLIER_FACTOR, ViewResult
 from calibration.intrinsics.uncertainty import cell_point_means, coverage_counts, projection_jacobians
 from calibration.intrinsics.views import ViewData, solve_views
 from calibration.targets import Target
@@ -244,7 +246,11 @@ def _influence_of(p: BundleProblem, c: F64, R: F64, t: F64, views: list[ViewData
         # or one the lens model fits less well, is expected to move the camera more
         e = np.add.reduceat(r * r, 2 * p.starts[:-1])
         m = np.add.reduceat(kept.astype(np.float64), 2 * p.starts[:-1])
-        sigma2: float | F64 = e / np.maximum(m - 6.0, 1.0)
+        s2 = e / np.maximum(m - 6.0, 1.0)
+        # up to the RMS rule's limit (VIEW_OUTLIER_FACTOR x the median view's RMS): beyond it the
+        # excess is the view's own defect, which must not excuse its influence (a render's view
+        # sheared 4 px and blurred, RMS 6.6x the median, went undetected without the cap)
+        sigma2: float | F64 = np.minimum(s2, VIEW_OUTLIER_FACTOR**2 * float(np.median(s2)))
     else:
         sigma2 = float(np.sum(r * r)) / max(int(kept.sum()) - len(c) - 6 * p.n_views, 1)
     camera = camera_from_vector(p.model, size, c[:n_lens])
