@@ -5,6 +5,7 @@ on the projection, tested against what the solve's own uncertainty predicts; cle
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 import calibration.intrinsics.influence as influence
@@ -111,3 +112,21 @@ def test_a_bad_view_that_alone_covers_an_image_corner_is_kept() -> None:
 
 CORNERS = ("top-left", "top-right", "bottom-left", "bottom-right")
 
+
+
+def test_a_merely_noisier_view_is_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A view with 2.5x the others' noise (blur, distance: honest but less precise) is expected to
+    move the camera more; with each view's own variance in the test it is kept, with one variance
+    for all it was rejected (the reason for ``PER_VIEW_VARIANCE``)."""
+    kept, common = 0, 0
+    for seed in (1, 2, 3):
+        dets = _views(seed)
+        k = seed % len(dets)
+        dets[k].uv = dets[k].uv + np.random.default_rng(100 + seed).normal(0, 0.25, dets[k].uv.shape)
+        res = calibrate(dets, BOARD, "opencv5", jackknife=False, reject_views=True)
+        kept += res.views[k].used and res.view_rejection is not None and not res.view_rejection["rejected"]
+        monkeypatch.setattr(influence, "PER_VIEW_VARIANCE", False)
+        res = calibrate(dets, BOARD, "opencv5", jackknife=False, reject_views=True)
+        common += not res.views[k].used
+        monkeypatch.setattr(influence, "PER_VIEW_VARIANCE", True)
+    assert kept == 3 and common >= 2, (kept, common)
