@@ -294,7 +294,7 @@ def _match_of(p: Pose, r: Refined, mirrored: bool) -> Match:
 def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined) -> Match:
     """``mt``'s pose finished on the taught patch (``patch.finish``), with the 1-sigma of the merged fit
     and the patch's scores; unchanged without a patch or where it cannot be fitted. Only answered
-    matches (and the best candidate below ``min_score``) are finished: the rest cost nothing more."""
+    matches are finished: the rest cost nothing more."""
     if patch is None:
         return mt
     done = finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg), mt.scale, r.cov)
@@ -338,7 +338,9 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     best = None
     if low is not None:
         r, mir = low
-        fm = _finish((model.mirrored() if mir else model).patch, pyr, _match_of(r.pose, r, mir), r)  # as a match
+        # the edge fit's pose (a hint of where the best candidate lay; not finished on the patch: a
+        # grey-value fit of something that is not the part costs its most iterations and says nothing)
+        fm = _match_of(r.pose, r, mir)
         best = Candidate(fm.u_px, fm.v_px, fm.angle_deg, r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
