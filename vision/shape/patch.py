@@ -39,7 +39,7 @@ from vision.errors import TeachError
 from vision.image import F64, U8, bilinear
 from vision.shape import cov_kernels as ck
 from vision.shape import patch_kernels as pk
-from vision.shape.uncertainty import JACKKNIFE_BLOCKS, blocks_of, combine, sigma_of
+from vision.shape.uncertainty import JACKKNIFE_BLOCKS, blocks_of, merge, sigma_of
 
 MAX_SAMPLES = 1500
 """Sample points of a patch (a large part is subsampled on a grid: its fit's cost is bounded)."""
@@ -328,7 +328,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
     pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
     # a jackknife over few blocks can come out nearly singular: floor each at a thousandth px / rad^2
     eps = np.diag([1e-6, 1e-6, 1e-10])
-    p, C, chi = combine(pe, Ce + eps, pp, pf.cov + eps)
+    p, C, chi = merge(pe, Ce + eps, pp, pf.cov + eps)
     if chi > SPLIT_CHI2 and pf.cov[2, 2] < Ce[2, 2]:
         # the two cannot both be right (beyond 5 sigma): the edges were dragged (texture, a shading
         # gradient beside a faint outline) or never fixed the turn. The part's pixels, which match it
@@ -342,8 +342,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
         Ce_pos = Ce.copy()
         Ce_pos[2, :2] = Ce_pos[:2, 2] = 0.0
         Ce_pos[2, 2] = 1e2
-        p, C, chi2 = combine(pe, Ce_pos + eps, pp, pf.cov + eps)
-        C = C * max(chi2, 1.0)
+        p, C, _ = merge(pe, Ce_pos + eps, pp, pf.cov + eps)
     sd, sp = sigma_of(C)
     scores["fit_chi2"] = round(chi, 3)
     return float(p[0]), float(p[1]), float(p[2]), sd, sp, scores

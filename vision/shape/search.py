@@ -52,6 +52,7 @@ from vision.shape.patch import finish as finish_on_patch
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
+from vision.shape.uncertainty import sigma_of
 from vision.shape.verify import Contour, claimed, contour_of, hidden_by, verify
 from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, Rejected, SearchParams
 
@@ -295,10 +296,13 @@ def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined) -> M
     """``mt``'s pose finished on the taught patch (``patch.finish``), with the 1-sigma of the merged fit
     and the patch's scores; unchanged without a patch or where it cannot be fitted. Only answered
     matches are finished: the rest cost nothing more."""
-    if patch is None:
-        return mt
-    done = finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg), mt.scale, r.cov)
-    if done is not None:
+    done = None if patch is None else finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg),
+                                                      mt.scale, r.cov)
+    if done is None and r.cov is not None and np.all(np.isfinite(r.cov)):
+        # no patch to finish on (or its interior does not match): the edge fit's own honest 1-sigma (its
+        # block jackknife: a stretch of edge pulled by shading or texture shows in it)
+        mt.sigma_angle_deg, mt.sigma_px = sigma_of(r.cov)
+    elif done is not None:
         mt.u_px, mt.v_px, th, mt.sigma_angle_deg, mt.sigma_px, extra = done
         mt.angle_deg = wrap_deg(math.degrees(th))
         mt.scores.update(extra)

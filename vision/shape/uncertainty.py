@@ -133,6 +133,33 @@ def combine(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
     return p, C * max(chi, 1.0), chi
 
 
+def merge(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
+    """Merge two fits' estimates of (x, y, theta) by their covariances, with the covariance a
+    random-effects model gives it: where the two differ by more than their covariances allow, the
+    excess is an error that each fit has beyond its own covariance (the part's look changed, an edge
+    was dragged: neither fit sees it in its own residuals). It is estimated from their difference ``d``
+    by the method of moments (DerSimonian and Laird's), ``E|d_xy|^2 = tr(Ce + Cp)_xy + 4 tau_xy^2``
+    (isotropic in position) and ``E d_theta^2 = (Ce + Cp)_theta + 2 tau_theta^2``, and the merged
+    estimate (weighted by the fits' own covariances, as ``combine``: the sharper fit leads) gets the
+    covariance it has when each fit carries ``T = diag(tau_xy^2, tau_xy^2, tau_theta^2)`` more,
+    ``C + C (We T We + Wp T Wp) C``. Two fits that agree within their 1-sigma get nothing added (the
+    renders); two that disagree report about the disagreement. Returns the merged estimate, its
+    covariance and the two's chi-square per degree of freedom."""
+    d = pp - pe
+    S = Ce + Cp
+    try:
+        chi = float(d @ np.linalg.solve(S, d)) / 3.0
+        We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
+        C = np.linalg.inv(We + Wp)
+    except np.linalg.LinAlgError:
+        return pe, Ce, float("inf")
+    tau_xy = max(float(d[0] ** 2 + d[1] ** 2) - float(S[0, 0] + S[1, 1]), 0.0) / 4.0
+    tau_th = max(float(d[2] ** 2) - float(S[2, 2]), 0.0) / 2.0
+    T = np.diag([tau_xy, tau_xy, tau_th])
+    C_re = C + C @ (We @ T @ We + Wp @ T @ Wp) @ C
+    return C @ (We @ pe + Wp @ pp), np.asarray(C_re, dtype=np.float64), chi
+
+
 def sigma_of(C: F64) -> tuple[float, float]:
     """1-sigma of the angle (deg) and of the position (px, the larger axis) of a (3, 3) covariance of
     (x, y, theta)."""
