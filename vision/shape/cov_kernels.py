@@ -79,7 +79,7 @@ def classical_cov(H: F64, s2: float, corr: float) -> F64:
     for i in range(k):
         if not Hi[i, i] > 0:
             return np.full((k, k), np.inf)
-    return Hi * s2 * corr
+    return np.asarray(Hi * (s2 * corr), dtype=np.float64)
 
 
 @njit(cache=True)
