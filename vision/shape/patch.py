@@ -304,13 +304,15 @@ def _fit_at(patch: TeachPatch, pyr: list[U8], lv: int, x: float, y: float, theta
 
 
 def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, scale: float,
-           cov_edge: F64 | None) -> tuple[float, float, float, float, float, dict[str, float]] | None:
+           cov_edge: F64 | None, T0: F64 | None = None
+           ) -> tuple[float, float, float, float, float, dict[str, float]] | None:
     """The final pose from the edge fit's ``(x, y, theta, scale)`` (level-0 px, rad) and its covariance,
     and the patch fit from there (on the image's pyramid ``pyr``, at the patch's ``fit_level``):
     ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their covariances (``uncertainty.combine``:
     widened by their disagreement), or ``None`` when the patch cannot be fitted there. ``scores``:
     ``patch_ncc`` (the patch's correlation at the final pose) and ``fit_chi2`` (the two fits'
-    disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma)."""
+    disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma). ``T0``: the
+    extra error each fit carries by the model's teach views (``uncertainty.merge``)."""
     Ce = cov_edge if cov_edge is not None and np.all(np.isfinite(cov_edge)) else np.diag([1e6, 1e6, 1e2])
     start = theta
     lv = min(patch.fit_level(), len(pyr) - 1)
@@ -328,7 +330,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
     pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
     # a jackknife over few blocks can come out nearly singular: floor each at a thousandth px / rad^2
     eps = np.diag([1e-6, 1e-6, 1e-10])
-    p, C, chi = merge(pe, Ce + eps, pp, pf.cov + eps)
+    p, C, chi = merge(pe, Ce + eps, pp, pf.cov + eps, T0)
     if chi > SPLIT_CHI2 and pf.cov[2, 2] < Ce[2, 2]:
         # the two cannot both be right (beyond 5 sigma): the edges were dragged (texture, a shading
         # gradient beside a faint outline) or never fixed the turn. The part's pixels, which match it
@@ -342,7 +344,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
         Ce_pos = Ce.copy()
         Ce_pos[2, :2] = Ce_pos[:2, 2] = 0.0
         Ce_pos[2, 2] = 1e2
-        p, C, _ = merge(pe, Ce_pos + eps, pp, pf.cov + eps)
+        p, C, _ = merge(pe, Ce_pos + eps, pp, pf.cov + eps, T0)
     sd, sp = sigma_of(C)
     scores["fit_chi2"] = round(chi, 3)
     return float(p[0]), float(p[1]), float(p[2]), sd, sp, scores
