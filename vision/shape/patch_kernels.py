@@ -76,16 +76,25 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
         J[2], J[3], J[4], J[5] = ax * px, ax * py, ay * px, ay * py
         J[6], J[7] = -aq * px, -aq * py
         J[8], J[9] = I, 1.0
-        k = block[i] if blocks else 0
-        for p in range(NP):
-            wj = wt * J[p]
-            g[p] += wj * res
-            if blocks:
+        if blocks:  # per block only: the whole system is their sum (below)
+            k = block[i]
+            for p in range(NP):
+                wj = wt * J[p]
                 Gb[k, p] += wj * res
-            for q in range(p, NP):
-                H[p, q] += wj * J[q]
-                if blocks:
+                for q in range(p, NP):
                     Hb[k, p, q] += wj * J[q]
+        else:
+            for p in range(NP):
+                wj = wt * J[p]
+                g[p] += wj * res
+                for q in range(p, NP):
+                    H[p, q] += wj * J[q]
+    if blocks:
+        for k in range(nb):
+            for p in range(NP):
+                g[p] += Gb[k, p]
+                for q in range(p, NP):
+                    H[p, q] += Hb[k, p, q]
     for p in range(NP):
         for q in range(p):
             H[p, q] = H[q, p]
