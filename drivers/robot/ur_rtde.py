@@ -82,7 +82,6 @@ class URRTDERobot(URHostTracking):
         self._stop_requested = threading.Event()
         self._ever_connected = False
 
-    @property
     def tool_turn_speed_deg_s(self) -> float:
         return self.config.tool_turn_speed_deg_s
 

@@ -114,6 +114,27 @@ def test_the_meeting_is_inside_the_window_or_the_part_is_missed() -> None:
     assert isinstance(inside, Meeting) and inside.x_mm == pytest.approx(400.0)
 
 
+def test_the_meeting_is_planned_with_the_robots_own_timing_and_the_lead() -> None:
+    """``travel`` (the robot's timing of the move to the approach pose) and ``lead_s`` set when the arm can be
+    above the part: a slower arm or a longer lead meets the part further along, never past the window."""
+    tool = np.array([0.55, -0.30, 0.25])
+    part = _part(360.0, 0)  # inside the window already: no slack to spare
+    seen: list[np.ndarray] = []
+
+    def travel(T: np.ndarray) -> float:
+        seen.append(T)
+        return 0.5
+
+    m = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4, travel=travel)
+    assert isinstance(m, Meeting) and m.x_mm == pytest.approx(410.0, abs=1.0) and m.wait_s < 0.02
+    assert seen[-1][2, 3] == pytest.approx(0.036) and seen[-1][0, 3] == pytest.approx(m.x_mm * 1e-3, abs=1e-3)
+    later = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4, travel=travel, lead_s=0.3)
+    assert isinstance(later, Meeting) and later.x_mm == pytest.approx(440.0, abs=1.0)
+    slow = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4,
+                        travel=lambda T: 3.5)
+    assert isinstance(slow, Missed) and "cannot reach it inside the window" in slow
+
+
 def test_the_watch_measures_the_speed_and_catches_a_jump() -> None:
     w = BeltWatch(10000.0)
     for k in range(30):
