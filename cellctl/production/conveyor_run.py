@@ -305,7 +305,9 @@ class ConveyorRun(ProductionRun):
         report = self.robot.tracking_report()  # measured by a host-side tracker (the UR's); None: not measured
         if report is not None:
             fields["tracking_error_mm"] = {"rms": report["rms_mm"], "max": report["max_mm"],
-                                           "samples": report["samples"], "servo_steps": report["servo_steps"]}
+                                           "samples": report["samples"], "servo_steps": report["servo_steps"],
+                                           **{k: report[k] for k in ("mean_along_mm", "stream_gap_ms", "feed_gap_ms",
+                                                                     "sample_age_ms") if k in report}}
         if not check.held:
             c.grip_failures += 1
             self._record("grip_failed", cand, picture, d=d, t_cycle=t_cycle, belt=fields,

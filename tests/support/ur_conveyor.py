@@ -36,6 +36,7 @@ UR_SETTINGS = {
     "stall_timeout_s": 1.0,
     "command_timeout_s": 5.0,
     "connect_timeout_s": 10.0,
+    "acceleration_m_s2": 3.0,  # a pick-and-place cell's moveL acceleration (ur_rtde's default 1.2 is a teach value)
 }
 
 REALTIME_NICE = -10
