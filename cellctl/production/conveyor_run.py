@@ -349,7 +349,7 @@ class ConveyorRun(ProductionRun):
             x_part = part.x_at(belt, ticks)
             late_mm = (ticks - meeting.ticks) / belt.ticks_per_m * 1e3
             room_mm = self.window_mm[1] - x_part
-            if late_mm <= LATE_MM and room_mm >= self.watch.speed_mm_s() * self._follow_s(part.cand):
+            if late_mm <= LATE_MM and room_mm >= self.watch.speed_mm_s() * self._follow_s(part.cand) - LATE_MM:
                 return ticks, meeting, waited_ms, replans
             why = (f"the robot was above the meeting point late ({late_mm:.0f} mm of belt): the part was at x = "
                    f"{x_part:.0f} mm, too near the window's end ({self.window_mm[1]:.0f} mm) to be followed while "
