@@ -367,7 +367,8 @@ class ConveyorRun(ProductionRun):
     def _approach(self, T_app: np.ndarray, d: Durations) -> float:
         """Move above the meeting point while the gripper opens (on the run's gripper thread: the open is hidden
         behind the move); both done when this returns, a failed open raised after the move. The open's time, s."""
-        assert self._opener is not None
+        if self._opener is None:  # a bug, not a plant's mistake: the run's start makes it
+            raise RuntimeError("the belt run's gripper thread is not running")
         opening = self._opener.submit(self.gripper.open)
         try:
             self._move(T_app, "above the part's meeting point", d)
