@@ -243,9 +243,12 @@ def run_set(s: RealSet, workdir: Path) -> list[dict[str, Any]]:
 
         t0 = time.process_time()
         cands = [(m, w) for m in ("division", "opencv5", "fisheye4", "opencv8") for w in (False, True)]
-        sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size)
+        # the product's answer: calib intrinsics --model auto (influential views rejected, the halves of the kept)
+        sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size, reject_views=True)
         ch = sel["chosen"]
-        sel_h = [calibrate(dets[h], s.board, ch["model"], image_size=s.size, board_warp=ch["board_warp"]).camera
+        kept = {v.image for v in sel_res.views if v.used}
+        kd = [d for d in dets if d.image in kept]
+        sel_h = [calibrate(kd[h], s.board, ch["model"], image_size=s.size, board_warp=ch["board_warp"]).camera
                  for h in HALVES]
         add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else ""),
             projection_difference(sel_h[0], sel_h[1], pts)["rms_px"], sel_res.rms_px, time.process_time() - t0,
