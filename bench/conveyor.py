@@ -103,6 +103,15 @@ def tracking_run(speed: float, seed: int, parts: int, ur: bool = False) -> Resul
             med = float(np.median([t["rms"] for t in tracked]))
             out.note += (f"; arm's tracking error while holding on: RMS median {med:.2f} mm, max "
                          f"{max(t['max'] for t in tracked):.2f} mm; grip failures {out.grip_failures}")
+            if all("mean_along_mm" in t for t in tracked):  # steady lag or jitter; where the stalls were
+                along = [t["mean_along_mm"] for t in tracked]
+                out.note += (f"; along-belt mean per cycle {min(along):+.2f}..{max(along):+.2f} mm; longest gaps: "
+                             f"servo steps {max(t['stream_gap_ms'] for t in tracked):.0f} ms, count feed "
+                             f"{max(t['feed_gap_ms'] for t in tracked):.0f} ms, state sample age "
+                             f"{max(t['sample_age_ms'] for t in tracked):.0f} ms")
+        replans = sum(int(x["belt"].get("replans") or 0) for x in cycles if x["result"] == "placed")
+        if replans:
+            out.note += f"; meetings planned again (arm late) {replans}"
         errs = placement_errors(http.get("/sim/truth").json())
         out.err_mm, out.err_deg = [e[0] for e in errs], [e[1] for e in errs]
     return out

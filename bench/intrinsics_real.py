@@ -175,9 +175,9 @@ def _opencv_in_our_order(d: Detection, c: np.ndarray, board: Chessboard) -> np.n
     return min((g.reshape(-1, 2) for g in cands), key=lambda x: float(np.sum((x - d.uv) ** 2)))
 
 
-def image_set(folder: str, cols: int, rows: int) -> RealSet:
+def image_set(folder: str, cols: int, rows: int, pattern: str = "*.jpg", name: str | None = None) -> RealSet:
     board = Chessboard(cols, rows, 1000.0)   # square size unknown: 1 m (scale does not enter the intrinsics)
-    files = sorted((DATA / folder).glob("*.jpg"))
+    files = sorted((DATA / folder).glob(pattern))
     greys = [read_image(f) for f in files]
     sizes = [(g.shape[1], g.shape[0]) for g in greys]
     size = max(set(sizes), key=sizes.count)
@@ -191,7 +191,12 @@ def image_set(folder: str, cols: int, rows: int) -> RealSet:
             ours.append(d)
             cvs.append(Detection(f.name, True, ids=d.ids.copy(), uv=_opencv_in_our_order(d, c, board),
                                  image_size=size))
-    return RealSet(folder, board, size, {"ours": ours, "opencv": cvs})
+    return RealSet(name or folder, board, size, {"ours": ours, "opencv": cvs})
+
+
+def stereo_set(side: str) -> RealSet:
+    """OpenCV's stereo sample chessboards, one camera (``left`` or ``right``: 13 views, 640x480, 9x6)."""
+    return image_set("opencv_stereo_9x6", 9, 6, f"{side}*.jpg", f"opencv_{side}_9x6")
 
 
 def fisheye_set() -> RealSet:
@@ -238,9 +243,12 @@ def run_set(s: RealSet, workdir: Path) -> list[dict[str, Any]]:
 
         t0 = time.process_time()
         cands = [(m, w) for m in ("division", "opencv5", "fisheye4", "opencv8") for w in (False, True)]
-        sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size)
+        # the product's answer: calib intrinsics --model auto (influential views rejected, the halves of the kept)
+        sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size, reject_views=True)
         ch = sel["chosen"]
-        sel_h = [calibrate(dets[h], s.board, ch["model"], image_size=s.size, board_warp=ch["board_warp"]).camera
+        kept = {v.image for v in sel_res.views if v.used}
+        kd = [d for d in dets if d.image in kept]
+        sel_h = [calibrate(kd[h], s.board, ch["model"], image_size=s.size, board_warp=ch["board_warp"]).camera
                  for h in HALVES]
         add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else ""),
             projection_difference(sel_h[0], sel_h[1], pts)["rms_px"], sel_res.rms_px, time.process_time() - t0,
@@ -388,7 +396,8 @@ def main() -> None:
     ap.add_argument("--render-seeds", type=int, default=3)
     ap.add_argument("--first-seed", type=int, default=300)
     ap.add_argument("--sets", default="udacity,gopro,fisheye",
-                    help="real sets to run, comma-separated (udacity, gopro, fisheye; empty: none)")
+                    help="real sets to run, comma-separated (udacity, gopro, fisheye, opencv_left, opencv_right; "
+                         "empty: none)")
     ap.add_argument("--rows-dir", help="also keep each set's rows as JSON here, and build the table from every "
                                        "set's rows found there (runs split over several processes)")
     ap.add_argument("--out", help="write the markdown here too")
@@ -400,7 +409,8 @@ def main() -> None:
     warm_up()
     t0 = time.time()
     loaders = {"udacity": lambda: image_set("udacity_camera_cal_9x6", 9, 6),
-               "gopro": lambda: image_set("udacity_gopro_wide_8x6", 8, 6), "fisheye": fisheye_set}
+               "gopro": lambda: image_set("udacity_gopro_wide_8x6", 8, 6), "fisheye": fisheye_set,
+               "opencv_left": lambda: stereo_set("left"), "opencv_right": lambda: stereo_set("right")}
     rows_dir = Path(a.rows_dir) if a.rows_dir else None
     if rows_dir:
         rows_dir.mkdir(parents=True, exist_ok=True)
@@ -420,7 +430,7 @@ def main() -> None:
             if rows_dir:
                 (rows_dir / f"render_{a.first_seed + k}.json").write_text(json.dumps(rows))
     if rows_dir:
-        order = {"udacity": 0, "gopro": 1, "fisheye": 2}
+        order = {"udacity": 0, "gopro": 1, "fisheye": 2, "opencv_left": 3, "opencv_right": 4}
         real = [r for f in sorted(rows_dir.glob("real_*.json"), key=lambda f: order.get(f.stem[5:], 9))
                 for r in json.loads(f.read_text())]
         rend = [r for f in sorted(rows_dir.glob("render_*.json")) for r in json.loads(f.read_text())]

@@ -16,7 +16,16 @@ images, taught from ``11_1111.jpg``):
    can answer a head above its model's ceiling there, so a ceiling under ``min_score`` (0.5) means the
    model, not the search, is what misses it.
 
-Run: ``.venv/bin/python bench/screw_heads.py`` (about a minute; prints a Markdown table).
+3. **Where the found heads lie against their colour centres, and how good those centres are**
+   (``--errors``, issue 37): each found head's error (the match carried to the head centre by the
+   teach head's colour-centre offset) in the image's frame and in the part's own frame (turned back by
+   the match's angle), their means and the RMS about them: an error fixed in the image frame would be
+   the one-sided light's (the shading stays with the light while the part turns), one fixed in the
+   part's frame the carried offset's. And the colour centre's own spread: the same ellipse with the
+   Otsu threshold scaled 0.8-1.2, and the blob's centroid, per head (the teach head's enters every
+   head's error through the offset).
+
+Run: ``.venv/bin/python bench/screw_heads.py [--errors]`` (about a minute; prints a Markdown table).
 """
 
 from __future__ import annotations
@@ -103,7 +112,78 @@ def ceiling(G: np.ndarray, lm: LevelModel, cx: float, cy: float, ref: tuple[floa
     return s, x + dx, y + dy
 
 
+def centre_spread(path: Path, x: float, y: float) -> tuple[float, float]:
+    """How far (x, y: the largest absolute deviation, px) the head's centre moves from
+    ``colour_centre``'s when the Otsu threshold is scaled 0.8-1.2 and when the blob's centroid is taken
+    instead of the ellipse's centre: the colour reference's own uncertainty."""
+    bgr = cv2.imread(str(path))
+    if bgr is None:
+        raise FileNotFoundError(path)
+    cx, cy, _ = colour_centre(path, x, y)
+    x0, y0 = max(int(x) - WINDOW_PX // 2, 0), max(int(y) - WINDOW_PX // 2, 0)
+    sat = cv2.GaussianBlur(cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)[y0:y0 + WINDOW_PX, x0:x0 + WINDOW_PX, 1], (0, 0), 1.5)
+    thr, _ = cv2.threshold(sat, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    dev = np.zeros(2)
+    for k in (0.8, 0.9, 1.0, 1.1, 1.2):
+        mask = cv2.morphologyEx((sat < thr * k).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((7, 7), np.uint8))
+        n, lab, st, _ = cv2.connectedComponentsWithStats(mask)
+        blob = (lab == 1 + int(np.argmax(st[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
+        cnts, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        (ex, ey), _, _ = cv2.fitEllipse(max(cnts, key=len))
+        mo = cv2.moments(blob, True)
+        for px, py in ((ex + x0, ey + y0), (mo["m10"] / mo["m00"] + x0, mo["m01"] / mo["m00"] + y0)):
+            dev = np.maximum(dev, np.abs(np.array([px - cx, py - cy])))
+    return float(dev[0]), float(dev[1])
+
+
+def errors(case: Case) -> None:
+    """Item 3 of the module: the found heads' errors by frame and the colour centres' own spread."""
+    u, v, w, h = case.roi
+    tx, ty, _ = colour_centre(case.teach_path, *case.info.reference_px)
+    ref = (tx - (u + w / 2.0), ty - (v + h / 2.0))
+    sx, sy = centre_spread(case.teach_path, *case.info.reference_px)
+    print(f"teach head: colour centre ({tx:.2f}, {ty:.2f}), its spread +-{sx:.2f} / +-{sy:.2f} px (x / y)\n")
+    print("| image | head | found angle deg | error image frame px | error part frame px | |error| px | "
+          "reported sigma px | colour centre spread x / y px |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    model = teach_model(case)
+    img_e: list[tuple[float, float]] = []
+    part_e: list[tuple[float, float]] = []
+    for t in case.tests:
+        res = shape.find(model, case.test_image(t))
+        for i in t.instances:
+            cx, cy, _ = colour_centre(t.path, i.x, i.y)
+            dx_, dy_ = centre_spread(t.path, i.x, i.y)
+            best = None
+            for m in res.matches:
+                a = math.radians(m.angle_deg)
+                c, s = math.cos(a), math.sin(a)
+                hx, hy = m.u_px + c * ref[0] + s * ref[1], m.v_px - s * ref[0] + c * ref[1]
+                d = math.hypot(hx - cx, hy - cy)
+                if d < 30 and (best is None or d < best[0]):
+                    best = (d, m, hx - cx, hy - cy)
+            if best is None:
+                print(f"| {t.path.name} | ({i.x:g}, {i.y:g}) | not found | - | - | - | - | {dx_:.2f} / {dy_:.2f} |")
+                continue
+            d, m, ex, ey = best
+            a = math.radians(m.angle_deg)
+            px, py = math.cos(a) * ex - math.sin(a) * ey, math.sin(a) * ex + math.cos(a) * ey
+            img_e.append((ex, ey))
+            part_e.append((px, py))
+            print(f"| {t.path.name} | ({i.x:g}, {i.y:g}) | {m.angle_deg:.1f} | ({ex:+.2f}, {ey:+.2f}) | "
+                  f"({px:+.2f}, {py:+.2f}) | {d:.2f} | {m.sigma_px:.2f} | {dx_:.2f} / {dy_:.2f} |")
+    for name, e in (("image", np.array(img_e)), ("part", np.array(part_e))):
+        if len(e):
+            mean = e.mean(axis=0)
+            about = math.sqrt(float(((e - mean) ** 2).sum(axis=1).mean()))
+            print(f"\n{name} frame: mean error ({mean[0]:+.2f}, {mean[1]:+.2f}) px, RMS about it {about:.2f} px "
+                  f"(RMS |error| {math.sqrt(float((e ** 2).sum(axis=1).mean())):.2f} px, {len(e)} heads)")
+
+
 def main() -> None:
+    if "--errors" in sys.argv[1:]:
+        errors(next(c for c in load_cases() if c.id == "robertson_screw_heads"))
+        return
     case: Case = next(c for c in load_cases() if c.id == "robertson_screw_heads")
     u, v, w, h = case.roi
     tx, ty, tr = colour_centre(case.teach_path, *case.info.reference_px)

@@ -26,6 +26,11 @@ from drivers.values import RobotState
 
 log = logging.getLogger(__name__)
 
+DEFAULT_TURN_DEG_S = 90.0
+"""The tool's turn rate a planner assumes for an adapter that does not say its own, deg/s."""
+DEFAULT_ACCEL_M_S2 = 2.0
+"""The tool's acceleration ``RobotBase.linear_move_s`` assumes by default, m/s^2."""
+
 
 class RobotBase(DeviceBase):
     """Base of robot adapters: the public motion methods own the rules, the adapter fills hooks.
@@ -193,6 +198,29 @@ class RobotBase(DeviceBase):
             return 0.0
         return float(np.max(np.abs(q - current))) if q.size else 0.0
 
+    # -- the robot's own motion: what a planner needs to know -------------------------------------------
+    def tool_turn_speed_deg_s(self) -> float:
+        """How fast a linear move turns the tool, deg/s (the robot's orientation speed; a planner's estimate
+        of a turn). Default ``DEFAULT_TURN_DEG_S``; an adapter that knows its controller's says its own."""
+        return DEFAULT_TURN_DEG_S
+
+    def linear_move_s(self, T_from: NDArray[np.float64], T_to: NDArray[np.float64], speed_m_s: float,
+                      accel_m_s2: float = DEFAULT_ACCEL_M_S2) -> float:
+        """How long a linear move from ``T_from`` to ``T_to`` (4x4, metres) at ``speed_m_s`` takes on this
+        robot until its arrival is seen, s: the adapter times its moves with the same function, so a planner
+        using it is never optimistic about the motion itself (the host's delays are the planner's to add).
+        Default (an adapter that does not know its controller's profile): the distance at ``speed_m_s``
+        with ``accel_m_s2`` ramps, or the turn at ``tool_turn_speed_deg_s`` when that is longer."""
+        d = float(np.linalg.norm(np.asarray(T_to)[:3, 3] - np.asarray(T_from)[:3, 3]))
+        ramp = speed_m_s / accel_m_s2 if accel_m_s2 > 0 else 0.0
+        return max(d / speed_m_s + ramp, turn_deg(T_from, T_to) / self.tool_turn_speed_deg_s())
+
+    def tracking_report(self) -> dict[str, float | int] | None:
+        """The last conveyor tracking's measured error (an adapter that tracks from the host and measures it:
+        ``rms_mm``, ``max_mm``, ``samples``, ``servo_steps``); None when the adapter does not measure it
+        (a controller tracking with the encoder wired to it)."""
+        return None
+
     # -- conveyor tracking ---------------------------------------------------------------------------
     def start_tracking(self, direction_base: NDArray[np.float64], ticks_per_m: float, most_m: float,
                        session: MotionSession, count: Callable[[], int] | None = None) -> int:
@@ -258,6 +286,12 @@ class RobotBase(DeviceBase):
     @abc.abstractmethod
     def _stop(self) -> None:
         """Tell the controller to stop any motion now."""
+
+
+def turn_deg(T0: NDArray[np.float64], T1: NDArray[np.float64]) -> float:
+    """The angle (deg) the tool turns from ``T0`` to ``T1`` (4x4 poses)."""
+    c = (float(np.trace(np.asarray(T0)[:3, :3].T @ np.asarray(T1)[:3, :3])) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def _xyz_mm(T: NDArray[np.float64]) -> str:

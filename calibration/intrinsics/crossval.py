@@ -92,7 +92,8 @@ the simpler one's: two halves of one set scatter, and a tie goes to fewer parame
 def select_by_cross_validation(detections: Sequence[Detection], target: Target,
                                candidates: Sequence[tuple[str, bool]], k: int = 2, *,
                                image_size: tuple[int, int] | None = None,
-                               drop_outliers: bool = False) -> tuple[IntrinsicsResult, dict[str, Any]]:
+                               drop_outliers: bool = False, reject_views: bool = False
+                               ) -> tuple[IntrinsicsResult, dict[str, Any]]:
     """Choose the lens model and board warp by k-fold cross-validation, not by the RMS (a richer
     model always lowers the RMS; only data it has not seen can say whether it describes the lens).
 
@@ -102,6 +103,10 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
     difference between its folds, where a richer candidate must beat every simpler one by
     ``SELECT_MARGIN``. Returns the chosen calibration and ``{"chosen", "candidates", "rule"}``;
     raises CrossValidationError when no candidate can be cross-validated.
+
+    ``reject_views``: each candidate's full calibration removes its influential views
+    (``calibrate(reject_views=True)``; not the splined model's solver) and its folds are made of the
+    views it kept.
     """
     rows: list[dict[str, Any]] = []
     results: list[tuple[IntrinsicsResult, dict[str, Any]] | None] = []
@@ -109,7 +114,7 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
         row: dict[str, Any] = {"model": model, "board_warp": warp}
         try:
             full = calibrate(detections, target, model, image_size=image_size, drop_outliers=drop_outliers,
-                             board_warp=warp)
+                             board_warp=warp, reject_views=reject_views and model != "splined")
             cv = cross_validate(detections, target, model, k, image_size=image_size, drop_outliers=drop_outliers,
                                 full=full, board_warp=warp)
         except IntrinsicsError as exc:
@@ -119,6 +124,8 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
             continue
         row.update({"rms_px": full.rms_px, "cross_validation_px": cv["projection_difference_rms_px"],
                     "expected_px": cv["expected_from_uncertainty_px"]})
+        if full.view_rejection is not None:
+            row["views_rejected"] = [r["image"] for r in full.view_rejection["rejected"]]
         rows.append(row)
         results.append((full, cv))
     best: int | None = None

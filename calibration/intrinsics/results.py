@@ -98,6 +98,9 @@ class IntrinsicsResult:
     time_s: float = 0.0
     board_warp: dict[str, Any] | None = None
     """The target's solved warp (``calibrate(board_warp=True)``): heights (mm) and their 1-sigma."""
+    view_rejection: dict[str, Any] | None = None
+    """The influence test's summary (``calibrate(reject_views=True)``): rule, false-alarm rate, the
+    residual scale and each rejected view with its projection shift and statistic."""
 
     @property
     def param_sigmas(self) -> dict[str, float]:
@@ -122,6 +125,8 @@ class IntrinsicsResult:
         out["solver"] = {"iterations": self.iterations, "time_s": round(self.time_s, 3)}
         if self.board_warp is not None:
             out["board_warp"] = self.board_warp
+        if self.view_rejection is not None:
+            out["view_rejection"] = self.view_rejection
         return out
 
 

@@ -59,7 +59,7 @@ REWEIGHT_MARGIN = 1.25
 def calibrate(detections: Sequence[Detection], target: Target, model: str = "opencv5", *,
               image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
               jackknife: bool = True, board_warp: bool = False,
-              spline_grid: tuple[int, int, float] | None = None) -> IntrinsicsResult:
+              spline_grid: tuple[int, int, float] | None = None, reject_views: bool = False) -> IntrinsicsResult:
     """Calibrate one camera from detections of ``target`` (see the module docstring).
 
     ``jackknife``: also estimate the projection uncertainty by a grouped view-level jackknife and
@@ -74,6 +74,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     ``spline_grid = (Nx, Ny, fov_x_deg)`` fixes its grid, default chosen from the data); refused
     with the reason on sets that cannot carry it.
 
+    ``reject_views``: remove views whose leave-one-out influence on the projection is beyond what
+    the solve's uncertainty predicts (``influence``: a chi-square test at a 1 % false-alarm rate
+    over the set), one at a time, keeping the set's coverage; each says why in ``views`` and the
+    test's summary is ``IntrinsicsResult.view_rejection``.
+
     Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
     """
@@ -81,11 +86,9 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     if model not in MODEL_NAMES:
         raise IntrinsicsError(f"unknown model {model!r}; use one of {', '.join(MODEL_NAMES)}")
     if model == "splined":
-        if board_warp:
-            raise IntrinsicsError("the board warp is not solved with the splined model; use board_warp=False")
         from calibration.intrinsics.splined_solver import calibrate_splined
         from calibration.splined import SplineLayout
-        return calibrate_splined(detections, target, image_size=image_size,
+        return calibrate_splined(detections, target, image_size=image_size, board_warp=board_warp,
                                  layout=None if spline_grid is None else SplineLayout(*spline_grid))
     views, results, size = collect_views(detections, target, image_size)
     if len(views) < MIN_VIEWS:
@@ -128,6 +131,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
             iters += it2
             p, c, R, t, iters = _without_outlier_points(model, size, views, target, (p, c, R, t, iters))
             floor, (p, c, R, t, iters) = _reweight(model, size, views, target, n_par, (p, c, R, t, iters))
+    view_rejection = None
+    if reject_views:
+        from calibration.intrinsics.influence import reject_influential_views
+        views, (p, c, R, t, iters), view_rejection = reject_influential_views(
+            model, size, views, results, target, n_lens, (p, c, R, t, iters))
     # final Jacobian, covariance
     free = np.ones(n_par, dtype=bool)
     nrm, r = normal_equations_at(p, c, R, t, free)
@@ -194,6 +202,11 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
                      values=dict(zip(names, c[:n_lens].tolist(), strict=True)), uncertainty=unc,
                      n_outlier_views=int(view_out.sum()), model=model)
     del pose_cov
+    for k in (view_rejection or {}).get("kept_significant", []):
+        verdict["advice"].append({"code": "influential_view_kept",
+                                  "message": f"{k['image']} moves the projection {k['shift_px']} px where one view "
+                                             f"is predicted to move it {k['predicted_px']} px (a sheared or blurred "
+                                             f"view?), but it was kept: {k['kept_because']}"})
     warp = None
     if board_warp:
         sw = np.sqrt(np.maximum(np.diag(cov_all)[n_lens:], 0.0))
@@ -203,7 +216,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
                             param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,
                             coverage=coverage, uncertainty_map_px=umap, iterations=iters,
-                            time_s=time.perf_counter() - t0, board_warp=warp)
+                            time_s=time.perf_counter() - t0, board_warp=warp, view_rejection=view_rejection)
 
 
 Solved = tuple[BundleProblem, F64, F64, F64, int]

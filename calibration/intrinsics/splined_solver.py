@@ -57,7 +57,7 @@ from calibration.intrinsics.results import (
     IntrinsicsResult,
 )
 from calibration.intrinsics.uncertainty import coverage_counts, uncertainty_summary
-from calibration.intrinsics.views import ViewData, collect_views
+from calibration.intrinsics.views import ViewData, collect_views, warp_basis
 from calibration.observations import Detection
 from calibration.targets import Target
 from calibration.verdict import assess
@@ -85,9 +85,14 @@ REL_TOL: Final = 1e-8
 def calibrate_splined(detections: Sequence[Detection], target: Target, *,
                       image_size: tuple[int, int] | None = None,
                       layout: splined.SplineLayout | None = None, check: bool = True,
-                      max_iter: int = 60) -> IntrinsicsResult:
+                      max_iter: int = 60, board_warp: bool = False,
+                      point_weights: Sequence[F64] | None = None) -> IntrinsicsResult:
     """Calibrate the splined stereographic model (module docstring). ``layout``: a fixed grid
-    (default: chosen from the data); ``check=False`` skips the refusal rules (for experiments).
+    (default: chosen from the data); ``check=False`` skips the refusal rules (for experiments);
+    ``board_warp``: also solve the target's two warp heights (mrcal's parabolic warp, as
+    ``calibrate(board_warp=True)``; the start is then the warped fisheye4 solve);
+    ``point_weights``: one relative weight per point of each detection (e.g. mrcal's ``2^-level`` of
+    its detector's pyramid level), instead of the weights from the detections' stated precision.
     Raises IntrinsicsError when the data cannot carry the model."""
     from calibration.intrinsics.solver import calibrate
 
@@ -99,7 +104,7 @@ def calibrate_splined(detections: Sequence[Detection], target: Target, *,
         raise IntrinsicsError(f"the splined model needs at least {MIN_VIEWS_SPLINED} views spread over the "
                               f"whole image, got {len(views)}: its control points would be set by the "
                               "regulariser, not the data (it folds); use fisheye4 or opencv8, or take more views")
-    start = calibrate(detections, target, "fisheye4", image_size=size, jackknife=False)
+    start = calibrate(detections, target, "fisheye4", image_size=size, jackknife=False, board_warp=board_warp)
     cam0 = start.camera
     R = np.array([start.views[v.index].T_cam_target[:3, :3] for v in views])  # type: ignore[index]
     t = np.array([start.views[v.index].T_cam_target[:3, 3] for v in views])   # type: ignore[index]
@@ -114,11 +119,18 @@ def calibrate_splined(detections: Sequence[Detection], target: Target, *,
                               f"{n_pts} points carry at most {n_pts // MIN_OBS_PER_PARAM}")
     obs = np.vstack([v.uv for v in views])
     core = np.array([cam0.fx, cam0.fy, cam0.cx, cam0.cy])
-    prob = _Problem(layout, X, obs, view, len(views))
+    prob = _Problem(layout, X, obs, view, len(views), warp_basis(target, X) if board_warp else None)
+    if board_warp and start.board_warp is not None:
+        prob.wp = np.asarray(start.board_warp["height_mm"], dtype=np.float64) / 1000.0
     prob.sigma_px = max(float(start.sigma_px), 1e-3)
     ctrl = prob.initial_ctrl(core, cam0)
     x = np.concatenate([core, ctrl])
     w0 = np.concatenate([v.weights() for v in views])       # the detector's relative precision
+    if point_weights is not None:
+        given = [np.asarray(point_weights[v.index], dtype=np.float64).reshape(-1) for v in views]
+        if any(len(g) != len(v.X) for g, v in zip(given, views, strict=True)):
+            raise IntrinsicsError("point_weights: give one weight per point of each detection")
+        w0 = np.concatenate(given)
     w = w0.copy()
     x, R, t, iters = prob.solve(x, R, t, w, max_iter)
     r = prob.obs_residuals(x, R, t).reshape(-1, 2) * w0[:, None]
@@ -153,11 +165,17 @@ def _choose_layout(u: F64, n_obs: int, check: bool) -> splined.SplineLayout:
 class _Problem:
     """The bundle problem of the splined model: residuals and the sparse Jacobian."""
 
-    def __init__(self, lay: splined.SplineLayout, X: F64, obs: F64, view: np.ndarray, n_views: int) -> None:
+    def __init__(self, lay: splined.SplineLayout, X: F64, obs: F64, view: np.ndarray, n_views: int,
+                 warp_basis: F64 | None = None) -> None:
         self.lay, self.X, self.obs, self.view, self.V = lay, X, obs, view, n_views
         self.nc = lay.n_ctrl
         self.n_intr = 4 + 2 * self.nc
-        self.n = self.n_intr + 6 * n_views
+        self.basis = warp_basis
+        """(M, 2) the board-warp basis of each point (``views.warp_basis``), or None: a flat target."""
+        self.nw = 0 if warp_basis is None else 2
+        self.wp = np.zeros(self.nw)
+        """The target's two warp heights (m), after the poses in the unknowns."""
+        self.n = self.n_intr + 6 * n_views + self.nw
         self.D = _regulariser(lay)
         self.G = _gauge(lay)
         self.c0 = np.zeros(2 * self.nc)
@@ -196,10 +214,16 @@ class _Problem:
         self.c0 = c0
         return c0.copy()
 
-    def project(self, x: F64, R: F64, t: F64, jac: bool = False
+    def project(self, x: F64, R: F64, t: F64, wp: F64 | None = None, jac: bool = False
                 ) -> tuple[F64, sp.csr_matrix | None]:
-        """(M, 2) pixels and, with ``jac``, the (2M, n) Jacobian (intrinsics, then 6 per view)."""
+        """(M, 2) pixels and, with ``jac``, the (2M, n) Jacobian (intrinsics, 6 per view, then the
+        warp's two heights ``wp``, default ``self.wp``)."""
         lay, X, view = self.lay, self.X, self.view
+        wp = self.wp if wp is None else wp
+        if self.nw:
+            assert self.basis is not None
+            X = X.copy()
+            X[:, 2] += self.basis @ wp
         f, c = x[:2], x[2:4]
         ctrl = x[4:self.n_intr].reshape(2, self.nc)
         P = np.einsum("nij,nj->ni", R[view], X) + t[view]
@@ -241,11 +265,17 @@ class _Problem:
         for a, rows in ((0, rows_x), (1, rows_y)):
             put(rows, pose[:, None] + np.arange(3)[None], dW[:, a, :])
             put(rows, pose[:, None] + 3 + np.arange(3)[None], dP[:, a, :])
+        if self.nw:
+            assert self.basis is not None
+            dz = np.einsum("nab,nb->na", dP, R[view][:, :, 2])          # dq / d(target z)
+            wcol = self.n_intr + 6 * self.V + np.arange(2)[None]
+            for a, rows in ((0, rows_x), (1, rows_y)):
+                put(rows, wcol, dz[:, a, None] * self.basis)
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(ri), np.concatenate(ci))), shape=(2 * M, self.n))
         return q, J
 
-    def obs_residuals(self, x: F64, R: F64, t: F64) -> F64:
-        q, _ = self.project(x, R, t)
+    def obs_residuals(self, x: F64, R: F64, t: F64, wp: F64 | None = None) -> F64:
+        q, _ = self.project(x, R, t, wp=wp)
         return (q - self.obs).reshape(-1)
 
     def reg_rows(self, x: F64, n_obs: int, jac: bool = False) -> tuple[F64, sp.csr_matrix | None]:
@@ -262,11 +292,12 @@ class _Problem:
         Z = sp.csr_matrix((nc, nc))
         blocks = sp.vstack([sp.bmat([[a * sp.eye(nc), Z], [Z, a * sp.eye(nc)],
                                      [b * self.D, None], [None, b * self.D]]), g * self.G], format="csr")
-        J = sp.hstack([sp.csr_matrix((len(r), 4)), blocks, sp.csr_matrix((len(r), 6 * self.V))], format="csr")
+        J = sp.hstack([sp.csr_matrix((len(r), 4)), blocks, sp.csr_matrix((len(r), 6 * self.V + self.nw))],
+                      format="csr")
         return r, J
 
-    def cost(self, x: F64, R: F64, t: F64, w: F64) -> tuple[float, F64]:
-        ro = self.obs_residuals(x, R, t) * np.repeat(w, 2)
+    def cost(self, x: F64, R: F64, t: F64, w: F64, wp: F64 | None = None) -> tuple[float, F64]:
+        ro = self.obs_residuals(x, R, t, wp) * np.repeat(w, 2)
         rr, _ = self.reg_rows(x, int(2 * np.sum(w > 0)))
         r = np.concatenate([ro, rr])
         return (float(r @ r) if np.all(np.isfinite(r)) else float("inf")), r
@@ -287,12 +318,12 @@ class _Problem:
         g = J.T @ r
         return H, g, Jo, J
 
-    def step(self, x: F64, R: F64, t: F64, dx: F64) -> tuple[F64, F64, F64]:
+    def step(self, x: F64, R: F64, t: F64, dx: F64) -> tuple[F64, F64, F64, F64]:
         """Move by ``dx`` over every unknown (the Jacobian's columns; the core's step is 0 in the solve)."""
         x2 = x + dx[:self.n_intr]
-        dv = dx[self.n_intr:].reshape(-1, 6)
+        dv = dx[self.n_intr:self.n_intr + 6 * self.V].reshape(-1, 6)
         R2 = np.einsum("nij,njk->nik", exp_so3(dv[:, :3]), R)
-        return x2, R2, t + dv[:, 3:]
+        return x2, R2, t + dv[:, 3:], self.wp + dx[self.n_intr + 6 * self.V:]
 
     def solve(self, x: F64, R: F64, t: F64, w: F64, max_iter: int) -> tuple[F64, F64, F64, int]:
         cost, _ = self.cost(x, R, t, w)
@@ -312,11 +343,11 @@ class _Problem:
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
-                x2, R2, t2 = self.step(x, R, t, dx)
-                c2, _ = self.cost(x2, R2, t2, w)
+                x2, R2, t2, wp2 = self.step(x, R, t, dx)
+                c2, _ = self.cost(x2, R2, t2, w, wp2)
                 if c2 < cost:
                     rel = (cost - c2) / cost
-                    x, R, t, cost = x2, R2, t2, c2
+                    x, R, t, cost, self.wp = x2, R2, t2, c2, wp2
                     lam = max(lam / 10, 1e-9)
                     improved = True
                     break
@@ -370,12 +401,19 @@ def _result(prob: _Problem, x: F64, R: F64, t: F64, w: F64, views: list[ViewData
     ro = prob.obs_residuals(x, R, t).reshape(-1, 2)
     kept = w > 0
     n_kept = 2 * int(kept.sum())
-    dof = max(n_kept - prob.n_intr - 6 * prob.V, 1)
+    dof = max(n_kept - prob.n_intr - prob.nw - 6 * prob.V, 1)
     sigma2 = float(np.sum((ro[kept] * w[kept, None]) ** 2)) / dof   # a point of weight 1
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hinv = np.linalg.pinv(H / d[:, None] / d[None, :], hermitian=True) / d[:, None] / d[None, :]
     B = Hinv[:prob.n_intr - 4]
     cov_s = sigma2 * B @ (Jo.T @ (Jo @ B.T))                       # sandwich, marginal over the poses
+    warp = None
+    if prob.nw:
+        Bw = Hinv[-prob.nw:]
+        sw = np.sqrt(np.maximum(np.diag(sigma2 * Bw @ (Jo.T @ (Jo @ Bw.T))), 0.0))
+        warp = {"height_mm": [round(float(v) * 1000.0, 4) for v in prob.wp],
+                "sigma_mm": [round(float(v) * 1000.0, 4) for v in sw],
+                "model": "z += w0 * 4 xr (1 - xr) + w1 * 4 yr (1 - yr), xr, yr in [0, 1] across the target"}
     cov_i = np.zeros((prob.n_intr, prob.n_intr))                   # the held core: no variance of its own
     cov_i[4:, 4:] = cov_s
     # the camera's parameter vector: fx fy cx cy, the grid's header (fixed: zero variance), control values
@@ -411,4 +449,5 @@ def _result(prob: _Problem, x: F64, R: F64, t: F64, w: F64, views: list[ViewData
                      n_outlier_views=0, model="splined")
     return IntrinsicsResult(camera=camera, rms_px=rms, sigma_px=float(np.sqrt(sigma2 / 2)), views=results,
                             param_names=names, covariance=cov, uncertainty=unc, verdict=verdict,
-                            coverage=coverage, uncertainty_map_px=umap, iterations=iters, time_s=time_s)
+                            coverage=coverage, uncertainty_map_px=umap, iterations=iters, time_s=time_s,
+                            board_warp=warp)

@@ -8,7 +8,9 @@ File layout (``format_version`` 1)::
      "shape": {"levels": [{"level": 0, "points": [[x, y, normal_deg], ...], "features": [...]}, ...],
                "patch": {"origin_px": [x, y], "png_base64": "..."}}}
      (or "blob": {...} in blob mode; ``shape.patch``, the teach image's pixels of the part that finish
-     a match's pose, is absent in files taught before it: those find with the edge fit alone)
+     a match's pose, is absent in files taught before it: those find with the edge fit alone;
+     ``shape.view_sigma`` {"px", "deg"}, only in a model taught from several views: the error a fit has
+     beyond its own 1-sigma by how the part's look changes between them, added to every match's)
 
 Point coordinates are relative to the reference point, in pixels of their pyramid level. A file
 with a newer ``format_version`` than this code knows is refused with a clear message.

@@ -83,9 +83,18 @@ class PatchDoc(_Part):
     png_base64: str = Field(min_length=4, max_length=MAX_PATCH_B64)
 
 
+class ViewSigmaDoc(_Part):
+    """``shape.view_sigma``: a model taught from several views, the error a fit has beyond its own 1-sigma
+    by how the part's look changes between them (vision.shape.multi.spread); added to every match's."""
+
+    px: Num = Field(ge=0, le=MAX_PX)
+    deg: Num = Field(ge=0, le=180)
+
+
 class ShapeDoc(_Part):
     levels: list[LevelDoc] = Field(min_length=1, max_length=MAX_LEVELS)
     patch: PatchDoc | None = None
+    view_sigma: ViewSigmaDoc | None = None
 
 
 class BlobDoc(_Part):

@@ -15,6 +15,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -22,6 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.pick.candidate import PickCandidate
+from cellctl.pick.pose import PartPose, grasp
+from cellctl.pick.recipe import Recipe
+from drivers.base import MotionLimits, MotionRejected
 
 MERGE_SIGMAS = 4.0
 MERGE_MIN_MM = 6.0
@@ -166,15 +170,19 @@ class Meeting:
 def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm_s: float,
                  tool_xyz_m: NDArray[np.float64], approach_z_m: float, window_mm: tuple[float, float],
                  move_speed_m_s: float, accel_m_s2: float, follow_s: float, time_scale: float = 1.0,
-                 turn_s: float = 0.0) -> Meeting | str:
+                 turn_s: float = 0.0, travel: Callable[[NDArray[np.float64]], float] | None = None,
+                 lead_s: float = 0.0) -> Meeting | str:
     """The earliest meeting inside the window, or why there is none now: ``Missed`` when the part will leave
     the window before the robot can meet it, a plain ``str`` when it may still come (the belt stopped).
 
     The part moves at ``speed_mm_s`` (the belt's measured speed); the robot needs the straight move from
-    ``tool_xyz_m`` to above the meeting point at ``move_speed_m_s`` with ``accel_m_s2`` ramps, then
-    ``follow_s`` following the part (down, the gripper's close, up): the part must still be inside the
-    window (``window_mm``, base x) at the end of it. ``time_scale``: the robot's motion time scale;
-    ``turn_s``: the least time the move takes for the tool's turn (a robot's orientation speed limit).
+    ``tool_xyz_m`` to above the meeting point, then ``follow_s`` following the part (down, the gripper's
+    close, up): the part must still be inside the window (``window_mm``, base x) at the end of it.
+    The move's time: ``travel`` (the robot's own timing of a move to the approach pose ``T`` above the
+    meeting point, 4x4: ``RobotBase.linear_move_s``) when given, else the distance at ``move_speed_m_s``
+    with ``accel_m_s2`` ramps times ``time_scale``, or ``turn_s`` (the tool's turn) when longer;
+    ``lead_s`` is added either way (what passes between this plan and the move's start, and the host's
+    delays of a move).
     """
     x_now = part.x_at(belt, ticks_now)
     x0, x1 = window_mm
@@ -186,11 +194,13 @@ def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm
     start = np.asarray(tool_xyz_m, dtype=np.float64)
 
     def travel_s(x_mm: float) -> float:
-        target = T[:3, 3].copy()
-        target[0] += (x_mm - x_now) * 1e-3
-        target[2] = approach_z_m
-        d = float(np.linalg.norm(target - start))
-        return max(time_scale * (d / move_speed_m_s + move_speed_m_s / accel_m_s2), turn_s)
+        target = T.copy()
+        target[0, 3] += (x_mm - x_now) * 1e-3
+        target[2, 3] = approach_z_m
+        if travel is not None:
+            return lead_s + travel(target)
+        d = float(np.linalg.norm(target[:3, 3] - start))
+        return lead_s + max(time_scale * (d / move_speed_m_s + move_speed_m_s / accel_m_s2), turn_s)
 
     if v < 1.0:  # the belt stands (or creeps): meet the part where it lies, if it lies in the window
         if x0 <= x_now <= x1 - follow_mm:
@@ -206,6 +216,24 @@ def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm
         x += max(1.0, v * (need - t))  # where the part will be when the robot could be there
     return Missed(f"the robot cannot reach it inside the window (x = {x_now:.0f} mm now, window "
                   f"{x0:.0f}..{x1:.0f} mm, belt {v:.0f} mm/s)")
+
+
+def grasp_near(recipe: Recipe, cand: PickCandidate, T_tool: NDArray[np.float64], limits: MotionLimits) -> PickCandidate:
+    """``cand`` with the gripper's symmetric grasp nearest the yaw of the tool at ``T_tool`` (a parallel gripper
+    then turns at most 90 deg on its way to the part: the turn overlaps less of the approach); ``cand`` itself
+    when it has that grasp already or a pose of the other is refused by the envelope (``limits``)."""
+    T = np.asarray(T_tool)
+    g = grasp(recipe, PartPose(cand.T_base_part, math.radians(cand.base_yaw_deg), cand.sigma_mm),
+              math.atan2(float(T[1, 0]), float(T[0, 0])))
+    if abs((math.degrees(g.gripper_yaw_rad) - cand.gripper_yaw_deg + 180.0) % 360.0 - 180.0) < 1e-6:
+        return cand
+    try:
+        for pose in (g.T_pick, g.T_approach):
+            limits.check_pose(pose)
+    except MotionRejected:
+        return cand
+    return replace(cand, T_part_grip=g.T_part_grip, T_pick=g.T_pick, T_approach=g.T_approach,
+                   gripper_yaw_deg=math.degrees(g.gripper_yaw_rad))
 
 
 class Missed(str):

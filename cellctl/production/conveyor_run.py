@@ -3,9 +3,11 @@
 The belt does not stop. A vision thread takes pictures one after the other; each picture's matches
 are mapped at the encoder count latched at its exposure and queued in the belt's frame
 (``cellctl.production.belt``: the same part in several pictures is one). The run's thread takes the
-part furthest along that the robot can still meet inside the window (``plan_meeting``: the robot's
-speed and acceleration, the follow time of the grip), moves above the meeting point, waits for the
-count at which the part is there, then lets the robot track the belt (``RobotBase.start_tracking``:
+part furthest along that the robot can still meet inside the window (``plan_meeting`` with the robot's own
+timing of its moves, ``RobotBase.linear_move_s``, plus the lead the run measured on its own approaches; the
+grasp folded to the one nearest the tool's yaw), moves above the meeting point while the gripper opens, waits
+for the count at which the part is there (an arm there late plans the meeting again further along the
+window, from where it is), then lets the robot track the belt (``RobotBase.start_tracking``:
 commanded poses ride the belt) while it goes down, closes the gripper and comes up; then it stops
 tracking and places the part as a still run does (the slot claimed first: exactly once). A part that
 cannot be met before it leaves the window is given up, counted ``missed_window`` and recorded; the
@@ -26,13 +28,26 @@ import functools
 import logging
 import threading
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures import wait as futures_wait
 from typing import Any
 
 import numpy as np
 
+from cellctl.pick.candidate import PickCandidate
 from cellctl.pick.recipe import PickError
-from cellctl.production.belt import BeltCalibration, BeltPart, BeltQueue, BeltWatch, Meeting, Missed, plan_meeting
+from cellctl.production.belt import (
+    BeltCalibration,
+    BeltPart,
+    BeltQueue,
+    BeltWatch,
+    Meeting,
+    Missed,
+    grasp_near,
+    plan_meeting,
+)
 from cellctl.production.place import place_poses
 from cellctl.production.records import Durations, seen_fields
 from cellctl.production.run import ProductionRun
@@ -40,6 +55,7 @@ from cellctl.production.status import Ended
 from cellctl.production.vision import take_picture
 from drivers.base import MotionRejected
 from drivers.conveyor.base import ConveyorBase
+from drivers.robot_base import DEFAULT_ACCEL_M_S2
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +65,16 @@ FOLLOW_MARGIN_S = 0.25
 """Added to the follow time (down, close, up) when a meeting is planned, s."""
 GRIP_CLOSE_S = 0.2
 """The gripper's close time assumed until the run has measured one, s."""
-TURN_DEG_S = 90.0
-"""The tool's turn rate the meeting is planned with when the robot does not say its own, deg/s."""
+LEAD_S = 0.05
+"""The least time planned between a meeting's plan and the arm above the meeting point besides the move itself
+(the move's start, the host's delays), s; the run learns more from its moves (``LEAD_SAMPLES``)."""
+LEAD_SAMPLES = 8
+"""The lead is the longest of the last this many approach moves' overruns of the robot's own timing."""
+LATE_MM = 2.0
+"""The arm above the meeting point later than the part by more than this (mm of belt): the meeting is planned
+again further along the window (never past it), from where the arm is."""
+REPLANS = 3
+"""At most this many later meetings for one part before it is given up as missed."""
 WAIT_SLACK_S = 1.5
 """The robot waits this much longer than planned for the count at which the part is under it, s."""
 CLAIM_WAIT_S = 30.0
@@ -72,6 +96,12 @@ class ConveyorRun(ProductionRun):
         self._seen_s = time.monotonic()
         self._halt_vision = threading.Event()
         self._close_s = GRIP_CLOSE_S
+        self._open_s = GRIP_CLOSE_S
+        """The gripper's open time (the last measured), s: the approach takes at least this."""
+        self._overruns: deque[float] = deque(maxlen=LEAD_SAMPLES)
+        """How much longer than the robot's own timing (plus the gripper's open) each approach took, s."""
+        self._opener: ThreadPoolExecutor | None = None
+        """Opens the gripper while the arm travels to the meeting point (the run's; shut down at its end)."""
         self.pictures = 0
 
     def public(self) -> dict[str, Any]:
@@ -125,10 +155,12 @@ class ConveyorRun(ProductionRun):
         self._go_home()
         looker = threading.Thread(target=self._look, name=f"production-{self.status.run_id}-belt", daemon=True)
         looker.start()
+        self._opener = ThreadPoolExecutor(1, thread_name_prefix=f"production-{self.status.run_id}-gripper")
         try:
             return self._belt_cycles()
         finally:
             self._halt_vision.set()
+            self._opener.shutdown(wait=True)
             looker.join(30.0)
 
     def _belt_cycles(self) -> Ended:
@@ -166,39 +198,54 @@ class ConveyorRun(ProductionRun):
             raise PickError(problem)
         return ticks
 
-    def _follow_s(self) -> float:
+    def _follow_s(self, cand: PickCandidate | None = None) -> float:
+        """The time the arm follows a part: down to it, the gripper's close, up (the robot's own timing of the
+        two moves), and ``FOLLOW_MARGIN_S``, s."""
         r = self.s.recipe
-        scale = float(getattr(self.robot, "time_scale", 1.0))
-        return scale * 2 * r.approach_height_mm * 1e-3 / r.speed_m_s + self._close_s + FOLLOW_MARGIN_S
+        if cand is None:
+            T_app = np.eye(4)
+            T_app[2, 3] = r.approach_height_mm * 1e-3
+            T_pick = np.eye(4)
+        else:
+            T_app, T_pick = cand.T_approach, cand.T_pick
+        accel = r.source.accel_m_s2 if r.source is not None else DEFAULT_ACCEL_M_S2
+        moves = (self.robot.linear_move_s(T_app, T_pick, r.speed_m_s, accel)
+                 + self.robot.linear_move_s(T_pick, T_app, r.speed_m_s, accel))
+        return moves + self._close_s + FOLLOW_MARGIN_S
 
-    def _next_part(self) -> tuple[BeltPart, Meeting] | None:
-        """The part furthest along that can be met (and its meeting); parts that cannot are given up."""
+    def _lead_s(self) -> float:
+        """What the plan adds to the robot's own timing of the approach: the longest recent overrun, at least
+        ``LEAD_S``."""
+        return max([LEAD_S, *self._overruns])
+
+    def _plan(self, part: BeltPart, ticks: int, T_tool: np.ndarray) -> Meeting | str:
+        """The meeting of ``part`` from the tool at ``T_tool`` at count ``ticks`` (``plan_meeting`` with the
+        robot's own timing of the move)."""
         r = self.s.recipe
         if r.source is None:
             raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
+        accel = r.source.accel_m_s2
+
+        def travel(T: np.ndarray) -> float:
+            return max(self.robot.linear_move_s(T_tool, T, r.speed_m_s, accel), self._open_s)
+
+        return plan_meeting(part, self.belt, ticks, self.watch.speed_mm_s(), T_tool[:3, 3],
+                            float(part.cand.T_approach[2, 3]), self.window_mm, r.speed_m_s, accel,
+                            self._follow_s(part.cand), travel=travel, lead_s=self._lead_s())
+
+    def _next_part(self) -> tuple[BeltPart, Meeting] | None:
+        """The part furthest along that can be met (and its meeting); parts that cannot are given up. Each
+        part's grasp is folded to the one nearest the tool's yaw now (the least turn on the way)."""
         ticks = self._check_count()
-        speed = self.watch.speed_mm_s()
         tool = self.robot.state().T_base_tool
-        approach_z = float(tool[2, 3])
-        scale = float(getattr(self.robot, "time_scale", 1.0))
         for part in self.queue.downstream_first(ticks):
-            approach_z = float(part.cand.T_approach[2, 3])
-            turn = scale * _turn_deg(tool, part.cand.T_approach) / self._turn_deg_s()
-            plan = plan_meeting(part, self.belt, ticks, speed, tool[:3, 3], approach_z, self.window_mm, r.speed_m_s,
-                                r.source.accel_m_s2, self._follow_s(), scale, turn)
+            part.cand = grasp_near(self.s.recipe, part.cand, tool, self.robot.limits)
+            plan = self._plan(part, ticks, tool)
             if isinstance(plan, Meeting):
                 return part, plan
             if isinstance(plan, Missed):
                 self._missed(part, str(plan))
         return None
-
-    def _turn_deg_s(self) -> float:
-        own = getattr(self.robot, "tool_turn_speed_deg_s", None)  # the UR adapter's setting
-        if isinstance(own, float):
-            return own
-        world = getattr(self.robot, "world", None)  # the sim robot says its own; a real one: TURN_DEG_S
-        spec = getattr(getattr(world, "scene", None), "robot", None)
-        return float(getattr(spec, "tool_turn_speed_deg_s", TURN_DEG_S))
 
     def _missed(self, part: BeltPart, why: str) -> None:
         self.queue.remove(part)
@@ -220,20 +267,13 @@ class ConveyorRun(ProductionRun):
         slot, n_slots, T_slot = self.slots.target(r, None, None)
         T_place, T_place_app = place_poses(r, cand, T_slot, self.robot.limits)
         over["setup"] = time.monotonic() - t_cycle
-        d.add("gripper", self.gripper.open())
         self._at("to_pick", store=True, pick_pose=seen_fields(cand, None, None)["pick_pose"])
-        self._move(part.T_at(belt, meeting.ticks, cand.T_approach), "above the part's meeting point", d)
-        t_wait = time.monotonic()
-        ticks = self._wait_for(part, meeting)
-        waited_ms = (time.monotonic() - t_wait) * 1e3
-        if ticks is None:
-            return  # the belt stopped or slowed: the part stays queued and is planned again
+        met = self._meet(part, meeting, d, t_cycle)
+        if met is None:
+            return  # missed (recorded), or the belt stopped or slowed: the part stays queued and is planned again
+        ticks, meeting, waited_ms, replans = met
         x_part = part.x_at(belt, ticks)
         most_m = (self.window_mm[1] - x_part) * 1e-3
-        if most_m * 1e3 < self.watch.speed_mm_s() * self._follow_s():
-            self._missed(part, f"the robot was above the meeting point late: the part was at x = {x_part:.0f} mm, too "
-                               f"near the window's end ({self.window_mm[1]:.0f} mm) to be followed while gripped")
-            return
         t0 = time.monotonic()
         ticks0 = self.robot.start_tracking(belt.direction_base, belt.ticks_per_m, most_m, self.session,
                                            count=self.conveyor.ticks)
@@ -260,11 +300,14 @@ class ConveyorRun(ProductionRun):
             t0 = time.monotonic()
             self.robot.stop_tracking()
             over["tracking"] += time.monotonic() - t0
-        fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1), "overhead_ms": over}
-        report = getattr(self.robot, "tracking_report", None)  # measured by a host-side tracker (the UR's)
-        if isinstance(report, dict):
+        fields = {**self._belt_fields(part, meeting, ticks0), "waited_ms": round(waited_ms, 1), "overhead_ms": over,
+                  "replans": replans}
+        report = self.robot.tracking_report()  # measured by a host-side tracker (the UR's); None: not measured
+        if report is not None:
             fields["tracking_error_mm"] = {"rms": report["rms_mm"], "max": report["max_mm"],
-                                           "samples": report["samples"], "servo_steps": report["servo_steps"]}
+                                           "samples": report["samples"], "servo_steps": report["servo_steps"],
+                                           **{k: report[k] for k in ("mean_along_mm", "stream_gap_ms", "feed_gap_ms",
+                                                                     "sample_age_ms") if k in report}}
         if not check.held:
             c.grip_failures += 1
             self._record("grip_failed", cand, picture, d=d, t_cycle=t_cycle, belt=fields,
@@ -280,6 +323,58 @@ class ConveyorRun(ProductionRun):
         fields["overhead_ms"] = {k: round(v * 1e3, 2) for k, v in over.items()}
         self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle, durations=durations,
                      resolves=claimed, belt=fields)
+
+    def _meet(self, part: BeltPart, meeting: Meeting, d: Durations, t_plan: float
+              ) -> tuple[int, Meeting, float, int] | None:
+        """Move above the meeting point (the gripper opening meanwhile) and wait for the part: (the count when
+        it is there, the meeting kept, the wait in ms, how many times it was planned again). An arm there later
+        than the part (by more than ``LATE_MM``), or too late to follow it while it grips before the window's
+        end, plans the meeting again from where it is, further along the window (at most ``REPLANS`` times);
+        a part that then cannot be met is given up, counted ``missed_window`` (None). None too when the belt
+        stopped or slowed (the part stays queued)."""
+        belt, r = self.belt, self.s.recipe
+        waited_ms, replans = 0.0, 0
+        while True:
+            T_from = self.robot.state().T_base_tool
+            T_app = part.T_at(belt, meeting.ticks, part.cand.T_approach)
+            planned_s = max(self._open_s, self.robot.linear_move_s(
+                T_from, T_app, r.speed_m_s, r.source.accel_m_s2 if r.source else DEFAULT_ACCEL_M_S2))
+            self._open_s = self._approach(T_app, d)
+            self._overruns.append(max(0.0, time.monotonic() - t_plan - planned_s))
+            t_wait = time.monotonic()
+            ticks = self._wait_for(part, meeting)
+            waited_ms += (time.monotonic() - t_wait) * 1e3
+            if ticks is None:
+                return None
+            x_part = part.x_at(belt, ticks)
+            late_mm = (ticks - meeting.ticks) / belt.ticks_per_m * 1e3
+            room_mm = self.window_mm[1] - x_part
+            if late_mm <= LATE_MM and room_mm >= self.watch.speed_mm_s() * self._follow_s(part.cand) - LATE_MM:
+                return ticks, meeting, waited_ms, replans
+            why = (f"the robot was above the meeting point late ({late_mm:.0f} mm of belt): the part was at x = "
+                   f"{x_part:.0f} mm, too near the window's end ({self.window_mm[1]:.0f} mm) to be followed while "
+                   "gripped")
+            if replans >= REPLANS:
+                self._missed(part, why)
+                return None
+            t_plan = time.monotonic()
+            plan = self._plan(part, self._check_count(), self.robot.state().T_base_tool)
+            if not isinstance(plan, Meeting):
+                self._missed(part, f"{why}; planned again: {plan}")
+                return None
+            meeting, replans = plan, replans + 1
+
+    def _approach(self, T_app: np.ndarray, d: Durations) -> float:
+        """Move above the meeting point while the gripper opens (on the run's gripper thread: the open is hidden
+        behind the move); both done when this returns, a failed open raised after the move. The open's time, s."""
+        if self._opener is None:  # a bug, not a plant's mistake: the run's start makes it
+            raise RuntimeError("the belt run's gripper thread is not running")
+        opening = self._opener.submit(self.gripper.open)
+        try:
+            self._move(T_app, "above the part's meeting point", d)
+        finally:
+            futures_wait([opening])
+        return opening.result()
 
     def _claim_while_carrying(self, slot: int, n_slots: int | None, cand: Any, T_place: np.ndarray,
                               T_place_app: np.ndarray, d: Durations) -> float:
@@ -320,8 +415,3 @@ class ConveyorRun(ProductionRun):
                 return None
             time.sleep(POLL_S)
 
-
-def _turn_deg(T0: np.ndarray, T1: np.ndarray) -> float:
-    """The angle (deg) the tool turns from ``T0`` to ``T1``."""
-    c = (float(np.trace(T0[:3, :3].T @ T1[:3, :3])) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

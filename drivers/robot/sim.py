@@ -6,7 +6,8 @@
   ``state().moving`` is true meanwhile.
 - ``_stop`` halts the tool where it is, and the interrupted move raises ``DeviceOperationError``
   like the UR adapter (``RobotBase`` turns it into ``RobotStopped`` for the caller).
-- Faults of the scene (``robot.faults``): a protective stop halfway through a move (the move
+- Faults of the scene (``robot.faults``): the operator's speed slider below 1 (every move slower than the
+  robot's own timing says), a protective stop halfway through a move (the move
   raises, moves are refused until ``unlock_protective_stop``), and a controller that drops off the
   network (state and moves raise ``DeviceUnavailable`` until reconnected).
 - A conveyor scene's arm tracks the belt (``start_tracking``: ``drivers.sim.conveyor.BeltTracker``);
@@ -30,6 +31,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.base import DeviceOperationError, DeviceUnavailable, MotionLimits, MotionRejected, RobotBase, RobotState
 from drivers.health import DeviceHealth
+from drivers.robot_base import DEFAULT_ACCEL_M_S2, turn_deg
 from drivers.sim.kinematics import OutOfReach
 from drivers.sim.world import SimWorld, world_for
 
@@ -133,21 +135,35 @@ class SimRobot(RobotBase):
         except OutOfReach as exc:
             raise MotionRejected(f"robot {self.robot_id}: {exc}") from exc
         self._halt.clear()
+        faults = world.scene.robot.faults
         if not world.tracker.tracking:
             world.settle_tracking()
         world.move_started(speed_m_s)
-        faults = world.scene.robot.faults
         self._moves += 1
         protective_halfway = (faults.protective_stop_after_moves is not None
                               and self._moves == faults.protective_stop_after_moves + 1)
-        duration_s = self.time_scale * max(
-            float(np.linalg.norm(T_base_tool[:3, 3] - world.T_base_tool_commanded[:3, 3])) / speed_m_s,
-            _turn_deg(world.T_base_tool_commanded, T_base_tool) / world.scene.robot.tool_turn_speed_deg_s)
+        duration_s = self._profile_s(world.T_base_tool_commanded, T_base_tool, speed_m_s) / faults.speed_slider
         if duration_s > 0 or protective_halfway:
             self._travel(world, T_base_tool, T_true_end, max(duration_s, STEP_S), protective_halfway)
         world.place_tool(T_base_tool, T_true_end, joints)
         if faults.drop_after_moves is not None and self._moves >= faults.drop_after_moves:
             self._dropped = True
+
+    def tool_turn_speed_deg_s(self) -> float:
+        """The scene's ``robot.tool_turn_speed_deg_s`` (before the motion time scale)."""
+        return float(self.world.scene.robot.tool_turn_speed_deg_s)
+
+    def _profile_s(self, T_from: NDArray[np.float64], T_to: NDArray[np.float64], speed_m_s: float) -> float:
+        """The move's duration: the distance at ``speed_m_s``, or the turn at the scene's turn rate when that is
+        longer, times the motion time scale (no ramps: the virtual arm starts and stops at once)."""
+        return self.time_scale * max(float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])) / speed_m_s,
+                                     turn_deg(T_from, T_to) / self.tool_turn_speed_deg_s())
+
+    def linear_move_s(self, T_from: NDArray[np.float64], T_to: NDArray[np.float64], speed_m_s: float,
+                      accel_m_s2: float = DEFAULT_ACCEL_M_S2) -> float:
+        """The move's duration as ``_move_linear`` times it (``accel_m_s2`` is not used: no ramps), plus one
+        update step (the arrival is seen at the step after the profile ends)."""
+        return self._profile_s(T_from, T_to, speed_m_s) + STEP_S
 
     def _travel(self, world: SimWorld, T_cmd_end: NDArray[np.float64], T_true_end: NDArray[np.float64],
                 duration_s: float, protective_halfway: bool) -> None:
@@ -206,12 +222,6 @@ class SimRobot(RobotBase):
         if self._world is None or self._dropped or not self._world.tracker.tracking:
             return super()._distance_to(target)
         return float(np.linalg.norm(target[:3, 3] - self._world.T_base_tool_commanded[:3, 3]))
-
-
-def _turn_deg(T0: NDArray[np.float64], T1: NDArray[np.float64]) -> float:
-    """The angle (deg) the tool turns from ``T0`` to ``T1``."""
-    c = (float(np.trace(T0[:3, :3].T @ T1[:3, :3])) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 class _Line:

@@ -52,9 +52,11 @@ from drivers.base import (
     RobotState,
 )
 from drivers.health import DeviceHealth
+from drivers.robot.ur_movel import movel_profile
 from drivers.robot.ur_rtde_link import ControlLink, StateLink
 from drivers.robot.ur_rtde_settings import ROBOT_MODES, SAFETY_MODES, URRTDESettings
 from drivers.robot.ur_rtde_tracking import URHostTracking
+from drivers.robot_base import DEFAULT_ACCEL_M_S2, turn_deg
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +84,20 @@ class URRTDERobot(URHostTracking):
         self._stop_requested = threading.Event()
         self._ever_connected = False
 
-    @property
     def tool_turn_speed_deg_s(self) -> float:
+        """The most the controller turns the tool (``tool_turn_speed_deg_s``: the joints' speed limit), deg/s."""
         return self.config.tool_turn_speed_deg_s
+
+    def linear_move_s(self, T_from: NDArray[np.float64], T_to: NDArray[np.float64], speed_m_s: float,
+                      accel_m_s2: float = DEFAULT_ACCEL_M_S2) -> float:
+        """``moveL``'s time as the controller profiles it (``drivers.robot.ur_movel``) at ``speed_m_s`` with the
+        adapter's ``acceleration_m_s2`` (the one it sends; ``accel_m_s2`` is not used), plus two state samples
+        (the arrival is seen in the stream)."""
+        d = float(np.linalg.norm(np.asarray(T_to)[:3, 3] - np.asarray(T_from)[:3, 3]))
+        angle = math.radians(turn_deg(T_from, T_to))
+        duration, _ = movel_profile(d, angle, speed_m_s, self.config.acceleration_m_s2,
+                                    math.radians(self.config.tool_turn_speed_deg_s))
+        return duration + 2.0 / self.config.frequency_hz
 
     # -- connection ------------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -224,8 +237,7 @@ class URRTDERobot(URHostTracking):
             return
         st = self._require_ready()
         pose = [float(v) for v in transform_to_ur_pose(T_base_tool)]
-        dist = float(np.linalg.norm(T_base_tool[:3, 3] - st.T_base_tool[:3, 3]))
-        expected = dist / speed_m_s + speed_m_s / self.config.acceleration_m_s2 + 1.0
+        expected = self.linear_move_s(st.T_base_tool, T_base_tool, speed_m_s) + 1.0
         self._stop_requested.clear()
         ok = self._request(
             "moveL", (pose, speed_m_s, self.config.acceleration_m_s2, True), self.config.command_timeout_s

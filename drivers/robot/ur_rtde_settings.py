@@ -61,8 +61,8 @@ class URRTDESettings(BaseModel):
     position_tolerance_mm: float = Field(0.2, gt=0, le=10, description="a move has arrived within this")
     joint_tolerance_rad: float = Field(0.002, gt=0, le=0.1)
     tool_turn_speed_deg_s: float = Field(
-        57.3, gt=0, le=360, description="how fast a linear move turns the tool (deg/s; the emulator's 1 rad/s): "
-        "a belt run plans its meetings with it")
+        180.0, gt=0, le=360, description="the most a linear move turns the tool, deg/s (a UR5e's joints: 180); "
+        "below it moveL turns at 4 x its speed in rad/s (drivers/robot/ur_movel.py): a belt run plans with it")
     tracking_tolerance_mm: float = Field(
         1.0, gt=0, le=10, description="a move while tracking the belt has arrived within this of the moving target")
     watchdog_min_frequency_hz: float = Field(

@@ -44,8 +44,13 @@ class URHostTracking(RobotBase):
         self._tracking_lag_m = 0.0
         self._tracking_speed = 0.0
         """What the last tracking learnt: the stream's latency (m along the belt) and the belt's speed (ticks/s)."""
-        self.tracking_report: dict[str, float | int] | None = None
+        self._tracking_report: dict[str, float | int] | None = None
         """The last tracking's measured error (``HostTracking.report``), kept after it ended."""
+
+    def tracking_report(self) -> dict[str, float | int] | None:
+        """The last tracking's measured error (``HostTracking.report``: ``rms_mm``, ``max_mm``, ``samples``,
+        ``servo_steps``), kept after it ended; None before the first."""
+        return self._tracking_report
 
     # -- the adapter's own (``URRTDERobot``) -----------------------------------------------------------
     def _request(self, op: str, args: tuple[Any, ...], timeout_s: float) -> Any:
@@ -103,7 +108,7 @@ class URHostTracking(RobotBase):
             return False
         tracking.end()
         self._tracking_lag_m, self._tracking_speed = tracking.lag_m, tracking.speed_ticks_s()
-        self.tracking_report = tracking.report()
+        self._tracking_report = tracking.report()
         return True
 
     def _actual_sample(self) -> tuple[NDArray[np.float64], float] | None:

@@ -20,7 +20,10 @@ from typing import Any
 # layout (doubles)
 ACTIVE, FAILED, T_COUNT, TICKS, SPEED, LAG, TICKS0, TPM, MOST, PERIOD, LEAD, SEG_T0, SEG_DUR, SENT = range(14)
 DIR, P0, P1, ROT, BOX, BAD = 14, 17, 20, 23, 26, 32
-SIZE = 35
+LAST, MAXGAP = 35, 36
+"""When the worker last sent a step (``time.monotonic``), and the longest interval between two sends (s): a
+stall of the worker shows there."""
+SIZE = 37
 
 
 class TrackShared:
@@ -79,5 +82,7 @@ def stream_step(ctrl: Any, shared: TrackShared) -> bool:
     if not shared.active:
         return False
     ctrl.servoL([*p, *v[ROT:ROT + 3]], 0.5, 0.5, v[LEAD], 0.1, 300.0)
-    shared.write(sent=v[SENT] + 1)
+    now = time.monotonic()
+    gap = now - v[LAST] if v[SENT] > 0 else 0.0
+    shared.write(sent=v[SENT] + 1, last=now, maxgap=max(v[MAXGAP], gap))
     return True

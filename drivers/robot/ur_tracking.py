@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from drivers.errors import MotionRejected
 from drivers.limits import MotionLimits
-from drivers.robot.ur_track_stream import BAD, FAILED, SENT, TrackShared
+from drivers.robot.ur_track_stream import BAD, FAILED, MAXGAP, SENT, TrackShared
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +77,12 @@ class HostTracking:
         self._halt = threading.Event()
         self._samples: list[tuple[float, int]] = []
         self._errors_mm: list[float] = []
+        self._along_mm: list[float] = []
+        """The error's along-belt part (mm; + the arm ahead of the belt): a steady lag shows in its mean."""
+        self._feed_gap_s = 0.0
+        """The longest interval between two count feeds (s): this process's stalls (its GIL, its scheduling)."""
+        self._sample_age_s = 0.0
+        """The oldest state sample a measurement used (s): the state stream's stalls (emulator, receiver)."""
         self._speed_prior = float(speed_ticks_s)
         """The belt's speed until the count's own window is long enough (the last tracking's, ticks/s)."""
         self._lag_m = float(np.clip(lag_m, -LAG_MAX_M, LAG_MAX_M))
@@ -88,7 +94,8 @@ class HostTracking:
         shared.write(active=0.0, failed=0.0, t_count=time.monotonic(), ticks=self.ticks0, speed=self._speed_prior,
                      lag=self._lag_m,
                      ticks0=self.ticks0, tpm=self.ticks_per_m, most=self.most_m, period=PERIOD_S, lead=LEAD_S,
-                     seg_t0=0.0, seg_dur=0.0, sent=0.0, dir=list(self.direction), p0=list(self._seg[0]),
+                     seg_t0=0.0, seg_dur=0.0, sent=0.0, last=0.0, maxgap=0.0, dir=list(self.direction),
+                     p0=list(self._seg[0]),
                      p1=list(self._seg[1]), rot=list(rotvec),
                      box=[v * 1e-3 for v in (*lim.x_mm, *lim.y_mm, *lim.z_mm)], bad=[0.0, 0.0, 0.0])
         self._thread = threading.Thread(target=self._feed, name=f"ur-{robot_id}-belt-count")
@@ -120,8 +127,10 @@ class HostTracking:
         return out
 
     def _feed(self) -> None:
+        last = time.monotonic()
         while not self._halt.wait(FEED_S):
             now = time.monotonic()
+            self._feed_gap_s, last = max(self._feed_gap_s, now - last), now
             try:
                 ticks = int(self._count())
             except Exception as exc:  # noqa: BLE001 - the stream ends saying why; the caller stops the arm
@@ -146,9 +155,12 @@ class HostTracking:
             return  # a move under way: the error that counts is the one while the tool holds on the part
         ticks_then = ticks - self.speed_ticks_s() * max(0.0, now - t_sample)
         error = T_actual[:3, 3] - (self.belt_position(t_sample) + self._offset(ticks_then))
-        self._lag_m = float(np.clip(self._lag_m - LAG_GAIN * float(error @ self.direction), -LAG_MAX_M, LAG_MAX_M))
+        along = float(error @ self.direction)
+        self._lag_m = float(np.clip(self._lag_m - LAG_GAIN * along, -LAG_MAX_M, LAG_MAX_M))
         with self._lock:
             self._errors_mm.append(1e3 * float(np.linalg.norm(error)))
+            self._along_mm.append(1e3 * along)
+            self._sample_age_s = max(self._sample_age_s, now - t_sample)
 
     # -- the caller's side ---------------------------------------------------------------------------
     def _check_segment(self, p: NDArray[np.float64]) -> None:
@@ -206,11 +218,17 @@ class HostTracking:
         return self._lag_m
 
     def report(self) -> dict[str, float | int]:
-        """The measured tracking error: samples, RMS and max (mm), and the servo steps streamed."""
+        """The measured tracking error: samples, RMS and max (mm), the along-belt part's mean (mm; + the arm
+        ahead: a steady lag or lead), and the servo steps streamed; where a stall would show: the worker's longest
+        interval between two steps, this process's between two count feeds, the oldest state sample used (ms)."""
         with self._lock:
-            e = list(self._errors_mm)
-        sent = int(self.shared.read()[SENT])
+            e, along = list(self._errors_mm), list(self._along_mm)
+        v = self.shared.read()
+        stalls = {"stream_gap_ms": round(1e3 * v[MAXGAP], 1), "feed_gap_ms": round(1e3 * self._feed_gap_s, 1),
+                  "sample_age_ms": round(1e3 * self._sample_age_s, 1)}
         if not e:
-            return {"samples": 0, "rms_mm": math.nan, "max_mm": math.nan, "servo_steps": sent}
+            return {"samples": 0, "rms_mm": math.nan, "max_mm": math.nan, "mean_along_mm": math.nan,
+                    "servo_steps": int(v[SENT]), **stalls}
         return {"samples": len(e), "rms_mm": round(float(np.sqrt(np.mean(np.square(e)))), 3),
-                "max_mm": round(float(np.max(e)), 3), "servo_steps": sent}
+                "max_mm": round(float(np.max(e)), 3), "mean_along_mm": round(float(np.mean(along)), 3),
+                "servo_steps": int(v[SENT]), **stalls}

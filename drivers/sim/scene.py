@@ -138,6 +138,9 @@ class RobotFaultSpec(_Strict):
     """The N+1-th move ends halfway in a protective stop (the move raises; unlock to continue)."""
     drop_after_moves: int | None = Field(None, ge=0)
     """After N moves the controller drops off the network (state and moves raise DeviceUnavailable)."""
+    speed_slider: float = Field(1.0, gt=0, le=1)
+    """The operator's speed slider (a real controller's pendant, 0..1): every move takes 1/slider times as long
+    as the robot's own timing (``SimRobot.linear_move_s``) says; a planner's estimate is then optimistic."""
 
 
 class RobotSpec(_Strict):

@@ -162,3 +162,29 @@ def test_the_projection_jacobian_for_the_uncertainty_matches_central_differences
         num = ((project_normalized(cam.model, c + e, xy) - project_normalized(cam.model, c - e, xy)) / (2 * hs[i]))
         assert np.abs(num.reshape(-1) - Ja[:, i]).max() < 1e-4 * max(1.0, np.abs(Ja[:, i]).max()), i
     assert not Ja[:, 4:7].any()       # the grid's layout is fixed
+
+
+def test_the_board_warp_jacobian_matches_central_differences() -> None:
+    """The splined solve with the target's two warp heights (mrcal solves them with its splined
+    model too): their Jacobian columns are exact (the solve on real data: bench/intrinsics_splined.py)."""
+    from calibration.intrinsics.views import warp_basis
+
+    rng = np.random.default_rng(1)
+    lay = splined.SplineLayout(8, 7, 150)
+    V = 3
+    X = np.vstack([BOARD.points().xyz_m[:20]] * V)
+    R = exp_so3(rng.normal(0, 0.3, (V, 3)))
+    t = np.column_stack([rng.normal(0, 0.05, (V, 2)), np.full(V, 0.5)])
+    prob = _Problem(lay, X, np.zeros((len(X), 2)), np.repeat(np.arange(V), 20), V, warp_basis(BOARD, X))
+    prob.wp = np.array([0.002, -0.001])
+    x = np.concatenate([[400.0, 410.0, 640.0, 480.0], rng.normal(0, 0.02, 2 * lay.n_ctrl)])
+    _, J = prob.project(x, R, t, jac=True)
+    assert J is not None and J.shape[1] == prob.n
+    Jd = J.toarray()
+    h = 1e-7
+    for i in (prob.n - 2, prob.n - 1):
+        dx = np.zeros(prob.n)
+        dx[i] = h
+        plus, minus = prob.step(x, R, t, dx), prob.step(x, R, t, -dx)
+        num = (prob.project(*plus)[0] - prob.project(*minus)[0]).ravel() / (2 * h)
+        assert np.abs(num).max() > 1.0 and np.abs(num - Jd[:, i]).max() < 1e-4 * np.abs(Jd[:, i]).max(), i

@@ -114,6 +114,27 @@ def test_the_meeting_is_inside_the_window_or_the_part_is_missed() -> None:
     assert isinstance(inside, Meeting) and inside.x_mm == pytest.approx(400.0)
 
 
+def test_the_meeting_is_planned_with_the_robots_own_timing_and_the_lead() -> None:
+    """``travel`` (the robot's timing of the move to the approach pose) and ``lead_s`` set when the arm can be
+    above the part: a slower arm or a longer lead meets the part further along, never past the window."""
+    tool = np.array([0.55, -0.30, 0.25])
+    part = _part(360.0, 0)  # inside the window already: no slack to spare
+    seen: list[np.ndarray] = []
+
+    def travel(T: np.ndarray) -> float:
+        seen.append(T)
+        return 0.5
+
+    m = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4, travel=travel)
+    assert isinstance(m, Meeting) and m.x_mm == pytest.approx(410.0, abs=1.0) and m.wait_s < 0.02
+    assert seen[-1][2, 3] == pytest.approx(0.036) and seen[-1][0, 3] == pytest.approx(m.x_mm * 1e-3, abs=1e-3)
+    later = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4, travel=travel, lead_s=0.3)
+    assert isinstance(later, Meeting) and later.x_mm == pytest.approx(440.0, abs=1.0)
+    slow = plan_meeting(part, BELT, 0, 100.0, tool, 0.036, (350.0, 740.0), 1.0, 2.0, 0.4,
+                        travel=lambda T: 3.5)
+    assert isinstance(slow, Missed) and "cannot reach it inside the window" in slow
+
+
 def test_the_watch_measures_the_speed_and_catches_a_jump() -> None:
     w = BeltWatch(10000.0)
     for k in range(30):
@@ -172,3 +193,38 @@ def test_a_belt_configured_still_never_ran_at_the_scenes_speed() -> None:
     moved = belt.position_m()
     belt.configure(0.0)
     assert belt.position_m() == pytest.approx(moved, abs=2e-3) and moved > 0.004
+
+
+def test_the_grasp_is_folded_to_the_symmetric_one_nearest_the_tools_yaw() -> None:
+    """A part seen with the grasp folded near yaw 0 and a tool turned to 170 deg: the planner takes the gripper's
+    other (180 deg) grasp, a turn of 20 deg instead of 160, at the same pick point; nothing else changes."""
+    from types import SimpleNamespace
+
+    from cellctl.pick.candidate import PickCandidate
+    from cellctl.pick.pose import PartPose, grasp
+    from cellctl.production.belt import grasp_near
+    from drivers.base import MotionLimits
+    from drivers.robot_base import turn_deg
+
+    recipe = SimpleNamespace(grasp_yaw_deg=0.0, gripper_symmetry_deg=180.0, tool_rotvec_rad=[math.pi, 0.0, 0.0],
+                             grasp_offset_mm=(0.0, 0.0), grasp_z_mm=0.0, tool_centre_offset_mm=None,
+                             approach_height_mm=30.0)
+    T = np.eye(4)
+    a = math.radians(10.0)
+    T[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+    T[:3, 3] = [0.5, 0.0, 0.006]
+    g = grasp(recipe, PartPose(T, a, [0.1, 0.1, 0.5]), 0.0)  # type: ignore[arg-type]
+    cand = PickCandidate(None, T, [0.1, 0.1, 0.5], None, 10.0, g.T_part_grip, g.T_grip_flange,  # type: ignore[arg-type]
+                         g.T_pick, g.T_approach, math.degrees(g.gripper_yaw_rad))
+    b = math.radians(170.0)
+    tool = np.eye(4)
+    tool[:3, :3] = np.array([[math.cos(b), -math.sin(b), 0], [math.sin(b), math.cos(b), 0], [0, 0, 1]]) @ np.diag(
+        [1.0, -1.0, -1.0])  # pointing down, its x axis at 170 deg
+    tool[:3, 3] = [0.55, -0.3, 0.25]
+    limits = MotionLimits((-1000.0, 1000.0), (-1000.0, 1000.0), (-100.0, 1000.0), max_linear_speed_m_s=1.0)
+    out = grasp_near(recipe, cand, tool, limits)  # type: ignore[arg-type]
+    assert turn_deg(tool, cand.T_approach) == pytest.approx(160.0, abs=1e-6)
+    assert turn_deg(tool, out.T_approach) == pytest.approx(20.0, abs=1e-6)
+    assert (out.gripper_yaw_deg - 190.0 + 180.0) % 360.0 - 180.0 == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(out.T_pick[:3, 3], cand.T_pick[:3, 3], atol=1e-12)
+    assert out.T_base_part is cand.T_base_part and grasp_near(recipe, out, tool, limits) is out  # type: ignore[arg-type]

@@ -234,3 +234,41 @@ def test_7_a_part_that_slips_before_the_grip_is_a_failed_grip_not_chased(cell: t
     failed = [c for c in cycles if c["result"] == "grip_failed"]
     assert failed and "may have slipped" in failed[0]["detail"], cycles
     assert world.T_base_tool_true[0, 3] <= 0.740 + 1e-6
+
+
+def test_8_an_arm_later_than_its_plan_meets_the_part_further_along_the_window(cell: tuple[AppCell, SimWorld]) -> None:
+    """The arm's speed slider at 0.5: every move takes twice what the robot's own timing (the plan's) says. A
+    part already inside the window when it is first seen is met with no slack, so the arm is above the meeting
+    point late; the run plans the meeting again further along the window from where the arm is (not giving
+    the part up), meets it there and places it, never following it past the window's end."""
+    app, world = cell
+    http = app.http()
+    _ready(http, world)
+    faults = world.scene.robot.faults
+    recipe = http.get("/recipes/1").json()["data"]
+    recipe["source"] = {"kind": "conveyor", "conveyor_id": "belt0", "window_mm": [220.0, 740.0]}
+    assert http.post("/recipes", json={"recipe_id": 3, "recipe": recipe}).status_code == 201
+    set_speed(http, 100.0)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:  # start when a part is about to enter the window: no slack to meet it
+        xs = [p["T_base_part"][0][3] * 1e3 for p in http.get("/sim/truth").json()["parts"] if p["state"] == "in_area"]
+        if any(205.0 <= x <= 225.0 for x in xs):
+            break
+        time.sleep(0.01)
+    faults.speed_slider = 0.5
+    try:
+        assert http.post("/production/start", json={"recipe_id": 3, "count": 1}).status_code == 202
+        deadline = time.monotonic() + 40
+        while time.monotonic() < deadline and http.get("/production").json()["ended_because"] is None:
+            assert world.T_base_tool_true[0, 3] <= 0.740 + 1e-6  # never followed past the window
+            time.sleep(0.02)
+        st = wait_ended(http, 10.0)
+    finally:
+        faults.speed_slider = 1.0
+    assert st["ended_because"] == "count_reached" and st["counters"]["placed"] == 1, st
+    assert st["counters"]["missed_window"] == 0, st  # met further along, not given up
+    cycles = http.get(f"/production/runs/{st['run_id']}/cycles").json()
+    placed = [c for c in cycles if c["result"] == "placed"]
+    assert placed and placed[0]["belt"]["replans"] >= 1, cycles
+    b = placed[0]["belt"]
+    assert 220.0 <= b["meet_x_mm"] <= 740.0 and 0 <= b["tracking_ticks"] - b["meet_ticks"] <= 40, b

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from drivers.peers.ur_emulator import HOME_Q, dashboard_reply, forward_kinematics, inverse_kinematics
 from drivers.peers.ur_emulator.arm import ROBOT_MODE_POWER_OFF, ROBOT_MODE_RUNNING, SAFETY_PROTECTIVE_STOP, T_to_pose
@@ -129,3 +132,26 @@ def test_kick_watchdog_is_a_command_the_script_finishes_and_waits_to_have_cleare
     apply_inputs(c, {"input_int_register_0": 0})
     c.step(0.304)
     assert c.script.out_int[0] == 1
+
+
+def test_movel_follows_the_ur_controllers_trapezoid_and_turns_at_four_times_v() -> None:
+    """``moveL`` as a UR controller times it (drivers.robot.ur_movel): position at ``v`` with ``a`` ramps, the
+    tool's turn at 4 v rad/s (at most the UR5e's 180 deg/s joints) with 4 a ramps, the longer setting the time."""
+    c = Controller()
+    start = c.arm.T.copy()
+    pose = T_to_pose(start)
+    pose[0] += 0.3  # 300 mm at v = 1 m/s, a = 1.2 m/s^2: a triangle, 2 sqrt(0.3 / 1.2) = 1.0 s
+    assert c.arm.start_linear(pose, speed_m_s=1.0, now=0.0, waiting=True, accel_m_s2=1.2)
+    c.arm.step(0.25)  # a quarter of the time into the ramp: 1/8 of the way, not 1/4
+    assert (c.arm.T[0, 3] - start[0, 3]) == pytest.approx(0.3 / 8, abs=1e-9)
+    assert c.arm.tcp_speed(0.25)[0] == pytest.approx(0.3, abs=1e-6)  # 1.2 m/s^2 x 0.25 s
+    assert c.arm.step(0.999) is None and c.arm.step(1.0) is not None
+    turned = c.arm.T.copy()
+    turned[:3, :3] = turned[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 deg
+    turn = T_to_pose(turned)
+    assert c.arm.start_linear(turn, speed_m_s=0.25, now=10.0, waiting=True, accel_m_s2=1.2)
+    # 4 v = 1 rad/s, 4 a = 4.8 rad/s^2: pi/2 / 1 + 1 / 4.8 s
+    assert c.arm.motion is not None and c.arm.motion.duration_s == pytest.approx(math.pi / 2 + 1 / 4.8, abs=1e-6)
+    assert c.arm.start_linear(turn, speed_m_s=1.0, now=20.0, waiting=True, accel_m_s2=20.0)
+    # 4 v = 4 rad/s is held to the joints' pi rad/s: pi/2 / pi + pi / 80 s
+    assert c.arm.motion is not None and c.arm.motion.duration_s == pytest.approx(0.5 + math.pi / 80, abs=1e-6)

@@ -142,13 +142,19 @@ class TestAgainstOneEmulator:
         target[:3, 3] += [0.03, -0.02, 0.05]  # metres
         dist = float(np.linalg.norm([0.03, -0.02, 0.05]))
         speeds: list[float] = []
-        mover = threading.Thread(target=lambda: robot.move_linear(target, speed_m_s=0.2))
-        mover.start()
-        # the controller reports the TCP speed it moves at: 0.2 m/s, never the mm/s reading or a jump
-        wait_for(lambda: robot.state().moving, 5.0)
-        while robot.state().moving:
-            speeds.append(robot.state().metadata["tcp_speed_m_s"])
-        mover.join(timeout=10)
+        # moveL ramps its speed at the adapter's acceleration (the emulator plays a UR's trapezoid): 20 m/s^2 makes
+        # the ramps 10 ms of the 0.3 s move, so the speed read is the cruise's
+        config, robot.config = robot.config, robot.config.model_copy(update={"acceleration_m_s2": 20.0})
+        try:
+            mover = threading.Thread(target=lambda: robot.move_linear(target, speed_m_s=0.2))
+            mover.start()
+            # the controller reports the TCP speed it moves at: 0.2 m/s, never the mm/s reading or a jump
+            wait_for(lambda: robot.state().moving, 5.0)
+            while robot.state().moving:
+                speeds.append(robot.state().metadata["tcp_speed_m_s"])
+            mover.join(timeout=10)
+        finally:
+            robot.config = config
         st = robot.state()
         assert np.linalg.norm(st.T_base_tool[:3, 3] - target[:3, 3]) < 0.2e-3
         np.testing.assert_allclose(st.T_base_tool[:3, :3], target[:3, :3], atol=1e-6)

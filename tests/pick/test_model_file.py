@@ -102,3 +102,26 @@ def test_bad_roi(taught: tuple[pm.PartModel, np.ndarray, np.ndarray], roi: tuple
 def test_full_image_roi_is_allowed(taught: tuple[pm.PartModel, np.ndarray, np.ndarray]) -> None:
     m = pm.teach(taught[1], (0.0, 0.0, float(SIZE[0]), float(SIZE[1])))
     assert m.reference_px == (SIZE[0] / 2, SIZE[1] / 2)
+
+
+def test_view_sigma_round_trip_and_schema(taught: tuple[pm.PartModel, np.ndarray, np.ndarray]) -> None:
+    """A model taught from several views keeps ``shape.view_sigma`` (vision.shape.multi.spread): the file
+    schema takes it, the reader gives it back, and a match's 1-sigma grows by it; a one-view model writes
+    none."""
+    import dataclasses
+    import math
+
+    from cellctl.pick.model_schema import PartModelDoc
+
+    m, _, scene = taught
+    assert "view_sigma" not in m.to_dict()["shape"]
+    assert m.shape is not None
+    wide = dataclasses.replace(m, shape=dataclasses.replace(m.shape, view_tau=(0.5, math.radians(2.0))))
+    d = wide.to_dict()
+    assert d["shape"]["view_sigma"] == {"px": 0.5, "deg": 2.0}
+    PartModelDoc.model_validate(d)
+    back = pm.PartModel.from_dict(json.loads(json.dumps(d)))
+    assert back.shape is not None and back.shape.view_tau == pytest.approx((0.5, math.radians(2.0)))
+    a, b = m.find(scene).matches[0], back.find(scene).matches[0]
+    assert b.u_px == pytest.approx(a.u_px, abs=2e-3)  # the pose stays: only the 1-sigma carries it
+    assert b.sigma_px > max(a.sigma_px, 0.3) and b.sigma_angle_deg > max(a.sigma_angle_deg, 1.0)

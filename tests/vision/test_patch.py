@@ -17,7 +17,7 @@ from vision import shape
 from vision.errors import TeachError
 from vision.shape.model import ShapeModel
 from vision.shape.patch import patch_from_dict, patch_to_dict
-from vision.shape.uncertainty import classical, combine, honest_cov, jackknife
+from vision.shape.uncertainty import classical, combine, honest_cov, jackknife, merge
 
 SS = 8  # supersampling of the renders
 
@@ -101,3 +101,20 @@ def test_combine_widens_by_disagreement() -> None:
     assert chi < 1 and Cm[0, 0] == pytest.approx(0.005)
     p, Cm, chi = combine(np.zeros(3), C, np.array([1.0, 0.0, 0.0]), C)
     assert chi > 10 and p[0] == pytest.approx(0.5) and Cm[0, 0] == pytest.approx(0.005 * chi)
+
+
+def test_merge_reports_the_disagreement_it_cannot_explain() -> None:
+    """Two fits that agree within their 1-sigma: the merged 1-sigma is theirs combined, nothing added.
+    Two that disagree far beyond it (a sharp fit and a loose one 1.4 px apart): the estimate stays where
+    the sharper fit leads, and its 1-sigma is of the order of the disagreement (0.4 of it here), not of the
+    sharp fit."""
+    Ce, Cp = np.diag([0.12 ** 2, 0.12 ** 2, 1e-6]), np.diag([0.55 ** 2, 0.55 ** 2, 4e-6])
+    p, C, chi = merge(np.zeros(3), Ce, np.array([0.05, 0.0, 0.0]), Cp)
+    _, C0, _ = combine(np.zeros(3), Ce, np.array([0.05, 0.0, 0.0]), Cp)
+    assert chi < 1 and np.allclose(C, C0)
+    d = np.array([1.366, 0.0, 0.0])
+    p, C, chi = merge(np.zeros(3), Ce, d, Cp)
+    _, C0, _ = combine(np.zeros(3), Ce, d, Cp)
+    assert chi > 1 and 0.0 < p[0] < 0.2  # the sharper fit leads
+    assert 0.35 * 1.366 < math.sqrt(C[0, 0]) < 1.366
+    assert math.sqrt(C[0, 0]) > 1.5 * math.sqrt(C0[0, 0])  # more than the chi-square widening gave

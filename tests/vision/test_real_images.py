@@ -301,12 +301,13 @@ def test_dev_instances_against_the_swept_reference() -> None:
     of the taught patch (``bench/pick_reference.py``) or the corpus's estimate, whichever agrees
     better (each is off by up to ~0.8 px where the other is right) — and the reported 1-sigma is
     honest: actual / reported against the sweep, its own error (measured on renders) in quadrature,
-    has an RMS within 0.5-2 (issue 37)."""
+    has an RMS within 0.5-2 over all of them and case by case (issue 37)."""
     from bench.pick_instances import instance_rows
     from bench.pick_reference import REF_SIGMA
 
     ratios_px: list[float] = []
     ratios_deg: list[float] = []
+    per_case: dict[str, list[tuple[float, float]]] = {}
     for case, test in DEV:
         if case.id == "robertson_screw_heads":
             continue
@@ -322,10 +323,17 @@ def test_dev_instances_against_the_swept_reference() -> None:
             assert near_ref or near_est, (row.image, row.err, s.pos_err, s.ang_err)
             ratios_px.append(row.err[0] / math.hypot(row.sigma[0], REF_SIGMA[0]))
             ratios_deg.append(abs(row.err[1]) / math.hypot(row.sigma[1], REF_SIGMA[1]))
+            per_case.setdefault(case.id, []).append((ratios_px[-1], ratios_deg[-1]))
     assert len(ratios_px) >= 22
     rms_px = math.sqrt(sum(r * r for r in ratios_px) / len(ratios_px))
     rms_deg = math.sqrt(sum(r * r for r in ratios_deg) / len(ratios_deg))
     assert 0.5 <= rms_px <= 2.0 and 0.5 <= rms_deg <= 2.0, (rms_px, rms_deg)
+    # case by case too (issue 37 round 4): a turned 3-D block whose edge fit and patch fit disagree by
+    # 1.4 px reports about half a pixel (uncertainty.merge), not a quarter
+    for cid, rs in per_case.items():
+        for k in (0, 1):
+            rms = math.sqrt(sum(r[k] ** 2 for r in rs) / len(rs))
+            assert 0.5 <= rms <= 2.0, (cid, "position" if k == 0 else "angle", rms)
 
 
 def test_several_views_find_more_screw_heads() -> None:

@@ -106,3 +106,7 @@ def test_several_views_of_a_3d_part_in_one_teach_image() -> None:
     # the averaged patch keeps the part (it correlates with the first head's)
     m = many.patch.mask
     assert float(np.corrcoef(many.patch.image[m].astype(float), one.patch.image[m].astype(float))[0, 1]) > 0.6
+    # the heads' changing look moves the edge fit against the patch fit beyond their own 1-sigma: kept with
+    # the model (multi.spread; 0.54 px, 2.1 deg here) for every match's 1-sigma; a one-view model has none
+    assert many.view_tau[0] > 0.2 and many.view_tau[1] > math.radians(0.5)
+    assert one.view_tau == (0.0, 0.0)

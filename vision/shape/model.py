@@ -156,6 +156,10 @@ class ShapeModel:
     patch: TeachPatch | None = None
     """The part's pixels in the teach image (``vision.shape.patch``): the final pose is finished on
     them; ``None`` (a model read from a file without them): the edge fit alone."""
+    view_tau: tuple[float, float] = (0.0, 0.0)
+    """(px, rad) the error a fit of the part has beyond its own covariance by how its look changes from
+    view to view (a model taught from several views, ``multi.teach_many``: the spread of the edge fit
+    against the patch fit over them, ``uncertainty.view_tau``); added to every match's 1-sigma. 0: one view."""
 
     @property
     def top_level(self) -> int:
@@ -165,7 +169,15 @@ class ShapeModel:
         out: dict[str, Any] = {"levels": [lv.to_dict() for lv in self.levels]}
         if self.patch is not None:
             out["patch"] = patch_to_dict(self.patch)
+        if self.view_tau[0] > 0 or self.view_tau[1] > 0:
+            out["view_sigma"] = {"px": round(self.view_tau[0], 4), "deg": round(math.degrees(self.view_tau[1]), 4)}
         return out
+
+    def view_cov(self) -> F64 | None:
+        """``view_tau`` as a covariance of (x, y, theta) (px, rad), or ``None`` for a one-view model."""
+        if self.view_tau[0] <= 0 and self.view_tau[1] <= 0:
+            return None
+        return np.diag([self.view_tau[0] ** 2, self.view_tau[0] ** 2, self.view_tau[1] ** 2])
 
     def contour(self, u_px: float, v_px: float, angle_deg: float, scale: float = 1.0,
                 mirrored: bool = False) -> tuple[F64, F64]:
@@ -180,14 +192,16 @@ class ShapeModel:
     def mirrored(self) -> ShapeModel:
         """The model of the part's mirror image (a flat part lying face down)."""
         return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size,
-                          None if self.patch is None else self.patch.mirrored())
+                          None if self.patch is None else self.patch.mirrored(), self.view_tau)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
                   image_size: tuple[int, int]) -> ShapeModel:
         levels = [LevelModel.from_dict(x) for x in d["levels"]]
         patch = patch_from_dict(d["patch"], levels[0].points) if d.get("patch") is not None else None
-        return cls(levels, params, roi, image_size, patch)
+        vs = d.get("view_sigma") or {}
+        tau = (float(vs.get("px", 0.0)), math.radians(float(vs.get("deg", 0.0))))
+        return cls(levels, params, roi, image_size, patch, tau)
 
 
 

@@ -16,7 +16,10 @@ turns with the part is the part. ``teach_many``:
    recur, and again (within 2 px) for the edges most images share, before step 2 (an alignment
    dragged by one image's shading would otherwise drop edges that are the part's);
 4. keeps as the taught patch the average of the aligned teach patches (each image's light matched to
-   the first's by gain and offset): the interior without one image's shading.
+   the first's by gain and offset): the interior without one image's shading;
+5. measures how far the part's changing look moves a fit (``spread``): in each view the final model's
+   edge fit against its patch fit; their disagreement beyond their own 1-sigma is kept with the model
+   (``ShapeModel.view_tau``, a model file's ``view_sigma``) and added to every match's 1-sigma.
 
 An edge counts as seen in a view only with the first view's contrast polarity (dark to bright the same
 way): on a 3-D part under one-sided light the rim and the socket's walls are lit on one side and
@@ -39,7 +42,9 @@ from vision.image import F64, U8, as_gray, gradients, pyramid
 from vision.shape import kernels
 from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams, teach
 from vision.shape.multi_align import Pose4, align, overlap
-from vision.shape.patch import TeachPatch, make_patch
+from vision.shape.patch import MIN_PATCH_NCC, TeachPatch, fit, make_patch
+from vision.shape.refine import Pose, refine_lsq
+from vision.shape.uncertainty import view_tau
 
 MAX_TEACH_IMAGES = 5
 MIN_KEPT_FRACTION = 0.2
@@ -76,7 +81,37 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
 
     out = teach(grays[0], rois[0], p, keep=keep)
     patch = mean_patch(make_patch(grays[0], rois[0], out.levels[0].points), grays, poses)
-    return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
+    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
+    return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, spread(model, grays, poses))
+
+
+def spread(model: ShapeModel, grays: list[U8], poses: list[Pose4]) -> tuple[float, float]:
+    """The error (px, rad) a fit of ``model`` has beyond its own covariance by how the part's look changes
+    between its teach views (5 of the module): in each view, at its aligned pose, the final model's edge
+    fit and its patch fit (the views' average) are made as a search makes them, and their differences
+    over the views give ``uncertainty.view_tau``'s moment estimate (one-sided light on a 3-D part moves the
+    shading, and so one fit against the other, from view to view)."""
+    thr = model.params.min_contrast * GRAD_PER_CONTRAST
+    d: list[F64] = []
+    S: list[F64] = []
+    for img, (x, y, th, sc) in zip(grays, poses, strict=True):
+        pyr = pyramid(img, model.top_level + 1)
+        r = refine_lsq(pyr[0], model.levels[0], Pose(x, y, th, 1.0, sc), model.params.edge_sigma_px, thr, 2.0, 5,
+                       fine=pyr[0], min_contrast=model.params.min_contrast, perspective=True)
+        if model.patch is None or r.cov is None or not np.all(np.isfinite(r.cov)):
+            continue
+        lv = min(model.patch.fit_level(), len(pyr) - 1)
+        f = 2.0 ** lv
+        pf = fit(model.patch.at_level(lv), pyr[lv], r.pose.x / f, r.pose.y / f, r.pose.theta, r.pose.scale)
+        if pf is None or pf.ncc < MIN_PATCH_NCC or not np.all(np.isfinite(pf.cov)):
+            continue
+        F = np.diag([f, f, 1.0])
+        turn = math.remainder(pf.theta - r.pose.theta, 2 * math.pi)
+        d.append(np.array([pf.x * f - r.pose.x, pf.y * f - r.pose.y, turn]))
+        S.append(r.cov + F @ pf.cov @ F)
+    if len(d) < 2:
+        return 0.0, 0.0
+    return view_tau(np.array(d), np.array(S))
 
 
 def aligned_poses(model: ShapeModel, grays: list[U8], rois: list[tuple[float, float, float, float]],

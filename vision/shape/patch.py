@@ -37,16 +37,9 @@ from numpy.typing import NDArray
 
 from vision.errors import TeachError
 from vision.image import F64, U8, bilinear
+from vision.shape import cov_kernels as ck
 from vision.shape import patch_kernels as pk
-from vision.shape.uncertainty import (
-    JACKKNIFE_BLOCKS,
-    blocks_of,
-    classical_of,
-    combine,
-    honest_of,
-    jackknife_of,
-    sigma_of,
-)
+from vision.shape.uncertainty import JACKKNIFE_BLOCKS, blocks_of, merge, sigma_of
 
 MAX_SAMPLES = 1500
 """Sample points of a patch (a large part is subsampled on a grid: its fit's cost is bounded)."""
@@ -190,9 +183,13 @@ def patch_blocks(patch: TeachPatch) -> NDArray[np.int64]:
 
 
 def patch_step(patch: TeachPatch) -> float:
-    """The samples' grid step (px)."""
-    pts = patch.samples()[0]
-    return float(np.median(np.hypot(*np.diff(pts[: min(len(pts), 200)], axis=0).T))) if len(pts) > 2 else 1.0
+    """The samples' grid step (px; cached with the samples)."""
+    got = patch.__dict__.get("_step")
+    if got is None:
+        pts = patch.samples()[0]
+        got = float(np.median(np.hypot(*np.diff(pts[: min(len(pts), 200)], axis=0).T))) if len(pts) > 2 else 1.0
+        patch.__dict__["_step"] = got
+    return got  # type: ignore[no-any-return]
 
 
 @dataclass
@@ -244,49 +241,17 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
     c, s = math.cos(theta), math.sin(theta)
     # (t, A, v, gain, offset): see patch_kernels
     par = np.array([x - x0, y - y0, scale * c, scale * s, -scale * s, scale * c, 0.0, 0.0, 1.0, 0.0])
-    t_start = par[:2].copy()
     block = patch_blocks(patch)
-    # the light to start from: T ~ a I + b at the edge fit's pose
-    _, _, _, _, r0, inside = pk.normal_equations(crop, gx, gy, pts, T, block, 1, par, 0.0, TUKEY_C, False)
-    if inside.sum() < 0.5 * len(pts):
+    try:  # the Gauss-Newton loop, compiled (pick speed)
+        status, par, H, g, Hb, Gb, r, inside, sd = pk.gauss_newton(
+            crop, gx, gy, pts, T, block, JACKKNIFE_BLOCKS ** 2, par, iterations, TUKEY_C, r_max, scale, TILT_PRIOR)
+    except np.linalg.LinAlgError:
         return None
-    I0 = r0[inside] + T[inside]
-    ab = np.linalg.lstsq(np.stack([I0, np.ones_like(I0)], axis=1), T[inside], rcond=None)[0]
-    par[8], par[9] = (float(ab[0]) if abs(ab[0]) > 1e-6 else 1e-6), float(ab[1])
-    converged = False
-    sd = 0.0
-    nb = JACKKNIFE_BLOCKS ** 2
-    H = g = Hb = Gb = np.zeros(0)
-    for it in range(iterations + 1):
-        last = converged or it == iterations
-        H, g, Hb, Gb, r, inside = pk.normal_equations(crop, gx, gy, pts, T, block, nb, par, sd, TUKEY_C, last)
-        if inside.sum() < 0.5 * len(pts):
-            return None
-        if last:
-            break
-        # a prior on the perspective terms (a view tilted by a few degrees: v r_max ~ 0.01): a round or
-        # featureless part does not trade its position for a made-up tilt
-        Hp = H.copy()
-        prior = (sd if sd > 0 else 1.0) ** 2 * (r_max / TILT_PRIOR) ** 2
-        Hp[6, 6] += prior
-        Hp[7, 7] += prior
-        gp = g.copy()
-        gp[6:8] += prior * par[6:8]
-        try:
-            d = -np.linalg.solve(Hp + 1e-9 * np.eye(len(H)) * np.trace(H), gp)
-        except np.linalg.LinAlgError:
-            return None
-        par += d
-        # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
-        sd = 1.4826 * float(np.median(np.abs(r[inside]))) + 1e-6
-        det = par[2] * par[5] - par[3] * par[4]
-        if math.hypot(*(par[:2] - t_start)) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
-                or float(np.abs(par[6:8]).max()) * r_max > 0.2:
-            return None
-        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and float(np.abs(d[2:6]).max()) * r_max < 5e-3:
-            converged = True
+    if status < 0:
+        return None
+    converged = status == 1
     t, A, v = par[:2], par[2:6].reshape(2, 2), par[6:8]
-    ncc = _ncc(r[inside] + T[inside], T[inside])  # a I + b at the final pose against the patch
+    ncc = pk.ncc_of(r, T, inside)  # a I + b at the final pose against the patch
     # the turn and scale of the local linear map at the reference point, Lm = A - t v^T (as the edge
     # fit's homography); (x, y, theta) from (t, A, v, a, b) to first order
     Lm = A - np.outer(t, v)
@@ -304,7 +269,7 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
         return None
     s2 = swr / max(sw * (cnt - 10) / cnt, 1e-12)
     corr = max((2.0 * BLUR_SIGMA_PX / max(min(patch_step(patch), 4.0), 0.5)) ** 2, 1.0)
-    cov = honest_of(classical_of(H, s2, corr), jackknife_of(H, g, Hb, Gb), M)
+    cov = ck.honest(ck.classical_cov(H, s2, corr), ck.jackknife_cov(H, g, Hb, Gb), M)
     return PatchFit(float(t[0] + x0), float(t[1] + y0), th, math.sqrt(abs(float(np.linalg.det(Lm)))), ncc, cov,
                     cnt, converged)
 
@@ -339,13 +304,15 @@ def _fit_at(patch: TeachPatch, pyr: list[U8], lv: int, x: float, y: float, theta
 
 
 def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, scale: float,
-           cov_edge: F64 | None) -> tuple[float, float, float, float, float, dict[str, float]] | None:
+           cov_edge: F64 | None, T0: F64 | None = None
+           ) -> tuple[float, float, float, float, float, dict[str, float]] | None:
     """The final pose from the edge fit's ``(x, y, theta, scale)`` (level-0 px, rad) and its covariance,
     and the patch fit from there (on the image's pyramid ``pyr``, at the patch's ``fit_level``):
     ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their covariances (``uncertainty.combine``:
     widened by their disagreement), or ``None`` when the patch cannot be fitted there. ``scores``:
     ``patch_ncc`` (the patch's correlation at the final pose) and ``fit_chi2`` (the two fits'
-    disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma)."""
+    disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma). ``T0``: the
+    extra error each fit carries by the model's teach views (``uncertainty.merge``)."""
     Ce = cov_edge if cov_edge is not None and np.all(np.isfinite(cov_edge)) else np.diag([1e6, 1e6, 1e2])
     start = theta
     lv = min(patch.fit_level(), len(pyr) - 1)
@@ -363,7 +330,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
     pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
     # a jackknife over few blocks can come out nearly singular: floor each at a thousandth px / rad^2
     eps = np.diag([1e-6, 1e-6, 1e-10])
-    p, C, chi = combine(pe, Ce + eps, pp, pf.cov + eps)
+    p, C, chi = merge(pe, Ce + eps, pp, pf.cov + eps, T0)
     if chi > SPLIT_CHI2 and pf.cov[2, 2] < Ce[2, 2]:
         # the two cannot both be right (beyond 5 sigma): the edges were dragged (texture, a shading
         # gradient beside a faint outline) or never fixed the turn. The part's pixels, which match it
@@ -377,8 +344,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
         Ce_pos = Ce.copy()
         Ce_pos[2, :2] = Ce_pos[:2, 2] = 0.0
         Ce_pos[2, 2] = 1e2
-        p, C, chi2 = combine(pe, Ce_pos + eps, pp, pf.cov + eps)
-        C = C * max(chi2, 1.0)
+        p, C, _ = merge(pe, Ce_pos + eps, pp, pf.cov + eps, T0)
     sd, sp = sigma_of(C)
     scores["fit_chi2"] = round(chi, 3)
     return float(p[0]), float(p[1]), float(p[2]), sd, sp, scores

@@ -23,9 +23,9 @@ from numpy.typing import NDArray
 
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
 from vision.shape import kernels
+from vision.shape.cov_kernels import edge_cov
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
-from vision.shape.uncertainty import edge_cov
 
 
 @dataclass
@@ -145,8 +145,8 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
         # neighbouring points see overlapping profiles (as in _pose_sigma): points per independent one
         spacing = float(np.median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
-        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
-                       persp)
+        cov = edge_cov(off, used, np.ascontiguousarray(m), q, n, th, sc,
+                       max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])

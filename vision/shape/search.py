@@ -52,6 +52,7 @@ from vision.shape.patch import finish as finish_on_patch
 from vision.shape.refine import Pose, Refined, refine_lsq
 from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
+from vision.shape.uncertainty import sigma_of
 from vision.shape.verify import Contour, claimed, contour_of, hidden_by, verify
 from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, Rejected, SearchParams
 
@@ -291,14 +292,18 @@ def _match_of(p: Pose, r: Refined, mirrored: bool) -> Match:
                  r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
 
 
-def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined) -> Match:
+def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined, T0: F64 | None = None) -> Match:
     """``mt``'s pose finished on the taught patch (``patch.finish``), with the 1-sigma of the merged fit
-    and the patch's scores; unchanged without a patch or where it cannot be fitted. Only answered
-    matches (and the best candidate below ``min_score``) are finished: the rest cost nothing more."""
-    if patch is None:
-        return mt
-    done = finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg), mt.scale, r.cov)
-    if done is not None:
+    and the patch's scores; without a patch or where it cannot be fitted, the edge fit's pose with its
+    jackknife 1-sigma. ``T0``: the model's teach views' extra error (``ShapeModel.view_cov``), in either.
+    Only answered matches are finished: the rest cost nothing more."""
+    done = None if patch is None else finish_on_patch(patch, pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg),
+                                                      mt.scale, r.cov, T0)
+    if done is None and r.cov is not None and np.all(np.isfinite(r.cov)):
+        # no patch to finish on (or its interior does not match): the edge fit's own honest 1-sigma (its
+        # block jackknife: a stretch of edge pulled by shading or texture shows in it)
+        mt.sigma_angle_deg, mt.sigma_px = sigma_of(r.cov if T0 is None else r.cov + T0)
+    elif done is not None:
         mt.u_px, mt.v_px, th, mt.sigma_angle_deg, mt.sigma_px, extra = done
         mt.angle_deg = wrap_deg(math.degrees(th))
         mt.scores.update(extra)
@@ -338,7 +343,9 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     best = None
     if low is not None:
         r, mir = low
-        fm = _finish((model.mirrored() if mir else model).patch, pyr, _match_of(r.pose, r, mir), r)  # as a match
+        # the edge fit's pose (a hint of where the best candidate lay; not finished on the patch: a
+        # grey-value fit of something that is not the part costs its most iterations and says nothing)
+        fm = _match_of(r.pose, r, mir)
         best = Candidate(fm.u_px, fm.v_px, fm.angle_deg, r.score)
         if r.detail is not None and r.q is not None:
             lm = model.mirrored().levels[0] if mir else model.levels[0]
@@ -387,7 +394,7 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
                        f"min_score {sp.min_score:g}): a ghost between neighbouring parts")
         mt.scores = {**vd.scores, **mt.scores}
         if why is None:
-            final.append(_finish(patches[mt.mirrored], pyr, mt, r))
+            final.append(_finish(patches[mt.mirrored], pyr, mt, r, model.view_cov()))
             contours.append(contour_of(r.q, r.n))
         elif all((mt.u_px - o.u_px) ** 2 + (mt.v_px - o.v_px) ** 2 >= min_dist ** 2 for o in rejected):
             rejected.append(Rejected(mt.u_px, mt.v_px, mt.angle_deg, mt.score, mt.mirrored, vd.scores, why))

@@ -133,6 +133,47 @@ def combine(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
     return p, C * max(chi, 1.0), chi
 
 
+def merge(pe: F64, Ce: F64, pp: F64, Cp: F64, T0: F64 | None = None) -> tuple[F64, F64, float]:
+    """Merge two fits' estimates of (x, y, theta) by their covariances, with the covariance a
+    random-effects model gives it: where the two differ by more than their covariances allow, the
+    excess is an error that each fit has beyond its own covariance (the part's look changed, an edge
+    was dragged: neither fit sees it in its own residuals). It is estimated from their difference ``d``
+    by the method of moments (DerSimonian and Laird's), ``E|d_xy|^2 = tr(Ce + Cp)_xy + 4 tau_xy^2``
+    (isotropic in position) and ``E d_theta^2 = (Ce + Cp)_theta + 2 tau_theta^2``, and the merged
+    estimate (weighted by the fits' own covariances, as ``combine``: the sharper fit leads) gets the
+    covariance it has when each fit carries ``T = diag(tau_xy^2, tau_xy^2, tau_theta^2)`` more,
+    ``C + C (We T We + Wp T Wp) C``. Two fits that agree within their 1-sigma get nothing added (the
+    renders); two that disagree report about the disagreement. ``T0`` (3, 3): an extra error each fit is
+    known to carry already (a several-views model's spread across its teach views,
+    ``ShapeModel.view_tau``), added to ``T`` and counted in the moment estimate's expectation. Returns
+    the merged estimate, its covariance and the two's chi-square per degree of freedom."""
+    d = pp - pe
+    T0 = np.zeros((3, 3)) if T0 is None else T0
+    S = Ce + Cp + 2.0 * T0
+    try:
+        chi = float(d @ np.linalg.solve(Ce + Cp, d)) / 3.0
+        We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
+        C = np.linalg.inv(We + Wp)
+    except np.linalg.LinAlgError:
+        return pe, Ce, float("inf")
+    tau_xy = max(float(d[0] ** 2 + d[1] ** 2) - float(S[0, 0] + S[1, 1]), 0.0) / 4.0
+    tau_th = max(float(d[2] ** 2) - float(S[2, 2]), 0.0) / 2.0
+    T = np.diag([tau_xy, tau_xy, tau_th]) + T0
+    C_re = C + C @ (We @ T @ We + Wp @ T @ Wp) @ C
+    return C @ (We @ pe + Wp @ pp), np.asarray(C_re, dtype=np.float64), chi
+
+
+def view_tau(d: F64, S: F64) -> tuple[float, float]:
+    """The extra error (px, rad: 1-sigma of the position on each axis and of the angle) that a fit has
+    beyond its own covariance, by ``merge``'s moment estimate pooled over several pairs of fits of one
+    part: ``d`` (n, 3) their differences in (x, y, theta), ``S`` (n, 3, 3) the sums of their covariances."""
+    if len(d) == 0:
+        return 0.0, 0.0
+    xy = float(np.mean(d[:, 0] ** 2 + d[:, 1] ** 2)) - float(np.mean(S[:, 0, 0] + S[:, 1, 1]))
+    th = float(np.mean(d[:, 2] ** 2)) - float(np.mean(S[:, 2, 2]))
+    return math.sqrt(max(xy, 0.0) / 4.0), math.sqrt(max(th, 0.0) / 2.0)
+
+
 def sigma_of(C: F64) -> tuple[float, float]:
     """1-sigma of the angle (deg) and of the position (px, the larger axis) of a (3, 3) covariance of
     (x, y, theta)."""

@@ -1,5 +1,11 @@
 """The emulated UR5e arm: its kinematics, modes and the motion of ``moveL`` / ``moveJ``.
 
+``moveL`` moves as a UR controller's ``movel(pose, a, v)`` does (``drivers.robot.ur_movel``, which says where
+that comes from): trapezoidal profiles for the position (``v``, ``a``) and the orientation (4 ``v`` rad/s held
+to the UR5e's 180 deg/s joints, 4 ``a`` rad/s^2), the longer setting the time; the tool travels the straight
+line (orientation by slerp) along that profile. A servo step (``servoL``) reaches its pose in the step's time
+at constant speed; ``moveJ`` moves every joint at constant speed.
+
 Units: joints in radians, poses ``T_base_tool`` 4x4 in metres (UR pose vectors: metres and a
 rotation vector in radians), speeds in m/s and rad/s, times in seconds of ``time.monotonic``.
 """
@@ -14,6 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation, Slerp
+
+from drivers.robot.ur_movel import movel_profile, profile_fraction
 
 # robot modes (RTDE robot_mode) and safety modes
 ROBOT_MODE_POWER_ON = 4
@@ -117,6 +125,12 @@ class Motion:
     waiting_client: bool  # a synchronous command: signal done when finished
     slerp: Slerp | None = None
     """The orientation's interpolation, made once per move (not at every 500 Hz tick)."""
+    ramp_s: float = 0.0
+    """The speed profile's ramp time (``movel``'s trapezoid); 0: constant speed."""
+
+    def fraction(self, now: float) -> tuple[float, float]:
+        """(how far along, 0..1; its rate per second) at ``now``."""
+        return profile_fraction(now - self.t0, self.duration_s, self.ramp_s)
 
 
 @dataclass
@@ -148,17 +162,18 @@ class Arm:
         """Running and in normal safety: the control script may run."""
         return self.robot_mode == ROBOT_MODE_RUNNING and self.safety_mode == SAFETY_NORMAL
 
-    def joint_speeds(self) -> tuple[float, ...]:
+    def joint_speeds(self, now: float) -> tuple[float, ...]:
         m = self.motion
         if m is None or m.duration_s <= 0:
             return (0.0,) * 6
-        return tuple(float(v) for v in (m.q_end - m.q_start) / m.duration_s)
+        rate = m.fraction(now)[1]
+        return tuple(float(v) for v in (m.q_end - m.q_start) * rate)
 
-    def tcp_speed(self) -> tuple[float, ...]:
+    def tcp_speed(self, now: float) -> tuple[float, ...]:
         m = self.motion
         if m is None or m.duration_s <= 0:
             return (0.0,) * 6
-        v = (m.T_end[:3, 3] - m.T_start[:3, 3]) / m.duration_s
+        v = (m.T_end[:3, 3] - m.T_start[:3, 3]) * m.fraction(now)[1]
         return (float(v[0]), float(v[1]), float(v[2]), 0.0, 0.0, 0.0)
 
     def halt(self) -> None:
@@ -170,9 +185,10 @@ class Arm:
         self.safety_mode = SAFETY_PROTECTIVE_STOP
 
     def start_linear(self, pose: NDArray[np.float64], speed_m_s: float, now: float, waiting: bool,
-                     duration_s: float | None = None) -> bool:
-        """Start ``moveL`` to a UR pose vector (or a servo step: ``duration_s`` given, the speed ignored);
-        False when the target is invalid or unreachable."""
+                     duration_s: float | None = None, accel_m_s2: float = math.inf) -> bool:
+        """Start ``moveL`` to a UR pose vector at ``speed_m_s`` with ``accel_m_s2`` (inf: no ramps; the control
+        script always passes ``ur_rtde``'s) (or a servo step: ``duration_s`` given, the speed ignored); False when
+        the target is invalid or unreachable."""
         if not (np.all(np.isfinite(pose)) and math.isfinite(speed_m_s) and speed_m_s > 0):
             return False
         T_end = pose_to_T(pose)
@@ -182,13 +198,17 @@ class Arm:
         dist = float(np.linalg.norm(T_end[:3, 3] - self.T[:3, 3]))
         angle = float(np.linalg.norm((Rotation.from_matrix(self.T[:3, :3]).inv()
                                       * Rotation.from_matrix(T_end[:3, :3])).as_rotvec()))
+        ramp = 0.0
         if duration_s is None:
-            duration = max(dist / (speed_m_s * self.speed_slider), angle / 1.0, 0.0)
-            self.last_move = {"kind": "moveL", "pose": pose.tolist(), "speed": speed_m_s}
+            if not accel_m_s2 > 0:  # NaN too
+                return False
+            duration, ramp = movel_profile(dist, angle, speed_m_s * self.speed_slider, accel_m_s2)
+            self.last_move = {"kind": "moveL", "pose": pose.tolist(), "speed": speed_m_s, "acceleration": accel_m_s2}
         else:
             duration = duration_s
             self.servo_steps += 1
-        self.motion = Motion("linear", now, duration, self.q.copy(), q_end, self.T.copy(), T_end, waiting)
+        self.motion = Motion("linear", now, duration, self.q.copy(), q_end, self.T.copy(), T_end, waiting,
+                             ramp_s=ramp)
         return True
 
     def start_joint(self, q_end: NDArray[np.float64], speed_rad_s: float, now: float, waiting: bool) -> bool:
@@ -207,7 +227,7 @@ class Arm:
         m = self.motion
         if m is None:
             return None
-        s = 1.0 if m.duration_s <= 0 else min(1.0, (now - m.t0) / m.duration_s)
+        s = m.fraction(now)[0]
         self.q = m.q_start + s * (m.q_end - m.q_start)
         if m.kind == "linear":
             T = np.eye(4)

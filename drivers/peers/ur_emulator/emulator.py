@@ -20,6 +20,9 @@ from drivers.peers.ur_emulator.script import serve_script
 
 log = logging.getLogger("cellctl.ur_emulator")
 
+STALL_LOG_S = 0.02
+"""A control-loop tick this much later than its period is logged (at most once a second, the worst)."""
+
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 SCRIPT_PORTS = (30001, 30002, 30003)
@@ -124,8 +127,15 @@ class UrEmulator:
         tick = 0
         next_t = time.monotonic()
         ctrl = self.controller
+        last, worst, told = time.monotonic(), 0.0, time.monotonic()
         while not self.stopping.is_set():
             now = time.monotonic()
+            worst = max(worst, now - last - period)  # a tick later than its period: the loop stalled
+            last = now
+            if worst > STALL_LOG_S and now - told >= 1.0:  # a real controller never stalls: say so, once a second
+                log.warning("UR emulator: its 500 Hz loop stalled %.0f ms (the machine's load; the arm and its "
+                            "state stream stood meanwhile)", worst * 1e3)
+                worst, told = 0.0, now
             with self._clients_lock:
                 clients = [c for c in self._rtde_clients if c.started and c.alive]
             packets: list[tuple[RtdeConnection, bytes]] = []

@@ -181,8 +181,10 @@ class ControlScript:
             return  # speed/force streams: the script is ready again at once; not simulated
         if cmd in (CMD_MOVEL, CMD_MOVEJ):
             self.cmd_state = "busy"
-            start = arm.start_linear if cmd == CMD_MOVEL else arm.start_joint
-            if not start(np.array(d[0:6]), d[6], now, not asynchronous):
+            # moveL/moveJ(target, speed, acceleration, async): the speed in register 6, the acceleration in 7
+            started = (arm.start_linear(np.array(d[0:6]), d[6], now, not asynchronous, accel_m_s2=d[7])
+                       if cmd == CMD_MOVEL else arm.start_joint(np.array(d[0:6]), d[6], now, not asynchronous))
+            if not started:
                 self.stop(arm, "inverse kinematics failed or target unreachable")
                 return
             if asynchronous:
