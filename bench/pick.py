@@ -21,6 +21,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -103,6 +104,17 @@ def _scene(rng: np.random.Generator, target: pick_scenes.PartShape, distractor: 
 # ----------------------------------------------------------------------------- scoring
 
 
+def _nearest(t: pick_scenes.Truth, found: Sequence[Found | Match], used: set[int]) -> tuple[int, float]:
+    """The index of the nearest answer not yet used within ``MATCH_PX`` and ``MATCH_DEG`` of the truth ``t``
+    (-1 when none) and its distance, px."""
+    best, bd = -1, MATCH_PX
+    for k, f in enumerate(found):
+        d = math.hypot(f.u_px - t.u_px, f.v_px - t.v_px)
+        if k not in used and d < bd and abs(pick_scenes.wrap_deg(f.angle_deg - t.angle_deg)) < MATCH_DEG:
+            best, bd = k, d
+    return best, bd
+
+
 @dataclass
 class Tally:
     pos_err: list[float] = field(default_factory=list)
@@ -121,11 +133,7 @@ class Tally:
         """Actual / reported 1-sigma of each instance found (matched as ``add`` matches)."""
         used: set[int] = set()
         for t in truth:
-            best, bd = -1, MATCH_PX
-            for k, m in enumerate(matches):
-                d = math.hypot(m.u_px - t.u_px, m.v_px - t.v_px)
-                if k not in used and d < bd and abs(pick_scenes.wrap_deg(m.angle_deg - t.angle_deg)) < MATCH_DEG:
-                    best, bd = k, d
+            best, bd = _nearest(t, matches, used)
             if best < 0:
                 continue
             used.add(best)
@@ -138,11 +146,7 @@ class Tally:
         used: set[int] = set()
         for t in truth:
             self.n_truth += 1
-            best, bd = -1, MATCH_PX
-            for k, f in enumerate(found):
-                d = math.hypot(f.u_px - t.u_px, f.v_px - t.v_px)
-                if k not in used and d < bd and abs(pick_scenes.wrap_deg(f.angle_deg - t.angle_deg)) < MATCH_DEG:
-                    best, bd = k, d
+            best, _ = _nearest(t, found, used)
             if best < 0:
                 self.missed += 1
                 continue

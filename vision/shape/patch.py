@@ -18,9 +18,10 @@ Its answer carries:
   show in it, where the textbook ``s^2 (J^T J)^-1`` would assume every pixel independent and report a
   hundredth of a degree for a fit that is off by half a degree.
 
-``uncertainty.combine`` merges the edge fit and the patch fit by their covariances and widens the result by their
-disagreement (a chi-square over its degrees of freedom): a pose the two methods disagree on says so
-in its 1-sigma. Units: pixels of the image (level 0), angles in radians inside, degrees in ``Match``.
+``uncertainty.merge`` merges the edge fit and the patch fit by their covariances and carries their
+disagreement beyond what their own covariances allow in the result's covariance (a random-effects merge):
+a pose the two methods disagree on says so in its 1-sigma. Units: pixels of the image (level 0), angles in
+radians inside, degrees in ``Match``.
 """
 
 from __future__ import annotations
@@ -308,8 +309,9 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
            ) -> tuple[float, float, float, float, float, dict[str, float]] | None:
     """The final pose from the edge fit's ``(x, y, theta, scale)`` (level-0 px, rad) and its covariance,
     and the patch fit from there (on the image's pyramid ``pyr``, at the patch's ``fit_level``):
-    ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their covariances (``uncertainty.combine``:
-    widened by their disagreement), or ``None`` when the patch cannot be fitted there. ``scores``:
+    ``(x, y, theta, sigma_deg, sigma_px, scores)`` merged by their covariances (``uncertainty.merge``:
+    the disagreement their covariances cannot explain carried by both), or ``None`` when the patch cannot be
+    fitted there. ``scores``:
     ``patch_ncc`` (the patch's correlation at the final pose) and ``fit_chi2`` (the two fits'
     disagreement per degree of freedom; about 1 or less when they agree within their 1-sigma). ``T0``: the
     extra error each fit carries by the model's teach views (``uncertainty.merge``)."""

@@ -118,18 +118,29 @@ def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64 | None = 
                      np.eye(3, J.shape[1]) if M is None else M)
 
 
-def combine(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
-    """Merge two estimates of (x, y, theta) by their covariances: the merged estimate, its covariance
-    widened by the two's disagreement (the chi-square of their difference over its 3 degrees of
-    freedom, when above 1), and that chi-square per degree of freedom."""
+def _inverse_weighted(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, F64, F64, float] | None:
+    """Two estimates of (x, y, theta) weighted by their inverse covariances: the weights ``We``, ``Wp``,
+    the merged covariance ``C``, the merged estimate and the two's chi-square per degree of freedom;
+    None when a covariance is singular."""
     d = pp - pe
     try:
         chi = float(d @ np.linalg.solve(Ce + Cp, d)) / 3.0
         We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
         C = np.linalg.inv(We + Wp)
     except np.linalg.LinAlgError:
+        return None
+    return np.asarray(We, np.float64), np.asarray(Wp, np.float64), C, C @ (We @ pe + Wp @ pp), chi
+
+
+def combine(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, float]:
+    """Merge two estimates of (x, y, theta) by their covariances: the merged estimate, its covariance
+    widened by the two's disagreement (the chi-square of their difference over its 3 degrees of
+    freedom, when above 1), and that chi-square per degree of freedom (the fixed-effect reference that
+    ``merge`` improves on)."""
+    w = _inverse_weighted(pe, Ce, pp, Cp)
+    if w is None:
         return pe, Ce, float("inf")
-    p = C @ (We @ pe + Wp @ pp)
+    _, _, C, p, chi = w
     return p, C * max(chi, 1.0), chi
 
 
@@ -150,17 +161,15 @@ def merge(pe: F64, Ce: F64, pp: F64, Cp: F64, T0: F64 | None = None) -> tuple[F6
     d = pp - pe
     T0 = np.zeros((3, 3)) if T0 is None else T0
     S = Ce + Cp + 2.0 * T0
-    try:
-        chi = float(d @ np.linalg.solve(Ce + Cp, d)) / 3.0
-        We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
-        C = np.linalg.inv(We + Wp)
-    except np.linalg.LinAlgError:
+    w = _inverse_weighted(pe, Ce, pp, Cp)
+    if w is None:
         return pe, Ce, float("inf")
+    We, Wp, C, p, chi = w
     tau_xy = max(float(d[0] ** 2 + d[1] ** 2) - float(S[0, 0] + S[1, 1]), 0.0) / 4.0
     tau_th = max(float(d[2] ** 2) - float(S[2, 2]), 0.0) / 2.0
     T = np.diag([tau_xy, tau_xy, tau_th]) + T0
     C_re = C + C @ (We @ T @ We + Wp @ T @ Wp) @ C
-    return C @ (We @ pe + Wp @ pp), np.asarray(C_re, dtype=np.float64), chi
+    return p, np.asarray(C_re, dtype=np.float64), chi
 
 
 def view_tau(d: F64, S: F64) -> tuple[float, float]:
