@@ -169,9 +169,8 @@ class Meeting:
 
 def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm_s: float,
                  tool_xyz_m: NDArray[np.float64], approach_z_m: float, window_mm: tuple[float, float],
-                 move_speed_m_s: float, accel_m_s2: float, follow_s: float, time_scale: float = 1.0,
-                 turn_s: float = 0.0, travel: Callable[[NDArray[np.float64]], float] | None = None,
-                 lead_s: float = 0.0) -> Meeting | str:
+                 move_speed_m_s: float, accel_m_s2: float, follow_s: float,
+                 travel: Callable[[NDArray[np.float64]], float] | None = None, lead_s: float = 0.0) -> Meeting | str:
     """The earliest meeting inside the window, or why there is none now: ``Missed`` when the part will leave
     the window before the robot can meet it, a plain ``str`` when it may still come (the belt stopped).
 
@@ -180,9 +179,8 @@ def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm
     close, up): the part must still be inside the window (``window_mm``, base x) at the end of it.
     The move's time: ``travel`` (the robot's own timing of a move to the approach pose ``T`` above the
     meeting point, 4x4: ``RobotBase.linear_move_s``) when given, else the distance at ``move_speed_m_s``
-    with ``accel_m_s2`` ramps times ``time_scale``, or ``turn_s`` (the tool's turn) when longer;
-    ``lead_s`` is added either way (what passes between this plan and the move's start, and the host's
-    delays of a move).
+    with ``accel_m_s2`` ramps; ``lead_s`` is added either way (what passes between this plan and the move's
+    start, and the host's delays of a move).
     """
     x_now = part.x_at(belt, ticks_now)
     x0, x1 = window_mm
@@ -200,7 +198,7 @@ def plan_meeting(part: BeltPart, belt: BeltCalibration, ticks_now: int, speed_mm
         if travel is not None:
             return lead_s + travel(target)
         d = float(np.linalg.norm(target[:3, 3] - start))
-        return lead_s + max(time_scale * (d / move_speed_m_s + move_speed_m_s / accel_m_s2), turn_s)
+        return lead_s + d / move_speed_m_s + move_speed_m_s / accel_m_s2
 
     if v < 1.0:  # the belt stands (or creeps): meet the part where it lies, if it lies in the window
         if x0 <= x_now <= x1 - follow_mm:

@@ -208,10 +208,18 @@ class ConveyorRun(ProductionRun):
             T_pick = np.eye(4)
         else:
             T_app, T_pick = cand.T_approach, cand.T_pick
-        accel = r.source.accel_m_s2 if r.source is not None else DEFAULT_ACCEL_M_S2
-        moves = (self.robot.linear_move_s(T_app, T_pick, r.speed_m_s, accel)
-                 + self.robot.linear_move_s(T_pick, T_app, r.speed_m_s, accel))
+        moves = self._move_s(T_app, T_pick) + self._move_s(T_pick, T_app)
         return moves + self._close_s + FOLLOW_MARGIN_S
+
+    def _move_s(self, T_from: np.ndarray, T_to: np.ndarray) -> float:
+        """The robot's own timing of a linear move at the recipe's speed and the belt source's acceleration, s."""
+        r = self.s.recipe
+        accel = r.source.accel_m_s2 if r.source is not None else DEFAULT_ACCEL_M_S2
+        return self.robot.linear_move_s(T_from, T_to, r.speed_m_s, accel)
+
+    def _approach_s(self, T_from: np.ndarray, T_to: np.ndarray) -> float:
+        """The approach's planned time: the move, or the gripper's open that runs during it when longer, s."""
+        return max(self._move_s(T_from, T_to), self._open_s)
 
     def _lead_s(self) -> float:
         """What the plan adds to the robot's own timing of the approach: the longest recent overrun, at least
@@ -224,14 +232,10 @@ class ConveyorRun(ProductionRun):
         r = self.s.recipe
         if r.source is None:
             raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
-        accel = r.source.accel_m_s2
-
-        def travel(T: np.ndarray) -> float:
-            return max(self.robot.linear_move_s(T_tool, T, r.speed_m_s, accel), self._open_s)
-
         return plan_meeting(part, self.belt, ticks, self.watch.speed_mm_s(), T_tool[:3, 3],
-                            float(part.cand.T_approach[2, 3]), self.window_mm, r.speed_m_s, accel,
-                            self._follow_s(part.cand), travel=travel, lead_s=self._lead_s())
+                            float(part.cand.T_approach[2, 3]), self.window_mm, r.speed_m_s, r.source.accel_m_s2,
+                            self._follow_s(part.cand), travel=functools.partial(self._approach_s, T_tool),
+                            lead_s=self._lead_s())
 
     def _next_part(self) -> tuple[BeltPart, Meeting] | None:
         """The part furthest along that can be met (and its meeting); parts that cannot are given up. Each
@@ -332,13 +336,12 @@ class ConveyorRun(ProductionRun):
         end, plans the meeting again from where it is, further along the window (at most ``REPLANS`` times);
         a part that then cannot be met is given up, counted ``missed_window`` (None). None too when the belt
         stopped or slowed (the part stays queued)."""
-        belt, r = self.belt, self.s.recipe
+        belt = self.belt
         waited_ms, replans = 0.0, 0
         while True:
             T_from = self.robot.state().T_base_tool
             T_app = part.T_at(belt, meeting.ticks, part.cand.T_approach)
-            planned_s = max(self._open_s, self.robot.linear_move_s(
-                T_from, T_app, r.speed_m_s, r.source.accel_m_s2 if r.source else DEFAULT_ACCEL_M_S2))
+            planned_s = self._approach_s(T_from, T_app)
             self._open_s = self._approach(T_app, d)
             self._overruns.append(max(0.0, time.monotonic() - t_plan - planned_s))
             t_wait = time.monotonic()
