@@ -24,6 +24,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from vision.shape import small_kernels
+
 F64 = NDArray[np.float64]
 
 
@@ -172,16 +174,17 @@ def magnitudes(G: NDArray[np.float32], q: F64) -> F64:
 @njit(cache=True)
 def percentile75(a: F64) -> float:
     """``np.percentile(a, 75)`` (its default linear method, the same bits) without its per-call
-    overhead, which dominated on the few hundred points of a model."""
-    s = np.sort(a)
-    n = s.shape[0]
+    overhead, which dominated on the few hundred points of a model; the two values it needs by
+    selection, not a sort (cheaper to compile)."""
+    n = a.shape[0]
     v = 0.75 * n + 0.25 - 1.0
     lo = int(math.floor(v))
     lo = min(max(lo, 0), n - 1)
-    hi = min(lo + 1, n - 1)
     t = v - lo
-    d = s[hi] - s[lo]
-    return s[hi] - d * (1.0 - t) if t >= 0.5 else s[lo] + d * t
+    s_lo = small_kernels.kth_smallest(a, lo)
+    s_hi = small_kernels.next_above(a, lo, s_lo) if lo + 1 < n else s_lo
+    d = s_hi - s_lo
+    return s_hi - d * (1.0 - t) if t >= 0.5 else s_lo + d * t
 
 
 _WARM = threading.Event()
@@ -307,7 +310,10 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
         Ak = A[:k, :k].copy()
         for j in range(k):
             Ak[j, j] += 1e-9
-        delta = np.linalg.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        if not ok:
+            failed = True
+            break
         ds = delta[3] if k == 4 else 0.0
         x += delta[0]
         y += delta[1]
@@ -383,7 +389,9 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
             break
         for k in range(8):
             H[k, k] += 1e-9 * (1 + jmax)
-        delta = np.linalg.solve(H, g)
+        delta, ok = small_kernels.solve(H, g)
+        if not ok:
+            break
         a00 += delta[0]
         a01 += delta[1]
         a10 += delta[3]
@@ -442,7 +450,9 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
         Ak = A[:k, :k].copy()
         for j in range(k):
             Ak[j, j] += 1e-9
-        delta = np.linalg.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        if not ok:
+            break
         ds = delta[3] if fit_scale else 0.0
         x += delta[0]
         y += delta[1]

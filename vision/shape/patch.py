@@ -270,7 +270,7 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
         return None
     s2 = swr / max(sw * (cnt - 10) / cnt, 1e-12)
     corr = max((2.0 * BLUR_SIGMA_PX / max(min(patch_step(patch), 4.0), 0.5)) ** 2, 1.0)
-    cov = ck.honest(ck.classical_cov(H, s2, corr), ck.jackknife_cov(H, g, Hb, Gb), M)
+    cov = ck.honest_systems(H, g, Hb, Gb, s2, corr, M)
     return PatchFit(float(t[0] + x0), float(t[1] + y0), th, math.sqrt(abs(float(np.linalg.det(Lm)))), ncc, cov,
                     cnt, converged)
 

@@ -15,6 +15,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import F64
+from vision.shape import small_kernels as sk
 
 NP = 10
 """Parameters of the fit."""
@@ -76,25 +77,17 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
         J[2], J[3], J[4], J[5] = ax * px, ax * py, ay * px, ay * py
         J[6], J[7] = -aq * px, -aq * py
         J[8], J[9] = I, 1.0
-        if blocks:  # per block only: the whole system is their sum (below)
-            k = block[i]
-            for p in range(NP):
-                wj = wt * J[p]
-                Gb[k, p] += wj * res
-                for q in range(p, NP):
-                    Hb[k, p, q] += wj * J[q]
-        else:
-            for p in range(NP):
-                wj = wt * J[p]
-                g[p] += wj * res
-                for q in range(p, NP):
-                    H[p, q] += wj * J[q]
-    if blocks:
-        for k in range(nb):
-            for p in range(NP):
-                g[p] += Gb[k, p]
-                for q in range(p, NP):
-                    H[p, q] += Hb[k, p, q]
+        k = block[i] if blocks else 0  # per block only (one block without): the whole system is their sum
+        for p in range(NP):
+            wj = wt * J[p]
+            Gb[k, p] += wj * res
+            for q in range(p, NP):
+                Hb[k, p, q] += wj * J[q]
+    for k in range(nb):
+        for p in range(NP):
+            g[p] += Gb[k, p]
+            for q in range(p, NP):
+                H[p, q] += Hb[k, p, q]
     for p in range(NP):
         for q in range(p):
             H[p, q] = H[q, p]
@@ -121,6 +114,14 @@ def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -
 
 
 @njit(cache=True)
+def _count(mask: NDArray[np.bool_]) -> int:
+    c = 0
+    for v in mask:
+        c += 1 if v else 0
+    return c
+
+
+@njit(cache=True)
 def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64, T: F64,
                  block: NDArray[np.int64], nblocks: int, par: F64, iterations: int, tukey_c: float, r_max: float,
                  scale: float, tilt_prior: float) -> tuple[int, F64, F64, F64, F64, F64, F64, NDArray[np.bool_], float]:
@@ -139,19 +140,30 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
     sd = 0.0
     # the light to start from: T ~ a I + b at the start (least squares)
     H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, 1, par, sd, tukey_c, False)
-    if inside.sum() < 0.5 * n:
+    if _count(inside) < 0.5 * n:
         return -1, par, H, g, Hb, Gb, r, inside, sd
-    Ti = T[inside]
-    I0 = r[inside] + Ti
-    mi, mt = I0.mean(), Ti.mean()
-    sxx = ((I0 - mi) ** 2).sum()
-    a = ((I0 - mi) * (Ti - mt)).sum() / sxx if sxx > 0 else 0.0
+    # (loops, not numpy's masks and reductions: each of those costs the first start a compile)
+    mi, mt, cnt = 0.0, 0.0, 0
+    for i in range(n):
+        if inside[i]:
+            mi += r[i] + T[i]
+            mt += T[i]
+            cnt += 1
+    mi /= cnt
+    mt /= cnt
+    sxx, sxt = 0.0, 0.0
+    for i in range(n):
+        if inside[i]:
+            di = r[i] + T[i] - mi
+            sxx += di * di
+            sxt += di * (T[i] - mt)
+    a = sxt / sxx if sxx > 0 else 0.0
     par[8] = a if abs(a) > 1e-6 else 1e-6
     par[9] = mt - a * mi
     for it in range(iterations + 1):
         last = converged or it == iterations
         H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, nblocks, par, sd, tukey_c, last)
-        if inside.sum() < 0.5 * n:
+        if _count(inside) < 0.5 * n:
             return -1, par, H, g, Hb, Gb, r, inside, sd
         if last:
             break
@@ -165,18 +177,30 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         gp = g.copy()
         gp[6] += prior * par[6]
         gp[7] += prior * par[7]
-        reg = 1e-9 * np.trace(H)
+        tr = 0.0
+        for k in range(NP):
+            tr += H[k, k]
+        reg = 1e-9 * tr
         for k in range(NP):
             Hp[k, k] += reg
-        d = -np.linalg.solve(Hp, gp)
+        d, ok = sk.solve(Hp, gp)
+        if not ok:
+            return -1, par, H, g, Hb, Gb, r, inside, sd
+        d = -d
         par += d
         # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
-        sd = 1.4826 * np.median(np.abs(r[inside])) + 1e-6
+        ar = np.empty(_count(inside))
+        j = 0
+        for i in range(n):
+            if inside[i]:
+                ar[j] = abs(r[i])
+                j += 1
+        sd = 1.4826 * sk.median(ar) + 1e-6
         det = par[2] * par[5] - par[3] * par[4]
         if math.hypot(par[0] - t0, par[1] - t1) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
                 or max(abs(par[6]), abs(par[7])) * r_max > 0.2:
             return -1, par, H, g, Hb, Gb, r, inside, sd
-        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and np.abs(d[2:6]).max() * r_max < 5e-3:
+        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and max(abs(d[2]), abs(d[3]), abs(d[4]), abs(d[5])) * r_max < 5e-3:
             converged = True
     return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd
 
@@ -185,9 +209,23 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
 def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     """Normalised correlation of the fitted grey values (``r + T``: ``a I + b``) with the patch's ``T``
     over the samples ``inside``."""
-    a = r[inside] + T[inside]
-    b = T[inside].copy()
-    a -= a.mean()
-    b -= b.mean()
-    den = math.sqrt((a * a).sum() * (b * b).sum())
-    return (a * b).sum() / den if den > 0 else 0.0
+    n = r.shape[0]
+    ma, mb, cnt = 0.0, 0.0, 0
+    for i in range(n):
+        if inside[i]:
+            ma += r[i] + T[i]
+            mb += T[i]
+            cnt += 1
+    if cnt == 0:
+        return 0.0
+    ma /= cnt
+    mb /= cnt
+    saa, sbb, sab = 0.0, 0.0, 0.0
+    for i in range(n):
+        if inside[i]:
+            da, db = r[i] + T[i] - ma, T[i] - mb
+            saa += da * da
+            sbb += db * db
+            sab += da * db
+    den = math.sqrt(saa * sbb)
+    return sab / den if den > 0 else 0.0

@@ -22,7 +22,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
-from vision.shape import kernels
+from vision.shape import kernels, small_kernels
 from vision.shape.cov_kernels import edge_cov
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
@@ -219,7 +219,10 @@ def _pose_var(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_cont
     corr = max((2.0 * half + 1.0) / max(gap / (cnt - 1), 1e-9), 1.0)
     for j in range(k):
         A[j, j] += 1e-12
-    cov = np.linalg.inv(A) * (ss / (cnt - k)) * corr
+    Ai, ok = small_kernels.inv(A)
+    if not ok:
+        return -1.0, -1.0, -1.0, cnt
+    cov = Ai * (ss / (cnt - k)) * corr
     if k < 8:
         return cov[2, 2], cov[0, 0], cov[1, 1], cnt
     # the angle of L = A - c p^T at p = 0 (l00 = sc cos, l10 = -sc sin): its gradient in (c, A, p)
@@ -230,7 +233,11 @@ def _pose_var(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_cont
     g[2] = l10 / r2
     g[4] = -l00 / r2
     g[6] = (-l10 * cx + l00 * cy) / r2
-    return float(g @ cov @ g), cov[0, 0], cov[1, 1], cnt
+    var = 0.0
+    for r in range(8):
+        for cc in range(8):
+            var += g[r] * cov[r, cc] * g[cc]
+    return var, cov[0, 0], cov[1, 1], cnt
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,

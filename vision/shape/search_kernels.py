@@ -107,7 +107,9 @@ def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[
                 if n == cap:
                     cap *= 2
                     grown = np.empty((4, cap), np.int64)
-                    grown[:, :n] = out[:, :n]
+                    for r in range(4):  # a loop: a slice copy compiles a shape-error message
+                        for j in range(n):
+                            grown[r, j] = out[r, j]
                     out = grown
                 out[0, n] = a
                 out[1, n] = y

@@ -197,6 +197,15 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
     reference point), ``q`` and ``n`` the points and unit normals at the pose; over the parameters the
     fit had: a similarity (x, y, theta, scale) or, with ``perspective``, the plane homography
     ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``, as ``refine._pose_var``)."""
+    J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective)
+    return honest_cov(m, J, -off, wgt, corr, M)
+
+
+def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float,
+                perspective: bool) -> tuple[F64, F64, F64]:
+    """``edge_cov``'s least-squares system: the Jacobian (N, 4) or (N, 8) of the points' normal
+    offsets in the fit's parameters, the points' weights, and the map (3, k) of the parameters to
+    (x, y, theta)."""
     c, s = math.cos(th), math.sin(th)
     wgt = np.where(ok, (1 - np.clip(off, -1, 1) ** 2) ** 2, 0.0)
     if not perspective:
@@ -204,7 +213,7 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
         dqy = sc * (-c * m[:, 0] - s * m[:, 1])
         rx, ry = c * m[:, 0] + s * m[:, 1], -s * m[:, 0] + c * m[:, 1]
         J = np.stack([n[:, 0], n[:, 1], n[:, 0] * dqx + n[:, 1] * dqy, n[:, 0] * rx + n[:, 1] * ry], axis=1)
-        return honest_cov(m, J, -off, wgt, corr)
+        return J, wgt, np.eye(3, 4)
     nx, ny, mx, my = n[:, 0], n[:, 1], m[:, 0], m[:, 1]
     nq = nx * q[:, 0] + ny * q[:, 1]
     J = np.stack([nx, ny, nx * mx, nx * my, ny * mx, ny * my, -nq * mx, -nq * my], axis=1)
@@ -216,4 +225,4 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
     M = np.zeros((3, 8))
     M[0, 0] = M[1, 1] = 1.0
     M[2, 2], M[2, 4], M[2, 6] = l10 / r2, -l00 / r2, (-l10 * cx + l00 * cy) / r2
-    return honest_cov(m, J, -off, wgt, corr, M)
+    return J, wgt, M
