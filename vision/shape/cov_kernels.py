@@ -21,7 +21,7 @@ from vision.shape import small_kernels as sk
 from vision.shape.uncertainty import JACKKNIFE_BLOCKS, edge_system
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site in a search: compiled there only
 def blocks_of(pts: F64) -> NDArray[np.int64]:
     """``uncertainty.blocks_of``: each point's block on a ``JACKKNIFE_BLOCKS``-square grid over the points."""
     k = JACKKNIFE_BLOCKS
@@ -38,7 +38,7 @@ def blocks_of(pts: F64) -> NDArray[np.int64]:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site in a search: compiled there only
 def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     """``uncertainty.jackknife_of``: one Gauss-Newton step from the optimum without each block that holds
     points, ``(m-1)/m sum (p_k - mean)^2``; all infinite with fewer than 4 such blocks or a singular one."""
@@ -96,7 +96,7 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site in a search: compiled there only
 def classical_cov(H: F64, s2: float, corr: float) -> F64:
     """``uncertainty.classical_of``: ``s2 H^-1 corr``; all infinite where ``H`` fixes a direction not at all."""
     k = H.shape[0]
@@ -133,7 +133,7 @@ def _sandwich(M: F64, C: F64) -> F64:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site in a search: compiled there only
 def honest(Cc: F64, Cj: F64, M: F64) -> F64:
     """``uncertainty.honest_of``: the textbook covariance of (x, y, theta) widened by as much as the
     jackknife's exceeds it on any of x, y, theta (``M`` maps the parameters to them)."""

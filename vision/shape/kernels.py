@@ -383,10 +383,13 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
             nw += 1
             for r in range(8):
                 g[r] += J[i, r] * (wt * off[i])
-                for k in range(8):
+                for k in range(r, 8):  # the upper triangle (mirrored below): half the code to compile
                     H[r, k] += J[i, r] * (J[i, k] * wt)
         if nw < 20:
             break
+        for r in range(8):
+            for k in range(r):
+                H[r, k] = H[k, r]
         for k in range(8):
             H[k, k] += 1e-9 * (1 + jmax)
         delta, ok = small_kernels.solve(H, g)

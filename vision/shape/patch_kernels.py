@@ -33,7 +33,7 @@ def _bil(img: NDArray[np.float32], x: float, y: float) -> float:
     return top + (bot - top) * fy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site (gauss_newton): compiled once, in it
 def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64,
                      T: F64, block: NDArray[np.int64], nblocks: int, par: F64, sd: float, tukey_c: float,
                      blocks: bool) -> tuple[F64, F64, F64, F64, F64, NDArray[np.bool_]]:
@@ -138,33 +138,32 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
     t0, t1 = par[0], par[1]
     converged = False
     sd = 0.0
-    # the light to start from: T ~ a I + b at the start (least squares)
-    H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, 1, par, sd, tukey_c, False)
-    if _count(inside) < 0.5 * n:
-        return -1, par, H, g, Hb, Gb, r, inside, sd
-    # (loops, not numpy's masks and reductions: each of those costs the first start a compile)
-    mi, mt, cnt = 0.0, 0.0, 0
-    for i in range(n):
-        if inside[i]:
-            mi += r[i] + T[i]
-            mt += T[i]
-            cnt += 1
-    mi /= cnt
-    mt /= cnt
-    sxx, sxt = 0.0, 0.0
-    for i in range(n):
-        if inside[i]:
-            di = r[i] + T[i] - mi
-            sxx += di * di
-            sxt += di * (T[i] - mt)
-    a = sxt / sxx if sxx > 0 else 0.0
-    par[8] = a if abs(a) > 1e-6 else 1e-6
-    par[9] = mt - a * mi
-    for it in range(iterations + 1):
-        last = converged or it == iterations
+    for it in range(-1, iterations + 1):  # one call site of the inlined normal equations
+        last = it >= 0 and (converged or it == iterations)
         H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, nblocks, par, sd, tukey_c, last)
         if _count(inside) < 0.5 * n:
             return -1, par, H, g, Hb, Gb, r, inside, sd
+        if it < 0:
+            # the light to start from: T ~ a I + b at the start (least squares; loops, not numpy's masks
+            # and reductions: each of those costs the first start a compile)
+            mi, mt, cnt = 0.0, 0.0, 0
+            for i in range(n):
+                if inside[i]:
+                    mi += r[i] + T[i]
+                    mt += T[i]
+                    cnt += 1
+            mi /= cnt
+            mt /= cnt
+            sxx, sxt = 0.0, 0.0
+            for i in range(n):
+                if inside[i]:
+                    di = r[i] + T[i] - mi
+                    sxx += di * di
+                    sxt += di * (T[i] - mt)
+            a = sxt / sxx if sxx > 0 else 0.0
+            par[8] = a if abs(a) > 1e-6 else 1e-6
+            par[9] = mt - a * mi
+            continue
         if last:
             break
         # a prior on the perspective terms (a view tilted by a few degrees: v r_max ~ 0.01): a round or

@@ -196,7 +196,7 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
     residuals (px) at the final pose, ``ok`` those used, ``m`` the model points (relative to the
     reference point), ``q`` and ``n`` the points and unit normals at the pose; over the parameters the
     fit had: a similarity (x, y, theta, scale) or, with ``perspective``, the plane homography
-    ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``, as ``refine._pose_var``)."""
+    ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``)."""
     J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective)
     return honest_cov(m, J, -off, wgt, corr, M)
 
