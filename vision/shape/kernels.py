@@ -107,7 +107,7 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     return d, found, cosd, sign
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # small, two call sites: compiled in its callers only
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
@@ -232,9 +232,7 @@ def _first_search(image_size: tuple[int, int]) -> None:
 
 def _load_all() -> None:
     z2 = np.zeros((2, 2))
-    z1 = np.zeros(2)
     associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)
-    gn_normal_equations(z2, z2, z2, 1.0, z1, z1)
     profile_centroids(np.zeros((4, 4), np.float32), z2, z2, 1)
     fit_stage_a(np.zeros((4, 4, 2), np.float32), z2, z2, np.zeros(4), 1.0, 0.1, 1.0, 1, 1.0, 0.0, False, 1.0,
                 0.0, 4.0, 4.0)

@@ -72,7 +72,7 @@ def lu_solve(LU: F64, piv: NDArray[np.int64], b: F64) -> F64:
     return x
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # a thin wrapper: no library of its own
 def solve(A: F64, b: F64) -> tuple[F64, bool]:
     """``x`` with ``A x = b`` (``A`` (k, k), ``b`` (k,), both unchanged) and ``ok``: False (``x``
     undefined) where a pivot is exactly zero, where ``np.linalg.solve`` raises."""
@@ -82,7 +82,7 @@ def solve(A: F64, b: F64) -> tuple[F64, bool]:
     return lu_solve(LU, piv, b), True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # a thin wrapper: no library of its own
 def inv(A: F64) -> tuple[F64, bool]:
     """``A^-1`` (k, k) and ``ok`` as ``solve``'s."""
     k = A.shape[0]
