@@ -210,5 +210,5 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
              perspective: bool) -> F64:
     """``uncertainty.edge_cov``: the covariance (3, 3) of (x, y, theta) of an edge fit from its points'
     normal residuals ``off`` (px), over a similarity or, with ``perspective``, the plane homography."""
-    J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective)
+    J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective, sk.median)
     return honest_cov(np.ascontiguousarray(m, dtype=np.float64), J, -off, wgt, corr, M)

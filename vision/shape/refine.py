@@ -25,6 +25,7 @@ from vision.shape import kernels
 from vision.shape.cov_kernels import edge_cov
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
+from vision.shape.small_kernels import median
 from vision.shape.uncertainty import sigma_of
 
 
@@ -143,7 +144,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         off, S, clean = _profile(img_f, q, n)
         used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
         # neighbouring points see overlapping profiles: points per independent one
-        spacing = float(np.median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
+        spacing = float(median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
         cov = edge_cov(off, used, np.ascontiguousarray(m), q, n, th, sc,
                        max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
         # the fit's 1-sigma: its honest covariance's (a search answers the patch-merged one where it can)
