@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from vision.image import F64
 from vision.shape import small_kernels as sk
-from vision.shape.uncertainty import JACKKNIFE_BLOCKS, edge_system
+from vision.shape.uncertainty import JACKKNIFE_BLOCKS, edge_system, rss_at_optimum
 
 
 @njit(cache=True, inline="always")  # one call site in a search: compiled there only
@@ -202,7 +202,10 @@ def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64) -> F64:
                                                  np.ascontiguousarray(wgt, dtype=np.float64))
     if n_eff <= k + 2:
         return np.full((3, 3), np.inf)
-    s2 = swr / max(sw * (n_eff - k) / n_eff, 1e-12)
+    step, ok = sk.solve(H, g)
+    if not ok:
+        return np.full((3, 3), np.inf)
+    s2 = rss_at_optimum(swr, g, step) / max(sw * (n_eff - k) / n_eff, 1e-12)
     return np.asarray(honest_systems(H, g, Hb, Gb, s2, corr, np.ascontiguousarray(M, dtype=np.float64)))
 
 

@@ -104,12 +104,29 @@ def jackknife(pts: F64, J: F64, r: F64, wgt: F64) -> F64:
 
 def classical(J: F64, r: F64, wgt: F64, corr: float) -> F64:
     """The textbook covariance (k, k) of a fit's parameters (``classical_of``), ``s^2`` the weighted
-    residual variance."""
+    residual variance at the fit's optimum: ``r`` less the Gauss-Newton step ``J d`` to it
+    (``rss_at_optimum``; ``r`` may be those of a simpler model's pose, as an edge fit's homography is
+    judged at the similarity's points)."""
     n_eff = float(np.sum(wgt > 0))
     if n_eff <= J.shape[1] + 2:
         return np.full((J.shape[1], J.shape[1]), np.inf)
-    s2 = float(np.sum(wgt * r * r)) / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
-    return classical_of(J.T @ (J * wgt[:, None]), s2, corr)
+    H = J.T @ (J * wgt[:, None])
+    g = (J * wgt[:, None]).T @ r
+    try:
+        rss = rss_at_optimum(float(np.sum(wgt * r * r)), g, np.linalg.solve(H, g))
+    except np.linalg.LinAlgError:
+        return np.full((J.shape[1], J.shape[1]), np.inf)
+    s2 = rss / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
+    return classical_of(H, s2, corr)
+
+
+def rss_at_optimum(swr: float, g: F64, step: F64) -> float:
+    """The weighted residual square sum at the least-squares optimum of a linear system from its value
+    ``swr`` at the residuals ``r``, its gradient ``g = J^T W r`` and ``step = H^-1 g``:
+    ``swr - g^T H^-1 g`` (the misfit a pose short of the optimum adds is not the fit's noise: the
+    textbook covariance of a homography judged at a similarity's points counted a tilted view's
+    perspective as noise, three times its angle's actual error)."""
+    return max(swr - float(g @ step), 0.0)
 
 
 def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64 | None = None) -> F64:
