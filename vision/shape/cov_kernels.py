@@ -5,12 +5,14 @@ that says why); a search calls these, one per answered match's edge fit and patc
 per-call overhead over 16 small blocks cost about a millisecond a match. Units as there: pixels
 (level 0) and radians.
 
-A search reaches two compiled entries, ``block_systems`` and ``honest_systems`` (the rest are their
-parts); ``edge_cov`` and ``honest_cov`` join them in Python (the edge fit's Jacobian is a few numpy
-operations): each compiled function costs a fresh machine a share of the matcher's first start.
+A search reaches three compiled entries, ``edge_system``, ``block_systems`` and ``honest_systems`` (the
+rest are inlined in them); ``edge_cov`` and ``honest_cov`` join them in Python: each compiled function
+costs a fresh machine a share of the matcher's first start.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -18,7 +20,7 @@ from numpy.typing import NDArray
 
 from vision.image import F64
 from vision.shape import small_kernels as sk
-from vision.shape.uncertainty import JACKKNIFE_BLOCKS, edge_system, rss_at_optimum
+from vision.shape.uncertainty import JACKKNIFE_BLOCKS, rss_at_optimum
 
 
 @njit(cache=True, inline="always")  # one call site in a search: compiled there only
@@ -209,9 +211,55 @@ def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64) -> F64:
     return np.asarray(honest_systems(H, g, Hb, Gb, s2, corr, np.ascontiguousarray(M, dtype=np.float64)))
 
 
+@njit(cache=True)
+def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float,
+                perspective: bool) -> tuple[F64, F64, F64, F64]:
+    """``uncertainty.edge_system`` in loops (pick speed: numpy's two dozen small calls cost about 0.1 ms
+    a match): the Jacobian, the residuals ``-off``, the weights and the map of the parameters to
+    (x, y, theta)."""
+    c, s = math.cos(th), math.sin(th)
+    N = off.shape[0]
+    wgt = np.zeros(N)
+    r = np.empty(N)
+    for i in range(N):
+        r[i] = -off[i]
+        if ok[i]:
+            o = min(max(off[i], -1.0), 1.0)
+            wgt[i] = (1 - o * o) ** 2
+    k = 8 if perspective else 4
+    J = np.empty((N, k))
+    M = np.zeros((3, k))
+    M[0, 0] = M[1, 1] = 1.0
+    if not perspective:
+        M[2, 2] = 1.0
+        for i in range(N):
+            mx, my, nx, ny = m[i, 0], m[i, 1], n[i, 0], n[i, 1]
+            J[i, 0], J[i, 1] = nx, ny
+            J[i, 2] = nx * sc * (-s * mx + c * my) + ny * sc * (-c * mx - s * my)
+            J[i, 3] = nx * (c * mx + s * my) + ny * (-s * mx + c * my)
+        return J, r, wgt, M
+    dx = np.empty(N)
+    dy = np.empty(N)
+    for i in range(N):
+        mx, my, nx, ny = m[i, 0], m[i, 1], n[i, 0], n[i, 1]
+        nq = nx * q[i, 0] + ny * q[i, 1]
+        J[i, 0], J[i, 1], J[i, 2], J[i, 3] = nx, ny, nx * mx, nx * my
+        J[i, 4], J[i, 5], J[i, 6], J[i, 7] = ny * mx, ny * my, -nq * mx, -nq * my
+        dx[i] = q[i, 0] - sc * (mx * c + my * s)
+        dy[i] = q[i, 1] - sc * (-mx * s + my * c)
+    l00, l10 = sc * c, -sc * s
+    r2 = l00 * l00 + l10 * l10
+    cx, cy = sk.median(dx), sk.median(dy)
+    M[2, 2], M[2, 4], M[2, 6] = l10 / r2, -l00 / r2, (-l10 * cx + l00 * cy) / r2
+    return J, r, wgt, M
+
+
 def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float, corr: float,
              perspective: bool) -> F64:
     """``uncertainty.edge_cov``: the covariance (3, 3) of (x, y, theta) of an edge fit from its points'
     normal residuals ``off`` (px), over a similarity or, with ``perspective``, the plane homography."""
-    J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective, sk.median)
-    return honest_cov(np.ascontiguousarray(m, dtype=np.float64), J, -off, wgt, corr, M)
+    m = np.ascontiguousarray(m, dtype=np.float64)
+    J, r, wgt, M = edge_system(np.ascontiguousarray(off, dtype=np.float64), np.ascontiguousarray(ok, dtype=np.bool_),
+                               m, np.ascontiguousarray(q, dtype=np.float64),
+                               np.ascontiguousarray(n, dtype=np.float64), float(th), float(sc), bool(perspective))
+    return honest_cov(m, J, r, wgt, corr, M)

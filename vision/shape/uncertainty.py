@@ -18,7 +18,6 @@ disagreement. Units: pixels (level 0) and radians.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -220,10 +219,10 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
 
 
 def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float,
-                perspective: bool, median: Callable[[F64], float] = np.median) -> tuple[F64, F64, F64]:
+                perspective: bool) -> tuple[F64, F64, F64]:
     """``edge_cov``'s least-squares system: the Jacobian (N, 4) or (N, 8) of the points' normal
     offsets in the fit's parameters, the points' weights, and the map (3, k) of the parameters to
-    (x, y, theta). ``median``: of a (N,) array (the compiled one where speed counts)."""
+    (x, y, theta)."""
     c, s = math.cos(th), math.sin(th)
     wgt = np.where(ok, (1 - np.clip(off, -1, 1) ** 2) ** 2, 0.0)
     if not perspective:
@@ -238,8 +237,8 @@ def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: flo
     l00, l10 = sc * c, -sc * s
     r2 = l00 * l00 + l10 * l10
     # the reference point in the crop: q of a model point less its linear image
-    cx = float(median(np.ascontiguousarray(q[:, 0] - sc * (mx * c + my * s))))
-    cy = float(median(np.ascontiguousarray(q[:, 1] - sc * (-mx * s + my * c))))
+    cx = float(np.median(q[:, 0] - sc * (mx * c + my * s)))
+    cy = float(np.median(q[:, 1] - sc * (-mx * s + my * c)))
     M = np.zeros((3, 8))
     M[0, 0] = M[1, 1] = 1.0
     M[2, 2], M[2, 4], M[2, 6] = l10 / r2, -l00 / r2, (-l10 * cx + l00 * cy) / r2
