@@ -135,14 +135,24 @@ def _sandwich(M: F64, C: F64) -> F64:
     return out
 
 
+@njit(cache=True)
+def _finite(C: F64) -> bool:
+    """Every entry of ``C`` (k, k) finite."""
+    for i in range(C.shape[0]):
+        for j in range(C.shape[1]):
+            if not math.isfinite(C[i, j]):
+                return False
+    return True
+
+
 @njit(cache=True, inline="always")  # one call site in a search: compiled there only
 def honest(Cc: F64, Cj: F64, M: F64) -> F64:
     """``uncertainty.honest_of``: the textbook covariance of (x, y, theta) widened by as much as the
     jackknife's exceeds it on any of x, y, theta (``M`` maps the parameters to them)."""
-    if not np.isfinite(Cc.sum()):  # an infinite (or nan) entry
+    if not _finite(Cc):
         return np.full((3, 3), np.inf)
     C = _sandwich(M, Cc)
-    if not np.isfinite(Cj.sum()):
+    if not _finite(Cj):
         return C
     J = _sandwich(M, Cj)
     excess = 1.0

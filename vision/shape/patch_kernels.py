@@ -96,7 +96,7 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
     return H, g, Hb, Gb, r, inside
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # in gauss_newton
 def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -> tuple[float, float, int]:
     """Sum of Tukey weights, of weighted squared residuals, and the samples weighted (for the
     textbook covariance)."""
@@ -124,14 +124,16 @@ def _count(mask: NDArray[np.bool_]) -> int:
 @njit(cache=True)
 def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64, T: F64,
                  block: NDArray[np.int64], nblocks: int, par: F64, iterations: int, tukey_c: float, r_max: float,
-                 scale: float, tilt_prior: float) -> tuple[int, F64, F64, F64, F64, F64, F64, NDArray[np.bool_], float]:
+                 scale: float, tilt_prior: float
+                 ) -> tuple[int, F64, F64, F64, F64, F64, F64, NDArray[np.bool_], float, float, float, float, int]:
     """``patch.fit``'s Gauss-Newton loop from ``par`` (changed in place; its light, gain and offset, first set
     by least squares at the start): Tukey weights from the residuals'
     robust spread after the first pass, a prior of 1-sigma ``tilt_prior`` (change of scale across the
     part, ``r_max`` px) on the perspective terms, stopped when a step moves the part by less than
     5/1000 px; the last pass also builds the per-block systems of the jackknife.
 
-    Returns ``(status, par, H, g, Hb, Gb, r, inside, sd)``: status 1 converged, 0 out of iterations,
+    Returns ``(status, par, H, g, Hb, Gb, r, inside, sd, ncc, sw, swr, cnt)`` (the last four: ``ncc_of``
+    and ``weighted_rss`` at the end; 0 on failure): status 1 converged, 0 out of iterations,
     -1 failed (half the samples outside the crop, the fit ran more than ``r_max`` from its start, its
     scale left 0.7-1.4x ``scale``, or a tilt past 0.2 over the part)."""
     n = pts.shape[0]
@@ -142,7 +144,7 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         last = it >= 0 and (converged or it == iterations)
         H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, nblocks, par, sd, tukey_c, last)
         if _count(inside) < 0.5 * n:
-            return -1, par, H, g, Hb, Gb, r, inside, sd
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
         if it < 0:
             # the light to start from: T ~ a I + b at the start (least squares; loops, not numpy's masks
             # and reductions: each of those costs the first start a compile)
@@ -184,7 +186,7 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
             Hp[k, k] += reg
         d, ok = sk.solve(Hp, gp)
         if not ok:
-            return -1, par, H, g, Hb, Gb, r, inside, sd
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
         d = -d
         par += d
         # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
@@ -198,13 +200,16 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         det = par[2] * par[5] - par[3] * par[4]
         if math.hypot(par[0] - t0, par[1] - t1) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
                 or max(abs(par[6]), abs(par[7])) * r_max > 0.2:
-            return -1, par, H, g, Hb, Gb, r, inside, sd
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
         if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and max(abs(d[2]), abs(d[3]), abs(d[4]), abs(d[5])) * r_max < 5e-3:
             converged = True
-    return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd
+    # the correlation at the final pose and the textbook covariance's sums, here (not two more compiled
+    # entries, each a share of a fresh machine's first start)
+    sw, swr, cnt = weighted_rss(r, inside, sd, tukey_c)
+    return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd, ncc_of(r, T, inside), sw, swr, cnt
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # in gauss_newton
 def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     """Normalised correlation of the fitted grey values (``r + T``: ``a I + b``) with the patch's ``T``
     over the samples ``inside``."""
