@@ -112,7 +112,7 @@ def classical(J: F64, r: F64, wgt: F64, corr: float) -> F64:
     H = J.T @ (J * wgt[:, None])
     g = (J * wgt[:, None]).T @ r
     try:
-        rss = rss_at_optimum(float(np.sum(wgt * r * r)), g, np.linalg.solve(H, g))
+        rss = rss_at_optimum(float(np.sum(wgt * r * r)), g, np.asarray(np.linalg.solve(H, g), dtype=np.float64))
     except np.linalg.LinAlgError:
         return np.full((J.shape[1], J.shape[1]), np.inf)
     s2 = rss / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
