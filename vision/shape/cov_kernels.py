@@ -214,8 +214,9 @@ def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64) -> F64:
                                                  np.ascontiguousarray(wgt, dtype=np.float64))
     if n_eff <= k + 2:
         return np.full((3, 3), np.inf)
-    step, ok = sk.solve(H, g)
-    if not ok:
+    try:  # numpy's solve here: one compiled entry fewer to build on a fresh machine
+        step = np.asarray(np.linalg.solve(H, g), dtype=np.float64)
+    except np.linalg.LinAlgError:
         return np.full((3, 3), np.inf)
     s2 = rss_at_optimum(swr, g, step) / max(sw * (n_eff - k) / n_eff, 1e-12)
     return np.asarray(honest_systems(H, g, Hb, Gb, s2, corr, np.ascontiguousarray(M, dtype=np.float64)))
