@@ -146,22 +146,8 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         if _count(inside) < 0.5 * n:
             return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
         if it < 0:
-            # the light to start from: T ~ a I + b at the start (least squares; loops, not numpy's masks
-            # and reductions: each of those costs the first start a compile)
-            mi, mt, cnt = 0.0, 0.0, 0
-            for i in range(n):
-                if inside[i]:
-                    mi += r[i] + T[i]
-                    mt += T[i]
-                    cnt += 1
-            mi /= cnt
-            mt /= cnt
-            sxx, sxt = 0.0, 0.0
-            for i in range(n):
-                if inside[i]:
-                    di = r[i] + T[i] - mi
-                    sxx += di * di
-                    sxt += di * (T[i] - mt)
+            # the light to start from: T ~ a I + b at the start (least squares over the samples inside)
+            mi, mt, sxx, _, sxt = light_moments(r, T, inside)
             a = sxt / sxx if sxx > 0 else 0.0
             par[8] = a if abs(a) > 1e-6 else 1e-6
             par[9] = mt - a * mi
@@ -213,6 +199,16 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
 def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     """Normalised correlation of the fitted grey values (``r + T``: ``a I + b``) with the patch's ``T``
     over the samples ``inside``."""
+    _, _, saa, sbb, sab = light_moments(r, T, inside)
+    den = math.sqrt(saa * sbb)
+    return sab / den if den > 0 else 0.0
+
+
+@njit(cache=True, inline="always")  # in gauss_newton and ncc_of
+def light_moments(r: F64, T: F64, inside: NDArray[np.bool_]) -> tuple[float, float, float, float, float]:
+    """Means and centred second moments of the image's grey values (``r + T``) and the patch's ``T``
+    over the samples ``inside``: ``(mean_i, mean_t, s_ii, s_tt, s_it)`` (loops, not numpy's masks and
+    reductions: each of those costs a fresh machine's first start a compile). All 0 when none is inside."""
     n = r.shape[0]
     ma, mb, cnt = 0.0, 0.0, 0
     for i in range(n):
@@ -221,7 +217,7 @@ def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
             mb += T[i]
             cnt += 1
     if cnt == 0:
-        return 0.0
+        return 0.0, 0.0, 0.0, 0.0, 0.0
     ma /= cnt
     mb /= cnt
     saa, sbb, sab = 0.0, 0.0, 0.0
@@ -231,5 +227,4 @@ def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
             saa += da * da
             sbb += db * db
             sab += da * db
-    den = math.sqrt(saa * sbb)
-    return sab / den if den > 0 else 0.0
+    return ma, mb, saa, sbb, sab
