@@ -38,6 +38,7 @@ from cellctl.routines.handeye_dof4_capture import run_dof4, store_dof4
 from cellctl.routines.station_plan import Coverage, StationPlanner
 from cellctl.services import Services
 from drivers.base import MotionRejected
+from drivers.robot_base import turn_deg
 
 RESOLVE_EVERY = 2
 """After a verdict that is not ok, solve again once this many more stations are in."""
@@ -214,8 +215,8 @@ def check_carried(T_base_tool0: NDArray[np.float64], T_cam_target0: NDArray[np.f
     ``CARRIED_MIN_TURN_DEG`` and the plate by less than half of that, the robot carries neither: a
     plate lying still in front of a fixed camera has no hand-eye (jog-to-mark maps that camera).
     """
-    tool_deg = _angle_deg(np.linalg.inv(T_base_tool0) @ T_base_tool)
-    plate_deg = _angle_deg(np.linalg.inv(T_cam_target0) @ T_cam_target)
+    tool_deg = turn_deg(T_base_tool0, T_base_tool)
+    plate_deg = turn_deg(T_cam_target0, T_cam_target)
     if tool_deg >= CARRIED_MIN_TURN_DEG and plate_deg < 0.5 * tool_deg:
         where = ("the plate must ride on the tool, facing the camera" if setup == "eye-to-hand"
                  else "the camera must ride on the tool")
@@ -223,10 +224,6 @@ def check_carried(T_base_tool0: NDArray[np.float64], T_cam_target0: NDArray[np.f
                            f"from the camera, turned {plate_deg:.1f} deg: the robot carries neither the camera nor "
                            f"the plate, and {where} (setup: {setup}). A camera fixed over a plate that lies still is "
                            "mapped to the robot with jog-to-mark (POST /routines/jog-to-mark)")
-
-
-def _angle_deg(T: NDArray[np.float64]) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _ok(result: HandEyeResult) -> bool:

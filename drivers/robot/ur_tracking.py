@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from drivers.errors import MotionRejected
 from drivers.limits import MotionLimits
 from drivers.robot.ur_track_stream import BAD, FAILED, MAXGAP, SENT, TrackShared
+from drivers.robot_base import turn_deg
 
 log = logging.getLogger(__name__)
 
@@ -171,8 +172,7 @@ class HostTracking:
 
     def move(self, T_belt: NDArray[np.float64], speed_m_s: float) -> float:
         """Start a straight move to ``T_belt`` (belt frame) at ``speed_m_s``; its duration (s)."""
-        R = self._T_start[:3, :3].T @ T_belt[:3, :3]
-        turn = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))))
+        turn = turn_deg(self._T_start, T_belt)
         if turn > TURN_MAX_DEG:
             raise MotionRejected(f"robot {self.robot_id}: a move while tracking the belt turns the tool {turn:.1f} "
                                  f"deg; turn it before tracking starts")
