@@ -46,7 +46,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -74,6 +74,7 @@ SYSTEM_PYTHON = "/usr/bin/python3"
 MRCAL_TOOL = "mrcal-calibrate-cameras"
 APT_LINE = "apt-get install -y mrcal python3-mrcal"
 PEER = ROOT / "bench" / "mrcal_peer.py"
+_T = TypeVar("_T")
 
 
 class MrcalMissing(SystemExit):
@@ -226,65 +227,114 @@ def splined_name(n_views: int, size: tuple[int, int], cam: CameraModel) -> str:
 HALVES = (slice(0, None, 2), slice(1, None, 2))
 
 
-def run_set(s: RealSet, workdir: Path) -> list[dict[str, Any]]:
+def halvings(n: int, k: int, seed: int = 39) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The even/odd split of ``n`` views, then ``k`` seeded random halvings (the same for every tool).
+
+    One split of 11-13 views is one draw of a statistic that ranges 0.14-0.8 px between halvings on
+    OpenCV's right set (10-90 %); the median over several is the comparison a single draw cannot make."""
+    rng = np.random.default_rng(seed)
+    out = [(np.arange(0, n, 2), np.arange(1, n, 2))]
+    for _ in range(k):
+        p = rng.permutation(n)
+        out.append((np.sort(p[: n // 2]), np.sort(p[n // 2:])))
+    return out
+
+
+def _pick(items: list[_T], idx: np.ndarray) -> list[_T]:
+    return [items[i] for i in idx]
+
+
+def run_set(s: RealSet, workdir: Path, k_halvings: int = 0) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     first = next(iter(s.corners.values()))
     ref = calibrate(first, s.board, "opencv8")
     pts = covered_points(ref)
     fx = float(ref.camera.K[0, 0])
     for source, dets in s.corners.items():
-        lv = s.levels
+        rows += _run_source(s, source, dets, pts, fx, workdir, k_halvings, ref.camera)
+    return rows
 
-        def add(tool: str, model: str, d_px: float, rms: float, t: float, note: str = "",
-                source: str = source, n: int = len(dets)) -> None:
-            rows.append({"set": s.name, "corners": source, "tool": tool, "model": model, "views": n,
-                         "split_px": d_px, "rms_px": rms, "cpu_s": t, "note": note})
-            print(f"  {s.name} [{source}] {tool} {model}: split {d_px:.3f} rms {rms:.3f}", file=sys.stderr)
 
-        t0 = time.process_time()
-        cands = [(m, w) for m in ("division", "opencv5", "fisheye4", "opencv8") for w in (False, True)]
-        # the product's answer: calib intrinsics --model auto (influential views rejected, the halves of the kept)
-        sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size, reject_views=True)
-        ch = sel["chosen"]
-        kept = {v.image for v in sel_res.views if v.used}
-        kd = [d for d in dets if d.image in kept]
-        sel_h = [calibrate(kd[h], s.board, ch["model"], image_size=s.size, board_warp=ch["board_warp"]).camera
-                 for h in HALVES]
-        add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else ""),
-            projection_difference(sel_h[0], sel_h[1], pts)["rms_px"], sel_res.rms_px, time.process_time() - t0,
-            "warp " + str(sel_res.board_warp["height_mm"]) + " mm" if sel_res.board_warp else "")
-        for model in ("opencv5", "fisheye4", "opencv8"):
-            for warp in (False, True):
-                t0 = time.process_time()
-                try:
-                    full = calibrate(dets, s.board, model, image_size=s.size, board_warp=warp)
-                    halves = [calibrate(dets[h], s.board, model, image_size=s.size, board_warp=warp).camera
-                              for h in HALVES]
-                    add("cellctl", model + (", warp" if warp else ""),
-                        projection_difference(halves[0], halves[1], pts)["rms_px"], full.rms_px,
-                        time.process_time() - t0)
-                except Exception as exc:  # noqa: BLE001 - a failure is a row, not a crash
-                    add("cellctl", model, float("nan"), float("nan"), 0.0, f"failed: {exc}")
-            if model == "fisheye4":
-                continue
+def _split_diffs(solve: Any, n: int, k_halvings: int) -> list[float]:
+    """``solve(a, b)`` (the projection difference of the cameras of views ``a`` and ``b``) for the
+    even/odd split and ``k_halvings`` random halvings of ``n`` views (NaN where a half fails)."""
+    out = []
+    for a, b in halvings(n, k_halvings):
+        try:
+            out.append(float(solve(a, b)))
+        except Exception:  # noqa: BLE001 - a failed half is a NaN in the list, not a crash
+            out.append(float("nan"))
+    return out
+
+
+def _run_source(s: RealSet, source: str, dets: list[Detection], pts: np.ndarray, fx: float, workdir: Path,
+                k: int, ref_cam: CameraModel) -> list[dict[str, Any]]:
+    """Every tool's rows on one corner source of a set."""
+    rows: list[dict[str, Any]] = []
+    lv = s.levels
+
+    def add(tool: str, model: str, ds: list[float], rms: float, t: float, note: str = "", n: int = len(dets)) -> None:
+        med = float(np.nanmedian(ds)) if np.any(np.isfinite(ds)) else float("nan")
+        rows.append({"set": s.name, "corners": source, "tool": tool, "model": model, "views": n,
+                     "split_px": ds[0], "split_med_px": med, "n_splits": len(ds), "rms_px": rms, "cpu_s": t,
+                     "note": note})
+        print(f"  {s.name} [{source}] {tool} {model}: split {ds[0]:.3f} median of {len(ds)} {med:.3f} "
+              f"rms {rms:.3f}", file=sys.stderr)
+
+    def cell_pair(views: list[Detection], model: str, warp: bool) -> Any:
+        def solve(a: np.ndarray, b: np.ndarray) -> float:
+            h = [calibrate(_pick(views, x), s.board, model, image_size=s.size, board_warp=warp).camera for x in (a, b)]
+            return float(projection_difference(h[0], h[1], pts)["rms_px"])
+        return solve
+
+    t0 = time.process_time()
+    cands = [(m, w) for m in ("division", "opencv5", "fisheye4", "opencv8") for w in (False, True)]
+    # the product's answer: calib intrinsics --model auto (influential views rejected, the halves of the kept)
+    sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size, reject_views=True)
+    ch = sel["chosen"]
+    kept = {v.image for v in sel_res.views if v.used}
+    kd = [d for d in dets if d.image in kept]
+    add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else ""),
+        _split_diffs(cell_pair(kd, ch["model"], ch["board_warp"]), len(kd), k), sel_res.rms_px,
+        time.process_time() - t0,
+        "warp " + str(sel_res.board_warp["height_mm"]) + " mm" if sel_res.board_warp else "", n=len(kd))
+    for model in ("opencv5", "fisheye4", "opencv8"):
+        for warp in (False, True):
             t0 = time.process_time()
-            cv_full = opencv_calibrate_ids(dets, s.board, s.size, model)[0]   # views may lack corners
-            cv_h = [opencv_calibrate_ids(dets[h], s.board, s.size, model)[0] for h in HALVES]
-            rms_cv = _rms(cv_full, dets, s.board)
-            add("OpenCV calibrateCamera", model, projection_difference(cv_h[0], cv_h[1], pts)["rms_px"], rms_cv,
-                time.process_time() - t0)
-        specs = [("LENSMODEL_OPENCV5", True), ("LENSMODEL_OPENCV8", True), ("LENSMODEL_OPENCV8", False),
-                 (splined_name(len(dets), s.size, ref.camera), True)]
-        for lens, warp in specs:
-            t0 = time.time()
-            label = lens.replace("LENSMODEL_", "").lower().split("_order")[0] + ("" if warp else ", no warp")
             try:
-                mf, rms = mrcal_calibrate(dets, s.board, s.size, lens, fx, workdir, warp, lv)
-                mh = [mrcal_calibrate(dets[h], s.board, s.size, lens, fx, workdir, warp,
-                                      None if lv is None else lv[h])[0] for h in HALVES]
-                add("mrcal", label, mrcal_diff(mh[0], mh[1], pts), rms, time.time() - t0)
-            except RuntimeError as exc:
-                add("mrcal", label, float("nan"), float("nan"), time.time() - t0, str(exc)[:120])
+                full = calibrate(dets, s.board, model, image_size=s.size, board_warp=warp)
+                add("cellctl", model + (", warp" if warp else ""),
+                    _split_diffs(cell_pair(dets, model, warp), len(dets), k), full.rms_px, time.process_time() - t0)
+            except Exception as exc:  # noqa: BLE001 - a failure is a row, not a crash
+                add("cellctl", model, [float("nan")], float("nan"), 0.0, f"failed: {exc}")
+        if model == "fisheye4":
+            continue
+        t0 = time.process_time()
+        cv_full = opencv_calibrate_ids(dets, s.board, s.size, model)[0]   # views may lack corners
+
+        def cv_pair(a: np.ndarray, b: np.ndarray, model: str = model) -> float:
+            h = [opencv_calibrate_ids(_pick(dets, x), s.board, s.size, model)[0] for x in (a, b)]
+            return float(projection_difference(h[0], h[1], pts)["rms_px"])
+
+        add("OpenCV calibrateCamera", model, _split_diffs(cv_pair, len(dets), k), _rms(cv_full, dets, s.board),
+            time.process_time() - t0)
+    specs = [("LENSMODEL_OPENCV5", True), ("LENSMODEL_OPENCV8", True), ("LENSMODEL_OPENCV8", False),
+             (splined_name(len(dets), s.size, ref_cam), True)]
+    for lens, warp in specs:
+        t1 = time.time()
+        label = lens.replace("LENSMODEL_", "").lower().split("_order")[0] + ("" if warp else ", no warp")
+        try:
+            mf, rms = mrcal_calibrate(dets, s.board, s.size, lens, fx, workdir, warp, lv)
+        except RuntimeError as exc:
+            add("mrcal", label, [float("nan")], float("nan"), time.time() - t1, str(exc)[:120])
+            continue
+
+        def mr_pair(a: np.ndarray, b: np.ndarray, lens: str = lens, warp: bool = warp) -> float:
+            mh = [mrcal_calibrate(_pick(dets, x), s.board, s.size, lens, fx, workdir, warp,
+                                  None if lv is None else _pick(lv, x))[0] for x in (a, b)]
+            return mrcal_diff(mh[0], mh[1], pts)
+
+        add("mrcal", label, _split_diffs(mr_pair, len(dets), k), rms, time.time() - t1)
     return rows
 
 
@@ -355,20 +405,34 @@ def _f(x: float, d: int = 3) -> str:
     return "-" if not np.isfinite(x) else f"{x:.{d}f}"
 
 
+def _best_peer(sub: list[dict[str, Any]], key: str) -> float:
+    peers = [r[key] for r in sub if not r["tool"].startswith("cellctl") and np.isfinite(r[key])]
+    return min(peers) if peers else float("nan")
+
+
 def real_table(rows: list[dict[str, Any]]) -> list[str]:
-    L = ["| set | corners | tool | model | views | split-half (px) | ratio to best peer | RMS (px) | note |",
-         "|---|---|---|---|---|---|---|---|---|"]
+    """Per set: each row's even/odd split-half and, with ``--halvings``, its median over the halvings,
+    each with its ratio to the best non-cellctl row (the same statistic)."""
+    halved = any(r.get("n_splits", 1) > 1 for r in rows)
+    head = "| set | corners | tool | model | views | split-half even/odd (px) | ratio to best peer |"
+    if halved:
+        head += " split-half median (px) | ratio to best peer |"
+    L = [head + " RMS (px) | note |", "|---" * (head.count("|") + 1) + "|"]
     for name in dict.fromkeys(r["set"] for r in rows):
         sub = [r for r in rows if r["set"] == name]
-        peers = [r["split_px"] for r in sub if not r["tool"].startswith("cellctl") and np.isfinite(r["split_px"])]
-        best = min(peers) if peers else float("nan")
+        best = _best_peer(sub, "split_px")
+        best_m = _best_peer(sub, "split_med_px") if halved else float("nan")
         for r in sub:
+            med = (f" {_f(r.get('split_med_px', float('nan')))} | "
+                   f"{_f(r.get('split_med_px', float('nan')) / best_m, 2)} |") if halved else ""
             L.append(f"| {name} | {r['corners']} | {r['tool']} | {r['model']} | {r['views']} | {_f(r['split_px'])} | "
-                     f"{_f(r['split_px'] / best, 2)} | {_f(r['rms_px'])} | {r['note']} |")
-        ours = next(r["split_px"] for r in sub if r["tool"].endswith("cross-validation")
-                    and r["corners"] in ("ours", "mrcal"))
+                     f"{_f(r['split_px'] / best, 2)} |{med} {_f(r['rms_px'])} | {r['note']} |")
+        ours = next(r for r in sub if r["tool"].endswith("cross-validation") and r["corners"] in ("ours", "mrcal"))
+        med = (f" **{_f(ours['split_med_px'])} / {_f(best_m)}** | **{_f(ours['split_med_px'] / best_m, 2)}** |"
+               if halved else "")
         L.append(f"| **{name}** | | **cellctl (its corners, chosen by cross-validation) / best peer** | | | "
-                 f"**{_f(ours)} / {_f(best)}** | **{_f(ours / best, 2)}** | | target <= 0.8 |")
+                 f"**{_f(ours['split_px'])} / {_f(best)}** | **{_f(ours['split_px'] / best, 2)}** |{med} | "
+                 "target <= 0.8 |")
     return L
 
 
@@ -401,6 +465,9 @@ def main() -> None:
     ap.add_argument("--rows-dir", help="also keep each set's rows as JSON here, and build the table from every "
                                        "set's rows found there (runs split over several processes)")
     ap.add_argument("--out", help="write the markdown here too")
+    ap.add_argument("--halvings", type=int, default=0,
+                    help="also K seeded random halvings of each real set (the same for every tool): the table "
+                         "adds each row's median split-half over the even/odd split and these")
     ap.add_argument("--render-views", type=int, default=12, help="views per render set (default 12)")
     ap.add_argument("--render-mrcal-corners", default="ours,opencv",
                     help="corner sources mrcal runs on for the renders (ours,opencv; 'ours' halves its runs)")
@@ -419,7 +486,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for key in [k for k in a.sets.split(",") if k]:
-            rows = run_set(loaders[key](), work)
+            rows = run_set(loaders[key](), work, a.halvings)
             real += rows
             if rows_dir:
                 (rows_dir / f"real_{key}.json").write_text(json.dumps(rows))
@@ -436,7 +503,9 @@ def main() -> None:
         rend = [r for f in sorted(rows_dir.glob("render_*.json")) for r in json.loads(f.read_text())]
     ver = subprocess.run(["dpkg-query", "-W", "-f", "${Version}", "python3-mrcal"], capture_output=True, text=True)
     L = ["Real sets: split-half projection difference over the covered cells (lower is better); ratio = row / the "
-         "best non-cellctl row of the set.", "", *real_table(real), ""]
+         "best non-cellctl row of the set" + (f" (median: over the even/odd split and {a.halvings} seeded random "
+                                              "halvings, the same for every tool)" if a.halvings else "") + ".",
+         "", *real_table(real), ""]
     if rend:
         L += [f"Renders with truth (real-defects scene, 960x720, {a.render_views} views of a 9x6 board, seeds "
               f"{a.first_seed}.."

@@ -30,3 +30,22 @@ def test_corner_file_rows_follow_the_board_order(tmp_path: Path) -> None:
     assert lines[1].split() == ["v000.jpg", "0.000000", "0.000000", "0"]
     assert lines[4].split()[3] == "-"               # the missing corner is skipped by mrcal
     assert lines[6].split()[1:3] == ["50.000000", "5.000000"]
+
+
+def test_halvings_start_with_even_odd_and_split_every_view_once() -> None:
+    splits = real.halvings(13, 4)
+    assert len(splits) == 5
+    assert splits[0][0].tolist() == list(range(0, 13, 2)) and splits[0][1].tolist() == list(range(1, 13, 2))
+    for a, b in splits:
+        assert sorted(a.tolist() + b.tolist()) == list(range(13)) and abs(len(a) - len(b)) <= 1
+    assert len({tuple(a) for a, _ in splits}) == 5                     # the halvings differ
+    assert [a.tolist() for a, _ in real.halvings(13, 4)] == [a.tolist() for a, _ in splits]   # seeded
+
+
+def test_the_table_gives_the_median_ratio_beside_the_even_odd_one() -> None:
+    def row(tool: str, eo: float, med: float) -> dict[str, object]:
+        return {"set": "s", "corners": "ours", "tool": tool, "model": "opencv5", "views": 13, "split_px": eo,
+                "split_med_px": med, "n_splits": 7, "rms_px": 0.1, "note": ""}
+    rows = [row("cellctl, chosen by cross-validation", 0.4, 0.2), row("mrcal", 0.2, 0.5), row("OpenCV", 0.3, 0.4)]
+    last = real.real_table(rows)[-1]
+    assert "**0.400 / 0.200** | **2.00**" in last and "**0.200 / 0.400** | **0.50**" in last
