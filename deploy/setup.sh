@@ -28,6 +28,12 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[test,aravis,postgres,ethernet-ip]'
+# pytest rewrites the asserts of its plugins' modules (schemathesis, hypothesis, anyio, xdist: ~250 of
+# them) in every pytest process, about 2 s of CPU each, unless their rewritten caches exist; it writes
+# none while PYTHONDONTWRITEBYTECODE is set (the variable is read before the suite's conftest turns
+# writing back on). Write them once here (a package upgraded later is rewritten per run until set-up runs again).
+env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -m pytest --collect-only -q -p no:cacheprovider -o addopts= \
+  tests/test_layers.py >/dev/null || echo "setup: pytest's plugin caches were not written (each run rewrites them)" >&2
 # node-opcua for the OPC UA Machine Vision tests (the npm registry's client, pinned by its lock file)
 bash deploy/install-opcua-client.sh
 # Into __pycache__ beside the modules, or NUMBA_CACHE_DIR when set (the service must see the same).

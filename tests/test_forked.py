@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.support.forked import READ_AT_USE, REPO, Forked, fork_server, popen_cellctl, run_cellctl
+from tests.support.forked import READ_AT_USE, REPO, Forked, fork_server, popen_cellctl, popen_module, run_cellctl
 from tests.support.forkserver import PRELOAD
 from tests.support.ports import free_port
 from tests.support.wait import wait_until
@@ -94,3 +94,24 @@ def _answers(port: int) -> bool:
         return httpx.get(f"http://127.0.0.1:{port}/health", timeout=2.0).status_code == 200
     except httpx.HTTPError:
         return False
+
+
+PROBE = """
+import json, sys
+print(json.dumps({"name": __name__, "argv": sys.argv, "path0": sys.path[0], "spec": __spec__.name}))
+sys.exit(3)
+"""
+
+
+def test_a_forked_module_run_is_python_dash_m(tmp_path: Path) -> None:
+    """A protocol peer (``python -m MODULE ARGS``, tests/drivers/peers.py) forked: ``__main__``, ``sys.argv``
+    (the module's file first), ``sys.path[0]`` (the working directory) and the exit code as ``python -m``'s."""
+    (tmp_path / "probe_peer.py").write_text(PROBE)
+    with (tmp_path / "out").open("wb") as out:
+        proc = popen_module("probe_peer", ["--port", "5"], cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=out)
+        assert isinstance(proc, Forked) and proc.wait(60) == 3
+    exec_d = subprocess.run([sys.executable, "-m", "probe_peer", "--port", "5"], cwd=tmp_path, capture_output=True,
+                            text=True, timeout=60)
+    assert exec_d.returncode == 3
+    forked, expected = json.loads((tmp_path / "out").read_text()), json.loads(exec_d.stdout)
+    assert forked == expected and forked["argv"] == [str(tmp_path / "probe_peer.py"), "--port", "5"], (forked, expected)

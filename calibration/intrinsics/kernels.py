@@ -296,66 +296,143 @@ def point_jacobians(model: int, c: F64, R: F64, t: F64, X: F64, w: F64, view: ND
 
 
 @njit(cache=True)
-def damped_step(A: F64, B: F64, D: F64, gc: F64, gv: F64, lam: float) -> tuple[F64, F64]:
-    """The Marquardt-damped Gauss-Newton step for the arrow-structured normal equations: the poses
-    are eliminated view by view (Schur complement), the reduced intrinsics system is solved by
-    a scaled least squares (rank-deficient directions get no step), then the poses are
-    back-substituted. Returns ``(dc, dv)`` with ``dv`` (V, 6); NaN when the system is not finite
-    (the caller treats it as a failed step)."""
+def schur_reduce(A: F64, B: F64, D: F64, gc: F64, gv: F64, lam: float) -> tuple[F64, F64, F64, F64, int]:
+    """The Marquardt-damped arrow-structured normal equations with the poses eliminated view by view
+    (Schur complement): ``S = A' - sum_k B_k D_k'^-1 B_kᵀ``, ``rhs = -gc + sum_k B_k D_k'^-1 gv_k`` and
+    the damped ``D_k'^-1`` (``X' = X + lam diag(X)``), and a status: 0 done, 1 not finite, 2 a ``D_k'``
+    is singular. ``S`` and ``rhs`` come scaled by ``sc = sqrt(diag S)`` (``S / sc scᵀ``, ``rhs / sc``;
+    the solution is then divided by ``sc``), with ``sc`` itself. C-contiguous float64 arrays (one
+    compiled signature).
+
+    Plain loops and a 6 x 6 Gauss-Jordan inverse (partial pivoting), not numba's ``np.linalg``: its
+    LAPACK bindings made this step the dearest compile of the solver (20 s of CPU on a cold cache)."""
     nv = D.shape[0]
     nc = A.shape[0]
-    S = A.copy()
-    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(D)) and np.all(np.isfinite(B))):
-        return np.full(nc, np.nan), np.full((nv, 6), np.nan)
+    S = np.empty((nc, nc))
+    rhs = np.empty(nc)
+    Dinv = np.empty((nv, 6, 6))
+    sc = np.ones(nc)
+    for x in (A.ravel(), B.ravel(), D.ravel()):
+        for v in x:
+            if not np.isfinite(v):
+                return S, rhs, Dinv, sc, 1
+    for i in range(nc):
+        rhs[i] = -gc[i]
+        for j in range(nc):
+            S[i, j] = A[i, j]
+        S[i, i] += lam * A[i, i]
+    M = np.empty((6, 12))
+    BD = np.empty((nc, 6))
+    for k in range(nv):
+        for i in range(6):
+            for j in range(6):
+                M[i, j] = D[k, i, j]
+                M[i, 6 + j] = 1.0 if i == j else 0.0
+            M[i, i] += lam * D[k, i, i]
+        for c in range(6):
+            p = c
+            for r in range(c + 1, 6):
+                if abs(M[r, c]) > abs(M[p, c]):
+                    p = r
+            if M[p, c] == 0.0:
+                return S, rhs, Dinv, sc, 2
+            if p != c:
+                for j in range(12):
+                    M[c, j], M[p, j] = M[p, j], M[c, j]
+            piv = M[c, c]
+            for j in range(12):
+                M[c, j] /= piv
+            for r in range(6):
+                f = M[r, c]
+                if r != c and f != 0.0:
+                    for j in range(12):
+                        M[r, j] -= f * M[c, j]
+        for i in range(6):
+            for j in range(6):
+                Dinv[k, i, j] = M[i, 6 + j]
+        for i in range(nc):
+            acc = 0.0
+            for j in range(6):
+                s = 0.0
+                for m in range(6):
+                    s += B[k, i, m] * Dinv[k, m, j]
+                BD[i, j] = s
+                acc += s * gv[k, j]
+            rhs[i] += acc
+        for i in range(nc):
+            for j in range(nc):
+                s = 0.0
+                for m in range(6):
+                    s += BD[i, m] * B[k, j, m]
+                S[i, j] -= s
+    # the scaled system: a parameter without information (zero column, or a negative round-off) keeps
+    # scale 1: dividing by its ~0 diagonal overflowed to inf (a 6-view ChArUco set, rational model)
+    big = 0.0
     for p in range(nc):
-        S[p, p] += lam * A[p, p]
-    rhs = -gc.copy()
-    Dinv = np.empty_like(D)
-    BDinv = np.empty_like(B)
-    for k in range(nv):
-        Dk = D[k].copy()
-        for p in range(6):
-            Dk[p, p] += lam * D[k, p, p]
-        Dinv[k] = np.linalg.inv(Dk)
-        BDinv[k] = B[k] @ Dinv[k]
-        S -= BDinv[k] @ B[k].T
-        rhs += BDinv[k] @ gv[k]
-    dc = np.zeros(nc)
-    if nc:
-        dS = np.diag(S)
-        big = np.max(np.abs(dS))
-        sc = np.ones(nc)
-        for p in range(nc):
-            # a parameter without information (zero column, or a negative round-off) keeps scale 1:
-            # dividing by its ~0 diagonal overflowed to inf (a 6-view ChArUco set, rational model)
-            if np.isfinite(dS[p]) and dS[p] > 1e-300 + 1e-15 * big:
-                sc[p] = np.sqrt(dS[p])
-        Ss = S / np.outer(sc, sc)
-        if not (np.all(np.isfinite(Ss)) and np.all(np.isfinite(rhs))):
-            return np.full(nc, np.nan), np.full((nv, 6), np.nan)
-        dc = np.linalg.lstsq(Ss, rhs / sc, 1e-14)[0] / sc
+        big = max(big, abs(S[p, p]))
+    for p in range(nc):
+        if np.isfinite(S[p, p]) and S[p, p] > 1e-300 + 1e-15 * big:
+            sc[p] = np.sqrt(S[p, p])
+    for i in range(nc):
+        rhs[i] /= sc[i]
+        if not np.isfinite(rhs[i]):
+            return S, rhs, Dinv, sc, 1
+        for j in range(nc):
+            S[i, j] /= sc[i] * sc[j]
+            if not np.isfinite(S[i, j]):
+                return S, rhs, Dinv, sc, 1
+    return S, rhs, Dinv, sc, 0
+
+
+@njit(cache=True)
+def back_substitute(Dinv: F64, B: F64, gv: F64, dc: F64) -> F64:
+    """The poses' step ``dv_k = D_k'^-1 (-gv_k - B_kᵀ dc)`` (V, 6) once the intrinsics' ``dc`` is known."""
+    nv, nc = B.shape[0], B.shape[1]
     dv = np.empty((nv, 6))
+    u = np.empty(6)
     for k in range(nv):
-        dv[k] = Dinv[k] @ (-gv[k] - B[k].T @ dc)
-    return dc, dv
+        for m in range(6):
+            s = -gv[k, m]
+            for i in range(nc):
+                s -= B[k, i, m] * dc[i]
+            u[m] = s
+        for j in range(6):
+            s = 0.0
+            for m in range(6):
+                s += Dinv[k, j, m] * u[m]
+            dv[k, j] = s
+    return dv
 
 
 @njit(cache=True)
 def moved_poses(R: F64, t: F64, dv: F64) -> tuple[F64, F64]:
-    """``R_k <- exp(w_k) R_k`` (Rodrigues) and ``t_k <- t_k + dt_k`` for the step ``dv`` (V, 6)."""
+    """``R_k <- exp(w_k) R_k`` (Rodrigues) and ``t_k <- t_k + dt_k`` for the step ``dv`` (V, 6).
+
+    Written out in loops (``exp(w) = I + a K + b K²``, ``K² = w wᵀ - |w|² I``): numba's matrix
+    products and array literals took 7 s of CPU to compile on a cold cache."""
     nv = R.shape[0]
     Rn = np.empty_like(R)
     tn = np.empty_like(t)
+    E = np.empty((3, 3))
     for k in range(nv):
         wx, wy, wz = dv[k, 0], dv[k, 1], dv[k, 2]
-        th = np.sqrt(wx * wx + wy * wy + wz * wz)
+        th2 = wx * wx + wy * wy + wz * wz
+        th = np.sqrt(th2)
         if th < 1e-12:
             a, b = 1.0, 0.5
         else:
-            a, b = np.sin(th) / th, (1.0 - np.cos(th)) / (th * th)
-        K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
-        E = np.eye(3) + a * K + b * (K @ K)
-        Rn[k] = E @ R[k]
-        for j in range(3):
-            tn[k, j] = t[k, j] + dv[k, 3 + j]
+            a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+        E[0, 0] = 1.0 + b * (wx * wx - th2)
+        E[0, 1] = -a * wz + b * wx * wy
+        E[0, 2] = a * wy + b * wx * wz
+        E[1, 0] = a * wz + b * wy * wx
+        E[1, 1] = 1.0 + b * (wy * wy - th2)
+        E[1, 2] = -a * wx + b * wy * wz
+        E[2, 0] = -a * wy + b * wz * wx
+        E[2, 1] = a * wx + b * wz * wy
+        E[2, 2] = 1.0 + b * (wz * wz - th2)
+        for i in range(3):
+            for j in range(3):
+                Rn[k, i, j] = E[i, 0] * R[k, 0, j] + E[i, 1] * R[k, 1, j] + E[i, 2] * R[k, 2, j]
+            tn[k, i] = t[k, i] + dv[k, 3 + i]
     return Rn, tn

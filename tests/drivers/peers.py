@@ -7,7 +7,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -15,6 +14,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+from tests.support.forked import Forked, popen_module
 from tests.support.ports import free_port  # noqa: F401  (the peers' tests import it from here)
 
 REPO = Path(__file__).resolve().parents[2]
@@ -59,18 +59,22 @@ class PeerProcess:
         self.args = args
         self.ready_port = ready_port
         self.ready_text = ready_text
-        self.proc: subprocess.Popen[bytes] | None = None
+        self.proc: Forked | subprocess.Popen[bytes] | None = None
 
     def start(self, timeout_s: float = 15.0) -> PeerProcess:
-        """Start the peer; wait for its port to accept, or for ``ready_text`` on its stdout."""
-        self.proc = subprocess.Popen([sys.executable, "-m", self.module, *self.args], cwd=REPO,
-                                     stdout=subprocess.PIPE if self.ready_text else subprocess.DEVNULL,
+        """Start the peer (forked from the test process's fork server, ``tests/support/forked.py``, where
+        that is the same as an exec); wait for its port to accept, or for ``ready_text`` on its stdout."""
+        read_fd, write_fd = os.pipe() if self.ready_text else (-1, subprocess.DEVNULL)
+        try:
+            self.proc = popen_module(self.module, self.args, cwd=REPO, stdin=subprocess.DEVNULL, stdout=write_fd,
                                      stderr=subprocess.DEVNULL)
+        finally:
+            if self.ready_text:
+                os.close(write_fd)
         if self.ready_port is not None:
             wait_port(self.ready_port, timeout_s)
         if self.ready_text is not None:
-            assert self.proc.stdout is not None
-            stdout = self.proc.stdout
+            stdout = os.fdopen(read_fd, "rb")
             found = threading.Event()
 
             def watch() -> None:

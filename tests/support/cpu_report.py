@@ -12,6 +12,15 @@ served cell, a PostgreSQL cluster) are counted when they are reaped, not per tes
 (``python -m pytest``: it puts the repository on ``sys.path`` before ``-p`` imports the plugin.)
 Without ``CELLCTL_TEST_CPU_DIR`` the plugin records nothing. Each process (xdist worker) writes
 ``cpu-<worker>.jsonl`` there; its collection is counted from the plugin's import (after pytest's own).
+
+Each test also gets its **process tree's** CPU (``phase: "tree"``, set-up to teardown): the worker and
+every live descendant, read from ``/proc/<pid>/stat`` (user + system + the children each has waited
+for) when the test starts and when it ends. So a module's served cell, a session's peer, the fork
+server's children and Chromium (the Playwright driver's child) are charged to the test they work for
+while it runs, not to whichever test reaps them. A descendant that ends in between is counted by the
+one that waited for it (ourselves, or a live descendant); one that leaves the tree (a daemon that
+detaches, as ``pg_ctl start``'s server) is not seen. A reading lists ``/proc`` and reads the stat of
+the tree's processes and of pids not seen before (about 1 ms per test).
 """
 
 from __future__ import annotations
@@ -43,6 +52,60 @@ def cpu_s(children: bool = True) -> float:
 
 _START_CPU_S, _START_OWN_CPU_S = cpu_s(), cpu_s(children=False)
 _out: list[IO[str]] = []
+_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+
+Proc = tuple[int, int, int]
+"""A process of ``/proc``: (parent pid, start time in ticks, CPU ticks: user + system of itself and of
+the children it has waited for)."""
+
+
+_OUTSIDE: set[int] = set()
+"""Pids seen outside this process's tree: a process never moves into it later (only a reparenting to
+init takes one out), so they are not read again (a pid reused by a new descendant within one run
+would be missed: Linux hands pids out in order up to ``pid_max``, millions here)."""
+
+
+def proc_table() -> dict[int, Proc]:
+    """The :data:`Proc` of each process that may be in this process's tree, by pid (those that end while
+    it reads are left out); what is found outside it is remembered and skipped next time."""
+    table = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit() or int(name) in _OUTSIDE:
+            continue
+        try:
+            with open(f"/proc/{name}/stat", "rb") as f:
+                data = f.read()
+        except OSError:
+            continue
+        rest = data[data.rindex(b")") + 2:].split()  # after "pid (comm) ": state ppid ... (man 5 proc)
+        table[int(name)] = (int(rest[1]), int(rest[19]), sum(int(x) for x in rest[11:15]))
+    return table
+
+
+def tree_of(table: dict[int, Proc], root: int) -> dict[tuple[int, int], int]:
+    """CPU ticks of ``root`` and each of its descendants, keyed by (pid, start time) (pids are reused);
+    the other pids of ``table`` join ``_OUTSIDE``."""
+    kids: dict[int, list[int]] = {}
+    for pid, (ppid, _, _) in table.items():
+        kids.setdefault(ppid, []).append(pid)
+    out, todo = {}, [root]
+    while todo:
+        pid = todo.pop()
+        if pid in table:
+            out[(pid, table[pid][1])] = table[pid][2]
+            todo += kids.get(pid, [])
+    _OUTSIDE.update(set(table) - {pid for pid, _ in out})
+    return out
+
+
+def tree_delta_s(before: dict[tuple[int, int], int], after: dict[tuple[int, int], int]) -> float:
+    """CPU seconds the tree spent between two readings: what each process still there (or new) added,
+    less what the ones that ended had before (their whole CPU now sits in their waiter's children's)."""
+    ticks = sum(v - before.get(k, 0) for k, v in after.items()) - sum(v for k, v in before.items() if k not in after)
+    return ticks * _TICK_S
+
+
+_tree: list[dict[tuple[int, int], int]] = []
 
 
 def _write(record: dict[str, Any]) -> None:
@@ -65,6 +128,20 @@ def _timed(item: pytest.Item, phase: str) -> Iterator[None]:
     cpu0, wall0 = cpu_s(), time.monotonic()
     yield
     _write({"id": item.nodeid, "phase": phase, "cpu_s": cpu_s() - cpu0, "wall_s": time.monotonic() - wall0})
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Iterator[None]:
+    """The test's process tree's CPU, set-up to teardown (the reading it ends with starts the next)."""
+    if not os.environ.get(ENV):
+        yield
+        return
+    if not _tree:
+        _tree.append(tree_of(proc_table(), os.getpid()))
+    yield
+    after = tree_of(proc_table(), os.getpid())
+    _write({"id": item.nodeid, "phase": "tree", "cpu_s": tree_delta_s(_tree[0], after)})
+    _tree[0] = after
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -92,8 +169,9 @@ def rows_of(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def summary(folder: Path, over_s: float = 1.0) -> str:
-    """Collection and total CPU per worker, CPU of the tests, and the tests over ``over_s`` of CPU."""
+def summary(folder: Path, over_s: float = 1.0, top: int = 30) -> str:
+    """Collection and total CPU per worker, CPU of the tests, the tests over ``over_s`` of CPU, and the
+    ``top`` tests and files by process-tree CPU."""
     rows = [r for f in sorted(folder.glob("cpu-*.jsonl")) for r in rows_of(f)]
     if not rows:
         raise SystemExit(f"no cpu-*.jsonl in {folder}: run pytest with {ENV}={folder} -p tests.support.cpu_report")
@@ -113,6 +191,19 @@ def summary(folder: Path, over_s: float = 1.0) -> str:
              f"tests: {len(per_test)}, their CPU s: {sum(per_test.values()):.1f}",
              f"tests over {over_s} s of CPU:"]
     lines += [f"  {c:6.2f}  {name}" for name, c in per_test.most_common() if c > over_s]
+    tree: Counter[str] = Counter()
+    for r in rows:
+        if r["phase"] == "tree":
+            tree[r["id"]] += r["cpu_s"]
+    if tree:
+        by_file: Counter[str] = Counter()
+        for name, c in tree.items():
+            by_file[name.split("::", 1)[0]] += c
+        lines += [f"tests' process-tree CPU s (each test's worker and descendants, set-up to teardown): "
+                  f"{sum(tree.values()):.1f}", f"the {top} dearest tests by process-tree CPU s:"]
+        lines += [f"  {c:6.2f}  {name}" for name, c in tree.most_common(top)]
+        lines += [f"the {top} dearest files by process-tree CPU s:"]
+        lines += [f"  {c:6.2f}  {name}" for name, c in by_file.most_common(top)]
     return "\n".join(lines)
 
 

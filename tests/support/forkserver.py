@@ -5,7 +5,8 @@ which the suite uses; read that module first). It imports what ``cellctl serve``
 commands import (about 3 s of CPU a fresh ``cellctl`` pays), then answers on a Unix socket: each
 request (argv, environment, working directory, and three descriptors for stdin, stdout, stderr) is
 forked into a child that takes those descriptors, that environment and that directory and runs the
-``cellctl`` console script as a fresh process would (``runpy``: the script's ``sys.exit(main())``,
+``cellctl`` console script (or, for ``[python, "-m", MODULE, ...]``, that module: the protocol peers of
+``tests/drivers/peers.py``) as a fresh process would (``runpy``: the script's ``sys.exit(main())``,
 its ``__main__``, the interpreter's own exit with its atexit handlers and thread joins). The child is
 a real process with its own pid: signals, ``kill -9``, exit codes and log files work on it as on an
 exec'd ``cellctl``. The server answers each request with the child's pid and a pidfd, and when the
@@ -206,7 +207,12 @@ def main() -> None:
     become(request)
     import runpy
 
-    runpy.run_path(request.argv[0], run_name="__main__")
+    if request.argv[1:2] == ["-m"] and len(request.argv) > 2:  # `python -m MODULE ARGS`: a protocol peer
+        sys.argv = request.argv[2:]
+        sys.path[0] = request.cwd  # as `python -m` has it
+        runpy.run_module(request.argv[2], run_name="__main__", alter_sys=True)
+    else:
+        runpy.run_path(request.argv[0], run_name="__main__")
 
 
 if __name__ == "__main__":

@@ -59,3 +59,26 @@ def test_edge_cov_as_numpy(perspective: bool) -> None:
     want = un.edge_cov(off, ok, m, q, n, th, sc, 3.0, perspective)
     got = ck.edge_cov(off, ok, m, q, n, th, sc, 3.0, perspective)
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-15)
+
+
+def test_a_homographys_covariance_is_judged_at_its_own_optimum() -> None:
+    """An edge fit's homography covariance from residuals taken at a similarity's points (a tilted
+    view): the perspective the similarity misses is not noise; the 1-sigma is that of the noise alone."""
+    rng = np.random.default_rng(11)
+    t = np.linspace(0, 2 * math.pi, 400, endpoint=False)
+    rad, drad = 50 + 10 * np.cos(3 * t) + 5 * np.sin(5 * t), -30 * np.sin(3 * t) + 25 * np.cos(5 * t)
+    m = np.stack([rad * np.cos(t), rad * np.sin(t)], axis=1)  # a lobed outline (no conic: a homography is fixed)
+    tan = np.stack([drad * np.cos(t) - rad * np.sin(t), drad * np.sin(t) + rad * np.cos(t)], axis=1)
+    nm = np.stack([tan[:, 1], -tan[:, 0]], axis=1) / np.linalg.norm(tan, axis=1, keepdims=True)
+    q = m + np.array([300.0, 200.0])
+    ok = np.ones(len(t), bool)
+    noise = rng.normal(0, 0.05, len(t))
+    J, _, _ = un.edge_system(noise, ok, m, q, nm, 0.0, 1.0, True)
+    tilt = J[:, 6:8] @ np.array([2e-5, -1.5e-5])  # a few degrees of tilt: some tenths of a px at the ends
+    assert 0.2 < np.abs(tilt).max() < 0.9
+    clean = un.edge_cov(noise, ok, m, q, nm, 0.0, 1.0, 1.0, True)
+    assert np.all(np.isfinite(clean))
+    for cov in (un.edge_cov(noise + tilt, ok, m, q, nm, 0.0, 1.0, 1.0, True),
+                ck.edge_cov(noise + tilt, ok, m, q, nm, 0.0, 1.0, 1.0, True)):
+        assert math.sqrt(cov[2, 2]) == pytest.approx(math.sqrt(clean[2, 2]), rel=0.2)
+        assert math.sqrt(cov[0, 0]) == pytest.approx(math.sqrt(clean[0, 0]), rel=0.2)

@@ -24,6 +24,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from vision.shape import small_kernels
+
 F64 = NDArray[np.float64]
 
 
@@ -105,7 +107,7 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     return d, found, cosd, sign
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # small, two call sites: compiled in its callers only
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
@@ -169,19 +171,19 @@ def magnitudes(G: NDArray[np.float32], q: F64) -> F64:
     return out
 
 
-@njit(cache=True)
 def percentile75(a: F64) -> float:
     """``np.percentile(a, 75)`` (its default linear method, the same bits) without its per-call
-    overhead, which dominated on the few hundred points of a model."""
-    s = np.sort(a)
-    n = s.shape[0]
+    overhead, which dominated on the few hundred points of a model: the two values it needs by
+    ``np.partition``."""
+    n = a.shape[0]
     v = 0.75 * n + 0.25 - 1.0
-    lo = int(math.floor(v))
-    lo = min(max(lo, 0), n - 1)
+    lo = min(max(int(math.floor(v)), 0), n - 1)
     hi = min(lo + 1, n - 1)
     t = v - lo
-    d = s[hi] - s[lo]
-    return s[hi] - d * (1.0 - t) if t >= 0.5 else s[lo] + d * t
+    part = np.partition(a, (lo, hi))
+    s_lo, s_hi = float(part[lo]), float(part[hi])
+    d = s_hi - s_lo
+    return s_hi - d * (1.0 - t) if t >= 0.5 else s_lo + d * t
 
 
 _WARM = threading.Event()
@@ -229,9 +231,7 @@ def _first_search(image_size: tuple[int, int]) -> None:
 
 def _load_all() -> None:
     z2 = np.zeros((2, 2))
-    z1 = np.zeros(2)
     associate(np.zeros((4, 4, 2), np.float32), z2, z2, 1, 1.0)
-    gn_normal_equations(z2, z2, z2, 1.0, z1, z1)
     profile_centroids(np.zeros((4, 4), np.float32), z2, z2, 1)
     fit_stage_a(np.zeros((4, 4, 2), np.float32), z2, z2, np.zeros(4), 1.0, 0.1, 1.0, 1, 1.0, 0.0, False, 1.0,
                 0.0, 4.0, 4.0)
@@ -307,7 +307,10 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
         Ak = A[:k, :k].copy()
         for j in range(k):
             Ak[j, j] += 1e-9
-        delta = np.linalg.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        if not ok:
+            failed = True
+            break
         ds = delta[3] if k == 4 else 0.0
         x += delta[0]
         y += delta[1]
@@ -377,13 +380,18 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
             nw += 1
             for r in range(8):
                 g[r] += J[i, r] * (wt * off[i])
-                for k in range(8):
+                for k in range(r, 8):  # the upper triangle (mirrored below): half the code to compile
                     H[r, k] += J[i, r] * (J[i, k] * wt)
         if nw < 20:
             break
+        for r in range(8):
+            for k in range(r):
+                H[r, k] = H[k, r]
         for k in range(8):
             H[k, k] += 1e-9 * (1 + jmax)
-        delta = np.linalg.solve(H, g)
+        delta, ok = small_kernels.solve(H, g)
+        if not ok:
+            break
         a00 += delta[0]
         a01 += delta[1]
         a10 += delta[3]
@@ -442,7 +450,9 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
         Ak = A[:k, :k].copy()
         for j in range(k):
             Ak[j, j] += 1e-9
-        delta = np.linalg.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        if not ok:
+            break
         ds = delta[3] if fit_scale else 0.0
         x += delta[0]
         y += delta[1]

@@ -243,16 +243,14 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
     # (t, A, v, gain, offset): see patch_kernels
     par = np.array([x - x0, y - y0, scale * c, scale * s, -scale * s, scale * c, 0.0, 0.0, 1.0, 0.0])
     block = patch_blocks(patch)
-    try:  # the Gauss-Newton loop, compiled (pick speed)
-        status, par, H, g, Hb, Gb, r, inside, sd = pk.gauss_newton(
-            crop, gx, gy, pts, T, block, JACKKNIFE_BLOCKS ** 2, par, iterations, TUKEY_C, r_max, scale, TILT_PRIOR)
-    except np.linalg.LinAlgError:
-        return None
+    # the Gauss-Newton loop, compiled (pick speed; a singular step is a failure, status -1)
+    status, par, H, g, Hb, Gb, r, inside, sd, ncc, sw, swr, cnt = pk.gauss_newton(
+        crop, gx, gy, pts, T, block, JACKKNIFE_BLOCKS ** 2, par, iterations, TUKEY_C, r_max, scale, TILT_PRIOR)
     if status < 0:
         return None
     converged = status == 1
     t, A, v = par[:2], par[2:6].reshape(2, 2), par[6:8]
-    ncc = pk.ncc_of(r, T, inside)  # a I + b at the final pose against the patch
+    # ncc: a I + b at the final pose against the patch (pk.ncc_of)
     # the turn and scale of the local linear map at the reference point, Lm = A - t v^T (as the edge
     # fit's homography); (x, y, theta) from (t, A, v, a, b) to first order
     Lm = A - np.outer(t, v)
@@ -265,12 +263,12 @@ def fit(patch: TeachPatch, image: U8, x: float, y: float, theta: float, scale: f
     M[2, 0], M[2, 1] = -v[0] * g00, -v[0] * g10
     M[2, 6] = -t[0] * g00 - t[1] * g10
     # samples closer than the blur's reach share their errors: samples per independent one
-    sw, swr, cnt = pk.weighted_rss(r, inside, sd, TUKEY_C)
+    # sw, swr, cnt: pk.weighted_rss's, from gauss_newton
     if cnt <= 12:
         return None
     s2 = swr / max(sw * (cnt - 10) / cnt, 1e-12)
     corr = max((2.0 * BLUR_SIGMA_PX / max(min(patch_step(patch), 4.0), 0.5)) ** 2, 1.0)
-    cov = ck.honest(ck.classical_cov(H, s2, corr), ck.jackknife_cov(H, g, Hb, Gb), M)
+    cov = ck.honest_systems(H, g, Hb, Gb, s2, corr, M)
     return PatchFit(float(t[0] + x0), float(t[1] + y0), th, math.sqrt(abs(float(np.linalg.det(Lm)))), ncc, cov,
                     cnt, converged)
 

@@ -15,6 +15,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import F64
+from vision.shape import small_kernels as sk
 
 NP = 10
 """Parameters of the fit."""
@@ -32,7 +33,7 @@ def _bil(img: NDArray[np.float32], x: float, y: float) -> float:
     return top + (bot - top) * fy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # one call site (gauss_newton): compiled once, in it
 def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64,
                      T: F64, block: NDArray[np.int64], nblocks: int, par: F64, sd: float, tukey_c: float,
                      blocks: bool) -> tuple[F64, F64, F64, F64, F64, NDArray[np.bool_]]:
@@ -76,25 +77,17 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
         J[2], J[3], J[4], J[5] = ax * px, ax * py, ay * px, ay * py
         J[6], J[7] = -aq * px, -aq * py
         J[8], J[9] = I, 1.0
-        if blocks:  # per block only: the whole system is their sum (below)
-            k = block[i]
-            for p in range(NP):
-                wj = wt * J[p]
-                Gb[k, p] += wj * res
-                for q in range(p, NP):
-                    Hb[k, p, q] += wj * J[q]
-        else:
-            for p in range(NP):
-                wj = wt * J[p]
-                g[p] += wj * res
-                for q in range(p, NP):
-                    H[p, q] += wj * J[q]
-    if blocks:
-        for k in range(nb):
-            for p in range(NP):
-                g[p] += Gb[k, p]
-                for q in range(p, NP):
-                    H[p, q] += Hb[k, p, q]
+        k = block[i] if blocks else 0  # per block only (one block without): the whole system is their sum
+        for p in range(NP):
+            wj = wt * J[p]
+            Gb[k, p] += wj * res
+            for q in range(p, NP):
+                Hb[k, p, q] += wj * J[q]
+    for k in range(nb):
+        for p in range(NP):
+            g[p] += Gb[k, p]
+            for q in range(p, NP):
+                H[p, q] += Hb[k, p, q]
     for p in range(NP):
         for q in range(p):
             H[p, q] = H[q, p]
@@ -103,7 +96,7 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
     return H, g, Hb, Gb, r, inside
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # in gauss_newton
 def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -> tuple[float, float, int]:
     """Sum of Tukey weights, of weighted squared residuals, and the samples weighted (for the
     textbook covariance)."""
@@ -121,38 +114,44 @@ def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -
 
 
 @njit(cache=True)
+def _count(mask: NDArray[np.bool_]) -> int:
+    c = 0
+    for v in mask:
+        c += 1 if v else 0
+    return c
+
+
+@njit(cache=True)
 def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64, T: F64,
                  block: NDArray[np.int64], nblocks: int, par: F64, iterations: int, tukey_c: float, r_max: float,
-                 scale: float, tilt_prior: float) -> tuple[int, F64, F64, F64, F64, F64, F64, NDArray[np.bool_], float]:
+                 scale: float, tilt_prior: float
+                 ) -> tuple[int, F64, F64, F64, F64, F64, F64, NDArray[np.bool_], float, float, float, float, int]:
     """``patch.fit``'s Gauss-Newton loop from ``par`` (changed in place; its light, gain and offset, first set
     by least squares at the start): Tukey weights from the residuals'
     robust spread after the first pass, a prior of 1-sigma ``tilt_prior`` (change of scale across the
     part, ``r_max`` px) on the perspective terms, stopped when a step moves the part by less than
     5/1000 px; the last pass also builds the per-block systems of the jackknife.
 
-    Returns ``(status, par, H, g, Hb, Gb, r, inside, sd)``: status 1 converged, 0 out of iterations,
+    Returns ``(status, par, H, g, Hb, Gb, r, inside, sd, ncc, sw, swr, cnt)`` (the last four: ``ncc_of``
+    and ``weighted_rss`` at the end; 0 on failure): status 1 converged, 0 out of iterations,
     -1 failed (half the samples outside the crop, the fit ran more than ``r_max`` from its start, its
     scale left 0.7-1.4x ``scale``, or a tilt past 0.2 over the part)."""
     n = pts.shape[0]
     t0, t1 = par[0], par[1]
     converged = False
     sd = 0.0
-    # the light to start from: T ~ a I + b at the start (least squares)
-    H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, 1, par, sd, tukey_c, False)
-    if inside.sum() < 0.5 * n:
-        return -1, par, H, g, Hb, Gb, r, inside, sd
-    Ti = T[inside]
-    I0 = r[inside] + Ti
-    mi, mt = I0.mean(), Ti.mean()
-    sxx = ((I0 - mi) ** 2).sum()
-    a = ((I0 - mi) * (Ti - mt)).sum() / sxx if sxx > 0 else 0.0
-    par[8] = a if abs(a) > 1e-6 else 1e-6
-    par[9] = mt - a * mi
-    for it in range(iterations + 1):
-        last = converged or it == iterations
+    for it in range(-1, iterations + 1):  # one call site of the inlined normal equations
+        last = it >= 0 and (converged or it == iterations)
         H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, nblocks, par, sd, tukey_c, last)
-        if inside.sum() < 0.5 * n:
-            return -1, par, H, g, Hb, Gb, r, inside, sd
+        if _count(inside) < 0.5 * n:
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
+        if it < 0:
+            # the light to start from: T ~ a I + b at the start (least squares over the samples inside)
+            mi, mt, sxx, _, sxt = light_moments(r, T, inside)
+            a = sxt / sxx if sxx > 0 else 0.0
+            par[8] = a if abs(a) > 1e-6 else 1e-6
+            par[9] = mt - a * mi
+            continue
         if last:
             break
         # a prior on the perspective terms (a view tilted by a few degrees: v r_max ~ 0.01): a round or
@@ -165,29 +164,67 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         gp = g.copy()
         gp[6] += prior * par[6]
         gp[7] += prior * par[7]
-        reg = 1e-9 * np.trace(H)
+        tr = 0.0
+        for k in range(NP):
+            tr += H[k, k]
+        reg = 1e-9 * tr
         for k in range(NP):
             Hp[k, k] += reg
-        d = -np.linalg.solve(Hp, gp)
+        d, ok = sk.solve(Hp, gp)
+        if not ok:
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
+        d = -d
         par += d
         # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
-        sd = 1.4826 * np.median(np.abs(r[inside])) + 1e-6
+        ar = np.empty(_count(inside))
+        j = 0
+        for i in range(n):
+            if inside[i]:
+                ar[j] = abs(r[i])
+                j += 1
+        sd = 1.4826 * sk.median(ar) + 1e-6
         det = par[2] * par[5] - par[3] * par[4]
         if math.hypot(par[0] - t0, par[1] - t1) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
                 or max(abs(par[6]), abs(par[7])) * r_max > 0.2:
-            return -1, par, H, g, Hb, Gb, r, inside, sd
-        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and np.abs(d[2:6]).max() * r_max < 5e-3:
+            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
+        if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and max(abs(d[2]), abs(d[3]), abs(d[4]), abs(d[5])) * r_max < 5e-3:
             converged = True
-    return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd
+    # the correlation at the final pose and the textbook covariance's sums, here (not two more compiled
+    # entries, each a share of a fresh machine's first start)
+    sw, swr, cnt = weighted_rss(r, inside, sd, tukey_c)
+    return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd, ncc_of(r, T, inside), sw, swr, cnt
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # in gauss_newton
 def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     """Normalised correlation of the fitted grey values (``r + T``: ``a I + b``) with the patch's ``T``
     over the samples ``inside``."""
-    a = r[inside] + T[inside]
-    b = T[inside].copy()
-    a -= a.mean()
-    b -= b.mean()
-    den = math.sqrt((a * a).sum() * (b * b).sum())
-    return (a * b).sum() / den if den > 0 else 0.0
+    _, _, saa, sbb, sab = light_moments(r, T, inside)
+    den = math.sqrt(saa * sbb)
+    return sab / den if den > 0 else 0.0
+
+
+@njit(cache=True, inline="always")  # in gauss_newton and ncc_of
+def light_moments(r: F64, T: F64, inside: NDArray[np.bool_]) -> tuple[float, float, float, float, float]:
+    """Means and centred second moments of the image's grey values (``r + T``) and the patch's ``T``
+    over the samples ``inside``: ``(mean_i, mean_t, s_ii, s_tt, s_it)`` (loops, not numpy's masks and
+    reductions: each of those costs a fresh machine's first start a compile). All 0 when none is inside."""
+    n = r.shape[0]
+    ma, mb, cnt = 0.0, 0.0, 0
+    for i in range(n):
+        if inside[i]:
+            ma += r[i] + T[i]
+            mb += T[i]
+            cnt += 1
+    if cnt == 0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0
+    ma /= cnt
+    mb /= cnt
+    saa, sbb, sab = 0.0, 0.0, 0.0
+    for i in range(n):
+        if inside[i]:
+            da, db = r[i] + T[i] - ma, T[i] - mb
+            saa += da * da
+            sbb += db * db
+            sab += da * db
+    return ma, mb, saa, sbb, sab

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
@@ -26,6 +25,8 @@ from vision.shape import kernels
 from vision.shape.cov_kernels import edge_cov
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
+from vision.shape.small_kernels import median
+from vision.shape.uncertainty import sigma_of
 
 
 @dataclass
@@ -65,7 +66,7 @@ class Refined:
     """Model points that agree (an edge within 1 px, direction and polarity as asked)."""
     n_visible: int = 0
     sigma_deg: float = float("nan")
-    """1-sigma of the angle from the final fit's residuals (level 0 only)."""
+    """1-sigma of the angle of the final fit (level 0 only): ``cov``'s."""
     sigma_px: float = float("nan")
     """1-sigma of the reference point's position (the larger axis), from the same."""
     detail: PointDetail | None = None
@@ -140,13 +141,14 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
-        sig_deg, sig_px = _pose_sigma(img_f, m, q, n, th, sc, min_contrast, fit_scale, persp, visible(q))
         off, S, clean = _profile(img_f, q, n)
         used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
-        # neighbouring points see overlapping profiles (as in _pose_sigma): points per independent one
-        spacing = float(np.median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
+        # neighbouring points see overlapping profiles: points per independent one
+        spacing = float(median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
         cov = edge_cov(off, used, np.ascontiguousarray(m), q, n, th, sc,
                        max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
+        # the fit's 1-sigma: its honest covariance's (a search answers the patch-merged one where it can)
+        sig_deg, sig_px = sigma_of(cov) if np.all(np.isfinite(cov)) else (float("nan"), float("nan"))
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
@@ -159,78 +161,6 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, sig_deg, sig_px, detail,
                    grad_noise(crop, sigma), q + np.array([x0, y0]), n, cov)
-
-
-def _pose_sigma(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_contrast: float,
-                fit_scale: bool, persp: bool, vis: NDArray[np.bool_]) -> tuple[float, float]:
-    """1-sigma of the angle (deg) and of the position (px, larger axis) of the final fit: the
-    Gauss-Newton covariance ``s^2 (J^T J)^-1`` of the centroid edge offsets, ``s`` their RMS about the
-    fit, over the parameters the fit had (a similarity, or the plane homography of ``perspective``,
-    whose extra freedom the reported angle and point share). Neighbouring points see overlapping
-    pixels (the profile's width): their errors are not independent, so the covariance is scaled by
-    the profile's width over the points' spacing (the points per independent one)."""
-    var_th, var_x, var_y, npts = _pose_var(img_f, np.ascontiguousarray(m), np.ascontiguousarray(q),
-                                           np.ascontiguousarray(n), th, sc, float(min_contrast),
-                                           8 if persp else 4 if fit_scale else 3, vis, CENTROID_HALF_WIDTH)
-    if npts <= 10 or not var_th >= 0:
-        return float("nan"), float("nan")
-    return math.degrees(math.sqrt(var_th)), math.sqrt(max(var_x, var_y, 0.0))
-
-
-@njit(cache=True)
-def _pose_var(img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float, min_contrast: float, k: int,
-              vis: NDArray[np.bool_], half: int) -> tuple[float, float, float, int]:
-    """Variances of the angle and of x, y of a fit whose points ``q`` (normals ``n``, crop pixels)
-    came from model points ``m`` at angle ``th``, scale ``sc``, and the points used (compiled;
-    pick-speed). ``k``: 3 (x, y, angle), 4 (and scale) or 8 (the homography
-    ``q = (A m + c) / (1 + p.m)`` at ``p = 0``: c, A, p; the angle is that of ``A - c p^T``)."""
-    off, S, clean = kernels.profile_centroids(img_f, q, n, half)
-    c, s = math.cos(th), math.sin(th)
-    A = np.zeros((k, k))
-    ss = 0.0
-    cnt = 0
-    gap = 0.0
-    last_x, last_y = 0.0, 0.0
-    J = np.empty(k)
-    for i in range(q.shape[0]):
-        if not (clean[i] and abs(off[i]) < 1.0 and abs(S[i]) >= 0.5 * min_contrast and vis[i]):
-            continue
-        mx, my = m[i, 0], m[i, 1]
-        J[0] = n[i, 0]
-        J[1] = n[i, 1]
-        if k == 8:
-            nq = n[i, 0] * q[i, 0] + n[i, 1] * q[i, 1]
-            J[2], J[3], J[4], J[5] = n[i, 0] * mx, n[i, 0] * my, n[i, 1] * mx, n[i, 1] * my
-            J[6], J[7] = -nq * mx, -nq * my
-        else:
-            J[2] = sc * (n[i, 0] * (my * c - mx * s) + n[i, 1] * (-my * s - mx * c))
-            if k == 4:
-                J[3] = n[i, 0] * (mx * c + my * s) + n[i, 1] * (-mx * s + my * c)
-        for r in range(k):
-            for cc in range(k):
-                A[r, cc] += J[r] * J[cc]
-        ss += off[i] * off[i]
-        if cnt > 0:
-            gap += min(math.hypot(q[i, 0] - last_x, q[i, 1] - last_y), 2.0 * half + 1.0)
-        last_x, last_y = q[i, 0], q[i, 1]
-        cnt += 1
-    if cnt <= k + 2:
-        return -1.0, -1.0, -1.0, cnt
-    corr = max((2.0 * half + 1.0) / max(gap / (cnt - 1), 1e-9), 1.0)
-    for j in range(k):
-        A[j, j] += 1e-12
-    cov = np.linalg.inv(A) * (ss / (cnt - k)) * corr
-    if k < 8:
-        return cov[2, 2], cov[0, 0], cov[1, 1], cnt
-    # the angle of L = A - c p^T at p = 0 (l00 = sc cos, l10 = -sc sin): its gradient in (c, A, p)
-    l00, l10 = sc * c, -sc * s
-    r2 = l00 * l00 + l10 * l10
-    cx, cy = q[0, 0] - (sc * (m[0, 0] * c + m[0, 1] * s)), q[0, 1] - (sc * (-m[0, 0] * s + m[0, 1] * c))
-    g = np.zeros(8)
-    g[2] = l10 / r2
-    g[4] = -l00 / r2
-    g[6] = (-l10 * cx + l00 * cy) / r2
-    return float(g @ cov @ g), cov[0, 0], cov[1, 1], cnt
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,

@@ -107,7 +107,9 @@ def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[
                 if n == cap:
                     cap *= 2
                     grown = np.empty((4, cap), np.int64)
-                    grown[:, :n] = out[:, :n]
+                    for r in range(4):  # a loop: a slice copy compiles a shape-error message
+                        for j in range(n):
+                            grown[r, j] = out[r, j]
                     out = grown
                 out[0, n] = a
                 out[1, n] = y
@@ -247,7 +249,9 @@ def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_pos
 def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
     """For each of ``n`` points, the number of points in its run: the connected component of the pairs
     ``(a[k], b[k])`` whose both ends are ``ev`` (0 where ``ev`` is false)."""
-    parent = np.arange(n)
+    parent = np.empty(n, np.int64)
+    for i in range(n):
+        parent[i] = i
     for k in range(len(a)):
         i, j = a[k], b[k]
         if not (ev[i] and ev[j]):

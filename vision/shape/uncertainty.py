@@ -103,12 +103,29 @@ def jackknife(pts: F64, J: F64, r: F64, wgt: F64) -> F64:
 
 def classical(J: F64, r: F64, wgt: F64, corr: float) -> F64:
     """The textbook covariance (k, k) of a fit's parameters (``classical_of``), ``s^2`` the weighted
-    residual variance."""
+    residual variance at the fit's optimum: ``r`` less the Gauss-Newton step ``J d`` to it
+    (``rss_at_optimum``; ``r`` may be those of a simpler model's pose, as an edge fit's homography is
+    judged at the similarity's points)."""
     n_eff = float(np.sum(wgt > 0))
     if n_eff <= J.shape[1] + 2:
         return np.full((J.shape[1], J.shape[1]), np.inf)
-    s2 = float(np.sum(wgt * r * r)) / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
-    return classical_of(J.T @ (J * wgt[:, None]), s2, corr)
+    H = J.T @ (J * wgt[:, None])
+    g = (J * wgt[:, None]).T @ r
+    try:
+        rss = rss_at_optimum(float(np.sum(wgt * r * r)), g, np.asarray(np.linalg.solve(H, g), dtype=np.float64))
+    except np.linalg.LinAlgError:
+        return np.full((J.shape[1], J.shape[1]), np.inf)
+    s2 = rss / max(float(np.sum(wgt)) * (n_eff - J.shape[1]) / n_eff, 1e-12)
+    return classical_of(H, s2, corr)
+
+
+def rss_at_optimum(swr: float, g: F64, step: F64) -> float:
+    """The weighted residual square sum at the least-squares optimum of a linear system from its value
+    ``swr`` at the residuals ``r``, its gradient ``g = J^T W r`` and ``step = H^-1 g``:
+    ``swr - g^T H^-1 g`` (the misfit a pose short of the optimum adds is not the fit's noise: the
+    textbook covariance of a homography judged at a similarity's points counted a tilted view's
+    perspective as noise, three times its angle's actual error)."""
+    return max(swr - float(g @ step), 0.0)
 
 
 def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64 | None = None) -> F64:
@@ -196,7 +213,16 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
     residuals (px) at the final pose, ``ok`` those used, ``m`` the model points (relative to the
     reference point), ``q`` and ``n`` the points and unit normals at the pose; over the parameters the
     fit had: a similarity (x, y, theta, scale) or, with ``perspective``, the plane homography
-    ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``, as ``refine._pose_var``)."""
+    ``q = (A m + c) / (1 + p.m)`` at ``p = 0`` (the angle that of ``A - c p^T``)."""
+    J, wgt, M = edge_system(off, ok, m, q, n, th, sc, perspective)
+    return honest_cov(m, J, -off, wgt, corr, M)
+
+
+def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float,
+                perspective: bool) -> tuple[F64, F64, F64]:
+    """``edge_cov``'s least-squares system: the Jacobian (N, 4) or (N, 8) of the points' normal
+    offsets in the fit's parameters, the points' weights, and the map (3, k) of the parameters to
+    (x, y, theta)."""
     c, s = math.cos(th), math.sin(th)
     wgt = np.where(ok, (1 - np.clip(off, -1, 1) ** 2) ** 2, 0.0)
     if not perspective:
@@ -204,7 +230,7 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
         dqy = sc * (-c * m[:, 0] - s * m[:, 1])
         rx, ry = c * m[:, 0] + s * m[:, 1], -s * m[:, 0] + c * m[:, 1]
         J = np.stack([n[:, 0], n[:, 1], n[:, 0] * dqx + n[:, 1] * dqy, n[:, 0] * rx + n[:, 1] * ry], axis=1)
-        return honest_cov(m, J, -off, wgt, corr)
+        return J, wgt, np.eye(3, 4)
     nx, ny, mx, my = n[:, 0], n[:, 1], m[:, 0], m[:, 1]
     nq = nx * q[:, 0] + ny * q[:, 1]
     J = np.stack([nx, ny, nx * mx, nx * my, ny * mx, ny * my, -nq * mx, -nq * my], axis=1)
@@ -216,4 +242,4 @@ def edge_cov(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float,
     M = np.zeros((3, 8))
     M[0, 0] = M[1, 1] = 1.0
     M[2, 2], M[2, 4], M[2, 6] = l10 / r2, -l00 / r2, (-l10 * cx + l00 * cy) / r2
-    return honest_cov(m, J, -off, wgt, corr, M)
+    return J, wgt, M

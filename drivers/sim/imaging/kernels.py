@@ -45,7 +45,7 @@ def hit_pixels(field: NDArray[np.float64], r0: int, r1: int, c0: int, c1: int, H
     return n
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def local_field(field: NDArray[np.float64], r: int, c: int) -> tuple[float, float, float, float, float, float]:
     """The ray field at pixel (r, c) and its derivatives along the columns and the rows (central
     differences, one-sided at the image border): a sub-ray at offset (ou, ov) px is
