@@ -73,7 +73,8 @@ def child(mode: str) -> dict[str, Any]:
         found.append(len(res.matches))
         timed_out.append(res.timed_out)
     return {"mode": mode, "warm_up_s": warm_s, "teach_s": teach_s, "walls": walls, "clocks": clocks,
-            "found": found, "timed_out": timed_out, "process_s": time.perf_counter() - t_start}
+            "found": found, "timed_out": timed_out, "process_s": time.perf_counter() - t_start,
+            "process_cpu_s": time.process_time()}
 
 
 def measure(mode: str, cache: str | None) -> dict[str, Any]:
@@ -102,11 +103,12 @@ def _row(label: str, runs: list[dict[str, Any]]) -> str:
     warm = statistics.median(r["warm_up_s"] for r in runs)
     consistent = all(len(set(r["found"])) == 1 for r in runs)
     first_out = sum(r["timed_out"][0] for r in runs)
+    cpu = statistics.median(r["process_cpu_s"] for r in runs)
     return (f"| {label} | {len(runs)} | {warm:.2f} | {statistics.median(first):.1f} ({max(first):.1f}) "
             f"| {statistics.median(med_next):.1f} | **{statistics.median(ratios):.2f}x** ({max(ratios):.2f}x) "
             f"| {statistics.median(first_clock):.1f} "
             f"| {statistics.median(clock_ratios):.2f}x ({max(clock_ratios):.2f}x) "
-            f"| {first_out} | {'yes' if consistent else 'no'} |")
+            f"| {first_out} | {'yes' if consistent else 'no'} | {cpu:.1f} |")
 
 
 def report(service: list[dict[str, Any]], none: list[dict[str, Any]], cold: list[dict[str, Any]],
@@ -125,8 +127,9 @@ def report(service: list[dict[str, Any]], none: list[dict[str, Any]], cold: list
         "| process start | processes | warm-up before (s, median) | first search: wall ms, median (max) "
         "| next 100: median wall ms | first / median of next 100 (wall), median (max) "
         "| first search's own clock ms (what timeout_s counts) | first / median of next 100 (own clock) "
-        "| first search timed out | same matches every run |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| first search timed out | same matches every run | process CPU s (imports, teach, 101 searches; "
+        "a cold cache's compiling), median |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         _row("service-style warm-up (`cellctl.warmup.warm_all`), warm disk cache", service),
         _row("no warm-up, warm disk cache (find loads the loops first)", none),
     ]
@@ -149,7 +152,7 @@ def report(service: list[dict[str, Any]], none: list[dict[str, Any]], cold: list
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--processes", type=int, default=5, help="fresh processes per warm-cache row")
-    ap.add_argument("--no-cold", action="store_true", help="skip the cold-cache row (it compiles: ~25 s of CPU)")
+    ap.add_argument("--no-cold", action="store_true", help="skip the cold-cache row (it compiles: ~30 s of CPU)")
     ap.add_argument("--out", default=None, help="also write the markdown here")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
