@@ -64,7 +64,13 @@ is the interface.
 """
 
 from calibration.geometry import exp_so3 as rotations
-from calibration.intrinsics.crossval import SELECT_MARGIN, cross_validate, select_by_cross_validation
+from calibration.intrinsics.crossval import (
+    CV_REPEATS,
+    SELECT_MARGIN,
+    cross_validate,
+    fold_partitions,
+    select_by_cross_validation,
+)
 from calibration.intrinsics.model import (
     camera_from_vector,
     intrinsic_steps,
@@ -101,7 +107,8 @@ __all__ = [
     "JACKKNIFE_GROUPS", "JACKKNIFE_MIN_VIEWS", "MIN_POINTS_PER_VIEW", "MIN_VIEWS", "POINT_OUTLIER_SIGMAS",
     "VIEW_OUTLIER_FACTOR", "IntrinsicsError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "cell_point_means", "coverage_counts", "covered_point_means",
-    "covered_points", "cross_validate", "select_by_cross_validation", "SELECT_MARGIN",
+    "covered_points", "cross_validate", "select_by_cross_validation", "SELECT_MARGIN", "CV_REPEATS",
+    "fold_partitions",
     "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations",
     "uncertainty_summary",

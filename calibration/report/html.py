@@ -79,8 +79,12 @@ def camera_html(rep: rc.CameraReport, cross_validation: dict[str, Any] | None = 
     """The camera report's body: summary, parameters, cross-validation, figures, thumbnails."""
     cv = ""
     if cross_validation and "projection_difference_rms_px" in cross_validation:
+        reps = int(cross_validation.get("repeats") or 1)
+        spread = cross_validation.get("spread_px")
+        over = (f", median over {reps} partitions of the views (10-90 %: {fmt(spread[0])}-{fmt(spread[1])} px)"
+                if reps > 1 and spread else "")
         cv = (f"<h2>Cross-validation ({cross_validation.get('k')} folds)</h2><p>projection difference between fold "
-              f"solutions: RMS {fmt(cross_validation['projection_difference_rms_px'])} px, largest "
+              f"solutions{over}: RMS {fmt(cross_validation['projection_difference_rms_px'])} px, largest "
               f"{fmt(cross_validation.get('projection_difference_max_px') or math.nan)} px (expected from the "
               f"folds' uncertainty: {fmt(cross_validation.get('expected_from_uncertainty_px') or math.nan)} px)</p>")
         sel = cross_validation.get("model_selection")

@@ -44,6 +44,9 @@ def register(sub: Any) -> None:
     p.add_argument("--cross-validate", type=int, metavar="K", default=2,
                    help="k-fold cross-validation: projection difference between fold solutions over the covered "
                         "region (default 2: split-half; 0: off); the verdict uses it")
+    p.add_argument("--cross-validate-repeats", type=int, metavar="R", default=None,
+                   help="partitions of the views the cross-validation draws (default 8: view i in fold i mod K, "
+                        "then seeded random ones); it reports, chooses and judges by their median")
     p.add_argument("--drop-outliers", action="store_true",
                    help="drop outlier views and points (the rule is in calibration/intrinsics/) and re-solve")
     p.add_argument("--reject-views", choices=["influence", "off"], default="influence",
@@ -117,6 +120,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     if args.cross_validate and args.cross_validate < 2:
         raise CommandError("--cross-validate K needs K >= 2")
+    if args.cross_validate_repeats is not None and args.cross_validate_repeats < 1:
+        raise CommandError("--cross-validate-repeats R needs R >= 1")
     if args.model == "auto" and not args.cross_validate:
         raise CommandError("--model auto chooses by cross-validation: give --cross-validate K >= 2")
     if args.export_halcon and args.model != "division":
@@ -190,12 +195,13 @@ def _calibrate(args: argparse.Namespace, dets: list[Any], target: Any
 
     cands = _candidates(args)
     k = args.cross_validate
+    repeats = args.cross_validate_repeats or intrinsics.CV_REPEATS
     reject = args.reject_views == "influence"
     if k and len(cands) > 1:
         try:
             res, selection = intrinsics.select_by_cross_validation(dets, target, cands, k,
                                                                    drop_outliers=args.drop_outliers,
-                                                                   reject_views=reject)
+                                                                   reject_views=reject, repeats=repeats)
             log.info("model chosen by cross-validation: %s", selection["chosen"])
             return res, selection, selection["cross_validation"]
         except intrinsics.CrossValidationError:
@@ -210,7 +216,7 @@ def _calibrate(args: argparse.Namespace, dets: list[Any], target: Any
         return res, None, None
     try:
         cv = intrinsics.cross_validate(dets, target, model, k, drop_outliers=args.drop_outliers, full=res,
-                                       board_warp=warp)
+                                       board_warp=warp, repeats=repeats)
     except intrinsics.CrossValidationError as exc:
         # The calibration stands; only the cross-validation cannot run as asked.
         cv = {"k": k, "error": str(exc)}

@@ -48,9 +48,11 @@ def test_a_bowed_board_gets_its_warp_by_cross_validation_and_the_report_shows_it
     assert by[True]["rms_px"] < by[False]["rms_px"]
     assert abs(cam["board_warp"]["height_mm"][0] - 2.0) < 0.3 and abs(cam["board_warp"]["height_mm"][1] + 1.0) < 0.3
     assert cam["cross_validation"]["k"] == 2 and cam["cross_validation"]["projection_difference_rms_px"] > 0
+    assert cam["cross_validation"]["repeats"] == 8 and sel["repeats"] == 8     # the median over 8 partitions
     assert all("max_px" in v for v in cam["views"])
     html = rep.read_text()
     assert "board warp" in html and "Model chosen by cross-validation" in html
+    assert "median over 8 partitions of the views" in html
 
 
 def test_a_flat_board_stays_flat_and_off_means_off(tmp_path: Path) -> None:
