@@ -4,7 +4,9 @@ Peers:
 
 - **cellctl**: ``calibration.detect.detect`` + ``calibration.intrinsics.calibrate`` (opencv5, fisheye4, opencv8, each
   flat and with the board warp) and the product's answer: the model and warp chosen by split-half
-  cross-validation (``select_by_cross_validation`` over division / opencv5 / fisheye4 / opencv8, flat / warp);
+  cross-validation (``select_by_cross_validation`` over division / opencv5 / fisheye4 / opencv8, flat / warp;
+  the median over the product's 8 partitions of the views, ``CV_REPEATS``: the even/odd split, then
+  partitions seeded apart from this bench's random halvings);
 - **OpenCV**: ``findChessboardCornersSB`` (``CALIB_CB_ACCURACY``, exhaustive retry) + ``calibrateCamera``;
 - **mrcal** 2.2 (Debian): ``mrcal-calibrate-cameras`` with LENSMODEL_OPENCV5, LENSMODEL_OPENCV8 (board warp
   solved, its default; opencv8 also without the warp) and LENSMODEL_SPLINED_STEREOGRAPHIC (order 3; Nx = 30
