@@ -150,6 +150,7 @@ def errors(case: Case) -> None:
     img_e: list[tuple[float, float]] = []
     part_e: list[tuple[float, float]] = []
     eb: list[float] = []
+    ratio: list[float] = []
     for t in case.tests:
         res = shape.find(model, case.test_image(t))
         for i in t.instances:
@@ -166,6 +167,7 @@ def errors(case: Case) -> None:
             img_e.append((ex, ey))
             part_e.append((px, py))
             eb.append(math.hypot(m.u_px - bx, m.v_px - by))
+            ratio.append(math.hypot(ex, ey) / (math.sqrt(2) * m.sigma_px))
             print(f"| {t.path.name} | ({i.x:.2f}, {i.y:.2f}) | {m.angle_deg:.1f} | {m.score:.2f} | "
                   f"({ex:+.2f}, {ey:+.2f}) | "
                   f"({px:+.2f}, {py:+.2f}) | {math.hypot(ex, ey):.2f} | {eb[-1]:.2f} | "
@@ -178,6 +180,9 @@ def errors(case: Case) -> None:
                   f"(RMS |error| {math.sqrt(float((e ** 2).sum(axis=1).mean())):.2f} px, {len(e)} heads)")
     if eb:
         print(f"against B: RMS |error| {math.sqrt(float((np.array(eb) ** 2).mean())):.2f} px")
+        r = np.array(ratio)
+        print(f"|error vs A| / (sqrt(2) reported sigma): RMS {math.sqrt(float((r ** 2).mean())):.2f}, "
+              f"{r.min():.2f}-{r.max():.2f} per head")
 
 
 def main() -> None:

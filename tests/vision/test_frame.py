@@ -45,7 +45,7 @@ def test_a_recentred_model_reports_its_origin_and_searches_as_taught() -> None:
         want = (ma.u_px + k * (math.cos(t) * 7.0 + math.sin(t) * -4.0),
                 ma.v_px + k * (-math.sin(t) * 7.0 + math.cos(t) * -4.0))
         assert math.hypot(mb.u_px - want[0], mb.v_px - want[1]) < 1e-9
-        assert mb.angle_deg == ma.angle_deg and mb.score == ma.score
+        assert (mb.angle_deg, mb.score) == pytest.approx((ma.angle_deg, ma.score), abs=1e-9)
         # the contour drawn at the reported point is the part's, wherever the origin lies
         assert np.allclose(moved.contour(mb.u_px, mb.v_px, mb.angle_deg, mb.scale)[0],
                            model.contour(ma.u_px, ma.v_px, ma.angle_deg, ma.scale)[0])
@@ -90,7 +90,7 @@ def test_teach_many_with_centres_reports_the_measured_centre() -> None:
     t = math.radians(truth.angle_deg)
     want = (truth.u_px + math.cos(t) * 5.0 + math.sin(t) * 3.0, truth.v_px - math.sin(t) * 5.0 + math.cos(t) * 3.0)
     assert math.hypot(mm.u_px - want[0], mm.v_px - want[1]) < 0.15
-    assert (mm.score, mm.angle_deg) == (mp.score, mp.angle_deg)
+    assert (mm.score, mm.angle_deg) == pytest.approx((mp.score, mp.angle_deg), abs=1e-9)
     with pytest.raises(TeachError, match="one centre per teach image"):
         teach_many(imgs, rois, centres=centres[:1])
 

@@ -65,7 +65,8 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
     """Teach from 1-5 images of one part (``rois[i]`` frames it in ``images[i]``; two ROIs may frame two
     parts alike in the same image); see the module. ``centres`` (optional, image pixels, one per view):
     the part's centre measured in each view; the model reports their mean in the part's frame
-    (``ShapeModel.origin``, ``vision.shape.frame``) instead of its ROI centre."""
+    (``ShapeModel.origin``, ``vision.shape.frame``) instead of its ROI centre, and their scatter there
+    (per axis, over the views) joins ``view_tau``'s position term."""
     if centres is not None and len(centres) != len(images):
         raise TeachError(f"give one centre per teach image ({len(images)} images, {len(centres)} centres)")
     if not 1 <= len(images) <= MAX_TEACH_IMAGES or len(images) != len(rois):
@@ -91,8 +92,16 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
     out = teach(grays[0], rois[0], p, keep=keep)
     patch = mean_patch(make_patch(grays[0], rois[0], out.levels[0].points), grays, poses)
     model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
-    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, spread(model, grays, poses))
-    return model if centres is None else recentred(model, *part_centre(poses, centres))
+    tau = spread(model, grays, poses)
+    if centres is None:
+        return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, tau)
+    # the views' own centres in the part's frame scatter by how well the model's frame holds the measured
+    # centre from view to view (a 3-D part's edges move with the light): that scatter is in every match's
+    # reported centre too
+    pcs = np.array([part_centre([pose], [c]) for pose, c in zip(poses, centres, strict=True)])
+    scatter = math.sqrt(float(((pcs - pcs.mean(axis=0)) ** 2).sum()) / (2 * (len(pcs) - 1)))
+    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, (math.hypot(tau[0], scatter), tau[1]))
+    return recentred(model, *part_centre(poses, centres))
 
 
 def spread(model: ShapeModel, grays: list[U8], poses: list[Pose4]) -> tuple[float, float]:
