@@ -59,7 +59,7 @@ def saturation(bgr: NDArray[np.uint8], sigma_px: float = 1.0) -> F64:
 
 
 def _rim_points(c: F64, cx: float, cy: float, r_lo: float, r_hi: float) -> tuple[F64, F64]:
-    """Along each ray from (cx, cy): the radius (px) where the chroma rises fastest between r_lo and
+    """Along each ray from (cx, cy): the radius (px) where the saturation rises fastest between r_lo and
     r_hi (sub-pixel parabola), the ray's angle (rad), and that rise's size."""
     th = np.linspace(0.0, 2 * math.pi, RAYS, endpoint=False)
     r = np.arange(r_lo, r_hi + 1e-9, STEP_PX)
@@ -141,7 +141,7 @@ def rim_circle(bgr: NDArray[np.uint8], x: float, y: float, r: float) -> tuple[fl
 
 
 def symmetry_centre(bgr: NDArray[np.uint8], x: float, y: float, r: float) -> tuple[float, float]:
-    """Method B of the module: the centre (x, y) about which the chroma of the band r-8..r+8 px varies
+    """Method B of the module: the centre (x, y) about which the saturation of the band r-8..r+8 px varies
     least with the angle."""
     c = saturation(bgr)
     th = np.linspace(0.0, 2 * math.pi, 360, endpoint=False)
