@@ -186,7 +186,10 @@ def render_head(rng: np.random.Generator, size: int = 200) -> tuple[NDArray[np.u
     img = img * g[..., None]
     img = cv2.GaussianBlur(img, (0, 0), 1.2) + rng.normal(0, 3.0, img.shape)
     ok, enc = cv2.imencode(".jpg", np.clip(img, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 85])
-    return cv2.imdecode(enc, cv2.IMREAD_COLOR), cx, cy, r
+    out = cv2.imdecode(enc, cv2.IMREAD_COLOR)
+    if not ok or out is None:
+        raise RuntimeError("JPEG round trip failed")
+    return np.asarray(out, dtype=np.uint8), cx, cy, r
 
 
 def renders(n: int = 40, seed: int = 8) -> None:

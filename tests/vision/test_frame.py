@@ -18,7 +18,7 @@ from vision.shape.multi import teach_many
 SIZE = (640, 480)
 
 
-def _scene(angle_deg: float, seed: int) -> tuple[np.ndarray, pick_scenes.Instance]:
+def _scene(angle_deg: float, seed: int) -> tuple[np.ndarray, pick_scenes.Truth]:
     part = pick_scenes.part_bracket()
     img, truth = pick_scenes.render([pick_scenes.Instance(part, 300.4, 240.8, angle_deg)],
                                     pick_scenes.SceneStyle(size=SIZE, noise_sigma=2.0, clutter=10),
