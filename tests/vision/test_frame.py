@@ -111,3 +111,26 @@ def test_the_rim_reference_is_good_to_half_a_pixel_on_rendered_heads() -> None:
         assert ea < 0.7 and eb < 0.7, (ea, eb)
         assert abs(ar - r) < 0.7
         assert sig > 0
+
+
+def test_a_part_lying_face_down_reports_the_mirrored_origin() -> None:
+    """A mirrored match (``SearchParams(mirrored=True)``) reports the origin mirrored with the part: the
+    point 7 px to the part's right when face up is 7 px to its left when face down."""
+    from vision.types import SearchParams
+
+    model = recentred(_model(), 7.0, -4.0)
+    flipped = pick_scenes.mirrored_part(pick_scenes.part_bracket())
+    img, truth = pick_scenes.render([pick_scenes.Instance(flipped, 300.4, 240.8, 20.0)],
+                                    pick_scenes.SceneStyle(size=SIZE, noise_sigma=2.0, clutter=0),
+                                    np.random.default_rng(9))
+    got = shape.find(model, img, SearchParams(mirrored=True)).matches
+    assert len(got) == 1 and got[0].mirrored
+    t = math.radians(got[0].angle_deg)
+    want = (truth[0].u_px + math.cos(t) * -7.0 + math.sin(t) * -4.0,
+            truth[0].v_px - math.sin(t) * -7.0 + math.cos(t) * -4.0)
+    assert math.hypot(got[0].u_px - want[0], got[0].v_px - want[1]) < 0.15
+    # and the contour drawn at it is the one the model as taught draws at its own match
+    plain = shape.find(_model(), img, SearchParams(mirrored=True)).matches[0]
+    pts, _ = model.contour(got[0].u_px, got[0].v_px, got[0].angle_deg, got[0].scale, mirrored=True)
+    ref, _ = _model().contour(plain.u_px, plain.v_px, plain.angle_deg, plain.scale, mirrored=True)
+    assert np.allclose(pts, ref, atol=1e-6)
