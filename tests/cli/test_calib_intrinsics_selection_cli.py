@@ -73,3 +73,16 @@ def test_model_auto_needs_cross_validation(tmp_path: Path) -> None:
     p = run_cli("calib", "intrinsics", "--target", str(target), "--detections", str(det), "--model", "auto",
                 "--cross-validate", "0")
     assert p.returncode != 0 and "--model auto chooses by cross-validation" in p.stderr
+
+
+def test_cross_validation_repeats_are_the_users_choice(tmp_path: Path) -> None:
+    target, det = _write(tmp_path, (0.0, 0.0), seed=24)
+    p = run_cli("calib", "intrinsics", "--target", str(target), "--detections", str(det), "--board-warp", "off",
+                "--cross-validate-repeats", "3")
+    cam = json.loads(p.stdout)
+    cv = cam["cross_validation"]
+    assert cv["repeats"] == 3 and len(cv["per_partition_rms_px"]) == 3 and not cv["failed"]
+    assert abs(cv["projection_difference_rms_px"] - sorted(cv["per_partition_rms_px"])[1]) < 1e-6  # median of 3
+    p = run_cli("calib", "intrinsics", "--target", str(target), "--detections", str(det), "--cross-validate-repeats",
+                "0")
+    assert p.returncode != 0 and "--cross-validate-repeats R needs R >= 1" in p.stderr
