@@ -88,9 +88,9 @@ def _row(name: str, model: str, dets: list[Any], board: Any, size: tuple[int, in
         cv = None
     else:
         full = calibrate(dets, board, model, image_size=size, **kw)
-        cv = cross_validate(dets, board, model, 2, image_size=size, full=full, **kw)
-    # the split-half over the set's covered cells; cross_validate's folds are the same halves (every
-    # view used) over the full solve's covered cells
+        cv = cross_validate(dets, board, model, 2, image_size=size, full=full, repeats=1, **kw)
+    # the split-half over the set's covered cells; cross_validate's one partition (repeats=1) is the same
+    # even/odd halves as mrcal's here (every view used), over the full solve's covered cells
     split = (projection_difference(halves[0], halves[1], pts)["rms_px"] if cv is None
              else cv["projection_difference_rms_px"])
     row = {"set": name, "model": model + (" drop_outliers" if kw.get("drop_outliers") else ""),

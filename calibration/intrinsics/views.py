@@ -223,6 +223,22 @@ CONSISTENT_FACTOR = 3.0
 points' stated precision (beyond it the residuals are mostly what the model does not fit)."""
 
 
+def outlier_points(res_w: F64, kept: NDArray[np.bool_], views: list[ViewData]) -> tuple[NDArray[np.bool_], bool]:
+    """The points (M,) whose weighted residual ``res_w`` (M, 2) exceeds ``POINT_OUTLIER_SIGMAS`` robust
+    sigma of the ``kept`` points' ones, and whether they are detection failures to weight out: only
+    where the detectors' stated precision explains the residual scale (within ``CONSISTENT_FACTOR`` of
+    the median stated uncertainty; none stated: never). Otherwise they are what the model does not
+    fit, to be flagged only (``reject_outlier_points``; the splined solver)."""
+    comp = np.abs(res_w[kept].reshape(-1))
+    comp = comp[np.isfinite(comp)]
+    if comp.size == 0:
+        return np.zeros(len(res_w), dtype=bool), False
+    sigma_r = 1.4826 * float(np.median(comp))
+    out = ~(np.linalg.norm(res_w, axis=1) <= POINT_OUTLIER_SIGMAS * max(sigma_r, 1e-9))
+    stated = weighting_sigmas(views)
+    return out, stated is not None and sigma_r <= CONSISTENT_FACTOR * float(np.median(stated))
+
+
 def reject_outlier_points(views: list[ViewData], p: BundleProblem, c: F64, R: F64, t: F64) -> bool:
     """Weight out the points whose residual (weighted by their detection precision) exceeds
     ``POINT_OUTLIER_SIGMAS`` robust sigma of the kept points; True when the set changed.
@@ -237,21 +253,10 @@ def reject_outlier_points(views: list[ViewData], p: BundleProblem, c: F64, R: F6
     misfit at the image's edges: rejecting them cost cross-validation 8.0 -> 8.8 px (9x6) and,
     with neighbour-relative residuals and repeated rounds, 3.9 -> 508 px (GoPro). There the
     points are only flagged."""
-    stated = weighting_sigmas(views)
-    if stated is None:
-        return False
     res = p.project(c, R, t) - p.obs
     kept = ~np.concatenate([np.zeros(len(v.X), dtype=bool) if v.rejected is None else v.rejected for v in views])
-    res_w = res * base_weights(views)[:, None]
-    comp = np.abs(res_w[kept].reshape(-1))
-    comp = comp[np.isfinite(comp)]
-    if comp.size == 0:
-        return False
-    sigma_r = 1.4826 * float(np.median(comp))
-    if sigma_r > CONSISTENT_FACTOR * float(np.median(stated)):
-        return False
-    out = ~(np.linalg.norm(res_w, axis=1) <= POINT_OUTLIER_SIGMAS * max(sigma_r, 1e-9))
-    if np.array_equal(out, ~kept):
+    out, detection_failures = outlier_points(res * base_weights(views)[:, None], kept, views)
+    if not detection_failures or np.array_equal(out, ~kept):
         return False
     for k, v in enumerate(views):
         o = out[p.starts[k]:p.starts[k + 1]]
