@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -118,6 +119,27 @@ class XdistGroupIds:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.pluginmanager.register(XdistGroupIds(), "cellctl-xdist-group-ids")
+
+
+_shared_fork_server: list[Any] = []
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """With xdist workers (started after this: their hook is ``trylast``), the run's one fork server
+    (``tests/support/forked.py``), which they share: one server's imports instead of one per worker."""
+    if session.config.pluginmanager.has_plugin("dsession"):
+        from tests.support.forked import share_server
+
+        process = share_server()
+        if process is not None:
+            _shared_fork_server.append(process)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    from tests.support.forked import end_shared
+
+    while _shared_fork_server:
+        end_shared(_shared_fork_server.pop())
 
 
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: absent with -p no:xdist
