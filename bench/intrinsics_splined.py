@@ -9,6 +9,13 @@ model with per-view outlier rejection (``drop_outliers``: views whose RMS is > 3
 
 ``--sets gopro-views``: leave-one-view-out influence on GoPro and the halves without the influential views.
 
+``--sets renders-warp [--seeds 300-319]``: what decides each held-out render set against mrcal (issue 39,
+session 14). The renders of ``bench/intrinsics_real.py`` (``run_render``: the real-defects scene, 12 views of a
+flat 9x6 board, opencv5 truth), our corners only; per seed: our corners' RMS error against the true
+corners, and the projection difference to the true lens of cellctl's opencv5 solve flat, with the board
+warp, and as ``--board-warp auto`` chooses (cross-validation), beside mrcal's opencv5 solve flat and
+with its warp on the same corners.
+
 ``--sets fisheye-fair``: the fisheye RMS counted like with like. mrcal's published splined solve
 (``tests/data/mrcal_samyang12mm_fisheye_corners/splined-0.cameramodel``, with its optimisation inputs)
 has its residuals evaluated by mrcal itself (``bench/mrcal_peer.py`` ``residuals``) and counted four
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -33,10 +41,30 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.intrinsics_real import HALVES, fisheye_set, image_set, peer  # noqa: E402
-from calibration.intrinsics import calibrate, covered_points, cross_validate, projection_difference  # noqa: E402
+from bench.intrinsics_heldout import scene_camera_and_imaging  # noqa: E402
+from bench.intrinsics_real import (  # noqa: E402
+    HALVES,
+    fisheye_set,
+    image_set,
+    mrcal_calibrate,
+    mrcal_diff,
+    peer,
+    require_mrcal,
+    write_cameramodel,
+)
+from calibration.detect import detect  # noqa: E402
+from calibration.intrinsics import (  # noqa: E402
+    calibrate,
+    covered_points,
+    cross_validate,
+    projection_difference,
+    select_by_cross_validation,
+)
 from calibration.intrinsics.splined_solver import calibrate_splined  # noqa: E402
 from calibration.splined import SplineLayout  # noqa: E402
+from calibration.synthetic import plan_views  # noqa: E402
+from calibration.targets import Chessboard  # noqa: E402
+from drivers.sim.imaging import PlanarObject, render  # noqa: E402
 
 
 def weighted_rms_per_coordinate(full: Any, levels: list[np.ndarray]) -> float:
@@ -125,6 +153,7 @@ def fisheye_fair() -> None:
     configs: list[tuple[str, dict[str, Any]]] = [
         ("splined, grid from the data, flat (the product)", {}),
         ("splined, grid from the data, warp", {"board_warp": True}),
+        ("splined, grid from the data, warp, level weights", {"board_warp": True, "point_weights": lw}),
         ("splined 30x20 fov 170, warp, level weights (mrcal's configuration)",
          {"board_warp": True, "layout": SplineLayout(30, 20, 170.0), "point_weights": lw}),
     ]
@@ -139,12 +168,49 @@ def fisheye_fair() -> None:
                "cpu_s": round(time.process_time() - t0, 1)}, flush=True)
 
 
+def renders_warp(seeds: list[int]) -> None:
+    """Per render seed (as ``bench/intrinsics_real.run_render``): our corners' error against the truth
+    and each solve's projection difference to the true lens over the covered cells (module docstring)."""
+    require_mrcal()
+    board, size = Chessboard(9, 6, 20.0), (960, 720)
+    tp = board.points()
+    for seed in seeds:
+        truth, imaging = scene_camera_and_imaging(size)
+        rng = np.random.default_rng(seed)
+        poses = plan_views(truth, board, 12, rng, fill=0.6, margin_px=6, whole_outline=True)
+        imgs = [render(truth, [PlanarObject(T, board.reflectance)], imaging, rng, supersample=32) for T in poses]
+        found = [(T, d) for T, d in zip(poses, (detect(g, board, f"v{k:02d}") for k, g in enumerate(imgs)),
+                                        strict=True) if d.found]
+        dets = [d for _, d in found]
+        err = np.vstack([d.uv - truth.project(tp.xyz_m[d.ids] @ T[:3, :3].T + T[:3, 3]) for T, d in found])
+        pts = covered_points(calibrate(dets, board, "opencv5"))
+        row: dict[str, Any] = {"seed": seed, "views": len(dets), "corner_rms_px": float(np.sqrt(np.mean(err**2)))}
+        for name, warp in (("cellctl flat", False), ("cellctl warp", True)):
+            cam = calibrate(dets, board, "opencv5", board_warp=warp).camera
+            row[name] = projection_difference(cam, truth, pts)["rms_px"]
+        chosen, info = select_by_cross_validation(dets, board, [("opencv5", False), ("opencv5", True)])
+        row["cellctl auto"] = projection_difference(chosen.camera, truth, pts)["rms_px"]
+        row["auto chose warp"] = info["chosen"]["board_warp"]
+        with tempfile.TemporaryDirectory() as tmp:
+            work = Path(tmp)
+            tf = write_cameramodel(truth, work / "truth.cameramodel")
+            for name, warp in (("mrcal flat", False), ("mrcal warp", True)):
+                mf, _ = mrcal_calibrate(dets, board, size, "LENSMODEL_OPENCV5", float(truth.K[0, 0]), work, warp)
+                row[name] = mrcal_diff(mf, tf, pts)
+        print(row, flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="fisheye,gopro")
+    ap.add_argument("--seeds", default="300-319", help="render seeds for --sets renders-warp: A-B or A,B,...")
     args = ap.parse_args()
     rows = []
     for name in args.sets.split(","):
+        if name == "renders-warp":
+            a, _, b = args.seeds.partition("-")
+            renders_warp(list(range(int(a), int(b) + 1)) if b else [int(v) for v in args.seeds.split(",")])
+            continue
         if name == "gopro-views":
             gopro_views()
             continue
@@ -160,7 +226,7 @@ def main() -> None:
             dets = s.corners["ours"]
             models = [("division", {}), ("splined*", {}), ("division", {"drop_outliers": True})]
         else:
-            raise SystemExit(f"unknown set {name!r}; use fisheye, gopro, gopro-views")
+            raise SystemExit(f"unknown set {name!r}; use fisheye, fisheye-fair, gopro, gopro-views, renders-warp")
         pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
         for model, kw in models:
             try:

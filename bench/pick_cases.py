@@ -53,8 +53,9 @@ REFERENCE: dict[str, CaseInfo] = {
     "sick_edgematcher_multi": CaseInfo((311.7, 235.6), 180.0, (0.5, 1.0)),
     # "x, y = location of the teach-ROI centre (312.5, 241.5)", "about +-1 px, +-0.5 deg"
     "sick_edgematcher_single": CaseInfo((312.5, 241.5), 360.0, (1.0, 0.5)),
-    # "Hough centre x 122, y 246", "screw-head centre only, no angle", "about +-4 px"
-    "robertson_screw_heads": CaseInfo((122.0, 246.0), 90.0, (4.0, float("nan"))),
+    # the rim circle (bench/screw_rim.py), "screw-head centre only, no angle"; +-1.5 px: its RMS distance from
+    # the independent polar-symmetry centre over the 13 heads, 2.1 px, over sqrt(2) (reference_px: a start)
+    "robertson_screw_heads": CaseInfo((122.0, 246.0), 90.0, (1.5, float("nan"))),
 }
 MIRRORED_ACCURACY = (3.0, 2.0)
 """The lower key (reverse side up): "lower key about +-3 px, +-2 deg"."""
@@ -92,6 +93,10 @@ class Case:
     more_rois: list[tuple[float, float, float, float]] = field(default_factory=list)
     """Further ROIs of the same part in the teach image (``more_teach_rois``: a model taught from
     several views of it, ``vision.shape.multi``)."""
+    centres: list[tuple[float, float]] = field(default_factory=list)
+    """The part's centre measured in each teach view (``teach_centres``: ``roi``'s, then ``more_rois``');
+    when given, every model of the case has its reference point there (``vision.shape.frame``) and the
+    estimates locate that point."""
 
     def teach_image(self) -> U8:
         return resize(read_grey(self.teach_path), self.scale)
@@ -105,9 +110,17 @@ def teach_model(case: Case) -> ShapeModel:
     part in the teach image: what they share, ``vision.shape.multi.teach_many``)."""
     img = case.teach_image()
     if not case.more_rois:
-        return shape.teach(img, case.roi)
+        return teach_one(case)
     rois = [case.roi, *case.more_rois]
-    return shape.teach_many([img] * len(rois), rois)
+    return shape.teach_many([img] * len(rois), rois, centres=case.centres or None)
+
+
+def teach_one(case: Case) -> ShapeModel:
+    """The case's model from its one ROI (its reference point on the first measured centre, if any)."""
+    img = case.teach_image()
+    if not case.centres:
+        return shape.teach(img, case.roi)
+    return shape.teach_many([img], [case.roi], centres=case.centres[:1])
 
 
 def resize(img: U8, k: float) -> U8:
@@ -132,7 +145,7 @@ def scaled(case: Case, k: float) -> Case:
                                                   for i in t.instances]) for t in case.tests]
     more = [(_px(a, k), _px(b, k), c * k, d * k) for a, b, c, d in case.more_rois]
     return Case(case.id, case.source, case.teach_path, (_px(u, k), _px(v, k), w * k, h * k),
-                info, tests, case.scale * k, more)
+                info, tests, case.scale * k, more, [(_px(x, k), _px(y, k)) for x, y in case.centres])
 
 
 def read_grey(path: Path) -> U8:
@@ -150,8 +163,10 @@ def load_cases(root: Path = DATA) -> list[Case]:
         for c in doc["cases"]:
             roi_l = [float(x) for x in c["teach_roi"]]
             more = [(float(a), float(b), float(w), float(h)) for a, b, w, h in c.get("more_teach_rois") or []]
+            centres = [(float(x), float(y)) for x, y in c.get("teach_centres") or []]
             case = Case(c["id"], cy.parent.name, cy.parent / c["teach_image"],
-                        (roi_l[0], roi_l[1], roi_l[2], roi_l[3]), REFERENCE[c["id"]], more_rois=more)
+                        (roi_l[0], roi_l[1], roi_l[2], roi_l[3]), REFERENCE[c["id"]], more_rois=more,
+                        centres=centres)
             for t in c["tests"]:
                 est = (t.get("measured_estimate") or {}).get("instances") or []
                 insts = []
@@ -235,7 +250,10 @@ class Found:
 
 
 def to_reference(case: Case, f: Found) -> tuple[float, float]:
-    """Where the match puts the estimates' reference point (its own angle and mirror applied)."""
+    """Where the match puts the estimates' reference point (its own angle and mirror applied; a case
+    with measured centres: the match's own point, the model's reference point being there)."""
+    if case.centres:
+        return f.u_px, f.v_px
     u, v, w, h = case.roi
     d = np.array(case.info.reference_px) - np.array([u + w / 2.0, v + h / 2.0])
     if f.mirrored:

@@ -49,6 +49,7 @@ from bench.pick_cases import (  # noqa: E402
     scaled,
     score,
     teach_model,
+    teach_one,
     to_reference,
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
@@ -229,7 +230,7 @@ def _views_section(cases: list[Case]) -> list[str]:
     for case in (c for c in cases if c.more_rois):
         for label, k in [("original size", 1.0), *SIZES.items()]:
             c = case if k == 1.0 else scaled(case, k)
-            model = shape.teach(c.teach_image(), c.roi)
+            model = teach_one(c)
             variants = VARIANTS if k == 1.0 else {"original": VARIANTS["original"]}
             for vname, fn in variants.items():
                 t = Tally()

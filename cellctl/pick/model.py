@@ -10,7 +10,9 @@ File layout (``format_version`` 1)::
      (or "blob": {...} in blob mode; ``shape.patch``, the teach image's pixels of the part that finish
      a match's pose, is absent in files taught before it: those find with the edge fit alone;
      ``shape.view_sigma`` {"px", "deg"}, only in a model taught from several views: the error a fit has
-     beyond its own 1-sigma by how the part's look changes between them, added to every match's)
+     beyond its own 1-sigma by how the part's look changes between them, added to every match's;
+     ``shape.origin_px`` [x, y], only where a centre of the part was measured at teach: the point a match
+     reports, from the ROI centre, vision.shape.frame)
 
 Point coordinates are relative to the reference point, in pixels of their pyramid level. A file
 with a newer ``format_version`` than this code knows is refused with a clear message.
@@ -58,8 +60,10 @@ class PartModel:
 
     @property
     def reference_px(self) -> tuple[float, float]:
+        """The teach image's point a match reports: the ROI centre, or a shape model's ``origin`` from it."""
         u, v, w, h = self.roi
-        return (u + w / 2.0, v + h / 2.0)
+        o = self.shape.origin if self.shape is not None else (0.0, 0.0)
+        return (u + w / 2.0 + o[0], v + h / 2.0 + o[1])
 
     def find(self, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
         if self.shape is not None:

@@ -95,6 +95,8 @@ class ShapeDoc(_Part):
     levels: list[LevelDoc] = Field(min_length=1, max_length=MAX_LEVELS)
     patch: PatchDoc | None = None
     view_sigma: ViewSigmaDoc | None = None
+    origin_px: tuple[Px, Px] | None = None
+    """The point a match reports, from the ROI centre (px, the part as taught; vision.shape.frame)."""
 
 
 class BlobDoc(_Part):

@@ -188,3 +188,29 @@ def test_the_board_warp_jacobian_matches_central_differences() -> None:
         plus, minus = prob.step(x, R, t, dx), prob.step(x, R, t, -dx)
         num = (prob.project(*plus)[0] - prob.project(*minus)[0]).ravel() / (2 * h)
         assert np.abs(num).max() > 1.0 and np.abs(num - Jd[:, i]).max() < 1e-4 * np.abs(Jd[:, i]).max(), i
+
+
+def test_outlier_points_are_weighted_out_only_where_the_stated_precision_explains_the_residuals() -> None:
+    """The splined solver's point rule is the parametric solver's (``views.reject_outlier_points``): a
+    5-sigma point is a detection failure (weighted out) only where the detectors' stated precision
+    explains the residual scale; without a stated precision, or with residuals far beyond it (a lens
+    the model does not fit at the image's edge), it is only flagged."""
+    from calibration.intrinsics.splined_solver import _outlier_points
+    from calibration.intrinsics.views import collect_views
+
+    dets = _views(FISHEYE, 3, 7)
+    rng = np.random.default_rng(3)
+    n = sum(len(d.uv) for d in dets)
+    res = rng.normal(0.0, 0.1, (n, 2))
+    res[5] = [3.0, -2.0]                                   # one corner 36 sigma off
+    w0 = np.ones(n)
+    views, _, _ = collect_views(dets, BOARD, FISHEYE.size)
+    out, reject = _outlier_points(res, w0, views)
+    assert out[5] and out.sum() == 1 and not reject       # no stated precision: flagged only
+    stated = [Detection(d.image, True, ids=d.ids, uv=d.uv, image_size=d.image_size,
+                        uv_sigma_px=np.full(len(d.uv), 0.1)) for d in dets]
+    views, _, _ = collect_views(stated, BOARD, FISHEYE.size)
+    out, reject = _outlier_points(res, w0, views)
+    assert out[5] and out.sum() == 1 and reject           # the residuals are the stated noise: weighted out
+    out, reject = _outlier_points(10.0 * res, w0, views)
+    assert out[5] and not reject                          # 10x the stated noise: misfit, flagged only

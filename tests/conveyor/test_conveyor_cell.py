@@ -95,16 +95,13 @@ def test_2_a_belt_run_places_every_part_it_meets_within_a_millimetre(cell: tuple
     assert all(350.0 <= x["belt"]["meet_x_mm"] <= 740.0 and x["belt"]["tracking_ticks"] >= x["belt"]["meet_ticks"]
                for x in placed), placed
     # The drift check runs on the belt's pictures (every 10th): the marks beside the belt are found among the
-    # moving parts, and the camera has not moved. One check in a run sometimes sees 3 or 4 of the 5 marks (2 of 5
-    # runs on 2026-12-07, drift still ~0.003 mm): the likely cause, not yet shown from the truth, is a part the arm
-    # carries to the place grid (x >= 330 mm, lifted towards the camera) within the search window of the marks at
-    # x = 280 mm, where find_marks refuses a mark with something larger in its window.
+    # moving parts and the arm's moves (none passes over a mark's window: docs/conveyor.md), and the camera has
+    # not moved.
     drift = http.get("/drift").json()
     checks = [x for x in drift["records"] if x["source"] == "production"]
     assert len(checks) >= st["conveyor"]["pictures"] // 10 - 1 and checks, drift
-    summary = [(x["state"], x["seen"], x["drift_mm"], x.get("reason")) for x in checks]
-    assert all(x["state"] in ("baseline", "ok") and x["seen"] >= 3 and x["drift_mm"] < 0.05 for x in checks), summary
-    assert any(x["seen"] == 5 for x in checks), summary
+    assert all(x["state"] in ("baseline", "ok") and x["seen"] == 5 and x["drift_mm"] < 0.05 for x in checks), [
+        (x["state"], x["seen"], x["drift_mm"], x.get("reason")) for x in checks]
 
 
 def test_3_a_part_the_robot_cannot_meet_in_the_window_is_missed_not_chased(cell: tuple[AppCell, SimWorld]) -> None:
@@ -229,7 +226,7 @@ def test_7_a_part_that_slips_before_the_grip_is_a_failed_grip_not_chased(cell: t
     # then meet the part where it really is).
     parts.slip_at_close(25.0)
     assert http.post("/production/start", json={"recipe_id": 1, "count": 1}).status_code == 202
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 60  # the wait ends at the grip failure; at load 21 on 2 cores 20 s was short
     while time.monotonic() < deadline and http.get("/production").json()["counters"]["grip_failures"] == 0:
         time.sleep(0.05)
     http.post("/production/stop")

@@ -25,6 +25,7 @@ from bench.pick_cases import (
     scaled,
     score,
     teach_model,
+    teach_one,
     texture,
     to_reference,
 )
@@ -45,13 +46,13 @@ KNOWN_MISSES = {
                              "of the long chains only (TeachParams(min_component_px=120)) finds 4 of 9 at 0.5 with 0 "
                              "false. The reason names the min_score that answers a head (bench/results/pick_real.md). "
                              "Taught from the teach image's four heads (more_teach_rois) 7 of 9 are found at the "
-                             "defaults, 1.4-4.9 px from their centres (test_several_views_find_more_screw_heads)",
+                             "defaults, 0.7-3.3 px from their rim centres (test_several_views_find_more_screw_heads, "
+                             "test_screw_heads_report_their_rim_centre_with_an_honest_sigma)",
 }
 
 
 def _model(case_id: str) -> shape.ShapeModel:
-    case = CASES[case_id]
-    return shape.teach(case.teach_image(), case.roi)
+    return teach_one(CASES[case_id])  # (a case with measured centres: reporting the first one)
 
 
 _MODELS: dict[str, shape.ShapeModel] = {}
@@ -286,7 +287,7 @@ def test_small_screw_heads_sparse_on_one_side_are_not_taken_for_pieces() -> None
     head of 100_1001.jpg). It lacks no piece, so the surround check does not judge it: the heads found
     before that check are found, with no false match."""
     case = scaled(CASES["robertson_screw_heads"], 0.25)
-    model = shape.teach(case.teach_image(), case.roi)
+    model = teach_one(case)
     found = false = 0
     for test in case.tests:
         res = shape.find(model, case.test_image(test))
@@ -353,3 +354,29 @@ def test_several_views_find_more_screw_heads() -> None:
         found_many += s.found
     assert found_one == 0
     assert found_many >= 6
+
+
+def test_screw_heads_report_their_rim_centre_with_an_honest_sigma() -> None:
+    """The model taught from the teach image's four heads reports the heads' centre (``teach_centres``:
+    each teach head's rim, ``bench/screw_rim.py``; their mean in the part's frame, ``ShapeModel.origin``)
+    and a 1-sigma that holds how far that centre moves from view to view: against the rim reference
+    (the corpus's ``measured_estimate``) the found heads lie 0.7-3.3 px off (RMS 2.05 px), and
+    actual / reported is honest (RMS 0.85, per head 0.24-1.40; target 0.5-2). The 1 px target is missed
+    (bench/results/pick_real.md)."""
+    case = CASES["robertson_screw_heads"]
+    model = teach_model(case)
+    assert model.origin != (0.0, 0.0)
+    ratios = []
+    for test in case.tests:
+        res = shape.find(model, read_grey(test.path))
+        for i in test.instances:
+            near = [m for m in res.matches if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30]
+            if near:
+                m = min(near, key=lambda m: math.hypot(m.u_px - i.x, m.v_px - i.y))
+                err = math.hypot(m.u_px - i.x, m.v_px - i.y)
+                assert err < 4.0, (test.path.name, i, err)
+                ratios.append(err / (math.sqrt(2) * m.sigma_px))
+    assert len(ratios) >= 6
+    rms = math.sqrt(sum(r * r for r in ratios) / len(ratios))
+    assert 0.5 <= rms <= 2.0, ratios
+

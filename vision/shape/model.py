@@ -160,6 +160,10 @@ class ShapeModel:
     """(px, rad) the error a fit of the part has beyond its own covariance by how its look changes from
     view to view (a model taught from several views, ``multi.teach_many``: the spread of the edge fit
     against the patch fit over them, ``uncertainty.view_tau``); added to every match's 1-sigma. 0: one view."""
+    origin: tuple[float, float] = (0.0, 0.0)
+    """The point a match reports, relative to the ROI centre the search works from (level-0 pixels of
+    the teach image, unturned; ``vision.shape.frame.recentred``): a measured centre of the part. The
+    search does not depend on it (HALCON's ``set_shape_model_origin``)."""
 
     @property
     def top_level(self) -> int:
@@ -171,6 +175,8 @@ class ShapeModel:
             out["patch"] = patch_to_dict(self.patch)
         if self.view_tau[0] > 0 or self.view_tau[1] > 0:
             out["view_sigma"] = {"px": round(self.view_tau[0], 4), "deg": round(math.degrees(self.view_tau[1]), 4)}
+        if self.origin != (0.0, 0.0):
+            out["origin_px"] = [round(self.origin[0], 4), round(self.origin[1], 4)]
         return out
 
     def view_cov(self) -> F64 | None:
@@ -181,18 +187,21 @@ class ShapeModel:
 
     def contour(self, u_px: float, v_px: float, angle_deg: float, scale: float = 1.0,
                 mirrored: bool = False) -> tuple[F64, F64]:
-        """The level-0 model edge points and their unit tangents at a pose, in image pixels."""
+        """The level-0 model edge points and their unit tangents at a pose (a match's reported point), in
+        image pixels."""
         lv = self.levels[0].mirrored() if mirrored else self.levels[0]
         a = math.radians(angle_deg)
         R = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])  # CCW on screen
-        pts = scale * lv.points @ R.T + np.array([u_px, v_px])
+        o = np.array([-self.origin[0] if mirrored else self.origin[0], self.origin[1]])
+        pts = scale * (lv.points - o) @ R.T + np.array([u_px, v_px])
         n = lv.normals @ R.T
         return pts, np.stack([-n[:, 1], n[:, 0]], axis=1)
 
     def mirrored(self) -> ShapeModel:
         """The model of the part's mirror image (a flat part lying face down)."""
         return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size,
-                          None if self.patch is None else self.patch.mirrored(), self.view_tau)
+                          None if self.patch is None else self.patch.mirrored(), self.view_tau,
+                          (-self.origin[0], self.origin[1]))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
@@ -201,7 +210,8 @@ class ShapeModel:
         patch = patch_from_dict(d["patch"], levels[0].points) if d.get("patch") is not None else None
         vs = d.get("view_sigma") or {}
         tau = (float(vs.get("px", 0.0)), math.radians(float(vs.get("deg", 0.0))))
-        return cls(levels, params, roi, image_size, patch, tau)
+        o = d.get("origin_px") or (0.0, 0.0)
+        return cls(levels, params, roi, image_size, patch, tau, (float(o[0]), float(o[1])))
 
 
 

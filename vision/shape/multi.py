@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from vision.errors import TeachError
 from vision.image import F64, U8, as_gray, gradients, pyramid
 from vision.shape import kernels
+from vision.shape.frame import part_centre, recentred
 from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams, teach
 from vision.shape.multi_align import Pose4, align, overlap
 from vision.shape.patch import MIN_PATCH_NCC, TeachPatch, fit, make_patch
@@ -59,9 +60,15 @@ def needed(n_images: int) -> int:
 
 
 def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float, float]],
-               params: TeachParams | None = None) -> ShapeModel:
+               params: TeachParams | None = None,
+               centres: list[tuple[float, float]] | None = None) -> ShapeModel:
     """Teach from 1-5 images of one part (``rois[i]`` frames it in ``images[i]``; two ROIs may frame two
-    parts alike in the same image); see the module."""
+    parts alike in the same image); see the module. ``centres`` (optional, image pixels, one per view):
+    the part's centre measured in each view; the model reports their mean in the part's frame
+    (``ShapeModel.origin``, ``vision.shape.frame``) instead of its ROI centre, and their scatter there
+    (per axis, over the views) joins ``view_tau``'s position term."""
+    if centres is not None and len(centres) != len(images):
+        raise TeachError(f"give one centre per teach image ({len(images)} images, {len(centres)} centres)")
     if not 1 <= len(images) <= MAX_TEACH_IMAGES or len(images) != len(rois):
         raise TeachError(f"give 1 to {MAX_TEACH_IMAGES} teach images, each with its ROI "
                          f"(got {len(images)} images and {len(rois)} ROIs)")
@@ -69,7 +76,10 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
     grays = [as_gray(i) for i in images]
     model = teach(grays[0], rois[0], p)
     if len(images) == 1:
-        return model
+        if centres is None:
+            return model
+        u, v, w, h = rois[0]
+        return recentred(model, *part_centre([(u + w / 2.0, v + h / 2.0, 0.0, 1.0)], centres))
     poses = aligned_poses(model, grays, rois, p)
     need = needed(len(images))
     pyrs = [pyramid(g, len(model.levels) - 1) for g in grays]
@@ -82,7 +92,16 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
     out = teach(grays[0], rois[0], p, keep=keep)
     patch = mean_patch(make_patch(grays[0], rois[0], out.levels[0].points), grays, poses)
     model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
-    return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, spread(model, grays, poses))
+    tau = spread(model, grays, poses)
+    if centres is None:
+        return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, tau)
+    # the views' own centres in the part's frame scatter by how well the model's frame holds the measured
+    # centre from view to view (a 3-D part's edges move with the light): that scatter is in every match's
+    # reported centre too
+    pcs = np.array([part_centre([pose], [c]) for pose, c in zip(poses, centres, strict=True)])
+    scatter = math.sqrt(float(((pcs - pcs.mean(axis=0)) ** 2).sum()) / (2 * (len(pcs) - 1)))
+    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, (math.hypot(tau[0], scatter), tau[1]))
+    return recentred(model, *part_centre(poses, centres))
 
 
 def spread(model: ShapeModel, grays: list[U8], poses: list[Pose4]) -> tuple[float, float]:
