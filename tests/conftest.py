@@ -56,8 +56,6 @@ SHARED_CELLS = ("plc_cell", "served_virtual_cell")
 """Session fixtures that serve a cell: their tests share one worker, so the cell starts once."""
 
 
-UNPINNED = frozenset({"no_thread_left_behind", "pages_closed_after_module"})
-"""Autouse module-scoped fixtures that hold no costly state: they do not keep a module on one worker."""
 NOT_UR = frozenset({"sim", "modbus", "replay"})
 """Robot adapters of the contract tests that need no UR emulator: their cases run on any worker."""
 
@@ -84,9 +82,8 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
             return name
     info = getattr(item, "_fixtureinfo", None)
     defs = info.name2fixturedefs.values() if info is not None else ()
-    # (the thread check and the page tests' page closer are module-scoped on every module of theirs: they
-    # do not pin a module to a worker)
-    if any(d and d[-1].scope == "module" and d[-1].argname not in UNPINNED for d in defs):
+    # (the thread check is module-scoped on every module: it does not pin a module to a worker)
+    if any(d and d[-1].scope == "module" and d[-1].argname != "no_thread_left_behind" for d in defs):
         return rel_path
     return None
 
@@ -174,8 +171,6 @@ LIBRARY_THREADS: dict[str, str] = {
     "AnyIO worker thread": "anyio's worker threads (Starlette's run_in_threadpool, TestClient): anyio owns them "
                            "and ends the idle ones itself",
     "asyncio_": "asyncio's default executor of an event loop (a library's loop.run_in_executor(None, ...))",
-    "asyncio-waitpid-": "asyncio's child watcher, one per child process of an event loop, ending with it: the "
-                        "session's Chromium driver (tests/ui/conftest.py, Playwright), which outlives a module",
     "ThreadPoolExecutor-": "an executor a library made without a name (pymodbus, asyncua, ...)",
     "Dummy-": "a thread started outside Python's threading (a C library's callback): nobody can join it",
     "render_": "drivers/sim/imaging/pool.py: the renderer's process-wide pool, bounded by the core count and reused "

@@ -17,10 +17,8 @@ SHOTS = REPO / "test-artifacts" / "screenshots"
 """Screenshots every run keeps as artefacts."""
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
-    """One Chromium per test process (each test opens its own context: no cookie, storage or page is
-    shared between tests); a launch costs about a second of CPU, paid once instead of once per module."""
     SHOTS.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as pw:
         b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
@@ -28,14 +26,3 @@ def browser() -> Iterator[Browser]:
             yield b
         finally:
             b.close()
-
-
-@pytest.fixture(scope="module", autouse=True)
-def pages_closed_after_module(browser: Browser) -> Iterator[None]:
-    """A module's pages do not outlive it in the session's browser: what it leaves open (a page still
-    polling a cell that has stopped) is closed when the module ends, as the module's own browser was."""
-    before = set(browser.contexts)
-    yield
-    for context in browser.contexts:
-        if context not in before:
-            context.close()
