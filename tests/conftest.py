@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -120,15 +121,44 @@ def pytest_configure(config: pytest.Config) -> None:
     config.pluginmanager.register(XdistGroupIds(), "cellctl-xdist-group-ids")
 
 
+_shared_fork_server: list[Any] = []
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """With xdist workers (started after this: their hook is ``trylast``), the run's one fork server
+    (``tests/support/forked.py``), which they share: one server's imports instead of one per worker."""
+    if session.config.pluginmanager.has_plugin("dsession"):
+        from tests.support.forked import share_server
+
+        process = share_server()
+        if process is not None:
+            _shared_fork_server.append(process)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    from tests.support.forked import end_shared
+
+    while _shared_fork_server:
+        end_shared(_shared_fork_server.pop())
+
+
+def fast_loop(markexpr: str) -> bool:
+    """Whether ``-m`` leaves the slow tests out (the fast loop: ``-m "not slow"``, alone or with more)."""
+    return "not slow" in " ".join(markexpr.split())
+
+
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: absent with -p no:xdist
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: ``CELLCTL_TEST_WORKERS`` if set, no workers for one file or one test (the run
-    stays in this process and starts at once), else ``WORKERS``."""
+    stays in this process and starts at once), one worker per core (at most ``WORKERS``) for the fast
+    loop, which computes rather than waits, else ``WORKERS``."""
     if os.environ.get("CELLCTL_TEST_WORKERS"):
         return int(os.environ["CELLCTL_TEST_WORKERS"])
     paths = {a.split("::", 1)[0] for a in config.args}
     if len(paths) == 1 and Path(next(iter(paths))).is_file():
         return 0
+    if fast_loop(str(config.getoption("markexpr", "") or "")):
+        return max(1, min(WORKERS, len(os.sched_getaffinity(0))))
     return WORKERS
 
 

@@ -17,7 +17,10 @@ Each test also gets its **process tree's** CPU (``phase: "tree"``, set-up to tea
 every live descendant, read from ``/proc/<pid>/stat`` (user + system + the children each has waited
 for) when the test starts and when it ends. So a module's served cell, a session's peer, the fork
 server's children and Chromium (the Playwright driver's child) are charged to the test they work for
-while it runs, not to whichever test reaps them. A descendant that ends in between is counted by the
+while it runs, not to whichever test reaps them. The fork server's children (forked ``cellctl`` runs and
+peers; the server is shared by the run's workers) are counted by the process that asked for each
+(``tests.support.forked.live``), with the whole CPU of those that ended (``forked_cpu_s``); the server
+itself counts its own CPU only. A descendant that ends in between is counted by the
 one that waited for it (ourselves, or a live descendant); one that leaves the tree (a daemon that
 detaches, as ``pg_ctl start``'s server) is not seen. A reading lists ``/proc`` and reads the stat of
 the tree's processes and of pids not seen before (about 1 ms per test).
@@ -31,7 +34,7 @@ import resource
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -54,9 +57,10 @@ _START_CPU_S, _START_OWN_CPU_S = cpu_s(), cpu_s(children=False)
 _out: list[IO[str]] = []
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
-Proc = tuple[int, int, int]
+Proc = tuple[int, int, int, int]
 """A process of ``/proc``: (parent pid, start time in ticks, CPU ticks: user + system of itself and of
-the children it has waited for)."""
+the children it has waited for, CPU ticks of itself alone)."""
+
 
 
 _OUTSIDE: set[int] = set()
@@ -78,23 +82,31 @@ def proc_table() -> dict[int, Proc]:
         except OSError:
             continue
         rest = data[data.rindex(b")") + 2:].split()  # after "pid (comm) ": state ppid ... (man 5 proc)
-        table[int(name)] = (int(rest[1]), int(rest[19]), sum(int(x) for x in rest[11:15]))
+        table[int(name)] = (int(rest[1]), int(rest[19]), sum(int(x) for x in rest[11:15]),
+                            int(rest[11]) + int(rest[12]))
     return table
 
 
-def tree_of(table: dict[int, Proc], root: int) -> dict[tuple[int, int], int]:
-    """CPU ticks of ``root`` and each of its descendants, keyed by (pid, start time) (pids are reused);
-    the other pids of ``table`` join ``_OUTSIDE``."""
+def tree_of(table: dict[int, Proc], root: int, forked: Iterable[int] = (), server: int = 0,
+            ) -> dict[tuple[int, int], int]:
+    """CPU ticks of ``root`` and each of its descendants, and of the ``forked`` runs this process asked the
+    fork server for and theirs, keyed by (pid, start time) (pids are reused); the fork ``server`` counts
+    its own CPU only (its children are all the test processes' forked runs when it is shared: each is
+    counted through ``forked`` by the process that asked for it). The other pids of ``table`` join
+    ``_OUTSIDE``."""
     kids: dict[int, list[int]] = {}
-    for pid, (ppid, _, _) in table.items():
+    for pid, (ppid, _, _, _) in table.items():
         kids.setdefault(ppid, []).append(pid)
-    out, todo = {}, [root]
+    out, todo = {}, [root, *forked]
     while todo:
         pid = todo.pop()
         if pid in table:
+            if pid == server:
+                out[(pid, table[pid][1])] = table[pid][3]
+                continue
             out[(pid, table[pid][1])] = table[pid][2]
             todo += kids.get(pid, [])
-    _OUTSIDE.update(set(table) - {pid for pid, _ in out})
+    _OUTSIDE.update(set(table) - {pid for pid, _ in out} - set(forked))
     return out
 
 
@@ -105,7 +117,16 @@ def tree_delta_s(before: dict[tuple[int, int], int], after: dict[tuple[int, int]
     return ticks * _TICK_S
 
 
-_tree: list[dict[tuple[int, int], int]] = []
+_tree: list[tuple[dict[tuple[int, int], int], float]] = []
+
+
+def _reading() -> tuple[dict[tuple[int, int], int], float]:
+    """This process's tree with its live forked runs, and the CPU seconds of its forked runs that ended."""
+    forked = sys.modules.get("tests.support.forked")
+    if forked is None:
+        return tree_of(proc_table(), os.getpid()), 0.0
+    server = forked._server.server_pid if forked._server is not None else 0
+    return tree_of(proc_table(), os.getpid(), set(forked.live), server), float(forked.forked_cpu_s)
 
 
 def _write(record: dict[str, Any]) -> None:
@@ -137,10 +158,11 @@ def pytest_runtest_protocol(item: pytest.Item) -> Iterator[None]:
         yield
         return
     if not _tree:
-        _tree.append(tree_of(proc_table(), os.getpid()))
+        _tree.append(_reading())
     yield
-    after = tree_of(proc_table(), os.getpid())
-    _write({"id": item.nodeid, "phase": "tree", "cpu_s": tree_delta_s(_tree[0], after)})
+    after = _reading()
+    ended_s = after[1] - _tree[0][1]  # forked runs that ended: their whole CPU, as the fork server reaped them
+    _write({"id": item.nodeid, "phase": "tree", "cpu_s": tree_delta_s(_tree[0][0], after[0]) + ended_s})
     _tree[0] = after
 
 

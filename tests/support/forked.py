@@ -36,6 +36,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -48,12 +49,18 @@ READ_AT_USE = ("CELLCTL_", "PYTEST_", "HOME", "XDG_DATA_HOME", "XDG_CONFIG_HOME"
 """Environment variables (names or prefixes) a forked run may set differently from its fork server:
 read by ``cellctl`` when used, not at import (pytest's own are for the test process only)."""
 START_TIMEOUT_S = 120.0
+SHARED = "CELLCTL_TEST_FORK_SHARED"
+"""``<owner pid>:<folder>``, set by the run's pytest process (``tests/conftest.py``): one fork server for
+the run's test processes (the xdist workers), listening in the folder, started by the first that needs it
+and ending when the owner exits. Without it (or set to ``0``) each process starts its own."""
 
 Stdio = int | IO[Any] | None
 forked_cpu_s = 0.0
 """User + system CPU seconds of this process's forked ``cellctl`` runs that have ended and been waited
 for (the fork server's children are not this process's: ``getrusage(RUSAGE_CHILDREN)`` misses them
 until the server exits; ``tests/support/cpu_report.py`` adds this)."""
+live: set[int] = set()
+"""Pids of this process's forked runs still running (``tests/support/cpu_report.py`` reads their CPU)."""
 
 
 class Forked:
@@ -69,6 +76,7 @@ class Forked:
         self._pidfd: int | None = pidfd
         self._conn = conn
         self._status = b""
+        live.add(pid)
 
     def _readable(self, timeout_s: float | None) -> bool:
         return bool(select.select([self._conn], [], [], timeout_s)[0])
@@ -84,6 +92,7 @@ class Forked:
         self.returncode = os.waitstatus_to_exitcode(int(status))
         global forked_cpu_s
         forked_cpu_s += float(cpu_s)
+        live.discard(self.pid)
         self._conn.close()
         if self._pidfd is not None:
             os.close(self._pidfd)
@@ -122,22 +131,41 @@ class Forked:
 
 
 class ForkServer:
-    """This process's fork server: started on first use, ended when this process exits."""
+    """The fork server this process uses: its own (started now, ended when this process exits), or the
+    run's shared one (``shared``: its folder), which the run's pytest process started (:func:`share_server`)."""
 
-    def __init__(self) -> None:
-        self.dir = tempfile.mkdtemp(prefix="cellctl-fork-")
+    def __init__(self, shared: str | None = None) -> None:
+        self.shared = shared is not None
+        self.dir = shared if shared is not None else tempfile.mkdtemp(prefix="cellctl-fork-")
         self.path = os.path.join(self.dir, "s")
-        self.env = {k: v for k, v in os.environ.items() if not k.startswith(("CELLCTL_", "PYTEST_"))}
-        self.log = open(os.path.join(self.dir, "server.log"), "wb")  # noqa: SIM115 (kept open with the server)
-        self.process = subprocess.Popen([sys.executable, "-m", "tests.support.forkserver", self.path],
-                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
-                                        cwd=REPO, env=self.env)
+        self.pid = os.getpid()
+        if shared is not None:
+            self.server_pid = int(Path(self.dir, "pid").read_text())
+            self.process: subprocess.Popen[bytes] | None = None
+            self._wait_listening()
+            self.env = json.loads(Path(self.path + ".env.json").read_text())  # what it was started with
+            return
+        self.process = _start_server(self.dir, server_env())
+        self.env, self.server_pid = server_env(), self.process.pid
         assert self.process.stdout is not None
         ready = select.select([self.process.stdout], [], [], START_TIMEOUT_S)[0]
         if not ready or self.process.stdout.readline() != b"ready\n":
             self.close()
             raise RuntimeError(f"the fork server did not start: {Path(self.dir, 'server.log').read_text()}")
-        self.pid = os.getpid()
+
+    def _wait_listening(self) -> None:
+        """Wait until the shared server listens (it binds its socket once its imports are done)."""
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+                try:
+                    probe.connect(self.path)
+                    return
+                except (FileNotFoundError, ConnectionRefusedError):
+                    pass
+            if time.monotonic() > deadline or not os.path.exists(f"/proc/{self.server_pid}"):
+                raise RuntimeError(f"the run's fork server did not start: {Path(self.dir, 'server.log').read_text()}")
+            time.sleep(0.05)
 
     def can_fork(self, env: Mapping[str, str]) -> bool:
         """Whether a child with ``env`` behaves as an exec'd one (no import-time variable differs)."""
@@ -164,31 +192,85 @@ class ForkServer:
         return Forked(args, int(reply), pidfds[0], conn)
 
     def close(self) -> None:
-        if self.process.stdin is not None:
-            self.process.stdin.close()
-        try:
-            self.process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        if self.process.stdout is not None:
-            self.process.stdout.close()
-        self.log.close()
-        shutil.rmtree(self.dir, ignore_errors=True)
+        """End this process's own server (the shared one is ended by the run's pytest process)."""
+        if self.process is not None:
+            _end_server(self.process, self.dir)
+
+
+def server_env() -> dict[str, str]:
+    """The environment a fork server runs with: this process's, without the variables read at use."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(("CELLCTL_", "PYTEST_"))}
+
+
+def _start_server(folder: str, env: dict[str, str] | None) -> subprocess.Popen[bytes]:
+    """A fork server listening in ``folder``, with ``env`` (None: this process's, as its other children
+    get it); it ends when its stdin closes."""
+    with open(os.path.join(folder, "server.log"), "ab") as log:
+        return subprocess.Popen([sys.executable, "-m", "tests.support.forkserver", os.path.join(folder, "s")],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, cwd=REPO, env=env)
+
+
+def _end_server(process: subprocess.Popen[bytes], folder: str) -> None:
+    """Close the server's stdin (it exits; its running children go on), wait for it, remove its folder."""
+    if process.stdin is not None:
+        process.stdin.close()
+    try:
+        process.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    if process.stdout is not None:
+        process.stdout.close()
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 _server: ForkServer | None = None
 
 
 def fork_server() -> ForkServer | None:
-    """This process's fork server (started now if need be), or None when runs are to be exec'd."""
+    """This process's fork server (the run's shared one, or its own; started now if need be), or None
+    when runs are to be exec'd."""
     global _server
     if os.environ.get("CELLCTL_TEST_FORK", "1") == "0":
         return None
     if _server is None or _server.pid != os.getpid():
-        _server = ForkServer()
+        _server = ForkServer(shared_server())
         atexit.register(_server.close)
     return _server
+
+
+def shared_server() -> str | None:
+    """The folder of the run's shared fork server (:data:`SHARED`), if its owner still runs."""
+    owner, _, folder = os.environ.get(SHARED, "").partition(":")
+    if not owner.isdigit() or not os.path.isdir(folder) or not os.path.exists(f"/proc/{owner}"):
+        return None
+    return folder
+
+
+def share_server() -> subprocess.Popen[bytes] | None:
+    """Called by the run's pytest process before it starts its xdist workers: start the one fork server
+    they share (in the background: a worker that needs it waits until it listens) and tell them where
+    (:data:`SHARED`); None where runs are exec'd, one server per process is asked for
+    (``CELLCTL_TEST_FORK_SHARED=0``), or this pytest runs inside a run that shares one already. End it
+    with :func:`end_shared` (it is this process's child: its CPU and its children's count as the run's)."""
+    if os.environ.get("CELLCTL_TEST_FORK", "1") == "0" or os.environ.get(SHARED) == "0" \
+            or shared_server() is not None:
+        return None
+    folder = tempfile.mkdtemp(prefix="cellctl-fork-")
+    # the environment the workers get too (xdist starts them with this process's: a library's setenv in C,
+    # e.g. readline's COLUMNS and LINES, is in it though not in os.environ); the server writes it down
+    process = _start_server(folder, None)
+    Path(folder, "pid").write_text(str(process.pid))
+    os.environ[SHARED] = f"{os.getpid()}:{folder}"
+    return process
+
+
+def end_shared(process: subprocess.Popen[bytes]) -> None:
+    """End the run's shared fork server (forked runs still running go on) and remove its folder."""
+    folder = shared_server()
+    os.environ.pop(SHARED, None)
+    if folder is not None:
+        _end_server(process, folder)
 
 
 def _fd(stream: Stdio, default: int, opened: list[int]) -> int:

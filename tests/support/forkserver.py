@@ -203,6 +203,8 @@ def main() -> None:
     if threads() != 1:
         print(f"forkserver: {threads()} threads after start-up", file=sys.stderr, flush=True)
     sys.stdout.flush()
+    with open(sys.argv[1] + ".env.json", "w") as f:  # what a client compares a run's environment with
+        json.dump(dict(os.environ), f)
     request = serve(sys.argv[1])
     become(request)
     import runpy
