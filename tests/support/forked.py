@@ -48,6 +48,11 @@ REPO = Path(__file__).resolve().parents[2]
 READ_AT_USE = ("CELLCTL_", "PYTEST_", "HOME", "XDG_DATA_HOME", "XDG_CONFIG_HOME", "XDG_RUNTIME_DIR")
 """Environment variables (names or prefixes) a forked run may set differently from its fork server:
 read by ``cellctl`` when used, not at import (pytest's own are for the test process only)."""
+SET_BY_IMPORT = ("LD_LIBRARY_PATH",)
+"""Variables an import sets in ``os.environ`` (``import cv2`` appends its own library folder), so they
+differ between a process that imported it and one that has not yet, whatever the run asked for; the
+dynamic loader reads them once, at a process's start (a forked run has the server's libraries loaded
+already), and a forked run's own children get the run's environment as given."""
 START_TIMEOUT_S = 120.0
 SHARED = "CELLCTL_TEST_FORK_SHARED"
 """``<owner pid>:<folder>``, set by the run's pytest process (``tests/conftest.py``): one fork server for
@@ -170,7 +175,7 @@ class ForkServer:
     def can_fork(self, env: Mapping[str, str]) -> bool:
         """Whether a child with ``env`` behaves as an exec'd one (no import-time variable differs)."""
         keys = set(env) | set(self.env)
-        return all(env.get(k) == self.env.get(k) for k in keys if not k.startswith(READ_AT_USE))
+        return all(env.get(k) == self.env.get(k) for k in keys if not k.startswith(READ_AT_USE + SET_BY_IMPORT))
 
     def spawn(self, args: list[str], env: Mapping[str, str], cwd: str, fds: Sequence[int]) -> Forked:
         body = json.dumps({"argv": args, "env": dict(env), "cwd": cwd}).encode()
