@@ -65,10 +65,12 @@ is the interface.
 
 from calibration.geometry import exp_so3 as rotations
 from calibration.intrinsics.crossval import (
+    CV_MIN_REPEATS,
     CV_REPEATS,
     SELECT_MARGIN,
     cross_validate,
     fold_partitions,
+    median_half_width,
     select_by_cross_validation,
 )
 from calibration.intrinsics.model import (
@@ -108,7 +110,7 @@ __all__ = [
     "VIEW_OUTLIER_FACTOR", "IntrinsicsError", "CrossValidationError", "IntrinsicsResult", "ViewResult", "calibrate",
     "camera_from_vector", "cell_grid", "cell_point_means", "coverage_counts", "covered_point_means",
     "covered_points", "cross_validate", "select_by_cross_validation", "SELECT_MARGIN", "CV_REPEATS",
-    "fold_partitions",
+    "CV_MIN_REPEATS", "fold_partitions", "median_half_width",
     "intrinsic_steps", "intrinsics_vector", "param_names", "project_normalized", "projection_difference",
     "projection_jacobians", "projection_uncertainty", "rotations",
     "uncertainty_summary",

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from scipy.stats import t as student_t
 
 from calibration.intrinsics.results import MIN_VIEWS, CrossValidationError, IntrinsicsError, IntrinsicsResult
 from calibration.intrinsics.solver import calibrate
@@ -17,19 +19,43 @@ from calibration.observations import Detection
 from calibration.targets import Target
 
 CV_REPEATS = 8
-"""Splits of the views cross-validation draws by default (``repeats``): the first is view ``i`` in fold
-``i mod k``, the others seeded random partitions. One split of a dozen views is one draw of a statistic
-that scatters several-fold between splits (OpenCV's 13-view right set: 0.15-0.85 px between halvings);
-the median over eight is what the choice and the verdict use. Cost: ``k * repeats`` fold solves per
-candidate (a 13-view set's eight candidates: a few CPU seconds)."""
+"""The most partitions of the views cross-validation draws (``repeats="auto"``, the default) and what
+it drew before the rule below: the first is view ``i`` in fold ``i mod k``, the others seeded random
+partitions. One split of a dozen views is one draw of a statistic that scatters several-fold between
+splits (OpenCV's 13-view right set: 0.15-0.85 px between halvings); the median over the partitions is
+what the choice and the verdict use. Cost: ``k`` fold solves per partition and candidate."""
+
+CV_MIN_REPEATS = 3
+"""The fewest partitions the automatic rule draws (the median of fewer is one split's luck)."""
+
+CV_CONFIDENCE = 0.90
+"""Two-sided confidence of the median's interval that the automatic rule uses (``median_interval``)."""
 
 CV_SEED = 2039
 """The random partitions' seed (fixed: the same data give the same choice)."""
 
+Repeats = int | Literal["auto"]
+"""``repeats`` of cross-validation: a fixed count of partitions, or ``"auto"`` (the sequential rule)."""
+
+
+def median_half_width(values: Sequence[float], confidence: float = CV_CONFIDENCE) -> float:
+    """Half-width, in log units (relative), of the ``confidence`` interval of the median of
+    ``values`` (projection differences, px, one per partition): the sample median's standard error
+    sqrt(pi/2) * s / sqrt(n) with ``s`` the standard deviation of log(values) (a log-normal scatter:
+    the statistic is a positive ratio-like length), times Student's t with n - 1 degrees of freedom
+    (``s`` is itself estimated from n values). Infinite for fewer than 2 values or a failed
+    (infinite or non-positive) one: a failure can only be outweighed by more partitions."""
+    v = np.asarray(values, dtype=float)
+    if v.size < 2 or not np.all(np.isfinite(v)) or np.any(v <= 0):
+        return math.inf
+    sd = float(np.std(np.log(v), ddof=1))
+    return float(student_t.ppf(0.5 + confidence / 2, v.size - 1)) * math.sqrt(math.pi / 2) * sd / math.sqrt(v.size)
+
 
 def fold_partitions(n: int, k: int, repeats: int = CV_REPEATS, seed: int = CV_SEED) -> list[list[np.ndarray]]:
     """``repeats`` partitions of ``n`` views into ``k`` folds (index arrays): view ``i`` in fold ``i mod k``
-    first, then seeded random partitions (each fold sorted, sizes as even as ``n`` allows)."""
+    first, then seeded random partitions (each fold sorted, sizes as even as ``n`` allows). The first
+    ``r`` of ``repeats`` partitions are ``fold_partitions(n, k, r)``."""
     out = [[np.arange(f, n, k) for f in range(k)]]
     rng = np.random.default_rng(seed)
     for _ in range(repeats - 1):
@@ -38,17 +64,112 @@ def fold_partitions(n: int, k: int, repeats: int = CV_REPEATS, seed: int = CV_SE
     return out
 
 
+def _check_repeats(repeats: Repeats) -> None:
+    if repeats == "auto":
+        return
+    if isinstance(repeats, bool) or not isinstance(repeats, int):
+        raise IntrinsicsError(f"cross-validation repeats must be a count >= 1 or 'auto', not {repeats!r}")
+    if repeats < 1:
+        raise IntrinsicsError("cross-validation needs repeats >= 1 partitions")
+
+
+class _Run:
+    """One candidate's cross-validation, drawn one partition at a time (``draw``)."""
+
+    def __init__(self, detections: Sequence[Detection], target: Target, model: str, k: int,
+                 image_size: tuple[int, int] | None, drop_outliers: bool, full: IntrinsicsResult | None,
+                 board_warp: bool, most: int) -> None:
+        if k < 2:
+            raise IntrinsicsError("cross-validation needs k >= 2 folds")
+        found = [d for d in detections if d.found]
+        if full is None:
+            if len(found) < MIN_VIEWS * k:  # before spending a full calibration on it
+                raise CrossValidationError(_too_large(k, len(found), "views with the target"))
+            full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers,
+                             board_warp=board_warp)
+        used = {v.image for v in full.views if v.used}
+        self.usable = [d for d in found if d.image in used]
+        if len(self.usable) < MIN_VIEWS * k:
+            raise CrossValidationError(_too_large(k, len(self.usable), "usable views (after the full calibration's "
+                                                                       "rejections)"))
+        self.k, self.model, self.target, self.full = k, model, target, full
+        self.drop_outliers, self.board_warp = drop_outliers, board_warp
+        self.pts = covered_points(full)
+        self.grid = None
+        if model == "splined":   # the folds use the full set's grid (one model, validated)
+            lay = full.camera.dist
+            self.grid = (int(lay[0]), int(lay[1]), float(lay[2]))
+        self.partitions = fold_partitions(len(self.usable), k, most)
+        self.parts: list[dict[str, Any] | None] = []
+        self.failed: list[str] = []
+
+    def draw(self) -> None:
+        """Solve the next partition's folds."""
+        r = len(self.parts)
+        folds = self.partitions[r]
+        try:
+            self.parts.append(_one_partition(self.usable, folds, self.target, self.model, self.pts, self.full,
+                                             self.drop_outliers, self.board_warp, self.grid))
+        except IntrinsicsError as exc:
+            self.parts.append(None)
+            self.failed.append(f"partition {r + 1}: fold of {len(folds[0])} views cannot be calibrated ({exc})")
+
+    def per(self) -> list[float]:
+        return [math.inf if p is None else p["rms"] for p in self.parts]
+
+    def all_failed(self) -> bool:
+        return len(self.failed) == len(self.parts)
+
+    def summary(self, rule: str) -> dict[str, Any]:
+        """The cross-validation block (``cross_validate``'s return); raises CrossValidationError when
+        half the partitions or more failed."""
+        parts, failed, k = self.parts, self.failed, self.k
+        if 2 * len(failed) >= len(parts):
+            raise CrossValidationError(f"{len(failed)} of {len(parts)} partitions into {k} folds cannot be "
+                                       f"calibrated: the data cannot carry the {self.model} model ({failed[0]}); "
+                                       "use a smaller k or add views")
+        ok = [p for p in parts if p is not None]
+        per = np.array(self.per())
+        first = next(p for p in parts if p is not None)
+        spread = np.quantile([p["rms"] for p in ok], [0.1, 0.9])
+        med = float(np.median(per))
+        h = median_half_width(per)
+        return {
+            "k": k,
+            "repeats": len(parts),
+            "repeats_rule": rule,
+            "folds": first["folds"],
+            "pairs": first["pairs"],
+            "projection_difference_rms_px": med,
+            "projection_difference_max_px": float(np.median([np.inf if p is None else p["max"] for p in parts])),
+            "expected_from_uncertainty_px": float(np.median([np.inf if p is None else p["expected"]
+                                                             for p in parts])),
+            "per_partition_rms_px": [None if p is None else round(p["rms"], 6) for p in parts],
+            "spread_px": [float(spread[0]), float(spread[1])],
+            "median_interval_px": ([med * math.exp(-h), med * math.exp(h)] if math.isfinite(h) else None),
+            "failed": failed,
+        }
+
+
+def _most(repeats: Repeats) -> int:
+    return CV_REPEATS if repeats == "auto" else int(repeats)
+
+
 def cross_validate(detections: Sequence[Detection], target: Target, model: str, k: int = 2, *,
                    image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
                    full: IntrinsicsResult | None = None, board_warp: bool = False,
-                   repeats: int = CV_REPEATS) -> dict[str, Any]:
+                   repeats: Repeats = "auto") -> dict[str, Any]:
     """Repeated k-fold cross-validation (mrcal's idea, over several splits): split the views into ``k``
     disjoint folds, calibrate each fold on its own, and take the projection difference between every
     pair of fold solutions over the image region the whole data set covered (best rotation
-    compensated); do so for ``repeats`` partitions (``fold_partitions``: view ``i`` in fold ``i mod k``,
+    compensated); do so for several partitions (``fold_partitions``: view ``i`` in fold ``i mod k``,
     then seeded random ones) and report the **median** over them. Two solutions from independent data
     differ by about sqrt(2) times each one's projection uncertainty if the model fits the lens; a much
     larger difference means the model cannot describe the lens (or the data are inconsistent).
+
+    ``repeats``: a fixed count of partitions, or ``"auto"`` (default): draw ``CV_MIN_REPEATS`` (3),
+    then one more at a time until the median's ``CV_CONFIDENCE`` (90 %) interval
+    (``median_half_width``) lies within +-``SELECT_MARGIN`` (10 %) of it, at most ``CV_REPEATS`` (8).
 
     Folds are made of the views the full calibration used (``full`` if given); ``board_warp``
     solves each fold with the target's warp (``calibrate``). A partition with a fold that cannot be
@@ -57,59 +178,25 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     too large for the usable views, or when half the partitions or more fail (the median is then
     infinite: the data cannot carry the model).
 
-    Returns ``k``, ``repeats``, ``folds`` and ``pairs`` (the first partition's),
-    ``projection_difference_rms_px`` / ``_max_px`` / ``expected_from_uncertainty_px`` (medians over
-    the partitions), ``per_partition_rms_px`` (None where one failed), ``spread_px`` (its 10 % and
-    90 % quantiles over the partitions that solved) and ``failed``.
+    Returns ``k``, ``repeats`` (partitions drawn), ``repeats_rule``, ``folds`` and ``pairs`` (the
+    first partition's), ``projection_difference_rms_px`` / ``_max_px`` /
+    ``expected_from_uncertainty_px`` (medians over the partitions), ``per_partition_rms_px`` (None
+    where one failed), ``spread_px`` (its 10 % and 90 % quantiles over the partitions that solved),
+    ``median_interval_px`` (the median's 90 % interval; None when a partition failed) and ``failed``.
     """
-    if k < 2:
-        raise IntrinsicsError("cross-validation needs k >= 2 folds")
-    if repeats < 1:
-        raise IntrinsicsError("cross-validation needs repeats >= 1 partitions")
-    found = [d for d in detections if d.found]
-    if full is None:
-        if len(found) < MIN_VIEWS * k:  # before spending a full calibration on it
-            raise CrossValidationError(_too_large(k, len(found), "views with the target"))
-        full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers,
-                         board_warp=board_warp)
-    used = {v.image for v in full.views if v.used}
-    usable = [d for d in found if d.image in used]
-    if len(usable) < MIN_VIEWS * k:
-        raise CrossValidationError(_too_large(k, len(usable), "usable views (after the full calibration's "
-                                                              "rejections)"))
-    pts = covered_points(full)
-    grid = None
-    if model == "splined":   # the folds use the full set's grid (one model, validated)
-        lay = full.camera.dist
-        grid = (int(lay[0]), int(lay[1]), float(lay[2]))
-    parts: list[dict[str, Any] | None] = []
-    failed: list[str] = []
-    for r, folds in enumerate(fold_partitions(len(usable), k, repeats)):
-        try:
-            parts.append(_one_partition(usable, folds, target, model, pts, full, drop_outliers, board_warp, grid))
-        except IntrinsicsError as exc:
-            parts.append(None)
-            failed.append(f"partition {r + 1}: fold of {len(folds[0])} views cannot be calibrated ({exc})")
-    if 2 * len(failed) >= len(parts):
-        raise CrossValidationError(f"{len(failed)} of {len(parts)} partitions into {k} folds cannot be "
-                                   f"calibrated: the data cannot carry the {model} model ({failed[0]}); "
-                                   "use a smaller k or add views")
-    ok = [p for p in parts if p is not None]
-    per = np.array([np.inf if p is None else p["rms"] for p in parts])
-    first = next(p for p in parts if p is not None)
-    spread = np.quantile([p["rms"] for p in ok], [0.1, 0.9])
-    return {
-        "k": k,
-        "repeats": len(parts),
-        "folds": first["folds"],
-        "pairs": first["pairs"],
-        "projection_difference_rms_px": float(np.median(per)),
-        "projection_difference_max_px": float(np.median([np.inf if p is None else p["max"] for p in parts])),
-        "expected_from_uncertainty_px": float(np.median([np.inf if p is None else p["expected"] for p in parts])),
-        "per_partition_rms_px": [None if p is None else round(p["rms"], 6) for p in parts],
-        "spread_px": [float(spread[0]), float(spread[1])],
-        "failed": failed,
-    }
+    _check_repeats(repeats)
+    run = _Run(detections, target, model, k, image_size, drop_outliers, full, board_warp, _most(repeats))
+    if repeats != "auto":
+        for _ in range(int(repeats)):
+            run.draw()
+        return run.summary("fixed")
+    for _ in range(CV_MIN_REPEATS):
+        run.draw()
+    while len(run.parts) < CV_REPEATS and not (
+            run.all_failed() or median_half_width(run.per()) <= math.log1p(SELECT_MARGIN)):
+        run.draw()
+    return run.summary(f"auto: until the median's {CV_CONFIDENCE:.0%} interval is within "
+                       f"{SELECT_MARGIN:.0%}, {CV_MIN_REPEATS}-{CV_REPEATS} partitions")
 
 
 def _one_partition(usable: list[Detection], folds: list[np.ndarray], target: Target, model: str, pts: np.ndarray,
@@ -150,44 +237,82 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
                                candidates: Sequence[tuple[str, bool]], k: int = 2, *,
                                image_size: tuple[int, int] | None = None,
                                drop_outliers: bool = False, reject_views: bool = False,
-                               repeats: int = CV_REPEATS) -> tuple[IntrinsicsResult, dict[str, Any]]:
+                               repeats: Repeats = "auto") -> tuple[IntrinsicsResult, dict[str, Any]]:
     """Choose the lens model and board warp by k-fold cross-validation, not by the RMS (a richer
     model always lowers the RMS; only data it has not seen can say whether it describes the lens).
 
     ``candidates``: ``(model, board_warp)`` pairs, simplest first. Each is calibrated on all views
-    and cross-validated over ``repeats`` partitions (``cross_validate``; every candidate on the same
+    and cross-validated over the same partitions (``cross_validate``; every candidate on the same
     partitions of the same views when their full solves keep the same views); a candidate that
     cannot be (folds do not solve in half the partitions or more, too few views) is refused with
     the reason. The chosen one has the smallest median projection difference between its folds,
-    where a richer candidate must beat every simpler one by ``SELECT_MARGIN``. Returns the chosen
-    calibration and ``{"k", "repeats", "chosen", "candidates", "cross_validation", "rule"}``;
-    raises CrossValidationError when no candidate can be cross-validated.
+    where a richer candidate must beat every simpler one by ``SELECT_MARGIN``.
+
+    ``repeats``: a fixed count of partitions, or ``"auto"`` (default), a sequential rule over the
+    candidates jointly (every candidate draws the same partitions, so where the drawing stopped
+    cannot favour one): draw ``CV_MIN_REPEATS`` (3) partitions, then one more at a time until the
+    choice is settled, at most ``CV_REPEATS`` (8). Settled: every comparison the rule makes (a
+    candidate's median against ``1 - SELECT_MARGIN`` times the best simpler one's) is decided beyond
+    the two medians' 90 % intervals combined (``median_half_width``, relative, in quadrature), and no
+    candidate has some but not all of its partitions failed (a candidate whose every partition failed
+    is refused). Returns the chosen calibration and ``{"k", "repeats", "repeats_rule", "chosen",
+    "candidates", "cross_validation", "rule"}``; raises CrossValidationError when no candidate can
+    be cross-validated.
 
     ``reject_views``: each candidate's full calibration removes its influential views
     (``calibrate(reject_views=True)``; not the splined model's solver) and its folds are made of the
     views it kept.
     """
+    _check_repeats(repeats)
     rows: list[dict[str, Any]] = []
-    results: list[tuple[IntrinsicsResult, dict[str, Any]] | None] = []
+    runs: list[_Run | None] = []
     for model, warp in candidates:
         row: dict[str, Any] = {"model": model, "board_warp": warp}
         try:
             full = calibrate(detections, target, model, image_size=image_size, drop_outliers=drop_outliers,
                              board_warp=warp, reject_views=reject_views and model != "splined")
-            cv = cross_validate(detections, target, model, k, image_size=image_size, drop_outliers=drop_outliers,
-                                full=full, board_warp=warp, repeats=repeats)
+            runs.append(_Run(detections, target, model, k, image_size, drop_outliers, full, warp, _most(repeats)))
         except IntrinsicsError as exc:
             row["refused"] = str(exc)
-            rows.append(row)
+            runs.append(None)
+        rows.append(row)
+    live = [r for r in runs if r is not None]
+    first = CV_MIN_REPEATS if repeats == "auto" else int(repeats)
+    for _ in range(min(first, _most(repeats))):
+        for run in live:
+            run.draw()
+    if repeats == "auto":
+        out: set[int] = set()          # candidates that cannot be chosen: they draw no more
+        while True:
+            out |= _out_of_the_race(live)
+            drawing = [r for i, r in enumerate(live) if i not in out and len(r.parts) < CV_REPEATS]
+            if not drawing or _settled([r for i, r in enumerate(live) if i not in out]):
+                break
+            for run in drawing:
+                run.draw()
+    drawn = max((len(r.parts) for r in live), default=0)
+    rule = ("fixed" if repeats != "auto" else
+            f"auto: until the choice is settled beyond the medians' {CV_CONFIDENCE:.0%} intervals, "
+            f"{CV_MIN_REPEATS}-{CV_REPEATS} partitions")
+    results: list[tuple[IntrinsicsResult, dict[str, Any]] | None] = []
+    for row, run in zip(rows, runs, strict=True):
+        if run is None:
             results.append(None)
             continue
+        try:
+            cv = run.summary(rule)
+        except IntrinsicsError as exc:
+            row["refused"] = str(exc)
+            results.append(None)
+            continue
+        full = run.full
         row.update({"rms_px": full.rms_px, "cross_validation_px": cv["projection_difference_rms_px"],
-                    "cross_validation_spread_px": cv["spread_px"], "expected_px": cv["expected_from_uncertainty_px"]})
+                    "cross_validation_spread_px": cv["spread_px"], "expected_px": cv["expected_from_uncertainty_px"],
+                    "cross_validation_interval_px": cv["median_interval_px"], "partitions": cv["repeats"]})
         if cv["failed"]:
             row["partitions_failed"] = len(cv["failed"])
         if full.view_rejection is not None:
             row["views_rejected"] = [r["image"] for r in full.view_rejection["rejected"]]
-        rows.append(row)
         results.append((full, cv))
     best: int | None = None
     chosen: tuple[IntrinsicsResult, dict[str, Any]] | None = None
@@ -201,9 +326,60 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
                                                f"{c['refused']}" for c in rows))
     for i, row in enumerate(rows):
         row["chosen"] = i == best
-    return chosen[0], {"k": k, "repeats": repeats,
+    how = ("" if repeats != "auto" else
+           f" (drawn until the choice was settled beyond the medians' {CV_CONFIDENCE:.0%} intervals, "
+           f"{CV_MIN_REPEATS}-{CV_REPEATS})")
+    return chosen[0], {"k": k, "repeats": drawn, "repeats_rule": rule,
                        "chosen": {"model": rows[best]["model"], "board_warp": rows[best]["board_warp"]},
                        "candidates": rows, "cross_validation": chosen[1],
                        "rule": f"smallest median {k}-fold projection difference over the covered region, over "
-                               f"{repeats} partitions of the views; a richer candidate must beat a simpler one "
-                               f"by {SELECT_MARGIN:.0%}"}
+                               f"{drawn} partitions of the views{how}; a richer candidate must beat a simpler "
+                               f"one by {SELECT_MARGIN:.0%}"}
+
+
+def _interval(run: _Run) -> tuple[float, float] | None:
+    """(log median, log half-width) of a run whose partitions all solved, else None."""
+    per = run.per()
+    if not all(math.isfinite(v) for v in per):
+        return None
+    return math.log(float(np.median(per))), median_half_width(per)
+
+
+def _out_of_the_race(runs: Sequence[_Run]) -> set[int]:
+    """Indices of the runs that cannot be chosen whatever more partitions give: every partition
+    failed (refused), or a simpler run's median beats theirs by more than ``SELECT_MARGIN`` beyond
+    both 90 % intervals (upper end of the simpler one's < (1 - margin) x lower end of theirs). Such a
+    run never becomes the best in the selection's pass either (the best it meets is at most the
+    simpler one's median / (1 - margin)), so its median does not change the choice."""
+    out = {i for i, r in enumerate(runs) if r.all_failed()}
+    iv = [_interval(r) for r in runs]
+    for i, a in enumerate(iv):
+        if a is None or i in out:
+            continue
+        for b in iv[:i]:
+            if b is not None and b[0] + b[1] < math.log1p(-SELECT_MARGIN) + a[0] - a[1]:
+                out.add(i)
+                break
+    return out
+
+
+def _settled(runs: Sequence[_Run]) -> bool:
+    """Whether the choice among ``runs`` (same partitions drawn) is settled: the selection's
+    comparisons, replayed on the current medians, are each decided beyond the 90 % intervals."""
+    best: tuple[float, float] | None = None           # (log median, log half-width) of the best so far
+    for run in runs:
+        if run.all_failed():
+            continue                                   # refused whatever follows
+        per = run.per()
+        if not all(math.isfinite(v) for v in per):
+            return False                               # some failed: only more partitions can say
+        m, h = math.log(float(np.median(per))), median_half_width(per)
+        if best is None:
+            best = (m, h)
+            continue
+        gap = m - (math.log1p(-SELECT_MARGIN) + best[0])
+        if abs(gap) < math.hypot(h, best[1]):
+            return False
+        if gap < 0:
+            best = (m, h)
+    return True

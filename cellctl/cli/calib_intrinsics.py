@@ -44,9 +44,11 @@ def register(sub: Any) -> None:
     p.add_argument("--cross-validate", type=int, metavar="K", default=2,
                    help="k-fold cross-validation: projection difference between fold solutions over the covered "
                         "region (default 2: split-half; 0: off); the verdict uses it")
-    p.add_argument("--cross-validate-repeats", type=int, metavar="R", default=None,
-                   help="partitions of the views the cross-validation draws (default 8: view i in fold i mod K, "
-                        "then seeded random ones); it reports, chooses and judges by their median")
+    p.add_argument("--cross-validate-repeats", metavar="R", default="auto",
+                   help="partitions of the views the cross-validation draws (view i in fold i mod K, then seeded "
+                        "random ones); it reports, chooses and judges by their median. auto (default): 3, then "
+                        "more until the choice (or the median, for one model) is settled by the medians' 90%% "
+                        "intervals, at most 8; a count R: exactly R")
     p.add_argument("--drop-outliers", action="store_true",
                    help="drop outlier views and points (the rule is in calibration/intrinsics/) and re-solve")
     p.add_argument("--reject-views", choices=["influence", "off"], default="influence",
@@ -120,8 +122,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     if args.cross_validate and args.cross_validate < 2:
         raise CommandError("--cross-validate K needs K >= 2")
-    if args.cross_validate_repeats is not None and args.cross_validate_repeats < 1:
-        raise CommandError("--cross-validate-repeats R needs R >= 1")
+    if args.cross_validate_repeats != "auto":
+        try:
+            args.cross_validate_repeats = int(args.cross_validate_repeats)
+        except ValueError:
+            raise CommandError(f"--cross-validate-repeats R needs a count R >= 1 or auto, not "
+                               f"{args.cross_validate_repeats!r}") from None
+        if args.cross_validate_repeats < 1:
+            raise CommandError("--cross-validate-repeats R needs R >= 1")
     if args.model == "auto" and not args.cross_validate:
         raise CommandError("--model auto chooses by cross-validation: give --cross-validate K >= 2")
     if args.export_halcon and args.model != "division":
@@ -195,7 +203,7 @@ def _calibrate(args: argparse.Namespace, dets: list[Any], target: Any
 
     cands = _candidates(args)
     k = args.cross_validate
-    repeats = args.cross_validate_repeats or intrinsics.CV_REPEATS
+    repeats = args.cross_validate_repeats
     reject = args.reject_views == "influence"
     if k and len(cands) > 1:
         try:

@@ -113,3 +113,76 @@ def test_selection_reports_the_partitions_and_refuses_a_candidate_with_the_reaso
     assert div["chosen"] and len(div["cross_validation_spread_px"]) == 2
     assert "3 of 3 partitions" in o8["refused"] and "cannot carry the opencv8 model" in o8["refused"]
     assert sel["cross_validation"]["repeats"] == 3
+
+
+# -- the automatic count (repeats="auto"): a sequential rule over the candidates jointly --------------------------
+
+def test_the_medians_interval_is_the_t_scaled_standard_error_of_a_median_of_logs() -> None:
+    from scipy.stats import t
+
+    v = [0.2, 0.3, 0.25, 0.4]
+    sd = float(np.std(np.log(v), ddof=1))
+    assert crossval.median_half_width(v) == pytest.approx(t.ppf(0.95, 3) * np.sqrt(np.pi / 2) * sd / 2.0)
+    assert crossval.median_half_width([0.3, 0.3, 0.3]) == 0.0                   # no scatter: settled
+    assert crossval.median_half_width([0.3]) == np.inf                           # one value says nothing
+    assert crossval.median_half_width([0.3, np.inf, 0.2]) == np.inf              # a failed partition
+    # more partitions of the same scatter: a narrower interval
+    assert crossval.median_half_width(v * 2) < crossval.median_half_width(v)
+
+
+def _strong_division(seed: int) -> list[Detection]:
+    truth = CameraModel("division", 1280, 960, np.array([[700.0, 0, 640], [0, 700.0, 480], [0, 0, 1]]),
+                        np.array([-0.35]))
+    rng = np.random.default_rng(seed)
+    return synthetic_detections(truth, BOARD, plan_views(truth, BOARD, 14, rng), 0.3, rng)
+
+
+def test_auto_stops_early_when_the_choice_is_plain_and_chooses_as_eight_fixed_partitions() -> None:
+    # a strong wide-angle lens: opencv5 cannot describe it, its halves differ by px; division's by tenths
+    dets = _strong_division(1)
+    cands = [("opencv5", False), ("division", False)]
+    res, sel = select_by_cross_validation(dets, BOARD, cands)
+    assert crossval.CV_MIN_REPEATS <= sel["repeats"] < crossval.CV_REPEATS
+    assert sel["repeats_rule"].startswith("auto") and f"over {sel['repeats']} partitions" in sel["rule"]
+    assert sel["chosen"] == {"model": "division", "board_warp": False}
+    o5, div = sel["candidates"]
+    lo5, _ = o5["cross_validation_interval_px"]
+    _, hi = div["cross_validation_interval_px"]
+    assert hi < (1 - crossval.SELECT_MARGIN) * lo5            # settled beyond both intervals (the stated rule)
+    assert div["partitions"] == sel["repeats"] == len(sel["cross_validation"]["per_partition_rms_px"])
+    _, fixed = select_by_cross_validation(dets, BOARD, cands, repeats=8)
+    assert fixed["repeats"] == 8 and fixed["repeats_rule"] == "fixed" and fixed["chosen"] == sel["chosen"]
+
+
+def test_auto_draws_all_eight_when_the_candidates_are_close() -> None:
+    # a flat board: the warp's two heights are ~0, the two candidates' medians are within each other's scatter
+    dets = _strong_division(1)
+    res, sel = select_by_cross_validation(dets, BOARD, [("division", False), ("division", True)])
+    assert sel["repeats"] == crossval.CV_REPEATS
+    assert all(c["partitions"] == crossval.CV_REPEATS for c in sel["candidates"])
+    assert sel["chosen"] == {"model": "division", "board_warp": False}
+
+
+def test_auto_for_one_model_stops_once_its_median_is_known_to_the_margin() -> None:
+    dets = _data(5)
+    cv = cross_validate(dets, BOARD, "division", 2)
+    per = cv["per_partition_rms_px"]
+    assert crossval.CV_MIN_REPEATS <= cv["repeats"] == len(per) <= crossval.CV_REPEATS
+    settled = [crossval.median_half_width(per[:n]) <= np.log1p(crossval.SELECT_MARGIN)
+               for n in range(crossval.CV_MIN_REPEATS, len(per) + 1)]
+    assert not any(settled[:-1])                               # it did not go on past the rule's stop ...
+    assert settled[-1] or len(per) == crossval.CV_REPEATS      # ... nor stop before it
+    with pytest.raises(IntrinsicsError, match="or 'auto'"):
+        cross_validate(dets, BOARD, "division", 2, repeats="some")  # type: ignore[arg-type]
+
+
+def test_a_candidate_out_of_the_race_stops_drawing_and_the_choice_is_the_fixed_ones() -> None:
+    # opencv5 after division on a lens it cannot describe: beaten by the simpler one beyond both intervals
+    dets = _strong_division(1)
+    cands = [("division", False), ("division", True), ("opencv5", False)]
+    _, sel = select_by_cross_validation(dets, BOARD, cands)
+    div, warp, o5 = sel["candidates"]
+    assert o5["partitions"] < div["partitions"] == warp["partitions"] == sel["repeats"] == crossval.CV_REPEATS
+    assert div["cross_validation_interval_px"][1] < (1 - crossval.SELECT_MARGIN) * o5["cross_validation_interval_px"][0]
+    _, fixed = select_by_cross_validation(dets, BOARD, cands, repeats=8)
+    assert fixed["chosen"] == sel["chosen"] == {"model": "division", "board_warp": False}
