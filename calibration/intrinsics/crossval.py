@@ -1,4 +1,17 @@
-"""k-fold cross-validation of an intrinsics calibration (mrcal's idea)."""
+"""k-fold cross-validation of an intrinsics calibration (mrcal's idea), over several partitions of the
+views, and choosing the lens model and board warp by it.
+
+How many partitions (``repeats``): a fixed count, or ``"auto"`` (the default), a sequential rule.
+Draw ``CV_MIN_REPEATS`` (3), then one more at a time, at most ``CV_REPEATS`` (8), until the
+medians are known well enough. A median's uncertainty is its 90 % interval from the partitions'
+own scatter (``median_half_width``: sqrt(pi/2) s / sqrt(n) with ``s`` the standard deviation of the
+log differences, times Student's t, n - 1 degrees of freedom).
+- One model (``cross_validate``): until the interval is within +-``SELECT_MARGIN`` (10 %).
+- Choosing (``select_by_cross_validation``), over the candidates jointly: every candidate draws the
+  same partitions, until every comparison the rule makes is decided beyond the two intervals. A
+  candidate a simpler one beats by the margin beyond both intervals cannot be chosen and stops
+  drawing; this does not change the choice (it never becomes the best in the selection's pass).
+"""
 
 from __future__ import annotations
 
@@ -38,7 +51,7 @@ Repeats = int | Literal["auto"]
 """``repeats`` of cross-validation: a fixed count of partitions, or ``"auto"`` (the sequential rule)."""
 
 
-def median_half_width(values: Sequence[float], confidence: float = CV_CONFIDENCE) -> float:
+def median_half_width(values: Sequence[float] | np.ndarray, confidence: float = CV_CONFIDENCE) -> float:
     """Half-width, in log units (relative), of the ``confidence`` interval of the median of
     ``values`` (projection differences, px, one per partition): the sample median's standard error
     sqrt(pi/2) * s / sqrt(n) with ``s`` the standard deviation of log(values) (a log-normal scatter:
@@ -295,17 +308,17 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
             f"auto: until the choice is settled beyond the medians' {CV_CONFIDENCE:.0%} intervals, "
             f"{CV_MIN_REPEATS}-{CV_REPEATS} partitions")
     results: list[tuple[IntrinsicsResult, dict[str, Any]] | None] = []
-    for row, run in zip(rows, runs, strict=True):
-        if run is None:
+    for row, done in zip(rows, runs, strict=True):
+        if done is None:
             results.append(None)
             continue
         try:
-            cv = run.summary(rule)
+            cv = done.summary(rule)
         except IntrinsicsError as exc:
             row["refused"] = str(exc)
             results.append(None)
             continue
-        full = run.full
+        full = done.full
         row.update({"rms_px": full.rms_px, "cross_validation_px": cv["projection_difference_rms_px"],
                     "cross_validation_spread_px": cv["spread_px"], "expected_px": cv["expected_from_uncertainty_px"],
                     "cross_validation_interval_px": cv["median_interval_px"], "partitions": cv["repeats"]})
