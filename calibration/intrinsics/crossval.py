@@ -290,8 +290,7 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
             runs.append(None)
         rows.append(row)
     live = [r for r in runs if r is not None]
-    first = CV_MIN_REPEATS if repeats == "auto" else int(repeats)
-    for _ in range(min(first, _most(repeats))):
+    for _ in range(CV_MIN_REPEATS if repeats == "auto" else int(repeats)):
         for run in live:
             run.draw()
     if repeats == "auto":
@@ -383,10 +382,10 @@ def _settled(runs: Sequence[_Run]) -> bool:
     for run in runs:
         if run.all_failed():
             continue                                   # refused whatever follows
-        per = run.per()
-        if not all(math.isfinite(v) for v in per):
+        iv = _interval(run)
+        if iv is None:
             return False                               # some failed: only more partitions can say
-        m, h = math.log(float(np.median(per))), median_half_width(per)
+        m, h = iv
         if best is None:
             best = (m, h)
             continue
