@@ -37,7 +37,6 @@ refinement (``matchTemplate`` is translation-only, ``matchShapes`` gives no pose
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -46,6 +45,7 @@ from numpy.typing import NDArray
 
 from vision.image import F64, U8, as_gray, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
+from vision.shape.frame import match_at_origin, origin_at
 from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
 from vision.shape.patch import TeachPatch
@@ -354,32 +354,15 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
             why = verify(lm, r.q, r.detail, r.grad_noise, lower, r.score, sp.min_surround).rejected_because
             best.verdict = why or "pass"
     if model.origin != (0.0, 0.0):
-        final = [_at_origin(model.origin, mt) for mt in final]
+        final = [match_at_origin(model.origin, mt) for mt in final]
         for x in rejected:
-            x.u_px, x.v_px = _moved(model.origin, x.u_px, x.v_px, x.angle_deg, 1.0, x.mirrored)
+            x.u_px, x.v_px = origin_at(model.origin, x.u_px, x.v_px, x.angle_deg, 1.0, x.mirrored)
         if best is not None and low is not None:
-            best.u_px, best.v_px = _moved(model.origin, best.u_px, best.v_px, best.angle_deg, low[0].pose.scale, low[1])
+            best.u_px, best.v_px = origin_at(model.origin, best.u_px, best.v_px, best.angle_deg, low[0].pose.scale,
+                                             low[1])
     stats["t_total_s"] = clock.elapsed()
     stats["cpu_total_s"] = clock.cpu()
     return FindResult(final, timed_out, clock.elapsed(), stats, best, sp.min_score, rejected)
-
-
-def _moved(origin: tuple[float, float], u: float, v: float, angle_deg: float, scale: float, mirrored: bool
-           ) -> tuple[float, float]:
-    """Where the model's ``origin`` (``ShapeModel.origin``) lies for a pose of its ROI centre at (u, v)."""
-    ox = -origin[0] if mirrored else origin[0]
-    a = math.radians(angle_deg)
-    c, s = math.cos(a), math.sin(a)
-    return u + scale * (c * ox + s * origin[1]), v + scale * (-s * ox + c * origin[1])
-
-
-def _at_origin(origin: tuple[float, float], mt: Match) -> Match:
-    """``mt`` reported at the model's origin: the point moved with the match's turn and scale, and its
-    1-sigma widened by the turn's 1-sigma times the origin's distance from the ROI centre (the two are
-    nearly independent where the origin is the part's centre)."""
-    u, v = _moved(origin, mt.u_px, mt.v_px, mt.angle_deg, mt.scale, mt.mirrored)
-    arm = mt.scale * math.hypot(*origin) * math.radians(mt.sigma_angle_deg)
-    return replace(mt, u_px=u, v_px=v, sigma_px=math.hypot(mt.sigma_px, arm) if math.isfinite(arm) else mt.sigma_px)
 
 
 def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist: float, pyr: list[U8]
