@@ -75,8 +75,9 @@ REG_SHARE: Final = 1e-3
 PRIOR_PX: Final = 3.0
 """A control value this many pixels off the start model's costs as one observation off by its noise: a
 knot with many points follows them, one the data barely see follows the start (parametric) lens."""
-PRIOR_PASSES: Final = 1
-"""Re-solves with the prior's widths from the data (``splined_prior``) at most."""
+PRIOR_PASSES: Final = 3
+"""Re-solves with the prior's widths from the data (``splined_prior``) at most: its fixed point (a pass that
+widens no ring by more than 10 % ends it; on mrcal's fisheye corners 3 -> 4.4 -> 5.5 px in one ring)."""
 TYPICAL_CURVATURE: Final = 0.05
 """A typical second difference of the control values (a fisheye's ~0.06 at the grid's edge)."""
 
