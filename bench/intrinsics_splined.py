@@ -217,6 +217,7 @@ def fisheye_gap() -> None:
     R0, t0 = Rotation.from_rotvec(fr[:, :3]).as_matrix(), fr[:, 3:].copy()
     w = np.concatenate([lw[v.index] for v in views])
     prob.sigma_px = 0.6
+    prob.wp = np.asarray(m["calobject_warp"], dtype=np.float64).copy()
     prob.c0 = x0[4:].copy()                               # a prior, where on, pulls to mrcal's own solution
 
     def wrms(x: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
