@@ -226,28 +226,35 @@ def fisheye_gap() -> None:
     obs = m["observations_board"].reshape(-1, 3)
     print({"at mrcal's solution": "its points", "points": int(np.sum(obs[:, 2] > 0)), "ours": len(w),
            "weighted_per_coordinate (our model)": round(wrms(x0, R0, t0), 5)}, flush=True)
+
+    def regularise(prior_px: float, share: float, gauge: float) -> None:
+        """The solver's regularisation constants for this study (restored after it)."""
+        for k, v in (("PRIOR_PX", prior_px), ("REG_SHARE", share), ("GAUGE_WEIGHT", gauge)):
+            setattr(ss, k, v)
+
     saved = ss.PRIOR_PX, ss.REG_SHARE, ss.GAUGE_WEIGHT
     try:
         for name, prior, share in (("no regularisation", 1e9, 1e-12),
                                    ("our curvature term (REG_SHARE)", 1e9, ss.REG_SHARE)):
-            ss.PRIOR_PX, ss.REG_SHARE, ss.GAUGE_WEIGHT = prior, share, 1e-9
+            regularise(prior, share, 1e-9)
             prob.wp = np.asarray(m["calobject_warp"], dtype=np.float64).copy()
             c0 = time.process_time()
             x, R, t, it = prob.solve(x0.copy(), R0, t0, w, 60)
             print({"our solver from mrcal's solution": name, "weighted_per_coordinate": round(wrms(x, R, t), 5),
                    "iterations": it, "cpu_s": round(time.process_time() - c0, 1)}, flush=True)
     finally:
-        ss.PRIOR_PX, ss.REG_SHARE, ss.GAUGE_WEIGHT = saved
-    for name, kw, reg in (
+        regularise(*saved)
+    configs: list[tuple[str, dict[str, Any], tuple[float, float]]] = [
             ("product grid, no regularisation", {}, (1e9, 1e-12)),
             ("mrcal's grid (30x20, fov 170), no regularisation", {"layout": SplineLayout(30, 20, 170.0)}, (1e9, 1e-12)),
-            ("mrcal's grid, curvature only", {"layout": SplineLayout(30, 20, 170.0)}, (1e9, ss.REG_SHARE))):
-        ss.PRIOR_PX, ss.REG_SHARE = reg
+            ("mrcal's grid, curvature only", {"layout": SplineLayout(30, 20, 170.0)}, (1e9, saved[1]))]
+    for name, kw, reg in configs:
+        regularise(reg[0], reg[1], saved[2])
         try:
             c0 = time.process_time()
             res = calibrate_splined(dets, s.board, image_size=s.size, board_warp=True, point_weights=lw, **kw)
         finally:
-            ss.PRIOR_PX, ss.REG_SHARE, ss.GAUGE_WEIGHT = saved
+            regularise(*saved)
         used = [(v, wv) for v, wv in zip(res.views, lw, strict=True) if v.used]
         print({"cellctl": name, **four_ways([v.residuals_px for v, _ in used], [wv for _, wv in used]),
                "cpu_s": round(time.process_time() - c0, 1)}, flush=True)
@@ -293,7 +300,7 @@ def renders_bias(seeds: list[int], n_views: int = 8, reps: int = 4) -> None:
             left.append(mu_all[:, a] - A @ beta)
         print({"seed": seed, "corners": int(ok.sum()), "renders per pose": reps,
                "noise_rms_px": round(float(np.sqrt(n2 * reps)), 5), "bias_rms_px": round(bias, 5),
-               "bias_after_pixel_phase_px": round(float(np.sqrt(max(np.mean(np.square(left)) - n2, 0.0))), 5)},
+               "bias_after_pixel_phase_px": round(float(np.sqrt(max(float(np.mean(np.square(left))) - n2, 0.0))), 5)},
               flush=True)
 
 
