@@ -51,6 +51,7 @@ from bench.pick_cases import (  # noqa: E402
     teach_model,
     teach_one,
     to_reference,
+    with_colour,
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
@@ -209,7 +210,7 @@ def run(with_baseline: bool) -> str:
     for label, k in SIZES.items():
         for case in cases:
             _one_case(scaled(case, k), out, {"original": VARIANTS["original"]}, with_baseline, label)
-    views = _views_section(cases)
+    views = _views_section(cases) + [""] + _colour_section(cases)
     load1 = os.getloadavg()
     return _report(out, with_baseline, load0, load1, views)
 
@@ -240,6 +241,40 @@ def _views_section(cases: list[Case]) -> list[str]:
                 name = vname if k == 1.0 else label
                 out.append(f"| {case.id}, one ROI | {name} | {t.expected} | {t.found} | {t.false} | {_max(t.pos)} | "
                            f"{t.over} / {t.bad} | {_med(t.cpu_ms):.1f} |")
+    return out
+
+
+def _colour_section(cases: list[Case]) -> list[str]:
+    """The cases whose model ``TeachParams(colour="auto")`` makes of a colour channel (``vision.shape.colour``:
+    the screw heads), taught so from their several views and from their one ROI, every variant and size,
+    beside the grey model of the main tables."""
+    out = ["## Colour (`TeachParams(colour=\"auto\")`, `vision.shape.colour`)",
+           "",
+           "The main tables teach and search the grey value (the default). Here the cases whose automatic "
+           "colour choice takes the chroma channel (the part against its background with the background's own "
+           "colour, and so its shading, projected out: the screw heads; every other case stays grey), taught "
+           "and searched in colour (B, G, R images), from their several views and from their one ROI, every "
+           "variant and size ('texture' adds the same grey texture to every channel). CPU ms: `shape.find`'s "
+           "own, the projection included.", "",
+           "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for base in cases:
+        case = with_colour(base, "auto")
+        if not case.colour:
+            continue
+        for views, teach_fn in (("several views", teach_model), ("one ROI", teach_one)):
+            for label, k in [("original size", 1.0), *SIZES.items()]:
+                c = case if k == 1.0 else scaled(case, k)
+                model = teach_fn(c)
+                variants = VARIANTS if k == 1.0 else {"original": VARIANTS["original"]}
+                for vname, fn in variants.items():
+                    t = Tally()
+                    for test in c.tests:
+                        ours, ms, cpu, _ = _ours(model, fn(c.test_image(test)), False)
+                        t.add(score(c, test, ours), ms, cpu)
+                    name = vname if k == 1.0 else label
+                    out.append(f"| {case.id}, {views}, colour | {name} | {t.expected} | {t.found} | {t.false} | "
+                               f"{_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} |")
     return out
 
 

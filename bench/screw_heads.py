@@ -25,7 +25,11 @@ images, taught from ``11_1111.jpg``):
    part turns), one fixed in the part's frame the model's. (``centre_spread`` measures the old colour
    centre's own spread: 0.3-2.6 px.)
 
-Run: ``.venv/bin/python bench/screw_heads.py [--errors]`` (about a minute; prints a Markdown table).
+4. **Colour** (``--errors --colour chroma|auto|grey --views 1|4``): the same with the model taught on a
+   channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default grey).
+
+Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]]`` (about a minute;
+prints a Markdown table).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.pick_cases import Case, load_cases, read_grey, teach_model  # noqa: E402
+from bench.pick_cases import Case, load_cases, read_grey, teach_model, teach_one, with_colour  # noqa: E402
 from vision import shape  # noqa: E402
 from vision.image import F64, gradients  # noqa: E402
 from vision.shape.model import LevelModel, TeachParams  # noqa: E402
@@ -136,14 +140,17 @@ def centre_spread(path: Path, x: float, y: float) -> tuple[float, float]:
     return float(dev[0]), float(dev[1])
 
 
-def errors(case: Case) -> None:
+def errors(case: Case, views: int = 4) -> None:
     """Item 3 of the module: each found head's error against the rim reference (``bench/screw_rim.py``:
-    method A, the corpus's ``measured_estimate``, and method B), in the image's and the part's frame."""
+    method A, the corpus's ``measured_estimate``, and method B), in the image's and the part's frame; the
+    model taught from ``views`` heads of the teach image (1 or 4) with ``case.colour_mode``."""
     from bench.screw_rim import measure
 
-    model = teach_model(case)
-    print(f"model: {len(case.more_rois) + 1} teach views; it reports the point {model.origin[0]:+.2f}, "
-          f"{model.origin[1]:+.2f} px from its ROI centre (the views' rim centres, vision.shape.frame)\n")
+    model = teach_model(case) if views > 1 else teach_one(case)
+    cpu: list[float] = []
+    print(f"model: {views} teach views, colour={case.colour_mode!r} (its channel: {model.colour}); it reports "
+          f"the point {model.origin[0]:+.2f}, {model.origin[1]:+.2f} px from its ROI centre (the views' rim "
+          "centres, vision.shape.frame)\n")
     print("| image | head (rim A) | found angle deg | score | error vs A, image frame px | error vs A, part frame px "
           "| error vs A px | error vs B px | A - B px | reported sigma px |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -152,7 +159,9 @@ def errors(case: Case) -> None:
     eb: list[float] = []
     ratio: list[float] = []
     for t in case.tests:
-        res = shape.find(model, case.test_image(t))
+        img = case.test_image(t)
+        res = shape.find(model, img)
+        cpu.append(res.stats["cpu_total_s"] * 1e3)
         for i in t.instances:
             _, (bx, by) = measure(t.path, i.x, i.y)
             near = [m for m in res.matches if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30]
@@ -178,6 +187,8 @@ def errors(case: Case) -> None:
             about = math.sqrt(float(((e - mean) ** 2).sum(axis=1).mean()))
             print(f"\n{name} frame: mean error ({mean[0]:+.2f}, {mean[1]:+.2f}) px, RMS about it {about:.2f} px "
                   f"(RMS |error| {math.sqrt(float((e ** 2).sum(axis=1).mean())):.2f} px, {len(e)} heads)")
+    print(f"\nfound {len(img_e)} of {sum(len(t.instances) for t in case.tests)}; search CPU ms per image "
+          f"(shape.find's own, the colour projection included): {', '.join(f'{c:.0f}' for c in cpu)}")
     if eb:
         print(f"against B: RMS |error| {math.sqrt(float((np.array(eb) ** 2).mean())):.2f} px")
         r = np.array(ratio)
@@ -186,8 +197,11 @@ def errors(case: Case) -> None:
 
 
 def main() -> None:
-    if "--errors" in sys.argv[1:]:
-        errors(next(c for c in load_cases() if c.id == "robertson_screw_heads"))
+    args = sys.argv[1:]
+    if "--errors" in args:
+        mode = args[args.index("--colour") + 1] if "--colour" in args else "grey"
+        views = int(args[args.index("--views") + 1]) if "--views" in args else 4
+        errors(with_colour(next(c for c in load_cases() if c.id == "robertson_screw_heads"), mode), views)
         return
     case: Case = next(c for c in load_cases() if c.id == "robertson_screw_heads")
     u, v, w, h = case.roi
