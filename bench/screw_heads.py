@@ -47,6 +47,7 @@ from bench.pick_cases import Case, load_cases, read_grey, teach_model, teach_one
 from vision import shape  # noqa: E402
 from vision.image import F64, gradients  # noqa: E402
 from vision.shape.model import LevelModel, TeachParams  # noqa: E402
+from vision.shape.rim import rim_centre  # noqa: E402
 from vision.shape.score import direction_detail  # noqa: E402
 
 WINDOW_PX = 150
@@ -152,8 +153,12 @@ def errors(case: Case, views: int = 4) -> None:
           f"the point {model.origin[0]:+.2f}, {model.origin[1]:+.2f} px from its ROI centre (the views' rim "
           "centres, vision.shape.frame)\n")
     print("| image | head (rim A) | found angle deg | score | error vs A, image frame px | error vs A, part frame px "
-          "| error vs A px | error vs B px | A - B px | reported sigma px |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| error vs A px | error vs B px | A - B px | reported sigma px | rim fit: error vs A px | vs B px "
+          "| sigma px |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    rim_a: list[float] = []
+    rim_b: list[float] = []
+    rim_ratio: list[float] = []
     img_e: list[tuple[float, float]] = []
     part_e: list[tuple[float, float]] = []
     eb: list[float] = []
@@ -167,7 +172,7 @@ def errors(case: Case, views: int = 4) -> None:
             near = [m for m in res.matches if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30]
             if not near:
                 print(f"| {t.path.name} | ({i.x:.2f}, {i.y:.2f}) | not found | - | - | - | - | - | "
-                      f"{math.hypot(bx - i.x, by - i.y):.2f} | - |")
+                      f"{math.hypot(bx - i.x, by - i.y):.2f} | - | - | - | - |")
                 continue
             m = min(near, key=lambda m: math.hypot(m.u_px - i.x, m.v_px - i.y))
             ex, ey = m.u_px - i.x, m.v_px - i.y
@@ -177,10 +182,17 @@ def errors(case: Case, views: int = 4) -> None:
             part_e.append((px, py))
             eb.append(math.hypot(m.u_px - bx, m.v_px - by))
             ratio.append(math.hypot(ex, ey) / (math.sqrt(2) * m.sigma_px))
+            rf = rim_centre(model, img, m)
+            rim_cells = "- | - | -"
+            if rf is not None:
+                rim_a.append(math.hypot(rf.u_px - i.x, rf.v_px - i.y))
+                rim_b.append(math.hypot(rf.u_px - bx, rf.v_px - by))
+                rim_ratio.append(rim_a[-1] / (math.sqrt(2) * rf.sigma_px))
+                rim_cells = f"{rim_a[-1]:.2f} | {rim_b[-1]:.2f} | {rf.sigma_px:.2f}"
             print(f"| {t.path.name} | ({i.x:.2f}, {i.y:.2f}) | {m.angle_deg:.1f} | {m.score:.2f} | "
                   f"({ex:+.2f}, {ey:+.2f}) | "
                   f"({px:+.2f}, {py:+.2f}) | {math.hypot(ex, ey):.2f} | {eb[-1]:.2f} | "
-                  f"{math.hypot(bx - i.x, by - i.y):.2f} | {m.sigma_px:.2f} |")
+                  f"{math.hypot(bx - i.x, by - i.y):.2f} | {m.sigma_px:.2f} | {rim_cells} |")
     for name, e in (("image", np.array(img_e)), ("part", np.array(part_e))):
         if len(e):
             mean = e.mean(axis=0)
@@ -194,6 +206,12 @@ def errors(case: Case, views: int = 4) -> None:
         r = np.array(ratio)
         print(f"|error vs A| / (sqrt(2) reported sigma): RMS {math.sqrt(float((r ** 2).mean())):.2f}, "
               f"{r.min():.2f}-{r.max():.2f} per head")
+    if rim_a:
+        ra, rb, rr = np.array(rim_a), np.array(rim_b), np.array(rim_ratio)
+        print(f"rim fit (vision.shape.rim, {len(ra)} heads): vs A RMS {math.sqrt(float((ra ** 2).mean())):.2f} px "
+              f"({ra.min():.2f}-{ra.max():.2f}), vs B RMS {math.sqrt(float((rb ** 2).mean())):.2f} px; "
+              f"|error vs A| / (sqrt(2) sigma) RMS {math.sqrt(float((rr ** 2).mean())):.2f} "
+              f"({rr.min():.2f}-{rr.max():.2f})")
 
 
 def main() -> None:

@@ -90,3 +90,30 @@ def test_the_chroma_mix_keeps_every_colour_in_range_and_refuses_corrupt_weights(
     assert channel(corners[:, :, 0], mix).tolist() == [[0, 255, 255, 0]]  # a grey image: its grey value
     with pytest.raises(TeachError, match="corrupt"):
         ColourMix.from_dict({"weights_bgr": [1.0, 1.0, 1.0], "offset": 0.0})
+
+
+def test_the_rim_of_a_round_part_is_measured_in_its_colour_channel_with_an_honest_sigma() -> None:
+    """``vision.shape.rim``: on rendered screw heads (a grey disc with a dark socket in orange wood, a
+    one-sided shadow, a light gradient, noise, JPEG: ``bench/screw_rim.render_head``) the rim fit after a
+    chroma model's match lies within 0.3 px of the drawn centre, its 1-sigma neither far above nor far
+    below that; a part without a round outline has no rim to measure."""
+    from bench.screw_rim import render_head
+    from vision.shape.rim import rim_centre
+
+    rng = np.random.default_rng(8)
+    img, cx, cy, _ = render_head(rng)
+    model = shape.teach_many([img], [(cx - 57, cy - 57, 114, 114)], TeachParams(colour="chroma"), centres=[(cx, cy)])
+    ratios = []
+    for _ in range(4):
+        im, x, y, _ = render_head(rng)
+        m = shape.find(model, im).matches[0]
+        fit = rim_centre(model, im, m)
+        assert fit is not None
+        err = math.hypot(fit.u_px - x, fit.v_px - y)
+        assert err < 0.3, err
+        assert fit.n_points > 180 and fit.rms_px < 1.0
+        ratios.append(err / (math.sqrt(2) * fit.sigma_px))
+    assert 0.2 < math.sqrt(float(np.mean(np.square(ratios)))) < 3.0, ratios
+    plate = shape.teach(_scene(160.0, 120.0, 0.0, 1), TEACH_ROI, TeachParams(colour="chroma"))
+    m = shape.find(plate, _scene(100.3, 80.6, 25.0, 2)).matches[0]
+    assert rim_centre(plate, _scene(100.3, 80.6, 25.0, 2), m) is None
