@@ -55,7 +55,7 @@ def test_a_part_seen_only_in_colour_is_taught_and_found_on_its_chroma() -> None:
     # kept in the model file; a file taught before colour models reads as grey
     again = ShapeModel.from_dict(model.to_dict(), model.params, model.roi, model.image_size)
     assert again.colour == model.colour
-    assert TeachParams.from_dict({k: v for k, v in model.params.to_dict().items() if k != "colour"}).colour == "grey"
+    assert "colour" not in TeachParams().to_dict() and TeachParams.from_dict(TeachParams().to_dict()).colour == "grey"
     assert TeachParams.from_dict(model.params.to_dict()).colour == "auto"
     # several views: the projection from all of them, kept by the model
     two = shape.teach_many([teach, _scene(150.0, 110.0, 30.0, 4)], [TEACH_ROI, (110.0, 75.0, 80.0, 70.0)],
@@ -117,3 +117,23 @@ def test_the_rim_of_a_round_part_is_measured_in_its_colour_channel_with_an_hones
     plate = shape.teach(_scene(160.0, 120.0, 0.0, 1), TEACH_ROI, TeachParams(colour="chroma"))
     m = shape.find(plate, _scene(100.3, 80.6, 25.0, 2)).matches[0]
     assert rim_centre(plate, _scene(100.3, 80.6, 25.0, 2), m) is None
+
+
+def test_a_colour_model_file_passes_the_schema_and_reads_back() -> None:
+    """A part model file (``cellctl.pick.model``) holding a colour model: ``teach.params.colour`` and
+    ``shape.colour`` pass the file schema and read back to the same channel; a grey model's file is as
+    before (no colour key)."""
+    import json
+
+    from cellctl.pick import model as pm
+    from cellctl.pick.model_schema import PartModelDoc
+
+    teach = _scene(160.0, 120.0, 0.0, 1)
+    m = pm.PartModel("plate", "shape", TEACH_ROI, (teach.shape[1], teach.shape[0]), None)
+    m.shape = shape.teach(teach, TEACH_ROI, TeachParams(colour="chroma"))
+    d = json.loads(json.dumps(m.to_dict()))
+    assert d["teach"]["params"]["colour"] == "chroma" and "weights_bgr" in d["shape"]["colour"]
+    PartModelDoc.model_validate(d)
+    back = pm.PartModel.from_dict(d)
+    assert back.shape is not None and back.shape.colour == m.shape.colour
+    assert back.shape.params.colour == "chroma"

@@ -93,9 +93,12 @@ class TeachParams:
             raise TeachError(f"colour {self.colour!r} must be one of {', '.join(COLOUR_MODES)}")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
-                "edge_sigma_px": self.edge_sigma_px, "auto_contrast": self.auto_contrast,
-                "min_component_px": self.min_component_px, "colour": self.colour}
+        out: dict[str, Any] = {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
+                               "edge_sigma_px": self.edge_sigma_px, "auto_contrast": self.auto_contrast,
+                               "min_component_px": self.min_component_px}
+        if self.colour != "grey":  # (a grey model's file as before)
+            out["colour"] = self.colour
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TeachParams:
