@@ -119,12 +119,13 @@ def _rays(img: NDArray[np.float32], cx: float, cy: float, r: float, pol: float, 
     d = pol * np.diff(prof, axis=1) / 0.25  # the rim's step, per px, positive with its polarity
     k = np.argmax(d, axis=1)
     peak = d[np.arange(N_RAYS), k]
-    lo, hi = np.clip(k - 4, 0, d.shape[1] - 1), np.clip(k + 4, 0, d.shape[1] - 1)
     tm = 0.5 * (t[:-1] + t[1:])
-    pos = np.empty(N_RAYS)
-    for i in range(N_RAYS):  # the centroid of the derivative's peak (its positive part, +-1 px)
-        seg = np.clip(d[i, lo[i]:hi[i] + 1], 0.0, None)
-        pos[i] = float((seg * tm[lo[i]:hi[i] + 1]).sum() / seg.sum()) if seg.sum() > 0 else tm[k[i]]
+    # the centroid of the derivative's peak (its positive part, +-1 px)
+    j = np.clip(k[:, None] + np.arange(-4, 5)[None, :], 0, d.shape[1] - 1)
+    seg = np.clip(np.take_along_axis(d, j, axis=1), 0.0, None)
+    tot = seg.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pos = np.where(tot > 0, (seg * tm[j]).sum(axis=1) / tot, tm[k])
     ok = (peak >= floor) & (k > 0) & (k < d.shape[1] - 1)
     pts = np.c_[cx + np.cos(phi) * pos, cy + np.sin(phi) * pos]
     return pts[ok], phi[ok]
@@ -137,8 +138,7 @@ def rim_centre(model: ShapeModel, image: NDArray[Any], match: Match) -> RimFit |
     if rim is None:
         return None
     mx, my, r, pol = rim
-    img = channel(image, model.colour)
-    if img.size == 0:
+    if np.asarray(image).size == 0:
         raise ImageError("the image is empty")
     a = math.radians(match.angle_deg)
     R = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
@@ -146,10 +146,19 @@ def rim_centre(model: ShapeModel, image: NDArray[Any], match: Match) -> RimFit |
     # the model's rim centre at the match: the match reports the model's origin
     off = match.scale * (R @ np.array([sx * (mx - model.origin[0]), my - model.origin[1]]))
     cx, cy = match.u_px + float(off[0]), match.v_px + float(off[1])
-    f = cv2.GaussianBlur(img.astype(np.float32), (0, 0), model.params.edge_sigma_px or 1.0)
     reach = max(REACH_PX, 3.0 * (match.sigma_px if math.isfinite(match.sigma_px) else 0.0))
+    # only the rim's neighbourhood is made into the channel and smoothed
+    H, W = np.asarray(image).shape[:2]
+    half = match.scale * r + reach + 8.0
+    x0, y0 = max(int(cx - half), 0), max(int(cy - half), 0)
+    x1, y1 = min(int(cx + half) + 2, W), min(int(cy + half) + 2, H)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    img = channel(np.asarray(image)[y0:y1, x0:x1], model.colour)
+    f = cv2.GaussianBlur(img.astype(np.float32), (0, 0), model.params.edge_sigma_px or 1.0)
     floor = model.params.min_contrast * GRAD_PER_CONTRAST
-    pts, phi = _rays(f, cx, cy, match.scale * r, pol, reach, floor)
+    pts, phi = _rays(f, cx - x0, cy - y0, match.scale * r, pol, reach, floor)
+    pts = pts + (x0, y0)
     if len(pts) < N_RAYS // 4:
         return None
     ux, uy, rr, inl, res = robust_circle(pts)
