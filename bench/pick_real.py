@@ -55,6 +55,7 @@ from bench.pick_cases import (  # noqa: E402
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
+from vision.shape.rim import rim_centre  # noqa: E402
 from vision.types import Match, SearchParams  # noqa: E402
 
 MIN_SCORE = SearchParams().min_score
@@ -256,8 +257,11 @@ def _colour_section(cases: list[Case]) -> list[str]:
            "and searched in colour (B, G, R images), from their several views and from their one ROI, every "
            "variant and size ('texture' adds the same grey texture to every channel). CPU ms: `shape.find`'s "
            "own, the projection included.", "",
-           "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+           "'rim fit': the rim measured after each found head's match (`vision.shape.rim.rim_centre`), its "
+           "distance from the estimate (RMS, largest) and actual / reported 1-sigma (RMS).", "",
+           "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms "
+           "| rim fit: RMS / max err px | rim fit: actual / reported |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for base in cases:
         case = with_colour(base, "auto")
         if not case.colour:
@@ -269,13 +273,29 @@ def _colour_section(cases: list[Case]) -> list[str]:
                 variants = VARIANTS if k == 1.0 else {"original": VARIANTS["original"]}
                 for vname, fn in variants.items():
                     t = Tally()
+                    rim_err: list[float] = []
+                    rim_ratio: list[float] = []
                     for test in c.tests:
-                        ours, ms, cpu, _ = _ours(model, fn(c.test_image(test)), False)
+                        img = fn(c.test_image(test))
+                        got: list[Match] = []
+                        ours, ms, cpu, _ = _ours(model, img, False, got)
                         t.add(score(c, test, ours), ms, cpu)
+                        for i in test.instances:
+                            near = [m for m in got if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30.0 * c.scale]
+                            fit = rim_centre(model, img, near[0]) if near else None
+                            if fit is not None:
+                                rim_err.append(math.hypot(fit.u_px - i.x, fit.v_px - i.y))
+                                rim_ratio.append(rim_err[-1] / (math.sqrt(2.0) * fit.sigma_px))
                     name = vname if k == 1.0 else label
+                    rims = (f"{_rms(rim_err):.2f} / {max(rim_err):.2f} ({len(rim_err)}) | {_rms(rim_ratio):.2f}"
+                            if rim_err else "- | -")
                     out.append(f"| {case.id}, {views}, colour | {name} | {t.expected} | {t.found} | {t.false} | "
-                               f"{_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} |")
+                               f"{_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} | {rims} |")
     return out
+
+
+def _rms(xs: list[float]) -> float:
+    return math.sqrt(sum(x * x for x in xs) / len(xs)) if xs else float("nan")
 
 
 def _targets(r: Run, with_baseline: bool) -> list[str]:

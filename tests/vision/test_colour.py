@@ -113,6 +113,10 @@ def test_the_rim_of_a_round_part_is_measured_in_its_colour_channel_with_an_hones
         assert err < 0.3, err
         assert fit.n_points > 180 and fit.rms_px < 1.0
         ratios.append(err / (math.sqrt(2) * fit.sigma_px))
+    # a reversed contrast (the search ignores local polarity): the rim is measured with its polarity reversed
+    inv = np.asarray(255 - im, dtype=np.uint8)
+    fit = rim_centre(model, inv, shape.find(model, inv).matches[0])
+    assert fit is not None and math.hypot(fit.u_px - x, fit.v_px - y) < 0.3
     assert 0.2 < math.sqrt(float(np.mean(np.square(ratios)))) < 3.0, ratios
     plate = shape.teach(_scene(160.0, 120.0, 0.0, 1), TEACH_ROI, TeachParams(colour="chroma"))
     m = shape.find(plate, _scene(100.3, 80.6, 25.0, 2)).matches[0]

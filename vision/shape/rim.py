@@ -10,9 +10,11 @@ sees (``ShapeModel.colour``: the chroma of a colour image, else the grey value):
    refused when less than ``MIN_ROUND_SHARE`` of the points lie on it, or they do not go round it, or
    not closely (the part has no rim);
 2. at the match, ``N_RAYS`` rays from the predicted centre; on each, the sub-pixel position (centroid
-   of the derivative's peak, within ``REACH_PX`` of the predicted radius) where the channel changes
-   with the rim's polarity (the model's normals along the outline, dark to bright, outward or inward),
-   kept when the step reaches the model's contrast floor;
+   of the derivative's peak, within ``REACH_PX`` of the predicted radius, or 3 of the match's 1-sigma,
+   but at most ``MAX_REACH_SHARE`` of the radius) where the channel changes with the rim's polarity
+   (the model's normals along the outline, dark to bright, outward or inward; or the reverse, when
+   more rays show that: a part whose contrast is reversed), kept when the step reaches the model's
+   contrast floor;
 3. a robust circle through those points (algebraic fit, Tukey weights on the geometric residual,
    5 rounds); its 1-sigma by a block jackknife over ``N_SECTORS`` sectors of the turn (the circle
    solved again without each; neighbouring rays share the blur, the shading and the texture, which
@@ -41,6 +43,8 @@ N_RAYS = 360
 N_SECTORS = 16
 REACH_PX = 6.0
 """How far (px, radially) from the predicted rim the search along a ray looks, at least."""
+MAX_REACH_SHARE = 0.25
+"""... and at most this share of the rim's radius."""
 MIN_ROUND_SHARE = 0.3
 """A model whose round outline holds fewer of its points than this has no rim to measure."""
 MIN_ROUND_SECTORS = 12
@@ -146,7 +150,9 @@ def rim_centre(model: ShapeModel, image: NDArray[Any], match: Match) -> RimFit |
     # the model's rim centre at the match: the match reports the model's origin
     off = match.scale * (R @ np.array([sx * (mx - model.origin[0]), my - model.origin[1]]))
     cx, cy = match.u_px + float(off[0]), match.v_px + float(off[1])
-    reach = max(REACH_PX, 3.0 * (match.sigma_px if math.isfinite(match.sigma_px) else 0.0))
+    # (never beyond a quarter of the radius: inside it lie the part's own inner edges)
+    reach = min(max(REACH_PX, 3.0 * (match.sigma_px if math.isfinite(match.sigma_px) else 0.0)),
+                MAX_REACH_SHARE * match.scale * r)
     # only the rim's neighbourhood is made into the channel and smoothed
     H, W = np.asarray(image).shape[:2]
     half = match.scale * r + reach + 8.0
@@ -157,7 +163,10 @@ def rim_centre(model: ShapeModel, image: NDArray[Any], match: Match) -> RimFit |
     img = channel(np.asarray(image)[y0:y1, x0:x1], model.colour)
     f = cv2.GaussianBlur(img.astype(np.float32), (0, 0), model.params.edge_sigma_px or 1.0)
     floor = model.params.min_contrast * GRAD_PER_CONTRAST
-    pts, phi = _rays(f, cx - x0, cy - y0, match.scale * r, pol, reach, floor)
+    # the rim's polarity as taught, or reversed (the search ignores local polarity by default): the one
+    # that more rays show
+    found = [_rays(f, cx - x0, cy - y0, match.scale * r, sgn, reach, floor) for sgn in (pol, -pol)]
+    pts, phi = max(found, key=lambda pf: len(pf[0]))
     pts = pts + (x0, y0)
     if len(pts) < N_RAYS // 4:
         return None
