@@ -28,8 +28,11 @@ images, taught from ``11_1111.jpg``):
 4. **Colour** (``--errors --colour chroma|auto|grey --views 1|4``): the same with the model taught on a
    channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default grey).
 
-Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]]`` (about a minute;
-prints a Markdown table).
+5. **The rim fit on renders** (``--rim-renders N``): ``vision.shape.rim`` after a chroma model's match on
+   N rendered heads with known centres.
+
+Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]] [--rim-renders N]``
+(about a minute; prints a Markdown table).
 """
 
 from __future__ import annotations
@@ -214,8 +217,40 @@ def errors(case: Case, views: int = 4) -> None:
               f"({rr.min():.2f}-{rr.max():.2f})")
 
 
+def rim_renders(n: int, seed: int = 8) -> None:
+    """The chroma model and the rim fit (``vision.shape.rim``) on ``n`` rendered heads with known centres
+    (``bench.screw_rim.render_head``; one head taught): RMS and largest error of the match and of the rim,
+    and actual / reported 1-sigma (RMS)."""
+    from bench.screw_rim import render_head
+
+    rng = np.random.default_rng(seed)
+    img, cx, cy, _ = render_head(rng)
+    model = shape.teach_many([img], [(cx - 57, cy - 57, 114, 114)], TeachParams(colour="chroma"), centres=[(cx, cy)])
+    rows: dict[str, tuple[list[float], list[float]]] = {"match": ([], []), "rim fit": ([], [])}
+    for _ in range(n):
+        im, x, y, _ = render_head(rng)
+        res = shape.find(model, im)
+        if not res.matches:
+            continue
+        m = res.matches[0]
+        fit = rim_centre(model, im, m)
+        for name, (u, v, s) in (("match", (m.u_px, m.v_px, m.sigma_px)),
+                                ("rim fit", (fit.u_px, fit.v_px, fit.sigma_px) if fit else (None, None, None))):
+            if u is not None and v is not None and s is not None:
+                e = math.hypot(u - x, v - y)
+                rows[name][0].append(e)
+                rows[name][1].append(e / (math.sqrt(2) * s))
+    for name, (e, r) in rows.items():
+        ea, ra = np.array(e), np.array(r)
+        print(f"{name}: {len(ea)} of {n} heads, RMS {math.sqrt(float((ea ** 2).mean())):.3f} px, largest "
+              f"{ea.max():.3f} px, actual / reported RMS {math.sqrt(float((ra ** 2).mean())):.2f}")
+
+
 def main() -> None:
     args = sys.argv[1:]
+    if "--rim-renders" in args:
+        rim_renders(int(args[args.index("--rim-renders") + 1]))
+        return
     if "--errors" in args:
         mode = args[args.index("--colour") + 1] if "--colour" in args else "grey"
         views = int(args[args.index("--views") + 1]) if "--views" in args else 4
