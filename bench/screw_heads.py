@@ -240,8 +240,8 @@ def rim_renders(n: int, seed: int = 8) -> None:
                 e = math.hypot(u - x, v - y)
                 rows[name][0].append(e)
                 rows[name][1].append(e / (math.sqrt(2) * s))
-    for name, (e, r) in rows.items():
-        ea, ra = np.array(e), np.array(r)
+    for name, (errs, rats) in rows.items():
+        ea, ra = np.array(errs), np.array(rats)
         print(f"{name}: {len(ea)} of {n} heads, RMS {math.sqrt(float((ea ** 2).mean())):.3f} px, largest "
               f"{ea.max():.3f} px, actual / reported RMS {math.sqrt(float((ra ** 2).mean())):.2f}")
 
