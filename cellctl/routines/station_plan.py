@@ -178,11 +178,18 @@ class StationPlanner:
         self.failed.append(np.array(T_base_tool, dtype=np.float64))
 
     def _near_failed(self, T: Mat4) -> bool:
-        for F in self.failed:
-            rot, trans = g.transform_error(T, F)
-            if math.degrees(rot) < NEAR_FAILED_DEG and trans < NEAR_FAILED_M:
-                return True
-        return False
+        """Whether ``T`` is within ``NEAR_FAILED_DEG`` and ``NEAR_FAILED_M`` of a failed station: the
+        rotation angle of ``R_T^T R_F`` (from its trace) and the distance of the origins, for every failed
+        pose at once (``geometry.transform_error``'s numbers; the planner asks it of ~500 candidates a station)."""
+        if not self.failed:
+            return False
+        F = np.asarray(self.failed)
+        close = np.linalg.norm(F[:, :3, 3] - T[:3, 3], axis=1) < NEAR_FAILED_M
+        if not np.any(close):
+            return False
+        trace = np.einsum("ij,nij->n", T[:3, :3], F[close, :3, :3])  # trace(R_T^T R_F), each failed pose
+        rot_deg = np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+        return bool(np.any(rot_deg < NEAR_FAILED_DEG))
 
     def _estimate(self) -> None:
         H = [hand_pose(self.setup, s.T_base_tool) for s in self.stations]
