@@ -242,10 +242,8 @@ class StationPlanner:
         widen = span < self.distance_range * float(np.median(d))
         best: tuple[float, Candidate] | None = None
         left_out: dict[str, int] = {}
-        for cand in self.candidates():
-            if cand.purpose in self.tried:
-                continue
-            why = self._refusal(cand)
+        cands = [cand for cand in self.candidates() if cand.purpose not in self.tried]
+        for cand, why in zip(cands, self._refusals(cands), strict=True):
             if why:
                 left_out[why] = left_out.get(why, 0) + 1
                 continue
@@ -303,29 +301,47 @@ class StationPlanner:
             out.append(Candidate(f"{name}, distance x{f:.2f}", T, f))
         return out
 
-    def _refusal(self, cand: Candidate) -> str:
-        """Why ``cand`` cannot be a station ('' when it can)."""
-        try:
-            self.check_pose(cand.T_base_tool)
-        except Exception as exc:  # noqa: BLE001 - the robot's own rule: any refusal leaves the pose out
-            # One count per kind of refusal, whatever the numbers in it.
-            return "refused by the robot's limits: " + re.sub(r"-?\d+(\.\d+)?", "N", str(exc).split(";")[0])
-        if self._near_failed(cand.T_base_tool):
-            return "next to a station that gave nothing"
-        C = predict_cam_target(self.setup, self.X, self.Z, cand.T_base_tool)
-        xyz = self.outline_m @ C[:3, :3].T + C[:3, 3]
-        if np.any(xyz[:, 2] <= 0):
-            return "plate behind the camera"
-        uv = self.camera.project(xyz)
+    def _refusals(self, cands: list[Candidate]) -> list[str]:
+        """Why each of ``cands`` cannot be a station ('' when it can), in this order: the robot's own
+        pose rule, a failed station next to it, the plate behind the camera, (partly) outside the image,
+        seen too obliquely. The plate's outline is projected for all candidates at once (each point's
+        pixel is its own: the same numbers as one candidate at a time)."""
+        why = [""] * len(cands)
+        Cs: list[Mat4] = []
+        kept: list[int] = []
+        for i, cand in enumerate(cands):
+            try:
+                self.check_pose(cand.T_base_tool)
+            except Exception as exc:  # noqa: BLE001 - the robot's own rule: any refusal leaves the pose out
+                # One count per kind of refusal, whatever the numbers in it.
+                why[i] = "refused by the robot's limits: " + re.sub(r"-?\d+(\.\d+)?", "N", str(exc).split(";")[0])
+                continue
+            if self._near_failed(cand.T_base_tool):
+                why[i] = "next to a station that gave nothing"
+                continue
+            kept.append(i)
+            Cs.append(predict_cam_target(self.setup, self.X, self.Z, cand.T_base_tool))
+        if not kept:
+            return why
+        C = np.asarray(Cs)
+        xyz = np.einsum("pj,cij->cpi", self.outline_m, C[:, :3, :3]) + C[:, None, :3, 3]  # (candidate, point, 3)
+        behind = np.any(xyz[:, :, 2] <= 0, axis=1)
+        with np.errstate(all="ignore"):  # a candidate with points behind the camera is refused as such
+            uv = self.camera.project(xyz.reshape(-1, 3)).reshape(len(kept), -1, 2)
         w, h = self.camera.width, self.camera.height
         m = IMAGE_MARGIN * np.array([w, h])
-        if not (np.all(np.isfinite(uv)) and np.all(uv >= m) and np.all(uv <= np.array([w - 1, h - 1]) - m)):
-            return "plate predicted (partly) outside the image"
-        centre = C[:3, :3] @ self.centre_m + C[:3, 3]
-        cos_view = abs(float(C[:3, 2] @ centre)) / float(np.linalg.norm(centre))
-        if math.degrees(math.acos(min(1.0, cos_view))) > MAX_VIEW_ANGLE_DEG:
-            return f"plate seen more obliquely than {MAX_VIEW_ANGLE_DEG:g} deg"
-        return ""
+        inside = np.all(np.isfinite(uv) & (uv >= m) & (uv <= np.array([w - 1, h - 1]) - m), axis=(1, 2))
+        centre = np.einsum("cij,j->ci", C[:, :3, :3], self.centre_m) + C[:, :3, 3]
+        for k, i in enumerate(kept):
+            if behind[k]:
+                why[i] = "plate behind the camera"
+            elif not inside[k]:
+                why[i] = "plate predicted (partly) outside the image"
+            else:
+                cos_view = abs(float(C[k, :3, 2] @ centre[k])) / float(np.linalg.norm(centre[k]))
+                if math.degrees(math.acos(min(1.0, cos_view))) > MAX_VIEW_ANGLE_DEG:
+                    why[i] = f"plate seen more obliquely than {MAX_VIEW_ANGLE_DEG:g} deg"
+        return why
 
     # -- information -------------------------------------------------------------------------------
     def _hand_rotations(self) -> NDArray[np.float64]:
