@@ -270,19 +270,20 @@ class StationPlanner:
         tilts = TILT_FRACTIONS if self.estimated else TILT_FRACTIONS[:1]
         spins = SPIN_FRACTIONS if self.estimated else tuple(f for f in SPIN_FRACTIONS if abs(f) <= 0.5)
         out: list[Candidate] = []
+        spin = {sf: g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg)) for sf in spins}
         for k_az in range(AZIMUTHS):
             phi = 2 * math.pi * k_az / AZIMUTHS
             axis = math.cos(phi) * e1 + math.sin(phi) * e2
             for tf in tilts:
+                tilt = g.rotvec_to_matrix(axis * math.radians(tf * self.max_tilt_deg))
                 for sf in spins:
-                    R = g.rotvec_to_matrix(axis * math.radians(tf * self.max_tilt_deg)) @ \
-                        g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
+                    R = tilt @ spin[sf]
                     name = (f"tilt {tf * self.max_tilt_deg:.0f} deg towards {360 * k_az / AZIMUTHS:.0f} deg, "
                             f"spin {sf * self.max_spin_deg:+.0f} deg")
                     out += self._at_distances(name, R, P, v)
         for sf in spins:
             if sf:
-                R = g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
+                R = spin[sf]
                 out += self._at_distances(f"spin {sf * self.max_spin_deg:+.0f} deg", R, P, v)
         return out
 
