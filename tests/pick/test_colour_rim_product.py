@@ -21,7 +21,7 @@ from cellctl.cell import Cell
 from cellctl.config import default_config_text, parse_config
 from cellctl.jobs import JobManager
 from cellctl.mapping import active_mapping
-from cellctl.pick.flow import Recipe, run_pick
+from cellctl.pick.flow import Recipe, SearchSettings, run_pick
 from cellctl.pick.model import PartModel
 from cellctl.services import Services
 from cellctl.store import open_store
@@ -85,7 +85,8 @@ def test_screws_taught_in_colour_from_the_cli_are_picked_at_their_rim_centres(co
     stored = json.loads((tmp_path / "screw.json").read_text())
     assert stored["refine"] == "rim" and stored["teach"]["params"]["colour"] == "auto"
     assert "colour" in stored["shape"] and model.shape is not None and model.shape.colour is not None
-    recipe = Recipe(name="screws", models=[stored], plane_z_mm=0.0, grasp_z_mm=5.0, approach_height_mm=40.0)
+    recipe = Recipe(name="screws", models=[stored], plane_z_mm=0.0, grasp_z_mm=5.0, approach_height_mm=40.0,
+                    search=SearchSettings(timeout_s=None))  # (the default 1 s answers with what it found so far)
     colour_cell.store.save_recipe(1, "screws", recipe.model_dump(mode="json"), "test")
     answer = run_pick(colour_cell, 1)
     picks = answer["picks"]
