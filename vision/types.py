@@ -149,10 +149,11 @@ class Match:
     showed too little of the rim (the model's prediction of its centre); None: the match as found."""
 
     def as_dict(self) -> dict[str, Any]:
-        out = {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
-               "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
-               "n_visible": self.n_visible, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
-               "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
+        out: dict[str, Any] = {
+            "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
+            "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
+            "n_visible": self.n_visible, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
+            "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
         if self.refine is not None:
             out["refine"] = self.refine
         return out

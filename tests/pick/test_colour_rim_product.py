@@ -41,6 +41,12 @@ HASH_PART = Path(__file__).resolve().parents[1] / "data" / "pick_real" / "sick-a
 SEED = 11
 
 
+def _read(path: Path, flags: int) -> np.ndarray:
+    img = cv2.imread(str(path), flags)
+    assert img is not None, path
+    return np.asarray(img)
+
+
 def _teach_screws(out: Path, *extra: str) -> PartModel:
     args = ["pick", "teach", "--out", str(out), *extra]
     for roi in ROIS:
@@ -55,7 +61,7 @@ def colour_cell(tmp_path: Path) -> Iterator[Services]:
     """The virtual cell with its camera replaced by a replay of the colour screw photo (drivers.replay, a real
     camera driver) and the sim world's true camera and hand-eye active (as tests/cellctl/test_pick_flow.py)."""
     rec = RecordingWriter(tmp_path / "rec")
-    frame = Frame(pixels=cv2.imread(str(SCENE), cv2.IMREAD_COLOR), timestamp_s=0.0, frame_id=1, camera_id="cam0",
+    frame = Frame(pixels=_read(SCENE, cv2.IMREAD_COLOR), timestamp_s=0.0, frame_id=1, camera_id="cam0",
                   metadata={})
     rec.add_frame("cam0", frame)
     rec.close()
@@ -116,24 +122,24 @@ def test_a_grey_model_file_is_as_before_and_finds_alike_in_the_colour_photo(tmp_
     byte: no ``colour``, ``refine`` or ``origin_px`` key; the model finds the same in the colour image (its
     grey value) as in the grey one."""
     model = _teach_screws(tmp_path / "screw.json")
-    grey = [cv2.imread(str(TEACH), cv2.IMREAD_GRAYSCALE)] * 4
-    rois = [tuple(float(x) for x in r.split(",")) for r in ROIS]
-    before = PartModel("screw", "shape", rois[0], (grey[0].shape[1], grey[0].shape[0]), str(TEACH),  # type: ignore[arg-type]
-                       shape=shape.teach_many(grey, rois, shape.TeachParams()))  # type: ignore[arg-type]
+    grey = [_read(TEACH, cv2.IMREAD_GRAYSCALE)] * 4
+    rois = [(a, b, c, d) for a, b, c, d in (tuple(float(x) for x in r.split(",")) for r in ROIS)]
+    before = PartModel("screw", "shape", rois[0], (grey[0].shape[1], grey[0].shape[0]), str(TEACH),
+                       shape=shape.teach_many(grey, rois, shape.TeachParams()))
     before.save(tmp_path / "before.json")
     assert (tmp_path / "screw.json").read_bytes() == (tmp_path / "before.json").read_bytes()
     stored = json.loads((tmp_path / "screw.json").read_text())
     assert "refine" not in stored and "colour" not in stored["teach"]["params"]
     assert "colour" not in stored["shape"] and "origin_px" not in stored["shape"]
     assert model.shape is not None and model.shape.colour is None and model.refine is None
-    colour = cv2.imread(str(SCENE), cv2.IMREAD_COLOR)
+    colour = _read(SCENE, cv2.IMREAD_COLOR)
     a = model.find(cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)).matches
     b = model.find(colour).matches
     assert len(a) >= 1 and [x.as_dict() for x in a] == [y.as_dict() for y in b]
     assert all("refine" not in x.as_dict() for x in a)
     # (the JPEG decoded straight to grey, as the CLI reads a grey model's images, differs from the colour
     # decode's grey value by a level here and there: the same heads, not the same sub-pixels)
-    assert len(model.find(cv2.imread(str(SCENE), cv2.IMREAD_GRAYSCALE)).matches) == len(a)
+    assert len(model.find(_read(SCENE, cv2.IMREAD_GRAYSCALE)).matches) == len(a)
 
 
 def test_a_bad_colour_mode_and_a_part_that_is_not_round_are_refused_naming_what_to_do(tmp_path: Path) -> None:
