@@ -288,9 +288,11 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
 
 
 def _match_of(p: Pose, r: Refined, mirrored: bool) -> Match:
-    """The match of a level-0 hypothesis at its edge fit's pose (``_finish`` completes an answered one)."""
+    """The match of a level-0 hypothesis at its edge fit's pose, its 1-sigma not yet set (``_finish``
+    completes an answered one: the rest are never reported, and their 1-sigma would cost an eigen
+    decomposition each)."""
     return Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
-                 r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
+                 r.n_points, r.n_visible, float("nan"), float("nan"))
 
 
 def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined, T0: F64 | None = None) -> Match:
