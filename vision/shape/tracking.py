@@ -21,6 +21,10 @@ from vision.shape.refine import Pose
 from vision.shape.responses import response_maps, spread_max, track
 
 HYPOTHESES_PER_POSITION = 3
+TRACK_BATCH = 160
+"""Candidates tracked per compiled call (the top level's most, ``search.MAX_TOP_CANDIDATES``, in one): each
+call and each climbing step of a batch costs ~50 us of Python around the kernel (batches of 32 were 4-5
+times that per image); the search's clock is read between batches."""
 
 
 class Clock:
@@ -76,8 +80,8 @@ def track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Po
         th = np.array([c.theta for c in cands])
         ks = np.array([c.scale for c in cands])
         nxt: list[Pose] = []
-        for start in range(0, len(cands), 32):
-            sl = slice(start, start + 32)
+        for start in range(0, len(cands), TRACK_BATCH):
+            sl = slice(start, start + TRACK_BATCH)
             k_ = ks[sl]
             # below the top level the angle and position are still coarse: +-2 steps and +-2 px
             # (+-3 with the spread) there, +-1 further down
