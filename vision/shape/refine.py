@@ -167,12 +167,13 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         n = nrm_m @ R.T
         vis = visible(q)
     score, n_agree, n_vis, detail = direction_detail(G, q, n, vis, thr, polarity, min_visible)
+    if fine is None:
+        # a coarse level's hypothesis goes on by its pose and score: its rms is never read (NaN)
+        return Refined(Pose(x + x0, y + y0, th, score, sc), score, float("nan"), n_agree, n_vis)
     inl = found & vis & (np.abs(d) < 1.0)
     di = d[inl]
     # np.mean's sum over its count, without its overhead (the same bits)
     rms = math.sqrt(float(np.add.reduce(di * di)) / len(di)) if len(di) else float("nan")
-    if fine is None:
-        return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, detail=detail,
                    grad_noise=grad_noise(crop, sigma), q=q + np.array([x0, y0]), n=n, cov=cov)
 
