@@ -51,7 +51,7 @@ def old_find(rev: str) -> Callable[..., Any]:
         exec(compile(src, path, "exec"), mod.__dict__)
         mods[name] = mod
         if name == "tracking":
-            mod.Pose = mods["refine"].Pose
+            setattr(mod, "Pose", mods["refine"].Pose)  # noqa: B010
         if name == "search":
             for attr in ("refine_lsq", "Refined", "Pose"):
                 setattr(mod, attr, getattr(mods["refine"], attr))
