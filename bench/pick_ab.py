@@ -65,8 +65,9 @@ def old_find(rev: str) -> Callable[..., Any]:
     return find
 
 
-def answers(res: Any) -> list[tuple[float, ...]]:
-    return [(m.u_px, m.v_px, m.angle_deg, m.score, m.sigma_px, m.sigma_angle_deg) for m in res.matches]
+def answers(res: Any) -> list[Any]:
+    """Every field of the matches and the rejections, and the best rejected candidate (compared to the bit)."""
+    return [repr(m) for m in res.matches] + [repr(r) for r in res.rejected] + [repr(res.best_rejected)]
 
 
 def main() -> None:
