@@ -2,7 +2,8 @@
 
 On a shared machine two runs of ``bench/pick.py`` minutes apart differ by more than a few per cent of
 speed (the load moves); this bench runs both versions of the search's Python modules
-(``vision/shape/refine.py``, ``tracking.py``, ``search.py``; the older ones read from git at ``REV``) on
+(``vision/shape/``'s ``MODULES``: the search, its fits, scores, patch finish and verification; the
+older ones read from git at ``REV``) on
 the same renders (``bench/pick.py``'s, seed 8), in alternating order, and reports the median thread CPU
 per image of each and the median of the per-image ratios. The compiled kernels and every other module are
 the working tree's (shared by both: a change to them is not measured here, and an older search must call
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba.core.registry import CPUDispatcher as Dispatcher
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,12 +36,13 @@ from tests.support import pick_scenes  # noqa: E402
 from vision import shape  # noqa: E402
 from vision.shape import search  # noqa: E402
 
-MODULES = ("refine", "tracking", "search")
+MODULES = ("uncertainty", "score", "responses", "patch", "verify", "refine", "tracking", "search")
+"""The modules compared (in import order); each old one sees the others' old versions."""
 
 
 def old_find(rev: str) -> Callable[..., Any]:
-    """``search.find`` of ``rev``'s ``refine.py``, ``tracking.py`` and ``search.py`` (loaded under other names,
-    each importing the others of ``rev`` and the working tree's other modules)."""
+    """``search.find`` of ``rev``'s ``MODULES`` (loaded under other names, each calling the others of ``rev``,
+    the working tree's compiled kernels and the working tree's other modules)."""
     mods: dict[str, types.ModuleType] = {}
     for name in MODULES:
         path = f"vision/shape/{name}.py"
@@ -50,19 +53,21 @@ def old_find(rev: str) -> Callable[..., Any]:
         sys.modules[mod.__name__] = mod  # dataclasses look their module up
         exec(compile(src, path, "exec"), mod.__dict__)
         mods[name] = mod
-        if name == "tracking":
-            setattr(mod, "Pose", mods["refine"].Pose)  # noqa: B010
-        if name == "search":
-            for attr in ("refine_lsq", "Refined", "Pose"):
-                setattr(mod, attr, getattr(mods["refine"], attr))
-            for attr in ("track_down", "few_per_position", "Clock"):
-                setattr(mod, attr, getattr(mods["tracking"], attr))
+    for mod in mods.values():
+        for attr, val in list(mod.__dict__.items()):
+            if isinstance(val, Dispatcher):  # compiled kernels: the working tree's (cached, compiled once)
+                setattr(mod, attr, getattr(sys.modules[f"vision.shape.{mod.__name__[4:]}"], attr, val))
+                continue
+            home = getattr(val, "__module__", None)
+            if isinstance(home, str) and home.startswith("vision.shape.") and home[13:] in mods:
+                setattr(mod, attr, getattr(mods[home[13:]], attr, val))
     find: Callable[..., Any] = mods["search"].find
     return find
 
 
-def answers(res: Any) -> list[tuple[float, ...]]:
-    return [(m.u_px, m.v_px, m.angle_deg, m.score, m.sigma_px, m.sigma_angle_deg) for m in res.matches]
+def answers(res: Any) -> list[Any]:
+    """Every field of the matches and the rejections, and the best rejected candidate (compared to the bit)."""
+    return [repr(m) for m in res.matches] + [repr(r) for r in res.rejected] + [repr(res.best_rejected)]
 
 
 def main() -> None:
