@@ -44,7 +44,8 @@ class PickCandidate:
     T_base_part: Mat4
     """The part's reference point on the plane, its taught x axis along x (4x4, metres, base frame)."""
     sigma_mm: list[float]
-    """The reference point's 1-sigma (x, y, z), mm."""
+    """The reference point's 1-sigma (x, y, z), mm: the calibration's uncertainty and the match's own pixel
+    1-sigma (``match.sigma_px``; the calibration's pixel sigma when the match has none) through the local scale."""
     sigma_yaw_deg: float | None
     """The part's yaw 1-sigma (the match's own angle sigma), degrees; None when the search gave none."""
     base_yaw_deg: float
@@ -83,7 +84,10 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
               robot: RobotBase) -> PickCandidate:
     """One match's candidate: its pose, the recipe's grasp folded nearest ``near_yaw`` (radians), both
     the pick and its approach checked against ``robot``'s envelope."""
-    part = part_pose(mapping, match.u_px, match.v_px, match.angle_deg, recipe.plane_z_mm, T_capture)
+    # The point's sigma: the calibration's uncertainty plus the match's own pixel 1-sigma (rim-refined or not)
+    # through the local mm/px scale (the calibration's pixel sigma when the match gives none).
+    part = part_pose(mapping, match.u_px, match.v_px, match.angle_deg, recipe.plane_z_mm, T_capture,
+                     pixel_sigma_px=float(match.sigma_px))
     grip = grasp(recipe, part, near_yaw)
     refused = None
     for T, what in ((grip.T_pick, "pick"), (grip.T_approach, "pre-pick")):
@@ -94,32 +98,14 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
             break
     problem = None if refused is None else f"the {refused[0]} pose is refused: {refused[1]}"
     sigma_yaw = float(match.sigma_angle_deg)
-    sigma_mm = with_match_sigma(mapping, part.sigma_mm, match, recipe.plane_z_mm, T_capture)
     try:
         drawn: dict[str, Any] | None = grasp_in_image(mapping, recipe, match.u_px, match.v_px, match.angle_deg,
                                                       T_capture, part).as_json()
     except PickError:  # no local scale at the match (UnusableCalibration): the pose above was mapped, the drawing not
         drawn = None
-    return PickCandidate(match, part.T_base_part, sigma_mm, sigma_yaw if math.isfinite(sigma_yaw) else None,
+    return PickCandidate(match, part.T_base_part, part.sigma_mm, sigma_yaw if math.isfinite(sigma_yaw) else None,
                          math.degrees(part.base_yaw_rad), grip.T_part_grip, grip.T_grip_flange, grip.T_pick,
                          grip.T_approach, math.degrees(grip.gripper_yaw_rad), refused, problem, drawn)
-
-
-def with_match_sigma(mapping: ActiveMapping, sigma_mm: list[float], match: Recognition, plane_z_mm: float | None,
-                     T_capture: Mat4 | None) -> list[float]:
-    """The reference point's 1-sigma (x, y, z; mm) with the match's own added in x and y, for a point measured
-    after the search (``match.refine == "rim"``: the rim fit's 1-sigma per axis, px, times the image's local
-    scale at the match, mm/px); other matches' sigma as the calibration gives it (as before)."""
-    s_px = float(match.sigma_px)
-    if match.refine != "rim" or not math.isfinite(s_px) or len(sigma_mm) < 2:
-        return sigma_mm
-    uv = np.array([[match.u_px, match.v_px], [match.u_px + 1.0, match.v_px], [match.u_px, match.v_px + 1.0]])
-    xyz = [mapping.map(p, plane_z_mm, T_capture, with_uncertainty=False).xyz_mm[:2] for p in uv]
-    mm_per_px = 0.5 * (float(np.linalg.norm(xyz[1] - xyz[0])) + float(np.linalg.norm(xyz[2] - xyz[0])))
-    if not math.isfinite(mm_per_px):
-        return sigma_mm
-    s = s_px * mm_per_px
-    return [math.hypot(sigma_mm[0], s), math.hypot(sigma_mm[1], s), *sigma_mm[2:]]
 
 
 def _ticks(value: Any) -> int | None:
