@@ -48,7 +48,7 @@ class MotionLimits:
                     f"[{lo:.1f}, {hi:.1f}] mm; choose a pose inside it or widen the envelope in cell.yaml"
                 )
         R = T[:3, :3]
-        if np.any(np.abs(R.T @ R - _I3) > _ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+        if not np.all(np.abs(R.T @ R - _I3) <= _ORTHONORMAL_TOL) or not np.linalg.det(R) > 0:
             raise MotionRejected("target pose's rotation is not a proper rotation matrix (orthonormal, det +1)")
         if self.tool_down_cone_deg is not None:
             # The tool's z axis in the base frame is R's third column; "down" is (0, 0, -1).
