@@ -23,6 +23,15 @@ ways (weighted by its ``2^-level`` weights or not, per coordinate or per corner)
 ways, for our splined solve as the product runs it (grid from the data, flat), with the board warp,
 and in mrcal's configuration (its 30x20 grid over 170 deg, the warp, its level weights).
 
+``--sets fisheye-gap``: where the splined RMS gap to mrcal comes from (session 15). mrcal's published solve
+(its intrinsics, board poses and warp, decoded from the ``.cameramodel``'s optimisation inputs without mrcal)
+is evaluated by *our* model and residuals, then our solver is started there: with no regularisation it can
+only go down (the same model, data and weights), with our curvature term and with the prior it moves to
+what those cost. The product's own solves (its grid and mrcal's, regularisers on and off) follow.
+
+``--sets renders-bias [--seeds 303,306]``: our corners' error against the truth on the renders, split into
+the part that repeats when the same pose is rendered again with new noise (bias) and the part that does not.
+
 Run: ``.venv/bin/python bench/intrinsics_splined.py --sets fisheye,gopro,gopro-views`` (CPU-seconds per row are
 printed; the machine's load decides the wall time).
 """
@@ -168,6 +177,133 @@ def fisheye_fair() -> None:
                "cpu_s": round(time.process_time() - t0, 1)}, flush=True)
 
 
+def mrcal_published_solve() -> dict[str, Any]:
+    """mrcal's published splined solve (``MRCAL_SPLINED``): its lens model name, intrinsics and the optimisation
+    inputs (numpy arrays), decoded from the file (a Python dict; ``optimization_inputs`` is base85 of a
+    compressed ``.npz``) without mrcal."""
+    import ast
+    import base64
+    import io
+
+    text = MRCAL_SPLINED.read_text()
+    d = ast.literal_eval("\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("#")))
+    oi = np.load(io.BytesIO(base64.b85decode(d["optimization_inputs"])), allow_pickle=False)
+    return {"lensmodel": d["lensmodel"], "intrinsics": np.asarray(d["intrinsics"], dtype=np.float64),
+            **{k: oi[k] for k in ("frames_rt_toref", "calobject_warp", "observations_board")}}
+
+
+def fisheye_gap() -> None:
+    """Our residuals at mrcal's published splined solution, then our solver started there (module docstring)."""
+    from scipy.spatial.transform import Rotation
+
+    from calibration.intrinsics import splined_solver as ss
+    from calibration.intrinsics.views import collect_views, warp_basis
+
+    s = fisheye_set()
+    dets = s.corners["mrcal"]
+    assert s.levels is not None
+    lw = [2.0 ** -lv.astype(float) for lv in s.levels]
+    m = mrcal_published_solve()
+    assert m["lensmodel"] == "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=30_Ny=20_fov_x_deg=170"
+    views, _, _ = collect_views(dets, s.board, s.size)
+    X = np.vstack([v.X for v in views])
+    prob = ss._Problem(SplineLayout(30, 20, 170.0), X, np.vstack([v.uv for v in views]),
+                       np.concatenate([np.full(len(v.X), k) for k, v in enumerate(views)]), len(views),
+                       warp_basis(s.board, X))
+    i = m["intrinsics"]
+    ctrl = i[4:].reshape(20, 30, 2)                      # mrcal: (Ny, Nx, xy); ours: all x, then all y
+    x0 = np.concatenate([i[:4], ctrl[..., 0].ravel(), ctrl[..., 1].ravel()])
+    fr = m["frames_rt_toref"][[v.index for v in views]]
+    R0, t0 = Rotation.from_rotvec(fr[:, :3]).as_matrix(), fr[:, 3:].copy()
+    w = np.concatenate([lw[v.index] for v in views])
+    prob.sigma_px = 0.6
+    prob.wp = np.asarray(m["calobject_warp"], dtype=np.float64).copy()
+    prob.c0 = x0[4:].copy()                               # a prior, where on, pulls to mrcal's own solution
+
+    def wrms(x: np.ndarray, R: np.ndarray, t: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((prob.obs_residuals(x, R, t).reshape(-1, 2) * w[:, None]) ** 2)))
+
+    obs = m["observations_board"].reshape(-1, 3)
+    print({"at mrcal's solution": "its points", "points": int(np.sum(obs[:, 2] > 0)), "ours": len(w),
+           "weighted_per_coordinate (our model)": round(wrms(x0, R0, t0), 5)}, flush=True)
+
+    def regularise(prior_px: float, share: float, gauge: float) -> None:
+        """The solver's regularisation constants for this study (restored after it)."""
+        for k, v in (("PRIOR_PX", prior_px), ("REG_SHARE", share), ("GAUGE_WEIGHT", gauge)):
+            setattr(ss, k, v)
+
+    saved = ss.PRIOR_PX, ss.REG_SHARE, ss.GAUGE_WEIGHT
+    try:
+        for name, prior, share in (("no regularisation", 1e9, 1e-12),
+                                   ("our curvature term (REG_SHARE)", 1e9, ss.REG_SHARE)):
+            regularise(prior, share, 1e-9)
+            prob.wp = np.asarray(m["calobject_warp"], dtype=np.float64).copy()
+            c0 = time.process_time()
+            x, R, t, it = prob.solve(x0.copy(), R0, t0, w, 60)
+            print({"our solver from mrcal's solution": name, "weighted_per_coordinate": round(wrms(x, R, t), 5),
+                   "iterations": it, "cpu_s": round(time.process_time() - c0, 1)}, flush=True)
+    finally:
+        regularise(*saved)
+    configs: list[tuple[str, dict[str, Any], tuple[float, float]]] = [
+            ("product grid, no regularisation", {}, (1e9, 1e-12)),
+            ("mrcal's grid (30x20, fov 170), no regularisation", {"layout": SplineLayout(30, 20, 170.0)}, (1e9, 1e-12)),
+            ("mrcal's grid, curvature only", {"layout": SplineLayout(30, 20, 170.0)}, (1e9, saved[1]))]
+    for name, kw, reg in configs:
+        regularise(reg[0], reg[1], saved[2])
+        try:
+            c0 = time.process_time()
+            res = calibrate_splined(dets, s.board, image_size=s.size, board_warp=True, point_weights=lw, **kw)
+        finally:
+            regularise(*saved)
+        used = [(v, wv) for v, wv in zip(res.views, lw, strict=True) if v.used]
+        print({"cellctl": name, **four_ways([v.residuals_px for v, _ in used], [wv for _, wv in used]),
+               "cpu_s": round(time.process_time() - c0, 1)}, flush=True)
+
+
+def renders_bias(seeds: list[int], n_views: int = 8, reps: int = 4) -> None:
+    """Per render seed: our corners' error against the truth over ``reps`` renders of each of the first
+    ``n_views`` poses (new noise each time): total, the repeating part (bias) and the rest (noise), px RMS
+    per coordinate; and how much of the bias the corner's sub-pixel phase explains (first harmonic)."""
+    board, size = Chessboard(9, 6, 20.0), (960, 720)
+    tp = board.points()
+    truth, imaging = scene_camera_and_imaging(size)
+    for seed in seeds:
+        poses = plan_views(truth, board, 12, np.random.default_rng(seed), fill=0.6, margin_px=6, whole_outline=True)
+        means, noise2, phase = [], [], []
+        for T in poses[:n_views]:
+            true_uv = truth.project(tp.xyz_m @ T[:3, :3].T + T[:3, 3])
+            errs = []
+            for r in range(reps):
+                g = render(truth, [PlanarObject(T, board.reflectance)], imaging, np.random.default_rng(10_000 + r),
+                           supersample=32)
+                d = detect(g, board, "v")
+                if d.found:
+                    e = np.full((len(tp.ids), 2), np.nan)
+                    e[d.ids] = d.uv - true_uv[d.ids]
+                    errs.append(e)
+            if len(errs) < 2:
+                continue
+            E = np.array(errs)
+            mu = np.nanmean(E, axis=0)
+            means.append(mu)
+            noise2.append(np.nanmean((E - mu) ** 2) * len(E) / (len(E) - 1) / len(E))   # noise left in the mean
+            phase.append(true_uv)
+        mu_all = np.concatenate(means)
+        ok = np.all(np.isfinite(mu_all), axis=1)
+        mu_all, uv = mu_all[ok], np.concatenate(phase)[ok]
+        n2 = float(np.mean(noise2))
+        bias = float(np.sqrt(max(np.mean(mu_all**2) - n2, 0.0)))
+        left = []
+        for a in (0, 1):
+            A = np.column_stack([np.sin(2 * np.pi * uv[:, a]), np.cos(2 * np.pi * uv[:, a]), np.ones(len(uv))])
+            beta, *_ = np.linalg.lstsq(A, mu_all[:, a], rcond=None)
+            left.append(mu_all[:, a] - A @ beta)
+        print({"seed": seed, "corners": int(ok.sum()), "renders per pose": reps,
+               "noise_rms_px": round(float(np.sqrt(n2 * reps)), 5), "bias_rms_px": round(bias, 5),
+               "bias_after_pixel_phase_px": round(float(np.sqrt(max(float(np.mean(np.square(left))) - n2, 0.0))), 5)},
+              flush=True)
+
+
 def renders_warp(seeds: list[int]) -> None:
     """Per render seed (as ``bench/intrinsics_real.run_render``): our corners' error against the truth
     and each solve's projection difference to the true lens over the covered cells (module docstring)."""
@@ -217,6 +353,12 @@ def main() -> None:
         if name == "fisheye-fair":
             fisheye_fair()
             continue
+        if name == "fisheye-gap":
+            fisheye_gap()
+            continue
+        if name == "renders-bias":
+            renders_bias([int(v) for v in args.seeds.split(",")] if "-" not in args.seeds else [303, 306])
+            continue
         if name == "fisheye":
             s = fisheye_set()
             dets = s.corners["mrcal"]
@@ -226,7 +368,8 @@ def main() -> None:
             dets = s.corners["ours"]
             models = [("division", {}), ("splined*", {}), ("division", {"drop_outliers": True})]
         else:
-            raise SystemExit(f"unknown set {name!r}; use fisheye, fisheye-fair, gopro, gopro-views, renders-warp")
+            raise SystemExit(f"unknown set {name!r}; use fisheye, fisheye-fair, fisheye-gap, gopro, gopro-views, "
+                           "renders-warp, renders-bias")
         pts = covered_points(calibrate(dets, s.board, "opencv8", image_size=s.size))
         for model, kw in models:
             try:
