@@ -25,9 +25,7 @@
    points follows them; one with a few follows the parametric lens's radial shape. (mrcal pulls the
    control values towards 0, i.e. towards the bare stereographic lens, with a weight that is a
    fixed share of the cost; on the fisheye set's sparse image corners that let the two halves'
-   splines differ by up to 18 px.) The width ``PRIOR_PX`` is then widened ring by ring of ``|u|`` where the
-   data-carried control values depart from ``c0`` by more (``splined_prior``; up to ``PRIOR_PASSES``
-   re-solves). A weak curvature term (second differences along both grid axes,
+   splines differ by up to 18 px.) A weak curvature term (second differences along both grid axes,
    ``REG_SHARE`` of the cost at ``TYPICAL_CURVATURE``) keeps the map smooth.
 5. **Uncertainty**: the sandwich covariance ``sigma^2 H^-1 (J_o^T J_o) H^-1`` (``H`` with the
    regularisation, ``J_o`` the observations only, as mrcal; the prior's own uncertainty is not in
@@ -52,7 +50,6 @@ import scipy.sparse as sp
 from calibration import splined
 from calibration.camera_model import CameraModel
 from calibration.geometry import exp_so3, make_transform
-from calibration.intrinsics import splined_prior
 from calibration.intrinsics.results import (
     F64,
     MIN_VIEWS,
@@ -75,9 +72,6 @@ REG_SHARE: Final = 1e-3
 PRIOR_PX: Final = 3.0
 """A control value this many pixels off the start model's costs as one observation off by its noise: a
 knot with many points follows them, one the data barely see follows the start (parametric) lens."""
-PRIOR_PASSES: Final = 3
-"""Re-solves with the prior's widths from the data (``splined_prior``) at most: its fixed point (a pass that
-widens no ring by more than 10 % ends it; on mrcal's fisheye corners 3 -> 4.4 -> 5.5 px in one ring)."""
 TYPICAL_CURVATURE: Final = 0.05
 """A typical second difference of the control values (a fisheye's ~0.06 at the grid's edge)."""
 
@@ -146,14 +140,6 @@ def calibrate_splined(detections: Sequence[Detection], target: Target, *,
         w = np.where(out, 0.0, w0)
         x, R, t, it2 = prob.solve(x, R, t, w, max_iter)
         iters += it2
-    for _ in range(PRIOR_PASSES):           # the prior's width per ring from the data (``splined_prior``)
-        widths = _prior_widths(prob, x, R, t, w)
-        before = np.full(len(widths), PRIOR_PX) if prob.prior_px is None else prob.prior_px
-        if not np.any(widths > 1.1 * before):
-            break
-        prob.prior_px = np.maximum(widths, before)
-        x, R, t, it3 = prob.solve(x, R, t, w, max_iter)
-        iters += it3
     return _result(prob, x, R, t, w, views, results, size, start.param_names, iters, time.perf_counter() - t0,
                    flagged=out)
 
@@ -194,21 +180,17 @@ class _Problem:
         self.D = _regulariser(lay)
         self.G = _gauge(lay)
         self.c0 = np.zeros(2 * self.nc)
-        """The prior the control values are pulled towards (``initial_ctrl``: the start model)."""
         self.sigma_px = 1.0
         """The start's residual per coordinate (px): the prior's rows weigh as observations of this noise."""
-        self.prior_px: F64 | None = None
-        """Per control value, the prior's width (px; ``splined_prior``); None: ``PRIOR_PX`` for all."""
+        """The prior the control values are pulled towards (``initial_ctrl``: the start model)."""
 
-    def reg_scales(self, n_obs: int, f: float) -> tuple[F64, float]:
-        """Weights (px per stereographic unit) of the prior rows, one per control value, and of the
-        curvature rows: a control value its width (``prior_px``, default ``PRIOR_PX``; times ``f``:
-        pixels) off the prior costs as one observation off by the noise; the curvature at a typical
-        value costs ``REG_SHARE`` of ``n_obs`` residuals of 1 px."""
-        width = np.full(2 * self.nc, PRIOR_PX) if self.prior_px is None else self.prior_px
-        a = f * self.sigma_px / width
+    def reg_scales(self, n_obs: int, f: float) -> tuple[float, float]:
+        """Weights (px per stereographic unit) of the prior and the curvature regularisation rows:
+        a control value ``PRIOR_PX`` (times ``f``: pixels) off the prior costs as one observation
+        off by 1 px; the curvature at a typical value costs ``REG_SHARE`` of ``n_obs`` residuals of 1 px."""
+        a = f * self.sigma_px / PRIOR_PX
         b = np.sqrt(REG_SHARE * n_obs / (2 * self.D.shape[0])) / TYPICAL_CURVATURE
-        return a, float(b)
+        return float(a), float(b)
 
     def initial_ctrl(self, core: F64, cam0: CameraModel) -> F64:
         """Control values that reproduce the start model ``cam0`` over the whole grid (sampled 4x
@@ -303,13 +285,13 @@ class _Problem:
         ctrl = x[4:self.n_intr].reshape(2, self.nc)
         dev = ctrl - self.c0.reshape(2, self.nc)
         g = GAUGE_WEIGHT * np.sqrt(n_obs)
-        nc = self.nc
-        r = np.concatenate([a[:nc] * dev[0], a[nc:] * dev[1], b * (self.D @ ctrl[0]), b * (self.D @ ctrl[1]),
+        r = np.concatenate([a * dev[0], a * dev[1], b * (self.D @ ctrl[0]), b * (self.D @ ctrl[1]),
                             g * (self.G @ x[4:self.n_intr])])
         if not jac:
             return r, None
+        nc = self.nc
         Z = sp.csr_matrix((nc, nc))
-        blocks = sp.vstack([sp.bmat([[sp.diags(a[:nc]), Z], [Z, sp.diags(a[nc:])],
+        blocks = sp.vstack([sp.bmat([[a * sp.eye(nc), Z], [Z, a * sp.eye(nc)],
                                      [b * self.D, None], [None, b * self.D]]), g * self.G], format="csr")
         J = sp.hstack([sp.csr_matrix((len(r), 4)), blocks, sp.csr_matrix((len(r), 6 * self.V + self.nw))],
                       format="csr")
@@ -374,17 +356,6 @@ class _Problem:
             if not improved or rel < REL_TOL:
                 break
         return x, R, t, it
-
-
-def _prior_widths(prob: _Problem, x: F64, R: F64, t: F64, w: F64) -> F64:
-    """The prior's width per control value (px) by the ring rule of ``splined_prior``, from the solve at ``x``."""
-    H, _, Jo, _ = prob.normal(x, R, t, w)
-    f = float(np.mean(x[:2]))
-    a, _ = prob.reg_scales(int(2 * np.sum(w > 0)), f)
-    kx, ky = prob.lay.knots()
-    uu, vv = np.meshgrid(kx, ky)
-    return splined_prior.prior_widths(H, Jo, f * (x[4:prob.n_intr] - prob.c0), f * prob.sigma_px,
-                                      float(np.min(a)) ** 2, np.hypot(uu, vv).ravel(), prob.lay.h, PRIOR_PX)
 
 
 def _gauge(lay: splined.SplineLayout) -> sp.csr_matrix:

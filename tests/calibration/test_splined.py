@@ -213,23 +213,3 @@ def test_outlier_points_are_weighted_out_only_where_the_stated_precision_explain
     assert out[5] and out.sum() == 1 and reject           # the residuals are the stated noise: weighted out
     out, reject = outlier_points(10.0 * res, w0 > 0, views)
     assert out[5] and not reject                          # 10x the stated noise: misfit, flagged only
-
-
-def test_the_prior_widens_only_in_rings_whose_data_carried_values_depart_by_more() -> None:
-    """``splined_prior.ring_widths``: a ring whose data-carried control values depart from the start
-    by ~6 px gets a ~6 px prior; a ring departing by less keeps ``PRIOR_PX`` (never tighter); a ring
-    with too few data-carried values keeps it whatever they show (its knots are what the prior is for)."""
-    from calibration.intrinsics.splined_prior import MIN_CARRIED, ring_widths
-
-    rng = np.random.default_rng(4)
-    h = 0.1
-    radius = np.concatenate([np.full(40, 0.05), np.full(40, 0.25), np.full(40, 0.45)])    # rings 0, 1, 2
-    dev = np.concatenate([rng.normal(0, 1.0, 40), rng.normal(0, 6.0, 40), rng.normal(0, 9.0, 40)])
-    dev = np.concatenate([dev, dev])                         # x values, then y values
-    info = np.full(240, 100.0)
-    info[np.r_[80:120, 200:240][MIN_CARRIED // 2:]] = 1.0    # ring 2: too few carried by the data
-    wd = ring_widths(radius, dev, info, np.full(240, 0.3), 1.0, 3.0, h)
-    assert np.all(wd[np.r_[0:40, 120:160]] == 3.0)                                  # departs by ~1 px: kept
-    ring1 = wd[np.r_[40:80, 160:200]]
-    assert np.all(ring1 == ring1[0]) and 4.5 < ring1[0] < 7.5                       # ~6 px: widened to it
-    assert np.all(wd[np.r_[80:120, 200:240]] == 3.0)                                # sparse ring: kept
