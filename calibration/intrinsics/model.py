@@ -105,7 +105,7 @@ REGULARISABLE = ("opencv5", "opencv8")
 
 def regularisation(model: str, size: tuple[int, int], n_measurements: int) -> tuple[F64, F64]:
     """Per-parameter weights (px per unit) and targets of a regularised solve, by mrcal's rule (mrcal
-    2.2's ``optimizer_callback``, measured; module ``docs/intrinsics_regularisation.md``): a penalty
+    2.2's ``optimizer_callback``, measured; ``docs/conventions.md``, camera models): a penalty
     ``sum (w_i (c_i - c0_i))^2`` added to the cost, with
 
     - every distortion coefficient pulled toward 0 with ``w_d^2 = N e^2 s / (n_d d^2)`` (``N`` the count of

@@ -84,7 +84,7 @@ def calibrate(detections: Sequence[Detection], target: Target, model: str = "ope
     penalty holding the distortion coefficients (opencv8's rational denominator k4-k6 five times
     harder) near 0 and the principal point near the image centre, weighed so that it costs ~0.25 % of
     the data's chi^2 at their normal values. The covariance is then the regularised (posterior) one:
-    the prior's information adds to the data's (``docs/calibration.md``).
+    the prior's information adds to the data's (``docs/conventions.md``, camera models).
 
     Raises IntrinsicsError with a message saying what to do when the data cannot determine
     the model (fewer than 3 usable views, too few points, all views parallel...).
