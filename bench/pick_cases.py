@@ -25,7 +25,8 @@ import yaml
 from numpy.typing import NDArray
 
 from vision import shape
-from vision.shape.model import ShapeModel
+from vision.shape.colour import taught_mix
+from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel, TeachParams
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "pick_real"
 
@@ -97,12 +98,37 @@ class Case:
     """The part's centre measured in each teach view (``teach_centres``: ``roi``'s, then ``more_rois``');
     when given, every model of the case has its reference point there (``vision.shape.frame``) and the
     estimates locate that point."""
+    colour_mode: str = "grey"
+    """``TeachParams.colour`` of the case's models (``with_colour``; the main tables: the default)."""
+    _colour: bool | None = field(default=None, repr=False)
 
     def teach_image(self) -> U8:
-        return resize(read_grey(self.teach_path), self.scale)
+        return resize(self.read(self.teach_path), self.scale)
 
     def test_image(self, test: TestImage) -> U8:
-        return resize(read_grey(test.path), self.scale)
+        return resize(self.read(test.path), self.scale)
+
+    @property
+    def colour(self) -> bool:
+        """Whether the case's model is made of a colour channel (``vision.shape.colour``: ``colour_mode`` on
+        its teach image and ROIs): then its images are read in colour (B, G, R), else in grey as the decoder
+        gives it (``read_grey``, as before colour models)."""
+        if self._colour is None:
+            img = cv2.imread(str(self.teach_path), cv2.IMREAD_COLOR)
+            if img is None:
+                raise FileNotFoundError(f"cannot read {self.teach_path}")
+            p = TeachParams(colour=self.colour_mode)
+            self._colour = taught_mix([img] * (1 + len(self.more_rois)), [self.roi, *self.more_rois], p.colour,
+                                      p.edge_sigma_px, p.min_contrast * GRAD_PER_CONTRAST) is not None
+        return self._colour
+
+    def params(self) -> TeachParams:
+        """The teach parameters of the case's models (the defaults but for ``colour_mode``)."""
+        return TeachParams(colour=self.colour_mode)
+
+    def read(self, path: Path) -> U8:
+        """An image of the case as the bench gives it to the matcher (``colour``)."""
+        return read_colour(path) if self.colour else read_grey(path)
 
 
 def teach_model(case: Case) -> ShapeModel:
@@ -112,15 +138,15 @@ def teach_model(case: Case) -> ShapeModel:
     if not case.more_rois:
         return teach_one(case)
     rois = [case.roi, *case.more_rois]
-    return shape.teach_many([img] * len(rois), rois, centres=case.centres or None)
+    return shape.teach_many([img] * len(rois), rois, case.params(), centres=case.centres or None)
 
 
 def teach_one(case: Case) -> ShapeModel:
     """The case's model from its one ROI (its reference point on the first measured centre, if any)."""
     img = case.teach_image()
     if not case.centres:
-        return shape.teach(img, case.roi)
-    return shape.teach_many([img], [case.roi], centres=case.centres[:1])
+        return shape.teach(img, case.roi, case.params())
+    return shape.teach_many([img], [case.roi], case.params(), centres=case.centres[:1])
 
 
 def resize(img: U8, k: float) -> U8:
@@ -145,7 +171,22 @@ def scaled(case: Case, k: float) -> Case:
                                                   for i in t.instances]) for t in case.tests]
     more = [(_px(a, k), _px(b, k), c * k, d * k) for a, b, c, d in case.more_rois]
     return Case(case.id, case.source, case.teach_path, (_px(u, k), _px(v, k), w * k, h * k),
-                info, tests, case.scale * k, more, [(_px(x, k), _px(y, k)) for x, y in case.centres])
+                info, tests, case.scale * k, more, [(_px(x, k), _px(y, k)) for x, y in case.centres],
+                case.colour_mode, case.colour)
+
+
+def with_colour(case: Case, mode: str) -> Case:
+    """The case with its models taught with ``TeachParams(colour=mode)`` (``vision.shape.colour``)."""
+    return Case(case.id, case.source, case.teach_path, case.roi, case.info, case.tests, case.scale, case.more_rois,
+                case.centres, mode)
+
+
+def read_colour(path: Path) -> U8:
+    """The image in colour (H x W x 3, B, G, R)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FileNotFoundError(f"cannot read {path}")
+    return np.asarray(img, dtype=np.uint8)
 
 
 def read_grey(path: Path) -> U8:
@@ -199,18 +240,20 @@ def _jpeg30(img: U8) -> U8:
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 30])
     if not ok:
         raise RuntimeError("JPEG encoding failed")
-    return np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
+    return np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if img.ndim == 2 else cv2.IMREAD_COLOR), dtype=np.uint8)
 
 
 def texture(img: U8, seed: int = 14) -> U8:
-    """Add a seeded texture: blotches (sigma 6 px) and grain (sigma 1 px), +-~25 grey levels."""
+    """Add a seeded texture: blotches (sigma 6 px) and grain (sigma 1 px), +-~25 grey levels (to every
+    channel alike of a colour image: a colourless texture)."""
     rng = np.random.default_rng(seed)
-    h, w = img.shape
+    h, w = img.shape[:2]
     coarse = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), 6.0)
     fine = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), 1.0)
     coarse *= 18.0 / max(float(coarse.std()), 1e-6)
     fine *= 8.0 / max(float(fine.std()), 1e-6)
-    return np.asarray(np.clip(img.astype(np.float32) + coarse + fine, 0, 255), dtype=np.uint8)
+    add = coarse + fine if img.ndim == 2 else (coarse + fine)[:, :, None]
+    return np.asarray(np.clip(img.astype(np.float32) + add, 0, 255), dtype=np.uint8)
 
 
 def faint(img: U8, seed: int = 15) -> U8:

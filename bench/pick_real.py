@@ -51,9 +51,11 @@ from bench.pick_cases import (  # noqa: E402
     teach_model,
     teach_one,
     to_reference,
+    with_colour,
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
+from vision.shape.rim import rim_centre  # noqa: E402
 from vision.types import Match, SearchParams  # noqa: E402
 
 MIN_SCORE = SearchParams().min_score
@@ -209,7 +211,7 @@ def run(with_baseline: bool) -> str:
     for label, k in SIZES.items():
         for case in cases:
             _one_case(scaled(case, k), out, {"original": VARIANTS["original"]}, with_baseline, label)
-    views = _views_section(cases)
+    views = _views_section(cases) + [""] + _colour_section(cases)
     load1 = os.getloadavg()
     return _report(out, with_baseline, load0, load1, views)
 
@@ -241,6 +243,59 @@ def _views_section(cases: list[Case]) -> list[str]:
                 out.append(f"| {case.id}, one ROI | {name} | {t.expected} | {t.found} | {t.false} | {_max(t.pos)} | "
                            f"{t.over} / {t.bad} | {_med(t.cpu_ms):.1f} |")
     return out
+
+
+def _colour_section(cases: list[Case]) -> list[str]:
+    """The cases whose model ``TeachParams(colour="auto")`` makes of a colour channel (``vision.shape.colour``:
+    the screw heads), taught so from their several views and from their one ROI, every variant and size,
+    beside the grey model of the main tables."""
+    out = ["## Colour (`TeachParams(colour=\"auto\")`, `vision.shape.colour`)",
+           "",
+           "The main tables teach and search the grey value (the default). Here the cases whose automatic "
+           "colour choice takes the chroma channel (the part against its background with the background's own "
+           "colour, and so its shading, projected out: the screw heads; every other case stays grey), taught "
+           "and searched in colour (B, G, R images), from their several views and from their one ROI, every "
+           "variant and size ('texture' adds the same grey texture to every channel). CPU ms: `shape.find`'s "
+           "own, the projection included.", "",
+           "'rim fit': the rim measured after each found head's match (`vision.shape.rim.rim_centre`), its "
+           "distance from the estimate (RMS, largest) and actual / reported 1-sigma (RMS).", "",
+           "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms "
+           "| rim fit: RMS / max err px | rim fit: actual / reported |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for base in cases:
+        case = with_colour(base, "auto")
+        if not case.colour:
+            continue
+        for views, teach_fn in (("several views", teach_model), ("one ROI", teach_one)):
+            for label, k in [("original size", 1.0), *SIZES.items()]:
+                c = case if k == 1.0 else scaled(case, k)
+                model = teach_fn(c)
+                variants = VARIANTS if k == 1.0 else {"original": VARIANTS["original"]}
+                for vname, fn in variants.items():
+                    t = Tally()
+                    rim_err: list[float] = []
+                    rim_ratio: list[float] = []
+                    for test in c.tests:
+                        img = fn(c.test_image(test))
+                        got: list[Match] = []
+                        ours, ms, cpu, _ = _ours(model, img, False, got)
+                        t.add(score(c, test, ours), ms, cpu)
+                        for i in test.instances:
+                            near = [m for m in got if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30.0 * c.scale]
+                            fit = rim_centre(model, img, near[0]) if near else None
+                            if fit is not None:
+                                rim_err.append(math.hypot(fit.u_px - i.x, fit.v_px - i.y))
+                                rim_ratio.append(rim_err[-1] / (math.sqrt(2.0) * fit.sigma_px))
+                    name = vname if k == 1.0 else label
+                    rims = (f"{_rms(rim_err):.2f} / {max(rim_err):.2f} ({len(rim_err)}) | {_rms(rim_ratio):.2f}"
+                            if rim_err else "- | -")
+                    out.append(f"| {case.id}, {views}, colour | {name} | {t.expected} | {t.found} | {t.false} | "
+                               f"{_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} | {rims} |")
+    return out
+
+
+def _rms(xs: list[float]) -> float:
+    return math.sqrt(sum(x * x for x in xs) / len(xs)) if xs else float("nan")
 
 
 def _targets(r: Run, with_baseline: bool) -> list[str]:

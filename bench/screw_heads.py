@@ -25,7 +25,14 @@ images, taught from ``11_1111.jpg``):
    part turns), one fixed in the part's frame the model's. (``centre_spread`` measures the old colour
    centre's own spread: 0.3-2.6 px.)
 
-Run: ``.venv/bin/python bench/screw_heads.py [--errors]`` (about a minute; prints a Markdown table).
+4. **Colour** (``--errors --colour chroma|auto|grey --views 1|4``): the same with the model taught on a
+   channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default grey).
+
+5. **The rim fit on renders** (``--rim-renders N``): ``vision.shape.rim`` after a chroma model's match on
+   N rendered heads with known centres.
+
+Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]] [--rim-renders N]``
+(about a minute; prints a Markdown table).
 """
 
 from __future__ import annotations
@@ -39,10 +46,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.pick_cases import Case, load_cases, read_grey, teach_model  # noqa: E402
+from bench.pick_cases import Case, load_cases, read_grey, teach_model, teach_one, with_colour  # noqa: E402
 from vision import shape  # noqa: E402
 from vision.image import F64, gradients  # noqa: E402
 from vision.shape.model import LevelModel, TeachParams  # noqa: E402
+from vision.shape.rim import rim_centre  # noqa: E402
 from vision.shape.score import direction_detail  # noqa: E402
 
 WINDOW_PX = 150
@@ -136,29 +144,38 @@ def centre_spread(path: Path, x: float, y: float) -> tuple[float, float]:
     return float(dev[0]), float(dev[1])
 
 
-def errors(case: Case) -> None:
+def errors(case: Case, views: int = 4) -> None:
     """Item 3 of the module: each found head's error against the rim reference (``bench/screw_rim.py``:
-    method A, the corpus's ``measured_estimate``, and method B), in the image's and the part's frame."""
+    method A, the corpus's ``measured_estimate``, and method B), in the image's and the part's frame; the
+    model taught from ``views`` heads of the teach image (1 or 4) with ``case.colour_mode``."""
     from bench.screw_rim import measure
 
-    model = teach_model(case)
-    print(f"model: {len(case.more_rois) + 1} teach views; it reports the point {model.origin[0]:+.2f}, "
-          f"{model.origin[1]:+.2f} px from its ROI centre (the views' rim centres, vision.shape.frame)\n")
+    model = teach_model(case) if views > 1 else teach_one(case)
+    cpu: list[float] = []
+    print(f"model: {views} teach views, colour={case.colour_mode!r} (its channel: {model.colour}); it reports "
+          f"the point {model.origin[0]:+.2f}, {model.origin[1]:+.2f} px from its ROI centre (the views' rim "
+          "centres, vision.shape.frame)\n")
     print("| image | head (rim A) | found angle deg | score | error vs A, image frame px | error vs A, part frame px "
-          "| error vs A px | error vs B px | A - B px | reported sigma px |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| error vs A px | error vs B px | A - B px | reported sigma px | rim fit: error vs A px | vs B px "
+          "| sigma px |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    rim_a: list[float] = []
+    rim_b: list[float] = []
+    rim_ratio: list[float] = []
     img_e: list[tuple[float, float]] = []
     part_e: list[tuple[float, float]] = []
     eb: list[float] = []
     ratio: list[float] = []
     for t in case.tests:
-        res = shape.find(model, case.test_image(t))
+        img = case.test_image(t)
+        res = shape.find(model, img)
+        cpu.append(res.stats["cpu_total_s"] * 1e3)
         for i in t.instances:
             _, (bx, by) = measure(t.path, i.x, i.y)
             near = [m for m in res.matches if math.hypot(m.u_px - i.x, m.v_px - i.y) < 30]
             if not near:
                 print(f"| {t.path.name} | ({i.x:.2f}, {i.y:.2f}) | not found | - | - | - | - | - | "
-                      f"{math.hypot(bx - i.x, by - i.y):.2f} | - |")
+                      f"{math.hypot(bx - i.x, by - i.y):.2f} | - | - | - | - |")
                 continue
             m = min(near, key=lambda m: math.hypot(m.u_px - i.x, m.v_px - i.y))
             ex, ey = m.u_px - i.x, m.v_px - i.y
@@ -168,26 +185,76 @@ def errors(case: Case) -> None:
             part_e.append((px, py))
             eb.append(math.hypot(m.u_px - bx, m.v_px - by))
             ratio.append(math.hypot(ex, ey) / (math.sqrt(2) * m.sigma_px))
+            rf = rim_centre(model, img, m)
+            rim_cells = "- | - | -"
+            if rf is not None:
+                rim_a.append(math.hypot(rf.u_px - i.x, rf.v_px - i.y))
+                rim_b.append(math.hypot(rf.u_px - bx, rf.v_px - by))
+                rim_ratio.append(rim_a[-1] / (math.sqrt(2) * rf.sigma_px))
+                rim_cells = f"{rim_a[-1]:.2f} | {rim_b[-1]:.2f} | {rf.sigma_px:.2f}"
             print(f"| {t.path.name} | ({i.x:.2f}, {i.y:.2f}) | {m.angle_deg:.1f} | {m.score:.2f} | "
                   f"({ex:+.2f}, {ey:+.2f}) | "
                   f"({px:+.2f}, {py:+.2f}) | {math.hypot(ex, ey):.2f} | {eb[-1]:.2f} | "
-                  f"{math.hypot(bx - i.x, by - i.y):.2f} | {m.sigma_px:.2f} |")
+                  f"{math.hypot(bx - i.x, by - i.y):.2f} | {m.sigma_px:.2f} | {rim_cells} |")
     for name, e in (("image", np.array(img_e)), ("part", np.array(part_e))):
         if len(e):
             mean = e.mean(axis=0)
             about = math.sqrt(float(((e - mean) ** 2).sum(axis=1).mean()))
             print(f"\n{name} frame: mean error ({mean[0]:+.2f}, {mean[1]:+.2f}) px, RMS about it {about:.2f} px "
                   f"(RMS |error| {math.sqrt(float((e ** 2).sum(axis=1).mean())):.2f} px, {len(e)} heads)")
+    print(f"\nfound {len(img_e)} of {sum(len(t.instances) for t in case.tests)}; search CPU ms per image "
+          f"(shape.find's own, the colour projection included): {', '.join(f'{c:.0f}' for c in cpu)}")
     if eb:
         print(f"against B: RMS |error| {math.sqrt(float((np.array(eb) ** 2).mean())):.2f} px")
         r = np.array(ratio)
         print(f"|error vs A| / (sqrt(2) reported sigma): RMS {math.sqrt(float((r ** 2).mean())):.2f}, "
               f"{r.min():.2f}-{r.max():.2f} per head")
+    if rim_a:
+        ra, rb, rr = np.array(rim_a), np.array(rim_b), np.array(rim_ratio)
+        print(f"rim fit (vision.shape.rim, {len(ra)} heads): vs A RMS {math.sqrt(float((ra ** 2).mean())):.2f} px "
+              f"({ra.min():.2f}-{ra.max():.2f}), vs B RMS {math.sqrt(float((rb ** 2).mean())):.2f} px; "
+              f"|error vs A| / (sqrt(2) sigma) RMS {math.sqrt(float((rr ** 2).mean())):.2f} "
+              f"({rr.min():.2f}-{rr.max():.2f})")
+
+
+def rim_renders(n: int, seed: int = 8) -> None:
+    """The chroma model and the rim fit (``vision.shape.rim``) on ``n`` rendered heads with known centres
+    (``bench.screw_rim.render_head``; one head taught): RMS and largest error of the match and of the rim,
+    and actual / reported 1-sigma (RMS)."""
+    from bench.screw_rim import render_head
+
+    rng = np.random.default_rng(seed)
+    img, cx, cy, _ = render_head(rng)
+    model = shape.teach_many([img], [(cx - 57, cy - 57, 114, 114)], TeachParams(colour="chroma"), centres=[(cx, cy)])
+    rows: dict[str, tuple[list[float], list[float]]] = {"match": ([], []), "rim fit": ([], [])}
+    for _ in range(n):
+        im, x, y, _ = render_head(rng)
+        res = shape.find(model, im)
+        if not res.matches:
+            continue
+        m = res.matches[0]
+        fit = rim_centre(model, im, m)
+        for name, (u, v, s) in (("match", (m.u_px, m.v_px, m.sigma_px)),
+                                ("rim fit", (fit.u_px, fit.v_px, fit.sigma_px) if fit else (None, None, None))):
+            if u is not None and v is not None and s is not None:
+                e = math.hypot(u - x, v - y)
+                rows[name][0].append(e)
+                rows[name][1].append(e / (math.sqrt(2) * s))
+    for name, (errs, rats) in rows.items():
+        ea, ra = np.array(errs), np.array(rats)
+        print(f"{name}: {len(ea)} of {n} heads, RMS {math.sqrt(float((ea ** 2).mean())):.3f} px, largest "
+              f"{ea.max():.3f} px, actual / reported RMS {math.sqrt(float((ra ** 2).mean())):.2f}")
 
 
 def main() -> None:
-    if "--errors" in sys.argv[1:]:
-        errors(next(c for c in load_cases() if c.id == "robertson_screw_heads"))
+    args = sys.argv[1:]
+    if "--rim-renders" in args:
+        rim_renders(int(args[args.index("--rim-renders") + 1]))
+        return
+    if "--errors" in args:
+        mode = args[args.index("--colour") + 1] if "--colour" in args else "grey"
+        views = int(args[args.index("--views") + 1]) if "--views" in args else 4
+        errors(with_colour(next(c for c in load_cases() if c.id == "robertson_screw_heads"), mode), views)
         return
     case: Case = next(c for c in load_cases() if c.id == "robertson_screw_heads")
     u, v, w, h = case.roi

@@ -55,6 +55,7 @@ class TeachParamsDoc(_Part):
     edge_sigma_px: Num | None = Field(None, ge=0, le=5)
     auto_contrast: Bool | None = None
     min_component_px: Count | None = Field(None, ge=0, le=MAX_IMAGE_SIDE_PX)
+    colour: Literal["auto", "grey", "chroma"] | None = None
     threshold: Num | None = Field(None, ge=0, le=255)
     polarity: Literal["auto", "bright", "dark"] | None = None
     area_tolerance: Num | None = Field(None, ge=0, le=100)
@@ -91,12 +92,21 @@ class ViewSigmaDoc(_Part):
     deg: Num = Field(ge=0, le=180)
 
 
+class ColourDoc(_Part):
+    """``shape.colour``: the channel of a colour image the model was taught on and is searched in
+    (vision.shape.colour): ``offset + weights_bgr . (B, G, R)``, the weights' absolute values summing to 1."""
+
+    weights_bgr: tuple[Num, Num, Num] = Field(description="weights of B, G, R")
+    offset: Num = Field(ge=-255, le=510)
+
+
 class ShapeDoc(_Part):
     levels: list[LevelDoc] = Field(min_length=1, max_length=MAX_LEVELS)
     patch: PatchDoc | None = None
     view_sigma: ViewSigmaDoc | None = None
     origin_px: tuple[Px, Px] | None = None
     """The point a match reports, from the ROI centre (px, the part as taught; vision.shape.frame)."""
+    colour: ColourDoc | None = None
 
 
 class BlobDoc(_Part):

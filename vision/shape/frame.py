@@ -32,7 +32,7 @@ def recentred(model: ShapeModel, dx_px: float, dy_px: float) -> ShapeModel:
     if not (math.isfinite(dx_px) and math.isfinite(dy_px)):
         raise TeachError(f"the reported point's offset ({dx_px!r}, {dy_px!r}) px must be finite")
     return ShapeModel(model.levels, model.params, model.roi, model.image_size, model.patch, model.view_tau,
-                      (float(dx_px), float(dy_px)))
+                      (float(dx_px), float(dy_px)), model.colour)
 
 
 def part_centre(poses: list[Pose4], centres: list[tuple[float, float]]) -> tuple[float, float]:

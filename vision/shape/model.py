@@ -35,7 +35,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from vision.errors import TeachError
-from vision.image import F64, U8, as_gray, bilinear, gauss_peak, gradients, profile_ok, pyramid
+from vision.image import F64, U8, bilinear, gauss_peak, gradients, profile_ok, pyramid
+from vision.shape.colour import COLOUR_MODES, ColourMix, channel, taught_mix
 from vision.shape.patch import TeachPatch, make_patch, patch_from_dict, patch_to_dict
 
 MIN_TOP_RADIUS_PX = 8.0
@@ -74,6 +75,10 @@ class TeachParams:
     min_component_px: int = 0
     """Least length (level-0 pixels) of a connected model edge; shorter ones (texture, specks) are
     dropped. 0: automatic (a tenth of the ROI's smaller side, at least 6 px)."""
+    colour: str = "grey"
+    """Which channel of a colour teach image the model is made of (``vision.shape.colour``): ``"grey"``
+    (as before), ``"chroma"`` (the colour edges, the background's shading left out) or ``"auto"`` (the
+    chroma where its edges are strong enough, else grey). A grey image is always its grey value."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.min_contrast) and 1.0 <= self.min_contrast <= 255.0):
@@ -84,18 +89,23 @@ class TeachParams:
             raise TeachError(f"edge_sigma_px {self.edge_sigma_px!r} must be 0..5 px")
         if self.min_component_px < 0:
             raise TeachError(f"min_component_px {self.min_component_px} must be >= 0 (0: automatic)")
+        if self.colour not in COLOUR_MODES:
+            raise TeachError(f"colour {self.colour!r} must be one of {', '.join(COLOUR_MODES)}")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
-                "edge_sigma_px": self.edge_sigma_px, "auto_contrast": self.auto_contrast,
-                "min_component_px": self.min_component_px}
+        out: dict[str, Any] = {"min_contrast": self.min_contrast, "num_levels": self.num_levels,
+                               "edge_sigma_px": self.edge_sigma_px, "auto_contrast": self.auto_contrast,
+                               "min_component_px": self.min_component_px}
+        if self.colour != "grey":  # (a grey model's file as before)
+            out["colour"] = self.colour
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TeachParams:
         # files taught before auto contrast keep their edges as they were chosen then
         return cls(float(d.get("min_contrast", 12.0)), int(d.get("num_levels", 0)),
                    float(d.get("edge_sigma_px", 1.0)), bool(d.get("auto_contrast", False)),
-                   int(d.get("min_component_px", 0)))
+                   int(d.get("min_component_px", 0)), str(d.get("colour", "grey")))
 
 
 @dataclass
@@ -164,6 +174,9 @@ class ShapeModel:
     """The point a match reports, relative to the ROI centre the search works from (level-0 pixels of
     the teach image, unturned; ``vision.shape.frame.recentred``): a measured centre of the part. The
     search does not depend on it (HALCON's ``set_shape_model_origin``)."""
+    colour: ColourMix | None = None
+    """The channel of a colour image the model was taught on and is searched in (``vision.shape.colour``);
+    ``None``: the grey value."""
 
     @property
     def top_level(self) -> int:
@@ -177,6 +190,8 @@ class ShapeModel:
             out["view_sigma"] = {"px": round(self.view_tau[0], 4), "deg": round(math.degrees(self.view_tau[1]), 4)}
         if self.origin != (0.0, 0.0):
             out["origin_px"] = [round(self.origin[0], 4), round(self.origin[1], 4)]
+        if self.colour is not None:
+            out["colour"] = self.colour.to_dict()
         return out
 
     def view_cov(self) -> F64 | None:
@@ -201,7 +216,7 @@ class ShapeModel:
         """The model of the part's mirror image (a flat part lying face down)."""
         return ShapeModel([lv.mirrored() for lv in self.levels], self.params, self.roi, self.image_size,
                           None if self.patch is None else self.patch.mirrored(), self.view_tau,
-                          (-self.origin[0], self.origin[1]))
+                          (-self.origin[0], self.origin[1]), self.colour)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], params: TeachParams, roi: tuple[float, float, float, float],
@@ -211,7 +226,8 @@ class ShapeModel:
         vs = d.get("view_sigma") or {}
         tau = (float(vs.get("px", 0.0)), math.radians(float(vs.get("deg", 0.0))))
         o = d.get("origin_px") or (0.0, 0.0)
-        return cls(levels, params, roi, image_size, patch, tau, (float(o[0]), float(o[1])))
+        mix = ColourMix.from_dict(d["colour"]) if d.get("colour") is not None else None
+        return cls(levels, params, roi, image_size, patch, tau, (float(o[0]), float(o[1])), mix)
 
 
 
@@ -378,7 +394,8 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
 
     ``keep`` (optional) filters each level's candidate edges before the point budget is filled."""
     p = params or TeachParams()
-    img = as_gray(image)
+    mix = taught_mix([image], [roi], p.colour, p.edge_sigma_px, p.min_contrast * GRAD_PER_CONTRAST)
+    img = channel(image, mix)
     u, v, w, h = roi
     ref = np.array([u + w / 2.0, v + h / 2.0])
     n_levels = p.num_levels if p.num_levels > 0 else auto_levels(w, h)
@@ -433,5 +450,5 @@ def teach(image: NDArray[Any], roi: tuple[float, float, float, float],
     # (on level 0 too: the first points in storage order would all lie along the part's top edge)
     top.features = _spread_subset(top.points, np.ones(len(top.points)), MAX_TOP_FEATURES, 1.5)
     return ShapeModel(levels, p, (u, v, w, h), (img.shape[1], img.shape[0]),
-                      make_patch(img, (u, v, w, h), levels[0].points))
+                      make_patch(img, (u, v, w, h), levels[0].points), colour=mix)
 

@@ -31,6 +31,7 @@ Units: pixels of the teach images; ROIs ``(U, V, W, H)`` as ``teach``.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -38,8 +39,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import TeachError
-from vision.image import F64, U8, as_gray, gradients, pyramid
+from vision.image import F64, U8, gradients, pyramid
 from vision.shape import kernels
+from vision.shape.colour import channel, taught_mix
 from vision.shape.frame import part_centre, recentred
 from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams, teach
 from vision.shape.multi_align import Pose4, align, overlap
@@ -73,8 +75,10 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
         raise TeachError(f"give 1 to {MAX_TEACH_IMAGES} teach images, each with its ROI "
                          f"(got {len(images)} images and {len(rois)} ROIs)")
     p = params or TeachParams()
-    grays = [as_gray(i) for i in images]
-    model = teach(grays[0], rois[0], p)
+    mix = taught_mix(images, rois, p.colour, p.edge_sigma_px, p.min_contrast * GRAD_PER_CONTRAST)
+    grays = [channel(i, mix) for i in images]
+    pg = replace(p, colour="grey")  # (the channel is already made: teach on it as on a grey image)
+    model = replace(teach(grays[0], rois[0], pg), params=p, colour=mix)
     if len(images) == 1:
         if centres is None:
             return model
@@ -89,18 +93,19 @@ def teach_many(images: list[NDArray[Any]], rois: list[tuple[float, float, float,
             return np.zeros(len(pts), bool)
         return _seen_count(pts, nrm, level, [pyr[level] for pyr in pyrs], poses, p) >= need
 
-    out = teach(grays[0], rois[0], p, keep=keep)
+    out = replace(teach(grays[0], rois[0], pg, keep=keep), params=p)
     patch = mean_patch(make_patch(grays[0], rois[0], out.levels[0].points), grays, poses)
-    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch)
+    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, colour=mix)
     tau = spread(model, grays, poses)
     if centres is None:
-        return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, tau)
+        return ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, tau, colour=mix)
     # the views' own centres in the part's frame scatter by how well the model's frame holds the measured
     # centre from view to view (a 3-D part's edges move with the light): that scatter is in every match's
     # reported centre too
     pcs = np.array([part_centre([pose], [c]) for pose, c in zip(poses, centres, strict=True)])
     scatter = math.sqrt(float(((pcs - pcs.mean(axis=0)) ** 2).sum()) / (2 * (len(pcs) - 1)))
-    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, (math.hypot(tau[0], scatter), tau[1]))
+    model = ShapeModel(out.levels, out.params, out.roi, out.image_size, patch, (math.hypot(tau[0], scatter), tau[1]),
+                       colour=mix)
     return recentred(model, *part_centre(poses, centres))
 
 

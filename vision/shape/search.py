@@ -43,8 +43,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from vision.image import F64, U8, as_gray, pyramid, wrap_deg
+from vision.image import F64, U8, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
+from vision.shape.colour import channel
 from vision.shape.frame import match_at_origin, origin_at
 from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
@@ -321,7 +322,7 @@ def find(model: ShapeModel, image: NDArray[Any], search: SearchParams | None = N
     sp = search or SearchParams()
     warm_up()  # the compiled loops are loaded (or compiled) before the search's clock starts
     clock = Clock(sp.timeout_s)
-    img = as_gray(image)
+    img = channel(image, model.colour)
     stats: dict[str, float] = {}
     if img.size == 0 or min(img.shape) < 8:
         return FindResult([], False, clock.elapsed(), stats, None, sp.min_score)
