@@ -28,10 +28,11 @@ images, taught from ``11_1111.jpg``):
 4. **Colour** (``--errors --colour chroma|auto|grey --views 1|4``): the same with the model taught on a
    channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default grey).
 
-5. **The rim fit on renders** (``--rim-renders N``): ``vision.shape.rim`` after a chroma model's match on
-   N rendered heads with known centres.
+5. **The rim fit on renders** (``--rim-renders N [--scale F]``): ``vision.shape.rim`` after a chroma model's
+   match on N rendered heads with known centres (``--scale 0.25``: shrunk to a quarter, as the corpus's
+   quarter-size variant, radius ~12 px).
 
-Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]] [--rim-renders N]``
+Run: ``.venv/bin/python bench/screw_heads.py [--errors [--colour MODE] [--views N]] [--rim-renders N [--scale F]]``
 (about a minute; prints a Markdown table).
 """
 
@@ -217,18 +218,27 @@ def errors(case: Case, views: int = 4) -> None:
               f"({rr.min():.2f}-{rr.max():.2f})")
 
 
-def rim_renders(n: int, seed: int = 8) -> None:
+def rim_renders(n: int, seed: int = 8, scale: float = 1.0) -> None:
     """The chroma model and the rim fit (``vision.shape.rim``) on ``n`` rendered heads with known centres
-    (``bench.screw_rim.render_head``; one head taught): RMS and largest error of the match and of the rim,
-    and actual / reported 1-sigma (RMS)."""
+    (``bench.screw_rim.render_head``, shrunk by ``scale`` with ``INTER_AREA`` as the corpus's size variants;
+    one head taught): RMS and largest error of the match and of the rim, and actual / reported 1-sigma (RMS)."""
     from bench.screw_rim import render_head
 
+    def head(rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+        im, x, y, _ = render_head(rng)
+        if scale == 1.0:
+            return im, x, y
+        im = cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        return im, (x + 0.5) * scale - 0.5, (y + 0.5) * scale - 0.5  # (pixel-centre convention)
+
     rng = np.random.default_rng(seed)
-    img, cx, cy, _ = render_head(rng)
-    model = shape.teach_many([img], [(cx - 57, cy - 57, 114, 114)], TeachParams(colour="chroma"), centres=[(cx, cy)])
+    img, cx, cy = head(rng)
+    half = 57 * scale
+    model = shape.teach_many([img], [(cx - half, cy - half, 2 * half, 2 * half)], TeachParams(colour="chroma"),
+                             centres=[(cx, cy)])
     rows: dict[str, tuple[list[float], list[float]]] = {"match": ([], []), "rim fit": ([], [])}
     for _ in range(n):
-        im, x, y, _ = render_head(rng)
+        im, x, y = head(rng)
         res = shape.find(model, im)
         if not res.matches:
             continue
@@ -249,7 +259,8 @@ def rim_renders(n: int, seed: int = 8) -> None:
 def main() -> None:
     args = sys.argv[1:]
     if "--rim-renders" in args:
-        rim_renders(int(args[args.index("--rim-renders") + 1]))
+        rim_renders(int(args[args.index("--rim-renders") + 1]),
+                    scale=float(args[args.index("--scale") + 1]) if "--scale" in args else 1.0)
         return
     if "--errors" in args:
         mode = args[args.index("--colour") + 1] if "--colour" in args else "grey"

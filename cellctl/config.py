@@ -23,6 +23,7 @@ from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class
+from drivers.yaml_text import load_yaml
 
 CONFIG_FORMAT_VERSION = 1
 Role = Literal["viewer", "operator", "engineer"]
@@ -414,11 +415,11 @@ def parse_config(data: Any, source: str = "cell.yaml") -> CellConfig:
 def load_config(path: str | Path | None) -> CellConfig:
     """Read ``cell.yaml``; ``None`` gives the built-in virtual cell."""
     if path is None:
-        return parse_config(yaml.safe_load(default_config_text()), "built-in virtual cell")
+        return parse_config(load_yaml(default_config_text()), "built-in virtual cell")
     p = Path(path)
     text = read_text(p, "the config file", ConfigError)
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({yaml_error_text(exc)})") from None
     cfg = parse_config(data, str(p))

@@ -56,7 +56,13 @@ class ActiveMapping:
         return self.calib.get("capture_pose_ur") is not None
 
     def map(self, uv_px: NDArray[np.float64], plane_z_mm: float | None,
-            T_base_tool_capture: NDArray[np.float64] | None, with_uncertainty: bool = True) -> RobotPoint:
+            T_base_tool_capture: NDArray[np.float64] | None, with_uncertainty: bool = True,
+            pixel_sigma_px: float | None = None) -> RobotPoint:
+        """The pixel ``uv_px`` (raw, as the camera delivers it) in the base frame (mm) with its 1-sigma.
+
+        ``pixel_sigma_px``: the pixel's own 1-sigma (px, per axis; e.g. a match's ``sigma_px``), propagated
+        through the local mm/px scale on top of the calibration's own uncertainty; None: the calibration's
+        ``pixel_sigma_px`` (a hand-eye's, 0.1 px when it has none) or the N-point map's default (0.1 px)."""
         if self.kind == "handeye":
             if self.camera is None:
                 raise NoCalibration(f"hand-eye calibration {self.calibration_id} has no camera calibration to map "
@@ -64,8 +70,9 @@ class ActiveMapping:
             if plane_z_mm is None:
                 raise NoCalibration("hand-eye mapping needs the working plane height plane_z_mm (base frame)")
             pose = T_base_tool_capture if self.calib.get("setup") == "eye-in-hand" else None
-            return map_handeye(self.calib, uv_px, self.camera, plane_z_mm, pose, with_uncertainty=with_uncertainty)
-        return map_npoint(self.calib, uv_px, None, plane_z_mm)
+            return map_handeye(self.calib, uv_px, self.camera, plane_z_mm, pose, pixel_sigma_px=pixel_sigma_px,
+                               with_uncertainty=with_uncertainty)
+        return map_npoint(self.calib, uv_px, None, plane_z_mm, pixel_sigma_px=pixel_sigma_px)
 
 
 def active_camera(services: Services, camera_id: str) -> tuple[Any, CameraModel] | None:

@@ -178,7 +178,10 @@ class Startup:
                 self.ready_after_s = time.monotonic() - self._t0  # before the last event: ready has a time
             task.done.set()
         parts = ", ".join(f"{t.name} {t.seconds:.1f} s" + (" (failed)" if t.error else "") for t in self._tasks)
-        log.info("service ready in %.1f s (%s)", self.ready_after_s, parts)
+        if self.ready_after_s is None:  # the service stopped before the last task ran
+            log.info("service stopped before its warm-up was done (%s)", parts)
+        else:
+            log.info("service ready in %.1f s (%s)", self.ready_after_s, parts)
 
     @property
     def ready(self) -> bool:

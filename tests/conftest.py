@@ -9,6 +9,7 @@ list in ``tests/slow.txt``, plus every browser test).
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import threading
@@ -242,6 +243,47 @@ def kinds_of(rel_path: str, fixturenames: Iterable[str], module_text: str) -> se
     if any(h in module_text for h in PEER_HINTS) or fixtures & {"ur_emulator", "postgres", "postgres_url"}:
         kinds.add("peer")
     return kinds or {"unit"}
+
+
+@functools.cache
+def _slow_list() -> frozenset[str]:
+    return frozenset(slow_tests(SLOW_LIST.read_text().splitlines()) if SLOW_LIST.exists() else ())
+
+
+def never_selected(markexpr: str, known: set[str]) -> bool:
+    """Whether ``-m markexpr`` deselects every test that carries the markers ``known`` (and any others):
+    the expression is false for every value of the other markers it names."""
+    from itertools import product
+
+    from _pytest.mark.expression import Expression
+
+    try:
+        expr = Expression.compile(markexpr)
+    except Exception:  # noqa: BLE001 - pytest reports a bad expression itself
+        return False
+    names = sorted(set(markexpr.replace("(", " ").replace(")", " ").split()) - {"and", "or", "not"} - known)
+    for values in product((False, True), repeat=len(names)):
+        true = known | {name for name, value in zip(names, values, strict=True) if value}
+        if expr.evaluate(lambda name, /, **kwargs: name in true):  # noqa: B023 - evaluated at once
+            return False
+    return True
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """A test file whose every test ``-m`` deselects is not imported at all: the fast loop (``-m "not slow"``)
+    skips importing the page tests (Playwright) and the files listed whole in ``tests/slow.txt``, which each
+    xdist worker would import only to deselect them (docs/testing.md, "The fast loop")."""
+    markexpr = str(config.getoption("markexpr", "") or "")
+    if not markexpr or collection_path.suffix != ".py" or not collection_path.name.startswith("test_"):
+        return None
+    root = Path(__file__).parent
+    if not collection_path.is_relative_to(root):
+        return None
+    rel = collection_path.relative_to(root).as_posix()
+    known = {"browser", "e2e", "slow"} if rel.startswith("ui/") else set()
+    if not known and f"tests/{rel}" in _slow_list():
+        known = {"slow"}
+    return True if known and never_selected(markexpr, known) else None
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the xdist_group marks (it runs first otherwise)

@@ -8,7 +8,16 @@ from typing import Any, cast
 
 import pytest
 
-from tests.conftest import REPO, SLOW_LIST, UR_GROUP, XdistGroupIds, kinds_of, slow_tests, xdist_group_of
+from tests.conftest import (
+    REPO,
+    SLOW_LIST,
+    UR_GROUP,
+    XdistGroupIds,
+    kinds_of,
+    never_selected,
+    slow_tests,
+    xdist_group_of,
+)
 
 KINDS = {"unit", "peer", "e2e", "browser", "slow"}
 # Spelled in pieces: the module scan of tests/conftest.py must not take this file for a peer or e2e test.
@@ -35,6 +44,15 @@ def test_kinds_by_path_fixture_and_module() -> None:
     assert kinds_of("plc/test_modbus_server.py", ["plc_app"], MODBUS_CLIENT) == {"peer"}
     assert kinds_of("plc/test_opcua_server.py", ["plc_app"], OPCUA_CLIENT) == {"peer"}
     assert kinds_of("calibration/test_pnp.py", ["tmp_path"], "import numpy as np") == {"unit"}
+
+
+def test_a_file_is_left_uncollected_only_where_the_mark_expression_deselects_all_its_tests() -> None:
+    """``-m``: a whole-slow file (or a page test file) is not imported when no test of it can be selected."""
+    assert never_selected("not slow", {"slow"})
+    assert never_selected("unit and not slow", {"slow"}) and never_selected("not (slow or peer)", {"slow"})
+    assert not never_selected("slow", {"slow"}) and not never_selected("e2e or not slow", {"slow"})
+    assert not never_selected("not unit", {"slow"}) and not never_selected("browser", {"browser", "slow"})
+    assert never_selected("not browser", {"browser", "e2e", "slow"})
 
 
 def test_the_slow_list_parses_and_names_tests_that_exist() -> None:

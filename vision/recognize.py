@@ -62,13 +62,22 @@ class Recognition:
     """1-sigma of ``angle_deg`` (``Match.sigma_angle_deg``; NaN for a blob model)."""
     scores: dict[str, float] = field(default_factory=dict)
     """The verification's scores (``Match.scores``)."""
+    sigma_px: float = float("nan")
+    """1-sigma of the point (``Match.sigma_px``, px; NaN when unknown)."""
+    refine: str | None = None
+    """``Match.refine``: ``"rim"`` when the point is the round part's rim centre (then ``sigma_px`` is its)."""
 
     def as_dict(self) -> dict[str, object]:
-        return {"part": self.part, "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg,
-                "score": self.score, "margin": self.margin, "runner_up": self.runner_up,
-                "runner_up_score": self.runner_up_score, "scale": self.scale, "mirrored": self.mirrored,
-                "n_points": self.n_points, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
-                "scores": dict(self.scores)}
+        out: dict[str, object] = {
+            "part": self.part, "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg,
+            "score": self.score, "margin": self.margin, "runner_up": self.runner_up,
+            "runner_up_score": self.runner_up_score, "scale": self.scale, "mirrored": self.mirrored,
+            "n_points": self.n_points, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
+            "scores": dict(self.scores)}
+        if self.refine is not None:
+            out["refine"] = self.refine
+            out["sigma_px"] = finite_or_none(self.sigma_px)
+        return out
 
 
 @dataclass
@@ -154,7 +163,7 @@ def recognize(models: Sequence[PartLike], image: NDArray[np.uint8],
         ru_score = ru[0] if ru else 0.0
         out.append(Recognition(name, mt.u_px, mt.v_px, mt.angle_deg, score, score - ru_score,
                                ru[1] if ru else None, ru_score, mt.scale, mt.mirrored, mt.n_points,
-                               mt.sigma_angle_deg, dict(mt.scores)))
+                               mt.sigma_angle_deg, dict(mt.scores), mt.sigma_px, mt.refine))
     if sp.max_count is not None:
         out = out[:sp.max_count]
     rejected.sort(key=lambda x: -x.score)

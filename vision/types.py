@@ -143,12 +143,20 @@ class Match:
     scores: dict[str, float] = field(default_factory=dict)
     """The verification's scores (``vision.shape.verify``): ``edge`` (= ``score``), ``coverage``,
     ``polarity``, ``contrast``, ``missing_features``, ``surround``, ``unclaimed``."""
+    refine: str | None = None
+    """What finished the point after the search (a part model's ``refine``): ``"rim"``, the round part's
+    rim centre (``sigma_px`` is then the rim fit's, per axis); ``"rim_not_seen"``, asked but the image
+    showed too little of the rim (the model's prediction of its centre); None: the match as found."""
 
     def as_dict(self) -> dict[str, Any]:
-        return {"u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
-                "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
-                "n_visible": self.n_visible, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
-                "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
+        out: dict[str, Any] = {
+            "u_px": self.u_px, "v_px": self.v_px, "angle_deg": self.angle_deg, "score": self.score,
+            "scale": self.scale, "mirrored": self.mirrored, "n_points": self.n_points,
+            "n_visible": self.n_visible, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
+            "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
+        if self.refine is not None:
+            out["refine"] = self.refine
+        return out
 
 
 def finite_or_none(x: float) -> float | None:

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.cli.output import CommandError
-from cellctl.pick.model import PartModel, check_roi, teach
+from cellctl.pick.model import COLOUR_MODES, REFINES, PartModel, teach
 from vision import blob, shape
 from vision.recognize import recognize
 from vision.types import POLARITIES, SearchParams
@@ -41,12 +41,12 @@ def _roi(text: str | None, option: str) -> tuple[float, float, float, float] | N
     return (vals[0], vals[1], vals[2], vals[3])
 
 
-def read_image(path: str) -> NDArray[np.uint8]:
-    """A grey image from a file, or a one-line error naming the file."""
+def read_image(path: str, colour: bool = False) -> NDArray[np.uint8]:
+    """A grey image from a file (``colour``: as it is, B, G, R), or a one-line error naming the file."""
     p = Path(path)
     if not p.is_file():
         raise CommandError(f"image {path} does not exist")
-    img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    img = cv2.imread(str(p), cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE)
     if img is None or img.size == 0:
         raise CommandError(f"cannot read image {path}: not an image file OpenCV can decode (PNG, BMP, TIFF, JPEG)")
     return np.asarray(img, dtype=np.uint8)
@@ -57,19 +57,21 @@ def _teach(args: argparse.Namespace) -> dict[str, Any]:
         raise CommandError(f"give one --roi per --image (got {len(args.image)} images, {len(args.roi)} ROIs)")
     if len(args.image) > 1 and args.mode != "shape":
         raise CommandError("several teach images make a shape model: leave --mode blob out, or give one image")
-    imgs = [read_image(p) for p in args.image]
+    if args.mode != "shape" and (args.colour != "grey" or args.refine is not None):
+        raise CommandError("--colour and --refine make a shape model: leave --mode blob out")
+    # a grey model is taught from the files' grey values exactly as before; a colour one from their colours
+    imgs = [read_image(p, colour=args.colour != "grey") for p in args.image]
     rois = [_roi(r, "--roi") for r in args.roi]
     name = args.name or Path(args.out_model).stem
     roi = rois[0]
     if roi is None:
         raise CommandError("--roi U,V,W,H is required to teach a part (the part's box in pixels)")
-    params = shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels)
+    params = shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels, colour=args.colour)
+    more = [(img, r) for img, r in zip(imgs[1:], rois[1:], strict=True) if r is not None]
+    # (several views: the edges seen in every image stay, vision.shape.multi)
     m = teach(imgs[0], roi, mode=args.mode, name=name, teach_image=str(args.image[0]), shape_params=params,
-              blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity))
-    if len(imgs) > 1:  # the edges seen in every image stay (vision.shape.multi)
-        for img, r in zip(imgs[1:], rois[1:], strict=True):
-            check_roi(r, (int(img.shape[1]), int(img.shape[0])))  # type: ignore[arg-type]
-        m.shape = shape.teach_many(imgs, rois, params)  # type: ignore[arg-type]
+              blob_params=blob.BlobParams(threshold=args.threshold, polarity=args.polarity), more_views=more,
+              refine=args.refine)
     m.save(args.out_model)
     return {"model": str(args.out_model), **m.summary()}
 
@@ -94,8 +96,10 @@ def _find(args: argparse.Namespace) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     if any(m.shape is not None for m in models):
         shape.warm_up()  # once per process, so each image's time_ms is its own search
+    # a model taught on a colour channel is searched in the colour image; grey models as before
+    colour = any(m.shape is not None and m.shape.colour is not None for m in models)
     for path in args.images:
-        img = read_image(path)
+        img = read_image(path, colour=colour)
         for m in models:
             if (img.shape[1], img.shape[0]) != m.image_size and args.strict_size:
                 raise CommandError(f"image {path} is {img.shape[1]}x{img.shape[0]}, model {m.name} was "
@@ -133,6 +137,13 @@ def register(sub: Any) -> None:
     t.add_argument("--name", help="part name (default: the model file's stem)")
     t.add_argument("--min-contrast", type=float, default=12.0, help="shape: least grey step of an edge")
     t.add_argument("--num-levels", type=int, default=0, help="shape: pyramid levels (0: automatic)")
+    t.add_argument("--colour", choices=COLOUR_MODES, default="grey",
+                   help="shape: the channel of a colour image the model is made of: grey (the grey value, "
+                        "default), chroma (the part's colour edges, the background's shading left out; colour "
+                        "images needed) or auto (chroma when its edges are strong enough, else grey)")
+    t.add_argument("--refine", choices=REFINES, default=None,
+                   help="shape: rim: a round part (screw head, washer, bore) reports its rim's centre and its "
+                        "1-sigma at every match; refused when the taught part is not round")
     t.add_argument("--threshold", type=float, default=None, help="blob: fixed grey threshold (default Otsu)")
     t.add_argument("--polarity", choices=("auto", "bright", "dark"), default="auto", help="blob: part polarity")
     t.set_defaults(func=_teach)

@@ -44,7 +44,8 @@ class PickCandidate:
     T_base_part: Mat4
     """The part's reference point on the plane, its taught x axis along x (4x4, metres, base frame)."""
     sigma_mm: list[float]
-    """The reference point's 1-sigma (x, y, z), mm."""
+    """The reference point's 1-sigma (x, y, z), mm: the calibration's uncertainty and the match's own pixel
+    1-sigma (``match.sigma_px``; the calibration's pixel sigma when the match has none) through the local scale."""
     sigma_yaw_deg: float | None
     """The part's yaw 1-sigma (the match's own angle sigma), degrees; None when the search gave none."""
     base_yaw_deg: float
@@ -83,7 +84,10 @@ def candidate(mapping: ActiveMapping, recipe: Recipe, match: Recognition, T_capt
               robot: RobotBase) -> PickCandidate:
     """One match's candidate: its pose, the recipe's grasp folded nearest ``near_yaw`` (radians), both
     the pick and its approach checked against ``robot``'s envelope."""
-    part = part_pose(mapping, match.u_px, match.v_px, match.angle_deg, recipe.plane_z_mm, T_capture)
+    # The point's sigma: the calibration's uncertainty plus the match's own pixel 1-sigma (rim-refined or not)
+    # through the local mm/px scale (the calibration's pixel sigma when the match gives none).
+    part = part_pose(mapping, match.u_px, match.v_px, match.angle_deg, recipe.plane_z_mm, T_capture,
+                     pixel_sigma_px=float(match.sigma_px))
     grip = grasp(recipe, part, near_yaw)
     refused = None
     for T, what in ((grip.T_pick, "pick"), (grip.T_approach, "pre-pick")):

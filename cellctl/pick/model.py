@@ -12,7 +12,10 @@ File layout (``format_version`` 1)::
      ``shape.view_sigma`` {"px", "deg"}, only in a model taught from several views: the error a fit has
      beyond its own 1-sigma by how the part's look changes between them, added to every match's;
      ``shape.origin_px`` [x, y], only where a centre of the part was measured at teach: the point a match
-     reports, from the ROI centre, vision.shape.frame)
+     reports, from the ROI centre, vision.shape.frame; ``shape.colour``, only in a model taught on a colour
+     channel (``teach.params.colour`` ``chroma`` or ``auto``): the projection a colour image is searched in;
+     ``"refine": "rim"``, only in a round part's model that measures its rim after each match: every match
+     then reports the rim's centre and its 1-sigma, ``refine_rim``)
 
 Point coordinates are relative to the reference point, in pixels of their pyramid level. A file
 with a newer ``format_version`` than this code knows is refused with a clear message.
@@ -22,7 +25,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -31,19 +35,28 @@ from numpy.typing import NDArray
 
 from cellctl.errors import CellctlError
 from vision import blob, shape
-from vision.errors import SettingsError, VisionError
+from vision.errors import SettingsError, TeachError, VisionError
 from vision.image import as_gray
-from vision.types import FindResult, SearchParams
+from vision.types import FindResult, Match, SearchParams
 
 FORMAT_VERSION: Final[int] = 1
 KIND: Final[str] = "cellctl.pick.model"
 MODES: Final[tuple[str, ...]] = ("shape", "blob")
+COLOUR_MODES: Final[tuple[str, ...]] = ("grey", "chroma", "auto")
+"""``teach.params.colour`` (vision.shape.colour): the grey value (default, as before), the chroma channel of a
+colour image, or the chroma when its edges are strong enough."""
+REFINES: Final[tuple[str, ...]] = ("rim",)
+"""What a match is finished with after the search (``PartModel.refine``): ``rim``, the round part's rim."""
 
 Roi = tuple[float, float, float, float]
 
 
 class ModelFileError(CellctlError, VisionError):
     """A model file that cannot be used (unreadable, corrupt, or from a newer cellctl)."""
+
+
+class NotRoundPart(CellctlError, TeachError):
+    """``refine: rim`` asked of a part whose model has no round outline to measure."""
 
 
 @dataclass
@@ -57,6 +70,8 @@ class PartModel:
     teach_image: str | None
     shape: shape.ShapeModel | None = None
     blob: blob.BlobModel | None = None
+    refine: str | None = None
+    """``"rim"``: each match reports its rim's centre and 1-sigma (``refine_rim``); None: the match as found."""
 
     @property
     def reference_px(self) -> tuple[float, float]:
@@ -67,7 +82,11 @@ class PartModel:
 
     def find(self, image: NDArray[Any], search: SearchParams | None = None) -> FindResult:
         if self.shape is not None:
-            return shape.find(self.shape, image, search)
+            res = shape.find(self.shape, image, search)
+            if self.refine == "rim":
+                for mt in res.matches:
+                    refine_rim(self.shape, image, mt)
+            return res
         if self.blob is None:
             raise ModelFileError(f"part model {self.name} holds neither a shape nor a blob model")
         return blob.find(self.blob, image, search)
@@ -87,6 +106,10 @@ class PartModel:
         if self.shape is not None:
             out["levels"] = len(self.shape.levels)
             out["edge_points"] = int(len(self.shape.levels[0].points))
+            out["colour"] = self.shape.params.colour
+            out["channel"] = "chroma" if self.shape.colour is not None else "grey"
+            if self.refine is not None:
+                out["refine"] = self.refine
         elif self.blob is not None:
             out["area_px"] = self.blob.area_px
             out["polarity"] = self.blob.polarity
@@ -105,7 +128,7 @@ class PartModel:
                 "teach": {"image": self.teach_image, "image_size": list(self.image_size),
                           "roi": list(self.roi), "reference_px": list(self.reference_px),
                           "params": params},
-                **body}
+                **body, **({"refine": self.refine} if self.refine is not None else {})}
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), separators=(",", ":")) + "\n")
@@ -133,6 +156,11 @@ class PartModel:
             size = (int(teach["image_size"][0]), int(teach["image_size"][1]))
             params = teach.get("params", {})
             m = cls(str(d.get("name", "part")), mode, roi, size, teach.get("image"))
+            refine = d.get("refine")
+            if refine is not None and (refine not in REFINES or mode != "shape"):
+                raise ModelFileError(f"{source}: refine {refine!r} is not one of {', '.join(REFINES)} on a shape "
+                                     "model: teach the part again")
+            m.refine = refine
             if mode == "shape":
                 m.shape = shape.ShapeModel.from_dict(d["shape"], shape.TeachParams.from_dict(params), roi, size)
             else:
@@ -169,18 +197,71 @@ def check_roi(roi: Roi, image_size: tuple[int, int]) -> None:
                          f"keep 0 <= U, U+W <= {W} and 0 <= V, V+H <= {H}")
 
 
+def refine_rim(model: shape.ShapeModel, image: NDArray[Any], mt: Match) -> None:
+    """Move the match ``mt`` (in place) to its rim's centre measured in ``image`` (vision.shape.rim), with
+    the fit's 1-sigma per axis as ``sigma_px`` and ``refine`` ``"rim"``; where the image shows too little
+    of the rim, ``mt`` keeps the model's prediction of it and ``refine`` says ``"rim_not_seen"``."""
+    from vision.shape.rim import rim_centre
+
+    fit = rim_centre(model, image, mt)
+    if fit is None:
+        mt.refine = "rim_not_seen"
+        return
+    mt.u_px, mt.v_px, mt.sigma_px, mt.refine = fit.u_px, fit.v_px, fit.sigma_px, "rim"
+
+
+def _with_rim(m: PartModel) -> None:
+    """Make ``m`` report its rim's centre: the model's origin on the round outline's centre (so a match
+    predicts it and the reference point is it), or ``NotRoundPart`` when the model has none."""
+    from vision.shape.rim import model_rim
+
+    if m.shape is None:
+        raise NotRoundPart("refine 'rim' needs a shape model (mode shape): a blob model has no rim to measure")
+    rim = model_rim(m.shape)
+    if rim is None:
+        raise NotRoundPart(f"refine 'rim' needs a round part: part {m.name!r}'s edges in the ROI lie on no circle "
+                           "that goes round it (a screw head, a washer, a bore have one); teach it without refine, "
+                           "or frame the round part alone")
+    m.shape = replace(m.shape, origin=(rim[0], rim[1]))
+    m.refine = "rim"
+
+
 def teach(image: NDArray[Any], roi: Roi, *, mode: str = "shape", name: str = "part",
           teach_image: str | None = None, shape_params: shape.TeachParams | None = None,
-          blob_params: blob.BlobParams | None = None) -> PartModel:
-    """Teach a part model from the ROI ``(U, V, W, H)`` of ``image``; the ROI centre is the reference."""
+          blob_params: blob.BlobParams | None = None,
+          more_views: Sequence[tuple[NDArray[Any], Roi]] = (), refine: str | None = None) -> PartModel:
+    """Teach a part model from the ROI ``(U, V, W, H)`` of ``image``; the ROI centre is the reference.
+
+    ``more_views``: further (image, ROI) views of the same part (a shape model keeps the edges seen in all,
+    vision.shape.multi). A colour image is taught as it is when ``shape_params.colour`` is ``chroma`` or
+    ``auto`` (vision.shape.colour), else as its grey value (as before). ``refine="rim"``: a round part's
+    matches report its rim's centre (``NotRoundPart`` when the part is not round)."""
     if mode not in MODES:
         raise SettingsError(f"unknown mode {mode!r}: use one of {', '.join(MODES)}")
-    img = as_gray(np.asarray(image))
+    if refine is not None and refine not in REFINES:
+        raise SettingsError(f"unknown refine {refine!r}: use one of {', '.join(REFINES)} (or none)")
+    colour = shape_params.colour if shape_params is not None else "grey"
+    if colour not in COLOUR_MODES:
+        raise SettingsError(f"unknown colour mode {colour!r}: use one of {', '.join(COLOUR_MODES)}")
+    if mode != "shape" and (colour != "grey" or more_views or refine is not None):
+        raise SettingsError("colour, several teach views and refine make a shape model: use mode 'shape' "
+                            "(a blob model is taught from one grey image)")
+    # a grey model is taught on the grey value exactly as before; a colour one on the image as it is
+    img = as_gray(np.asarray(image)) if colour == "grey" else np.asarray(image)
     size = (int(img.shape[1]), int(img.shape[0]))
     check_roi(roi, size)
     m = PartModel(name, mode, roi, size, teach_image)
     if mode == "shape":
-        m.shape = shape.teach(img, roi, shape_params)
+        if more_views:
+            views = [(img, roi)] + [(as_gray(np.asarray(i)) if colour == "grey" else np.asarray(i), r)
+                                    for i, r in more_views]
+            for i, r in views[1:]:
+                check_roi(r, (int(i.shape[1]), int(i.shape[0])))
+            m.shape = shape.teach_many([i for i, _ in views], [r for _, r in views], shape_params)
+        else:
+            m.shape = shape.teach(img, roi, shape_params)
+        if refine == "rim":
+            _with_rim(m)
     else:
         m.blob = blob.teach(img, roi, blob_params)
     return m

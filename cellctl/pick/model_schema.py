@@ -130,6 +130,8 @@ class PartModelDoc(_Part):
     teach: TeachDoc
     shape: ShapeDoc | None = None
     blob: BlobDoc | None = None
+    refine: Literal["rim"] | None = None
+    """``rim``: a round part's matches report its rim's centre and 1-sigma (cellctl.pick.model); absent: as found."""
 
     @model_validator(mode="before")
     @classmethod
@@ -147,4 +149,6 @@ class PartModelDoc(_Part):
     def _mode_has_its_model(self) -> PartModelDoc:
         if getattr(self, self.mode) is None:
             raise ValueError(f"a {self.mode} model needs its {self.mode!r} section (what teach wrote)")
+        if self.refine is not None and self.mode != "shape":
+            raise ValueError(f"refine {self.refine!r} needs a shape model (a {self.mode} model has no rim to measure)")
         return self

@@ -73,12 +73,18 @@ class PartPose:
 
 
 def part_pose(mapping: ActiveMapping, u: float, v: float, angle_deg: float, plane_z_mm: float | None,
-              T_capture: Mat4 | None, with_uncertainty: bool = True) -> PartPose:
+              T_capture: Mat4 | None, with_uncertainty: bool = True, pixel_sigma_px: float | None = None) -> PartPose:
     """``T_base_part`` of a match at pixel ``(u, v)`` turned ``angle_deg`` (counter-clockwise on screen):
     the reference point mapped onto ``plane_z_mm`` (None: the mapping's own plane, z = 0 in the pose),
-    a second point ``AXIS_PROBE_PX`` along the angle for the taught x axis."""
+    a second point ``AXIS_PROBE_PX`` along the angle for the taught x axis.
+
+    ``pixel_sigma_px``: the match's own 1-sigma of ``(u, v)`` (px, ``Match.sigma_px``); the point's
+    ``sigma_mm`` is the calibration's uncertainty and this pixel noise through the local mm/px scale.
+    None or not finite: the calibration's own pixel sigma (``ActiveMapping.map``)."""
     a = math.radians(angle_deg)
-    p0 = mapping.map(np.array([u, v]), plane_z_mm, T_capture, with_uncertainty=with_uncertainty)
+    s_px = pixel_sigma_px if pixel_sigma_px is not None and math.isfinite(pixel_sigma_px) and pixel_sigma_px >= 0 \
+        else None
+    p0 = mapping.map(np.array([u, v]), plane_z_mm, T_capture, with_uncertainty=with_uncertainty, pixel_sigma_px=s_px)
     p1 = mapping.map(np.array([u + AXIS_PROBE_PX * math.cos(a), v - AXIS_PROBE_PX * math.sin(a)]),
                      plane_z_mm, T_capture, with_uncertainty=False)
     if not (np.isfinite(p0.xyz_mm).all() and np.isfinite(p1.xyz_mm).all()):
@@ -141,10 +147,10 @@ def grasp(recipe: Recipe, part: PartPose, near_yaw: float) -> Grasp:
 
 def pick_pose(mapping: ActiveMapping, recipe: Recipe, u: float, v: float, angle_deg: float,
               T_capture: NDArray[np.float64] | None, current_yaw: float,
-              sigma_angle_deg: float = float("nan")) -> dict[str, Any]:
+              sigma_angle_deg: float = float("nan"), sigma_px: float = float("nan")) -> dict[str, Any]:
     """Gripper pick and approach poses (T_base_tool) for one match, with uncertainty
-    (``sigma_angle_deg``: the match's angle 1-sigma)."""
-    part = part_pose(mapping, u, v, angle_deg, recipe.plane_z_mm, T_capture)
+    (``sigma_angle_deg``: the match's angle 1-sigma; ``sigma_px``: its point's, px, NaN: the calibration's)."""
+    part = part_pose(mapping, u, v, angle_deg, recipe.plane_z_mm, T_capture, pixel_sigma_px=sigma_px)
     grip = grasp(recipe, part, current_yaw)
     # (the yaw's 1-sigma once came from sig0 at both ends of the 25 px probe, as if the calibration's
     # error were independent at points 25 px apart: 1.66 deg for a part found to 0.02 deg)

@@ -178,11 +178,18 @@ class StationPlanner:
         self.failed.append(np.array(T_base_tool, dtype=np.float64))
 
     def _near_failed(self, T: Mat4) -> bool:
-        for F in self.failed:
-            rot, trans = g.transform_error(T, F)
-            if math.degrees(rot) < NEAR_FAILED_DEG and trans < NEAR_FAILED_M:
-                return True
-        return False
+        """Whether ``T`` is within ``NEAR_FAILED_DEG`` and ``NEAR_FAILED_M`` of a failed station: the
+        rotation angle of ``R_T^T R_F`` (from its trace) and the distance of the origins, for every failed
+        pose at once (``geometry.transform_error``'s numbers; the planner asks it of ~500 candidates a station)."""
+        if not self.failed:
+            return False
+        F = np.asarray(self.failed)
+        close = np.linalg.norm(F[:, :3, 3] - T[:3, 3], axis=1) < NEAR_FAILED_M
+        if not np.any(close):
+            return False
+        trace = np.einsum("ij,nij->n", T[:3, :3], F[close, :3, :3])  # trace(R_T^T R_F), each failed pose
+        rot_deg = np.degrees(np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0)))
+        return bool(np.any(rot_deg < NEAR_FAILED_DEG))
 
     def _estimate(self) -> None:
         H = [hand_pose(self.setup, s.T_base_tool) for s in self.stations]
@@ -235,10 +242,8 @@ class StationPlanner:
         widen = span < self.distance_range * float(np.median(d))
         best: tuple[float, Candidate] | None = None
         left_out: dict[str, int] = {}
-        for cand in self.candidates():
-            if cand.purpose in self.tried:
-                continue
-            why = self._refusal(cand)
+        cands = [cand for cand in self.candidates() if cand.purpose not in self.tried]
+        for cand, why in zip(cands, self._refusals(cands), strict=True):
             if why:
                 left_out[why] = left_out.get(why, 0) + 1
                 continue
@@ -265,19 +270,20 @@ class StationPlanner:
         tilts = TILT_FRACTIONS if self.estimated else TILT_FRACTIONS[:1]
         spins = SPIN_FRACTIONS if self.estimated else tuple(f for f in SPIN_FRACTIONS if abs(f) <= 0.5)
         out: list[Candidate] = []
+        spin = {sf: g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg)) for sf in spins}
         for k_az in range(AZIMUTHS):
             phi = 2 * math.pi * k_az / AZIMUTHS
             axis = math.cos(phi) * e1 + math.sin(phi) * e2
             for tf in tilts:
+                tilt = g.rotvec_to_matrix(axis * math.radians(tf * self.max_tilt_deg))
                 for sf in spins:
-                    R = g.rotvec_to_matrix(axis * math.radians(tf * self.max_tilt_deg)) @ \
-                        g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
+                    R = tilt @ spin[sf]
                     name = (f"tilt {tf * self.max_tilt_deg:.0f} deg towards {360 * k_az / AZIMUTHS:.0f} deg, "
                             f"spin {sf * self.max_spin_deg:+.0f} deg")
                     out += self._at_distances(name, R, P, v)
         for sf in spins:
             if sf:
-                R = g.rotvec_to_matrix(v * math.radians(sf * self.max_spin_deg))
+                R = spin[sf]
                 out += self._at_distances(f"spin {sf * self.max_spin_deg:+.0f} deg", R, P, v)
         return out
 
@@ -296,29 +302,47 @@ class StationPlanner:
             out.append(Candidate(f"{name}, distance x{f:.2f}", T, f))
         return out
 
-    def _refusal(self, cand: Candidate) -> str:
-        """Why ``cand`` cannot be a station ('' when it can)."""
-        try:
-            self.check_pose(cand.T_base_tool)
-        except Exception as exc:  # noqa: BLE001 - the robot's own rule: any refusal leaves the pose out
-            # One count per kind of refusal, whatever the numbers in it.
-            return "refused by the robot's limits: " + re.sub(r"-?\d+(\.\d+)?", "N", str(exc).split(";")[0])
-        if self._near_failed(cand.T_base_tool):
-            return "next to a station that gave nothing"
-        C = predict_cam_target(self.setup, self.X, self.Z, cand.T_base_tool)
-        xyz = self.outline_m @ C[:3, :3].T + C[:3, 3]
-        if np.any(xyz[:, 2] <= 0):
-            return "plate behind the camera"
-        uv = self.camera.project(xyz)
+    def _refusals(self, cands: list[Candidate]) -> list[str]:
+        """Why each of ``cands`` cannot be a station ('' when it can), in this order: the robot's own
+        pose rule, a failed station next to it, the plate behind the camera, (partly) outside the image,
+        seen too obliquely. The plate's outline is projected for all candidates at once (each point's
+        pixel is its own: the same numbers as one candidate at a time)."""
+        why = [""] * len(cands)
+        Cs: list[Mat4] = []
+        kept: list[int] = []
+        for i, cand in enumerate(cands):
+            try:
+                self.check_pose(cand.T_base_tool)
+            except Exception as exc:  # noqa: BLE001 - the robot's own rule: any refusal leaves the pose out
+                # One count per kind of refusal, whatever the numbers in it.
+                why[i] = "refused by the robot's limits: " + re.sub(r"-?\d+(\.\d+)?", "N", str(exc).split(";")[0])
+                continue
+            if self._near_failed(cand.T_base_tool):
+                why[i] = "next to a station that gave nothing"
+                continue
+            kept.append(i)
+            Cs.append(predict_cam_target(self.setup, self.X, self.Z, cand.T_base_tool))
+        if not kept:
+            return why
+        C = np.asarray(Cs)
+        xyz = np.einsum("pj,cij->cpi", self.outline_m, C[:, :3, :3]) + C[:, None, :3, 3]  # (candidate, point, 3)
+        behind = np.any(xyz[:, :, 2] <= 0, axis=1)
+        with np.errstate(all="ignore"):  # a candidate with points behind the camera is refused as such
+            uv = self.camera.project(xyz.reshape(-1, 3)).reshape(len(kept), -1, 2)
         w, h = self.camera.width, self.camera.height
         m = IMAGE_MARGIN * np.array([w, h])
-        if not (np.all(np.isfinite(uv)) and np.all(uv >= m) and np.all(uv <= np.array([w - 1, h - 1]) - m)):
-            return "plate predicted (partly) outside the image"
-        centre = C[:3, :3] @ self.centre_m + C[:3, 3]
-        cos_view = abs(float(C[:3, 2] @ centre)) / float(np.linalg.norm(centre))
-        if math.degrees(math.acos(min(1.0, cos_view))) > MAX_VIEW_ANGLE_DEG:
-            return f"plate seen more obliquely than {MAX_VIEW_ANGLE_DEG:g} deg"
-        return ""
+        inside = np.all(np.isfinite(uv) & (uv >= m) & (uv <= np.array([w - 1, h - 1]) - m), axis=(1, 2))
+        centre = np.einsum("cij,j->ci", C[:, :3, :3], self.centre_m) + C[:, :3, 3]
+        for k, i in enumerate(kept):
+            if behind[k]:
+                why[i] = "plate behind the camera"
+            elif not inside[k]:
+                why[i] = "plate predicted (partly) outside the image"
+            else:
+                cos_view = abs(float(C[k, :3, 2] @ centre[k])) / float(np.linalg.norm(centre[k]))
+                if math.degrees(math.acos(min(1.0, cos_view))) > MAX_VIEW_ANGLE_DEG:
+                    why[i] = f"plate seen more obliquely than {MAX_VIEW_ANGLE_DEG:g} deg"
+        return why
 
     # -- information -------------------------------------------------------------------------------
     def _hand_rotations(self) -> NDArray[np.float64]:

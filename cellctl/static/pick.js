@@ -151,6 +151,10 @@ $("#teach-button").addEventListener("click", async () => {
   try {
     const body = { camera_id: state.cameraId, roi: teach.roi.map((x) => Math.round(x * 10) / 10),
       mode: $("#teach-mode").value, name: $("#recipe-name").value || "part" };
+    if (body.mode === "shape") {  // (a blob model is taught from the grey value, with no rim)
+      body.colour = $("#teach-colour").value;
+      if ($("#teach-rim").checked) body.refine = "rim";
+    }
     const model = await api("POST", "/pick/teach?preview=true", body);
     teach.preview = model.preview;
     delete model.preview;

@@ -23,6 +23,7 @@ from calibration.targets import PlanarTarget, target_from_dict
 from drivers.errors import DriverInputError
 from drivers.sim.conveyor import BeltSpec
 from drivers.sim.production_spec import ProductionSpec
+from drivers.yaml_text import load_yaml
 
 SCENE_FORMAT_VERSION = 1
 BUILTIN_SCENE = Path(__file__).with_name("scenes") / "virtual-cell.yaml"
@@ -287,7 +288,7 @@ def load_scene(path: str | Path | None = None) -> SceneSpec:
     resolved = resolve_scene(path)
     p = resolved if resolved is not None else BUILTIN_SCENE
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except OSError as exc:
         raise SceneError(f"{p}: cannot read scene file ({exc.strerror})") from exc
     except yaml.YAMLError as exc:

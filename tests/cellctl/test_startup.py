@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -119,6 +120,24 @@ def test_a_failed_warm_up_is_listed_and_the_service_still_becomes_ready(cell: Ap
     assert body["status"] == "ok"
     assert body["warm_up_failed"] == {RENDERER: "RuntimeError: no cache here"}
     assert cell.client.get("/cameras/cam0/image", headers=cell.auth()).status_code == 200
+
+
+def test_a_service_stopped_before_its_last_warm_up_task_logs_so(caplog: pytest.LogCaptureFixture) -> None:
+    """The stop arrives while the first task runs: the second is skipped, and the closing log line says the
+    service stopped (it had no "ready in" time to write: that line raised in the warm-up thread)."""
+    startup: Startup
+
+    def renderer() -> None:
+        startup._stopping.set()  # what Startup.stop() does first, here while this task runs
+
+    startup = Startup([(RENDERER, renderer), (MATCHER, lambda: None)])
+    with caplog.at_level(logging.INFO, logger="cellctl.warmup"):
+        startup.start()
+        startup.stop(30)
+    assert startup.ready and startup.ready_after_s is None
+    assert startup.failed() == {MATCHER: "skipped: the service stopped first"}
+    assert any(r.getMessage().startswith("service stopped before its warm-up was done (renderer kernels")
+               for r in caplog.records), caplog.text
 
 
 def test_warm_up_command_loads_every_part_and_says_where_the_cache_is(capsys: pytest.CaptureFixture[str]) -> None:

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import pytest
-from playwright.sync_api import Browser, sync_playwright
 
 from tests.conftest import REPO
+
+if TYPE_CHECKING:  # Playwright is imported by the page tests themselves: a run that collects none (the fast
+    from playwright.sync_api import Browser  # loop: every page test is slow) does not pay its import
+
 
 CHROMIUM = "/usr/bin/chromium"
 # No background traffic: the page tests check that no request leaves the service.
@@ -19,6 +23,8 @@ SHOTS = REPO / "test-artifacts" / "screenshots"
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
+    from playwright.sync_api import sync_playwright
+
     SHOTS.mkdir(parents=True, exist_ok=True)
     with sync_playwright() as pw:
         b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)

@@ -225,3 +225,49 @@ def test_overlap_is_the_rectangles_intersection_over_the_smaller() -> None:
         touching += plain(a, b) > 0
     assert 50 < touching < 350  # both answers were exercised
     assert overlap(roi, match(0, 0, 0, 1), match(0, 0, 0, 1)) == pytest.approx(1.0)
+
+
+def test_a_level_zero_fit_reads_its_1_sigma_from_its_covariance(bracket: tuple[scenes.PartShape, shape.ShapeModel]
+                                                                 ) -> None:
+    """``Refined.sigma_deg``/``sigma_px`` are the level-0 fit's honest covariance's (computed when read), NaN
+    without one."""
+    import math as m_
+
+    from vision.image import pyramid
+    from vision.shape.model import GRAD_PER_CONTRAST
+    from vision.shape.refine import Pose, Refined, refine_lsq
+    from vision.shape.uncertainty import sigma_of
+
+    part, model = bracket
+    assert model.origin == (0.0, 0.0)  # a match's position is the ROI centre's, where the fit starts
+    img, _ = _one(part, 300.37, 231.81, 21.0, seed=5)
+    pyr = pyramid(img, model.top_level + 1)
+    # the level-0 edge fit, started a pixel and half a degree off the answer
+    best = shape.find(model, img).matches[0]
+    x, y = best.u_px, best.v_px
+    r = refine_lsq(pyr[0], model.levels[0], Pose(x + 0.8, y - 0.6, m_.radians(best.angle_deg + 0.5), 1.0, 1.0),
+                   model.params.edge_sigma_px, model.params.min_contrast * GRAD_PER_CONTRAST, 2.0, 5, fine=pyr[0],
+                   min_contrast=model.params.min_contrast, perspective=True)
+    assert r.cov is not None and np.all(np.isfinite(r.cov))
+    assert (r.sigma_deg, r.sigma_px) == sigma_of(r.cov)
+    assert 0.0 < r.sigma_deg < 0.1 and 0.0 < r.sigma_px < 0.1
+    assert m_.isnan(Refined(r.pose, r.score, r.rms_px).sigma_deg)
+
+
+def test_a_levels_fit_points_follow_its_features(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:
+    """The fit points of a level's feature subset are cut once and kept with the level model; a level
+    model whose features (or points) are replaced gets the new ones."""
+    from dataclasses import replace
+
+    from vision.shape.refine import _fit_points
+
+    _, model = bracket
+    lm = replace(model.levels[1])
+    m1, n1 = _fit_points(lm, lm.features)
+    assert m1.flags.c_contiguous and np.array_equal(m1, lm.points[lm.features])
+    assert _fit_points(lm, lm.features)[0] is m1
+    lm.features = lm.features[::2].copy()
+    m2, n2 = _fit_points(lm, lm.features)
+    assert np.array_equal(m2, lm.points[lm.features]) and np.array_equal(n2, lm.normals[lm.features])
+    lm.points = lm.points + 1.0
+    assert np.array_equal(_fit_points(lm, lm.features)[0], lm.points[lm.features])

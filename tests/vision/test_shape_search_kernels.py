@@ -172,6 +172,27 @@ def test_top_level_maxima_equal_numpy_with_plateaus(circular: bool) -> None:
     assert len(got[0]) > 9 and np.count_nonzero(got[3] == 90) == 9
 
 
+def test_top_level_maxima_read_the_accumulators_rows_in_place() -> None:
+    """The search passes the accumulator's rows as they are (wider than the planes: wrapped garbage past
+    column nw) and dilates the strided view of their first nw columns: the same maxima as on a copy."""
+    rng = np.random.default_rng(12)
+    na, nh, nw, wp = 7, 25, 33, 48
+    wide = np.zeros((na, nh + 1, wp), np.uint8)
+    wide[:, :nh] = (rng.integers(0, 6, (na, nh, wp)) * 10).astype(np.uint8)
+    wide[:, :nh, nw:] = 250  # garbage past the planes, higher than any score: must be neither read nor a border
+    planes = np.ascontiguousarray(wide[:, :, :nw])
+    dil = cv2.dilate(planes.reshape(na * (nh + 1), nw), np.ones((3, 3), np.uint8)).reshape(planes.shape)
+    view = cv2.dilate(wide.reshape(na * (nh + 1), wp)[:, :nw], np.ones((3, 3), np.uint8),
+                      borderType=cv2.BORDER_CONSTANT | cv2.BORDER_ISOLATED).reshape(na, nh + 1, nw)
+    np.testing.assert_array_equal(view, dil)
+    for circular in (True, False):
+        got = sk.top_maxima(wide, view, nh, 20, circular)
+        want = sk.top_maxima(planes, dil, nh, 20, circular)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
+        assert len(got[0]) > 0 and int(got[2].max()) < nw
+
+
 @pytest.mark.parametrize("nf", [24, 22, 3])
 def test_top_level_sums_equal_numpy_adds(nf: int) -> None:
     rng = np.random.default_rng(5)

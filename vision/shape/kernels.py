@@ -29,7 +29,7 @@ from vision.shape import small_kernels
 F64 = NDArray[np.float64]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)  # not inlined by numba: LLVM inlines it in its three callers
 def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float]:
     h, w = G.shape[0], G.shape[1]
     x = min(max(x, 0.0), w - 1.001)
@@ -45,18 +45,6 @@ def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float
     u0 = c0 + (d0 - c0) * fx
     u1 = c1 + (d1 - c1) * fx
     return t0 + (u0 - t0) * fy, t1 + (u1 - t1) * fy
-
-
-@njit(cache=True, inline="always")
-def _bilinear(img: NDArray[np.float32], x: float, y: float) -> float:
-    h, w = img.shape[0], img.shape[1]
-    x = min(max(x, 0.0), w - 1.001)
-    y = min(max(y, 0.0), h - 1.001)
-    x0, y0 = int(x), int(y)
-    fx, fy = x - x0, y - y0
-    top = img[y0, x0] + (img[y0, x0 + 1] - img[y0, x0]) * fx
-    bot = img[y0 + 1, x0] + (img[y0 + 1, x0 + 1] - img[y0 + 1, x0]) * fx
-    return top + (bot - top) * fy
 
 
 @njit(cache=True)
@@ -142,7 +130,7 @@ def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tu
     for i in range(npts):
         for j in range(k):
             t = j - half
-            prof[j] = _bilinear(img, q[i, 0] + t * n[i, 0], q[i, 1] + t * n[i, 1])
+            prof[j] = small_kernels.bilinear(img, q[i, 0] + t * n[i, 0], q[i, 1] + t * n[i, 1])
         s, m = 0.0, 0.0
         for j in range(k - 1):
             dj = prof[j + 1] - prof[j]
@@ -304,10 +292,14 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
             break
         A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, d)
         k = 4 if (fit_scale and (it > 0 or iterations == 1)) else 3
-        Ak = A[:k, :k].copy()
-        for j in range(k):
+        Ak = np.empty((k, k))
+        bk = np.empty(k)
+        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
+            bk[j] = b[j]
+            for c2 in range(k):
+                Ak[j, c2] = A[j, c2]
             Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, bk)
         if not ok:
             failed = True
             break
@@ -320,7 +312,8 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
         rng = max(rng * 0.6, 1.5)
         if moved < 0.02:
             break
-    out = np.array([x, y, th, sc])
+    out = np.empty(4)
+    out[0], out[1], out[2], out[3] = x, y, th, sc
     return out, failed, q, d, found, cosd, sign
 
 
@@ -447,10 +440,14 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
             break
         A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, off)
         k = 4 if fit_scale else 3
-        Ak = A[:k, :k].copy()
-        for j in range(k):
+        Ak = np.empty((k, k))
+        bk = np.empty(k)
+        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
+            bk[j] = b[j]
+            for c2 in range(k):
+                Ak[j, c2] = A[j, c2]
             Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, b[:k].copy())
+        delta, ok = small_kernels.solve(Ak, bk)
         if not ok:
             break
         ds = delta[3] if fit_scale else 0.0

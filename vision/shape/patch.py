@@ -302,6 +302,10 @@ def _fit_at(patch: TeachPatch, pyr: list[U8], lv: int, x: float, y: float, theta
     return PatchFit(pf.x * f, pf.y * f, pf.theta, pf.scale, pf.ncc, S @ pf.cov @ S, pf.n_used, pf.converged)
 
 
+_COV_FLOOR = np.diag([1e-6, 1e-6, 1e-10])
+"""``finish``'s floor of each fit's covariance (px^2, px^2, rad^2; read only)."""
+
+
 def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, scale: float,
            cov_edge: F64 | None, T0: F64 | None = None
            ) -> tuple[float, float, float, float, float, dict[str, float]] | None:
@@ -329,7 +333,7 @@ def finish(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, s
     pe = np.array([x, y, theta])
     pp = np.array([pf.x, pf.y, theta + math.remainder(pf.theta - theta, 2 * math.pi)])
     # a jackknife over few blocks can come out nearly singular: floor each at a thousandth px / rad^2
-    eps = np.diag([1e-6, 1e-6, 1e-10])
+    eps = _COV_FLOOR
     p, C, chi = merge(pe, Ce + eps, pp, pf.cov + eps, T0)
     if chi > SPLIT_CHI2 and pf.cov[2, 2] < Ce[2, 2]:
         # the two cannot both be right (beyond 5 sigma): the edges were dragged (texture, a shading

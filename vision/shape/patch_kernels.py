@@ -21,18 +21,6 @@ NP = 10
 """Parameters of the fit."""
 
 
-@njit(cache=True)
-def _bil(img: NDArray[np.float32], x: float, y: float) -> float:
-    h, w = img.shape
-    x = min(max(x, 0.0), w - 1.001)
-    y = min(max(y, 0.0), h - 1.001)
-    x0, y0 = int(x), int(y)
-    fx, fy = x - x0, y - y0
-    top = img[y0, x0] + (img[y0, x0 + 1] - img[y0, x0]) * fx
-    bot = img[y0 + 1, x0] + (img[y0 + 1, x0 + 1] - img[y0 + 1, x0]) * fx
-    return top + (bot - top) * fy
-
-
 @njit(cache=True, inline="always")  # one call site (gauss_newton): compiled once, in it
 def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64,
                      T: F64, block: NDArray[np.int64], nblocks: int, par: F64, sd: float, tukey_c: float,
@@ -60,7 +48,7 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
         if not (qx >= 1.0 and qy >= 1.0 and qx <= w - 2.0 and qy <= h - 2.0):
             continue
         inside[i] = True
-        I = _bil(crop, qx, qy)
+        I = sk.bilinear(crop, qx, qy)
         res = ga * I + gb_ - T[i]
         r[i] = res
         if sd > 0:
@@ -70,8 +58,8 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
             wt = (1.0 - u2) ** 2
         else:
             wt = 1.0
-        ax = ga * _bil(gx, qx, qy) / wp
-        ay = ga * _bil(gy, qx, qy) / wp
+        ax = ga * sk.bilinear(gx, qx, qy) / wp
+        ay = ga * sk.bilinear(gy, qx, qy) / wp
         aq = ax * qx + ay * qy
         J[0], J[1] = ax, ay
         J[2], J[3], J[4], J[5] = ax * px, ax * py, ay * px, ay * py
@@ -114,14 +102,6 @@ def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -
 
 
 @njit(cache=True)
-def _count(mask: NDArray[np.bool_]) -> int:
-    c = 0
-    for v in mask:
-        c += 1 if v else 0
-    return c
-
-
-@njit(cache=True)
 def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64, T: F64,
                  block: NDArray[np.int64], nblocks: int, par: F64, iterations: int, tukey_c: float, r_max: float,
                  scale: float, tilt_prior: float
@@ -139,21 +119,32 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
     n = pts.shape[0]
     t0, t1 = par[0], par[1]
     converged = False
+    failed = False
     sd = 0.0
-    for it in range(-1, iterations + 1):  # one call site of the inlined normal equations
+    ncc = 0.0
+    # one call site each of the inlined normal equations and light moments, one return: each copy of
+    # inlined code and each return of the 13-tuple is a share of a fresh machine's first start
+    for it in range(-1, iterations + 1):
         last = it >= 0 and (converged or it == iterations)
         H, g, Hb, Gb, r, inside = normal_equations(crop, gx, gy, pts, T, block, nblocks, par, sd, tukey_c, last)
-        if _count(inside) < 0.5 * n:
-            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
-        if it < 0:
+        n_in = 0
+        for i in range(n):
+            n_in += 1 if inside[i] else 0
+        if n_in < 0.5 * n:
+            failed = True
+            break
+        if it < 0 or last:
+            mi, mt, sxx, stt, sxt = light_moments(r, T, inside)
+            if last:
+                # the correlation of a I + b with the patch at the final pose
+                den = math.sqrt(sxx * stt)
+                ncc = sxt / den if den > 0 else 0.0
+                break
             # the light to start from: T ~ a I + b at the start (least squares over the samples inside)
-            mi, mt, sxx, _, sxt = light_moments(r, T, inside)
             a = sxt / sxx if sxx > 0 else 0.0
             par[8] = a if abs(a) > 1e-6 else 1e-6
             par[9] = mt - a * mi
             continue
-        if last:
-            break
         # a prior on the perspective terms (a view tilted by a few degrees: v r_max ~ 0.01): a round or
         # featureless part does not trade its position for a made-up tilt
         Hp = H.copy()
@@ -172,11 +163,13 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
             Hp[k, k] += reg
         d, ok = sk.solve(Hp, gp)
         if not ok:
-            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
-        d = -d
-        par += d
+            failed = True
+            break
+        for k in range(NP):  # loops, not array expressions (each compiles a ufunc kernel of its own)
+            d[k] = -d[k]
+            par[k] += d[k]
         # the residuals' robust spread for the next pass's Tukey weights (glints, clutter, an occluder: 0)
-        ar = np.empty(_count(inside))
+        ar = np.empty(n_in)
         j = 0
         for i in range(n):
             if inside[i]:
@@ -186,13 +179,16 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
         det = par[2] * par[5] - par[3] * par[4]
         if math.hypot(par[0] - t0, par[1] - t1) > r_max or not 0.5 * scale ** 2 < abs(det) < 2.0 * scale ** 2 \
                 or max(abs(par[6]), abs(par[7])) * r_max > 0.2:
-            return -1, par, H, g, Hb, Gb, r, inside, sd, 0.0, 0.0, 0.0, 0
+            failed = True
+            break
         if it >= 1 and abs(d[0]) + abs(d[1]) < 5e-3 and max(abs(d[2]), abs(d[3]), abs(d[4]), abs(d[5])) * r_max < 5e-3:
             converged = True
-    # the correlation at the final pose and the textbook covariance's sums, here (not two more compiled
-    # entries, each a share of a fresh machine's first start)
-    sw, swr, cnt = weighted_rss(r, inside, sd, tukey_c)
-    return (1 if converged else 0), par, H, g, Hb, Gb, r, inside, sd, ncc_of(r, T, inside), sw, swr, cnt
+    # the textbook covariance's sums, here (not one more compiled entry)
+    sw, swr, cnt = 0.0, 0.0, 0
+    if not failed:
+        sw, swr, cnt = weighted_rss(r, inside, sd, tukey_c)
+    status = -1 if failed else (1 if converged else 0)
+    return status, par, H, g, Hb, Gb, r, inside, sd, ncc, sw, swr, cnt
 
 
 @njit(cache=True, inline="always")  # in gauss_newton

@@ -65,10 +65,6 @@ class Refined:
     n_points: int = 0
     """Model points that agree (an edge within 1 px, direction and polarity as asked)."""
     n_visible: int = 0
-    sigma_deg: float = float("nan")
-    """1-sigma of the angle of the final fit (level 0 only): ``cov``'s."""
-    sigma_px: float = float("nan")
-    """1-sigma of the reference point's position (the larger axis), from the same."""
     detail: PointDetail | None = None
     """Per model point at the final pose (level 0 only): what the verification reads."""
     grad_noise: float = 0.0
@@ -79,6 +75,22 @@ class Refined:
     """(N, 2) their unit normals there."""
     cov: F64 | None = None
     """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad)."""
+
+    @property
+    def sigma_deg(self) -> float:
+        """1-sigma of the angle of the final fit (level 0 only): ``cov``'s; NaN without a finite one.
+        Computed when read (a search answers the patch-merged 1-sigma and never needs this one)."""
+        return self._sigmas()[0]
+
+    @property
+    def sigma_px(self) -> float:
+        """1-sigma of the reference point's position (the larger axis), from the same."""
+        return self._sigmas()[1]
+
+    def _sigmas(self) -> tuple[float, float]:
+        if self.cov is None or not np.all(np.isfinite(self.cov)):
+            return float("nan"), float("nan")
+        return sigma_of(self.cov)
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -93,8 +105,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     per cent larger or smaller; a rigid fit would turn that into a position error). Model points
     outside the image (a part at the border) take no part in the fit or the score.
     """
-    m = lm.points if subset is None else lm.points[subset]
-    nrm_m = lm.normals if subset is None else lm.normals[subset]
+    m, nrm_m = _fit_points(lm, subset)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
     h, w = img_level.shape
     x0, y0 = max(int(pose.x - reach), 0), max(int(pose.y - reach), 0)
@@ -117,7 +128,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     thr = find_threshold(crop, sigma, thr,
                          kernels.percentile75(kernels.magnitudes(G, q0[vis0])) if vis0.any() else thr)
     p4, failed, q, d, found, cosd, sign = kernels.fit_stage_a(
-        G, np.ascontiguousarray(m), np.ascontiguousarray(nrm_m), np.array([x, y, th, sc]), s0, max_scale_dev,
+        G, m, nrm_m, np.array([x, y, th, sc]), s0, max_scale_dev,
         float(search_px), int(iterations), float(thr), float(reject_below), bool(fit_scale), lm.radius,
         vis_margin, float(x1 - x0), float(y1 - y0))
     x, y, th, sc = (float(t) for t in p4)
@@ -142,25 +153,42 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
         off, S, clean = _profile(img_f, q, n)
-        used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & visible(q)
+        vis = visible(q)
+        used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & vis
         # neighbouring points see overlapping profiles: points per independent one
-        spacing = float(median(np.hypot(*np.diff(q[used], axis=0).T))) if used.sum() > 2 else 1.0
-        cov = edge_cov(off, used, np.ascontiguousarray(m), q, n, th, sc,
-                       max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
-        # the fit's 1-sigma: its honest covariance's (a search answers the patch-merged one where it can)
-        sig_deg, sig_px = sigma_of(cov) if np.all(np.isfinite(cov)) else (float("nan"), float("nan"))
+        qu = q[used]
+        spacing = float(median(np.hypot(qu[1:, 0] - qu[:-1, 0], qu[1:, 1] - qu[:-1, 1]))) if len(qu) > 2 else 1.0
+        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
+                       persp)
+        # the fit's 1-sigma (``Refined.sigma_deg``) is its honest covariance's, computed when read
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
-    vis = visible(q)
+        vis = visible(q)
     score, n_agree, n_vis, detail = direction_detail(G, q, n, vis, thr, polarity, min_visible)
-    inl = found & vis & (np.abs(d) < 1.0)
-    rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float("nan")
     if fine is None:
-        return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis)
-    return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, sig_deg, sig_px, detail,
-                   grad_noise(crop, sigma), q + np.array([x0, y0]), n, cov)
+        # a coarse level's hypothesis goes on by its pose and score: its rms is never read (NaN)
+        return Refined(Pose(x + x0, y + y0, th, score, sc), score, float("nan"), n_agree, n_vis)
+    inl = found & vis & (np.abs(d) < 1.0)
+    di = d[inl]
+    # np.mean's sum over its count, without its overhead (the same bits)
+    rms = math.sqrt(float(np.add.reduce(di * di)) / len(di)) if len(di) else float("nan")
+    return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, detail=detail,
+                   grad_noise=grad_noise(crop, sigma), q=q + np.array([x0, y0]), n=n, cov=cov)
+
+
+def _fit_points(lm: LevelModel, subset: NDArray[np.int64] | None) -> tuple[F64, F64]:
+    """The model points and normals a fit uses (all, or ``subset``: the level's features), C-contiguous
+    float64, kept with the level model for its next fit (a search refines several candidates per level)."""
+    if subset is None:
+        return np.ascontiguousarray(lm.points, dtype=np.float64), np.ascontiguousarray(lm.normals, dtype=np.float64)
+    got = lm.__dict__.get("_fit_subset")
+    if got is None or got[0] is not subset or got[1] is not lm.points or got[2] is not lm.normals:
+        got = (subset, lm.points, lm.normals, np.ascontiguousarray(lm.points[subset], dtype=np.float64),
+               np.ascontiguousarray(lm.normals[subset], dtype=np.float64))
+        lm.__dict__["_fit_subset"] = got
+    return got[3], got[4]
 
 
 def _perspective_fit(img_f: F32, m: F64, nrm: F64, x: float, y: float, th: float, sc: float,

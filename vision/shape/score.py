@@ -88,12 +88,11 @@ def noise_sigma_sparse(img: NDArray[np.uint8], step: int = 3) -> float:
     if h < 3 + step or w < 3 + step:
         return noise_sigma(img)
     ye, xe = h - 2, w - 2
-
-    def at(dy: int, dx: int) -> NDArray[np.float32]:
-        return img[dy:dy + ye:step, dx:dx + xe:step].astype(np.float32)
-
-    r = (at(0, 0) + at(0, 2) + at(2, 0) + at(2, 2) - 2 * (at(0, 1) + at(1, 0) + at(1, 2) + at(2, 1))
-         + 4 * at(1, 1))
+    # the mask is the outer product of (1, -2, 1): along the rows, then the columns, in integers (exact, as the
+    # float32 sums of whole grey levels it replaces: the same answer to the bit; pick-speed)
+    v = (img[0:ye:step].astype(np.int16) - 2 * img[1:1 + ye:step].astype(np.int16)
+         + img[2:2 + ye:step].astype(np.int16))
+    r = (v[:, 0:xe:step] - 2 * v[:, 1:1 + xe:step] + v[:, 2:2 + xe:step]).astype(np.float32)
     return float(math.sqrt(math.pi / 2.0) / 6.0 * np.mean(np.abs(r)))
 
 

@@ -185,8 +185,10 @@ def _top_one_scale(model: ShapeModel, resp: U8, search_box: Box, a0: float, ext:
     thr_top = int(math.floor(4 * nf * thr_frac))
     # local maxima over position and angle (circular when the range is the full turn)
     full = ext >= 2 * math.pi - 1e-9 and done == na
-    planes = np.ascontiguousarray(lin[:done].reshape(done, nh + 1, Wp)[:, :, :nw])
-    dil = cv2.dilate(planes.reshape(done * (nh + 1), nw), np.ones((3, 3), np.uint8)).reshape(planes.shape)
+    planes = lin[:done].reshape(done, nh + 1, Wp)  # a view: its columns < nw are the score planes
+    # isolated: OpenCV would read the view's columns >= nw (the wrapped garbage) as its border otherwise
+    dil = cv2.dilate(planes.reshape(done * (nh + 1), Wp)[:, :nw], np.ones((3, 3), np.uint8),
+                     borderType=cv2.BORDER_CONSTANT | cv2.BORDER_ISOLATED).reshape(done, nh + 1, nw)
     ai_, ys, xs, sc = sk.top_maxima(planes, dil, nh, thr_top, full)
     order = np.argsort(-sc, kind="stable")
     order = order[_budget(xs[order].astype(np.float64), ys[order].astype(np.float64), sc[order] / (4.0 * nf),
@@ -289,9 +291,11 @@ def _search_one(model: ShapeModel, pyr: list[U8], sp: SearchParams, mirrored: bo
 
 
 def _match_of(p: Pose, r: Refined, mirrored: bool) -> Match:
-    """The match of a level-0 hypothesis at its edge fit's pose (``_finish`` completes an answered one)."""
+    """The match of a level-0 hypothesis at its edge fit's pose, its 1-sigma not yet set (``_finish``
+    completes an answered one: the rest are never reported, and their 1-sigma would cost an eigen
+    decomposition each)."""
     return Match(p.x, p.y, wrap_deg(math.degrees(p.theta)), r.score, r.rms_px, p.scale, mirrored,
-                 r.n_points, r.n_visible, r.sigma_deg, r.sigma_px)
+                 r.n_points, r.n_visible, float("nan"), float("nan"))
 
 
 def _finish(patch: TeachPatch | None, pyr: list[U8], mt: Match, r: Refined, T0: F64 | None = None) -> Match:

@@ -78,11 +78,14 @@ def response_planes(q: U8, mag: NDArray[np.float32], thr: float, table: U8, out:
 
 @njit(cache=True, boundscheck=False)
 def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[I64, I64, I64, I64]:
-    """Cells of the score ``planes`` (A, rows, cols; only rows < ``nh`` count) scoring >= ``thr``
-    and >= ``dil`` (each plane's 3x3 maximum) of their own plane and of the planes of the next and
-    previous angle (wrapping round when ``circular``): local maxima over position and angle.
-    Returns (angle index, row, column, score) in (angle, row, column) order."""
-    na, _, nw = planes.shape
+    """Cells of the score ``planes`` (A, rows, cols; only rows < ``nh`` and the columns of ``dil`` count)
+    scoring >= ``thr`` and >= ``dil`` (A, rows, columns: each plane's 3x3 maximum) of their own plane and
+    of the planes of the next and previous angle (wrapping round when ``circular``): local maxima over
+    position and angle. ``planes`` may be wider than ``dil`` (the accumulator's rows, whose columns past
+    ``dil``'s are not looked at: no copy of the planes' columns is made). Returns (angle index, row,
+    column, score) in (angle, row, column) order."""
+    na = planes.shape[0]
+    nw = dil.shape[2]
     cap = 1024
     out = np.empty((4, cap), np.int64)
     n = 0

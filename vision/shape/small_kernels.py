@@ -19,6 +19,21 @@ F64 = NDArray[np.float64]
 
 
 @njit(cache=True)
+def bilinear(img: NDArray[np.float32], x: float, y: float) -> float:
+    """``vision.image.bilinear`` of ``img`` at one place (pixel centres at integers, clamped at the border):
+    one compiled sampler that the profile and patch kernels call (LLVM inlines it where they are linked;
+    numba's own ``inline="always"`` copied it into each caller's typing and lowering)."""
+    h, w = img.shape
+    x = min(max(x, 0.0), w - 1.001)
+    y = min(max(y, 0.0), h - 1.001)
+    x0, y0 = int(x), int(y)
+    fx, fy = x - x0, y - y0
+    top = img[y0, x0] + (img[y0, x0 + 1] - img[y0, x0]) * fx
+    bot = img[y0 + 1, x0] + (img[y0 + 1, x0 + 1] - img[y0 + 1, x0]) * fx
+    return top + (bot - top) * fy
+
+
+@njit(cache=True)
 def lu_factor(A: F64) -> tuple[F64, NDArray[np.int64], bool]:
     """``A`` (k, k) factored in place of a copy as ``P A = L U`` (unit ``L`` below the diagonal, ``U``
     on and above it), the pivot row of each step, and whether every pivot is non-zero."""

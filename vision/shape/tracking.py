@@ -21,6 +21,10 @@ from vision.shape.refine import Pose
 from vision.shape.responses import response_maps, spread_max, track
 
 HYPOTHESES_PER_POSITION = 3
+TRACK_BATCH = 160
+"""Candidates tracked per compiled call (the top level's most, ``search.MAX_TOP_CANDIDATES``, in one): each
+call and each climbing step of a batch costs ~50 us of Python around the kernel (batches of 32 were 4-5
+times that per image); the search's clock is read between batches."""
 
 
 class Clock:
@@ -71,13 +75,15 @@ def track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Po
         first = lv == L - 1
         raw = response_maps(pyr[lv], thr_grad, spread=1)
         spread_ = spread_max(raw, 3)
-        cx = np.array([int(round(c.x * 2)) for c in cands], dtype=np.int64)
-        cy = np.array([int(round(c.y * 2)) for c in cands], dtype=np.int64)  # plateau centres: *2, rounded
-        th = np.array([c.theta for c in cands])
-        ks = np.array([c.scale for c in cands])
+        P = np.array([(c.x, c.y, c.theta, c.scale) for c in cands], dtype=np.float64)
+        # plateau centres: *2, rounded half to even (as Python's round)
+        cx = np.rint(P[:, 0] * 2).astype(np.int64)
+        cy = np.rint(P[:, 1] * 2).astype(np.int64)
+        th = np.ascontiguousarray(P[:, 2])
+        ks = np.ascontiguousarray(P[:, 3])
         nxt: list[Pose] = []
-        for start in range(0, len(cands), 32):
-            sl = slice(start, start + 32)
+        for start in range(0, len(cands), TRACK_BATCH):
+            sl = slice(start, start + TRACK_BATCH)
             k_ = ks[sl]
             # below the top level the angle and position are still coarse: +-2 steps and +-2 px
             # (+-3 with the spread) there, +-1 further down
@@ -91,9 +97,10 @@ def track_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[Po
                 xs_, ys_, ts_, k_ = xs_[keep], ys_[keep], ts_[keep], k_[keep]
                 xs_, ys_, ts_, sc_ = track(raw, lm, np.rint(xs_).astype(np.int64),
                                            np.rint(ys_).astype(np.int64), ts_, 1, 1, k_)
-            nxt += [Pose(float(a), float(b_), float(t_), float(c_), float(kk))
-                    for a, b_, t_, c_, kk in zip(xs_, ys_, ts_, sc_, k_, strict=True)
-                    if c_ >= coarse_min * (0.6 if last else 0.8)]
+            bar = coarse_min * (0.6 if last else 0.8)
+            nxt += [Pose(a, b_, t_, c_, kk)  # Python floats from tolist(): no numpy scalar per value
+                    for a, b_, t_, c_, kk in zip(xs_.tolist(), ys_.tolist(), ts_.tolist(), sc_.tolist(), k_.tolist(),
+                                                 strict=True) if c_ >= bar]
             if clock.expired():
                 timed_out = True
                 break

@@ -142,7 +142,7 @@ def _inverse_weighted(pe: F64, Ce: F64, pp: F64, Cp: F64) -> tuple[F64, F64, F64
     d = pp - pe
     try:
         chi = float(d @ np.linalg.solve(Ce + Cp, d)) / 3.0
-        We, Wp = np.linalg.inv(Ce), np.linalg.inv(Cp)
+        We, Wp = np.linalg.inv(np.stack((Ce, Cp)))  # one batched call: the same LAPACK solve of each
         C = np.linalg.inv(We + Wp)
     except np.linalg.LinAlgError:
         return None
@@ -176,15 +176,16 @@ def merge(pe: F64, Ce: F64, pp: F64, Cp: F64, T0: F64 | None = None) -> tuple[F6
     ``ShapeModel.view_tau``), added to ``T`` and counted in the moment estimate's expectation. Returns
     the merged estimate, its covariance and the two's chi-square per degree of freedom."""
     d = pp - pe
-    T0 = np.zeros((3, 3)) if T0 is None else T0
-    S = Ce + Cp + 2.0 * T0
+    S = Ce + Cp if T0 is None else Ce + Cp + 2.0 * T0
     w = _inverse_weighted(pe, Ce, pp, Cp)
     if w is None:
         return pe, Ce, float("inf")
     We, Wp, C, p, chi = w
     tau_xy = max(float(d[0] ** 2 + d[1] ** 2) - float(S[0, 0] + S[1, 1]), 0.0) / 4.0
     tau_th = max(float(d[2] ** 2) - float(S[2, 2]), 0.0) / 2.0
-    T = np.diag([tau_xy, tau_xy, tau_th]) + T0
+    T = np.diag([tau_xy, tau_xy, tau_th])
+    if T0 is not None:
+        T = T + T0
     C_re = C + C @ (We @ T @ We + Wp @ T @ Wp) @ C
     return p, np.asarray(C_re, dtype=np.float64), chi
 

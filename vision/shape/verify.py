@@ -56,6 +56,7 @@ from vision.image import F64
 from vision.shape.model import CHAIN_MAX_TURN_DEG, LevelModel
 from vision.shape.score import SCORE_MAX_ANGLE_DEG, PointDetail
 from vision.shape.search_kernels import run_sizes
+from vision.shape.small_kernels import median
 
 POLARITY_MIN = 0.75
 """The most a match's polarity coherence is asked: halfway between a part's (1 but for a few
@@ -137,7 +138,7 @@ def verify(lm: LevelModel, q: F64, detail: PointDetail, grad_noise: float, min_s
     n_pairs = int(np.count_nonzero(both))
     polarity = float(np.count_nonzero(detail.sign[a][both] == detail.sign[b][both])) / n_pairs if n_pairs else 1.0
     scores["polarity"] = round(polarity, 4)
-    contrast = float(np.median(detail.gmax[seen])) / max(grad_noise, 1e-9) if seen.any() else 0.0
+    contrast = median(detail.gmax[seen]) / max(grad_noise, 1e-9) if seen.any() else 0.0
     scores["contrast"] = round(min(contrast, 999.0), 2)
     maybe = (n_vis_f >= MISSING_MIN_FRACTION * n_pts) & (n_seen_f < MISSING_SEEN_MAX * n_vis_f)
     # the region seen: the hull of the features at least half seen (a stray agreement in clutter beyond
@@ -185,6 +186,9 @@ SURROUND_DIRECTIONS = 72
 SURROUND_SPECK = 0.025
 """Evidence in runs (linked along the model's chains) of fewer than this share of the model's points
 (at least 3) does not count: a clutter edge touching the model's contour for a few points."""
+_TURNS = np.arange(SURROUND_DIRECTIONS) * (2 * math.pi / SURROUND_DIRECTIONS)
+_DIRECTIONS = np.stack([np.cos(_TURNS), np.sin(_TURNS)])
+"""(2, ``SURROUND_DIRECTIONS``) the unit directions of ``_surround`` (computed once)."""
 
 
 def _surround(q: F64, evidenced: NDArray[np.bool_], pairs: NDArray[np.int64]) -> float:
@@ -197,8 +201,7 @@ def _surround(q: F64, evidenced: NDArray[np.bool_], pairs: NDArray[np.int64]) ->
     size = run_sizes(n, np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1]), evidenced)
     keep = size >= max(3, int(math.ceil(SURROUND_SPECK * n)))
     d = q - q.mean(axis=0)
-    t = np.arange(SURROUND_DIRECTIONS) * (2 * math.pi / SURROUND_DIRECTIONS)
-    proj = d @ np.stack([np.cos(t), np.sin(t)])
+    proj = d @ _DIRECTIONS
     full = float(proj.max(axis=0).min())
     if full <= 1e-6:
         return 1.0  # the model's points lie on a line: no inside to be surrounded

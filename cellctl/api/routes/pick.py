@@ -53,6 +53,16 @@ class TeachInput(BaseModel):
     roi: tuple[RoiPx, RoiPx, RoiPx, RoiPx] = Field(description="U, V, W, H in pixels; reference point = centre")
     mode: Literal["shape", "blob"] = "shape"
     name: str = Field("part", min_length=1, max_length=64)
+    colour: Literal["grey", "chroma", "auto"] = Field(
+        "grey", description="shape: the channel of a colour frame the model is made of: grey (the grey value, "
+        "default), chroma (the part's colour edges, the background's shading left out; a colour camera needed) "
+        "or auto (chroma when its edges are strong enough, else grey)")
+    more_rois: list[tuple[RoiPx, RoiPx, RoiPx, RoiPx]] = Field(
+        default_factory=list, max_length=4, description="shape: up to 4 more boxes around other instances of the "
+                                                        "same part in the frame: the model keeps the edges seen in all")
+    refine: Literal["rim"] | None = Field(
+        None, description="shape: rim: a round part reports its rim's centre and 1-sigma at every match "
+                          "(422 not_round when the part is not round)")
 
 
 def _no_recipe(services: ServicesDep, recipe_id: int) -> str:
@@ -153,8 +163,9 @@ async def teach(body: TeachInput, services: ServicesDep, _: Engineer,
     """Teach a part model from the region ``roi`` of a live frame; the answer is the model (a
     recipe's ``models`` entry). The ROI's centre is the reference point; picks report the part's
     yaw relative to this frame (counter-clockwise on screen)."""
-    from cellctl.pick.model import check_roi
+    from cellctl.pick.model import NotRoundPart, check_roi
     from cellctl.pick.model import teach as teach_model
+    from vision.shape import TeachParams
 
     cam_id = body.camera_id or services.config.calibration.camera
     if cam_id not in services.cell.cameras:
@@ -169,7 +180,12 @@ async def teach(body: TeachInput, services: ServicesDep, _: Engineer,
                                            "robot out of the camera's view and teach again")
     try:
         check_roi(body.roi, frame.size)
-        model = await run_in_threadpool(teach_model, frame.pixels, body.roi, mode=body.mode, name=body.name)
+        model = await run_in_threadpool(
+            lambda: teach_model(frame.pixels, body.roi, mode=body.mode, name=body.name,
+                                shape_params=TeachParams(colour=body.colour), refine=body.refine,
+                                more_views=[(frame.pixels, r) for r in body.more_rois]))
+    except NotRoundPart as exc:
+        raise ApiError(422, "not_round", str(exc)) from None
     except ValueError as exc:
         raise ApiError(422, "cannot_teach", str(exc)) from None
     out: dict[str, Any] = model.to_dict()

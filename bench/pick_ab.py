@@ -1,0 +1,107 @@
+"""A search's Python against an older tree's, alternated image by image in one process (issue 37).
+
+On a shared machine two runs of ``bench/pick.py`` minutes apart differ by more than a few per cent of
+speed (the load moves); this bench runs both versions of the search's Python modules
+(``vision/shape/``'s ``MODULES``: the search, its fits, scores, patch finish and verification; the
+older ones read from git at ``REV``) on
+the same renders (``bench/pick.py``'s, seed 8), in alternating order, and reports the median thread CPU
+per image of each and the median of the per-image ratios. The compiled kernels and every other module are
+the working tree's (shared by both: a change to them is not measured here, and an older search must call
+them as it did). It also checks the two answer the same (matches' poses, scores and 1-sigmas, to the bit).
+
+Run: ``.venv/bin/python bench/pick_ab.py REV [--n 40]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import time
+import types
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numba.core.registry import CPUDispatcher as Dispatcher
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.pick import SIZE, make_scenes  # noqa: E402
+from tests.support import pick_scenes  # noqa: E402
+from vision import shape  # noqa: E402
+from vision.shape import search  # noqa: E402
+
+MODULES = ("uncertainty", "score", "responses", "patch", "verify", "refine", "tracking", "search")
+"""The modules compared (in import order); each old one sees the others' old versions."""
+
+
+def old_find(rev: str) -> Callable[..., Any]:
+    """``search.find`` of ``rev``'s ``MODULES`` (loaded under other names, each calling the others of ``rev``,
+    the working tree's compiled kernels and the working tree's other modules)."""
+    mods: dict[str, types.ModuleType] = {}
+    for name in MODULES:
+        path = f"vision/shape/{name}.py"
+        src = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, capture_output=True, text=True,
+                             check=True).stdout
+        mod = types.ModuleType(f"old_{name}")
+        mod.__file__ = str(ROOT / path)
+        sys.modules[mod.__name__] = mod  # dataclasses look their module up
+        exec(compile(src, path, "exec"), mod.__dict__)
+        mods[name] = mod
+    for mod in mods.values():
+        for attr, val in list(mod.__dict__.items()):
+            if isinstance(val, Dispatcher):  # compiled kernels: the working tree's (cached, compiled once)
+                setattr(mod, attr, getattr(sys.modules[f"vision.shape.{mod.__name__[4:]}"], attr, val))
+                continue
+            home = getattr(val, "__module__", None)
+            if isinstance(home, str) and home.startswith("vision.shape.") and home[13:] in mods:
+                setattr(mod, attr, getattr(mods[home[13:]], attr, val))
+    find: Callable[..., Any] = mods["search"].find
+    return find
+
+
+def answers(res: Any) -> list[Any]:
+    """Every field of the matches and the rejections, and the best rejected candidate (compared to the bit)."""
+    return [repr(m) for m in res.matches] + [repr(r) for r in res.rejected] + [repr(res.best_rejected)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("rev", help="the older tree (a commit)")
+    ap.add_argument("--n", type=int, default=40, help="renders (bench/pick.py's, seed 8)")
+    args = ap.parse_args()
+    old = old_find(args.rev)
+    part = pick_scenes.part_bracket()
+    teach_img, roi = pick_scenes.teach_scene(part, np.random.default_rng(1008), centre=(640.3, 480.6),
+                                             style=pick_scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
+    model = shape.teach(teach_img, roi)
+    scenes = make_scenes(args.n, 8)
+    load0 = os.getloadavg()[0]
+    for f in (old, search.find):
+        f(model, scenes[0][1].img)
+    t_old: list[float] = []
+    t_new: list[float] = []
+    same = True
+    for rep in range(2):
+        for k, (_, sc) in enumerate(scenes):
+            got = {}
+            for f in ((old, search.find) if (k + rep) % 2 == 0 else (search.find, old)):
+                c = time.thread_time()
+                res = f(model, sc.img)
+                (t_old if f is old else t_new).append((time.thread_time() - c) * 1e3)
+                got[f is old] = answers(res)
+            same &= got[True] == got[False]
+    ratio = [b / a for a, b in zip(t_old, t_new, strict=True)]
+    print(f"{args.rev} vs the working tree, {len(t_old)} searches each (thread CPU ms per image, median): "
+          f"{statistics.median(t_old):.2f} -> {statistics.median(t_new):.2f}; paired ratio "
+          f"{statistics.median(ratio):.3f}; same answers: {'yes' if same else 'NO'}; load average "
+          f"{load0:.1f} -> {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()
