@@ -277,38 +277,46 @@ def _run_source(s: RealSet, source: str, dets: list[Detection], pts: np.ndarray,
 
     def add(tool: str, model: str, ds: list[float], rms: float, t: float, note: str = "", n: int = len(dets)) -> None:
         med = float(np.nanmedian(ds)) if np.any(np.isfinite(ds)) else float("nan")
+        med7 = float(np.nanmedian(ds[:7])) if np.any(np.isfinite(ds[:7])) else float("nan")
         rows.append({"set": s.name, "corners": source, "tool": tool, "model": model, "views": n,
-                     "split_px": ds[0], "split_med_px": med, "n_splits": len(ds), "rms_px": rms, "cpu_s": t,
-                     "note": note})
+                     "split_px": ds[0], "split_med_px": med, "split_med7_px": med7, "n_splits": len(ds),
+                     "splits_px": [float(x) for x in ds], "rms_px": rms, "cpu_s": t, "note": note})
         print(f"  {s.name} [{source}] {tool} {model}: split {ds[0]:.3f} median of {len(ds)} {med:.3f} "
               f"rms {rms:.3f}", file=sys.stderr)
 
-    def cell_pair(views: list[Detection], model: str, warp: bool) -> Any:
+    def cell_pair(views: list[Detection], model: str, warp: bool, reg: bool = False) -> Any:
         def solve(a: np.ndarray, b: np.ndarray) -> float:
-            h = [calibrate(_pick(views, x), s.board, model, image_size=s.size, board_warp=warp).camera for x in (a, b)]
+            h = [calibrate(_pick(views, x), s.board, model, image_size=s.size, board_warp=warp, regularise=reg).camera
+                 for x in (a, b)]
             return float(projection_difference(h[0], h[1], pts)["rms_px"])
         return solve
 
     t0 = time.process_time()
-    cands = [(m, w) for m in ("division", "opencv5", "fisheye4", "opencv8") for w in (False, True)]
+    # the CLI's candidates (cellctl/cli/calib_intrinsics.py::_candidates) but the splined model
+    cands = [(m, w, r) for m, r in (("division", False), ("opencv5", False), ("fisheye4", False), ("opencv8", True),
+                                    ("opencv8", False)) for w in (False, True)]
     # the product's answer: calib intrinsics --model auto (influential views rejected, the halves of the kept)
     sel_res, sel = select_by_cross_validation(dets, s.board, cands, image_size=s.size, reject_views=True)
     ch = sel["chosen"]
     kept = {v.image for v in sel_res.views if v.used}
     kd = [d for d in dets if d.image in kept]
-    add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else ""),
-        _split_diffs(cell_pair(kd, ch["model"], ch["board_warp"]), len(kd), k), sel_res.rms_px,
+    add("cellctl, chosen by cross-validation", ch["model"] + (", warp" if ch["board_warp"] else "")
+        + (", regularised" if ch.get("regularised") else ""),
+        _split_diffs(cell_pair(kd, ch["model"], ch["board_warp"], bool(ch.get("regularised"))), len(kd), k),
+        sel_res.rms_px,
         time.process_time() - t0,
         "warp " + str(sel_res.board_warp["height_mm"]) + " mm" if sel_res.board_warp else "", n=len(kd))
     for model in ("opencv5", "fisheye4", "opencv8"):
-        for warp in (False, True):
+        regs = (False,) if model == "fisheye4" else (False, True)
+        for warp, reg in [(w, r) for r in regs for w in (False, True)]:
             t0 = time.process_time()
+            label = model + (", warp" if warp else "") + (", regularised" if reg else "")
             try:
-                full = calibrate(dets, s.board, model, image_size=s.size, board_warp=warp)
-                add("cellctl", model + (", warp" if warp else ""),
-                    _split_diffs(cell_pair(dets, model, warp), len(dets), k), full.rms_px, time.process_time() - t0)
+                full = calibrate(dets, s.board, model, image_size=s.size, board_warp=warp, regularise=reg)
+                add("cellctl", label, _split_diffs(cell_pair(dets, model, warp, reg), len(dets), k), full.rms_px,
+                    time.process_time() - t0)
             except Exception as exc:  # noqa: BLE001 - a failure is a row, not a crash
-                add("cellctl", model, [float("nan")], float("nan"), 0.0, f"failed: {exc}")
+                add("cellctl", label, [float("nan")], float("nan"), 0.0, f"failed: {exc}")
         if model == "fisheye4":
             continue
         t0 = time.process_time()
@@ -416,7 +424,10 @@ def real_table(rows: list[dict[str, Any]]) -> list[str]:
     """Per set: each row's even/odd split-half and, with ``--halvings``, its median over the halvings,
     each with its ratio to the best non-cellctl row (the same statistic)."""
     halved = any(r.get("n_splits", 1) > 1 for r in rows)
+    seven = any(r.get("n_splits", 1) > 7 for r in rows)
     head = "| set | corners | tool | model | views | split-half even/odd (px) | ratio to best peer |"
+    if seven:
+        head += " median of the first 7 (px) | ratio to best peer |"
     if halved:
         head += " split-half median (px) | ratio to best peer |"
     L = [head + " RMS (px) | note |", "|---" * (head.count("|") + 1) + "|"]
@@ -424,14 +435,21 @@ def real_table(rows: list[dict[str, Any]]) -> list[str]:
         sub = [r for r in rows if r["set"] == name]
         best = _best_peer(sub, "split_px")
         best_m = _best_peer(sub, "split_med_px") if halved else float("nan")
+        best_7 = _best_peer(sub, "split_med7_px") if seven else float("nan")
         for r in sub:
             med = (f" {_f(r.get('split_med_px', float('nan')))} | "
                    f"{_f(r.get('split_med_px', float('nan')) / best_m, 2)} |") if halved else ""
+            if seven:
+                med = (f" {_f(r.get('split_med7_px', float('nan')))} | "
+                       f"{_f(r.get('split_med7_px', float('nan')) / best_7, 2)} |") + med
             L.append(f"| {name} | {r['corners']} | {r['tool']} | {r['model']} | {r['views']} | {_f(r['split_px'])} | "
                      f"{_f(r['split_px'] / best, 2)} |{med} {_f(r['rms_px'])} | {r['note']} |")
         ours = next(r for r in sub if r["tool"].endswith("cross-validation") and r["corners"] in ("ours", "mrcal"))
         med = (f" **{_f(ours['split_med_px'])} / {_f(best_m)}** | **{_f(ours['split_med_px'] / best_m, 2)}** |"
                if halved else "")
+        if seven:
+            med = (f" **{_f(ours['split_med7_px'])} / {_f(best_7)}** | "
+                   f"**{_f(ours['split_med7_px'] / best_7, 2)}** |") + med
         L.append(f"| **{name}** | | **cellctl (its corners, chosen by cross-validation) / best peer** | | | "
                  f"**{_f(ours['split_px'])} / {_f(best)}** | **{_f(ours['split_px'] / best, 2)}** |{med} | "
                  "target <= 0.8 |")

@@ -47,6 +47,9 @@ CV_CONFIDENCE = 0.90
 CV_SEED = 2039
 """The random partitions' seed (fixed: the same data give the same choice)."""
 
+Candidate = tuple[str, bool] | tuple[str, bool, bool]
+"""A candidate of ``select_by_cross_validation``: ``(model, board_warp)`` or ``(model, board_warp, regularise)``."""
+
 Repeats = int | Literal["auto"]
 """``repeats`` of cross-validation: a fixed count of partitions, or ``"auto"`` (the sequential rule)."""
 
@@ -91,7 +94,7 @@ class _Run:
 
     def __init__(self, detections: Sequence[Detection], target: Target, model: str, k: int,
                  image_size: tuple[int, int] | None, drop_outliers: bool, full: IntrinsicsResult | None,
-                 board_warp: bool, most: int) -> None:
+                 board_warp: bool, most: int, regularise: bool = False) -> None:
         if k < 2:
             raise IntrinsicsError("cross-validation needs k >= 2 folds")
         found = [d for d in detections if d.found]
@@ -99,14 +102,14 @@ class _Run:
             if len(found) < MIN_VIEWS * k:  # before spending a full calibration on it
                 raise CrossValidationError(_too_large(k, len(found), "views with the target"))
             full = calibrate(found, target, model, image_size=image_size, drop_outliers=drop_outliers,
-                             board_warp=board_warp)
+                             board_warp=board_warp, regularise=regularise)
         used = {v.image for v in full.views if v.used}
         self.usable = [d for d in found if d.image in used]
         if len(self.usable) < MIN_VIEWS * k:
             raise CrossValidationError(_too_large(k, len(self.usable), "usable views (after the full calibration's "
                                                                        "rejections)"))
         self.k, self.model, self.target, self.full = k, model, target, full
-        self.drop_outliers, self.board_warp = drop_outliers, board_warp
+        self.drop_outliers, self.board_warp, self.regularise = drop_outliers, board_warp, regularise
         self.pts = covered_points(full)
         self.grid = None
         if model == "splined":   # the folds use the full set's grid (one model, validated)
@@ -122,7 +125,7 @@ class _Run:
         folds = self.partitions[r]
         try:
             self.parts.append(_one_partition(self.usable, folds, self.target, self.model, self.pts, self.full,
-                                             self.drop_outliers, self.board_warp, self.grid))
+                                             self.drop_outliers, self.board_warp, self.grid, self.regularise))
         except IntrinsicsError as exc:
             self.parts.append(None)
             self.failed.append(f"partition {r + 1}: fold of {len(folds[0])} views cannot be calibrated ({exc})")
@@ -171,7 +174,7 @@ def _most(repeats: Repeats) -> int:
 def cross_validate(detections: Sequence[Detection], target: Target, model: str, k: int = 2, *,
                    image_size: tuple[int, int] | None = None, drop_outliers: bool = False,
                    full: IntrinsicsResult | None = None, board_warp: bool = False,
-                   repeats: Repeats = "auto") -> dict[str, Any]:
+                   repeats: Repeats = "auto", regularise: bool = False) -> dict[str, Any]:
     """Repeated k-fold cross-validation (mrcal's idea, over several splits): split the views into ``k``
     disjoint folds, calibrate each fold on its own, and take the projection difference between every
     pair of fold solutions over the image region the whole data set covered (best rotation
@@ -185,10 +188,10 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     (``median_half_width``) lies within +-``SELECT_MARGIN`` (10 %) of it, at most ``CV_REPEATS`` (8).
 
     Folds are made of the views the full calibration used (``full`` if given); ``board_warp``
-    solves each fold with the target's warp (``calibrate``). A partition with a fold that cannot be
-    calibrated counts as an infinite difference (listed in ``failed``): the data cannot carry the
-    model there. Raises CrossValidationError (the calibration itself is not affected) when ``k`` is
-    too large for the usable views, or when half the partitions or more fail (the median is then
+    solves each fold with the target's warp, ``regularise`` regularised (``calibrate``). A partition
+    with a fold that cannot be calibrated counts as an infinite difference (listed in ``failed``): the
+    data cannot carry the model there. Raises CrossValidationError (the calibration itself is not
+    affected) when ``k`` is too large for the usable views, or when half the partitions or more fail (the median is then
     infinite: the data cannot carry the model).
 
     Returns ``k``, ``repeats`` (partitions drawn), ``repeats_rule``, ``folds`` and ``pairs`` (the
@@ -198,7 +201,8 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
     ``median_interval_px`` (the median's 90 % interval; None when a partition failed) and ``failed``.
     """
     _check_repeats(repeats)
-    run = _Run(detections, target, model, k, image_size, drop_outliers, full, board_warp, _most(repeats))
+    run = _Run(detections, target, model, k, image_size, drop_outliers, full, board_warp, _most(repeats),
+               regularise)
     if repeats != "auto":
         for _ in range(int(repeats)):
             run.draw()
@@ -214,10 +218,11 @@ def cross_validate(detections: Sequence[Detection], target: Target, model: str, 
 
 def _one_partition(usable: list[Detection], folds: list[np.ndarray], target: Target, model: str, pts: np.ndarray,
                    full: IntrinsicsResult, drop_outliers: bool, board_warp: bool,
-                   grid: tuple[int, int, float] | None) -> dict[str, Any]:
+                   grid: tuple[int, int, float] | None, regularise: bool = False) -> dict[str, Any]:
     """One partition's fold solutions and their pairwise projection differences (px)."""
     fold_res = [calibrate([usable[i] for i in f], target, model, image_size=full.camera.size,
-                          drop_outliers=drop_outliers, board_warp=board_warp, spline_grid=grid) for f in folds]
+                          drop_outliers=drop_outliers, board_warp=board_warp, spline_grid=grid,
+                          regularise=regularise) for f in folds]
     pairs = []
     for a in range(len(folds)):
         for b in range(a + 1, len(folds)):
@@ -247,14 +252,15 @@ the simpler one's: two halves of one set scatter, and a tie goes to fewer parame
 
 
 def select_by_cross_validation(detections: Sequence[Detection], target: Target,
-                               candidates: Sequence[tuple[str, bool]], k: int = 2, *,
+                               candidates: Sequence[Candidate], k: int = 2, *,
                                image_size: tuple[int, int] | None = None,
                                drop_outliers: bool = False, reject_views: bool = False,
                                repeats: Repeats = "auto") -> tuple[IntrinsicsResult, dict[str, Any]]:
     """Choose the lens model and board warp by k-fold cross-validation, not by the RMS (a richer
     model always lowers the RMS; only data it has not seen can say whether it describes the lens).
 
-    ``candidates``: ``(model, board_warp)`` pairs, simplest first. Each is calibrated on all views
+    ``candidates``: ``(model, board_warp)`` pairs, or ``(model, board_warp, regularise)`` (``calibrate``'s
+    regularised solve, mrcal's rule), simplest first. Each is calibrated on all views
     and cross-validated over the same partitions (``cross_validate``; every candidate on the same
     partitions of the same views when their full solves keep the same views); a candidate that
     cannot be (folds do not solve in half the partitions or more, too few views) is refused with
@@ -279,12 +285,16 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
     _check_repeats(repeats)
     rows: list[dict[str, Any]] = []
     runs: list[_Run | None] = []
-    for model, warp in candidates:
+    for cand in candidates:
+        model, warp, reg = cand[0], bool(cand[1]), bool(cand[2]) if len(cand) > 2 else False
         row: dict[str, Any] = {"model": model, "board_warp": warp}
+        if reg:
+            row["regularised"] = True
         try:
             full = calibrate(detections, target, model, image_size=image_size, drop_outliers=drop_outliers,
-                             board_warp=warp, reject_views=reject_views and model != "splined")
-            runs.append(_Run(detections, target, model, k, image_size, drop_outliers, full, warp, _most(repeats)))
+                             board_warp=warp, reject_views=reject_views and model != "splined", regularise=reg)
+            runs.append(_Run(detections, target, model, k, image_size, drop_outliers, full, warp, _most(repeats),
+                             reg))
         except IntrinsicsError as exc:
             row["refused"] = str(exc)
             runs.append(None)
@@ -342,7 +352,8 @@ def select_by_cross_validation(detections: Sequence[Detection], target: Target,
            f" (drawn until the choice was settled beyond the medians' {CV_CONFIDENCE:.0%} intervals, "
            f"{CV_MIN_REPEATS}-{CV_REPEATS})")
     return chosen[0], {"k": k, "repeats": drawn, "repeats_rule": rule,
-                       "chosen": {"model": rows[best]["model"], "board_warp": rows[best]["board_warp"]},
+                       "chosen": {"model": rows[best]["model"], "board_warp": rows[best]["board_warp"],
+                                  **({"regularised": True} if rows[best].get("regularised") else {})},
                        "candidates": rows, "cross_validation": chosen[1],
                        "rule": f"smallest median {k}-fold projection difference over the covered region, over "
                                f"{drawn} partitions of the views{how}; a richer candidate must beat a simpler "

@@ -242,7 +242,8 @@ def reject_influential_views(model: str, size: tuple[int, int], views: list[View
         rejected.append(_row(inf, v, vd.image))
         keep = [k for k in range(len(views)) if k != v]
         views = [views[k] for k in keep]
-        p, c, R, t, it = solve_views(model, size, views, target, start=(c, R[keep], t[keep]))
+        p, c, R, t, it = solve_views(model, size, views, target, start=(c, R[keep], t[keep]),
+                                     regularise=p.prior_w is not None)
         iters += it
     summary: dict[str, Any] = {
         "rule": "a view is rejected when leaving it out moves the projection over the covered region more than "

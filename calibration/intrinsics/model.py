@@ -54,6 +54,11 @@ class BundleProblem:
     starts: NDArray[np.int64]
     w: F64 | None = None
     """(M,) relative weight of each point (``calibration.observations.point_weights``), or None."""
+    prior_w: F64 | None = None
+    """Regularisation (``regularisation``): per-parameter weight (px per unit of the parameter, over the
+    whole parameter vector, 0 where none), or None for an unregularised solve."""
+    prior_at: F64 | None = None
+    """The values the regularisation pulls the parameters toward (same length as ``prior_w``)."""
 
     @property
     def n_views(self) -> int:
@@ -72,10 +77,60 @@ class BundleProblem:
                               np.ascontiguousarray(t), self.X, np.zeros_like(self.obs), np.ones(len(self.X)), self.view)
         return r.reshape(-1, 2)
 
+    def prior_cost(self, c: F64) -> float:
+        """The regularisation's share of the cost (px^2): ``sum (prior_w (c - prior_at))^2``."""
+        if self.prior_w is None or self.prior_at is None:
+            return 0.0
+        e = self.prior_w * (np.asarray(c, dtype=np.float64)[: len(self.prior_w)] - self.prior_at)
+        return float(np.sum(e * e))
+
     def residuals(self, c: F64, R: F64, t: F64) -> F64:
         """Weighted pixel residuals (the solver's cost): ``w_i (projected - observed)``, flattened."""
         return kernels.residuals(self.model_id, np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(R),
                                  np.ascontiguousarray(t), self.X, self.obs, self.weights(), self.view)
+
+
+REG_SHARE = 0.0025
+"""mrcal's rule (``regularisation``): each group of regularisation terms costs this share of the data's
+expected chi^2 when its parameters sit at their "normal" values."""
+
+REG_NORMAL_PIXEL_ERROR_PX = 1.0
+REG_NORMAL_DISTORTION = 2.0
+REG_NORMAL_CENTRE_OFFSET_PX = 500.0
+REG_RATIONAL_FACTOR = 5.0
+"""The rational model's denominator coefficients (opencv8's k4, k5, k6) are pulled this much harder."""
+
+REGULARISABLE = ("opencv5", "opencv8")
+
+
+def regularisation(model: str, size: tuple[int, int], n_measurements: int) -> tuple[F64, F64]:
+    """Per-parameter weights (px per unit) and targets of a regularised solve, by mrcal's rule (mrcal
+    2.2's ``optimizer_callback``, measured; ``docs/conventions.md``, camera models): a penalty
+    ``sum (w_i (c_i - c0_i))^2`` added to the cost, with
+
+    - every distortion coefficient pulled toward 0 with ``w_d^2 = N e^2 s / (n_d d^2)`` (``N`` the count of
+      measurements, 2 per kept point; ``e`` = 1 px the normal pixel error, ``s`` = 0.25 %, ``n_d`` the
+      count of distortion terms, ``d`` = 2 their normal size); the rational denominator's k4-k6 with 5 w_d
+      (a rational model whose numerator and denominator both grow is ~0/0 with wild derivatives);
+    - the principal point pulled toward the image centre ``((W - 1) / 2, (H - 1) / 2)`` with
+      ``w_c^2 = N e^2 s / (2 o^2)``, ``o`` = 500 px.
+
+    So each group costs ~0.25 % of the data's chi^2 (at 1 px per coordinate) at its normal value: the
+    fit's well-determined parameters hardly move (a 0.1 change of k1 costs ~1e-5 of the data's chi^2),
+    while the directions the data do not determine (the rational terms' valley on a dozen views) are
+    held near 0. The weight is fixed by this rule, not tuned on any set."""
+    nd = len(param_names(model)) - 4
+    if model not in REGULARISABLE:
+        raise IntrinsicsError(f"the {model} model has no regularised solve; use one of {', '.join(REGULARISABLE)}")
+    budget = n_measurements * REG_NORMAL_PIXEL_ERROR_PX**2 * REG_SHARE
+    w = np.zeros(4 + nd)
+    w[4:] = np.sqrt(budget / (nd * REG_NORMAL_DISTORTION**2))
+    if model == "opencv8":
+        w[4 + 5:4 + 8] *= REG_RATIONAL_FACTOR
+    w[2:4] = np.sqrt(budget / (2 * REG_NORMAL_CENTRE_OFFSET_PX**2))
+    at = np.zeros(4 + nd)
+    at[2:4] = [(size[0] - 1) / 2.0, (size[1] - 1) / 2.0]
+    return w, at
 
 
 def intrinsic_steps(c: F64) -> F64:
@@ -112,6 +167,19 @@ def normal_equations_at(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[
     Av, Bv, D, gcv, gv, _, r = kernels.normal_blocks(
         p.model_id, np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(R), np.ascontiguousarray(t),
         p.X, p.obs, p.weights(), p.starts)
+    if p.prior_w is not None and p.prior_at is not None:
+        # The prior's information and gradient, shared among the views in proportion to their kept
+        # points (its weight is proportional to the count of measurements, ``regularisation``): a
+        # leave-views-out replicate (influence, jackknife) is then the regularised solve of fewer views.
+        n_v = np.add.reduceat((p.weights() > 0).astype(np.float64), p.starts[:-1]) if p.n_views else np.zeros(0)
+        frac = n_v / max(float(n_v.sum()), 1.0)
+        k = len(p.prior_w)
+        w2 = p.prior_w ** 2
+        Av = Av.copy()
+        gcv = gcv.copy()
+        idx = np.arange(k)
+        Av[:, idx, idx] += frac[:, None] * w2[None, :]
+        gcv[:, :k] += frac[:, None] * (w2 * (c[:k] - p.prior_at))[None, :]
     Av = Av[:, free][:, :, free]
     gcv = gcv[:, free]
     return NormalEquations(Av.sum(axis=0), Bv[:, free], D, gcv.sum(axis=0), gv, Av, gcv), r
@@ -180,7 +248,7 @@ def levenberg_marquardt(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[
     (Transtrum & Sethna 2012) was tried and only walked further. The verdict flags such sets."""
     c, R, t = c.copy(), R.copy(), t.copy()
     r = p.residuals(c, R, t)
-    cost = cost_of(r)
+    cost = cost_of(r) + p.prior_cost(c)
     if not np.isfinite(cost):
         raise IntrinsicsError("the initial estimate puts target points behind the camera or outside "
                                "the lens model's range; check the target description")
@@ -198,7 +266,7 @@ def levenberg_marquardt(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[
             c_new[free] += dc
             R_new, t_new = kernels.moved_poses(R, t, dv)
             r_new = p.residuals(c_new, R_new, t_new)
-            cost_new = cost_of(r_new)
+            cost_new = cost_of(r_new) + p.prior_cost(c_new)
             if cost_new < cost:
                 rel = (cost - cost_new) / max(cost, 1e-300)
                 gain = (cost - cost_new) / max(cost / dof, 1e-300)

@@ -101,6 +101,8 @@ class IntrinsicsResult:
     view_rejection: dict[str, Any] | None = None
     """The influence test's summary (``calibrate(reject_views=True)``): rule, false-alarm rate, the
     residual scale and each rejected view with its projection shift and statistic."""
+    regularisation: dict[str, Any] | None = None
+    """The regularised solve's rule and weights (``calibrate(regularise=True)``), None when unregularised."""
 
     @property
     def param_sigmas(self) -> dict[str, float]:
@@ -127,6 +129,8 @@ class IntrinsicsResult:
             out["board_warp"] = self.board_warp
         if self.view_rejection is not None:
             out["view_rejection"] = self.view_rejection
+        if self.regularisation is not None:
+            out["regularisation"] = self.regularisation
         return out
 
 

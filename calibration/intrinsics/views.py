@@ -16,6 +16,7 @@ from calibration.intrinsics.model import (
     BundleProblem,
     camera_from_vector,
     levenberg_marquardt,
+    regularisation,
 )
 from calibration.intrinsics.results import (
     F64,
@@ -158,18 +159,22 @@ def warp_basis(target: Target, X: F64) -> F64:
     return 4.0 * r * (1.0 - r)
 
 
-def build_problem(model: str, size: tuple[int, int], views: list[ViewData], warp_target: Target | None = None
-                  ) -> BundleProblem:
+def build_problem(model: str, size: tuple[int, int], views: list[ViewData], warp_target: Target | None = None,
+                  regularise: bool = False) -> BundleProblem:
     """The bundle problem of ``views``; with ``warp_target`` its points carry the board-warp basis
-    (``kernels``: the parameter vector then has the two warp entries after the lens's)."""
+    (``kernels``: the parameter vector then has the two warp entries after the lens's); ``regularise``:
+    with mrcal's regularisation (``model.regularisation``, weighed by the kept points' count)."""
     counts = np.array([len(v.X) for v in views])
     w = np.concatenate([v.weights() for v in views])
     X = np.vstack([v.X for v in views])
     if warp_target is not None:
         X = np.ascontiguousarray(np.column_stack([X, warp_basis(warp_target, X)]))
-    return BundleProblem(model, size, X, np.vstack([v.uv for v in views]),
-                         np.repeat(np.arange(len(views)), counts).astype(np.int64),
-                         np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), w)
+    p = BundleProblem(model, size, X, np.vstack([v.uv for v in views]),
+                      np.repeat(np.arange(len(views)), counts).astype(np.int64),
+                      np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), w)
+    if regularise:
+        p.prior_w, p.prior_at = regularisation(model, size, 2 * int(np.sum(w > 0)))
+    return p
 
 
 def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64, radius_m: float) -> F64:
@@ -183,13 +188,14 @@ def circle_bias(p: BundleProblem, views: list[ViewData], c: F64, R: F64, t: F64,
 
 
 def solve_views(model: str, size: tuple[int, int], views: list[ViewData], target: Target,
-           start: tuple[F64, F64, F64] | None = None, max_iter: int = 100, board_warp: bool = False
-           ) -> tuple[BundleProblem, F64, F64, F64, int]:
+           start: tuple[F64, F64, F64] | None = None, max_iter: int = 100, board_warp: bool = False,
+           regularise: bool = False) -> tuple[BundleProblem, F64, F64, F64, int]:
     """Solve the bundle problem; ``board_warp`` (or a ``start`` whose vector carries the warp)
-    also solves the target's two warp parameters (``kernels``), after the lens's."""
+    also solves the target's two warp parameters (``kernels``), after the lens's; ``regularise``: with
+    mrcal's regularisation (``build_problem``)."""
     nd = N_DIST[model]
     warp = board_warp or (start is not None and len(start[0]) > 4 + nd)
-    p = build_problem(model, size, views, target if warp else None)
+    p = build_problem(model, size, views, target if warp else None, regularise)
     raw_obs = p.obs.copy()
     n = 4 + nd + (2 if warp else 0)
     if start is None:

@@ -93,7 +93,8 @@ def camera_html(rep: rc.CameraReport, cross_validation: dict[str, Any] | None = 
                    "<th>model</th><th>board warp</th><th>RMS (px)</th><th>cross-validation (px)</th>"
                    "<th>expected (px)</th><th></th></tr>")
             for c in sel["candidates"]:
-                cv += (f"<tr><td>{esc(c['model'])}</td><td>{'yes' if c['board_warp'] else 'no'}</td>"
+                name = c["model"] + (" (regularised)" if c.get("regularised") else "")
+                cv += (f"<tr><td>{esc(name)}</td><td>{'yes' if c['board_warp'] else 'no'}</td>"
                        f"<td class='num'>{fmt(c.get('rms_px', math.nan))}</td>"
                        f"<td class='num'>{fmt(c.get('cross_validation_px', math.nan))}</td>"
                        f"<td class='num'>{fmt(c.get('expected_px', math.nan))}</td>"
