@@ -68,26 +68,21 @@ def preload() -> None:
 
 
 def load_compiled_loops() -> None:
-    """Load the renderer's, matcher's and calibration solver's compiled loops from numba's cache and run
-    the matcher's warm-up search (what every served cell's warm-up does, ~1 s of CPU; the search alone
-    0.2 s, which each served child then skips: ``vision.shape.warm_up`` runs once per process), on this
-    thread alone: the renderer's pool is held at one thread and OpenCV at one thread meanwhile, so no pool
-    thread exists to be lost by a fork (the search started OpenCV's pool, which its fork handler does not
-    join). Each is given back its thread count: a child starts its pools on first use, as before."""
-    import cv2
-
+    """Load the renderer's, matcher's and calibration solver's compiled loops from numba's cache (what
+    every served cell's warm-up does first, ~1 s of CPU), on this thread alone: the renderer's pool
+    is held at one thread meanwhile, so no pool thread exists to be lost by a fork. The matcher's
+    warm-up search is left to each child's own warm-up (``vision.shape.warm_up`` still runs it there)."""
     from cellctl import warmup
     from drivers.sim.imaging import renderer
+    from vision.shape import kernels
 
-    threads_were, cv_threads_were = renderer.RENDER_THREADS, cv2.getNumThreads()
+    threads_were = renderer.RENDER_THREADS
     renderer.RENDER_THREADS = 1
-    cv2.setNumThreads(1)
     try:
         warmup.warm_renderer()
-        warmup.warm_matcher()  # the kernels and the warm-up search at the built-in cells' camera size
     finally:
         renderer.RENDER_THREADS = threads_were
-        cv2.setNumThreads(cv_threads_were)
+    kernels._load_all()
     warmup.warm_calibration()
 
 
