@@ -26,6 +26,7 @@ from cellctl.pick.recipe import Recipe
 from cellctl.store import open_store
 from drivers.sim.world import forget_worlds, world_for
 from tests.conftest import Served, start_served, stop_served
+from tests.support.truth import activate_truth
 
 HOME = {"x_m": 0.40, "y_m": 0.0, "z_m": 0.55, "rx_rad": np.pi, "ry_rad": 0.0, "rz_rad": 0.0}
 LOW = {**HOME, "z_m": 0.30}
@@ -38,13 +39,7 @@ def _prepare_store(cfg: Path) -> None:
     world = world_for(None, None)
     truth = world.truth()
     with open_store(config) as store:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": np.eye(4).tolist(),
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-              "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        activate_truth(store, truth, "eye-in-hand", np.eye(4))
         part = world.scene.parts[0]
         T_cam_base = np.linalg.inv(world.T_base_cam())
         p = T_cam_base @ np.array([part.x_mm * 1e-3, part.y_mm * 1e-3, 0.0, 1.0])

@@ -25,6 +25,7 @@ from cellctl.services import Services
 from cellctl.store import open_store
 from drivers.base import RobotBusy
 from drivers.sim.world import SimWorld, world_for
+from tests.support.truth import activate_truth
 
 SEED = 11
 
@@ -43,13 +44,7 @@ def services(tmp_path: Path) -> Iterator[Services]:
     svc = Services(config, Cell(config), open_store(config), JobManager())
     world = world_for(None, SEED)
     truth = world.truth()
-    cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-    he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": np.eye(4).tolist(),
-          "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-          "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-    h = svc.store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-    svc.store.activate(cam.id, "test")
-    svc.store.activate(h.id, "test")
+    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
     try:
         yield svc
     finally:

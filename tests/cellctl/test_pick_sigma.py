@@ -31,6 +31,7 @@ from cellctl.pick.recipe import Recipe
 from cellctl.services import Services
 from cellctl.store import open_store
 from drivers.sim.world import world_for
+from tests.support.truth import activate_truth
 from vision.recognize import recognize
 
 SEED = 11
@@ -51,11 +52,7 @@ def services(tmp_path: Path) -> Iterator[Services]:
     world_module._WORLDS.pop(("built-in", SEED), None)
     svc = Services(config, Cell(config), open_store(config), JobManager())
     truth = world_for(None, SEED).truth()
-    cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-    h = svc.store.save_calibration("handeye", "cam0", "robot0", {**HE, "T_tool_cam": truth["T_tool_cam"]}, {},
-                                   creator="test", note="truth")
-    svc.store.activate(cam.id, "test")
-    svc.store.activate(h.id, "test")
+    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
     try:
         yield svc
     finally:

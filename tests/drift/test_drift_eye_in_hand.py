@@ -15,6 +15,7 @@ from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
 from tests.support.app import in_process_cell
+from tests.support.truth import activate_truth
 
 BASELINE = 3
 
@@ -34,12 +35,7 @@ def eye_in_hand_cell(tmp: Path) -> Path:
     path = tmp / "cell.yaml"
     path.write_text(yaml.safe_dump(cfg))
     with open_store(parse_config(cfg)) as store:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": T_base_plate,
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        activate_truth(store, truth, "eye-in-hand", T_base_plate, robot_noise=False)
     return path
 
 

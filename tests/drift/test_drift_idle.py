@@ -17,6 +17,7 @@ from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
 from tests.support.app import in_process_cell
 from tests.support.forked import run_cellctl
+from tests.support.truth import activate_truth
 
 
 def fixed_camera_cell(tmp: Path) -> Path:
@@ -32,12 +33,7 @@ def fixed_camera_cell(tmp: Path) -> Path:
     path.write_text(yaml.safe_dump(cfg))
     truth = SimWorld(load_scene(scene)).truth()
     with open_store(parse_config(cfg)) as store:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-to-hand", "T_base_cam": truth["T_base_cam"], "T_tool_target": np.eye(4).tolist(),
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        activate_truth(store, truth, "eye-to-hand", np.eye(4), robot_noise=False)
     return path
 
 

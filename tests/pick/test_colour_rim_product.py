@@ -29,6 +29,7 @@ from drivers.base import Frame
 from drivers.recording import RecordingWriter
 from drivers.sim.world import world_for
 from tests.support.cli import run_cli
+from tests.support.truth import activate_truth
 from vision import shape
 
 SCREWS = Path(__file__).resolve().parents[1] / "data" / "pick_real" / "tf-visual-inspection-screws" / "train_val_set"
@@ -72,13 +73,7 @@ def colour_cell(tmp_path: Path) -> Iterator[Services]:
     config = parse_config(data)
     svc = Services(config, Cell(config), open_store(config), JobManager())
     truth = world_for(None, SEED).truth()
-    cam = svc.store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-    he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": np.eye(4).tolist(),
-          "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-          "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-    h = svc.store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-    svc.store.activate(cam.id, "test")
-    svc.store.activate(h.id, "test")
+    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
     try:
         yield svc
     finally:

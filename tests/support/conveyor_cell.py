@@ -23,6 +23,7 @@ from cellctl.store import open_store
 from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
 from tests.support.forked import run_cellctl
+from tests.support.truth import activate_truth
 
 WAIT_POSE_UR = [0.55, -0.30, 0.25, math.pi, 0.0, 0.0]
 
@@ -57,14 +58,7 @@ def store_truth(config_path: Path, scene_path: Path, calibrate_belt: bool = True
     scene = load_scene(scene_path)
     truth = SimWorld(scene).truth()
     with open_store(config) as store:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-to-hand", "T_base_cam": truth["T_base_cam"],
-              "T_tool_target": truth["targets"]["plate"]["T_tool_target"],
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-              "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        activate_truth(store, truth, "eye-to-hand", truth["targets"]["plate"]["T_tool_target"])
         if calibrate_belt:
             assert scene.conveyor is not None
             b = store.save_calibration("conveyor", "belt0", "robot0",

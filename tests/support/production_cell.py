@@ -23,6 +23,7 @@ from drivers.sim.scene import BUILTIN_SCENES, load_scene
 from drivers.sim.world import SimWorld
 from tests.support.forked import run_cellctl
 from tests.support.served import Served, start_served
+from tests.support.truth import activate_truth
 
 CLEAR_POSE_UR = [0.45, -0.30, 0.25, math.pi, 0.0, 0.0]
 """Out of the camera's view: where the robot waits and the first picture is taken from."""
@@ -59,14 +60,7 @@ def store_truth(config_path: Path, scene_path: Path) -> None:
     config = parse_config(yaml.safe_load(config_path.read_text()))
     truth = SimWorld(load_scene(scene_path)).truth()
     with open_store(config) as store:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-to-hand", "T_base_cam": truth["T_base_cam"],
-              "T_tool_target": truth["targets"]["plate"]["T_tool_target"],
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-              "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        activate_truth(store, truth, "eye-to-hand", truth["targets"]["plate"]["T_tool_target"])
 
 
 def pick_area_roi(truth: dict[str, Any], margin_mm: float = 35.0) -> list[float]:

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import yaml
 
 from calibration import geometry as g
@@ -30,6 +29,7 @@ from cellctl.pick.model import teach
 from cellctl.store import open_store
 from drivers.sim.world import world_for
 from tests.support.served import Served, free_port, start_served
+from tests.support.truth import activate_truth
 
 if TYPE_CHECKING:  # the app is imported when a cell starts, not when a test module is collected
     import httpx
@@ -77,13 +77,7 @@ def prepare_cell(tmp: Path, plc: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
     plate = next(t for t in truth["targets"].values() if t["attached_to"] == "base")
     store = open_store(config)
     try:
-        cam = store.save_calibration("camera", "cam0", None, truth["camera"], {}, creator="test", note="truth")
-        he = {"setup": "eye-in-hand", "T_tool_cam": truth["T_tool_cam"], "T_base_target": plate["T_base_target"],
-              "uncertainty": {"covariance": (np.eye(6) * 1e-10).tolist()}, "pixel_sigma_px": 0.05,
-              "robot_noise": {"sigma_mm": 0.02, "sigma_deg": 0.005}}
-        h = store.save_calibration("handeye", "cam0", "robot0", he, {}, creator="test", note="truth")
-        store.activate(cam.id, "test")
-        store.activate(h.id, "test")
+        cam_id, he_id = activate_truth(store, truth, "eye-in-hand", plate["T_base_target"])
         part = world.scene.parts[0]
         T_cam_base = g.invert(world.T_base_cam())
         u, v = world.camera_model.project(g.transform_points(T_cam_base, [part.x_mm * 1e-3, part.y_mm * 1e-3, 0.0]))[0]
@@ -96,8 +90,8 @@ def prepare_cell(tmp: Path, plc: dict[str, Any]) -> tuple[Path, dict[str, Any]]:
         store.close()
     path = tmp / "cell.yaml"
     path.write_text(yaml.safe_dump(data))
-    return path, {"part_x_mm": part.x_mm, "part_y_mm": part.y_mm, "camera_calibration_id": cam.id,
-                  "handeye_calibration_id": h.id}
+    return path, {"part_x_mm": part.x_mm, "part_y_mm": part.y_mm, "camera_calibration_id": cam_id,
+                  "handeye_calibration_id": he_id}
 
 
 def start_plc_cell(tmp: Path, opcua: dict[str, Any] | None = None, modbus: bool = True) -> PlcCell:
