@@ -37,14 +37,13 @@ from cellctl.errors import CellctlError
 from vision import blob, shape
 from vision.errors import SettingsError, TeachError, VisionError
 from vision.image import as_gray
+from vision.shape.colour import COLOUR_MODES
+from vision.shape.rim import model_rim, rim_centre
 from vision.types import FindResult, Match, SearchParams
 
 FORMAT_VERSION: Final[int] = 1
 KIND: Final[str] = "cellctl.pick.model"
 MODES: Final[tuple[str, ...]] = ("shape", "blob")
-COLOUR_MODES: Final[tuple[str, ...]] = ("grey", "chroma", "auto")
-"""``teach.params.colour`` (vision.shape.colour): the grey value (default, as before), the chroma channel of a
-colour image, or the chroma when its edges are strong enough."""
 REFINES: Final[tuple[str, ...]] = ("rim",)
 """What a match is finished with after the search (``PartModel.refine``): ``rim``, the round part's rim."""
 
@@ -201,8 +200,6 @@ def refine_rim(model: shape.ShapeModel, image: NDArray[Any], mt: Match) -> None:
     """Move the match ``mt`` (in place) to its rim's centre measured in ``image`` (vision.shape.rim), with
     the fit's 1-sigma per axis as ``sigma_px`` and ``refine`` ``"rim"``; where the image shows too little
     of the rim, ``mt`` keeps the model's prediction of it and ``refine`` says ``"rim_not_seen"``."""
-    from vision.shape.rim import rim_centre
-
     fit = rim_centre(model, image, mt)
     if fit is None:
         mt.refine = "rim_not_seen"
@@ -213,8 +210,6 @@ def refine_rim(model: shape.ShapeModel, image: NDArray[Any], mt: Match) -> None:
 def _with_rim(m: PartModel) -> None:
     """Make ``m`` report its rim's centre: the model's origin on the round outline's centre (so a match
     predicts it and the reference point is it), or ``NotRoundPart`` when the model has none."""
-    from vision.shape.rim import model_rim
-
     if m.shape is None:
         raise NotRoundPart("refine 'rim' needs a shape model (mode shape): a blob model has no rim to measure")
     rim = model_rim(m.shape)

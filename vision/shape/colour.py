@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 from vision.errors import TeachError
 from vision.image import U8, as_gray
 
-COLOUR_MODES = ("auto", "grey", "chroma")
+COLOUR_MODES = ("grey", "chroma", "auto")
 CHROMA_MARGIN = 2.0
 """``auto`` takes the chroma when its ROI's strong edges (99th percentile of the gradient) reach this
 multiple of the model's contrast floor: an edge that only just passes the floor is noise-limited."""
