@@ -73,10 +73,9 @@ class Recognition:
             "score": self.score, "margin": self.margin, "runner_up": self.runner_up,
             "runner_up_score": self.runner_up_score, "scale": self.scale, "mirrored": self.mirrored,
             "n_points": self.n_points, "sigma_angle_deg": finite_or_none(self.sigma_angle_deg),
-            "scores": dict(self.scores)}
+            "sigma_px": finite_or_none(self.sigma_px), "scores": dict(self.scores)}
         if self.refine is not None:
             out["refine"] = self.refine
-            out["sigma_px"] = finite_or_none(self.sigma_px)
         return out
 
 

@@ -97,6 +97,10 @@ def test_a_blurred_match_reports_a_larger_sigma_mm_than_a_sharp_one(services: Se
     assert found["blurred"].sigma_mm[0] > found["sharp"].sigma_mm[0] * 1.05
     assert found["blurred"].sigma_mm[1] > found["sharp"].sigma_mm[1] * 1.05
     assert found["blurred"].sigma_mm[2] == pytest.approx(found["sharp"].sigma_mm[2], rel=0.05)
+    # the answer shows the pixel 1-sigma it carried, for a plain (not rim-refined) model too
+    for c in found.values():
+        answer = c.as_json()
+        assert "refine" not in answer and answer["sigma_px"] == pytest.approx(c.match.sigma_px, rel=1e-12)
 
 
 def _local_scale(mapping: ActiveMapping, uv: np.ndarray, T: np.ndarray | None) -> np.ndarray:
