@@ -267,8 +267,9 @@ def test_8_an_arm_later_than_its_plan_meets_the_part_further_along_the_window(ce
     finally:
         faults.speed_slider = 1.0
     assert st["ended_because"] == "count_reached" and st["counters"]["placed"] == 1, st
-    assert st["counters"]["missed_window"] == 0, st  # met further along, not given up
     cycles = http.get(f"/production/runs/{st['run_id']}/cycles").json()
+    # met further along, not given up (a failure shows each given-up part's reason: at load 15 on 2 cores, once)
+    assert st["counters"]["missed_window"] == 0, [(c["result"], c.get("detail"), c.get("belt")) for c in cycles]
     placed = [c for c in cycles if c["result"] == "placed"]
     assert placed and placed[0]["belt"]["replans"] >= 1, cycles
     b = placed[0]["belt"]
