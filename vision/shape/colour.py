@@ -36,6 +36,18 @@ as one (5 false matches in the screw corpus's variants; with the background's co
 The model keeps the projection (``ShapeModel.colour``, a model file's ``shape.colour``), and
 ``search.find`` applies it to a colour image; a grey image given to a chroma model is searched as
 it is (its grey values: the model's edges are colour edges, so expect no match).
+
+**The interior of a colour model's match** (``interior_verdict``, in ``search.find``'s verification after
+``verify.verify``): on the chroma channel a part's outline can be matched by something of another colour
+inside the same outline: an empty screw hole whose torn, pale rim is as colourless as the zinc head, with
+a dark centre where the head is uniform (at a quarter size the only false matches of the screw corpus's
+colour models: ``bench/results/pick_real.md``, "Colour by default?"). Its edges pass every check of
+``verify`` (they are real edges, 4-15x the noise, all round). What tells it apart is the part's inside:
+with the background's shading projected out the taught patch (the part's pixels in the model's channel)
+is the part's colour, so a colour model's match must correlate with it (``INTERIOR_MIN_NCC``) at the turn
+where it correlates best (a round part's edges do not fix its turn). A grey model is not asked this: its
+interior is the light's as much as the part's (``patch.MIN_PATCH_NCC`` only decides whether the patch
+finishes the pose).
 """
 
 from __future__ import annotations
@@ -49,13 +61,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.errors import TeachError
-from vision.image import U8, as_gray
+from vision.image import U8, as_gray, bilinear
+from vision.shape.patch import BLUR_SIGMA_PX, MIN_PATCH_NCC, TeachPatch, _angle_scan, _ncc, _warp
+from vision.shape.score import PointDetail
 
 COLOUR_MODES = ("grey", "chroma", "auto")
 CHROMA_MARGIN = 2.0
 """``auto`` takes the chroma when its ROI's strong edges (99th percentile of the gradient) reach this
 multiple of the model's contrast floor: an edge that only just passes the floor is noise-limited."""
 RING_PX = 4
+INTERIOR_MIN_NCC = 0.5 * MIN_PATCH_NCC
+"""The least correlation of a colour model's taught patch with a match's interior (``interior_verdict``):
+half of what the patch fit asks to finish a pose under the teach light. Measured (``bench/pick_real.py``'s
+colour rows, every variant and size): the real heads 0.48-0.95, the two empty holes the edges matched
+-0.19 and 0.02."""
 """The outer ring of a teach ROI (px) whose colours are taken as the part's background."""
 
 
@@ -173,3 +192,52 @@ def channel(image: NDArray[Any], mix: ColourMix | None) -> U8:
         return as_gray(a)
     as_gray(a[:1, :1])  # the same shape checks as a grey conversion
     return mix.apply(a)
+
+
+def interior_ncc(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: float, scale: float,
+                 reversed_: bool) -> float:
+    """The normalised correlation of the taught ``patch`` (the part's pixels in the model's channel) with
+    the image (``pyr``: its pyramid in the model's channel) at a match whose reference point lies at
+    ``(x, y)`` (level-0 px), turned by ``theta`` (rad) and scaled by ``scale``, at the turn where it
+    correlates best (``patch._angle_scan``), on the patch's fit level; ``reversed_``: the match's edges are
+    the taught ones reversed (an inverted image), so the image is taken reversed. 0 when too little of the
+    patch lies inside the image."""
+    lv = min(patch.fit_level(), len(pyr) - 1)
+    f = 2.0 ** lv
+    pl = patch.at_level(lv)
+    pts, values, _ = pl.samples()
+    if len(pts) < 30:
+        return 0.0
+    r = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) * scale + 4.0
+    img = pyr[lv]
+    h, w = img.shape
+    cx, cy = x / f, y / f
+    x0, y0 = max(int(cx - r), 0), max(int(cy - r), 0)
+    x1, y1 = min(int(cx + r) + 2, w), min(int(cy + r) + 2, h)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return 0.0
+    crop = img[y0:y1, x0:x1]
+    if reversed_:
+        crop = 255 - crop
+    turn = _angle_scan(pl, crop, cx - x0, cy - y0, theta, scale)
+    q, _ = _warp(pts, cx - x0, cy - y0, turn, scale)
+    smooth = cv2.GaussianBlur(crop.astype(np.float32), (0, 0), BLUR_SIGMA_PX)
+    return _ncc(bilinear(smooth, q[:, 0], q[:, 1]), values)
+
+
+def interior_verdict(patch: TeachPatch | None, pyr: list[U8], x: float, y: float, theta: float, scale: float,
+                     detail: PointDetail, scores: dict[str, float]) -> str | None:
+    """Why a colour model's match is not the part (its interior does not correlate with the taught
+    patch, ``INTERIOR_MIN_NCC``), or None; the correlation joins ``scores`` as ``interior``. The match's
+    pose as ``interior_ncc``'s; ``detail``: its edge points' detail (``score.PointDetail``), whose seen
+    polarity tells a reversed image. A model without a patch (a file taught before patches) is not judged."""
+    if patch is None:
+        return None
+    seen = (detail.agree > 0) & detail.visible
+    reversed_ = int(np.count_nonzero(detail.sign[seen] < 0)) > int(np.count_nonzero(detail.sign[seen] > 0))
+    ncc = interior_ncc(patch, pyr, x, y, theta, scale, reversed_)
+    scores["interior"] = round(ncc, 4)
+    if ncc >= INTERIOR_MIN_NCC:
+        return None
+    return (f"its interior is not the part's colour: the taught patch correlates {ncc:.2f} < {INTERIOR_MIN_NCC:g} "
+            "with it at its best turn (something of another colour inside the part's outline)")
