@@ -1,11 +1,12 @@
 """Colour teach and search images: the one channel the matcher sees (``TeachParams.colour``).
 
 The matcher works on one channel (pyramids, gradients, the intensity profiles its edge fit centres
-on, the taught patch's grey values). From a colour image that channel is, by default, the grey
-value (``as_gray``). A part that differs from its background in colour more reliably than in
-brightness (a grey metal head in orange wood under one-sided light: the shading and the head's
-shadow move its grey edges) can be seen in a **chroma** channel instead: the colour image
-projected on one direction of colour space, fixed at teach time:
+on, the taught patch's grey values). From a colour image that channel is the grey value
+(``as_gray``) unless the taught part is coloured against its background (``auto``, the default). A
+part that differs from its background in colour more reliably than in brightness (a grey metal head
+in orange wood under one-sided light: the shading and the head's shadow move its grey edges) can be
+seen in a **chroma** channel instead: the colour image projected on one direction of colour space,
+fixed at teach time:
 
 - orthogonal to the **background's colour**, so that the background's shading and the shadows on
   it (which scale its colour, i.e. move it along that direction) vanish from the channel. The
@@ -26,10 +27,10 @@ as one (5 false matches in the screw corpus's variants; with the background's co
 
 ``TeachParams.colour``:
 
-- ``"grey"`` (default): the grey value, as before; always so for a grey image, or a colour one whose
-  channels are equal;
+- ``"grey"``: the grey value (the default before session 16); always so for a grey image, or a colour
+  one whose channels are equal;
 - ``"chroma"``: the chroma projection (the teach images must be in colour);
-- ``"auto"``: the chroma when the ROIs' chroma edges are strong enough to make a model on their own
+- ``"auto"`` (default): the chroma when the ROIs' chroma edges are strong enough to make a model on their own
   (the 99th percentile of their gradient reaches ``CHROMA_MARGIN`` times the model's contrast
   floor, ``min_contrast`` as a gradient), else the grey value.
 
