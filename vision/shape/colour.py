@@ -76,7 +76,7 @@ RING_PX = 4
 INTERIOR_MIN_NCC = 0.5 * MIN_PATCH_NCC
 """The least correlation of a colour model's taught patch with a match's interior (``interior_verdict``):
 half of what the patch fit asks to finish a pose under the teach light. Measured (``bench/pick_real.py``'s
-screw heads in colour, several views and one ROI, every variant and size): the 82 real heads 0.44-0.98,
+screw heads in colour, several views and one ROI, every variant and size): the 82 real heads found 0.44 and more,
 the two empty holes the edges matched -0.08 and 0.12. (A regular ring of the head's colour around a dark
 bore of 0.6-0.7 of its radius, rendered, still correlates 0.25-0.45: the check sees a centre of another
 colour covering most of the inside, not a thin one.)"""
