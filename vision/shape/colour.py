@@ -65,7 +65,7 @@ from numpy.typing import NDArray
 
 from vision.errors import TeachError
 from vision.image import U8, as_gray, bilinear
-from vision.shape.patch import BLUR_SIGMA_PX, MAX_SAMPLES, MIN_PATCH_NCC, TeachPatch, _angle_scan, _ncc, _warp
+from vision.shape.patch import BLUR_SIGMA_PX, MAX_SAMPLES, MIN_PATCH_NCC, TeachPatch
 from vision.shape.score import PointDetail
 
 COLOUR_MODES = ("grey", "chroma", "auto")
@@ -73,6 +73,8 @@ CHROMA_MARGIN = 2.0
 """``auto`` takes the chroma when its ROI's strong edges (99th percentile of the gradient) reach this
 multiple of the model's contrast floor: an edge that only just passes the floor is noise-limited."""
 RING_PX = 4
+SCAN_SAMPLES = 800
+"""The patch samples ``interior_ncc`` scans the turn with (``patch._angle_scan``'s subset)."""
 INTERIOR_MIN_NCC = 0.5 * MIN_PATCH_NCC
 """The least correlation of a colour model's taught patch with a match's interior (``interior_verdict``):
 half of what the patch fit asks to finish a pose under the teach light. Measured (``bench/pick_real.py``'s
@@ -204,7 +206,7 @@ def interior_ncc(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: fl
     """The normalised correlation of the taught ``patch`` (the part's pixels in the model's channel) with
     the image (``pyr``: its pyramid in the model's channel) at a match whose reference point lies at
     ``(x, y)`` (level-0 px), turned by ``theta`` (rad) and scaled by ``scale``, at the turn where it
-    correlates best (``patch._angle_scan``), on the patch's fit level; ``reversed_``: the match's edges are
+    correlates best (as ``patch._angle_scan`` finds it), on the patch's fit level; ``reversed_``: the match's edges are
     the taught ones reversed (an inverted image), so the image is taken reversed. 0 when too little of the
     patch lies inside the image."""
     lv = min(patch.fit_level(), len(pyr) - 1)
@@ -224,11 +226,34 @@ def interior_ncc(patch: TeachPatch, pyr: list[U8], x: float, y: float, theta: fl
     crop = img[y0:y1, x0:x1]
     if reversed_:
         crop = 255 - crop
-    turn = _angle_scan(pl, crop, cx - x0, cy - y0, theta, scale)
+    f32 = crop.astype(np.float32)
+    # the turn: the patch's own samples (at most SCAN_SAMPLES of them) over the whole turn, in steps that
+    # move the outermost one about a pixel and a half, on the image smoothed twice as much (patch._angle_scan's
+    # scan, every turn at once)
+    sub = np.linspace(0, len(pts) - 1, min(len(pts), SCAN_SAMPLES)).astype(np.int64)
+    n = max(int(math.ceil(2 * math.pi * (r - 4.0) / 1.5)), 36)
+    turns = np.asarray(theta + np.arange(n) * (2 * math.pi / n), dtype=np.float64)
+    scan = _correlations(cv2.GaussianBlur(f32, (0, 0), 2.0 * BLUR_SIGMA_PX), pts[sub], values[sub],
+                         cx - x0, cy - y0, turns, scale)
     inside, taught = _interior(pl)
-    q, _ = _warp(inside, cx - x0, cy - y0, turn, scale)
-    smooth = cv2.GaussianBlur(crop.astype(np.float32), (0, 0), BLUR_SIGMA_PX)
-    return _ncc(bilinear(smooth, q[:, 0], q[:, 1]), taught)
+    smooth = cv2.GaussianBlur(f32, (0, 0), BLUR_SIGMA_PX)
+    best = turns[int(np.argmax(scan))]
+    return float(_correlations(smooth, inside, taught, cx - x0, cy - y0, np.array([best]), scale)[0])
+
+
+def _correlations(img: NDArray[np.float32], pts: NDArray[np.float64], values: NDArray[np.float64], x: float,
+                  y: float, turns: NDArray[np.float64], scale: float) -> NDArray[np.float64]:
+    """The normalised correlation of ``values`` with ``img`` sampled (bilinear) at ``pts`` (relative to the
+    reference point) turned by each of ``turns`` (rad, ``patch``'s convention) and scaled by ``scale`` about
+    ``(x, y)`` (``img``'s px): one per turn, 0 where either side is flat."""
+    c, s = np.cos(turns)[:, None], np.sin(turns)[:, None]
+    qx = x + scale * (c * pts[None, :, 0] + s * pts[None, :, 1])
+    qy = y + scale * (-s * pts[None, :, 0] + c * pts[None, :, 1])
+    v = bilinear(img, qx.ravel(), qy.ravel()).reshape(len(turns), len(pts))
+    v -= v.mean(axis=1, keepdims=True)
+    t = values - values.mean()
+    den = np.sqrt((v * v).sum(axis=1) * float(t @ t))
+    return np.where(den > 0, (v @ t) / np.where(den > 0, den, 1.0), 0.0)
 
 
 def _interior(patch: TeachPatch) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
