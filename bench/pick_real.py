@@ -11,6 +11,11 @@ The peer (``bench.ncc_baseline.Baseline``, the same as in ``bench/pick.py``): ``
 1/4 scale then 0.25 deg steps at full scale, parabolic sub-pixel peaks; teach and test images
 are padded (border replicate) so templates and parts at the border fit. Same minimum score.
 
+Every case is taught with ``TeachParams``' default colour mode (``auto``: the chroma channel where the taught
+part is coloured against its background, the screw heads; grey otherwise), its images read in colour only
+when its model is a colour one (``pick_cases.Case.colour``); the section "Colour" shows the colour cases
+taught in grey, the previous default.
+
 Hard variants of every test image (``pick_cases.VARIANTS``) and of whole cases resized to a half
 and a quarter (``pick_cases.SIZES``: small parts) are summed per variant.
 
@@ -55,10 +60,14 @@ from bench.pick_cases import (  # noqa: E402
 )
 from bench.pick_instances import InstanceRow, instance_rows, instance_table  # noqa: E402
 from vision import shape  # noqa: E402
+from vision.shape.model import TeachParams  # noqa: E402
 from vision.shape.rim import rim_centre  # noqa: E402
 from vision.types import Match, SearchParams  # noqa: E402
 
 MIN_SCORE = SearchParams().min_score
+DEFAULT_COLOUR = TeachParams().colour
+OTHER_COLOUR = "grey" if DEFAULT_COLOUR != "grey" else "auto"
+"""The colour mode of the section "Colour": the one of the two (grey, auto) the main tables do not use."""
 
 
 @dataclass
@@ -202,7 +211,7 @@ def _one_case(case: Case, run: Run, variants: dict[str, object], with_baseline: 
 
 def run(with_baseline: bool) -> str:
     load0 = os.getloadavg()
-    cases = load_cases()
+    cases = [with_colour(c, DEFAULT_COLOUR) for c in load_cases()]
     out = Run()
     warm = shape.teach(cases[0].teach_image(), cases[0].roi)
     shape.find(warm, cases[0].teach_image(), SearchParams(mirrored=True))  # compiled kernels load once
@@ -247,25 +256,25 @@ def _views_section(cases: list[Case]) -> list[str]:
 
 def _colour_section(cases: list[Case]) -> list[str]:
     """The cases whose model ``TeachParams(colour="auto")`` makes of a colour channel (``vision.shape.colour``:
-    the screw heads), taught so from their several views and from their one ROI, every variant and size,
-    beside the grey model of the main tables."""
-    out = ["## Colour (`TeachParams(colour=\"auto\")`, `vision.shape.colour`)",
+    the screw heads), taught with ``OTHER_COLOUR`` (the mode the main tables do not use) from their several
+    views and from their one ROI, every variant and size."""
+    out = [f"## Colour (`TeachParams(colour=\"{OTHER_COLOUR}\")` for the colour cases, `vision.shape.colour`)",
            "",
-           "The main tables teach and search the grey value (the default). Here the cases whose automatic "
+           f"The main tables teach with the default colour mode (`{DEFAULT_COLOUR}`). The cases whose automatic "
            "colour choice takes the chroma channel (the part against its background with the background's own "
-           "colour, and so its shading, projected out: the screw heads; every other case stays grey), taught "
-           "and searched in colour (B, G, R images), from their several views and from their one ROI, every "
-           "variant and size ('texture' adds the same grey texture to every channel). CPU ms: `shape.find`'s "
-           "own, the projection included.", "",
+           "colour, and so its shading, projected out: the screw heads; every other case stays grey) are here "
+           f"taught with `{OTHER_COLOUR}` (a colour model's images in colour, B, G, R; a grey one's in grey), "
+           "from their several views and from their one ROI, every variant and size ('texture' adds the same "
+           "grey texture to every channel). CPU ms: `shape.find`'s own, the projection included.", "",
            "'rim fit': the rim measured after each found head's match (`vision.shape.rim.rim_centre`), its "
            "distance from the estimate (RMS, largest) and actual / reported 1-sigma (RMS).", "",
            "| case | variant | expected | found | false | max pos err px | over target / beyond tol | median CPU ms "
            "| rim fit: RMS / max err px | rim fit: actual / reported |",
            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for base in cases:
-        case = with_colour(base, "auto")
-        if not case.colour:
+        if not with_colour(base, "auto").colour:
             continue
+        case = with_colour(base, OTHER_COLOUR)
         for views, teach_fn in (("several views", teach_model), ("one ROI", teach_one)):
             for label, k in [("original size", 1.0), *SIZES.items()]:
                 c = case if k == 1.0 else scaled(case, k)
@@ -289,8 +298,8 @@ def _colour_section(cases: list[Case]) -> list[str]:
                     name = vname if k == 1.0 else label
                     rims = (f"{_rms(rim_err):.2f} / {max(rim_err):.2f} ({len(rim_err)}) | {_rms(rim_ratio):.2f}"
                             if rim_err else "- | -")
-                    out.append(f"| {case.id}, {views}, colour | {name} | {t.expected} | {t.found} | {t.false} | "
-                               f"{_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} | {rims} |")
+                    out.append(f"| {case.id}, {views}, {OTHER_COLOUR} | {name} | {t.expected} | {t.found} | "
+                               f"{t.false} | {_max(t.pos)} | {t.over} / {t.bad} | {_med(t.cpu_ms):.1f} | {rims} |")
     return out
 
 

@@ -26,7 +26,8 @@ images, taught from ``11_1111.jpg``):
    centre's own spread: 0.3-2.6 px.)
 
 4. **Colour** (``--errors --colour chroma|auto|grey --views 1|4``): the same with the model taught on a
-   channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default grey).
+   channel of the colour images (``TeachParams.colour``, ``vision.shape.colour``; default ``TeachParams``'
+   default, ``auto`` since session 16: the chroma for these heads; ``--colour grey``: the grey model).
 
 5. **The rim fit on renders** (``--rim-renders N [--scale F]``): ``vision.shape.rim`` after a chroma model's
    match on N rendered heads with known centres (``--scale 0.25``: shrunk to a quarter, as the corpus's
@@ -263,7 +264,7 @@ def main() -> None:
                     scale=float(args[args.index("--scale") + 1]) if "--scale" in args else 1.0)
         return
     if "--errors" in args:
-        mode = args[args.index("--colour") + 1] if "--colour" in args else "grey"
+        mode = args[args.index("--colour") + 1] if "--colour" in args else TeachParams().colour
         views = int(args[args.index("--views") + 1]) if "--views" in args else 4
         errors(with_colour(next(c for c in load_cases() if c.id == "robertson_screw_heads"), mode), views)
         return

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellctl.cli.output import CommandError
-from cellctl.pick.model import COLOUR_MODES, REFINES, PartModel, teach
+from cellctl.pick.model import COLOUR_MODES, REFINES, PartModel, colour_mode, takes_colour, teach
 from vision import blob, shape
 from vision.recognize import recognize
 from vision.types import POLARITIES, SearchParams
@@ -57,16 +57,20 @@ def _teach(args: argparse.Namespace) -> dict[str, Any]:
         raise CommandError(f"give one --roi per --image (got {len(args.image)} images, {len(args.roi)} ROIs)")
     if len(args.image) > 1 and args.mode != "shape":
         raise CommandError("several teach images make a shape model: leave --mode blob out, or give one image")
-    if args.mode != "shape" and (args.colour != "grey" or args.refine is not None):
+    colour = colour_mode(args.mode, args.colour)
+    if args.mode != "shape" and (colour != "grey" or args.refine is not None):
         raise CommandError("--colour and --refine make a shape model: leave --mode blob out")
-    # a grey model is taught from the files' grey values exactly as before; a colour one from their colours
-    imgs = [read_image(p, colour=args.colour != "grey") for p in args.image]
     rois = [_roi(r, "--roi") for r in args.roi]
     name = args.name or Path(args.out_model).stem
     roi = rois[0]
     if roi is None:
         raise CommandError("--roi U,V,W,H is required to teach a part (the part's box in pixels)")
-    params = shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels, colour=args.colour)
+    params = shape.TeachParams(min_contrast=args.min_contrast, num_levels=args.num_levels, colour=colour)
+    # a grey model is taught from the files' grey values exactly as before; a colour one from their colours
+    imgs = [read_image(p, colour=colour != "grey") for p in args.image]
+    views = [(i, r) for i, r in zip(imgs, rois, strict=True) if r is not None]
+    if colour == "auto" and not takes_colour([i for i, _ in views], [r for _, r in views], params):
+        imgs = [read_image(p) for p in args.image]
     more = [(img, r) for img, r in zip(imgs[1:], rois[1:], strict=True) if r is not None]
     # (several views: the edges seen in every image stay, vision.shape.multi)
     m = teach(imgs[0], roi, mode=args.mode, name=name, teach_image=str(args.image[0]), shape_params=params,
@@ -137,10 +141,10 @@ def register(sub: Any) -> None:
     t.add_argument("--name", help="part name (default: the model file's stem)")
     t.add_argument("--min-contrast", type=float, default=12.0, help="shape: least grey step of an edge")
     t.add_argument("--num-levels", type=int, default=0, help="shape: pyramid levels (0: automatic)")
-    t.add_argument("--colour", choices=COLOUR_MODES, default="grey",
-                   help="shape: the channel of a colour image the model is made of: grey (the grey value, "
-                        "default), chroma (the part's colour edges, the background's shading left out; colour "
-                        "images needed) or auto (chroma when its edges are strong enough, else grey)")
+    t.add_argument("--colour", choices=COLOUR_MODES, default=None,
+                   help="shape: the channel of a colour image the model is made of: auto (default: chroma when "
+                        "the part's colour edges are strong enough, else grey), grey (the grey value) or chroma "
+                        "(the part's colour edges, the background's shading left out; colour images needed)")
     t.add_argument("--refine", choices=REFINES, default=None,
                    help="shape: rim: a round part (screw head, washer, bore) reports its rim's centre and its "
                         "1-sigma at every match; refused when the taught part is not round")

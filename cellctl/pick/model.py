@@ -37,7 +37,8 @@ from cellctl.errors import CellctlError
 from vision import blob, shape
 from vision.errors import SettingsError, TeachError, VisionError
 from vision.image import as_gray
-from vision.shape.colour import COLOUR_MODES
+from vision.shape.colour import COLOUR_MODES, taught_mix
+from vision.shape.model import GRAD_PER_CONTRAST
 from vision.shape.rim import model_rim, rim_centre
 from vision.types import FindResult, Match, SearchParams
 
@@ -196,6 +197,24 @@ def check_roi(roi: Roi, image_size: tuple[int, int]) -> None:
                          f"keep 0 <= U, U+W <= {W} and 0 <= V, V+H <= {H}")
 
 
+def colour_mode(mode: str, asked: str | None) -> str:
+    """The colour mode (vision.shape.colour) a teach uses: the one ``asked``, else a shape model's default
+    (``TeachParams``': ``auto``, the chroma channel where the taught part is coloured against its background,
+    else grey) and a blob model's (``grey``: a blob model is taught from one grey image)."""
+    if asked is not None:
+        return asked
+    return shape.TeachParams().colour if mode == "shape" else "grey"
+
+
+def takes_colour(images: Sequence[NDArray[Any]], rois: Sequence[Roi], params: shape.TeachParams) -> bool:
+    """Whether a shape model taught with ``params`` from these views is made of a colour channel (so its
+    images are read in colour; a grey model's as their grey values, as before colour models)."""
+    for img, r in zip(images, rois, strict=True):
+        check_roi(r, (int(img.shape[1]), int(img.shape[0])))
+    return taught_mix(images, rois, params.colour, params.edge_sigma_px,
+                      params.min_contrast * GRAD_PER_CONTRAST) is not None
+
+
 def refine_rim(model: shape.ShapeModel, image: NDArray[Any], mt: Match) -> None:
     """Move the match ``mt`` (in place) to its rim's centre measured in ``image`` (vision.shape.rim), with
     the fit's 1-sigma per axis as ``sigma_px`` and ``refine`` ``"rim"``; where the image shows too little
@@ -235,7 +254,7 @@ def teach(image: NDArray[Any], roi: Roi, *, mode: str = "shape", name: str = "pa
         raise SettingsError(f"unknown mode {mode!r}: use one of {', '.join(MODES)}")
     if refine is not None and refine not in REFINES:
         raise SettingsError(f"unknown refine {refine!r}: use one of {', '.join(REFINES)} (or none)")
-    colour = shape_params.colour if shape_params is not None else "grey"
+    colour = shape_params.colour if shape_params is not None else colour_mode(mode, None)
     if colour not in COLOUR_MODES:
         raise SettingsError(f"unknown colour mode {colour!r}: use one of {', '.join(COLOUR_MODES)}")
     if mode != "shape" and (colour != "grey" or more_views or refine is not None):

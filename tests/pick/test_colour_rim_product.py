@@ -113,14 +113,14 @@ def test_screws_taught_in_colour_from_the_cli_are_picked_at_their_rim_centres(co
 
 
 def test_a_grey_model_file_is_as_before_and_finds_alike_in_the_colour_photo(tmp_path: Path) -> None:
-    """The default (``--colour grey``) reads the files' grey values and writes the file as before, byte for
-    byte: no ``colour``, ``refine`` or ``origin_px`` key; the model finds the same in the colour image (its
-    grey value) as in the grey one."""
-    model = _teach_screws(tmp_path / "screw.json")
+    """``--colour grey`` (the default before session 16) reads the files' grey values and writes the file as
+    before, byte for byte: no ``colour``, ``refine`` or ``origin_px`` key; the model finds the same in the
+    colour image (its grey value) as in the grey one."""
+    model = _teach_screws(tmp_path / "screw.json", "--colour", "grey")
     grey = [_read(TEACH, cv2.IMREAD_GRAYSCALE)] * 4
     rois = [(a, b, c, d) for a, b, c, d in (tuple(float(x) for x in r.split(",")) for r in ROIS)]
     before = PartModel("screw", "shape", rois[0], (grey[0].shape[1], grey[0].shape[0]), str(TEACH),
-                       shape=shape.teach_many(grey, rois, shape.TeachParams()))
+                       shape=shape.teach_many(grey, rois, shape.TeachParams(colour="grey")))
     before.save(tmp_path / "before.json")
     assert (tmp_path / "screw.json").read_bytes() == (tmp_path / "before.json").read_bytes()
     stored = json.loads((tmp_path / "screw.json").read_text())
@@ -135,6 +135,28 @@ def test_a_grey_model_file_is_as_before_and_finds_alike_in_the_colour_photo(tmp_
     # (the JPEG decoded straight to grey, as the CLI reads a grey model's images, differs from the colour
     # decode's grey value by a level here and there: the same heads, not the same sub-pixels)
     assert len(model.find(_read(SCENE, cv2.IMREAD_GRAYSCALE)).matches) == len(a)
+
+
+def test_the_default_colour_mode_is_auto_colour_for_the_screws_grey_as_before_for_a_grey_part(tmp_path: Path) -> None:
+    """``cellctl pick teach`` without ``--colour``: ``auto`` (session 16). The screws (zinc on orange wood) make
+    a colour model; a part that is not coloured against its background (the shaft support of a colour JPEG)
+    makes the grey model ``--colour grey`` makes, from the file's grey values (the JPEG decoded straight to
+    grey, as before), its file differing only by ``teach.params.colour``; a blob model stays grey."""
+    model = _teach_screws(tmp_path / "screw.json")
+    stored = json.loads((tmp_path / "screw.json").read_text())
+    assert stored["teach"]["params"]["colour"] == "auto" and "colour" in stored["shape"]
+    assert model.shape is not None and model.shape.colour is not None
+    shaft = Path(__file__).resolve().parents[1] / "data" / "pick_real" / "invariant-templatematching" / "images"
+    base = ["pick", "teach", "--image", str(shaft / "template_1.jpg"), "--roi", "325,64,175,150"]
+    for name, extra in (("auto.json", ()), ("grey.json", ("--colour", "grey"))):
+        r = run_cli(*base, "--out", str(tmp_path / name), "--name", "shaft", *extra)
+        assert r.returncode == 0, r.stderr
+    auto, grey = (json.loads((tmp_path / n).read_text()) for n in ("auto.json", "grey.json"))
+    assert auto["teach"]["params"].pop("colour") == "auto" and "colour" not in grey["teach"]["params"]
+    assert auto == grey
+    r = run_cli(*base, "--out", str(tmp_path / "blob.json"), "--mode", "blob")
+    assert r.returncode == 0, r.stderr
+    assert "colour" not in json.loads((tmp_path / "blob.json").read_text())["teach"].get("params", {})
 
 
 def test_a_bad_colour_mode_and_a_part_that_is_not_round_are_refused_naming_what_to_do(tmp_path: Path) -> None:
@@ -181,6 +203,12 @@ def test_the_rest_teach_takes_the_colour_mode_more_rois_and_refine_and_refuses_b
         # auto on a grey camera: the grey value (each grab has its own noise: the same keys, not the same points)
         assert "colour" not in auto.json()["shape"] and auto.json()["shape"].keys() == plain.json()["shape"].keys()
         assert auto.json()["teach"]["params"]["colour"] == "auto"
+        # the default is auto (session 16): the plain teach's params say so; a blob model stays grey
+        assert plain.json()["teach"]["params"]["colour"] == "auto"
+        blob = c.client.post("/pick/teach", headers=c.auth(), json={"roi": bracket, "mode": "blob"})
+        assert blob.status_code == 200, blob.text
+        r = c.client.post("/pick/teach", headers=c.auth(), json={"roi": bracket, "mode": "blob", "colour": "auto"})
+        assert r.status_code == 422 and "shape" in r.text, r.text
         two = c.client.post("/pick/teach", headers=c.auth(), json={"roi": bracket, "more_rois": [bracket]})
         assert two.status_code == 200, two.text
         r = c.client.post("/pick/teach", headers=c.auth(), json={"roi": bracket, "more_rois": [[5000, 0, 10, 10]]})

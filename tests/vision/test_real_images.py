@@ -51,7 +51,8 @@ KNOWN_MISSES = {
                              "test_screw_heads_report_their_rim_centre_with_an_honest_sigma); taught and searched on "
                              "the colour photos' chroma (TeachParams(colour='auto')) all 9, their rims measured "
                              "0.82 px RMS from the reference (test_screw_heads_in_colour_are_all_found_and_their_"
-                             "rim_measured_to_a_pixel). This test keeps the default: one ROI, grey",
+                             "rim_measured_to_a_pixel). This test keeps one ROI and the grey images (no colour "
+                             "model)",
 }
 
 

@@ -75,10 +75,11 @@ class TeachParams:
     min_component_px: int = 0
     """Least length (level-0 pixels) of a connected model edge; shorter ones (texture, specks) are
     dropped. 0: automatic (a tenth of the ROI's smaller side, at least 6 px)."""
-    colour: str = "grey"
-    """Which channel of a colour teach image the model is made of (``vision.shape.colour``): ``"grey"``
-    (as before), ``"chroma"`` (the colour edges, the background's shading left out) or ``"auto"`` (the
-    chroma where its edges are strong enough, else grey). A grey image is always its grey value."""
+    colour: str = "auto"
+    """Which channel of a colour teach image the model is made of (``vision.shape.colour``): ``"auto"``
+    (the default: the chroma where its edges are strong enough, else grey), ``"grey"`` (the grey value, as
+    before session 16's default) or ``"chroma"`` (the colour edges, the background's shading left out). A
+    grey image is always its grey value. (A model file without ``colour`` was taught grey.)"""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.min_contrast) and 1.0 <= self.min_contrast <= 255.0):

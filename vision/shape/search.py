@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from vision.image import F64, U8, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
-from vision.shape.colour import channel
+from vision.shape.colour import channel, interior_verdict
 from vision.shape.frame import match_at_origin, origin_at
 from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
@@ -405,6 +405,9 @@ def _verified(model: ShapeModel, found: list[Found], sp: SearchParams, min_dist:
             if unclaimed < sp.min_score:
                 why = (f"its edges are mostly those of better matches (unclaimed score {unclaimed:.2f} < "
                        f"min_score {sp.min_score:g}): a ghost between neighbouring parts")
+        if why is None and model.colour is not None:  # a colour model's interior (vision.shape.colour)
+            why = interior_verdict(patches[mt.mirrored], pyr, mt.u_px, mt.v_px, math.radians(mt.angle_deg),
+                                   mt.scale, r.detail, vd.scores)
         mt.scores = {**vd.scores, **mt.scores}
         if why is None:
             final.append(_finish(patches[mt.mirrored], pyr, mt, r, model.view_cov()))

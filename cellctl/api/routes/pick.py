@@ -21,7 +21,7 @@ from cellctl.mapping import NoCalibration
 from cellctl.pick.flow import PickError, Recipe, run_pick
 from cellctl.pick.frames import annotate
 from cellctl.pick.grasp_view import taught_grasps
-from cellctl.pick.model import ModelFileError
+from cellctl.pick.model import ModelFileError, colour_mode
 from cellctl.pick.pose import UnusableCalibration
 from cellctl.pick.recipe_limits import RecipeOutsideCell, check_recipe_for_cell
 from cellctl.store import NotFound
@@ -53,10 +53,11 @@ class TeachInput(BaseModel):
     roi: tuple[RoiPx, RoiPx, RoiPx, RoiPx] = Field(description="U, V, W, H in pixels; reference point = centre")
     mode: Literal["shape", "blob"] = "shape"
     name: str = Field("part", min_length=1, max_length=64)
-    colour: Literal["grey", "chroma", "auto"] = Field(
-        "grey", description="shape: the channel of a colour frame the model is made of: grey (the grey value, "
-        "default), chroma (the part's colour edges, the background's shading left out; a colour camera needed) "
-        "or auto (chroma when its edges are strong enough, else grey)")
+    colour: Literal["grey", "chroma", "auto"] | None = Field(
+        None, description="shape: the channel of a colour frame the model is made of: auto (the default: chroma "
+        "when the part's colour edges are strong enough, else grey; a grey camera's frame is always grey), grey "
+        "(the grey value) or chroma (the part's colour edges, the background's shading left out; a colour camera "
+        "needed)")
     more_rois: list[tuple[RoiPx, RoiPx, RoiPx, RoiPx]] = Field(
         default_factory=list, max_length=4, description="shape: up to 4 more boxes around other instances of the "
                                                         "same part in the frame: the model keeps the edges seen in all")
@@ -182,7 +183,8 @@ async def teach(body: TeachInput, services: ServicesDep, _: Engineer,
         check_roi(body.roi, frame.size)
         model = await run_in_threadpool(
             lambda: teach_model(frame.pixels, body.roi, mode=body.mode, name=body.name,
-                                shape_params=TeachParams(colour=body.colour), refine=body.refine,
+                                shape_params=TeachParams(colour=colour_mode(body.mode, body.colour)),
+                                refine=body.refine,
                                 more_views=[(frame.pixels, r) for r in body.more_rois]))
     except NotRoundPart as exc:
         raise ApiError(422, "not_round", str(exc)) from None
