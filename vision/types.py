@@ -142,7 +142,8 @@ class Match:
     """1-sigma of the reference point's position (px, the larger axis), from the same fit."""
     scores: dict[str, float] = field(default_factory=dict)
     """The verification's scores (``vision.shape.verify``): ``edge`` (= ``score``), ``coverage``,
-    ``polarity``, ``contrast``, ``missing_features``, ``surround``, ``unclaimed``."""
+    ``polarity``, ``contrast``, ``missing_features``, ``surround``, ``unclaimed``; a colour model's also
+    ``interior`` (``vision.shape.colour.interior_verdict``)."""
     refine: str | None = None
     """What finished the point after the search (a part model's ``refine``): ``"rim"``, the round part's
     rim centre (``sigma_px`` is then the rim fit's, per axis); ``"rim_not_seen"``, asked but the image
