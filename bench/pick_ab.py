@@ -9,7 +9,11 @@ per image of each and the median of the per-image ratios. The compiled kernels a
 the working tree's (shared by both: a change to them is not measured here, and an older search must call
 them as it did). It also checks the two answer the same (matches' poses, scores and 1-sigmas, to the bit).
 
-Run: ``.venv/bin/python bench/pick_ab.py REV [--n 40]``.
+With ``--outcomes`` it reports instead what a search policy could skip: the working tree's least-squares fits
+(level 1, level 0) and patch finishes per image by what became of them, with their thread CPU (a fit's
+outcome is known only once it has run: the sum over the losers is what even a perfect policy could save).
+
+Run: ``.venv/bin/python bench/pick_ab.py REV [--n 40]``; ``.venv/bin/python bench/pick_ab.py --outcomes [--n 40]``.
 """
 
 from __future__ import annotations
@@ -70,18 +74,88 @@ def answers(res: Any) -> list[Any]:
     return [repr(m) for m in res.matches] + [repr(r) for r in res.rejected] + [repr(res.best_rejected)]
 
 
+def outcomes(model: Any, images: list[Any]) -> str:
+    """The working tree's fits and finishes per image by outcome, with their thread CPU (two passes over
+    ``images``; the search's own functions wrapped for the run and restored)."""
+    calls: list[tuple[int, Any, float]] = []  # (level, Refined, thread CPU s) of the current search
+    count: dict[str, float] = {}
+    cpu: dict[str, float] = {}
+
+    def add(key: str, dt: float) -> None:
+        count[key] = count.get(key, 0.0) + 1
+        cpu[key] = cpu.get(key, 0.0) + dt
+
+    def timed(f: Callable[..., Any], after: Callable[[Any, float, Any, Any], None]) -> Callable[..., Any]:
+        def call(*a: Any, **k: Any) -> Any:
+            c = time.thread_time()
+            r = f(*a, **k)
+            after(r, time.thread_time() - c, a, k)
+            return r
+        return call
+
+    def verified(got: Any, dt: float, a: Any, k: Any) -> None:
+        found, sp = a[1], a[2]
+        into = {id(r) for _, r in found}
+        bar1 = 0.8 * min(sp.min_score, 0.5)  # search._refine_down's level-1 bar
+        for lv, r, t in calls:
+            if lv == 1:
+                add("level 1: fails at its first association" if r.score <= 0 else
+                    "level 1: below its bar" if r.score < bar1 else "level 1: reaches its bar", t)
+            else:
+                add("level 0: into the verification" if id(r) in into else
+                    "level 0: below min_score" if r.score < sp.min_score else "level 0: suppressed at level 0", t)
+        calls.clear()
+        count["answered"] = count.get("answered", 0.0) + len(got[0])
+        count["rejected by the verification"] = count.get("rejected by the verification", 0.0) + len(got[1])
+
+    saved = (search.refine_lsq, search._finish, search._verified)
+    search.refine_lsq = timed(saved[0], lambda r, dt, a, k: calls.append(
+        (0 if k.get("fine") is not None else 1, r, dt)))
+    search._finish = timed(saved[1], lambda r, dt, a, k: add("patch finish", dt))
+    search._verified = timed(saved[2], verified)
+    total: list[float] = []
+    try:
+        search.find(model, images[0])
+        calls.clear()
+        count.clear()
+        cpu.clear()
+        for _ in range(2):
+            for img in images:
+                c = time.thread_time()
+                search.find(model, img)
+                total.append((time.thread_time() - c) * 1e3)
+    finally:
+        search.refine_lsq, search._finish, search._verified = saved
+    n = len(total)
+    rows = [f"{len(total)} searches: thread CPU per image median {statistics.median(total):.2f} ms, "
+            f"mean {statistics.mean(total):.2f} ms", "| outcome | per image | thread CPU ms per image | of the mean |",
+            "| --- | --- | --- | --- |"]
+    for k in sorted(count):
+        ms = cpu[k] / n * 1e3 if k in cpu else None
+        rows.append(f"| {k} | {count[k] / n:.2f} | " + ("- | - |" if ms is None else
+                                                       f"{ms:.3f} | {ms / statistics.mean(total):.1%} |"))
+    return "\n".join(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("rev", help="the older tree (a commit)")
+    ap.add_argument("rev", nargs="?", help="the older tree (a commit); not with --outcomes")
     ap.add_argument("--n", type=int, default=40, help="renders (bench/pick.py's, seed 8)")
+    ap.add_argument("--outcomes", action="store_true", help="the working tree's fits by outcome instead")
     args = ap.parse_args()
-    old = old_find(args.rev)
+    if (args.rev is None) != args.outcomes:
+        ap.error("give either REV or --outcomes")
     part = pick_scenes.part_bracket()
     teach_img, roi = pick_scenes.teach_scene(part, np.random.default_rng(1008), centre=(640.3, 480.6),
                                              style=pick_scenes.SceneStyle(size=SIZE, noise_sigma=1.5, clutter=0))
     model = shape.teach(teach_img, roi)
     scenes = make_scenes(args.n, 8)
     load0 = os.getloadavg()[0]
+    if args.outcomes:
+        print(outcomes(model, [sc.img for _, sc in scenes]))
+        print(f"load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
+        return
+    old = old_find(args.rev)
     for f in (old, search.find):
         f(model, scenes[0][1].img)
     t_old: list[float] = []
