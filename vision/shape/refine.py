@@ -55,6 +55,39 @@ def _profile(img_f: F32, q: F64, n: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
                                      CENTROID_HALF_WIDTH)
 
 
+class LevelZeroExtras:
+    """What a level-0 fit gives besides its pose and score, computed when first read (pick speed): its
+    covariance (``Refined.cov``: read for an answered match only) and the image's gradient noise around the
+    part (``Refined.grad_noise``: read by the verification only). Most level-0 hypotheses on a busy image
+    end below ``min_score`` or beside a better one and never read either; the same values as computed at
+    once, to the bit (the same calls on the same arrays, none of which is changed after the fit)."""
+
+    def __init__(self, crop: U8, sigma: float, img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float,
+                 min_contrast: float, perspective: bool, visible: NDArray[np.bool_]) -> None:
+        self._args = (crop, sigma, img_f, m, q, n, th, sc, min_contrast, perspective, visible)
+        self._cov: F64 | None = None
+        self._noise: float | None = None
+
+    def cov(self) -> F64:
+        """(3, 3) covariance of (x, y, theta) by the block jackknife of the centroid residuals (px, rad)."""
+        if self._cov is None:
+            _, _, img_f, m, q, n, th, sc, min_contrast, persp, vis = self._args
+            off, S, clean = _profile(img_f, q, n)
+            used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & vis
+            # neighbouring points see overlapping profiles: points per independent one
+            qu = q[used]
+            spacing = float(median(np.hypot(qu[1:, 0] - qu[:-1, 0], qu[1:, 1] - qu[:-1, 1]))) if len(qu) > 2 else 1.0
+            self._cov = edge_cov(off, used, m, q, n, th, sc,
+                                 max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
+        return self._cov
+
+    def noise(self) -> float:
+        """``score.grad_noise`` of the fit's crop (grey levels / px)."""
+        if self._noise is None:
+            self._noise = grad_noise(self._args[0], self._args[1])
+        return self._noise
+
+
 @dataclass
 class Refined:
     """A refined pose with its score over the visible model points."""
@@ -67,14 +100,24 @@ class Refined:
     n_visible: int = 0
     detail: PointDetail | None = None
     """Per model point at the final pose (level 0 only): what the verification reads."""
-    grad_noise: float = 0.0
-    """The gradient magnitude (grey levels / px) that the image's noise reaches around the part."""
     q: F64 | None = None
     """(N, 2) the model points at the final pose, image pixels (level 0 only)."""
     n: F64 | None = None
     """(N, 2) their unit normals there."""
-    cov: F64 | None = None
-    """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad)."""
+    extras: LevelZeroExtras | None = None
+    """Level 0 only: ``cov`` and ``grad_noise``, computed when read."""
+
+    @property
+    def grad_noise(self) -> float:
+        """The gradient magnitude (grey levels / px) that the image's noise reaches around the part (level 0
+        only; 0 otherwise)."""
+        return 0.0 if self.extras is None else self.extras.noise()
+
+    @property
+    def cov(self) -> F64 | None:
+        """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad); None on a
+        coarser level."""
+        return None if self.extras is None else self.extras.cov()
 
     @property
     def sigma_deg(self) -> float:
@@ -88,9 +131,10 @@ class Refined:
         return self._sigmas()[1]
 
     def _sigmas(self) -> tuple[float, float]:
-        if self.cov is None or not np.all(np.isfinite(self.cov)):
+        cov = self.cov
+        if cov is None or not np.all(np.isfinite(cov)):
             return float("nan"), float("nan")
-        return sigma_of(self.cov)
+        return sigma_of(cov)
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -152,15 +196,9 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
-        off, S, clean = _profile(img_f, q, n)
         vis = visible(q)
-        used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & vis
-        # neighbouring points see overlapping profiles: points per independent one
-        qu = q[used]
-        spacing = float(median(np.hypot(qu[1:, 0] - qu[:-1, 0], qu[1:, 1] - qu[:-1, 1]))) if len(qu) > 2 else 1.0
-        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
-                       persp)
-        # the fit's 1-sigma (``Refined.sigma_deg``) is its honest covariance's, computed when read
+        # the fit's covariance (its jackknife over the centroid residuals) and the crop's noise: when read
+        extras = LevelZeroExtras(crop, sigma, img_f, m, q, n, th, sc, min_contrast, persp, vis)
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
@@ -175,7 +213,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     # np.mean's sum over its count, without its overhead (the same bits)
     rms = math.sqrt(float(np.add.reduce(di * di)) / len(di)) if len(di) else float("nan")
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, detail=detail,
-                   grad_noise=grad_noise(crop, sigma), q=q + np.array([x0, y0]), n=n, cov=cov)
+                   q=q + np.array([x0, y0]), n=n, extras=extras)
 
 
 def _fit_points(lm: LevelModel, subset: NDArray[np.int64] | None) -> tuple[F64, F64]:
