@@ -56,11 +56,11 @@ def _profile(img_f: F32, q: F64, n: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
 
 
 class LevelZeroExtras:
-    """What a level-0 fit gives besides its pose and score, computed when first read (pick speed): its
-    covariance (``Refined.cov``: read for an answered match only) and the image's gradient noise around the
-    part (``Refined.grad_noise``: read by the verification only). Most level-0 hypotheses on a busy image
-    end below ``min_score`` or beside a better one and never read either; the same values as computed at
-    once, to the bit (the same calls on the same arrays, none of which is changed after the fit)."""
+    """What a level-0 fit gives besides its pose and score: its covariance (``Refined.cov``: read for an
+    answered match only) and the image's gradient noise around the part (``Refined.grad_noise``: read by the
+    verification only), for a fit scoring below ``refine_lsq``'s ``extras_from`` computed when first read
+    (pick speed: most level-0 hypotheses on a busy image end below ``min_score`` and never read either). The
+    same values either way, to the bit (the same calls on the same arrays, none changed after the fit)."""
 
     def __init__(self, crop: U8, sigma: float, img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float,
                  min_contrast: float, perspective: bool, visible: NDArray[np.bool_]) -> None:
@@ -142,12 +142,16 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
                 min_contrast: float = 0.0, subset: NDArray[np.int64] | None = None,
                 reject_below: float = 0.0, fit_scale: bool = False,
                 max_scale_dev: float = 0.1, perspective: bool = False,
-                polarity: str = "ignore_local_polarity", min_visible: float = 0.5) -> Refined:
+                polarity: str = "ignore_local_polarity", min_visible: float = 0.5,
+                extras_from: float = 0.0) -> Refined:
     """Gauss-Newton fit of the model edge points to the image edges, scored at the final pose.
 
     With ``fit_scale`` the fit is a similarity (a slightly tilted view makes the part look a few
     per cent larger or smaller; a rigid fit would turn that into a position error). Model points
     outside the image (a part at the border) take no part in the fit or the score.
+
+    With ``fine`` (level 0), a fit scoring at least ``extras_from`` has its covariance and the crop's noise
+    computed at once, a lower one when they are read (``LevelZeroExtras``; the search's ``min_score``).
     """
     m, nrm_m = _fit_points(lm, subset)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
@@ -205,6 +209,9 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         n = nrm_m @ R.T
         vis = visible(q)
     score, n_agree, n_vis, detail = direction_detail(G, q, n, vis, thr, polarity, min_visible)
+    if fine is not None and score >= extras_from:
+        extras.cov()  # a hypothesis that may be answered: computed now, while its arrays are fresh in cache
+        extras.noise()
     if fine is None:
         # a coarse level's hypothesis goes on by its pose and score: its rms is never read (NaN)
         return Refined(Pose(x + x0, y + y0, th, score, sc), score, float("nan"), n_agree, n_vis)
