@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
@@ -252,6 +253,53 @@ def test_a_level_zero_fit_reads_its_1_sigma_from_its_covariance(bracket: tuple[s
     assert (r.sigma_deg, r.sigma_px) == sigma_of(r.cov)
     assert 0.0 < r.sigma_deg < 0.1 and 0.0 < r.sigma_px < 0.1
     assert m_.isnan(Refined(r.pose, r.score, r.rms_px).sigma_deg)
+
+
+def test_level_zero_extras_below_extras_from_are_computed_when_read(
+        bracket: tuple[scenes.PartShape, shape.ShapeModel], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A level-0 fit scoring below ``extras_from`` computes its covariance and the crop's noise only when
+    they are read (a search's hypotheses below min_score never read them), to the same bits as at once."""
+    import math as m_
+
+    from vision.image import pyramid
+    from vision.shape import refine
+    from vision.shape.model import GRAD_PER_CONTRAST
+
+    part, model = bracket
+    img, _ = _one(part, 300.37, 231.81, 21.0, seed=5)
+    pyr = pyramid(img, model.top_level + 1)
+    best = shape.find(model, img).matches[0]
+    calls: list[str] = []
+    real_cov, real_noise = refine.edge_cov, refine.grad_noise
+
+    def cov(*a: Any) -> Any:
+        calls.append("cov")
+        return real_cov(*a)
+
+    def noise(*a: Any) -> Any:
+        calls.append("noise")
+        return real_noise(*a)
+
+    monkeypatch.setattr(refine, "edge_cov", cov)
+    monkeypatch.setattr(refine, "grad_noise", noise)
+
+    def fit(extras_from: float) -> refine.Refined:
+        return refine.refine_lsq(pyr[0], model.levels[0], refine.Pose(best.u_px + 0.8, best.v_px - 0.6,
+                                                                      m_.radians(best.angle_deg + 0.5), 1.0, 1.0),
+                                 model.params.edge_sigma_px, model.params.min_contrast * GRAD_PER_CONTRAST, 2.0, 5,
+                                 fine=pyr[0], min_contrast=model.params.min_contrast, perspective=True,
+                                 extras_from=extras_from)
+
+    now = fit(0.0)
+    assert calls == ["cov", "noise"] and now.score > 0.9
+    calls.clear()
+    later = fit(1.01)  # above any score
+    assert calls == []
+    assert later.grad_noise == now.grad_noise and calls == ["noise"]
+    assert later.cov is not None and now.cov is not None and np.array_equal(later.cov, now.cov)
+    assert calls == ["noise", "cov"]
+    assert later.cov is later.cov and calls == ["noise", "cov"]  # once
+    assert (later.pose, later.score, later.rms_px) == (now.pose, now.score, now.rms_px)
 
 
 def test_a_levels_fit_points_follow_its_features(bracket: tuple[scenes.PartShape, shape.ShapeModel]) -> None:

@@ -55,6 +55,39 @@ def _profile(img_f: F32, q: F64, n: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
                                      CENTROID_HALF_WIDTH)
 
 
+class LevelZeroExtras:
+    """What a level-0 fit gives besides its pose and score: its covariance (``Refined.cov``: read for an
+    answered match only) and the image's gradient noise around the part (``Refined.grad_noise``: read by the
+    verification only), for a fit scoring below ``refine_lsq``'s ``extras_from`` computed when first read
+    (pick speed: most level-0 hypotheses on a busy image end below ``min_score`` and never read either). The
+    same values either way, to the bit (the same calls on the same arrays, none changed after the fit)."""
+
+    def __init__(self, crop: U8, sigma: float, img_f: F32, m: F64, q: F64, n: F64, th: float, sc: float,
+                 min_contrast: float, perspective: bool, visible: NDArray[np.bool_]) -> None:
+        self._args = (crop, sigma, img_f, m, q, n, th, sc, min_contrast, perspective, visible)
+        self._cov: F64 | None = None
+        self._noise: float | None = None
+
+    def cov(self) -> F64:
+        """(3, 3) covariance of (x, y, theta) by the block jackknife of the centroid residuals (px, rad)."""
+        if self._cov is None:
+            _, _, img_f, m, q, n, th, sc, min_contrast, persp, vis = self._args
+            off, S, clean = _profile(img_f, q, n)
+            used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & vis
+            # neighbouring points see overlapping profiles: points per independent one
+            qu = q[used]
+            spacing = float(median(np.hypot(qu[1:, 0] - qu[:-1, 0], qu[1:, 1] - qu[:-1, 1]))) if len(qu) > 2 else 1.0
+            self._cov = edge_cov(off, used, m, q, n, th, sc,
+                                 max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0), persp)
+        return self._cov
+
+    def noise(self) -> float:
+        """``score.grad_noise`` of the fit's crop (grey levels / px)."""
+        if self._noise is None:
+            self._noise = grad_noise(self._args[0], self._args[1])
+        return self._noise
+
+
 @dataclass
 class Refined:
     """A refined pose with its score over the visible model points."""
@@ -67,14 +100,24 @@ class Refined:
     n_visible: int = 0
     detail: PointDetail | None = None
     """Per model point at the final pose (level 0 only): what the verification reads."""
-    grad_noise: float = 0.0
-    """The gradient magnitude (grey levels / px) that the image's noise reaches around the part."""
     q: F64 | None = None
     """(N, 2) the model points at the final pose, image pixels (level 0 only)."""
     n: F64 | None = None
     """(N, 2) their unit normals there."""
-    cov: F64 | None = None
-    """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad)."""
+    extras: LevelZeroExtras | None = None
+    """Level 0 only: ``cov`` and ``grad_noise``, computed when read."""
+
+    @property
+    def grad_noise(self) -> float:
+        """The gradient magnitude (grey levels / px) that the image's noise reaches around the part (level 0
+        only; 0 otherwise)."""
+        return 0.0 if self.extras is None else self.extras.noise()
+
+    @property
+    def cov(self) -> F64 | None:
+        """(3, 3) covariance of (x, y, theta) of the level-0 fit by the block jackknife (px, rad); None on a
+        coarser level."""
+        return None if self.extras is None else self.extras.cov()
 
     @property
     def sigma_deg(self) -> float:
@@ -88,9 +131,10 @@ class Refined:
         return self._sigmas()[1]
 
     def _sigmas(self) -> tuple[float, float]:
-        if self.cov is None or not np.all(np.isfinite(self.cov)):
+        cov = self.cov
+        if cov is None or not np.all(np.isfinite(cov)):
             return float("nan"), float("nan")
-        return sigma_of(self.cov)
+        return sigma_of(cov)
 
 
 def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: float,
@@ -98,12 +142,16 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
                 min_contrast: float = 0.0, subset: NDArray[np.int64] | None = None,
                 reject_below: float = 0.0, fit_scale: bool = False,
                 max_scale_dev: float = 0.1, perspective: bool = False,
-                polarity: str = "ignore_local_polarity", min_visible: float = 0.5) -> Refined:
+                polarity: str = "ignore_local_polarity", min_visible: float = 0.5,
+                extras_from: float = 0.0) -> Refined:
     """Gauss-Newton fit of the model edge points to the image edges, scored at the final pose.
 
     With ``fit_scale`` the fit is a similarity (a slightly tilted view makes the part look a few
     per cent larger or smaller; a rigid fit would turn that into a position error). Model points
     outside the image (a part at the border) take no part in the fit or the score.
+
+    With ``fine`` (level 0), a fit scoring at least ``extras_from`` has its covariance and the crop's noise
+    computed at once, a lower one when they are read (``LevelZeroExtras``; the search's ``min_score``).
     """
     m, nrm_m = _fit_points(lm, subset)
     reach = lm.radius * (1 + max_scale_dev) + search_px + 5 + 3 * sigma
@@ -152,21 +200,18 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         d, found, cosd, sign = _associate(G, q, n, 2.0, thr)
-        off, S, clean = _profile(img_f, q, n)
         vis = visible(q)
-        used = clean & (np.abs(off) < 1.0) & (np.abs(S) >= 0.5 * min_contrast) & vis
-        # neighbouring points see overlapping profiles: points per independent one
-        qu = q[used]
-        spacing = float(median(np.hypot(qu[1:, 0] - qu[:-1, 0], qu[1:, 1] - qu[:-1, 1]))) if len(qu) > 2 else 1.0
-        cov = edge_cov(off, used, m, q, n, th, sc, max((2 * CENTROID_HALF_WIDTH + 1) / max(spacing, 1e-9), 1.0),
-                       persp)
-        # the fit's 1-sigma (``Refined.sigma_deg``) is its honest covariance's, computed when read
+        # the fit's covariance (its jackknife over the centroid residuals) and the crop's noise: when read
+        extras = LevelZeroExtras(crop, sigma, img_f, m, q, n, th, sc, min_contrast, persp, vis)
     else:
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])
         n = nrm_m @ R.T
         vis = visible(q)
     score, n_agree, n_vis, detail = direction_detail(G, q, n, vis, thr, polarity, min_visible)
+    if fine is not None and score >= extras_from:
+        extras.cov()  # a hypothesis that may be answered: computed now, while its arrays are fresh in cache
+        extras.noise()
     if fine is None:
         # a coarse level's hypothesis goes on by its pose and score: its rms is never read (NaN)
         return Refined(Pose(x + x0, y + y0, th, score, sc), score, float("nan"), n_agree, n_vis)
@@ -175,7 +220,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     # np.mean's sum over its count, without its overhead (the same bits)
     rms = math.sqrt(float(np.add.reduce(di * di)) / len(di)) if len(di) else float("nan")
     return Refined(Pose(x + x0, y + y0, th, score, sc), score, rms, n_agree, n_vis, detail=detail,
-                   grad_noise=grad_noise(crop, sigma), q=q + np.array([x0, y0]), n=n, cov=cov)
+                   q=q + np.array([x0, y0]), n=n, extras=extras)
 
 
 def _fit_points(lm: LevelModel, subset: NDArray[np.int64] | None) -> tuple[F64, F64]:

@@ -230,7 +230,7 @@ def _refine_down(model: ShapeModel, pyr: list[U8], thr_grad: float, cands: list[
                 subset=model.levels[lv2].features if lv2 > 0 else None,
                 reject_below=0.7 * coarse_min, fit_scale=lv2 <= 1 and sp.max_scale_dev > 0,
                 max_scale_dev=sp.max_scale_dev, perspective=lv2 == 0 and sp.perspective,
-                polarity=sp.polarity, min_visible=sp.min_visible)
+                polarity=sp.polarity, min_visible=sp.min_visible, extras_from=sp.min_score)
             if r.score >= (coarse_min * 0.8 if lv2 > 0 else sp.min_score):
                 nxt2.append((r.pose, lv2, r))
             elif lv2 == 0 and (best_low is None or r.score > best_low.score):
