@@ -118,8 +118,17 @@ class XdistGroupIds:
                 setattr(item, "_nodeid", f"{item.nodeid}@{group}")  # noqa: B010 (xdist before pytest 9.2)
 
 
+_pg_templates: list[str] = []
+
+
 def pytest_configure(config: pytest.Config) -> None:
     config.pluginmanager.register(XdistGroupIds(), "cellctl-xdist-group-ids")
+    if not hasattr(config, "workerinput"):  # the run's pytest process: one initdb for the run's PostgreSQL clusters
+        from tests.store.pgcluster import TEMPLATE, make_template_dir
+
+        if not os.environ.get(TEMPLATE):  # (a pytest run inside the suite's keeps the outer run's)
+            _pg_templates.append(make_template_dir())
+            os.environ[TEMPLATE] = _pg_templates[-1]
 
 
 _shared_fork_server: list[Any] = []
@@ -141,6 +150,11 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
     while _shared_fork_server:
         end_shared(_shared_fork_server.pop())
+    if _pg_templates:
+        from tests.store.pgcluster import TEMPLATE, remove_template_dir
+
+        os.environ.pop(TEMPLATE, None)
+        remove_template_dir(_pg_templates.pop())
 
 
 def fast_loop(markexpr: str) -> bool:

@@ -3,10 +3,16 @@ dir, listening on 127.0.0.1 at a free port with its unix socket inside the temp 
 
 initdb and postgres refuse to run as root, so as root (CI) the cluster belongs to ``nobody`` and
 its programs run through ``runuser``.
+
+``initdb`` (about 0.9 s of CPU) runs once per test run, not once per cluster: when the run's pytest process
+has set :data:`TEMPLATE` (``tests/conftest.py``), the first cluster's ``initdb`` writes a template data dir
+there (under a lock: the xdist workers share it) and every cluster of the run starts from a copy of it. Each
+cluster is still its own server with its own data dir and port.
 """
 
 from __future__ import annotations
 
+import fcntl
 import glob
 import os
 import pwd
@@ -21,6 +27,28 @@ import psycopg
 from tests.support.ports import free_port
 
 SUPERUSER = "postgres"
+TEMPLATE = "CELLCTL_TEST_PG_TEMPLATE"
+"""A folder (readable by the cluster's owner) where the run keeps one ``initdb`` output to copy, set by the
+run's pytest process, which removes it at the end (``make_template_dir``, ``remove_template_dir``)."""
+INITDB_ARGS = ("-U", SUPERUSER, "-A", "trust", "-E", "UTF8", "--locale=C", "--no-sync", "--no-instructions")
+
+
+def _cluster_owner() -> pwd.struct_passwd | None:
+    """``nobody`` as root (initdb and postgres refuse to run as root), else None (this user)."""
+    return pwd.getpwnam("nobody") if os.geteuid() == 0 else None
+
+
+def make_template_dir() -> str:
+    """A new empty folder for the run's ``initdb`` template, owned by the clusters' owner (in /tmp as root)."""
+    owner = _cluster_owner()
+    folder = tempfile.mkdtemp(prefix="cellctl-pg-template-", dir="/tmp" if owner else None)
+    if owner is not None:
+        os.chown(folder, owner.pw_uid, owner.pw_gid)
+    return folder
+
+
+def remove_template_dir(folder: str) -> None:
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def pg_bin_dir() -> Path:
@@ -43,8 +71,8 @@ class PostgresCluster:
         self.sock = self.root / "sock"
         self.log = self.root / "server.log"
         self.port = 0
-        if self._as_root:
-            user = pwd.getpwnam("nobody")
+        user = _cluster_owner()
+        if user is not None:
             self.sock.mkdir()
             for p in (self.root, self.sock):
                 os.chown(p, user.pw_uid, user.pw_gid)
@@ -58,11 +86,30 @@ class PostgresCluster:
         return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=self.root,
                               env={"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "LC_ALL": "C"})
 
-    def start(self) -> None:
-        r = self._run(str(self.bin / "initdb"), "-D", str(self.data), "-U", SUPERUSER, "-A", "trust",
-                      "-E", "UTF8", "--locale=C", "--no-sync", "--no-instructions")
+    def _initdb(self, data: Path) -> None:
+        r = self._run(str(self.bin / "initdb"), "-D", str(data), *INITDB_ARGS)
         if r.returncode != 0:
             raise RuntimeError(f"initdb failed: {r.stderr.strip()[-2000:]}")
+
+    def _make_data_dir(self) -> None:
+        """The cluster's data dir: a copy of the run's ``initdb`` template (made now by the first cluster
+        that needs it), or its own ``initdb`` when the run keeps none."""
+        folder = os.environ.get(TEMPLATE, "")
+        if not folder or not os.path.isdir(folder):
+            self._initdb(self.data)
+            return
+        template = Path(folder) / f"data-{self.bin.parent.name}"
+        with open(Path(folder) / "lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # one initdb for the run's processes; the others wait for it
+            if not (template / "PG_VERSION").exists():
+                shutil.rmtree(template, ignore_errors=True)  # a half-written one (an initdb that failed)
+                self._initdb(template)
+        r = self._run("cp", "-a", str(template), str(self.data))  # as the owner: the copy is the owner's, 0700
+        if r.returncode != 0:
+            raise RuntimeError(f"copying the initdb template failed: {r.stderr.strip()[-2000:]}")
+
+    def start(self) -> None:
+        self._make_data_dir()
         last = ""
         for _ in range(3):  # the port may be taken between choosing and binding
             self.port = free_port()
