@@ -7,6 +7,7 @@ the border). Compiled on first use and cached on disk (``cache=True``).
 
 - ``associate``: nearest image edge of matching orientation along each model normal.
 - ``gn_normal_equations``: the 4x4 normal equations of one weighted Gauss-Newton step.
+- ``gn_step``: that step solved (the two fit stages' shared solve).
 - ``profile_centroids``: the centroid edge offset, contrast and cleanliness of each normal profile.
 - ``fit_stage_a``: the Gauss-Newton loop of the refinement on gradient peaks.
 - ``fit_stage_b``: the refinement's Gauss-Newton loop on centroid edge positions (level 0).
@@ -95,7 +96,7 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     return d, found, cosd, sign
 
 
-@njit(cache=True, inline="always")  # small, two call sites: compiled in its callers only
+@njit(cache=True, inline="always")  # one call site (gn_step): compiled there only
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
@@ -115,6 +116,22 @@ def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid
             for c in range(4):
                 A[r, c] += J[r] * w * J[c]
     return A, b
+
+
+@njit(cache=True)  # not inlined: the two fit stages share one compiled copy
+def gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, k: int) -> tuple[F64, bool]:
+    """One Gauss-Newton step of (x, y, theta[, scale]) (``k`` 3 or 4) on normal distances ``resid``:
+    ``gn_normal_equations``' leading ``k`` x ``k`` system, its diagonal raised by 1e-9, solved.
+    Returns the step and ``ok`` (False: a zero pivot, the step undefined)."""
+    A, b = gn_normal_equations(n, Rm, Rdm, scale, wgt, resid)
+    Ak = np.empty((k, k))
+    bk = np.empty(k)
+    for j in range(k):  # loops, not slice copies (each compiles its shape checks)
+        bk[j] = b[j]
+        for c in range(k):
+            Ak[j, c] = A[j, c]
+        Ak[j, j] += 1e-9
+    return small_kernels.solve(Ak, bk)
 
 
 @njit(cache=True)
@@ -290,16 +307,8 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
         if wsum < 6 or (it == 0 and nfound < reject_below * npts):
             failed = True
             break
-        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, d)
         k = 4 if (fit_scale and (it > 0 or iterations == 1)) else 3
-        Ak = np.empty((k, k))
-        bk = np.empty(k)
-        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
-            bk[j] = b[j]
-            for c2 in range(k):
-                Ak[j, c2] = A[j, c2]
-            Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, bk)
+        delta, ok = gn_step(n, Rm, Rdm, sc, wgt, d, k)
         if not ok:
             failed = True
             break
@@ -438,16 +447,7 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
             wsum += wgt[i]
         if wsum < 6:
             break
-        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, off)
-        k = 4 if fit_scale else 3
-        Ak = np.empty((k, k))
-        bk = np.empty(k)
-        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
-            bk[j] = b[j]
-            for c2 in range(k):
-                Ak[j, c2] = A[j, c2]
-            Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, bk)
+        delta, ok = gn_step(n, Rm, Rdm, sc, wgt, off, 4 if fit_scale else 3)
         if not ok:
             break
         ds = delta[3] if fit_scale else 0.0
