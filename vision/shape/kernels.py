@@ -22,15 +22,15 @@ import math
 import threading
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from vision.shape import small_kernels
+from vision.shape.small_kernels import compiled
 
 F64 = NDArray[np.float64]
 
 
-@njit(cache=True)  # not inlined by numba: LLVM inlines it in its three callers
+@compiled()  # not inlined by numba: LLVM inlines it in its three callers
 def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float]:
     h, w = G.shape[0], G.shape[1]
     x = min(max(x, 0.0), w - 1.001)
@@ -48,7 +48,7 @@ def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float
     return t0 + (u0 - t0) * fy, t1 + (u1 - t1) * fy
 
 
-@njit(cache=True)
+@compiled()
 def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
               ) -> tuple[F64, NDArray[np.bool_], F64, F64]:
     """Per point: signed distance to the nearest edge along the normal within ``half`` px
@@ -58,14 +58,16 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     npts = q.shape[0]
     k = 2 * half + 1
     d = np.zeros(npts)
-    found = np.zeros(npts, np.bool_)
+    found = np.empty(npts, np.bool_)  # found and sign set below (np.zeros of bool, np.ones: compiles of their own)
     cosd = np.zeros(npts)
-    sign = np.ones(npts)
+    sign = np.empty(npts)
     gs = np.empty(k)
     g = np.empty(k)
     gm2 = np.empty(k)
     for i in range(npts):
         nx, ny = n[i, 0], n[i, 1]
+        found[i] = False
+        sign[i] = 1.0
         for j in range(k):
             t = j - half
             gx, gy = _bilinear2(G, q[i, 0] + t * nx, q[i, 1] + t * ny)
@@ -96,7 +98,7 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     return d, found, cosd, sign
 
 
-@njit(cache=True, inline="always")  # one call site (gn_step): compiled there only
+@compiled(inline="always")  # one call site (gn_step): compiled there only
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
@@ -118,7 +120,7 @@ def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid
     return A, b
 
 
-@njit(cache=True)  # not inlined: the two fit stages share one compiled copy
+@compiled()  # not inlined: the two fit stages share one compiled copy
 def gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, k: int) -> tuple[F64, bool]:
     """One Gauss-Newton step of (x, y, theta[, scale]) (``k`` 3 or 4) on normal distances ``resid``:
     ``gn_normal_equations``' leading ``k`` x ``k`` system, its diagonal raised by 1e-9, solved.
@@ -134,14 +136,14 @@ def gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, k: in
     return small_kernels.solve(Ak, bk)
 
 
-@njit(cache=True)
+@compiled()
 def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tuple[F64, F64, NDArray[np.bool_]]:
     """Per point: the centroid offset of the profile's differences along the normal, the signed
     contrast, and whether the profile is one clean monotonic step (``image.profile_ok``)."""
     npts = q.shape[0]
     off = np.zeros(npts)
     S = np.zeros(npts)
-    clean = np.zeros(npts, np.bool_)
+    clean = np.empty(npts, np.bool_)  # each set below
     k = 2 * half + 1
     prof = np.empty(k)
     for i in range(npts):
@@ -165,7 +167,7 @@ def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tu
     return off, S, clean
 
 
-@njit(cache=True)
+@compiled()
 def magnitudes(G: NDArray[np.float32], q: F64) -> F64:
     """Gradient magnitude at each place ``q`` (N, 2) of the two-channel gradient image ``G``:
     ``hypot`` of ``vision.image.bilinear`` of each channel, in one pass."""
@@ -251,7 +253,7 @@ def _load_all() -> None:
         score.find_threshold(np.zeros((8, 8), np.uint8), sigma, 3.0, 0.0)
 
 
-@njit(cache=True)
+@compiled()
 def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, max_scale_dev: float,
                 search_px: float, iterations: int, thr: float, reject_below: float, fit_scale: bool,
                 radius: float, vis_margin: float, width: float, height: float
@@ -272,9 +274,12 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
     Rdm = np.zeros((npts, 2))
     wgt = np.zeros(npts)
     d = np.zeros(npts)
-    found = np.zeros(npts, np.bool_)
+    found = np.empty(npts, np.bool_)
     cosd = np.zeros(npts)
-    sign = np.ones(npts)
+    sign = np.empty(npts)
+    for i in range(npts):  # no edge found, sign 1 (loops: np.zeros of bool and np.ones compile their own)
+        found[i] = False
+        sign[i] = 1.0
     failed = False
     for it in range(iterations):
         c, s = math.cos(th), math.sin(th)
@@ -326,7 +331,7 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
     return out, failed, q, d, found, cosd, sign
 
 
-@njit(cache=True)
+@compiled()
 def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
                     min_contrast: float, half: int) -> tuple[float, float, float, float]:
     """``refine._perspective_fit`` in one call (the same arithmetic, no numpy temporaries): a
@@ -410,7 +415,7 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
     return c0, c1, theta, scale
 
 
-@njit(cache=True)
+@compiled()
 def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
                 s0: float, max_scale_dev: float, min_contrast: float, fit_scale: bool, iterations: int,
                 radius: float, vis_margin: float, width: float, height: float, half: int
