@@ -61,8 +61,8 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     for i in range(k):
         tr += H[i, i]
     reg = 1e-9 * tr
-    S = np.empty((m, k))
-    A = np.empty((k, k))
+    S = np.empty((m, k), np.float64)
+    A = np.empty((k, k), np.float64)
     rhs = np.empty(k)
     j = 0
     for b in range(nb):
@@ -85,7 +85,7 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
             mean[p] += S[i, p]
     for p in range(k):
         mean[p] /= m
-    out = np.zeros((k, k))
+    out = np.zeros((k, k), np.float64)
     for i in range(m):
         for p in range(k):
             dp = S[i, p] - mean[p]
@@ -122,7 +122,7 @@ def classical_cov(H: F64, s2: float, corr: float) -> F64:
 def _sandwich(M: F64, C: F64) -> F64:
     """``M C M^T`` (3, 3) of ``M`` (3, k), ``C`` (k, k)."""
     k = C.shape[0]
-    out = np.zeros((3, 3))
+    out = np.zeros((3, 3), np.float64)
     for a in range(3):
         for p in range(k):
             map_ = M[a, p]
@@ -173,7 +173,7 @@ def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F6
     nb = JACKKNIFE_BLOCKS ** 2
     block = blocks_of(pts)
     Hb = np.zeros((nb, k, k))
-    Gb = np.zeros((nb, k))
+    Gb = np.zeros((nb, k), np.float64)
     sw, swr, n_eff = 0.0, 0.0, 0
     for i in range(n):
         w = wgt[i]
@@ -188,7 +188,7 @@ def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F6
         sw += w
         swr += w * r[i] * r[i]
         n_eff += 1 if w > 0 else 0
-    H = np.zeros((k, k))
+    H = np.zeros((k, k), np.float64)
     g = np.zeros(k)
     for b in range(nb):
         for p in range(k):
@@ -238,8 +238,8 @@ def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: flo
             o = min(max(off[i], -1.0), 1.0)
             wgt[i] = (1 - o * o) ** 2
     k = 8 if perspective else 4
-    J = np.empty((N, k))
-    M = np.zeros((3, k))
+    J = np.empty((N, k), np.float64)
+    M = np.zeros((3, k), np.float64)
     M[0, 0] = M[1, 1] = 1.0
     if not perspective:
         M[2, 2] = 1.0

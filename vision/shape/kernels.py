@@ -102,7 +102,7 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
-    A = np.zeros((4, 4))
+    A = np.zeros((4, 4), np.float64)
     b = np.zeros(4)
     J = np.empty(4)
     for i in range(n.shape[0]):
@@ -126,7 +126,7 @@ def gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, k: in
     ``gn_normal_equations``' leading ``k`` x ``k`` system, its diagonal raised by 1e-9, solved.
     Returns the step and ``ok`` (False: a zero pivot, the step undefined)."""
     A, b = gn_normal_equations(n, Rm, Rdm, scale, wgt, resid)
-    Ak = np.empty((k, k))
+    Ak = np.empty((k, k), np.float64)
     bk = np.empty(k)
     for j in range(k):  # loops, not slice copies (each compiles its shape checks)
         bk[j] = b[j]
@@ -268,10 +268,10 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
     npts = m.shape[0]
     x, y, th, sc = pose[0], pose[1], pose[2], pose[3]
     rng = search_px
-    q = np.zeros((npts, 2))
-    n = np.zeros((npts, 2))
-    Rm = np.zeros((npts, 2))
-    Rdm = np.zeros((npts, 2))
+    q = np.zeros((npts, 2), np.float64)
+    n = np.zeros((npts, 2), np.float64)
+    Rm = np.zeros((npts, 2), np.float64)
+    Rdm = np.zeros((npts, 2), np.float64)
     wgt = np.zeros(npts)
     d = np.zeros(npts)
     found = np.empty(npts, np.bool_)
@@ -343,10 +343,10 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
     a00, a01, a10, a11 = sc * co, sc * si, -sc * si, sc * co
     c0, c1 = x, y
     p0, p1 = 0.0, 0.0
-    q = np.empty((npts, 2))
-    n = np.empty((npts, 2))
+    q = np.empty((npts, 2), np.float64)
+    n = np.empty((npts, 2), np.float64)
     w = np.empty(npts)
-    J = np.empty((npts, 8))
+    J = np.empty((npts, 8), np.float64)
     for _ in range(2):
         l00, l01, l10, l11 = a00 - c0 * p0, a01 - c0 * p1, a10 - c1 * p0, a11 - c1 * p1
         for i in range(npts):
@@ -361,7 +361,7 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
             n[i, 0] = nx / nn
             n[i, 1] = ny / nn
         off, S, clean = profile_centroids(img_f, q, n, half)
-        H = np.zeros((8, 8))
+        H = np.zeros((8, 8), np.float64)
         g = np.zeros(8)
         nw = 0
         jmax = 0.0
@@ -426,10 +426,10 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
     Points outside ``[vis_margin, size - vis_margin]`` take no part; a step moving the outermost
     point < 0.001 px ends it. Returns the pose (crop pixels, rad)."""
     npts = m.shape[0]
-    q = np.empty((npts, 2))
-    n = np.empty((npts, 2))
-    Rm = np.empty((npts, 2))
-    Rdm = np.empty((npts, 2))
+    q = np.empty((npts, 2), np.float64)
+    n = np.empty((npts, 2), np.float64)
+    Rm = np.empty((npts, 2), np.float64)
+    Rdm = np.empty((npts, 2), np.float64)
     wgt = np.empty(npts)
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)

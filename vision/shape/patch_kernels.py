@@ -32,11 +32,11 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
     h, w = crop.shape
     t0, t1, a00, a01, a10, a11, v0, v1, ga, gb_ = par[0], par[1], par[2], par[3], par[4], par[5], par[6], \
         par[7], par[8], par[9]
-    H = np.zeros((NP, NP))
+    H = np.zeros((NP, NP), np.float64)
     g = np.zeros(NP)
     nb = nblocks if blocks else 1
     Hb = np.zeros((nb, NP, NP))
-    Gb = np.zeros((nb, NP))
+    Gb = np.zeros((nb, NP), np.float64)
     r = np.zeros(n)
     inside = np.empty(n, np.bool_)  # each set below (np.zeros of bool: one more compile)
     J = np.empty(NP)

@@ -27,7 +27,11 @@ def compiled(**options: Any) -> Callable[[_Fn], _Fn]:
     the C-callable wrapper numba otherwise builds beside every compiled function so that it can be
     passed around as a first-class function value (none of these is): about 4% of the kernels'
     compile on a fresh cache, nothing at run time. ``options``: njit's others (``inline``,
-    ``boundscheck``)."""
+    ``boundscheck``).
+
+    In these kernels numba compiles its ``np.empty``/``np.zeros``/``np.full`` once per (shape, dtype
+    argument) pair: 2-d float arrays name ``np.float64`` (what ``np.full`` passes on), so the 2-d
+    allocations share one; no ``np.ones``, and booleans and integers by ``np.empty`` set in loops."""
     jit: Any = njit  # numba's type stubs do not list no_cfunc_wrapper (numba takes it)
     return cast(Callable[[_Fn], _Fn], jit(cache=True, no_cfunc_wrapper=True, **options))
 
@@ -116,7 +120,7 @@ def inv(A: F64) -> tuple[F64, bool]:
     """``A^-1`` (k, k) and ``ok`` as ``solve``'s."""
     k = A.shape[0]
     LU, piv, ok = lu_factor(A)
-    out = np.zeros((k, k))
+    out = np.zeros((k, k), np.float64)
     if not ok:
         return out, False
     e = np.zeros(k)
