@@ -15,15 +15,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import F64
 from vision.shape import small_kernels as sk
+from vision.shape.small_kernels import compiled
 from vision.shape.uncertainty import JACKKNIFE_BLOCKS, rss_at_optimum
 
 
-@njit(cache=True, inline="always")  # one call site in a search: compiled there only
+@compiled(inline="always")  # one call site in a search: compiled there only
 def blocks_of(pts: F64) -> NDArray[np.int64]:
     """``uncertainty.blocks_of``: each point's block on a ``JACKKNIFE_BLOCKS``-square grid over the points."""
     k = JACKKNIFE_BLOCKS
@@ -40,13 +40,13 @@ def blocks_of(pts: F64) -> NDArray[np.int64]:
     return out
 
 
-@njit(cache=True, inline="always")  # one call site in a search: compiled there only
+@compiled(inline="always")  # one call site in a search: compiled there only
 def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     """``uncertainty.jackknife_of``: one Gauss-Newton step from the optimum without each block that holds
     points, ``(m-1)/m sum (p_k - mean)^2``; all infinite with fewer than 4 such blocks or a singular one."""
     k = H.shape[0]
     nb = Hb.shape[0]
-    used = np.zeros(nb, np.bool_)
+    used = np.empty(nb, np.bool_)  # each set below
     m = 0
     for b in range(nb):
         t = 0.0
@@ -61,8 +61,8 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     for i in range(k):
         tr += H[i, i]
     reg = 1e-9 * tr
-    S = np.empty((m, k))
-    A = np.empty((k, k))
+    S = np.empty((m, k), np.float64)
+    A = np.empty((k, k), np.float64)
     rhs = np.empty(k)
     j = 0
     for b in range(nb):
@@ -85,7 +85,7 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
             mean[p] += S[i, p]
     for p in range(k):
         mean[p] /= m
-    out = np.zeros((k, k))
+    out = np.zeros((k, k), np.float64)
     for i in range(m):
         for p in range(k):
             dp = S[i, p] - mean[p]
@@ -98,7 +98,7 @@ def jackknife_cov(H: F64, g: F64, Hb: F64, Gb: F64) -> F64:
     return out
 
 
-@njit(cache=True, inline="always")  # one call site in a search: compiled there only
+@compiled(inline="always")  # one call site in a search: compiled there only
 def classical_cov(H: F64, s2: float, corr: float) -> F64:
     """``uncertainty.classical_of``: ``s2 H^-1 corr``; all infinite where ``H`` fixes a direction not at all."""
     k = H.shape[0]
@@ -118,11 +118,11 @@ def classical_cov(H: F64, s2: float, corr: float) -> F64:
     return Hi
 
 
-@njit(cache=True)
+@compiled()
 def _sandwich(M: F64, C: F64) -> F64:
     """``M C M^T`` (3, 3) of ``M`` (3, k), ``C`` (k, k)."""
     k = C.shape[0]
-    out = np.zeros((3, 3))
+    out = np.zeros((3, 3), np.float64)
     for a in range(3):
         for p in range(k):
             map_ = M[a, p]
@@ -135,7 +135,7 @@ def _sandwich(M: F64, C: F64) -> F64:
     return out
 
 
-@njit(cache=True)
+@compiled()
 def _finite(C: F64) -> bool:
     """Every entry of ``C`` (k, k) finite."""
     for i in range(C.shape[0]):
@@ -145,7 +145,7 @@ def _finite(C: F64) -> bool:
     return True
 
 
-@njit(cache=True, inline="always")  # one call site in a search: compiled there only
+@compiled(inline="always")  # one call site in a search: compiled there only
 def honest(Cc: F64, Cj: F64, M: F64) -> F64:
     """``uncertainty.honest_of``: the textbook covariance of (x, y, theta) widened by as much as the
     jackknife's exceeds it on any of x, y, theta (``M`` maps the parameters to them)."""
@@ -164,7 +164,7 @@ def honest(Cc: F64, Cj: F64, M: F64) -> F64:
     return C
 
 
-@njit(cache=True)
+@compiled()
 def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F64, float, float, int]:
     """``uncertainty.block_systems``: the weighted normal equations ``H``, ``g`` in all and per block
     (``Hb``, ``Gb``; blocks over ``pts``), and the weights' sum, the weighted residuals' square sum and
@@ -173,7 +173,7 @@ def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F6
     nb = JACKKNIFE_BLOCKS ** 2
     block = blocks_of(pts)
     Hb = np.zeros((nb, k, k))
-    Gb = np.zeros((nb, k))
+    Gb = np.zeros((nb, k), np.float64)
     sw, swr, n_eff = 0.0, 0.0, 0
     for i in range(n):
         w = wgt[i]
@@ -188,7 +188,7 @@ def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F6
         sw += w
         swr += w * r[i] * r[i]
         n_eff += 1 if w > 0 else 0
-    H = np.zeros((k, k))
+    H = np.zeros((k, k), np.float64)
     g = np.zeros(k)
     for b in range(nb):
         for p in range(k):
@@ -198,7 +198,7 @@ def block_systems(pts: F64, J: F64, r: F64, wgt: F64) -> tuple[F64, F64, F64, F6
     return H, g, Hb, Gb, sw, swr, n_eff
 
 
-@njit(cache=True)
+@compiled()
 def honest_systems(H: F64, g: F64, Hb: F64, Gb: F64, s2: float, corr: float, M: F64) -> F64:
     """``honest`` of the textbook covariance ``s2 H^-1 corr`` and the block jackknife of a fit's normal
     equations in all (``H``, ``g``) and per block (``Hb``, ``Gb``): its (x, y, theta) covariance (3, 3)."""
@@ -222,7 +222,7 @@ def honest_cov(pts: F64, J: F64, r: F64, wgt: F64, corr: float, M: F64) -> F64:
     return np.asarray(honest_systems(H, g, Hb, Gb, s2, corr, np.ascontiguousarray(M, dtype=np.float64)))
 
 
-@njit(cache=True)
+@compiled()
 def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: float, sc: float,
                 perspective: bool) -> tuple[F64, F64, F64, F64]:
     """``uncertainty.edge_system`` in loops (pick speed: numpy's two dozen small calls cost about 0.1 ms
@@ -238,8 +238,8 @@ def edge_system(off: F64, ok: NDArray[np.bool_], m: F64, q: F64, n: F64, th: flo
             o = min(max(off[i], -1.0), 1.0)
             wgt[i] = (1 - o * o) ** 2
     k = 8 if perspective else 4
-    J = np.empty((N, k))
-    M = np.zeros((3, k))
+    J = np.empty((N, k), np.float64)
+    M = np.zeros((3, k), np.float64)
     M[0, 0] = M[1, 1] = 1.0
     if not perspective:
         M[2, 2] = 1.0

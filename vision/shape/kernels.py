@@ -7,6 +7,7 @@ the border). Compiled on first use and cached on disk (``cache=True``).
 
 - ``associate``: nearest image edge of matching orientation along each model normal.
 - ``gn_normal_equations``: the 4x4 normal equations of one weighted Gauss-Newton step.
+- ``gn_step``: that step solved (the two fit stages' shared solve).
 - ``profile_centroids``: the centroid edge offset, contrast and cleanliness of each normal profile.
 - ``fit_stage_a``: the Gauss-Newton loop of the refinement on gradient peaks.
 - ``fit_stage_b``: the refinement's Gauss-Newton loop on centroid edge positions (level 0).
@@ -21,15 +22,15 @@ import math
 import threading
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from vision.shape import small_kernels
+from vision.shape.small_kernels import compiled
 
 F64 = NDArray[np.float64]
 
 
-@njit(cache=True)  # not inlined by numba: LLVM inlines it in its three callers
+@compiled()  # not inlined by numba: LLVM inlines it in its three callers
 def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float]:
     h, w = G.shape[0], G.shape[1]
     x = min(max(x, 0.0), w - 1.001)
@@ -47,7 +48,7 @@ def _bilinear2(G: NDArray[np.float32], x: float, y: float) -> tuple[float, float
     return t0 + (u0 - t0) * fy, t1 + (u1 - t1) * fy
 
 
-@njit(cache=True)
+@compiled()
 def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
               ) -> tuple[F64, NDArray[np.bool_], F64, F64]:
     """Per point: signed distance to the nearest edge along the normal within ``half`` px
@@ -57,14 +58,16 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     npts = q.shape[0]
     k = 2 * half + 1
     d = np.zeros(npts)
-    found = np.zeros(npts, np.bool_)
+    found = np.empty(npts, np.bool_)  # found and sign set below (np.zeros of bool, np.ones: compiles of their own)
     cosd = np.zeros(npts)
-    sign = np.ones(npts)
+    sign = np.empty(npts)
     gs = np.empty(k)
     g = np.empty(k)
     gm2 = np.empty(k)
     for i in range(npts):
         nx, ny = n[i, 0], n[i, 1]
+        found[i] = False
+        sign[i] = 1.0
         for j in range(k):
             t = j - half
             gx, gy = _bilinear2(G, q[i, 0] + t * nx, q[i, 1] + t * ny)
@@ -95,11 +98,11 @@ def associate(G: NDArray[np.float32], q: F64, n: F64, half: int, thr: float
     return d, found, cosd, sign
 
 
-@njit(cache=True, inline="always")  # small, two call sites: compiled in its callers only
+@compiled(inline="always")  # one call site (gn_step): compiled there only
 def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64
                         ) -> tuple[F64, F64]:
     """``A = J^T W J`` and ``b = J^T W r`` for (x, y, theta, scale) on normal distances."""
-    A = np.zeros((4, 4))
+    A = np.zeros((4, 4), np.float64)
     b = np.zeros(4)
     J = np.empty(4)
     for i in range(n.shape[0]):
@@ -117,14 +120,30 @@ def gn_normal_equations(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid
     return A, b
 
 
-@njit(cache=True)
+@compiled()  # not inlined: the two fit stages share one compiled copy
+def gn_step(n: F64, Rm: F64, Rdm: F64, scale: float, wgt: F64, resid: F64, k: int) -> tuple[F64, bool]:
+    """One Gauss-Newton step of (x, y, theta[, scale]) (``k`` 3 or 4) on normal distances ``resid``:
+    ``gn_normal_equations``' leading ``k`` x ``k`` system, its diagonal raised by 1e-9, solved.
+    Returns the step and ``ok`` (False: a zero pivot, the step undefined)."""
+    A, b = gn_normal_equations(n, Rm, Rdm, scale, wgt, resid)
+    Ak = np.empty((k, k), np.float64)
+    bk = np.empty(k)
+    for j in range(k):  # loops, not slice copies (each compiles its shape checks)
+        bk[j] = b[j]
+        for c in range(k):
+            Ak[j, c] = A[j, c]
+        Ak[j, j] += 1e-9
+    return small_kernels.solve(Ak, bk)
+
+
+@compiled()
 def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tuple[F64, F64, NDArray[np.bool_]]:
     """Per point: the centroid offset of the profile's differences along the normal, the signed
     contrast, and whether the profile is one clean monotonic step (``image.profile_ok``)."""
     npts = q.shape[0]
     off = np.zeros(npts)
     S = np.zeros(npts)
-    clean = np.zeros(npts, np.bool_)
+    clean = np.empty(npts, np.bool_)  # each set below
     k = 2 * half + 1
     prof = np.empty(k)
     for i in range(npts):
@@ -148,7 +167,7 @@ def profile_centroids(img: NDArray[np.float32], q: F64, n: F64, half: int) -> tu
     return off, S, clean
 
 
-@njit(cache=True)
+@compiled()
 def magnitudes(G: NDArray[np.float32], q: F64) -> F64:
     """Gradient magnitude at each place ``q`` (N, 2) of the two-channel gradient image ``G``:
     ``hypot`` of ``vision.image.bilinear`` of each channel, in one pass."""
@@ -234,7 +253,7 @@ def _load_all() -> None:
         score.find_threshold(np.zeros((8, 8), np.uint8), sigma, 3.0, 0.0)
 
 
-@njit(cache=True)
+@compiled()
 def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, max_scale_dev: float,
                 search_px: float, iterations: int, thr: float, reject_below: float, fit_scale: bool,
                 radius: float, vis_margin: float, width: float, height: float
@@ -249,15 +268,18 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
     npts = m.shape[0]
     x, y, th, sc = pose[0], pose[1], pose[2], pose[3]
     rng = search_px
-    q = np.zeros((npts, 2))
-    n = np.zeros((npts, 2))
-    Rm = np.zeros((npts, 2))
-    Rdm = np.zeros((npts, 2))
+    q = np.zeros((npts, 2), np.float64)
+    n = np.zeros((npts, 2), np.float64)
+    Rm = np.zeros((npts, 2), np.float64)
+    Rdm = np.zeros((npts, 2), np.float64)
     wgt = np.zeros(npts)
     d = np.zeros(npts)
-    found = np.zeros(npts, np.bool_)
+    found = np.empty(npts, np.bool_)
     cosd = np.zeros(npts)
-    sign = np.ones(npts)
+    sign = np.empty(npts)
+    for i in range(npts):  # no edge found, sign 1 (loops: np.zeros of bool and np.ones compile their own)
+        found[i] = False
+        sign[i] = 1.0
     failed = False
     for it in range(iterations):
         c, s = math.cos(th), math.sin(th)
@@ -290,16 +312,8 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
         if wsum < 6 or (it == 0 and nfound < reject_below * npts):
             failed = True
             break
-        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, d)
         k = 4 if (fit_scale and (it > 0 or iterations == 1)) else 3
-        Ak = np.empty((k, k))
-        bk = np.empty(k)
-        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
-            bk[j] = b[j]
-            for c2 in range(k):
-                Ak[j, c2] = A[j, c2]
-            Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, bk)
+        delta, ok = gn_step(n, Rm, Rdm, sc, wgt, d, k)
         if not ok:
             failed = True
             break
@@ -317,7 +331,7 @@ def fit_stage_a(G: NDArray[np.float32], m: F64, nrm: F64, pose: F64, s0: float, 
     return out, failed, q, d, found, cosd, sign
 
 
-@njit(cache=True)
+@compiled()
 def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
                     min_contrast: float, half: int) -> tuple[float, float, float, float]:
     """``refine._perspective_fit`` in one call (the same arithmetic, no numpy temporaries): a
@@ -329,10 +343,10 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
     a00, a01, a10, a11 = sc * co, sc * si, -sc * si, sc * co
     c0, c1 = x, y
     p0, p1 = 0.0, 0.0
-    q = np.empty((npts, 2))
-    n = np.empty((npts, 2))
+    q = np.empty((npts, 2), np.float64)
+    n = np.empty((npts, 2), np.float64)
     w = np.empty(npts)
-    J = np.empty((npts, 8))
+    J = np.empty((npts, 8), np.float64)
     for _ in range(2):
         l00, l01, l10, l11 = a00 - c0 * p0, a01 - c0 * p1, a10 - c1 * p0, a11 - c1 * p1
         for i in range(npts):
@@ -347,7 +361,7 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
             n[i, 0] = nx / nn
             n[i, 1] = ny / nn
         off, S, clean = profile_centroids(img_f, q, n, half)
-        H = np.zeros((8, 8))
+        H = np.zeros((8, 8), np.float64)
         g = np.zeros(8)
         nw = 0
         jmax = 0.0
@@ -401,7 +415,7 @@ def perspective_fit(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: f
     return c0, c1, theta, scale
 
 
-@njit(cache=True)
+@compiled()
 def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float, th: float, sc: float,
                 s0: float, max_scale_dev: float, min_contrast: float, fit_scale: bool, iterations: int,
                 radius: float, vis_margin: float, width: float, height: float, half: int
@@ -412,10 +426,10 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
     Points outside ``[vis_margin, size - vis_margin]`` take no part; a step moving the outermost
     point < 0.001 px ends it. Returns the pose (crop pixels, rad)."""
     npts = m.shape[0]
-    q = np.empty((npts, 2))
-    n = np.empty((npts, 2))
-    Rm = np.empty((npts, 2))
-    Rdm = np.empty((npts, 2))
+    q = np.empty((npts, 2), np.float64)
+    n = np.empty((npts, 2), np.float64)
+    Rm = np.empty((npts, 2), np.float64)
+    Rdm = np.empty((npts, 2), np.float64)
     wgt = np.empty(npts)
     for _ in range(iterations):
         c, s = math.cos(th), math.sin(th)
@@ -438,16 +452,7 @@ def fit_stage_b(img_f: NDArray[np.float32], m: F64, nrm: F64, x: float, y: float
             wsum += wgt[i]
         if wsum < 6:
             break
-        A, b = gn_normal_equations(n, Rm, Rdm, sc, wgt, off)
-        k = 4 if fit_scale else 3
-        Ak = np.empty((k, k))
-        bk = np.empty(k)
-        for j in range(k):  # loops, not slice copies (each compiles its shape checks)
-            bk[j] = b[j]
-            for c2 in range(k):
-                Ak[j, c2] = A[j, c2]
-            Ak[j, j] += 1e-9
-        delta, ok = small_kernels.solve(Ak, bk)
+        delta, ok = gn_step(n, Rm, Rdm, sc, wgt, off, 4 if fit_scale else 3)
         if not ok:
             break
         ds = delta[3] if fit_scale else 0.0

@@ -11,17 +11,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from vision.image import F64
 from vision.shape import small_kernels as sk
+from vision.shape.small_kernels import compiled
 
 NP = 10
 """Parameters of the fit."""
 
 
-@njit(cache=True, inline="always")  # one call site (gauss_newton): compiled once, in it
+@compiled(inline="always")  # one call site (gauss_newton): compiled once, in it
 def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64,
                      T: F64, block: NDArray[np.int64], nblocks: int, par: F64, sd: float, tukey_c: float,
                      blocks: bool) -> tuple[F64, F64, F64, F64, F64, NDArray[np.bool_]]:
@@ -32,22 +32,22 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
     h, w = crop.shape
     t0, t1, a00, a01, a10, a11, v0, v1, ga, gb_ = par[0], par[1], par[2], par[3], par[4], par[5], par[6], \
         par[7], par[8], par[9]
-    H = np.zeros((NP, NP))
+    H = np.zeros((NP, NP), np.float64)
     g = np.zeros(NP)
     nb = nblocks if blocks else 1
     Hb = np.zeros((nb, NP, NP))
-    Gb = np.zeros((nb, NP))
+    Gb = np.zeros((nb, NP), np.float64)
     r = np.zeros(n)
-    inside = np.zeros(n, np.bool_)
+    inside = np.empty(n, np.bool_)  # each set below (np.zeros of bool: one more compile)
     J = np.empty(NP)
     for i in range(n):
         px, py = pts[i, 0], pts[i, 1]
         wp = 1.0 + v0 * px + v1 * py
         qx = (a00 * px + a01 * py + t0) / wp
         qy = (a10 * px + a11 * py + t1) / wp
-        if not (qx >= 1.0 and qy >= 1.0 and qx <= w - 2.0 and qy <= h - 2.0):
+        inside[i] = qx >= 1.0 and qy >= 1.0 and qx <= w - 2.0 and qy <= h - 2.0
+        if not inside[i]:
             continue
-        inside[i] = True
         I = sk.bilinear(crop, qx, qy)
         res = ga * I + gb_ - T[i]
         r[i] = res
@@ -84,7 +84,7 @@ def normal_equations(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDA
     return H, g, Hb, Gb, r, inside
 
 
-@njit(cache=True, inline="always")  # in gauss_newton
+@compiled(inline="always")  # in gauss_newton
 def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -> tuple[float, float, int]:
     """Sum of Tukey weights, of weighted squared residuals, and the samples weighted (for the
     textbook covariance)."""
@@ -101,7 +101,7 @@ def weighted_rss(r: F64, inside: NDArray[np.bool_], sd: float, tukey_c: float) -
     return sw, swr, cnt
 
 
-@njit(cache=True)
+@compiled()
 def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray[np.float32], pts: F64, T: F64,
                  block: NDArray[np.int64], nblocks: int, par: F64, iterations: int, tukey_c: float, r_max: float,
                  scale: float, tilt_prior: float
@@ -191,7 +191,7 @@ def gauss_newton(crop: NDArray[np.float32], gx: NDArray[np.float32], gy: NDArray
     return status, par, H, g, Hb, Gb, r, inside, sd, ncc, sw, swr, cnt
 
 
-@njit(cache=True, inline="always")  # in gauss_newton
+@compiled(inline="always")  # in gauss_newton
 def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     """Normalised correlation of the fitted grey values (``r + T``: ``a I + b``) with the patch's ``T``
     over the samples ``inside``."""
@@ -200,7 +200,7 @@ def ncc_of(r: F64, T: F64, inside: NDArray[np.bool_]) -> float:
     return sab / den if den > 0 else 0.0
 
 
-@njit(cache=True, inline="always")  # in gauss_newton and ncc_of
+@compiled(inline="always")  # in gauss_newton and ncc_of
 def light_moments(r: F64, T: F64, inside: NDArray[np.bool_]) -> tuple[float, float, float, float, float]:
     """Means and centred second moments of the image's grey values (``r + T``) and the patch's ``T``
     over the samples ``inside``: ``(mean_i, mean_t, s_ii, s_tt, s_it)`` (loops, not numpy's masks and

@@ -26,15 +26,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from vision.shape.small_kernels import compiled
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
 
-@njit(cache=True, boundscheck=False)
+@compiled(boundscheck=False)
 def accumulate_top(padf: U8, b: I64, start: I64, run: int, lin: U8, a0: int, a1: int) -> None:
     """Add up the score planes of angles ``a0 .. a1 - 1`` into ``lin`` (angle, run) in place:
     ``lin[a, i] = sum_f padf[b[a, f], start[a, f] + i]`` for ``i < run`` (uint8, no overflow while
@@ -58,7 +59,7 @@ def accumulate_top(padf: U8, b: I64, start: I64, run: int, lin: U8, a0: int, a1:
             k += 1
 
 
-@njit(cache=True, boundscheck=False)
+@compiled(boundscheck=False)
 def response_planes(q: U8, mag: NDArray[np.float32], thr: float, table: U8, out: U8) -> None:
     """``out[b] = table[b, q]`` for every bin b, with ``q`` taken as "no edge" (the table's last
     column) where ``mag < thr``: the orientation response maps in one pass."""
@@ -76,7 +77,7 @@ def response_planes(q: U8, mag: NDArray[np.float32], thr: float, table: U8, out:
                 ob[y, x] = tb[qq[y, x]]
 
 
-@njit(cache=True, boundscheck=False)
+@compiled(boundscheck=False)
 def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[I64, I64, I64, I64]:
     """Cells of the score ``planes`` (A, rows, cols; only rows < ``nh`` and the columns of ``dil`` count)
     scoring >= ``thr`` and >= ``dil`` (A, rows, columns: each plane's 3x3 maximum) of their own plane and
@@ -122,7 +123,7 @@ def top_maxima(planes: U8, dil: U8, nh: int, thr: int, circular: bool) -> tuple[
     return out[0, :n], out[1, :n], out[2, :n], out[3, :n]
 
 
-@njit(cache=True, boundscheck=False)
+@compiled(boundscheck=False)
 def track_batch(resp: U8, m: F64, phi0: F64, cx: I64, cy: I64, cos_t: F64, sin_t: F64, thetas: F64,
                 scale: F64, reach: int, bin_w: float) -> tuple[F64, F64, F64, F64]:
     """Best pose of each candidate c over positions ``cx, cy`` +-``reach`` px and the angles
@@ -212,7 +213,7 @@ def track_batch(resp: U8, m: F64, phi0: F64, cx: I64, cy: I64, cos_t: F64, sin_t
     return xs, ys, ts, out
 
 
-@njit(cache=True, boundscheck=False)
+@compiled(boundscheck=False)
 def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_position: int, extra_min: float,
                   cap: int) -> I64:
     """Indices of at most ``cap`` candidates (``xs``, ``ys``, scores ``sc``, sorted best first): the
@@ -223,7 +224,7 @@ def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_pos
     keep = np.empty(m, np.int64)
     gx = np.empty(m)
     gy = np.empty(m)
-    gcount = np.zeros(m, np.int64)
+    gcount = np.empty(m, np.int64)  # a group's set when it opens (np.zeros of int64: one more compile)
     ng = 0
     nk = 0
     r2 = radius * radius
@@ -239,6 +240,7 @@ def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_pos
             g = ng
             gx[ng] = xs[i]
             gy[ng] = ys[i]
+            gcount[ng] = 0
             ng += 1
         elif i >= n_free and gcount[g] >= per_position:
             continue
@@ -248,13 +250,17 @@ def spread_budget(xs: F64, ys: F64, sc: F64, radius: float, n_free: int, per_pos
     return keep[:nk]
 
 
-@njit(cache=True)
+@compiled()
 def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
     """For each of ``n`` points, the number of points in its run: the connected component of the pairs
     ``(a[k], b[k])`` whose both ends are ``ev`` (0 where ``ev`` is false)."""
     parent = np.empty(n, np.int64)
+    root = np.empty(n, np.int64)
+    count = np.empty(n, np.int64)  # zeros (set here: np.zeros of int64 costs a compile of its own)
+    out = np.empty(n, np.int64)
     for i in range(n):
         parent[i] = i
+        count[i] = 0
     for k in range(len(a)):
         i, j = a[k], b[k]
         if not (ev[i] and ev[j]):
@@ -270,8 +276,6 @@ def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
                 parent[j] = i
             else:
                 parent[i] = j
-    root = np.empty(n, np.int64)
-    count = np.zeros(n, np.int64)
     for i in range(n):
         r = i
         while parent[r] != r:
@@ -279,10 +283,8 @@ def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
         root[i] = r
         if ev[i]:
             count[r] += 1
-    out = np.zeros(n, np.int64)
     for i in range(n):
-        if ev[i]:
-            out[i] = count[root[i]]
+        out[i] = count[root[i]] if ev[i] else 0
     return out
 
 

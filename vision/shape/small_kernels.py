@@ -11,14 +11,32 @@ only on an exactly zero pivot; it answers ``ok=False`` instead of raising.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+_Fn = TypeVar("_Fn", bound=Callable[..., Any])
 
 
-@njit(cache=True)
+def compiled(**options: Any) -> Callable[[_Fn], _Fn]:
+    """numba's ``njit`` as the matcher's kernels use it: cached on disk (``cache=True``), and without
+    the C-callable wrapper numba otherwise builds beside every compiled function so that it can be
+    passed around as a first-class function value (none of these is): about 4% of the kernels'
+    compile on a fresh cache, nothing at run time. ``options``: njit's others (``inline``,
+    ``boundscheck``).
+
+    In these kernels numba compiles its ``np.empty``/``np.zeros``/``np.full`` once per (shape, dtype
+    argument) pair: 2-d float arrays name ``np.float64`` (what ``np.full`` passes on), so the 2-d
+    allocations share one; no ``np.ones``, and booleans and integers by ``np.empty`` set in loops."""
+    jit: Any = njit  # numba's type stubs do not list no_cfunc_wrapper (numba takes it)
+    return cast(Callable[[_Fn], _Fn], jit(cache=True, no_cfunc_wrapper=True, **options))
+
+
+@compiled()
 def bilinear(img: NDArray[np.float32], x: float, y: float) -> float:
     """``vision.image.bilinear`` of ``img`` at one place (pixel centres at integers, clamped at the border):
     one compiled sampler that the profile and patch kernels call (LLVM inlines it where they are linked;
@@ -33,7 +51,7 @@ def bilinear(img: NDArray[np.float32], x: float, y: float) -> float:
     return top + (bot - top) * fy
 
 
-@njit(cache=True)
+@compiled()
 def lu_factor(A: F64) -> tuple[F64, NDArray[np.int64], bool]:
     """``A`` (k, k) factored in place of a copy as ``P A = L U`` (unit ``L`` below the diagonal, ``U``
     on and above it), the pivot row of each step, and whether every pivot is non-zero."""
@@ -65,7 +83,7 @@ def lu_factor(A: F64) -> tuple[F64, NDArray[np.int64], bool]:
     return LU, piv, ok
 
 
-@njit(cache=True)
+@compiled()
 def lu_solve(LU: F64, piv: NDArray[np.int64], b: F64) -> F64:
     """``x`` with ``A x = b`` from ``lu_factor``'s ``LU``, ``piv`` (``b`` (k,) is not changed)."""
     k = LU.shape[0]
@@ -87,7 +105,7 @@ def lu_solve(LU: F64, piv: NDArray[np.int64], b: F64) -> F64:
     return x
 
 
-@njit(cache=True, inline="always")  # a thin wrapper: no library of its own
+@compiled(inline="always")  # a thin wrapper: no library of its own
 def solve(A: F64, b: F64) -> tuple[F64, bool]:
     """``x`` with ``A x = b`` (``A`` (k, k), ``b`` (k,), both unchanged) and ``ok``: False (``x``
     undefined) where a pivot is exactly zero, where ``np.linalg.solve`` raises."""
@@ -97,12 +115,12 @@ def solve(A: F64, b: F64) -> tuple[F64, bool]:
     return lu_solve(LU, piv, b), True
 
 
-@njit(cache=True, inline="always")  # a thin wrapper: no library of its own
+@compiled(inline="always")  # a thin wrapper: no library of its own
 def inv(A: F64) -> tuple[F64, bool]:
     """``A^-1`` (k, k) and ``ok`` as ``solve``'s."""
     k = A.shape[0]
     LU, piv, ok = lu_factor(A)
-    out = np.zeros((k, k))
+    out = np.zeros((k, k), np.float64)
     if not ok:
         return out, False
     e = np.zeros(k)
@@ -115,7 +133,7 @@ def inv(A: F64) -> tuple[F64, bool]:
     return out, True
 
 
-@njit(cache=True)
+@compiled()
 def kth_smallest(a: F64, kth: int) -> float:
     """The ``kth`` smallest (0-based) of ``a`` (not changed): ``np.sort(a)[kth]`` by selection."""
     w = a.copy()
@@ -148,7 +166,7 @@ def kth_smallest(a: F64, kth: int) -> float:
     return w[kth]
 
 
-@njit(cache=True)
+@compiled()
 def next_above(a: F64, kth: int, v: float) -> float:
     """``np.sort(a)[kth + 1]`` given ``v = np.sort(a)[kth]``: the smallest value ranked after it
     (``v`` itself when it repeats there)."""
@@ -162,7 +180,7 @@ def next_above(a: F64, kth: int, v: float) -> float:
     return v if below_or_eq > kth + 1 else nxt
 
 
-@njit(cache=True)
+@compiled()
 def median(a: F64) -> float:
     """``np.median(a)`` of ``a`` (n,) (n >= 1) by selection: the middle value, or the mean of the two."""
     n = a.shape[0]
