@@ -139,15 +139,6 @@ def intrinsic_steps(c: F64) -> F64:
     return h
 
 
-def jacobians(p: BundleProblem, c: F64, R: F64, t: F64, free: NDArray[np.bool_]) -> tuple[F64, F64]:
-    """Analytic weighted Jacobians (``calibration.intrinsics.kernels``): (2M, n_free) for the free
-    intrinsics, (2M, 6) for each row's pose (left rotation increment ``R <- exp(w) R``, then
-    translation)."""
-    Jc, Jp = kernels.point_jacobians(p.model_id, np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(R),
-                                     np.ascontiguousarray(t), p.X, p.weights(), p.view)
-    return Jc[:, free], Jp
-
-
 @dataclass
 class NormalEquations:
     """Normal equations of the bundle problem: totals, and the per-view blocks they sum."""
