@@ -51,7 +51,9 @@ def _ready(http: Any, world: SimWorld) -> None:
 def test_1_conveyor_calibrate_finds_the_belt_within_its_uncertainty(cell: tuple[AppCell, SimWorld]) -> None:
     app, world = cell
     http = app.http()
-    set_speed(http, 60.0)  # the board is in view at the start: it crosses the view once in ~5 s
+    # the board is in view at the start: it crosses the view once in ~10 s (at a load of 17 on 2 cores a sighting
+    # took ~1 s: at 60 mm/s the view held 2 of the 3 needed, and the run timed out)
+    set_speed(http, 30.0)
     job = run_job(http, "conveyor-calibrate", {"sightings": 5, "min_travel_mm": 100.0, "timeout_s": 60.0},
                   timeout_s=90.0)
     assert job["state"] == "succeeded", job
@@ -259,9 +261,12 @@ def test_8_an_arm_later_than_its_plan_meets_the_part_further_along_the_window(ce
     faults.speed_slider = 0.5
     try:
         assert http.post("/production/start", json={"recipe_id": 3, "count": 1}).status_code == 202
-        deadline = time.monotonic() + 40
-        while time.monotonic() < deadline and http.get("/production").json()["ended_because"] is None:
+        # The tool's pose read every 20 ms from the world itself and the run's state over REST every 0.25 s: the
+        # test's own requests (in this process, under the GIL) do not delay the run it times (issue 33: load 10-16)
+        deadline, polls = time.monotonic() + 40, 0
+        while time.monotonic() < deadline and (polls % 12 or http.get("/production").json()["ended_because"] is None):
             assert world.T_base_tool_true[0, 3] <= 0.740 + 1e-6  # never followed past the window
+            polls += 1
             time.sleep(0.02)
         st = wait_ended(http, 10.0)
     finally:
