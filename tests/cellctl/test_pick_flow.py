@@ -16,16 +16,13 @@ import pytest
 import yaml
 
 from calibration import geometry as g
-from cellctl.cell import Cell
-from cellctl.config import default_config_text, parse_config
-from cellctl.jobs import JobManager
+from cellctl.config import default_config_text
 from cellctl.pick.flow import PickError, Recipe, fold_yaw, run_pick
 from cellctl.pick.model import teach
 from cellctl.services import Services
-from cellctl.store import open_store
 from drivers.base import RobotBusy
 from drivers.sim.world import SimWorld, world_for
-from tests.support.truth import activate_truth
+from tests.support.truth import calibrated_services
 
 SEED = 11
 
@@ -37,18 +34,8 @@ def services(tmp_path: Path) -> Iterator[Services]:
     data["cameras"]["cam0"]["settings"]["seed"] = SEED
     data["robots"]["robot0"]["settings"]["seed"] = SEED
     data["robots"]["robot0"]["settings"]["motion_time_scale"] = 0.0  # the pick itself, not the travel, is tested
-    config = parse_config(data)
-    from drivers.sim import world as world_module
-
-    world_module._WORLDS.pop(("built-in", SEED), None)
-    svc = Services(config, Cell(config), open_store(config), JobManager())
-    world = world_for(None, SEED)
-    truth = world.truth()
-    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
-    try:
+    with calibrated_services(data, SEED) as svc:
         yield svc
-    finally:
-        svc.close()
 
 
 def part_pixel(world: SimWorld, x_mm: float, y_mm: float) -> tuple[float, float]:

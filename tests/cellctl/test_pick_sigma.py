@@ -21,17 +21,14 @@ from calibration import geometry as g
 from calibration.camera_model import CameraModel
 from calibration.npoint import fit_npoint
 from calibration.synthetic.npoint import simulate_npoint
-from cellctl.cell import Cell
-from cellctl.config import default_config_text, parse_config
-from cellctl.jobs import JobManager
+from cellctl.config import default_config_text
 from cellctl.mapping import ActiveMapping, active_mapping
 from cellctl.pick.candidate import candidate, search_params
 from cellctl.pick.model import teach
 from cellctl.pick.recipe import Recipe
 from cellctl.services import Services
-from cellctl.store import open_store
 from drivers.sim.world import world_for
-from tests.support.truth import activate_truth
+from tests.support.truth import calibrated_services
 from vision.recognize import recognize
 
 SEED = 11
@@ -46,17 +43,8 @@ def services(tmp_path: Path) -> Iterator[Services]:
     data["store"] = {"path": str(tmp_path / "cell.db")}
     data["cameras"]["cam0"]["settings"]["seed"] = SEED
     data["robots"]["robot0"]["settings"]["seed"] = SEED
-    config = parse_config(data)
-    from drivers.sim import world as world_module
-
-    world_module._WORLDS.pop(("built-in", SEED), None)
-    svc = Services(config, Cell(config), open_store(config), JobManager())
-    truth = world_for(None, SEED).truth()
-    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
-    try:
+    with calibrated_services(data, SEED) as svc:
         yield svc
-    finally:
-        svc.close()
 
 
 def _blurred(image: np.ndarray) -> np.ndarray:

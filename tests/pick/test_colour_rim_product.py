@@ -17,19 +17,15 @@ import numpy as np
 import pytest
 import yaml
 
-from cellctl.cell import Cell
-from cellctl.config import default_config_text, parse_config
-from cellctl.jobs import JobManager
+from cellctl.config import default_config_text
 from cellctl.mapping import active_mapping
 from cellctl.pick.flow import Recipe, SearchSettings, run_pick
 from cellctl.pick.model import PartModel
 from cellctl.services import Services
-from cellctl.store import open_store
 from drivers.base import Frame
 from drivers.recording import RecordingWriter
-from drivers.sim.world import world_for
 from tests.support.cli import run_cli
-from tests.support.truth import activate_truth
+from tests.support.truth import calibrated_services
 from vision import shape
 
 SCREWS = Path(__file__).resolve().parents[1] / "data" / "pick_real" / "tf-visual-inspection-screws" / "train_val_set"
@@ -70,14 +66,8 @@ def colour_cell(tmp_path: Path) -> Iterator[Services]:
     data["store"] = {"path": str(tmp_path / "cell.db")}
     data["cameras"]["cam0"] = {"kind": "replay", "settings": {"path": str(tmp_path / "rec"), "loop": True}}
     data["robots"]["robot0"]["settings"]["seed"] = SEED
-    config = parse_config(data)
-    svc = Services(config, Cell(config), open_store(config), JobManager())
-    truth = world_for(None, SEED).truth()
-    activate_truth(svc.store, truth, "eye-in-hand", np.eye(4))
-    try:
+    with calibrated_services(data, SEED) as svc:
         yield svc
-    finally:
-        svc.close()
 
 
 def test_screws_taught_in_colour_from_the_cli_are_picked_at_their_rim_centres(colour_cell: Services,

@@ -3,11 +3,18 @@ calibrated cell without running the capture routines (docs/testing.md, "Calibrat
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
-from cellctl.store import Store
+from cellctl.cell import Cell
+from cellctl.config import parse_config
+from cellctl.jobs import JobManager
+from cellctl.services import Services
+from cellctl.store import Store, open_store
+from drivers.sim import world as world_module
 
 ROBOT_NOISE = {"sigma_mm": 0.02, "sigma_deg": 0.005}
 """The robot's repeatability a stored hand-eye states (a UR's, about)."""
@@ -34,3 +41,18 @@ def activate_truth(store: Store, truth: dict[str, Any], setup: str, T_target: An
     store.activate(cam.id, "test")
     store.activate(h.id, "test")
     return cam.id, h.id
+
+
+@contextmanager
+def calibrated_services(config_data: dict[str, Any], seed: int) -> Iterator[Services]:
+    """The service root of the cell config ``config_data`` (a parsed cell.yaml, e.g. the default one's with
+    its store path and seeds set) on a fresh built-in world of ``seed`` (the robot at home), with that world's
+    true camera and an eye-in-hand hand-eye (``T_base_target`` identity) stored and active; closed after."""
+    world_module._WORLDS.pop(("built-in", seed), None)  # a fresh world, not one an earlier test moved
+    config = parse_config(config_data)
+    svc = Services(config, Cell(config), open_store(config), JobManager())
+    try:
+        activate_truth(svc.store, world_module.world_for(None, seed).truth(), "eye-in-hand", np.eye(4))
+        yield svc
+    finally:
+        svc.close()
