@@ -14,7 +14,7 @@ from typing import Any
 
 from asyncua import Server, ua
 
-from cellctl.config import TRUST_HINT, OpcUaServerConfig
+from cellctl.config_listeners import TRUST_HINT, OpcUaServerConfig
 
 CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")
 """The file suffixes taken for client certificates in the trusted directory."""

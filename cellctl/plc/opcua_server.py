@@ -56,7 +56,7 @@ from typing import Any
 
 from asyncua import Node, Server, ua
 
-from cellctl.config import OpcUaServerConfig
+from cellctl.config_listeners import OpcUaServerConfig
 from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_args import guarded
