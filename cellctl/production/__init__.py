@@ -12,8 +12,9 @@
 - ``slots``: the slot a part goes to, claimed before the carry and settled at the run's end;
 - ``run``: the run's thread and the still area's cycle (one run per robot); ``run_control``: the run's
   control from other threads (pause, resume, stop, abort; ``public``, ``snapshot``) and its states
-  between cycles and at the end (``status``: the settings, status and state names); ``conveyor_run`` and
-  ``belt``: a run from a moving belt; ``manager``: the runs of a service.
+  between cycles and at the end (``status``: the settings, status and state names); ``conveyor_run``
+  (its threads and cycle), ``belt_meeting`` (meeting a part) and ``belt``: a run from a moving belt;
+  ``manager``: the runs of a service.
 
 The public names are listed in ``__all__`` (imported on first use).
 """
