@@ -54,7 +54,7 @@ def preflight(config: CellConfig) -> None:
     if zone:
         raise OSError(zone)
     if config.plc.opcua.enabled:
-        from cellctl.plc.opcua_server import security_problem
+        from cellctl.plc.opcua_security import security_problem
 
         problem = security_problem(config.plc.opcua)
         if problem:

@@ -33,7 +33,7 @@ from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Any
 
-from cellctl.config import is_loopback_host
+from cellctl.config_listeners import is_loopback_host
 from cellctl.plc.pacing import Pacer
 from cellctl.plc.requests import (
     TEXT_BUSY,

@@ -30,7 +30,7 @@ import struct
 import threading
 from typing import Any
 
-from cellctl.config import EthernetIpServerConfig, is_loopback_host
+from cellctl.config_listeners import EthernetIpServerConfig, is_loopback_host
 from cellctl.errors import CellctlError
 from cellctl.plc.engine import Engine, Request
 from cellctl.plc.enip_fast import FastPath

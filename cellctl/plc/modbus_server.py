@@ -39,7 +39,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from cellctl.config import ModbusServerConfig, is_loopback_host
+from cellctl.config_listeners import ModbusServerConfig, is_loopback_host
 from cellctl.plc import modbus_map as mm
 from cellctl.plc.engine import Engine, FrontEnd, Request, engine_for, unknown_command
 from cellctl.plc.modbus_map import (  # noqa: F401 - re-exported: the PLC tests and bench decode with them

@@ -5,7 +5,7 @@ Methods (the same requests as Modbus commands 4..7, :func:`cellctl.plc.productio
 ``StartProduction(RecipeId: Int32, Count: Int32) -> RunId: Int32`` (only with
 ``plc.allow_motion: true``; Count 0..1,000,000 as REST's, else BadOutOfRange),
 ``PauseProduction()``, ``ResumeProduction()``, ``StopProduction()``.
-Failures are the status codes of the pick methods (``STATUS_OF_TEXT``).
+Failures are the status codes of the pick methods (``cellctl.plc.opcua_method_io.STATUS_OF_TEXT``).
 
 Variables (read-only, refreshed every 0.1 s, from memory): ``ProductionRunId`` Int32 (0: none yet),
 ``ProductionState`` and ``ProductionEndedBecause`` String (REST's words; empty while running),

@@ -36,12 +36,14 @@ Failures are OPC UA status codes (the message in ``LastError``): unknown recipe 
 recipe number outside 0..65535 BadOutOfRange, a wrong argument type BadInvalidArgument, no
 calibration or a recipe that cannot be used BadInvalidState, camera/robot or the store unavailable
 BadResourceUnavailable, timeout BadTimeout, robot latched/stopped BadRequestNotAllowed, robot busy
-BadLocked, motion off BadNotExecutable, anything else BadInternalError.
+BadLocked, motion off BadNotExecutable, anything else BadInternalError. The methods' arguments and
+how an answer becomes their outputs: :mod:`cellctl.plc.opcua_method_io`.
 
-Security (``plc.opcua.security``): ``none`` — the lab, one endpoint without security;
-``basic256sha256`` — one Basic256Sha256 SignAndEncrypt endpoint with the server certificate and key
-from the config; only clients whose certificate is in ``trusted_client_certs`` may connect (the
-server refuses to start without that directory or with an empty one).
+Security (``plc.opcua.security``, :mod:`cellctl.plc.opcua_security`): ``none`` — the lab, one
+endpoint without security; ``basic256sha256`` — one Basic256Sha256 SignAndEncrypt endpoint with the
+server certificate and key from the config; only clients whose certificate is in
+``trusted_client_certs`` may connect (the server refuses to start without that directory or with an
+empty one).
 Both run anonymous sessions: the secure channel authenticates the client application.
 """
 
@@ -49,62 +51,37 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Any
 
 from asyncua import Node, Server, ua
 
-from cellctl.config import TRUST_HINT, OpcUaServerConfig
+from cellctl.config_listeners import OpcUaServerConfig
 from cellctl.plc.engine import Engine, FrontEnd, Kind, Request, engine_for
 from cellctl.plc.modbus_server import is_loopback
 from cellctl.plc.opcua_args import guarded
+from cellctl.plc.opcua_method_io import (
+    failed_status,
+    pick_outputs,
+    pick_signature,
+    sigma_arrays,
+    status_code,
+    verify_outputs,
+    verify_signature,
+)
 from cellctl.plc.opcua_mv import VisionSystem, add_vision_system
 from cellctl.plc.opcua_pacing import PacedClients, pace
 from cellctl.plc.opcua_production import add_production, refresh_production
-from cellctl.plc.requests import (
-    TEXT_BAD_RECIPE,
-    TEXT_BUSY,
-    TEXT_CANNOT_PICK,
-    TEXT_DEVICE,
-    TEXT_MOTION_OFF,
-    TEXT_NO_CALIBRATION,
-    TEXT_RECIPE_RANGE,
-    TEXT_ROBOT_BUSY,
-    TEXT_ROBOT_STOPPED,
-    TEXT_STORE,
-    TEXT_TIMEOUT,
-    TEXT_UNKNOWN_RECIPE,
-    TEXT_VERIFY_FAILED_TO_RUN,
-    Outcome,
-    pick_sigma,
-    robot_motion_status,
-)
+from cellctl.plc.opcua_security import secure
+from cellctl.plc.requests import TEXT_RECIPE_RANGE, Outcome, robot_motion_status
 from cellctl.services import Services
 from drivers.loop_thread import LoopNotRunning, LoopThread
 
 log = logging.getLogger(__name__)
 
 NAMESPACE = "urn:cellctl"
-POSE_STRIDE = 8
 REFRESH_S = 1.0
 MOTION_POLL_S = 0.1
-STATUS_OF_TEXT: dict[int, int] = {
-    TEXT_UNKNOWN_RECIPE: ua.StatusCodes.BadNotFound,
-    TEXT_RECIPE_RANGE: ua.StatusCodes.BadOutOfRange,
-    TEXT_NO_CALIBRATION: ua.StatusCodes.BadInvalidState,
-    TEXT_BAD_RECIPE: ua.StatusCodes.BadInvalidState,
-    TEXT_CANNOT_PICK: ua.StatusCodes.BadInvalidState,
-    TEXT_DEVICE: ua.StatusCodes.BadResourceUnavailable,
-    TEXT_VERIFY_FAILED_TO_RUN: ua.StatusCodes.BadResourceUnavailable,
-    TEXT_TIMEOUT: ua.StatusCodes.BadTimeout,
-    TEXT_ROBOT_STOPPED: ua.StatusCodes.BadRequestNotAllowed,
-    TEXT_ROBOT_BUSY: ua.StatusCodes.BadLocked,
-    TEXT_BUSY: ua.StatusCodes.BadTooManyOperations,
-    TEXT_MOTION_OFF: ua.StatusCodes.BadNotExecutable,
-    TEXT_STORE: ua.StatusCodes.BadResourceUnavailable,
-}
 
 _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("RobotAvailable", False, ua.VariantType.Boolean),
@@ -123,66 +100,6 @@ _VARIABLES: tuple[tuple[str, Any, ua.VariantType], ...] = (
     ("DriftAlarm", False, ua.VariantType.Boolean),
     ("DriftMm", float("nan"), ua.VariantType.Double),
 )
-
-
-def _arg(name: str, vtype: ua.VariantType, description: str, array: bool = False) -> ua.Argument:
-    a = ua.Argument()
-    a.Name = name
-    a.DataType = ua.NodeId(ua.Int32(vtype.value))
-    a.ValueRank = 1 if array else -1
-    a.ArrayDimensions = [0] if array else []
-    a.Description = ua.LocalizedText(description)
-    return a
-
-
-def _status_code(code: int) -> ua.StatusCode:
-    return ua.StatusCode(ua.UInt32(code))
-
-
-CERT_SUFFIXES = (".der", ".pem", ".crt", ".cer")
-
-
-def trusted_dir_problem(folder: str | None) -> str | None:
-    """Why ``folder`` cannot serve as the trust list of client certificates (None: it can)."""
-    if folder is None:
-        return f"plc.opcua: {TRUST_HINT}"
-    trusted = Path(folder)
-    if not trusted.is_dir():
-        return f"plc.opcua.trusted_client_certs {trusted} is not a directory; {TRUST_HINT}"
-    if not any(f.suffix.lower() in CERT_SUFFIXES for f in trusted.iterdir() if f.is_file()):
-        return (f"plc.opcua.trusted_client_certs {trusted} holds no certificate, so no client could connect; "
-                f"{TRUST_HINT}")
-    return None
-
-
-def security_problem(config: OpcUaServerConfig) -> str | None:
-    """What keeps the configured OPC UA security from starting (files missing, nobody trusted); None: fine."""
-    if config.security == "none":
-        return None
-    for what, path in (("certificate", config.cert), ("key", config.key)):
-        if path is None or not Path(path).is_file():
-            return f"plc.opcua: the server {what} {path} is missing; create it (docs/plc-opcua.md)"
-    return trusted_dir_problem(config.trusted_client_certs)
-
-
-async def trusted_clients_validator(folder: str | None) -> Any:
-    """A validator that lets only the client certificates in ``folder`` connect (asyncua's TrustStore)."""
-    from asyncua.crypto.truststore import TrustStore
-    from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
-
-    problem = trusted_dir_problem(folder)
-    if problem or folder is None:
-        raise OSError(problem)
-    trusted = Path(folder)
-    store = TrustStore([trusted], [])
-    try:
-        await store.load()
-    except ValueError as exc:
-        raise OSError(f"plc.opcua.trusted_client_certs {trusted}: a file there is not a certificate "
-                      f"({exc}); keep only client certificates (.der/.pem) there") from None
-    opts = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.TRUSTED
-            | CertificateValidatorOptions.PEER_CLIENT)
-    return CertificateValidator(opts, store)
 
 
 def endpoint_url(host: str, port: int) -> str:
@@ -258,7 +175,7 @@ class OpcUaPlcServer:
         if cfg.security == "none":
             server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         else:
-            await self._secure(server)
+            await secure(server, cfg)
         server.set_identity_tokens([ua.AnonymousIdentityToken])
         idx = await server.register_namespace(NAMESPACE)
         cell = await server.nodes.objects.add_object(idx, "Cell")
@@ -266,27 +183,16 @@ class OpcUaPlcServer:
                                                        ua.VariantType.String)
         for name, value, vtype in _VARIABLES:
             self._vars[name] = await cell.add_variable(idx, name, value, vtype)
-        pick_outputs = [
-            _arg("Count", ua.VariantType.Int32, "number of picks, best first"),
-            _arg("Poses", ua.VariantType.Double, "8 per pick: x_mm, y_mm, z_mm, rx_rad, ry_rad, rz_rad, "
-                                                 "gripper_yaw_deg, score", array=True),
-            _arg("Reachable", ua.VariantType.Boolean, "per pick: inside the robot's envelope", array=True)]
         await cell.add_method(
-            idx, "Pick", guarded("Pick", self._pick, 1, self._refused),
-            [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
-            pick_outputs)
+            idx, "Pick", guarded("Pick", self._pick, 1, self._refused), *pick_signature(move=False))
         await cell.add_method(
             idx, "PickAndMove", guarded("PickAndMove", self._pick_and_move, 1, self._refused),
-            [_arg("RecipeId", ua.VariantType.Int32, "recipe number 0..65535")],
-            [*pick_outputs,
-             _arg("PickedIndex", ua.VariantType.Int32, "index in Poses of the pick the robot made")])
-        self._production_vars = await add_production(cell, idx, self.services, self._call, self._failed,
+            *pick_signature(move=True))
+        self._production_vars = await add_production(cell, idx, self.services, self._call, failed_status,
                                                      self._refused)
         await cell.add_method(
             idx, "VerifyCalibration", guarded("VerifyCalibration", self._verify, 0, self._refused), [],
-            [_arg("Passed", ua.VariantType.Boolean, "the active calibration is within tolerance"),
-             _arg("DriftPx", ua.VariantType.Double, "RMS drift of the plate's points, pixels"),
-             _arg("DriftMm", ua.VariantType.Double, "RMS drift in 3D, mm (NaN: no hand-eye calibration)")])
+            verify_signature())
         try:
             await server.start()
         except OSError as exc:
@@ -314,21 +220,6 @@ class OpcUaPlcServer:
         self._vision = vision
         await vision.started()
         log.info("OPC UA for Machine Vision: Objects/VisionSystem at %s", self.url)
-
-    async def _secure(self, server: Server) -> None:
-        """Basic256Sha256 SignAndEncrypt, and only clients whose certificate is in the trusted directory.
-
-        Refuses to start (``OSError`` with how to fix it) without a trusted directory or with one
-        that holds no certificate: without a trust list asyncua accepts any self-signed client.
-        """
-        cfg = self.config
-        problem = security_problem(cfg)
-        if problem or cfg.cert is None or cfg.key is None:
-            raise OSError(problem or "plc.opcua: security basic256sha256 needs the server certificate and key")
-        await server.load_certificate(cfg.cert)
-        await server.load_private_key(cfg.key)
-        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-        server.set_certificate_validator(await trusted_clients_validator(cfg.trusted_client_certs))
 
     # -- status -------------------------------------------------------------------------------------
     def _status(self) -> dict[str, Any]:
@@ -410,9 +301,6 @@ class OpcUaPlcServer:
         await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
         await self._set("LastError", message)
 
-    def _failed(self, out: Outcome) -> ua.StatusCode:
-        return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
-
     async def _pick(self, parent: ua.NodeId, recipe: ua.Variant | None = None) -> Any:
         return await self._pick_request(recipe, move=False)
 
@@ -425,37 +313,19 @@ class OpcUaPlcServer:
         if not isinstance(value, int) or isinstance(value, bool):
             await self._set("LastErrorCode", TEXT_RECIPE_RANGE)
             await self._set("LastError", f"{method} needs one Int32 recipe number, got {value!r}")
-            return _status_code(ua.StatusCodes.BadInvalidArgument)
+            return status_code(ua.StatusCodes.BadInvalidArgument)
         out = await self._call(Request(Kind.PICK_MOVE if move else Kind.PICK, value))
         if not out.ok:
-            return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
-        poses: list[float] = []
-        reachable: list[bool] = []
-        for p in out.picks:
-            q = p["pick_pose"]
-            poses += [q["x_mm"], q["y_mm"], q["z_mm"], q["rx_rad"], q["ry_rad"], q["rz_rad"],
-                      float(p["gripper_yaw_deg"]), float(p["score"])]
-            reachable.append(bool(p["reachable"]))
+            return failed_status(out)
         await self._set("LastPickCount", len(out.picks))
         await self._set("LastPickLatencyMs", out.latency_ms)
-        sigmas = [pick_sigma(p) for p in out.picks]
-        await self._set("LastPickSigmaMm", [math.nan if mm is None else mm for mm, _ in sigmas])
-        await self._set("LastPickSigmaDeg", [math.nan if deg is None else deg for _, deg in sigmas])
-        answer = [ua.Variant(len(out.picks), ua.VariantType.Int32),
-                  ua.Variant([float(x) for x in poses], ua.VariantType.Double),
-                  ua.Variant(reachable, ua.VariantType.Boolean)]
-        if move:
-            picked = -1 if out.picked_index is None else out.picked_index
-            answer.append(ua.Variant(picked, ua.VariantType.Int32))
-        return answer
+        sigma_mm, sigma_deg = sigma_arrays(out)
+        await self._set("LastPickSigmaMm", sigma_mm)
+        await self._set("LastPickSigmaDeg", sigma_deg)
+        return pick_outputs(out, move)
 
     async def _verify(self, parent: ua.NodeId) -> Any:
         out = await self._call(Request(Kind.VERIFY))
         if out.verify is None:
-            return _status_code(STATUS_OF_TEXT.get(out.text_index, ua.StatusCodes.BadInternalError))
-        v = out.verify
-        drift_mm = v.get("drift_mm")
-        return [ua.Variant(bool(v.get("passed")), ua.VariantType.Boolean),
-                ua.Variant(float(v.get("drift_px", math.nan)), ua.VariantType.Double),
-                ua.Variant(float(drift_mm) if drift_mm is not None else math.nan, ua.VariantType.Double)]
-
+            return failed_status(out)
+        return verify_outputs(out.verify)

@@ -32,7 +32,7 @@ from collections.abc import Callable
 from typing import Any
 
 from calibration import geometry as g
-from cellctl.config import RobotSocketConfig
+from cellctl.config_listeners import RobotSocketConfig
 from cellctl.plc.engine import Engine, Kind, Request
 from cellctl.plc.production import production_values
 from cellctl.plc.quiet_log import client_mistake

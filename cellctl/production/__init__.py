@@ -9,7 +9,12 @@
 - ``choice``: which part a cycle picks (retries, skips, unreachable parts);
 - ``vision``: a cycle's picture (the pick's candidates, ``cellctl.pick.locate``), the next one taken
   while the robot places;
-- ``run``: the run's cycles and state machine (one per robot); ``manager``: the runs of a service.
+- ``slots``: the slot a part goes to, claimed before the carry and settled at the run's end;
+- ``run``: the run's thread and the still area's cycle (one run per robot); ``run_control``: the run's
+  control from other threads (pause, resume, stop, abort; ``public``, ``snapshot``) and its states
+  between cycles and at the end (``status``: the settings, status and state names); ``conveyor_run``
+  (its threads and cycle), ``belt_meeting`` (meeting a part) and ``belt``: a run from a moving belt;
+  ``manager``: the runs of a service.
 
 The public names are listed in ``__all__`` (imported on first use).
 """

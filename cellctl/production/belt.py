@@ -239,12 +239,17 @@ class Missed(str):
 
 
 class BeltWatch:
-    """The encoder's count against the clock: the belt's speed, and a count that jumps."""
+    """The encoder's count against the clock: the belt's speed, and a count that jumps.
+
+    Thread-safe: the run's thread samples the count while others (REST's ``GET /production``, a PLC) read
+    the speed; the samples are read and written under one lock (a reader copies them, then computes)."""
 
     def __init__(self, ticks_per_m: float, max_speed_mm_s: float = 300.0) -> None:
         self.ticks_per_m = ticks_per_m
         self.max_speed_mm_s = max_speed_mm_s
+        self._lock = threading.Lock()
         self._samples: deque[tuple[float, int]] = deque(maxlen=400)
+        """(monotonic s, count) of the last reads, oldest first (under ``_lock``)."""
         self._read_from_s: float | None = None
         """When the last count's read began (monotonic s): the count was taken between then and its sample's time."""
 
@@ -254,26 +259,31 @@ class BeltWatch:
         the start of the last read to the end of this one: a thread the machine holds between reading the
         count and reading the clock must not make an ordinary count look like a jump."""
         t = time.monotonic() if t is None else t
-        problem = None
-        if self._samples:
-            t0, c0 = self._samples[-1]
-            dt = max(t - (t0 if self._read_from_s is None else self._read_from_s), 1e-3)
-            speed = abs(ticks - c0) / self.ticks_per_m * 1e3 / dt
-            if abs(ticks - c0) > 20 and speed > 2.0 * self.max_speed_mm_s:
-                problem = (f"the encoder count jumped by {ticks - c0} ticks in {dt * 1e3:.0f} ms "
-                           f"({speed:.0f} mm/s, more than twice the belt's {self.max_speed_mm_s:.0f} mm/s): "
-                           "check the encoder's wiring and shield, then calibrate the belt again")
-        self._samples.append((t, ticks))
-        self._read_from_s = read_from_s
-        return problem
+        with self._lock:
+            last = self._samples[-1] if self._samples else None
+            last_read_from_s = self._read_from_s
+            self._samples.append((t, ticks))
+            self._read_from_s = read_from_s
+        if last is None:
+            return None
+        t0, c0 = last
+        dt = max(t - (t0 if last_read_from_s is None else last_read_from_s), 1e-3)
+        speed = abs(ticks - c0) / self.ticks_per_m * 1e3 / dt
+        if abs(ticks - c0) > 20 and speed > 2.0 * self.max_speed_mm_s:
+            return (f"the encoder count jumped by {ticks - c0} ticks in {dt * 1e3:.0f} ms "
+                    f"({speed:.0f} mm/s, more than twice the belt's {self.max_speed_mm_s:.0f} mm/s): "
+                    "check the encoder's wiring and shield, then calibrate the belt again")
+        return None
 
     def speed_mm_s(self, over_s: float = 0.5) -> float:
         """The belt's speed from the counts of the last ``over_s`` seconds, mm/s (0 with too few)."""
-        if len(self._samples) < 2:
+        with self._lock:
+            samples = tuple(self._samples)
+        if len(samples) < 2:
             return 0.0
-        t1, c1 = self._samples[-1]
-        t0, c0 = self._samples[0]
-        for t, c in reversed(self._samples):
+        t1, c1 = samples[-1]
+        t0, c0 = samples[0]
+        for t, c in reversed(samples):
             t0, c0 = t, c
             if t1 - t >= over_s:
                 break

@@ -20,89 +20,51 @@ end). A robot Stop halts the arm and ends tracking at once (the held part stays 
 an encoder that stopped while the parts moved (two pictures at one count, the parts elsewhere), a
 belt that stopped with the robot waiting for a part (``belt_stopped`` is recorded; the part stays
 queued and is met where it lies if that is in the window).
+
+This module: the run's threads (the vision thread's pictures into the queue; the run's cycles) and a belt
+cycle from the meeting to the place. The meeting (which part, the plan, the arm above the meeting point, the
+wait, a later meeting): :class:`cellctl.production.belt_meeting.BeltMeetingRun`, its base.
 """
 
 from __future__ import annotations
 
 import functools
-import logging
 import threading
 import time
-from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
-from concurrent.futures import wait as futures_wait
 from typing import Any
 
 import numpy as np
 
-from cellctl.pick.candidate import PickCandidate
 from cellctl.pick.recipe import PickError
-from cellctl.production.belt import (
-    BeltCalibration,
-    BeltPart,
-    BeltQueue,
-    BeltWatch,
-    Meeting,
-    Missed,
-    grasp_near,
-    plan_meeting,
-)
+from cellctl.production.belt import BeltPart, Meeting
+from cellctl.production.belt_meeting import GRIP_CLOSE_S, BeltMeetingRun
 from cellctl.production.place import place_poses
 from cellctl.production.records import Durations, seen_fields
-from cellctl.production.run import ProductionRun
 from cellctl.production.status import Ended
 from cellctl.production.vision import take_picture
 from drivers.base import MotionRejected
-from drivers.conveyor.base import ConveyorBase
-from drivers.robot_base import DEFAULT_ACCEL_M_S2
 
-log = logging.getLogger(__name__)
-
-POLL_S = 0.002
-"""How often the count is read while the robot waits for a part, s."""
-FOLLOW_MARGIN_S = 0.25
-"""Added to the follow time (down, close, up) when a meeting is planned, s."""
-GRIP_CLOSE_S = 0.2
-"""The gripper's close time assumed until the run has measured one, s."""
-LEAD_S = 0.05
-"""The least time planned between a meeting's plan and the arm above the meeting point besides the move itself
-(the move's start, the host's delays), s; the run learns more from its moves (``LEAD_SAMPLES``)."""
-LEAD_SAMPLES = 8
-"""The lead is the longest of the last this many approach moves' overruns of the robot's own timing."""
-LATE_MM = 2.0
-"""The arm above the meeting point later than the part by more than this (mm of belt): the meeting is planned
-again further along the window (never past it), from where the arm is."""
-REPLANS = 3
-"""At most this many later meetings for one part before it is given up as missed."""
-WAIT_SLACK_S = 1.5
-"""The robot waits this much longer than planned for the count at which the part is under it, s."""
 CLAIM_WAIT_S = 30.0
 """The longest the arm waits over the place for the slot's claim to be stored, s."""
 ENCODER_STOP_S = 0.3
 """Two pictures this far apart in time at one count, the parts elsewhere: the encoder stopped."""
 
 
-class ConveyorRun(ProductionRun):
+class ConveyorRun(BeltMeetingRun):
     """A production run whose parts come on a belt (one per robot, like a still run)."""
 
-    def __init__(self, *args: Any, belt: BeltCalibration, conveyor: ConveyorBase, window_mm: tuple[float, float],
-                 **kwargs: Any) -> None:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        """As :class:`~cellctl.production.belt_meeting.BeltMeetingRun` (``belt``, ``conveyor``, ``window_mm``)."""
         super().__init__(*args, **kwargs)
-        self.belt, self.conveyor, self.window_mm = belt, conveyor, window_mm
-        self.queue = BeltQueue(belt)
-        self.watch = BeltWatch(belt.ticks_per_m)
         self._fault: str | None = None
+        """Why the vision thread ended the run (set there, raised on the run's thread)."""
         self._seen_s = time.monotonic()
+        """When a picture last showed a part (monotonic s)."""
         self._halt_vision = threading.Event()
-        self._close_s = GRIP_CLOSE_S
-        self._open_s = GRIP_CLOSE_S
-        """The gripper's open time (the last measured), s: the approach takes at least this."""
-        self._overruns: deque[float] = deque(maxlen=LEAD_SAMPLES)
-        """How much longer than the robot's own timing (plus the gripper's open) each approach took, s."""
-        self._opener: ThreadPoolExecutor | None = None
-        """Opens the gripper while the arm travels to the meeting point (the run's; shut down at its end)."""
         self.pictures = 0
+        """Pictures the vision thread took so far."""
 
     def public(self) -> dict[str, Any]:
         return {**super().public(), "conveyor": self._belt_state()}
@@ -190,79 +152,6 @@ class ConveyorRun(ProductionRun):
             self._pick_from_belt(*found)
             just_cycled = True
 
-    def _check_count(self) -> int:
-        read_from_s = time.monotonic()
-        ticks = self.conveyor.ticks()
-        problem = self.watch.sample(ticks, read_from_s=read_from_s)
-        if problem is not None:
-            raise PickError(problem)
-        return ticks
-
-    def _follow_s(self, cand: PickCandidate | None = None) -> float:
-        """The time the arm follows a part: down to it, the gripper's close, up (the robot's own timing of the
-        two moves), and ``FOLLOW_MARGIN_S``, s."""
-        r = self.s.recipe
-        if cand is None:
-            T_app = np.eye(4)
-            T_app[2, 3] = r.approach_height_mm * 1e-3
-            T_pick = np.eye(4)
-        else:
-            T_app, T_pick = cand.T_approach, cand.T_pick
-        moves = self._move_s(T_app, T_pick) + self._move_s(T_pick, T_app)
-        return moves + self._close_s + FOLLOW_MARGIN_S
-
-    def _move_s(self, T_from: np.ndarray, T_to: np.ndarray) -> float:
-        """The robot's own timing of a linear move at the recipe's speed and the belt source's acceleration, s."""
-        r = self.s.recipe
-        accel = r.source.accel_m_s2 if r.source is not None else DEFAULT_ACCEL_M_S2
-        return self.robot.linear_move_s(T_from, T_to, r.speed_m_s, accel)
-
-    def _approach_s(self, T_from: np.ndarray, T_to: np.ndarray) -> float:
-        """The approach's planned time: the move, or the gripper's open that runs during it when longer, s."""
-        return max(self._move_s(T_from, T_to), self._open_s)
-
-    def _lead_s(self) -> float:
-        """What the plan adds to the robot's own timing of the approach: the longest recent overrun, at least
-        ``LEAD_S``."""
-        return max([LEAD_S, *self._overruns])
-
-    def _plan(self, part: BeltPart, ticks: int, T_tool: np.ndarray) -> Meeting | str:
-        """The meeting of ``part`` from the tool at ``T_tool`` at count ``ticks`` (``plan_meeting`` with the
-        robot's own timing of the move)."""
-        r = self.s.recipe
-        if r.source is None:
-            raise PickError("a belt run needs a recipe with source: {kind: conveyor}")
-        return plan_meeting(part, self.belt, ticks, self.watch.speed_mm_s(), T_tool[:3, 3],
-                            float(part.cand.T_approach[2, 3]), self.window_mm, r.speed_m_s, r.source.accel_m_s2,
-                            self._follow_s(part.cand), travel=functools.partial(self._approach_s, T_tool),
-                            lead_s=self._lead_s())
-
-    def _next_part(self) -> tuple[BeltPart, Meeting] | None:
-        """The part furthest along that can be met (and its meeting); parts that cannot are given up. Each
-        part's grasp is folded to the one nearest the tool's yaw now (the least turn on the way)."""
-        ticks = self._check_count()
-        tool = self.robot.state().T_base_tool
-        for part in self.queue.downstream_first(ticks):
-            part.cand = grasp_near(self.s.recipe, part.cand, tool, self.robot.limits)
-            plan = self._plan(part, ticks, tool)
-            if isinstance(plan, Meeting):
-                return part, plan
-            if isinstance(plan, Missed):
-                self._missed(part, str(plan))
-        return None
-
-    def _missed(self, part: BeltPart, why: str) -> None:
-        self.queue.remove(part)
-        self.status.counters.missed_window += 1
-        self._record("missed_window", part.cand, part.picture, detail=f"left unpicked: {why}",
-                     belt=self._belt_fields(part, None))
-
-    def _belt_fields(self, part: BeltPart, meeting: Meeting | None, ticks0: int | None = None) -> dict[str, Any]:
-        return {"conveyor_id": self.conveyor.conveyor_id, "seen_ticks": part.ticks, "sightings": part.sightings,
-                "meet_ticks": None if meeting is None else meeting.ticks,
-                "meet_x_mm": None if meeting is None else round(meeting.x_mm, 2), "tracking_ticks": ticks0,
-                "speed_mm_s": round(self.watch.speed_mm_s(), 1)}
-
     def _pick_from_belt(self, part: BeltPart, meeting: Meeting) -> None:
         r, c, belt = self.s.recipe, self.status.counters, self.belt
         t_cycle, d = time.monotonic(), Durations()
@@ -328,57 +217,6 @@ class ConveyorRun(ProductionRun):
         self._record("placed", cand, picture, slot=slot, T_place=T_place, d=d, t_cycle=t_cycle, durations=durations,
                      resolves=claimed, belt=fields)
 
-    def _meet(self, part: BeltPart, meeting: Meeting, d: Durations, t_plan: float
-              ) -> tuple[int, Meeting, float, int] | None:
-        """Move above the meeting point (the gripper opening meanwhile) and wait for the part: (the count when
-        it is there, the meeting kept, the wait in ms, how many times it was planned again). An arm there later
-        than the part (by more than ``LATE_MM``), or too late to follow it while it grips before the window's
-        end, plans the meeting again from where it is, further along the window (at most ``REPLANS`` times);
-        a part that then cannot be met is given up, counted ``missed_window`` (None). None too when the belt
-        stopped or slowed (the part stays queued)."""
-        belt = self.belt
-        waited_ms, replans = 0.0, 0
-        while True:
-            T_from = self.robot.state().T_base_tool
-            T_app = part.T_at(belt, meeting.ticks, part.cand.T_approach)
-            planned_s = self._approach_s(T_from, T_app)
-            self._open_s = self._approach(T_app, d)
-            self._overruns.append(max(0.0, time.monotonic() - t_plan - planned_s))
-            t_wait = time.monotonic()
-            ticks = self._wait_for(part, meeting)
-            waited_ms += (time.monotonic() - t_wait) * 1e3
-            if ticks is None:
-                return None
-            x_part = part.x_at(belt, ticks)
-            late_mm = (ticks - meeting.ticks) / belt.ticks_per_m * 1e3
-            room_mm = self.window_mm[1] - x_part
-            if late_mm <= LATE_MM and room_mm >= self.watch.speed_mm_s() * self._follow_s(part.cand) - LATE_MM:
-                return ticks, meeting, waited_ms, replans
-            why = (f"the robot was above the meeting point late ({late_mm:.0f} mm of belt): the part was at x = "
-                   f"{x_part:.0f} mm, too near the window's end ({self.window_mm[1]:.0f} mm) to be followed while "
-                   "gripped")
-            if replans >= REPLANS:
-                self._missed(part, why)
-                return None
-            t_plan = time.monotonic()
-            plan = self._plan(part, self._check_count(), self.robot.state().T_base_tool)
-            if not isinstance(plan, Meeting):
-                self._missed(part, f"{why}; planned again: {plan}")
-                return None
-            meeting, replans = plan, replans + 1
-
-    def _approach(self, T_app: np.ndarray, d: Durations) -> float:
-        """Move above the meeting point while the gripper opens (on the run's gripper thread: the open is hidden
-        behind the move); both done when this returns, a failed open raised after the move. The open's time, s."""
-        if self._opener is None:  # a bug, not a plant's mistake: the run's start makes it
-            raise RuntimeError("the belt run's gripper thread is not running")
-        opening = self._opener.submit(self.gripper.open)
-        try:
-            self._move(T_app, "above the part's meeting point", d)
-        finally:
-            futures_wait([opening])
-        return opening.result()
-
     def _claim_while_carrying(self, slot: int, n_slots: int | None, cand: Any, T_place: np.ndarray,
                               T_place_app: np.ndarray, d: Durations) -> float:
         """Claim the slot on the run's store thread while the arm carries the part over it (the claim's
@@ -400,21 +238,3 @@ class ConveyorRun(ProductionRun):
                                 "held over the place (check the store)") from None
         claim.result()
         return time.monotonic() - t0
-
-    def _wait_for(self, part: BeltPart, meeting: Meeting) -> int | None:
-        """Wait until the count at which the part is under the tool; None when it does not come in time."""
-        deadline = time.monotonic() + meeting.wait_s + WAIT_SLACK_S
-        while True:
-            ticks = self._check_count()
-            if ticks >= meeting.ticks:
-                return ticks
-            self.session.check()
-            if self._stop and self.status.state == "stopping":
-                return None
-            if time.monotonic() > deadline:
-                self._record("belt_stopped", part.cand, part.picture, belt=self._belt_fields(part, meeting),
-                             detail=f"the part did not reach the meeting point (count {ticks}, expected "
-                                    f"{meeting.ticks}): the belt stopped or slowed; planned again")
-                return None
-            time.sleep(POLL_S)
-

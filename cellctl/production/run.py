@@ -12,6 +12,7 @@ States: ``running`` -> ``pausing`` (pause asked: the cycle finishes) -> ``paused
 ``stopping`` (stop asked: the cycle finishes) -> ``stopped``; ``complete`` (count reached, area
 empty, none pickable); ``failed`` (an error: the robot is halted). A robot Stop aborts the motion
 session at once: the run ends ``stopped`` and the gripper is not opened (a held part stays held).
+The control from other threads and the states: ``run_control``.
 
 Exactly once (docs/production.md): the slot is claimed before the part is carried there and
 confirmed once the gripper has let it go (``cellctl.production.slots``). The run's phase is stored
@@ -41,6 +42,7 @@ from cellctl.production.occupancy import not_recognized_detail
 from cellctl.production.place import place_poses
 from cellctl.production.recorder import CycleLog
 from cellctl.production.records import Durations, clean, seen_fields
+from cellctl.production.run_control import RunControl
 from cellctl.production.slots import FixtureNotFound, SlotClaims
 from cellctl.production.status import Ended, Phase, RunSettings, RunStatus, State
 from cellctl.production.vision import (
@@ -67,20 +69,17 @@ SEARCH_RETRIES = 2
 __all__ = ["Ended", "Phase", "ProductionRun", "RunSettings", "RunStatus", "State"]
 
 
-class ProductionRun:
-    """One run in its own thread (``start``); ``pause``/``resume``/``stop`` are safe from any thread."""
+class ProductionRun(RunControl):
+    """One run in its own thread (``start``); ``pause``/``resume``/``stop`` are safe from any thread
+    (:class:`~cellctl.production.run_control.RunControl`)."""
 
     def __init__(self, services: Services, store: Store, settings: RunSettings, robot: RobotBase,
                  session: MotionSession, run_id: int, failure_frames: FailureFrames | None = None) -> None:
         self.services, self.store, self.s, self.robot, self.session = services, store, settings, robot, session
         self.failure_frames = failure_frames
         """Where the frames of failed cycles are kept (None: they are not kept beyond the frame cache)."""
-        self.status = RunStatus(run_id, settings.recipe_id, settings.robot_id)
+        super().__init__(RunStatus(run_id, settings.recipe_id, settings.robot_id))
         self.gripper = Gripper(services, settings.recipe.gripper)
-        self._cond = threading.Condition()
-        self._pause = False
-        self._stop = False
-        self._abort_reason: str | None = None
         device = settings.recipe.gripper.device
         self._choice = Choice(device.retries if device is not None else 0)
         self.slots = SlotClaims(store, settings.recipe_id, run_id)
@@ -106,75 +105,6 @@ class ProductionRun:
         self.cycles = CycleLog(services, store, self._writer, run_id, settings.recipe_id, settings.recipe_version,
                                failure_frames)
         self._record = self.cycles.record
-
-    @property
-    def _n(self) -> int:
-        return self.cycles.n
-
-    @property
-    def last_record(self) -> dict[str, Any] | None:
-        """The last cycle's record (what a PLC reads as the last cycle's result)."""
-        return self.cycles.last
-
-    # -- control ----------------------------------------------------------------------------------
-    def start(self) -> None:
-        self._thread.start()
-
-    def pause(self) -> None:
-        with self._cond:
-            if self.status.state == "running":
-                self._pause = True
-                self.status.state = "pausing"
-            self._cond.notify_all()
-
-    def resume(self) -> None:
-        with self._cond:
-            self._pause = False
-            if self.status.state in ("pausing", "paused"):
-                self.status.state = "running"
-            self._cond.notify_all()
-
-    def stop(self, reason: str = "stopped by an operator (after the cycle in progress)") -> None:
-        with self._cond:
-            self._stop = True
-            if self.status.stop_reason is None:
-                self.status.stop_reason = reason
-            if self.status.state in ("running", "pausing", "paused"):
-                self.status.state = "stopping"
-            self._cond.notify_all()
-
-    def abort(self, reason: str) -> None:
-        """End the run now (the service is shutting down): the motion session is aborted and the robot
-        halted without a latch; the run ends ``stopped`` with ``reason``; a held part stays gripped."""
-        self._abort_reason = reason
-        self.stop(reason)
-        self.session.abort(reason)
-        try:
-            self.robot.halt()
-        finally:
-            with self._cond:
-                self._cond.notify_all()
-
-    def join(self, timeout_s: float | None = None) -> None:
-        self._thread.join(timeout_s)
-
-    @property
-    def ended(self) -> bool:
-        return self.done.is_set()
-
-    def public(self) -> dict[str, Any]:
-        st = self.status
-        return {"run_id": st.run_id, "recipe_id": st.recipe_id, "robot_id": st.robot_id, "state": st.state,
-                "ended_because": st.ended_because, "counters": st.counters.as_dict(), "cycle_ms": st.times.summary(),
-                "next_slot": self.store.free_slot(st.recipe_id) if self.ended else self.slots.next_slot,
-                "error": st.error, "stop_reason": st.stop_reason, "cycles": self._n, "phase": self.phase}
-
-    def snapshot(self) -> dict[str, Any]:
-        """The run as a PLC reads it, from memory only (no store access: safe on a server's event loop)."""
-        st = self.status
-        return {"run_id": st.run_id, "state": st.state, "ended_because": st.ended_because,
-                "counters": st.counters.as_dict(), "next_slot": self.slots.next_slot,
-                "cycle_median_ms": st.times.summary()["median"], "last": self.last_record}
 
     # -- the run ----------------------------------------------------------------------------------
     def _main(self) -> None:
@@ -203,23 +133,6 @@ class ProductionRun:
             self._writer.close()
             self.robot.motion.end(self.session)
             self.done.set()
-
-    def _end(self, state: State, ended: Ended, error: str | None = None) -> None:
-        self._writer.flush()  # a client that sees the run ended finds every cycle record stored
-        # ... and finds the robot free: a PLC or an engineer acting on "ended" is not refused robot_busy.
-        self.robot.motion.end(self.session)
-        with self._cond:
-            self.status.state = state
-            self.status.ended_because = ended
-            self.status.error = error
-            self._cond.notify_all()
-        summary = clean(self._summary())
-        self._writer.put(lambda: self.store.update_run(self.status.run_id, state, ended, summary, ended=True))
-
-    def _summary(self) -> dict[str, Any]:
-        st = self.status
-        return {"counters": st.counters.as_dict(), "cycle_ms": st.times.summary(), "error": st.error,
-                "stop_reason": st.stop_reason, "cycles": self._n}
 
     def _cycles(self) -> Ended:
         self._move_to_capture()
@@ -269,25 +182,6 @@ class ProductionRun:
                 return "none_pickable"
             prefetch = self._pick_and_place(cand, picture, d, t_cycle)
 
-    def _between_cycles(self) -> Ended | None:
-        """Stop, pause, or the count reached: what happens before the next cycle starts."""
-        with self._cond:
-            if self._stop:
-                return "stopped"
-            if self.s.count and self.status.counters.placed >= self.s.count:
-                return "count_reached"
-            if self._pause:
-                self.status.state = "paused"
-                self._store_state()
-                while self._pause and not self._stop and not self.session.aborted:
-                    self._cond.wait(0.2)
-                if self._stop:
-                    return "stopped"
-                self.session.check()
-                self.status.state = "running"
-        self._store_state()
-        return None
-
     def _at(self, phase: Phase, store: bool = False, **info: Any) -> None:
         """The run is now at ``phase`` of cycle ``_n + 1``; ``store``: write it (in order, off the cycle's path)."""
         self.phase = phase
@@ -315,10 +209,6 @@ class ProductionRun:
             return
         cand, picture, T_place = self._cycle
         self._record("placed", cand, picture, slot=slot, T_place=T_place, detail=detail, resolves=slot)
-
-    def _store_state(self) -> None:
-        state, summary = self.status.state, clean(self._summary())
-        self._writer.put(lambda: self.store.update_run(self.status.run_id, state, None, summary))
 
     # -- one cycle --------------------------------------------------------------------------------
     def _move(self, T: np.ndarray, why: str, d: Durations) -> None:

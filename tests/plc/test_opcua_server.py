@@ -24,8 +24,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from cellctl.plc.opcua_method_io import POSE_STRIDE
 from cellctl.plc.opcua_mv.nodeset import NAMESPACE_MV
-from cellctl.plc.opcua_server import NAMESPACE, POSE_STRIDE
+from cellctl.plc.opcua_server import NAMESPACE
 from cellctl.plc.requests import TEXT_NONE, TEXT_UNKNOWN_RECIPE
 from tests.plc.conftest import RECIPE, PlcApp, PlcCell
 from tests.support.served_plc import in_process_plc

@@ -212,7 +212,7 @@ def test_hostile_modbus_input_is_answered_or_closed_without_a_traceback(
 
 
 def test_idle_modbus_connections_are_closed(tmp_path_factory: pytest.TempPathFactory) -> None:
-    from cellctl.config import ModbusServerConfig
+    from cellctl.config_listeners import ModbusServerConfig
     from cellctl.plc.modbus_server import ModbusPlcServer
     from tests.support.served import free_port
 
