@@ -8,12 +8,14 @@
 - ``verify``: the checks a refined match must pass before it is answered (scores per match).
 - ``patch``: the taught patch (the part's pixels): finishes a match's pose, with an honest 1-sigma.
 - ``multi``: ``teach_many(images, rois)``: a model from 2-5 images, keeping the edges seen in all.
-- ``kernels``: the compiled inner loops (numba); ``warm_up()`` loads them before a timed search.
+- ``kernels``, ``fit_kernels``, ``search_kernels``: the compiled inner loops (numba): the edge measurements
+  along the model normals, the refinement's Gauss-Newton loops, the discrete search's loops.
+- ``warmup``: ``warm_up()`` loads the compiled loops before a timed search.
 """
 
-from vision.shape.kernels import warm_up
 from vision.shape.model import LevelModel, ShapeModel, TeachParams, auto_levels, teach
 from vision.shape.multi import teach_many
 from vision.shape.search import find
+from vision.shape.warmup import warm_up
 
 __all__ = ["LevelModel", "ShapeModel", "TeachParams", "auto_levels", "find", "teach", "teach_many", "warm_up"]

@@ -47,7 +47,6 @@ from vision.image import F64, U8, pyramid, wrap_deg
 from vision.shape import search_kernels as sk
 from vision.shape.colour import channel, interior_verdict
 from vision.shape.frame import match_at_origin, origin_at
-from vision.shape.kernels import warm_up
 from vision.shape.model import GRAD_PER_CONTRAST, ShapeModel
 from vision.shape.patch import TeachPatch
 from vision.shape.patch import finish as finish_on_patch
@@ -56,6 +55,7 @@ from vision.shape.responses import N_BINS, response_maps, rotated_features
 from vision.shape.tracking import Clock, few_per_position, track_down
 from vision.shape.uncertainty import sigma_of
 from vision.shape.verify import Contour, claimed, contour_of, hidden_by, verify
+from vision.shape.warmup import warm_up
 from vision.types import MIN_SCORE_FLOOR, Candidate, FindResult, Match, Rejected, SearchParams
 
 TOP_STEP_FACTOR = 1.8
