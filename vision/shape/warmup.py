@@ -43,8 +43,8 @@ def _first_search(image_size: tuple[int, int]) -> None:
     search costs what the hundredth does."""
     import cv2
 
-    from vision.shape.model import teach
     from vision.shape.search import find
+    from vision.shape.teaching import teach
 
     w, h = max(int(image_size[0]), 320), max(int(image_size[1]), 240)
     img = np.full((h, w), 60, np.uint8)
