@@ -18,7 +18,7 @@ and the neighbourhood tracking down the pyramid.
 - ``run_sizes``: the size of each evidenced point's run, linked along the model's chains (union-find;
   the verification's ``surround`` drops specks by it; scipy's graph components cost 10x more).
 
-Compiled on first use and cached on disk (``cache=True``); ``kernels.warm_up`` loads them.
+Compiled on first use and cached on disk (``cache=True``); ``warmup.warm_up`` loads them.
 """
 
 from __future__ import annotations
@@ -289,7 +289,7 @@ def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
 
 
 def warm_up() -> None:
-    """Load (or compile) this module's kernels on tiny inputs (see ``kernels.warm_up``)."""
+    """Load (or compile) this module's kernels on tiny inputs (see ``warmup.warm_up``)."""
     z8 = np.zeros((1, 8), np.uint8)
     zi = np.zeros((1, 1), np.int64)
     accumulate_top(z8, zi, zi, 1, z8.copy(), 0, 1)
