@@ -26,14 +26,13 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from vision.errors import TeachError
-from vision.image import F64, U8, bilinear, gauss_peak, gradients, profile_ok, pyramid
+from vision.image import F64, U8, bilinear, gauss_peak, gradients, magnitude, profile_ok, pyramid
 from vision.shape.colour import channel, taught_mix
 from vision.shape.model import CHAIN_MAX_TURN_DEG, GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams
 from vision.shape.patch import make_patch
@@ -64,7 +63,7 @@ def _edge_points(img: U8, sigma: float, thr: float, box: tuple[float, float, flo
     cx1, cy1 = min(int(math.ceil(x1)) + m, w - 1), min(int(math.ceil(y1)) + m, h - 1)
     crop = img[cy0:cy1 + 1, cx0:cx1 + 1]
     gx, gy = gradients(crop, sigma)
-    mag = cv2.magnitude(gx, gy)
+    mag = magnitude(gx, gy)
     ys, xs = np.nonzero(mag >= thr)
     keep = (xs >= 1) & (ys >= 1) & (xs < mag.shape[1] - 1) & (ys < mag.shape[0] - 1)
     xs, ys = xs[keep].astype(np.float64), ys[keep].astype(np.float64)
