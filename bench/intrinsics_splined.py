@@ -196,7 +196,7 @@ def fisheye_gap() -> None:
     """Our residuals at mrcal's published splined solution, then our solver started there (module docstring)."""
     from scipy.spatial.transform import Rotation
 
-    from calibration.intrinsics import splined_solver as ss
+    from calibration.intrinsics import splined_problem as ss
     from calibration.intrinsics.views import collect_views, warp_basis
 
     s = fisheye_set()

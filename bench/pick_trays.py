@@ -141,7 +141,7 @@ def _report(n_trays: int, ours: dict[int, Tally], theirs: dict[int, Tally] | Non
         "",
         "Notes. Each part is a cluster of the top level's maxima (neighbouring positions and angles); "
         "the search keeps its 64 best candidates wherever they lie and adds the best of every other "
-        "position scoring at least 0.7 of the best part (`vision.shape.search.TOP_BEST`, "
+        "position scoring at least 0.7 of the best part (`vision.shape.top_search.TOP_BEST`, "
         "`TOP_EXTRA_OF_BEST`). With the 64 alone (the code before this table) the full-size trays "
         "were 12-16 of 30 found. A model of 1-2 levels has no level to track on, and its candidates "
         "are settled on unspread responses before the least-squares stage (without it 105 of 120 were "

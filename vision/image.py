@@ -53,6 +53,18 @@ def gradients(img: NDArray[Any], sigma: float) -> tuple[F32, F32]:
     return gx, gy
 
 
+def magnitude(gx: F32, gy: F32) -> F32:
+    """The gradient magnitude ``sqrt(gx*gx + gy*gy)`` in float32 (grey levels per pixel), the same
+    bits at every buffer alignment. ``cv2.magnitude``'s are not: its last bit depends on where its
+    output buffer lies (mod 64 bytes), and numpy's allocator places it differently from process to
+    process, so a model taught from the same image differed in its last bits from run to run. Here
+    each value is the correctly rounded square root of the float32 sum of the float32 squares
+    (numpy's elementwise multiply, add and sqrt: IEEE operations, no fused multiply-add)."""
+    m = np.multiply(gx, gx, dtype=np.float32)
+    m += np.multiply(gy, gy, dtype=np.float32)
+    return np.sqrt(m, out=m)
+
+
 def bilinear(img: F32, x: F64, y: F64) -> F64:
     """Bilinear samples of ``img`` at (x, y) (pixel centres at integers; clamped at the border)."""
     h, w = img.shape

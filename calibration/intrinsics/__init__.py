@@ -56,8 +56,8 @@ Pipeline (every model — ``opencv5``, ``opencv8``, ``division`` — goes throug
 Modules: ``results`` (result types, limits, the error), ``model`` (the vectorised model and the
 bundle solver), ``views`` (collecting views, the start, the solve loop, outliers), ``uncertainty``
 (projection uncertainty, jackknife, comparing cameras), ``kernels`` (the compiled projection with
-analytic derivatives and the Schur step, numba), ``solver`` (``calibrate``), ``crossval``
-(k-fold cross-validation, and choosing the model and the board warp by it:
+analytic derivatives, numba), ``schur_kernels`` (the compiled Schur step), ``solver`` (``calibrate``),
+``crossval`` (k-fold cross-validation), ``selection`` (choosing the model and the board warp by it:
 ``select_by_cross_validation``). Planned views and synthetic detections with truth are
 ``calibration.synthetic``. Everything public is exported here: ``from calibration.intrinsics import X``
 is the interface.
@@ -71,7 +71,6 @@ from calibration.intrinsics.crossval import (
     cross_validate,
     fold_partitions,
     median_half_width,
-    select_by_cross_validation,
 )
 from calibration.intrinsics.model import (
     camera_from_vector,
@@ -92,6 +91,7 @@ from calibration.intrinsics.results import (
     IntrinsicsResult,
     ViewResult,
 )
+from calibration.intrinsics.selection import select_by_cross_validation
 from calibration.intrinsics.solver import calibrate
 from calibration.intrinsics.uncertainty import (
     cell_grid,

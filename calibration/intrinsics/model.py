@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import lapack
 
 from calibration.camera_model import CameraModel, ModelName, distort_normalized
-from calibration.intrinsics import kernels
+from calibration.intrinsics import kernels, schur_kernels
 from calibration.intrinsics.results import (
     F64,
     IntrinsicsError,
@@ -189,7 +189,7 @@ def normal_equations(p: BundleProblem, r: F64, Jc: F64, Jp: F64) -> NormalEquati
 
 def solve_damped(n: NormalEquations, lam: float) -> tuple[F64, F64]:
     """The Marquardt-damped Gauss-Newton step for the arrow-structured normal equations: the poses
-    are eliminated view by view (Schur complement, ``kernels.schur_reduce``), the reduced intrinsics
+    are eliminated view by view (Schur complement, ``schur_kernels.schur_reduce``), the reduced intrinsics
     system is solved by a scaled least squares (rank-deficient directions get no step: LAPACK's
     gelsd, as ``np.linalg.lstsq``, called directly), then the poses are back-substituted. Returns
     ``(dc, dv)`` with ``dv`` (V, 6); NaN when the system is not finite (the caller treats it as a
@@ -198,7 +198,7 @@ def solve_damped(n: NormalEquations, lam: float) -> tuple[F64, F64]:
     A, B, D = (np.ascontiguousarray(x, dtype=np.float64) for x in (n.A, n.B, n.D))
     gc, gv = np.ascontiguousarray(n.gc, dtype=np.float64), np.ascontiguousarray(n.gv, dtype=np.float64)
     nv, nc = D.shape[0], A.shape[0]
-    Ss, rhs, Dinv, sc, status = kernels.schur_reduce(A, B, D, gc, gv, float(lam))
+    Ss, rhs, Dinv, sc, status = schur_kernels.schur_reduce(A, B, D, gc, gv, float(lam))
     if status == 2:
         raise np.linalg.LinAlgError("Singular matrix: a view's damped pose block")
     if status == 1:
@@ -206,7 +206,7 @@ def solve_damped(n: NormalEquations, lam: float) -> tuple[F64, F64]:
     dc = np.zeros(nc)
     if nc:
         dc = _lstsq(Ss, rhs) / sc
-    return dc, kernels.back_substitute(Dinv, B, gv, dc)
+    return dc, schur_kernels.back_substitute(Dinv, B, gv, dc)
 
 
 def _lstsq(a: F64, b: F64, rcond: float = 1e-14) -> F64:

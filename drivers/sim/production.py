@@ -11,7 +11,7 @@ since), appears when it reaches the belt's start and is ``fallen`` once carried 
 
 Poses are ``T_base_part`` (4x4, metres): the part's reference point on its top face, x along the
 outline's x (``drivers.sim.production_spec.PartTemplate``). The pick area's scatter is seeded and
-deterministic (``scatter``); so are the gripper's failures (the world's seed).
+deterministic (``drivers.sim.scatter``); so are the gripper's failures (the world's seed).
 """
 
 from __future__ import annotations
@@ -26,11 +26,10 @@ from numpy.typing import NDArray
 
 from calibration import geometry as g
 from drivers.sim.conveyor import SimBelt
-from drivers.sim.production_spec import AreaSpec, ProductionSpec
+from drivers.sim.production_spec import ProductionSpec
+from drivers.sim.scatter import PartScatter
 
 PartState = Literal["in_area", "held", "placed", "dropped", "fallen"]
-SAMPLE_MM = 1.0
-"""Spacing of the points that test two parts for overlap, mm."""
 
 
 @dataclass
@@ -79,14 +78,15 @@ class ProductionParts:
         self.faults = 0
         """Closes on a part so far, and how many of them the fault stream made fail (``GET /sim/truth``)."""
         self._outline = np.asarray(spec.part.outline_mm, dtype=np.float64)
-        self._samples = _sample_points(spec.part.outline_mm, spec.part.holes_mm)
-        self.parts: list[SimPart] = [SimPart(k, "in_area", T) for k, T in enumerate(self._scatter())]
+        scatter = PartScatter(spec)
+        self.parts: list[SimPart] = [SimPart(k, "in_area", self.lying(*p)) for k, p in enumerate(scatter.in_area())]
         n = len(self.parts)
         for k, fixed in enumerate(spec.unreachable):
             self.parts.append(SimPart(n + k, "in_area", self.lying(fixed.x_mm, fixed.y_mm, fixed.angle_deg)))
         if belt is not None:
             n = len(self.parts)
-            self.parts.extend(SimPart(n + k, "in_area", T, belt_s_m=0.0) for k, T in enumerate(self._belt_scatter()))
+            self.parts.extend(SimPart(n + k, "in_area", self.lying(*p), belt_s_m=0.0)
+                              for k, p in enumerate(scatter.on_belt(belt.spec.parts)))
         self.closed = False
         self._slip_at_close_mm: float | None = None
         """A slip armed for the next close (``slip_at_close``), mm along the belt."""
@@ -261,96 +261,6 @@ class ProductionParts:
             part.state = "dropped"
         self.version += 1
 
-    # -- the scatter ------------------------------------------------------------------------------
-    def _scatter(self) -> list[NDArray[np.float64]]:
-        """Seeded poses in the pick area: no overlap, some touching a neighbour or the area's edge."""
-        sc = self.spec.scatter
-        rng = np.random.default_rng([sc.seed, 0x5CA7])
-        area = self.spec.pick_area
-        placed: list[tuple[float, float, float]] = []
-        clear = sc.clear_part
-        if clear is not None and sc.count > 0:
-            placed.append((clear.x_mm, clear.y_mm, clear.angle_deg))
-        tries = 0
-        while len(placed) < sc.count:
-            tries += 1
-            if tries > 20000:
-                raise ValueError(f"production scene: {sc.count} parts do not fit in the pick area "
-                                 f"({len(placed)} placed); enlarge pick_area or lower scatter.count")
-            cand = (float(rng.uniform(*area.x_mm)), float(rng.uniform(*area.y_mm)), float(rng.uniform(-180, 180)))
-            if not self._fits(cand, placed, area):
-                continue
-            if rng.uniform() < sc.touching:
-                cand = self._slide(cand, placed, area, rng)
-            placed.append(cand)
-        return [self.lying(*p) for p in placed]
-
-    def _belt_scatter(self) -> list[NDArray[np.float64]]:
-        """Seeded poses along the belt from its ``first_x_mm`` upstream (-x): random spacing, some parts
-        pushed against the one ahead (touching), none overlapping; all inside the parts' lane. The first part
-        lies upright (its outline's x along base x): the one a user teaches with the belt still."""
-        if self.belt is None:
-            raise ValueError("the scene has no conveyor to scatter parts on")
-        bp = self.belt.spec.parts
-        rng = np.random.default_rng([bp.seed, 0xC0])
-        r = self.spec.part_radius_mm()
-        y_lo, y_hi = bp.lane_y_mm[0] + r, bp.lane_y_mm[1] - r
-        placed: list[tuple[float, float, float]] = []
-        x = bp.first_x_mm
-        for k in range(bp.count):
-            y = float(rng.uniform(y_lo, y_hi)) if y_hi > y_lo else 0.5 * sum(bp.lane_y_mm)
-            a = float(rng.uniform(-180, 180)) if k > 0 else 0.0  # the first one upright: to be taught
-            if k > 0:
-                x = placed[-1][0] - float(rng.uniform(*bp.spacing_mm))
-                if rng.uniform() < bp.touching:
-                    while x + SAMPLE_MM < placed[-1][0] and self._clear((x + SAMPLE_MM, y, a), placed[-2:]):
-                        x += SAMPLE_MM  # pushed up to the part ahead
-            while not self._clear((x, y, a), placed[-2:]):
-                x -= SAMPLE_MM
-            placed.append((x, y, a))
-        return [self.lying(*p) for p in placed]
-
-    def _clear(self, cand: tuple[float, float, float], others: list[tuple[float, float, float]]) -> bool:
-        pts = self._world_samples(cand)
-        return not any(_overlap(pts, self._world_samples(o), SAMPLE_MM) for o in others)
-
-    def _world_samples(self, pose: tuple[float, float, float]) -> NDArray[np.float64]:
-        a = math.radians(pose[2])
-        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        return self._samples @ R.T + np.array(pose[:2])
-
-    def _fits(self, cand: tuple[float, float, float], placed: list[tuple[float, float, float]],
-              area: AreaSpec) -> bool:
-        pts = self._world_samples(cand)
-        if not (np.all((pts[:, 0] >= area.x_mm[0]) & (pts[:, 0] <= area.x_mm[1]))
-                and np.all((pts[:, 1] >= area.y_mm[0]) & (pts[:, 1] <= area.y_mm[1]))):
-            return False
-        reach = 2 * self.spec.part_radius_mm()
-        clear = self.spec.scatter.clear_part
-        for k, other in enumerate(placed):
-            margin = clear.clearance_mm if (k == 0 and clear is not None) else SAMPLE_MM
-            d = math.hypot(cand[0] - other[0], cand[1] - other[1])
-            if d > reach + margin:
-                continue
-            if d < self.spec.part_radius_mm() / 2:
-                return False  # nearly on top of each other: the edges may not cross
-            if _overlap(pts, self._world_samples(other), margin):
-                return False
-        return True
-
-    def _slide(self, cand: tuple[float, float, float], placed: list[tuple[float, float, float]], area: AreaSpec,
-               rng: np.random.Generator) -> tuple[float, float, float]:
-        """Slide the part toward a random direction until it touches a neighbour or the area's edge."""
-        a = rng.uniform(0, 2 * math.pi)
-        step = np.array([math.cos(a), math.sin(a)]) * SAMPLE_MM
-        cur = cand
-        for _ in range(400):
-            nxt = (cur[0] + float(step[0]), cur[1] + float(step[1]), cur[2])
-            if not self._fits(nxt, placed, area):
-                return cur
-            cur = nxt
-        return cur
-
     # -- kept across a restart (drivers.sim.world.SimWorld.keep_state_in) ---------------------------
     def state(self) -> dict[str, Any]:
         """The parts' states and poses, the gripper closed or not, the fault draw's counters (JSON-able)."""
@@ -387,29 +297,3 @@ class ProductionParts:
 
     def truth(self, T_base_tool_true: NDArray[np.float64]) -> list[dict[str, Any]]:
         return [{"id": p.id, "state": p.state, "T_base_part": T.tolist()} for p, T in self.poses(T_base_tool_true)]
-
-
-def _sample_points(outline_mm: list[list[float]], holes_mm: list[list[list[float]]]) -> NDArray[np.float64]:
-    """Points along the outline every SAMPLE_MM, part frame, mm (two outlines of one part overlap
-    only where their edges cross or come near: neither fits inside the other)."""
-    poly = np.asarray(outline_mm, dtype=np.float64)
-    edge = []
-    for i in range(len(poly)):
-        p, q = poly[i], poly[(i + 1) % len(poly)]
-        n = max(1, int(math.ceil(float(np.linalg.norm(q - p)) / SAMPLE_MM)))
-        edge.append(p + (q - p) * (np.arange(n)[:, None] / n))
-    return np.concatenate(edge)
-
-
-def _overlap(a: NDArray[np.float64], b: NDArray[np.float64], margin_mm: float) -> bool:
-    """True when two sampled parts come nearer than ``margin_mm`` (point to point)."""
-    lo = np.maximum(a.min(axis=0), b.min(axis=0)) - margin_mm
-    hi = np.minimum(a.max(axis=0), b.max(axis=0)) + margin_mm
-    if np.any(lo > hi):
-        return False
-    a = a[np.all((a >= lo) & (a <= hi), axis=1)]
-    b = b[np.all((b >= lo) & (b <= hi), axis=1)]
-    if len(a) == 0 or len(b) == 0:
-        return False
-    d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=2)
-    return bool(d2.min() < margin_mm * margin_mm)

@@ -16,11 +16,13 @@ A conveyor scene's world has a belt (``belt``, ``drivers.sim.conveyor``): its pa
 the belt's encoder wired to it does, every commanded pose is then carried along the belt by the
 travel the encoder counted since, so the tool follows the belt). Its state is not kept across a
 restart (the belt moved on meanwhile).
+
+What the camera sees, the cell's planes and the frames rendered from them, is ``drivers.sim.world_view``'s
+(``SimWorld.view``).
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
@@ -36,12 +38,13 @@ from numpy.typing import NDArray
 from calibration import geometry as g
 from drivers.sim.camera_fault import CameraFault
 from drivers.sim.conveyor import BeltTracker, SimBelt
-from drivers.sim.imaging import Imaging, PlanarObject, render_scene, to_grey
+from drivers.sim.imaging import PlanarObject
 from drivers.sim.kinematics import KinematicError
 from drivers.sim.outline import part_mask
 from drivers.sim.production import ProductionParts
-from drivers.sim.production_view import production_objects, production_truth
-from drivers.sim.scene import PartSpec, SceneError, SceneSpec, load_scene, resolve_scene
+from drivers.sim.production_view import production_truth
+from drivers.sim.scene import SceneError, SceneSpec, load_scene, resolve_scene
+from drivers.sim.world_view import CameraView, on_belt
 
 log = logging.getLogger(__name__)
 __all__ = ["SimWorld", "forget_worlds", "part_mask", "world_for"]
@@ -67,7 +70,6 @@ class SimWorld:
         self._T_report_error = np.eye(4)
         self.frame_counter = 0
         self._targets = [(t, t.parsed()) for t in scene.targets]
-        self._reflectance_cache: tuple[bytes, NDArray[np.float64], NDArray[np.float64]] | None = None
         self.belt = None if scene.conveyor is None else SimBelt(scene.conveyor, scene.seed)
         """The conveyor's belt and encoder; None without one."""
         self.tracker = BeltTracker(self.belt, self._lock)
@@ -81,6 +83,8 @@ class SimWorld:
         UR emulator, ``tests/support/ur_conveyor.py``); None: the sim robot moves the tool."""
         self.camera_fault = CameraFault()
         """A bump of the camera on request (``POST /sim/faults``): applied to its true pose."""
+        self.view = CameraView(self, self._lock, self._rng, self._targets)
+        """What the camera sees: the cell's planes and the frames rendered from them (``drivers.sim.world_view``)."""
 
     # -- robot ------------------------------------------------------------------------------------
     @property
@@ -235,104 +239,22 @@ class SimWorld:
             if spec.name == name:
                 T = g.ur_pose_to_transform(spec.pose)
                 if spec.attached_to == "belt":
-                    return self._on_belt(T)
+                    return on_belt(self.belt, T)
                 return self.T_base_tool_true @ T if spec.attached_to == "tool" else T
         raise KeyError(f"no target named {name!r} in the scene")
 
-    def _on_belt(self, T: NDArray[np.float64], s_m: float | None = None) -> NDArray[np.float64]:
-        if self.belt is None:
-            raise SceneError("a target attached_to: belt needs the scene's conveyor")
-        return self.belt.carried(T, s_m)
-
     def planar_objects(self, s_m: float | None = None) -> list[PlanarObject]:
-        """Everything visible, as planes in the camera frame: targets, then the parts, the table.
-
-        The parts lie in the table's own frame, so they tie with it in depth and win (the renderer
-        gives a tie to the object listed first; where parts overlap, the scene's last part wins,
-        as it is listed first here). Each part is bounded by its outline's circle, so only the
-        pixels near it are tested against it.
-        """
-        T_cam_base = g.invert(self.T_base_cam())
-        objs = [PlanarObject(T_cam_base @ (self._on_belt(g.ur_pose_to_transform(spec.pose), s_m)
-                                           if spec.attached_to == "belt" else self.T_base_target(spec.name)),
-                             target.reflectance) for spec, target in self._targets]
-        table = self.scene.table
-        T_cam_table = T_cam_base @ g.make_transform(np.eye(3), [0.0, 0.0, table.z_m])
-        for mark in self.scene.fiducials:
-            # A mark on the table lies in the table's own frame (it ties with it in depth and, listed
-            # first, wins); one above it in its own level plane.
-            r_m, x_m, y_m = mark.diameter_mm / 2000.0, mark.x_mm / 1000.0, mark.y_mm / 1000.0
-            dz = mark.z_mm / 1000.0 - table.z_m
-            T_plane = T_cam_table if abs(dz) < 1e-9 else T_cam_table @ g.make_transform(np.eye(3), [0.0, 0.0, dz])
-            objs.append(PlanarObject(T_plane, functools.partial(_disk, x_m, y_m, r_m, mark.reflectance),
-                                     (x_m - r_m, y_m - r_m, x_m + r_m, y_m + r_m)))
-        if self.production is not None:
-            objs.extend(production_objects(self.production, T_cam_base, self.T_base_tool_true, s_m))
-        for part in reversed(self.scene.parts):
-            r_m = float(np.max(np.linalg.norm(np.asarray(part.outline_mm, dtype=np.float64), axis=1))) / 1000.0
-            x_m, y_m = part.x_mm / 1000.0, part.y_mm / 1000.0
-            objs.append(PlanarObject(T_cam_table, functools.partial(self._part_reflectance, part),
-                                     (x_m - r_m, y_m - r_m, x_m + r_m, y_m + r_m)))
-        objs.append(PlanarObject(T_cam_table, self._table_reflectance))
-        return objs
+        """Everything visible, as planes in the camera frame (``world_view.CameraView.planar_objects``)."""
+        return self.view.planar_objects(s_m)
 
     def render(self) -> NDArray[np.uint8]:
         """A grey image of what the camera sees now (``render_with_meta``'s pixels)."""
         return self.render_with_meta()[0]
 
     def render_with_meta(self) -> tuple[NDArray[np.uint8], dict[str, Any]]:
-        """A grey image of what the camera sees now (noise drawn from the world's generator), and what the
-        frame carries: with a belt, ``encoder_ticks`` latched at the exposure (the belt frozen there).
-
-        The geometric rendering (the expensive part) is cached for as long as the camera's pose
-        and the scene's parts stay put; every frame still gets its own lighting, blur, noise and
-        the other imaging defects of the scene (``drivers.sim.imaging.sensor``).
-        """
-        im = self.scene.camera.imaging
-        imaging = Imaging(**im.model_dump(exclude={"supersample"}))
-        meta: dict[str, Any] = {}
-        s_m = None
-        if self.belt is not None:
-            t_exposure = time.monotonic()
-            s_m = self.belt.position_m(t_exposure)
-            meta["encoder_ticks"] = self.belt.latched_ticks(t_exposure)
-        with self._lock:
-            key = self.T_base_cam().tobytes() + repr([p.model_dump() for p in self.scene.parts]).encode()
-            if s_m is not None:
-                key += b"belt%.7f" % s_m
-            if self.production is not None:
-                key += self.production.key(self.T_base_tool_true, s_m)
-            if any(spec.attached_to == "tool" for spec, _ in self._targets):
-                key += self.T_base_tool_true.tobytes()  # a target on the tool moves with it
-            cached = self._reflectance_cache
-            hit = cached is not None and cached[0] == key
-            objects = [] if hit else self.planar_objects(s_m)
-            self.frame_counter += 1
-            rng = np.random.default_rng(self._rng.integers(2**63))
-        if hit and cached is not None:
-            reflectance, depth_m = cached[1], cached[2]
-        else:
-            reflectance, depth_m = render_scene(self.camera_model, objects, im.background, im.supersample)
-            with self._lock:
-                self._reflectance_cache = (key, reflectance, depth_m)
-        return to_grey(reflectance, imaging, rng, depth_m), meta
-
-    def _table_reflectance(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-        table = self.scene.table
-        out = np.full(x.shape, table.reflectance)
-        sx, sy = table.size_m
-        out[(np.abs(x) > sx / 2) | (np.abs(y) > sy / 2)] = np.nan
-        return out
-
-    def _part_reflectance(self, part: PartSpec, x: NDArray[np.float64], y: NDArray[np.float64]
-                          ) -> NDArray[np.float64]:
-        """The part where it lies (and the table is), NaN elsewhere (table frame, metres)."""
-        sx, sy = self.scene.table.size_m
-        inside = part_mask(part.outline_mm, part.holes_mm, part.x_mm, part.y_mm, part.angle_deg, x, y)
-        inside &= (np.abs(x) <= sx / 2) & (np.abs(y) <= sy / 2)
-        out = np.full(x.shape, np.nan)
-        out[inside] = part.reflectance
-        return out
+        """A grey image of what the camera sees now and what the frame carries (with a belt, ``encoder_ticks``
+        latched at the exposure): ``world_view.CameraView.render_with_meta``."""
+        return self.view.render_with_meta()
 
     # -- truth ------------------------------------------------------------------------------------
     def truth(self) -> dict[str, Any]:
@@ -384,13 +306,6 @@ class SimWorld:
             out["tool_feature"] = {**feature.model_dump(mode="json"),
                                    "T_base_feature": (self.T_base_tool_true @ T_tool_feature).tolist()}
         return out
-
-
-def _disk(x0_m: float, y0_m: float, r_m: float, reflectance: float, x: NDArray[np.float64],
-          y: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A fiducial mark: ``reflectance`` inside its disk, NaN elsewhere (table frame, metres)."""
-    dx, dy = x - x0_m, y - y0_m
-    return np.where(dx * dx + dy * dy <= r_m * r_m, reflectance, np.nan)
 
 
 _WORLDS: dict[tuple[str, int], SimWorld] = {}

@@ -19,7 +19,8 @@ from calibration.intrinsics import (
     projection_difference,
     select_by_cross_validation,
 )
-from calibration.intrinsics.splined_solver import _Problem, calibrate_splined
+from calibration.intrinsics.splined_problem import _Problem
+from calibration.intrinsics.splined_solver import calibrate_splined
 from calibration.io.export import ExportError, write_opencv_yaml, write_ros_yaml
 from calibration.observations import Detection
 from calibration.synthetic import plan_views

@@ -74,7 +74,7 @@ def load_compiled_loops() -> None:
     warm-up search is left to each child's own warm-up (``vision.shape.warm_up`` still runs it there)."""
     from cellctl import warmup
     from drivers.sim.imaging import renderer
-    from vision.shape import kernels
+    from vision.shape.warmup import load_kernels
 
     threads_were = renderer.RENDER_THREADS
     renderer.RENDER_THREADS = 1
@@ -82,7 +82,7 @@ def load_compiled_loops() -> None:
         warmup.warm_renderer()
     finally:
         renderer.RENDER_THREADS = threads_were
-    kernels._load_all()
+    load_kernels()
     warmup.warm_calibration()
 
 

@@ -16,8 +16,8 @@ import pytest
 from bench.pick_cases import load_cases
 from vision import shape
 from vision.image import gradients
-from vision.shape.model import _edge_points, coherent_chains
 from vision.shape.score import direction_score, find_threshold, noise_sigma
+from vision.shape.teaching import _edge_points, coherent_chains
 
 
 def _step(contrast: float = 60.0, blur: float = 1.0) -> tuple[np.ndarray, np.ndarray]:

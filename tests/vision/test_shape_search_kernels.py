@@ -1,6 +1,6 @@
 """The matcher's compiled search loops against plain numpy versions of the same arithmetic.
 
-The compiled loops (``vision.shape.search_kernels``, ``kernels.perspective_fit``) replaced numpy
+The compiled loops (``vision.shape.search_kernels``, ``fit_kernels.perspective_fit``) replaced numpy
 code for speed; these tests hold them to the numpy results on rendered scenes and random maps,
 including the cases the fast paths treat apart: a part cut by the image border (bounds-checked
 gathers), plateaus of equal scores, a partial angle range (no wrap-around) and a scaled model.
@@ -18,7 +18,7 @@ import pytest
 from tests.support import pick_scenes as scenes
 from vision import shape
 from vision.image import CENTROID_HALF_WIDTH, pyramid
-from vision.shape import kernels, refine
+from vision.shape import fit_kernels, kernels, refine
 from vision.shape import search_kernels as sk
 from vision.shape.model import GRAD_PER_CONTRAST
 from vision.shape.responses import BIN_W, N_BINS, response_maps, spread_max, track
@@ -222,7 +222,7 @@ def test_perspective_fit_equals_numpy(scene: tuple[shape.ShapeModel, np.ndarray,
     args = (img_f, np.ascontiguousarray(lm.points), np.ascontiguousarray(lm.normals), p[0] / p[2] - x0 + 0.3,
             p[1] / p[2] - y0 - 0.2, math.radians(t.angle_deg) + 0.004, 1.0, model.params.min_contrast)
     want = refine._perspective_fit(*args)
-    got = kernels.perspective_fit(*args, CENTROID_HALF_WIDTH)
+    got = fit_kernels.perspective_fit(*args, CENTROID_HALF_WIDTH)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     assert abs(got[0] - args[3]) + abs(got[1] - args[4]) > 0.05  # it moved: the test exercises the fit
 
@@ -258,7 +258,7 @@ def test_response_maps_equal_the_opencv_lookups(scene: tuple[shape.ShapeModel, n
 def _stage_b_numpy(img_f: np.ndarray, ms: np.ndarray, ns: np.ndarray, pose: tuple[float, float, float, float],
                    s0: float, max_scale_dev: float, min_contrast: float, fit_scale: bool, iterations: int,
                    radius: float, vis_margin: float) -> tuple[float, float, float, float]:
-    """The numpy centroid Gauss-Newton loop that ``kernels.fit_stage_b`` replaced in ``refine_lsq``."""
+    """The numpy centroid Gauss-Newton loop that ``fit_kernels.fit_stage_b`` replaced in ``refine_lsq``."""
     x, y, th, sc = pose
     H, W = img_f.shape
     dms = np.stack([ms[:, 1], -ms[:, 0]], axis=1)
@@ -274,7 +274,7 @@ def _stage_b_numpy(img_f: np.ndarray, ms: np.ndarray, ns: np.ndarray, pose: tupl
         wgt = np.where(ok, (1 - off ** 2) ** 2, 0.0)
         if wgt.sum() < 6:
             break
-        A, b = kernels.gn_normal_equations(n, Rm, np.ascontiguousarray(dms @ R.T), sc, wgt, off)
+        A, b = fit_kernels.gn_normal_equations(n, Rm, np.ascontiguousarray(dms @ R.T), sc, wgt, off)
         k = 4 if fit_scale else 3
         delta = np.linalg.solve(A[:k, :k] + np.eye(k) * 1e-9, b[:k])
         ds = float(delta[3]) if fit_scale else 0.0
@@ -297,8 +297,8 @@ def test_centroid_stage_equals_numpy(scene: tuple[shape.ShapeModel, np.ndarray, 
     ms, ns = np.ascontiguousarray(lm.points), np.ascontiguousarray(lm.normals)
     args = (1.0, 0.1, model.params.min_contrast, fit_scale, iterations, lm.radius, 5.0)
     want = _stage_b_numpy(img_f, ms, ns, pose, *args)
-    got = kernels.fit_stage_b(img_f, ms, ns, *pose, 1.0, 0.1, model.params.min_contrast, fit_scale, iterations,
-                              lm.radius, 5.0, 260.0, 260.0, CENTROID_HALF_WIDTH)
+    got = fit_kernels.fit_stage_b(img_f, ms, ns, *pose, 1.0, 0.1, model.params.min_contrast, fit_scale, iterations,
+                                  lm.radius, 5.0, 260.0, 260.0, CENTROID_HALF_WIDTH)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     # it moved towards the truth (the test exercises the steps, not a no-op)
     assert math.hypot(got[0] - (t.u_px - x0), got[1] - (t.v_px - y0)) < 0.5 * math.hypot(0.4, 0.3)

@@ -43,10 +43,11 @@ from vision.image import F64, U8, gradients, pyramid
 from vision.shape import kernels
 from vision.shape.colour import channel, taught_mix
 from vision.shape.frame import part_centre, recentred
-from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams, teach
+from vision.shape.model import GRAD_PER_CONTRAST, LevelModel, ShapeModel, TeachParams
 from vision.shape.multi_align import Pose4, align, overlap
 from vision.shape.patch import MIN_PATCH_NCC, TeachPatch, fit, make_patch
 from vision.shape.refine import Pose, refine_lsq
+from vision.shape.teaching import teach
 from vision.shape.uncertainty import view_tau
 
 MAX_TEACH_IMAGES = 5

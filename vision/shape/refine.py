@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from vision.image import CENTROID_HALF_WIDTH, F32, F64, U8, gradients, rot
-from vision.shape import kernels
+from vision.shape import fit_kernels, kernels
 from vision.shape.cov_kernels import edge_cov
 from vision.shape.model import LevelModel
 from vision.shape.score import PointDetail, direction_detail, find_threshold, grad_noise
@@ -175,7 +175,7 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
     vis0 = visible(q0)
     thr = find_threshold(crop, sigma, thr,
                          kernels.percentile75(kernels.magnitudes(G, q0[vis0])) if vis0.any() else thr)
-    p4, failed, q, d, found, cosd, sign = kernels.fit_stage_a(
+    p4, failed, q, d, found, cosd, sign = fit_kernels.fit_stage_a(
         G, m, nrm_m, np.array([x, y, th, sc]), s0, max_scale_dev,
         float(search_px), int(iterations), float(thr), float(reject_below), bool(fit_scale), lm.radius,
         vis_margin, float(x1 - x0), float(y1 - y0))
@@ -189,12 +189,12 @@ def refine_lsq(img_level: U8, lm: LevelModel, pose: Pose, sigma: float, thr: flo
         sel = found & (np.abs(d) < 1.0)
         persp = perspective
         ms, ns = m[sel], nrm_m[sel]
-        x, y, th, sc = kernels.fit_stage_b(  # the centroid Gauss-Newton loop, compiled (pick-speed)
+        x, y, th, sc = fit_kernels.fit_stage_b(  # the centroid Gauss-Newton loop, compiled (pick-speed)
             img_f, ms, ns, x, y, th, sc, s0, max_scale_dev, float(min_contrast), bool(fit_scale),
             1 if persp else 3, lm.radius, vis_margin, float(x1 - x0), float(y1 - y0), CENTROID_HALF_WIDTH)
         if persp:
-            x, y, th, sc = kernels.perspective_fit(img_f, ms, ns, x, y, th, sc, float(min_contrast),
-                                                   CENTROID_HALF_WIDTH)  # _perspective_fit compiled
+            x, y, th, sc = fit_kernels.perspective_fit(img_f, ms, ns, x, y, th, sc, float(min_contrast),
+                                                       CENTROID_HALF_WIDTH)  # _perspective_fit compiled
         # the score is taken at the final pose
         R = rot(th)
         q = sc * (m @ R.T) + np.array([x, y])

@@ -43,14 +43,14 @@ def response_maps(img: U8, thr: float, sigma: float = 0.0, spread: int = 3) -> U
     ``spread`` is the max filter's size (1: none).
     """
     gx, gy = gradients(img, sigma)
-    mag = cv2.magnitude(gx, gy)
     ang = cv2.phase(gx, gy, angleInDegrees=True)  # 0..360
     q = cv2.convertScaleAbs(ang, alpha=4.0 * N_BINS / 180.0, beta=-0.5)  # floor: quarter-bins 0..63
     q = cv2.bitwise_and(q, 4 * N_BINS - 1)  # orientation modulo 180 deg
     h, w = img.shape
     out = np.empty((N_BINS, h, w), np.uint8)
-    # no edge (magnitude < thr) responds 0; one compiled pass for all bins (was a mask and 8 cv2.LUT)
-    sk.response_planes(q, mag, float(thr), _RESPONSE_TABLE, out)
+    # no edge (magnitude < thr) responds 0; one compiled pass for all bins (was a mask and 8 cv2.LUT),
+    # the magnitude computed in it (vision.image.magnitude's bits; cv2.magnitude's depend on alignment)
+    sk.response_planes(q, gx, gy, float(thr), _RESPONSE_TABLE, out)
     return spread_max(out, spread)
 
 

@@ -18,7 +18,7 @@ and the neighbourhood tracking down the pyramid.
 - ``run_sizes``: the size of each evidenced point's run, linked along the model's chains (union-find;
   the verification's ``surround`` drops specks by it; scipy's graph components cost 10x more).
 
-Compiled on first use and cached on disk (``cache=True``); ``kernels.warm_up`` loads them.
+Compiled on first use and cached on disk (``cache=True``); ``warmup.warm_up`` loads them.
 """
 
 from __future__ import annotations
@@ -60,15 +60,19 @@ def accumulate_top(padf: U8, b: I64, start: I64, run: int, lin: U8, a0: int, a1:
 
 
 @compiled(boundscheck=False)
-def response_planes(q: U8, mag: NDArray[np.float32], thr: float, table: U8, out: U8) -> None:
+def response_planes(q: U8, gx: NDArray[np.float32], gy: NDArray[np.float32], thr: float, table: U8,
+                    out: U8) -> None:
     """``out[b] = table[b, q]`` for every bin b, with ``q`` taken as "no edge" (the table's last
-    column) where ``mag < thr``: the orientation response maps in one pass."""
+    column) where the gradient's magnitude is below ``thr``: the orientation response maps in one
+    pass. The magnitude is ``vision.image.magnitude``'s, to the bit: the float32 square root of the
+    float32 sum of the float32 squares (IEEE operations, the same at any alignment)."""
     h, w = q.shape
     none = table.shape[1] - 1
     qq = np.empty((h, w), np.uint8)
     for y in range(h):
         for x in range(w):
-            qq[y, x] = none if mag[y, x] < thr else q[y, x]
+            m = np.sqrt(gx[y, x] * gx[y, x] + gy[y, x] * gy[y, x])
+            qq[y, x] = none if m < thr else q[y, x]
     for b in range(table.shape[0]):
         tb = table[b]
         ob = out[b]
@@ -289,12 +293,13 @@ def run_sizes(n: int, a: I64, b: I64, ev: NDArray[np.bool_]) -> I64:
 
 
 def warm_up() -> None:
-    """Load (or compile) this module's kernels on tiny inputs (see ``kernels.warm_up``)."""
+    """Load (or compile) this module's kernels on tiny inputs (see ``warmup.warm_up``)."""
     z8 = np.zeros((1, 8), np.uint8)
     zi = np.zeros((1, 1), np.int64)
     accumulate_top(z8, zi, zi, 1, z8.copy(), 0, 1)
     z2 = np.zeros((2, 2), np.uint8)
-    response_planes(z2, np.zeros((2, 2), np.float32), 1.0, np.zeros((8, 33), np.uint8), np.zeros((8, 2, 2), np.uint8))
+    f2 = np.zeros((2, 2), np.float32)
+    response_planes(z2, f2, f2, 1.0, np.zeros((8, 33), np.uint8), np.zeros((8, 2, 2), np.uint8))
     p3 = np.zeros((1, 2, 2), np.uint8)
     top_maxima(p3, p3, 1, 1, False)
     spread_budget(np.zeros(2), np.zeros(2), np.zeros(2), 1.0, 1, 1, 0.0, 2)

@@ -22,7 +22,7 @@ from vision.shape.responses import response_maps, spread_max, track
 
 HYPOTHESES_PER_POSITION = 3
 TRACK_BATCH = 160
-"""Candidates tracked per compiled call (the top level's most, ``search.MAX_TOP_CANDIDATES``, in one): each
+"""Candidates tracked per compiled call (the top level's most, ``top_search.MAX_TOP_CANDIDATES``, in one): each
 call and each climbing step of a batch costs ~50 us of Python around the kernel (batches of 32 were 4-5
 times that per image); the search's clock is read between batches."""
 
