@@ -55,6 +55,9 @@ UR_GROUP = "ur_emulator"
 share one xdist worker (``--dist loadgroup``), one emulator at a time."""
 SHARED_CELLS = ("plc_cell", "served_virtual_cell")
 """Session fixtures that serve a cell: their tests share one worker, so the cell starts once."""
+PG_GROUP = "postgres"
+"""The store tests on the session's PostgreSQL cluster (``tests/store/conftest.py``): they share one worker,
+so one cluster starts in a run, not one per worker (about 1 s of CPU each, and its server's)."""
 
 
 NOT_UR = frozenset({"sim", "modbus", "replay"})
@@ -67,12 +70,23 @@ def _other_adapter(item: pytest.Item) -> bool:
     return any(isinstance(v, str) and v in NOT_UR for v in params.values())
 
 
+def _on_session_postgres(item: pytest.Item, rel_path: str, fixturenames: set[str]) -> bool:
+    """A store test that runs on the session's PostgreSQL cluster: it asks for it, or for its URL, or is the
+    ``postgresql`` case of a backend parameter (``store_url``; a test may then ask for the cluster itself)."""
+    if not rel_path.startswith("store/"):
+        return False
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    return bool(fixturenames & {"postgres", "postgres_url"}) or any(
+        isinstance(v, str) and v == "postgresql" for v in params.values())
+
+
 def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | None:
     """The worker group of a test under ``--dist loadgroup``, or None to balance it freely.
 
     The UR emulator's tests share one group (fixed ports; a UR module's cases of another robot adapter
     are balanced freely, their peers listen on free ports); the tests of a shared served cell share
-    its group; a module with a module-scoped fixture (a served cell, a capture) stays on one worker
+    its group; the store tests on the session's PostgreSQL cluster share theirs (one cluster a run); a module
+    with a module-scoped fixture (a served cell, a capture) stays on one worker
     so that the fixture runs once, not once per worker its tests land on.
     """
     if "ur_emulator" in module_text and not _other_adapter(item):
@@ -81,6 +95,8 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
     for name in SHARED_CELLS:
         if name in names:
             return name
+    if _on_session_postgres(item, rel_path, names):
+        return PG_GROUP
     info = getattr(item, "_fixtureinfo", None)
     defs = info.name2fixturedefs.values() if info is not None else ()
     # (the thread check is module-scoped on every module: it does not pin a module to a worker)
