@@ -26,6 +26,27 @@ import pytest
 # (ignored by git), written atomically, and the served processes and CLI runs read them too.
 sys.dont_write_bytecode = False
 
+
+def keep_freed_memory() -> bool:
+    """Has glibc's malloc keep what this process frees for its next allocations (``mallopt``): by default
+    a freed block of over 128 KiB to 32 MiB goes back to the kernel (unmapped, or the heap's top trimmed)
+    and the next image-sized array faults fresh zeroed pages in again, which was a fifth of a rendered pick
+    scene's CPU (9 of 42 ms, 2,700 page faults) and most of the fast loop's system time (docs/testing.md).
+    The test processes only: the served cells, peers and the fork server keep the allocator's defaults.
+    False where the C library has no ``mallopt`` (not glibc)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
+    return bool(mallopt(m_mmap_threshold, 32 << 20)) and bool(mallopt(m_trim_threshold, 1 << 30))
+
+
+keep_freed_memory()
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "tests" / "data"
 """Real images and measurements copied into the repository, each folder with SOURCE.txt and LICENSE.txt."""
