@@ -10,6 +10,7 @@ list in ``tests/slow.txt``, plus every browser test).
 from __future__ import annotations
 
 import functools
+import gc
 import os
 import sys
 import threading
@@ -25,6 +26,27 @@ import pytest
 # collection each worker pays (11.7 s of CPU instead of 5.1 s, docs/testing.md). They go to __pycache__
 # (ignored by git), written atomically, and the served processes and CLI runs read them too.
 sys.dont_write_bytecode = False
+
+
+def keep_freed_memory() -> bool:
+    """Has glibc's malloc keep what this process frees for its next allocations (``mallopt``): by default
+    a freed block of over 128 KiB to 32 MiB goes back to the kernel (unmapped, or the heap's top trimmed)
+    and the next image-sized array faults fresh zeroed pages in again, which was a fifth of a rendered pick
+    scene's CPU (9 of 42 ms, 2,700 page faults) and most of the fast loop's system time (docs/testing.md).
+    The test processes only: the served cells, peers and the fork server keep the allocator's defaults.
+    False where the C library has no ``mallopt`` (not glibc)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
+    return bool(mallopt(m_mmap_threshold, 32 << 20)) and bool(mallopt(m_trim_threshold, 1 << 30))
+
+
+keep_freed_memory()
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "tests" / "data"
@@ -55,6 +77,9 @@ UR_GROUP = "ur_emulator"
 share one xdist worker (``--dist loadgroup``), one emulator at a time."""
 SHARED_CELLS = ("plc_cell", "served_virtual_cell")
 """Session fixtures that serve a cell: their tests share one worker, so the cell starts once."""
+PG_GROUP = "postgres"
+"""The store tests on the session's PostgreSQL cluster (``tests/store/conftest.py``): they share one worker,
+so one cluster starts in a run, not one per worker (about 1 s of CPU each, and its server's)."""
 
 
 NOT_UR = frozenset({"sim", "modbus", "replay"})
@@ -67,12 +92,23 @@ def _other_adapter(item: pytest.Item) -> bool:
     return any(isinstance(v, str) and v in NOT_UR for v in params.values())
 
 
+def _on_session_postgres(item: pytest.Item, rel_path: str, fixturenames: set[str]) -> bool:
+    """A store test that runs on the session's PostgreSQL cluster: it asks for it, or for its URL, or is the
+    ``postgresql`` case of a backend parameter (``store_url``; a test may then ask for the cluster itself)."""
+    if not rel_path.startswith("store/"):
+        return False
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    return bool(fixturenames & {"postgres", "postgres_url"}) or any(
+        isinstance(v, str) and v == "postgresql" for v in params.values())
+
+
 def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | None:
     """The worker group of a test under ``--dist loadgroup``, or None to balance it freely.
 
     The UR emulator's tests share one group (fixed ports; a UR module's cases of another robot adapter
     are balanced freely, their peers listen on free ports); the tests of a shared served cell share
-    its group; a module with a module-scoped fixture (a served cell, a capture) stays on one worker
+    its group; the store tests on the session's PostgreSQL cluster share theirs (one cluster a run); a module
+    with a module-scoped fixture (a served cell, a capture) stays on one worker
     so that the fixture runs once, not once per worker its tests land on.
     """
     if "ur_emulator" in module_text and not _other_adapter(item):
@@ -81,6 +117,8 @@ def xdist_group_of(item: pytest.Item, rel_path: str, module_text: str) -> str | 
     for name in SHARED_CELLS:
         if name in names:
             return name
+    if _on_session_postgres(item, rel_path, names):
+        return PG_GROUP
     info = getattr(item, "_fixtureinfo", None)
     defs = info.name2fixturedefs.values() if info is not None else ()
     # (the thread check is module-scoped on every module: it does not pin a module to a worker)
@@ -155,6 +193,15 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
         os.environ.pop(TEMPLATE, None)
         remove_template_dir(_pg_templates.pop())
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Moves what imports and collection made (modules, classes, the test items: a few million objects) out of
+    the garbage collector's sight (``gc.freeze``): each full collection of a worker walked all of them again,
+    about 2.4 s of its CPU in the fast loop (1.2 s after). Garbage made later is collected as before."""
+    gc.collect()
+    gc.freeze()
 
 
 def fast_loop(markexpr: str) -> bool:

@@ -3,6 +3,8 @@ and a model the data cannot carry in half the partitions or more is refused."""
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -130,14 +132,37 @@ def test_the_medians_interval_is_the_t_scaled_standard_error_of_a_median_of_logs
     assert crossval.median_half_width(v * 2) < crossval.median_half_width(v)
 
 
+@functools.cache
 def _strong_division(seed: int) -> list[Detection]:
+    """(Made once per seed and shared: no test changes it.)"""
     truth = CameraModel("division", 1280, 960, np.array([[700.0, 0, 640], [0, 700.0, 480], [0, 0, 1]]),
                         np.array([-0.35]))
     rng = np.random.default_rng(seed)
     return synthetic_detections(truth, BOARD, plan_views(truth, BOARD, 14, rng), 0.3, rng)
 
 
-def test_auto_stops_early_when_the_choice_is_plain_and_chooses_as_eight_fixed_partitions() -> None:
+@pytest.fixture(scope="module")
+def each_fit_once() -> Iterator[None]:
+    """crossval's ``calibrate``, each distinct fit solved once for the module: the selections below draw
+    the same seeded partitions of the same views with the same models (an automatic count, then eight fixed
+    partitions; the same candidates in two tests), and a fit is a deterministic function of its views, model
+    and options, so a repeated call gets the result the first one computed (read only by crossval). A call
+    that raises is not kept. Keyed by the views' identities, which the key's kept list holds alive."""
+    fits: dict[tuple[Any, ...], tuple[list[Detection], Any]] = {}
+    real = crossval.calibrate
+
+    def calibrate(dets: Sequence[Detection], target: Any, model: str, **kw: Any) -> Any:
+        key = (tuple(map(id, dets)), id(target), model, tuple(sorted(kw.items())))
+        if key not in fits:
+            fits[key] = (list(dets), real(dets, target, model, **kw))
+        return fits[key][1]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(crossval, "calibrate", calibrate)
+        yield
+
+
+def test_auto_stops_early_when_the_choice_is_plain_and_chooses_as_eight_fixed_partitions(each_fit_once: None) -> None:
     # a strong wide-angle lens: opencv5 cannot describe it, its halves differ by px; division's by tenths
     dets = _strong_division(1)
     cands = [("opencv5", False), ("division", False)]
@@ -154,7 +179,7 @@ def test_auto_stops_early_when_the_choice_is_plain_and_chooses_as_eight_fixed_pa
     assert fixed["repeats"] == 8 and fixed["repeats_rule"] == "fixed" and fixed["chosen"] == sel["chosen"]
 
 
-def test_auto_draws_all_eight_when_the_candidates_are_close() -> None:
+def test_auto_draws_all_eight_when_the_candidates_are_close(each_fit_once: None) -> None:
     # a flat board: the warp's two heights are ~0, the two candidates' medians are within each other's scatter
     dets = _strong_division(1)
     res, sel = select_by_cross_validation(dets, BOARD, [("division", False), ("division", True)])
@@ -176,7 +201,7 @@ def test_auto_for_one_model_stops_once_its_median_is_known_to_the_margin() -> No
         cross_validate(dets, BOARD, "division", 2, repeats="some")  # type: ignore[arg-type]
 
 
-def test_a_candidate_out_of_the_race_stops_drawing_and_the_choice_is_the_fixed_ones() -> None:
+def test_a_candidate_out_of_the_race_stops_drawing_and_the_choice_is_the_fixed_ones(each_fit_once: None) -> None:
     # opencv5 after division on a lens it cannot describe: beaten by the simpler one beyond both intervals
     dets = _strong_division(1)
     cands = [("division", False), ("division", True), ("opencv5", False)]

@@ -97,27 +97,31 @@ def counted(app: FastAPI, status: int) -> float:
 BIG = b"[" + b"1e300," * 1_000_000 + b"1]"  # ~6 MB of numbers that cost a parse
 
 
+@pytest.fixture(scope="module")
+def edge_app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
+    """One app for the refusals that keep no state (no body read, a shape refused): an app and its route
+    table cost about 0.15 s of CPU each. The tests that count requests in the app's metrics make their own."""
+    return make_app(tmp_path_factory.mktemp("edge-refusals"))
+
+
 @pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer not-a-token"}, {"Authorization": "Basic eDp5"}],
                          ids=["no token", "unknown token", "not bearer"])
-def test_a_caller_without_a_valid_token_is_refused_before_its_body_is_read(tmp_path: Path,
+def test_a_caller_without_a_valid_token_is_refused_before_its_body_is_read(edge_app: FastAPI,
                                                                            headers: dict[str, str]) -> None:
-    app = make_app(tmp_path)
-    ex = call(app, "POST", "/robots/robot0/stop", headers, Exchange([BIG]))
+    ex = call(edge_app, "POST", "/robots/robot0/stop", headers, Exchange([BIG]))
     assert ex.status == 401 and ex.reads == 0
     assert ex.headers["connection"] == "close"  # the server drops the unread body instead of draining it
     assert json.loads(ex.body)["error"]["code"] == "unauthorized"
 
 
-def test_a_role_too_low_is_refused_before_its_body_is_read(tmp_path: Path) -> None:
-    app = make_app(tmp_path)
-    ex = call(app, "POST", "/recipes", auth("operator"), Exchange([BIG]))
+def test_a_role_too_low_is_refused_before_its_body_is_read(edge_app: FastAPI) -> None:
+    ex = call(edge_app, "POST", "/recipes", auth("operator"), Exchange([BIG]))
     assert ex.status == 403 and ex.reads == 0 and ex.headers["connection"] == "close"
     assert "engineer" in json.loads(ex.body)["error"]["message"]
 
 
-def test_an_open_route_never_reads_a_body(tmp_path: Path) -> None:
-    app = make_app(tmp_path)
-    ex = call(app, "POST", "/health", {}, Exchange([BIG]))
+def test_an_open_route_never_reads_a_body(edge_app: FastAPI) -> None:
+    ex = call(edge_app, "POST", "/health", {}, Exchange([BIG]))
     assert ex.status == 405 and ex.reads == 0 and ex.headers["connection"] == "close"
 
 
@@ -143,13 +147,12 @@ def test_a_client_that_leaves_mid_body_is_a_client_error(tmp_path: Path) -> None
     assert counted(app, 499) == 1 and counted(app, 500) == 0
 
 
-def test_bounded_shape(tmp_path: Path) -> None:
-    app = make_app(tmp_path)
+def test_bounded_shape(edge_app: FastAPI) -> None:
     deep = b'{"u_px": 1, "v_px": 2, "x": ' + b"[" * (MAX_DEPTH + 5) + b"]" * (MAX_DEPTH + 5) + b"}"
-    ex = call(app, "POST", "/map", auth("viewer"), Exchange([deep]))
+    ex = call(edge_app, "POST", "/map", auth("viewer"), Exchange([deep]))
     assert ex.status == 422 and "nested more than" in json.loads(ex.body)["error"]["message"]
     many = b'{"u_px": 1, "v_px": 2, "x": [' + b"0," * MAX_VALUES + b"0]}"
-    ex = call(app, "POST", "/map", auth("viewer"), Exchange([many]))
+    ex = call(edge_app, "POST", "/map", auth("viewer"), Exchange([many]))
     assert ex.status == 422 and f"limit is {MAX_VALUES}" in json.loads(ex.body)["error"]["message"]
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import shutil
@@ -43,13 +44,19 @@ def test_calib_import_of_a_file_opencv_cannot_parse(tmp_path: Path) -> None:
         assert "OpenCV cannot parse it" in line and "--format ros" in line and "persistence.cpp" not in line
 
 
-def _he_file(tmp_path: Path) -> Path:
+@functools.cache
+def _he_json() -> str:
+    """The hand-eye solved from a simulated set: the same file for both map tests, so solved once per process."""
     board = Chessboard(8, 6, 30.0)
     sim = simulate_handeye("eye-in-hand", 10, np.random.default_rng(5), camera=CAM, target=board,
                            robot_noise=RobotNoise(0.05, 0.01))
     res = calibrate_handeye("eye-in-hand", sim.G_recorded, sim.detections, CAM, board, leave_one_out=False)
+    return json.dumps(res.to_json())
+
+
+def _he_file(tmp_path: Path) -> Path:
     he = tmp_path / "he.json"
-    he.write_text(json.dumps(res.to_json()))
+    he.write_text(_he_json())
     (tmp_path / "cam.json").write_text(json.dumps(CAM.to_dict()))
     return he
 

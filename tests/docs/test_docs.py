@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import re
 from typing import Any
@@ -126,7 +127,9 @@ def _norm(path: str) -> str:
     return re.sub(r"\{[^}]*\}", "{}", path.rstrip("/") or "/")
 
 
+@functools.cache
 def _app() -> Any:
+    """The service's app for the route checks (made once per process; they only read its routes and schema)."""
     from cellctl.api.app import create_app
     from cellctl.config import load_config
 

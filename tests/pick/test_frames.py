@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from bench.pick_cases import load_cases, read_grey
@@ -12,7 +14,9 @@ from vision.types import SearchParams
 CONTOUR = np.array([0, 255, 255])
 
 
+@functools.cache
 def _plate() -> tuple[PartModel, np.ndarray]:
+    """The taught plate and its first test image (taught once per process: no test changes either)."""
     case = next(c for c in load_cases() if c.id == "sick_edgematcher_single")
     return teach(case.teach_image(), case.roi, name="plate"), read_grey(case.tests[0].path)
 

@@ -213,7 +213,7 @@ def render(instances: list[Instance], style: SceneStyle,
     img = np.full((h, w), style.background, np.float32)
     for _ in range(style.clutter):
         _draw_clutter(img, rng)
-    clean = img.copy()
+    clean = img.copy() if any(inst.occlusion > 0 for inst in instances) else img  # (what an occlusion pastes back)
     H = style.homography
     truths = []
     for inst in instances:
@@ -227,7 +227,8 @@ def render(instances: list[Instance], style: SceneStyle,
     if style.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), style.blur_sigma_px)
     if style.light_gradient or style.vignetting:
-        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        # the pixel grid as a column and a row, broadcast: the values of a full grid (float32) without making it
+        yy, xx = np.arange(h, dtype=np.float32)[:, None], np.arange(w, dtype=np.float32)[None, :]
         a = math.radians(style.light_dir_deg)
         t = ((xx - w / 2) * math.cos(a) + (yy - h / 2) * math.sin(a)) / max(w, h)
         r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
