@@ -68,7 +68,7 @@ WATCH_S = 0.05
 steps: none for the ~2 s of a pick cycle's moves and gripper, and a jump read that much later looks like an
 ordinary belt (4000 ticks over 0.7 s: under 600 mm/s), the queued parts then 400 mm off. Read every 50 ms, a
 jump of more than twice the belt's 300 mm/s over one period (30 mm) is caught within a period whatever the arm
-is doing, the arm halted there; one read and sample a period costs little (bench/results/conveyor.md)."""
+is doing, the arm halted there; the watcher costs ~2 ms of CPU per second of run (docs/conveyor.md)."""
 
 
 class BeltMeetingRun(ProductionRun):
