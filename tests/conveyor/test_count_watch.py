@@ -17,10 +17,13 @@ from drivers.sim.world import SimWorld, world_for
 from tests.support.app import AppCell, in_process_cell
 from tests.support.conveyor_cell import conveyor_config, set_speed, teach_belt_recipe, wait_ended
 
-ENDED_WITHIN_S = 0.5
-"""The run ends failed within this of the jump: ``WATCH_S`` to see it, the halt, the run's end (its store's
-writes); the rest of the cycle (put down, move away, the next plan: where the run's thread reads next) is
-longer than this."""
+SEEN_WITHIN_S = 0.5
+"""The jump is read within this of it (the reads either side of it this far apart at most): ``WATCH_S`` and a
+loaded machine's delays."""
+ENDED_WITHIN_S = 5.0
+"""The run ends within this of the jump: seen, the arm halted, then the run's end as after any fault (the vision
+thread's picture in progress finishes first: ~1 s at a load of 17 on 2 cores; the slot's claim settled, the
+store's writes). 0.03-0.16 s at load 2-4, 0.64 s once at load 6."""
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +49,9 @@ def _wait_phase(http: Any, phase: str, timeout_s: float = 30.0) -> None:
 def test_a_count_that_jumps_while_the_arm_carries_a_part_ends_the_run_failed_in_that_move(
         cell: tuple[AppCell, SimWorld]) -> None:
     """The jump comes as the arm starts carrying a part to its slot (the run's thread blocked in that move, no
-    count read of its own until the next cycle): the run ends ``failed`` naming the jump within
-    ``ENDED_WITHIN_S``, still in the phase ``carrying`` (the move halted), the jump measured over about one
-    watch period."""
+    count read of its own until the next cycle): the jump is read within ``SEEN_WITHIN_S`` and the run ends
+    ``failed`` naming it, still in the phase ``carrying`` (the move halted, not the next plan's read). On main
+    (no watcher) the run went on: running 30 s after the jump."""
     app, world = cell
     http = app.http()
     assert world.belt is not None
@@ -73,6 +76,6 @@ def test_a_count_that_jumps_while_the_arm_carries_a_part_ends_the_run_failed_in_
     assert m is not None, st
     jump, ms = int(m.group(1)), int(m.group(2))
     assert abs(jump - 4000 - ms) <= 20, st  # the jump and the belt's travel (100 mm/s: 1 tick a ms) between reads
-    assert ms <= 1e3 * ENDED_WITHIN_S, st
+    assert ms <= 1e3 * SEEN_WITHIN_S, f"the reads either side of the jump {ms} ms apart (every {WATCH_S} s): {st}"
     assert st["phase"] == "carrying", st  # ended in the move it came in, not at the next plan
-    assert took_s <= ENDED_WITHIN_S, f"the run ended {took_s:.2f} s after the jump (watched every {WATCH_S} s): {st}"
+    assert took_s <= ENDED_WITHIN_S, f"the run ended {took_s:.2f} s after the jump: {st}"
