@@ -241,17 +241,30 @@ class Missed(str):
 class BeltWatch:
     """The encoder's count against the clock: the belt's speed, and a count that jumps.
 
-    Thread-safe: the run's thread samples the count while others (REST's ``GET /production``, a PLC) read
-    the speed; the samples are read and written under one lock (a reader copies them, then computes)."""
+    Thread-safe: the run's thread and its count watcher read and sample the count (``read``, one read at a
+    time) while others (REST's ``GET /production``, a PLC) read the speed; the samples are read and written
+    under one lock (a reader copies them, then computes)."""
 
     def __init__(self, ticks_per_m: float, max_speed_mm_s: float = 300.0) -> None:
         self.ticks_per_m = ticks_per_m
         self.max_speed_mm_s = max_speed_mm_s
+        self._read_lock = threading.Lock()
+        """Held from the start of a count's read to its sample (``read``): one read at a time."""
         self._lock = threading.Lock()
         self._samples: deque[tuple[float, int]] = deque(maxlen=400)
         """(monotonic s, count) of the last reads, oldest first (under ``_lock``)."""
         self._read_from_s: float | None = None
         """When the last count's read began (monotonic s): the count was taken between then and its sample's time."""
+
+    def read(self, count: Callable[[], int]) -> tuple[int, str | None]:
+        """Read the count now (``count``: the conveyor's ``ticks``) and sample it: (the count, why it is wrong or
+        None). Reads are one at a time, from the read's start to its sample: the samples stay in the order of
+        their reads (two reads interleaved could sample an older count just after a newer one: at speed, tens of
+        ticks in a few ms, a false jump), and the conveyor's driver is read by one of the run's threads at once."""
+        with self._read_lock:
+            read_from_s = time.monotonic()
+            ticks = count()
+            return ticks, self.sample(ticks, read_from_s=read_from_s)
 
     def sample(self, ticks: int, t: float | None = None, read_from_s: float | None = None) -> str | None:
         """Record the count read between ``read_from_s`` and ``t`` (default: now); why it is wrong (a jump:

@@ -7,13 +7,17 @@ before it leaves the window is given up, counted ``missed_window`` and recorded.
 meeting point while the gripper opens (on the run's gripper thread), then waits for the count at which the
 part is there; an arm there late (``LATE_MM``) plans the meeting again further along the window, from where it
 is (at most ``REPLANS`` times). A belt that stopped or slowed while the arm waits is recorded ``belt_stopped``
-(the part stays queued). Counts are read on the run's thread (``BeltWatch``: the speed, a count that jumps).
+(the part stays queued). Counts are read on the run's thread (for the plan and the wait) and every ``WATCH_S``
+by the run's count watcher (``_watch_count``: a count that jumps is caught while the arm moves too); both
+sample them into ``BeltWatch`` (the speed, a count that jumps).
 The run itself (its threads, the cycle): :class:`cellctl.production.conveyor_run.ConveyorRun`.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
+import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -39,6 +43,8 @@ from cellctl.production.run import ProductionRun
 from drivers.conveyor.base import ConveyorBase
 from drivers.robot_base import DEFAULT_ACCEL_M_S2
 
+log = logging.getLogger(__name__)
+
 POLL_S = 0.002
 """How often the count is read while the robot waits for a part, s."""
 FOLLOW_MARGIN_S = 0.25
@@ -57,6 +63,12 @@ REPLANS = 3
 """At most this many later meetings for one part before it is given up as missed."""
 WAIT_SLACK_S = 1.5
 """The robot waits this much longer than planned for the count at which the part is under it, s."""
+WATCH_S = 0.05
+"""How often the run's count watcher reads the encoder's count, s. The run's thread reads it only between its
+steps: none for the ~2 s of a pick cycle's moves and gripper, and a jump read that much later looks like an
+ordinary belt (4000 ticks over 0.7 s: under 600 mm/s), the queued parts then 400 mm off. Read every 50 ms, a
+jump of more than twice the belt's 300 mm/s over one period (30 mm) is caught within a period whatever the arm
+is doing, the arm halted there; the watcher costs ~2 ms of CPU per second of run (docs/conveyor.md)."""
 
 
 class BeltMeetingRun(ProductionRun):
@@ -77,15 +89,37 @@ class BeltMeetingRun(ProductionRun):
         """How much longer than the robot's own timing (plus the gripper's open) each approach took, s."""
         self._opener: ThreadPoolExecutor | None = None
         """Opens the gripper while the arm travels to the meeting point (the run's; shut down at its end)."""
+        self._count_fault: str | None = None
+        """Why the count watcher ended the run (a count that jumped; set before it aborts the motion session)."""
 
     def _check_count(self) -> int:
-        """The encoder's count now, sampled by the watch (the run's thread); a count that jumped is raised."""
-        read_from_s = time.monotonic()
-        ticks = self.conveyor.ticks()
-        problem = self.watch.sample(ticks, read_from_s=read_from_s)
+        """The encoder's count now, sampled by the watch (the run's thread); a count that jumped is raised, here
+        or by the count watcher before."""
+        if self._count_fault is not None:
+            raise PickError(self._count_fault)
+        ticks, problem = self.watch.read(self.conveyor.ticks)
         if problem is not None:
             raise PickError(problem)
         return ticks
+
+    def _watch_count(self, halt: threading.Event) -> None:
+        """The run's count watcher (its own thread, until ``halt``): the count read every ``WATCH_S`` into the
+        watch. A count that jumps (or cannot be read) ends the run now: the reason kept (``_count_fault``, what
+        the run fails with), the motion session aborted (a move under way raises, nothing more moves) and the
+        arm halted, tracking too; the run's thread then ends the run ``failed`` with the reason."""
+        while not halt.wait(WATCH_S):
+            try:
+                problem = self.watch.read(self.conveyor.ticks)[1]
+            except Exception as exc:  # noqa: BLE001 - the run fails saying why, as a read on its thread would
+                problem = f"reading the encoder's count failed: {exc}"
+            if problem is not None:
+                self._count_fault = problem
+                self.session.abort(problem)
+                try:
+                    self.robot.halt()
+                except Exception as exc:  # noqa: BLE001 - the run's end halts it again and says so
+                    log.error("robot %s: halting after '%s' failed: %s", self.robot.robot_id, problem, exc)
+                return
 
     def _follow_s(self, cand: PickCandidate | None = None) -> float:
         """The time the arm follows a part: down to it, the gripper's close, up (the robot's own timing of the

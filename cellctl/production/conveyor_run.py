@@ -16,12 +16,14 @@ robot never chases it out of the window.
 Safety: every commanded pose is checked against the envelope by ``move_linear``; while tracking, the
 pose is also checked where the belt can carry it (the controller's tracking limit is the window's
 end). A robot Stop halts the arm and ends tracking at once (the held part stays held); the run ends
-``stopped``. Faults end the run ``failed`` with the reason: a count that jumps (faster than any belt),
+``stopped``. Faults end the run ``failed`` with the reason: a count that jumps (faster than any belt; the count
+is watched every ``WATCH_S`` while the run runs, and a jump halts the arm at once, mid-move too),
 an encoder that stopped while the parts moved (two pictures at one count, the parts elsewhere), a
 belt that stopped with the robot waiting for a part (``belt_stopped`` is recorded; the part stays
 queued and is met where it lies if that is in the window).
 
-This module: the run's threads (the vision thread's pictures into the queue; the run's cycles) and a belt
+This module: the run's threads (the vision thread's pictures into the queue; the count watcher,
+``BeltMeetingRun._watch_count``; the run's cycles) and a belt
 cycle from the meeting to the place. The meeting (which part, the plan, the arm above the meeting point, the
 wait, a later meeting): :class:`cellctl.production.belt_meeting.BeltMeetingRun`, its base.
 """
@@ -62,7 +64,8 @@ class ConveyorRun(BeltMeetingRun):
         """Why the vision thread ended the run (set there, raised on the run's thread)."""
         self._seen_s = time.monotonic()
         """When a picture last showed a part (monotonic s)."""
-        self._halt_vision = threading.Event()
+        self._cycles_over = threading.Event()
+        """Set when the run's cycles end: its vision thread and count watcher stop."""
         self.pictures = 0
         """Pictures the vision thread took so far."""
 
@@ -82,7 +85,7 @@ class ConveyorRun(BeltMeetingRun):
         """Pictures one after the other until the run ends; each one's parts into the queue."""
         s = self.s
         last: tuple[float, int, int] | None = None  # (time, count, parts) of the previous picture
-        while not self._halt_vision.is_set():
+        while not self._cycles_over.is_set():
             try:
                 picture = take_picture(self.services, s.recipe_id, s.recipe_version, s.recipe, s.camera_id,
                                        self.robot, 0.0)
@@ -115,15 +118,27 @@ class ConveyorRun(BeltMeetingRun):
             raise PickError("a belt run places into a fixed or grid place (a located place needs the arm out of "
                             "the place's picture: not on a belt)")
         self._go_home()
-        looker = threading.Thread(target=self._look, name=f"production-{self.status.run_id}-belt", daemon=True)
+        run_id = self.status.run_id
+        looker = threading.Thread(target=self._look, name=f"production-{run_id}-belt", daemon=True)
+        watcher = threading.Thread(target=self._watch_count, args=(self._cycles_over,),
+                                   name=f"production-{run_id}-count", daemon=True)
         looker.start()
-        self._opener = ThreadPoolExecutor(1, thread_name_prefix=f"production-{self.status.run_id}-gripper")
+        watcher.start()
+        self._opener = ThreadPoolExecutor(1, thread_name_prefix=f"production-{run_id}-gripper")
         try:
-            return self._belt_cycles()
+            ended = self._belt_cycles()
+        except Exception as exc:
+            if self._count_fault is None:
+                raise
+            raise PickError(self._count_fault) from exc  # the watcher aborted the cycle (a move raised): its reason
         finally:
-            self._halt_vision.set()
+            self._cycles_over.set()
             self._opener.shutdown(wait=True)
             looker.join(30.0)
+            watcher.join(30.0)
+        if self._count_fault is not None:  # caught as the cycles ended
+            raise PickError(self._count_fault)
+        return ended
 
     def _belt_cycles(self) -> Ended:
         r = self.s.recipe
