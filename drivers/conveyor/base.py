@@ -29,7 +29,8 @@ class ConveyorBase(DeviceBase):
 
     @abc.abstractmethod
     def ticks(self) -> int:
-        """The encoder's count now."""
+        """The encoder's count now. Called from more than one thread (a production run reads it on its own
+        thread and on its count watcher's, every 50 ms): an adapter must be safe to call concurrently."""
 
     @abc.abstractmethod
     def speed_mm_s(self) -> float | None:
