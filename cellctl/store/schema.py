@@ -214,19 +214,3 @@ sa.event.listen(calibrations, "after_create", sa.DDL(
     "CREATE TRIGGER calibrations_immutable BEFORE UPDATE ON calibrations "
     "FOR EACH ROW EXECUTE FUNCTION cellctl_calibrations_immutable()",
 ).execute_if(dialect="postgresql"))
-
-_CREATE_SQL: dict[tuple[str, object], tuple[str, ...]] = {}
-
-
-def create_statements(dialect: sa.Dialect) -> tuple[str, ...]:
-    """The statements ``metadata.create_all(checkfirst=False)`` issues on ``dialect`` for an empty database
-    (each table, its indexes, its triggers, in create_all's order), compiled by ``dialect`` once per
-    process and dialect version: a new store runs them as they are instead of compiling them again."""
-    key = (dialect.name, dialect.server_version_info)
-    found = _CREATE_SQL.get(key)
-    if found is None:
-        issued: list[sa.ExecutableDDLElement] = []
-        mock = sa.create_mock_engine(sa.URL.create(dialect.name), lambda sql, *_, **__: issued.append(sql))
-        metadata.create_all(mock, checkfirst=False)
-        found = _CREATE_SQL[key] = tuple(str(element.compile(dialect=dialect)) for element in issued)
-    return found

@@ -146,11 +146,7 @@ class Store(CalibrationRows, LatchRows, ProductionRows, RecipeRows, DriftRows):
                 raise StoreFormatError(f"store {self.describe()}: has tables named like cellctl's but no "
                                        f"{S.meta.name} table; it is not a cellctl store: "
                                        "point store.url/path elsewhere")
-            missing = ours - existing
-            if missing == ours and self.backend == "sqlite":  # a new store: create_all's statements, compiled once
-                for statement in S.create_statements(conn.dialect):
-                    conn.exec_driver_sql(statement)
-            elif missing:  # a current store has every table: nothing to create, nothing to ask per table
+            if ours - existing:  # a current store has every table: nothing to create, nothing to ask per table
                 S.metadata.create_all(conn)
             rows = {str(r[0]): str(r[1]) for r in conn.execute(sa.select(S.meta.c.key, S.meta.c.value))}
             if not rows:

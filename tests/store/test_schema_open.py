@@ -1,5 +1,5 @@
-"""Opening a store cheaply (``Store._create_schema``): a new SQLite store gets create_all's statements compiled
-once per process, a current store asks for nothing it has; the schema is the same either way."""
+"""Opening a store cheaply (``Store._create_schema``): a current store asks for nothing it has, a missing table
+is made again; a new store's schema is the one create_all makes."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def _statements() -> Iterator[list[str]]:
 
 
 def test_a_new_store_has_the_schema_create_all_makes(tmp_path: Path) -> None:
-    for i in range(2):  # the first compiles the statements, the second reuses them
+    for i in range(2):  # two new stores in one process
         Store(sqlite_url(tmp_path / f"new{i}.db"), "cell").close()
     engine = make_engine(sqlite_url(tmp_path / "reference.db"))
     with engine.begin() as conn:
