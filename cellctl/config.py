@@ -15,13 +15,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from calibration.io import read_text, yaml_error_text
 from cellctl.config_listeners import HttpConfig, PlcConfig
 from cellctl.drift.config import DriftConfig
 from cellctl.errors import CellctlError
 from cellctl.errors_format import format_validation_errors
+from cellctl.strict_types import ClosedModel
 from drivers.base import MotionLimits
 from drivers.registry import Category, UnknownAdapter, adapter_class
 from drivers.yaml_text import load_yaml
@@ -35,22 +36,18 @@ class ConfigError(CellctlError, ValueError):
     """cell.yaml is malformed; the message names the file, the key path and what is expected."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class TokenConfig(_Strict):
+class TokenConfig(ClosedModel):
     name: str = Field(min_length=1)
     role: Role
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
     """SHA-256 of the token (hex); the token itself is never stored."""
 
 
-class AuthConfig(_Strict):
+class AuthConfig(ClosedModel):
     tokens: list[TokenConfig] = []
 
 
-class StoreConfig(_Strict):
+class StoreConfig(ClosedModel):
     url: str | None = None  # e.g. postgresql+psycopg://user@127.0.0.1:5432/cellctl; default: SQLite at path
     path: str | None = None
     """SQLite file; default: ``$XDG_DATA_HOME/cellctl/<cell_id>.db`` (``~/.local/share``)."""
@@ -59,7 +56,7 @@ class StoreConfig(_Strict):
     ``<data dir>/backups``. Better on another disk than the store's."""
 
 
-class Envelope(_Strict):
+class Envelope(ClosedModel):
     """Workspace box of the tool position in the robot base frame, millimetres."""
 
     x_mm: tuple[float, float]
@@ -75,7 +72,7 @@ class Envelope(_Strict):
         return self
 
 
-class DeviceConfig(_Strict):
+class DeviceConfig(ClosedModel):
     kind: str
     settings: dict[str, Any] = {}
 
@@ -136,7 +133,7 @@ class ConveyorConfig(DeviceConfig):
     """A belt's encoder (docs/conveyor.md)."""
 
 
-class CalibrationDefaults(_Strict):
+class CalibrationDefaults(ClosedModel):
     """Defaults of the calibration routines (each request may override them)."""
 
     camera: str = "cam0"
@@ -149,7 +146,7 @@ class CalibrationDefaults(_Strict):
     verify_tolerance_mm: float = Field(0.5, gt=0)
 
 
-class ProductionConfig(_Strict):
+class ProductionConfig(ClosedModel):
     """Production runs (docs/production.md): where the frames of failed cycles are kept, and how many."""
 
     failure_frames_dir: str | None = None
@@ -160,7 +157,7 @@ class ProductionConfig(_Strict):
     """Their total size on disk, MB (10^6 bytes); beyond it the oldest are deleted."""
 
 
-class CellConfig(_Strict):
+class CellConfig(ClosedModel):
     format_version: int = CONFIG_FORMAT_VERSION
     cell_id: str = Field("cell", pattern=r"^[A-Za-z0-9_.-]+$")
     http: HttpConfig = HttpConfig()

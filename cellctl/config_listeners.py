@@ -12,14 +12,12 @@ from __future__ import annotations
 import ipaddress
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from cellctl.strict_types import ClosedModel
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class HttpConfig(_Strict):
+class HttpConfig(ClosedModel):
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=1, le=65535)
     tls_cert: str | None = None
@@ -64,7 +62,7 @@ def is_loopback_host(host: str) -> bool:
         return False
 
 
-class ModbusServerConfig(_Strict):
+class ModbusServerConfig(ClosedModel):
     """The Modbus TCP server for PLCs (register map: docs/plc-modbus.md). Modbus has no security:
     bind it to the PLC's network only."""
 
@@ -81,7 +79,7 @@ class ModbusServerConfig(_Strict):
     """Connections at once in all; more are closed at once, so no client can use up the service's descriptors."""
 
 
-class EthernetIpServerConfig(_Strict):
+class EthernetIpServerConfig(ClosedModel):
     """The EtherNet/IP (CIP explicit messaging) tag server for Rockwell PLCs (docs/plc-ethernet-ip.md).
     EtherNet/IP has no authentication: bind it to the PLC's network only."""
 
@@ -94,7 +92,7 @@ class EthernetIpServerConfig(_Strict):
     """Connections at once; more are closed at once."""
 
 
-class RobotSocketConfig(_Strict):
+class RobotSocketConfig(ClosedModel):
     """The robot socket: one ASCII line in, one out, for a robot program's TCP client (docs/robot-socket.md)."""
 
     enabled: bool = False
@@ -114,7 +112,7 @@ TRUST_HINT = ("security basic256sha256 needs trusted_client_certs: a directory h
               "(docs/plc-opcua.md, 'Trusting a client')")
 
 
-class OpcUaServerConfig(_Strict):
+class OpcUaServerConfig(ClosedModel):
     """The OPC UA server for PLCs (address space: docs/plc-opcua.md)."""
 
     enabled: bool = False
@@ -140,7 +138,7 @@ class OpcUaServerConfig(_Strict):
         return self
 
 
-class PlcConfig(_Strict):
+class PlcConfig(ClosedModel):
     modbus: ModbusServerConfig = ModbusServerConfig()
     opcua: OpcUaServerConfig = OpcUaServerConfig()
     ethernet_ip: EthernetIpServerConfig = EthernetIpServerConfig()

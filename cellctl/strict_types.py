@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import AllowInfNan, Strict
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Strict
 
 Num = Annotated[float, Strict(), AllowInfNan(False)]
 """A finite JSON number (an integer is accepted); not a bool, a string, NaN or Infinity."""
@@ -19,3 +19,10 @@ Count = Annotated[int, Strict()]
 """A JSON integer; not a float, a bool or a string. Give it a range."""
 Bool = Annotated[bool, Strict()]
 """``true`` or ``false``; not 1, "yes" or "true"."""
+
+
+class ClosedModel(BaseModel):
+    """A section of ``cell.yaml`` (or of a body) that refuses a key it does not know: a misspelt setting is an
+    error naming it, never a default silently kept."""
+
+    model_config = ConfigDict(extra="forbid")

@@ -9,14 +9,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from cellctl.strict_types import ClosedModel
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class FiducialsConfig(_Strict):
+class FiducialsConfig(ClosedModel):
     marks_mm: list[tuple[float, float, float]] | None = None
     """Marks' centres in the base frame, ``[x_mm, y_mm, z_mm]`` each (3 or more)."""
     mark_diameter_mm: float = Field(4.0, gt=0, le=100)
@@ -38,7 +36,7 @@ class FiducialsConfig(_Strict):
         return self
 
 
-class DriftConfig(_Strict):
+class DriftConfig(ClosedModel):
     """Drift checks of one camera against its active hand-eye calibration (fixed, or on the arm from a station)."""
 
     camera: str | None = None
