@@ -45,7 +45,7 @@ def test_a_count_that_jumps_while_the_arm_carries_a_part_ends_the_run_failed_in_
     """The count jumps as the arm starts to carry its first part to the slot (injected on the run's thread as
     that move begins: the run's thread then blocked in the move, no count read of its own until the next
     cycle's plan): the jump is read within ``SEEN_WITHIN_S`` and the run ends ``failed`` naming it, in that
-    cycle's carry or place (nothing placed), not at the next plan. On main (no watcher) the run went on: running
+    cycle's carry or place (nothing placed), not at the next plan. Without the watcher the run went on: running
     30 s after the jump."""
     app, world = cell
     http = app.http()
